@@ -9,3 +9,4 @@
 pub mod wire;
 
 pub use wire::{Duration, Frame, Instant};
+pub mod encoder;
