@@ -1,1 +1,20 @@
+//! canpos-host: the `std` side of canpos — CAN transports and log formats.
+//!
+//! - [`transport`]: the [`Transport`] trait the runtime drives nodes through, bus URLs, [`open`].
+//! - [`socketcand`]: the socketcand TCP protocol: codec, a hub server, a client transport.
+//! - [`mem`]: an in-process bus.
+//! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
+//! - [`candump`]: candump `-L` log lines.
+#![deny(missing_docs)]
 
+pub mod candump;
+pub mod mem;
+#[cfg(feature = "socketcan")]
+pub mod socketcan;
+pub mod socketcand;
+pub mod transport;
+
+pub use crossbeam_channel;
+pub use mem::{MemBus, MemPort};
+pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
+pub use transport::{open, open_or_host, BusUrl, Error, RxFrame, Transport, DEFAULT_URL};

@@ -17,6 +17,9 @@ pub struct Sample {
 
 impl Default for Sample {
     fn default() -> Self {
-        Sample { positions_nm: [None; MAX_CHANNELS], temperature_c: 25 }
+        Sample {
+            positions_nm: [None; MAX_CHANNELS],
+            temperature_c: 25,
+        }
     }
 }

@@ -1,0 +1,252 @@
+//! EMCY producer (CiA 301 §7.2.7): error codes, the error register (0x1001), the pre-defined
+//! error field (0x1003) and the inhibit time (0x1015).
+
+use crate::wire::{Duration, Instant};
+
+/// Error register bits (0x1001, CiA 301 Table 48; TH/E Table 6).
+pub mod reg {
+    /// Generic error (set whenever any error is active).
+    pub const GENERIC: u8 = 0x01;
+    /// Current.
+    pub const CURRENT: u8 = 0x02;
+    /// Voltage.
+    pub const VOLTAGE: u8 = 0x04;
+    /// Temperature.
+    pub const TEMPERATURE: u8 = 0x08;
+    /// Communication error (overrun, error state).
+    pub const COMMUNICATION: u8 = 0x10;
+    /// Device profile specific.
+    pub const PROFILE: u8 = 0x20;
+    /// Manufacturer specific.
+    pub const MANUFACTURER: u8 = 0x80;
+}
+
+/// Error codes the sensors use (TH/E Table 5, TMI §1.14).
+pub mod code {
+    /// Error reset or no error.
+    pub const NO_ERROR: u16 = 0x0000;
+    /// Main voltage.
+    pub const MAIN_VOLTAGE: u16 = 0x3100;
+    /// Temperature (ambient).
+    pub const TEMPERATURE: u16 = 0x4200;
+    /// Device hardware (transducer error, missing magnet).
+    pub const HARDWARE: u16 = 0x5000;
+    /// Device software / TMI: insufficient event timer.
+    pub const SOFTWARE: u16 = 0x6000;
+    /// Data set.
+    pub const DATA_SET: u16 = 0x6300;
+    /// Communication (generic).
+    pub const COMMUNICATION: u16 = 0x8100;
+    /// CAN overrun (objects lost).
+    pub const CAN_OVERRUN: u16 = 0x8110;
+    /// CAN in error passive mode.
+    pub const ERROR_PASSIVE: u16 = 0x8120;
+    /// Life guard error or heartbeat error.
+    pub const LIFE_GUARD: u16 = 0x8130;
+    /// Recovered from bus off.
+    pub const BUS_OFF_RECOVERED: u16 = 0x8140;
+    /// CAN-ID collision.
+    pub const COB_COLLISION: u16 = 0x8150;
+    /// PDO not processed due to length error.
+    pub const PDO_LENGTH: u16 = 0x8210;
+    /// TMI: cam state changed.
+    pub const TMI_CAM: u16 = 0x9080;
+    /// TMI: work area state changed.
+    pub const TMI_WORK_AREA: u16 = 0x9090;
+}
+
+/// Depth of the pre-defined error field 0x1003.
+pub const HISTORY_LEN: usize = 8;
+const ACTIVE_LEN: usize = 8;
+const PENDING_LEN: usize = 8;
+
+/// The EMCY producer's state.
+#[derive(Clone, Debug)]
+pub struct Emcy {
+    active: [(u16, u8); ACTIVE_LEN],
+    n_active: usize,
+    history: [u32; HISTORY_LEN],
+    n_history: usize,
+    pending: [[u8; 8]; PENDING_LEN],
+    n_pending: usize,
+    inhibit: Duration,
+    next_allowed: Instant,
+    /// EMCYs that could not be queued (pending queue full).
+    pub lost: u32,
+}
+
+impl core::default::Default for Emcy {
+    fn default() -> Self {
+        Emcy {
+            active: [(0, 0); ACTIVE_LEN],
+            n_active: 0,
+            history: [0; HISTORY_LEN],
+            n_history: 0,
+            pending: [[0; 8]; PENDING_LEN],
+            n_pending: 0,
+            inhibit: Duration::ZERO,
+            next_allowed: Instant::ZERO,
+            lost: 0,
+        }
+    }
+}
+
+impl Emcy {
+    /// The error register (0x1001) as the active errors make it.
+    pub fn register(&self) -> u8 {
+        let mut r = 0;
+        for &(_, bits) in &self.active[..self.n_active] {
+            r |= bits | reg::GENERIC;
+        }
+        r
+    }
+
+    /// Whether `code` is active.
+    pub fn is_active(&self, code: u16) -> bool {
+        self.active[..self.n_active].iter().any(|&(c, _)| c == code)
+    }
+
+    /// Sets the inhibit time (0x1015, 100 µs units).
+    pub fn set_inhibit(&mut self, units_100us: u16) {
+        self.inhibit = Duration::from_micros(units_100us as u64 * 100);
+    }
+
+    /// An error appears: records it, adds it to the history and queues its EMCY (once per
+    /// event: an error already active sends nothing).
+    pub fn raise(&mut self, code: u16, reg_bits: u8, mfr: [u8; 5]) {
+        if self.is_active(code) {
+            return;
+        }
+        if self.n_active < ACTIVE_LEN {
+            self.active[self.n_active] = (code, reg_bits);
+            self.n_active += 1;
+        }
+        self.record(code, mfr);
+        let r = self.register();
+        self.queue(code, r, mfr);
+    }
+
+    /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
+    pub fn event(&mut self, code: u16, mfr: [u8; 5]) {
+        self.record(code, mfr);
+        let r = self.register();
+        self.queue(code, r, mfr);
+    }
+
+    /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
+    pub fn clear(&mut self, code: u16) {
+        let Some(i) = self.active[..self.n_active]
+            .iter()
+            .position(|&(c, _)| c == code)
+        else {
+            return;
+        };
+        self.active.copy_within(i + 1..self.n_active, i);
+        self.n_active -= 1;
+        if self.n_active == 0 {
+            self.queue(code::NO_ERROR, 0, [0; 5]);
+        }
+    }
+
+    /// Sends the power-on EMCY "without reasonable data" (D14).
+    pub fn power_on(&mut self) {
+        let r = self.register();
+        self.queue(code::NO_ERROR, r, [0; 5]);
+    }
+
+    /// Forgets active errors and pending frames (reset); the history survives until cleared.
+    pub fn reset(&mut self) {
+        self.n_active = 0;
+        self.n_pending = 0;
+        self.next_allowed = Instant::ZERO;
+    }
+
+    /// Entry `i` (1-based, newest first) of 0x1003.
+    pub fn history(&self, i: usize) -> Option<u32> {
+        if i == 0 || i > self.n_history {
+            None
+        } else {
+            Some(self.history[i - 1])
+        }
+    }
+    /// Number of history entries (0x1003/0).
+    pub fn history_len(&self) -> usize {
+        self.n_history
+    }
+    /// Clears 0x1003.
+    pub fn clear_history(&mut self) {
+        self.n_history = 0;
+        self.history = [0; HISTORY_LEN];
+    }
+
+    fn record(&mut self, code: u16, mfr: [u8; 5]) {
+        // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
+        // entry matches the frame (conformance EMCY-06).
+        let entry = code as u32 | (u16::from_le_bytes([mfr[0], mfr[1]]) as u32) << 16;
+        self.history.copy_within(0..HISTORY_LEN - 1, 1);
+        self.history[0] = entry;
+        self.n_history = (self.n_history + 1).min(HISTORY_LEN);
+    }
+
+    fn queue(&mut self, code: u16, register: u8, mfr: [u8; 5]) {
+        if self.n_pending == PENDING_LEN {
+            self.lost = self.lost.wrapping_add(1);
+            return;
+        }
+        let c = code.to_le_bytes();
+        self.pending[self.n_pending] =
+            [c[0], c[1], register, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]];
+        self.n_pending += 1;
+    }
+
+    /// When the next queued EMCY may go out, if one waits.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        (self.n_pending > 0).then_some(self.next_allowed)
+    }
+
+    /// Takes the next EMCY payload whose inhibit time has passed.
+    pub fn poll(&mut self, now: Instant) -> Option<[u8; 8]> {
+        if self.n_pending == 0 || now < self.next_allowed {
+            return None;
+        }
+        let f = self.pending[0];
+        self.pending.copy_within(1..self.n_pending, 0);
+        self.n_pending -= 1;
+        self.next_allowed = now + self.inhibit;
+        Some(f)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn register_history_and_clear() {
+        let mut e = Emcy::default();
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        assert_eq!(
+            e.register(),
+            0x81,
+            "D13: missing magnet gives register 0x81"
+        );
+        assert_eq!(e.poll(Instant(0)), Some([0x00, 0x50, 0x81, 0, 0, 0, 0, 0]));
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        assert_eq!(e.poll(Instant(0)), None, "once per event");
+        e.clear(code::HARDWARE);
+        assert_eq!(e.poll(Instant(0)), Some([0; 8]));
+        assert_eq!(e.history(1), Some(0x5000));
+    }
+
+    #[test]
+    fn inhibit_spaces_emcys() {
+        let mut e = Emcy::default();
+        e.set_inhibit(100); // 10 ms
+        e.event(code::TMI_CAM, [1, 0, 0, 0, 0]);
+        e.event(code::TMI_CAM, [1, 1, 0, 0, 0]);
+        assert!(e.poll(Instant(0)).is_some());
+        assert!(e.poll(Instant(9_999)).is_none());
+        assert_eq!(e.poll_timeout(), Some(Instant(10_000)));
+        assert!(e.poll(Instant(10_000)).is_some());
+    }
+}

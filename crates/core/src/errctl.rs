@@ -1,0 +1,106 @@
+//! Error control (CiA 301 §7.2.8.3): boot-up, heartbeat producer (0x1017) and node guarding with
+//! life guarding (0x100C × 0x100D, D11).
+
+use crate::nmt::NmtState;
+use crate::wire::{Duration, Instant};
+
+/// Heartbeat and node-guarding state of the slave.
+#[derive(Clone, Debug, Default)]
+pub struct ErrCtl {
+    heartbeat: Option<Duration>,
+    next_heartbeat: Option<Instant>,
+    toggle: bool,
+    life_time: Option<Duration>,
+    /// Deadline of the next expected guard request, once guarding has started.
+    guard_deadline: Option<Instant>,
+    /// A life-guarding event happened and no guard request has come since.
+    pub life_guard_lost: bool,
+}
+
+/// What a timer expiry produced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ErrCtlEvent {
+    /// Send a heartbeat with this state byte.
+    Heartbeat(u8),
+    /// The life time elapsed without a guard request (EMCY 0x8130, PDOs stop).
+    LifeGuardingLost,
+}
+
+impl ErrCtl {
+    /// Applies 0x1017 (ms, 0 = off): the first heartbeat follows one period after `now`.
+    pub fn set_heartbeat(&mut self, ms: u16, now: Instant) {
+        if ms == 0 {
+            self.heartbeat = None;
+            self.next_heartbeat = None;
+        } else {
+            let p = Duration::from_millis(ms as u64);
+            self.heartbeat = Some(p);
+            self.next_heartbeat = Some(now + p);
+        }
+    }
+
+    /// Applies 0x100C (ms) and 0x100D: life guarding is armed once both are non-zero and a guard
+    /// request has arrived.
+    pub fn set_guarding(&mut self, guard_ms: u16, factor: u8, now: Instant) {
+        self.life_time = if guard_ms != 0 && factor != 0 {
+            Some(Duration::from_millis(guard_ms as u64 * factor as u64))
+        } else {
+            None
+        };
+        self.guard_deadline = match (self.life_time, self.guard_deadline) {
+            (Some(l), Some(_)) => Some(now + l),
+            _ => None,
+        };
+        if self.life_time.is_none() {
+            self.life_guard_lost = false;
+        }
+    }
+
+    /// Clears the toggle and guarding state (reset communication).
+    pub fn reset(&mut self) {
+        *self = ErrCtl::default();
+    }
+
+    /// A guard request arrived: returns the reply byte (state | toggle) and re-arms life guarding.
+    pub fn guard_request(&mut self, state: NmtState, now: Instant) -> u8 {
+        let b = state.code() | if self.toggle { 0x80 } else { 0 };
+        self.toggle = !self.toggle;
+        if let Some(l) = self.life_time {
+            self.guard_deadline = Some(now + l);
+        }
+        self.life_guard_lost = false;
+        b
+    }
+
+    /// The next deadline of this service.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        match (self.next_heartbeat, self.guard_deadline) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// Handles expired timers; call until it returns `None`.
+    pub fn handle_timeout(&mut self, now: Instant, state: NmtState) -> Option<ErrCtlEvent> {
+        if let (Some(t), Some(p)) = (self.next_heartbeat, self.heartbeat) {
+            if now >= t {
+                // Absolute schedule: no drift; skip whole periods if the host was late.
+                let mut next = t + p;
+                if next <= now {
+                    let behind = (now - t).micros() / p.micros();
+                    next = t + Duration(p.micros() * (behind + 1));
+                }
+                self.next_heartbeat = Some(next);
+                return Some(ErrCtlEvent::Heartbeat(state.code()));
+            }
+        }
+        if let Some(d) = self.guard_deadline {
+            if now >= d {
+                self.guard_deadline = None;
+                self.life_guard_lost = true;
+                return Some(ErrCtlEvent::LifeGuardingLost);
+            }
+        }
+        None
+    }
+}

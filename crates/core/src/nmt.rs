@@ -1,0 +1,113 @@
+//! NMT slave (CiA 301 §7.2.8): states, commands and what each state lets through.
+
+/// NMT states of the slave, with the byte heartbeat / guarding replies carry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NmtState {
+    /// Initialising (only seen in the boot-up frame, byte 0x00).
+    Initialising,
+    /// Pre-operational: SDO, EMCY, SYNC and error control active; no PDOs.
+    PreOperational,
+    /// Operational: everything.
+    Operational,
+    /// Stopped: only NMT and error control.
+    Stopped,
+}
+
+impl NmtState {
+    /// The state byte of heartbeat and node-guarding frames.
+    pub const fn code(self) -> u8 {
+        match self {
+            NmtState::Initialising => 0x00,
+            NmtState::Stopped => 0x04,
+            NmtState::Operational => 0x05,
+            NmtState::PreOperational => 0x7F,
+        }
+    }
+    /// SDO, EMCY and SYNC are served.
+    pub const fn sdo_allowed(self) -> bool {
+        matches!(self, NmtState::PreOperational | NmtState::Operational)
+    }
+    /// PDOs are produced.
+    pub const fn pdo_allowed(self) -> bool {
+        matches!(self, NmtState::Operational)
+    }
+}
+
+/// NMT node-control commands (COB-ID 0x000, 2 bytes: command, node-id or 0 for all).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NmtCommand {
+    /// 0x01 start remote node.
+    Start,
+    /// 0x02 stop remote node.
+    Stop,
+    /// 0x80 enter pre-operational.
+    EnterPreOperational,
+    /// 0x81 reset node (application).
+    ResetNode,
+    /// 0x82 reset communication.
+    ResetCommunication,
+}
+
+impl NmtCommand {
+    /// The command specifier byte.
+    pub const fn code(self) -> u8 {
+        match self {
+            NmtCommand::Start => 0x01,
+            NmtCommand::Stop => 0x02,
+            NmtCommand::EnterPreOperational => 0x80,
+            NmtCommand::ResetNode => 0x81,
+            NmtCommand::ResetCommunication => 0x82,
+        }
+    }
+
+    /// Decodes an NMT frame's data for the node `node_id`. Returns `None` for frames that are
+    /// not for this node, have the wrong length (CiA 301: exactly 2 bytes) or an unknown
+    /// command.
+    pub fn parse(data: &[u8], node_id: u8) -> Option<NmtCommand> {
+        if data.len() != 2 || (data[1] != 0 && data[1] != node_id) {
+            return None;
+        }
+        Some(match data[0] {
+            0x01 => NmtCommand::Start,
+            0x02 => NmtCommand::Stop,
+            0x80 => NmtCommand::EnterPreOperational,
+            0x81 => NmtCommand::ResetNode,
+            0x82 => NmtCommand::ResetCommunication,
+            _ => return None,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nmt_table_3_commands() {
+        // Manual (TH Table 3 / E Table 2): command byte, then 0 = all or the node-id.
+        assert_eq!(
+            NmtCommand::parse(&[0x01, 0x7F], 0x7F),
+            Some(NmtCommand::Start)
+        );
+        assert_eq!(
+            NmtCommand::parse(&[0x02, 0x00], 0x7F),
+            Some(NmtCommand::Stop)
+        );
+        assert_eq!(
+            NmtCommand::parse(&[0x80, 0x7F], 0x7F),
+            Some(NmtCommand::EnterPreOperational)
+        );
+        assert_eq!(
+            NmtCommand::parse(&[0x81, 0x00], 0x7F),
+            Some(NmtCommand::ResetNode)
+        );
+        assert_eq!(
+            NmtCommand::parse(&[0x82, 0x7F], 0x7F),
+            Some(NmtCommand::ResetCommunication)
+        );
+        assert_eq!(NmtCommand::parse(&[0x01, 0x05], 0x7F), None, "other node");
+        assert_eq!(NmtCommand::parse(&[0x01], 0x7F), None, "short");
+        assert_eq!(NmtCommand::parse(&[0x01, 0x7F, 0], 0x7F), None, "long");
+        assert_eq!(NmtCommand::parse(&[0x03, 0x7F], 0x7F), None, "unknown");
+    }
+}

@@ -1,0 +1,963 @@
+//! The device: every service wired to one object dictionary, driven by frames and time.
+//!
+//! [`Node`] is the sans-IO surface: `handle_frame`, `handle_timeout`, `poll_transmit`,
+//! `poll_timeout`, `update_sample`. [`Device`] holds the state the services share; the SDO
+//! server and the LSS slave sit beside it so they can borrow it mutably while they run.
+
+use crate::emcy::{self, Emcy};
+use crate::encoder::{AppCtx, Encoder, Sample};
+use crate::errctl::{ErrCtl, ErrCtlEvent};
+use crate::lss::LssSlave;
+use crate::models::{DeviceConfig, Model};
+use crate::nmt::{NmtCommand, NmtState};
+use crate::od::{le_u32, Abort, DataType, Dictionary, Group, Param, ParamSource};
+use crate::pdo::{self, Tpdos};
+use crate::sdo::{ObjectAccess, SdoServer};
+use crate::storage::{self, Storage, StorageError, IMAGE_MAX};
+use crate::txq::TxQueue;
+use crate::wire::{cob, Duration, Frame, Instant};
+
+/// Node-id of a node that has none (CiA 305).
+pub const UNCONFIGURED: u8 = 0xFF;
+/// "save" signature (0x1010).
+pub const SIG_SAVE: u32 = 0x6576_6173;
+/// "load" signature (0x1011).
+pub const SIG_LOAD: u32 = 0x6461_6F6C;
+/// "kill" as ASCII bytes on the wire (D23).
+pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
+/// "kill" as the TMI manual prints it (D23).
+pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
+/// Minimum time a store takes before the SDO answer (D7).
+pub const STORE_TIME: Duration = Duration::from_millis(20);
+
+/// Counters a host may show.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Stats {
+    /// Frames received while the node's bit rate differed from the bus.
+    pub rx_wrong_bitrate: u32,
+    /// Frames dropped at transmit while the node's bit rate differed from the bus.
+    pub tx_wrong_bitrate: u32,
+    /// The stored image failed its check at the last load.
+    pub storage_corrupt: bool,
+}
+
+/// The state all services share: dictionary, NMT state, identity, queues, storage.
+pub struct Device<S: Storage> {
+    pub(crate) model: &'static Model,
+    pub(crate) cfg: DeviceConfig,
+    pub(crate) od: Dictionary,
+    pub(crate) nmt: NmtState,
+    pub(crate) powered: bool,
+    /// Active node-id (1…127 or [`UNCONFIGURED`]).
+    pub(crate) node_id: u8,
+    /// Node-id that becomes active at the next reset communication.
+    pub(crate) pending_node_id: u8,
+    /// Active bit rate in kbit/s (0 = autobaud, not yet detected).
+    pub(crate) bitrate: u16,
+    /// Bit rate that becomes active at the next reset / activation.
+    pub(crate) pending_bitrate: u16,
+    /// Bit rate of the bus the node is attached to, if known.
+    pub(crate) bus_bitrate: Option<u16>,
+    /// Bit-rate switch in progress (LSS activate): silent until then.
+    pub(crate) silent_until: Option<Instant>,
+    autobaud_frames: u8,
+    /// Node-id and bit rate as stored by LSS (kept across "restore defaults").
+    pub(crate) stored_lss: (Option<u8>, Option<u16>),
+    pub(crate) tx: TxQueue,
+    pub(crate) emcy: Emcy,
+    pub(crate) errctl: ErrCtl,
+    pub(crate) pdo: Tpdos,
+    pub(crate) encoder: Encoder,
+    pub(crate) storage: S,
+    pub(crate) now: Instant,
+    /// A store completed: the SDO answer waits until this instant (D7).
+    pub(crate) sdo_hold_until: Option<Instant>,
+    pub(crate) stats: Stats,
+}
+
+/// A CANopen position sensor node.
+pub struct Node<S: Storage> {
+    sdo: SdoServer,
+    held_sdo: Option<(Instant, [u8; 8])>,
+    lss: LssSlave,
+    dev: Device<S>,
+}
+
+struct Params<'a> {
+    model: &'static Model,
+    cfg: &'a DeviceConfig,
+}
+
+impl ParamSource for Params<'_> {
+    fn param(&self, p: Param) -> u32 {
+        (self.model.param)(self.cfg, p)
+    }
+}
+
+impl<S: Storage> Node<S> {
+    /// A node of `model` with unit configuration `cfg`, powered off. Call [`Node::power_on`].
+    pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
+        Node {
+            sdo: SdoServer::new(),
+            held_sdo: None,
+            lss: LssSlave::default(),
+            dev: Device {
+                model,
+                cfg,
+                od: Dictionary::new(model.entries),
+                nmt: NmtState::Initialising,
+                powered: false,
+                node_id: cfg.node_id,
+                pending_node_id: cfg.node_id,
+                bitrate: cfg.bitrate_kbps,
+                pending_bitrate: cfg.bitrate_kbps,
+                bus_bitrate: None,
+                silent_until: None,
+                autobaud_frames: 0,
+                stored_lss: (None, None),
+                tx: TxQueue::default(),
+                emcy: Emcy::default(),
+                errctl: ErrCtl::default(),
+                pdo: Tpdos::default(),
+                encoder: Encoder::default(),
+                storage,
+                now: Instant::ZERO,
+                sdo_hold_until: None,
+                stats: Stats::default(),
+            },
+        }
+    }
+
+    /// Power-on (or a power cycle): loads stored data, boots, sends the boot-up message and the
+    /// power-on EMCY. A node without a valid node-id stays silent in LSS.
+    pub fn power_on(&mut self, now: Instant) {
+        self.dev.now = now;
+        self.dev.powered = true;
+        self.dev.tx.clear();
+        self.sdo.reset();
+        self.held_sdo = None;
+        self.lss = LssSlave::default();
+        self.dev.emcy = Emcy::default();
+        self.dev.encoder = Encoder::default();
+        self.dev.stored_lss = (None, None);
+        self.dev.stats.storage_corrupt = false;
+        // Stored LSS values override the factory configuration.
+        let mut buf = [0u8; IMAGE_MAX];
+        let corrupt = match self.dev.storage.load(&mut buf) {
+            Ok(n) => match storage::parse_image(&buf[..n], self.dev.model.features.tag) {
+                Ok(recs) => {
+                    for (k, v) in recs {
+                        match k {
+                            storage::KEY_LSS_NODE_ID => self.dev.stored_lss.0 = Some(v as u8),
+                            storage::KEY_LSS_BITRATE => self.dev.stored_lss.1 = Some(v as u16),
+                            _ => {}
+                        }
+                    }
+                    false
+                }
+                Err(_) => true,
+            },
+            Err(StorageError::Empty) => false,
+            Err(_) => true,
+        };
+        self.dev.stats.storage_corrupt = corrupt;
+        self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(self.dev.cfg.node_id);
+        self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(self.dev.cfg.bitrate_kbps);
+        self.dev.bitrate = self.dev.pending_bitrate;
+        self.reset(true, now);
+        if corrupt {
+            self.dev.report_corrupt_storage();
+        }
+    }
+
+    /// Power off: the node neither sends nor receives until [`Node::power_on`].
+    pub fn power_off(&mut self) {
+        self.dev.powered = false;
+        self.dev.tx.clear();
+    }
+
+    /// NMT reset node (`application == true`) or reset communication.
+    fn reset(&mut self, application: bool, now: Instant) {
+        let d = &mut self.dev;
+        d.now = now;
+        self.sdo.reset();
+        self.held_sdo = None;
+        d.sdo_hold_until = None;
+        d.node_id = d.pending_node_id;
+        d.bitrate = d.pending_bitrate;
+        d.cfg.node_id = d.node_id;
+        d.cfg.bitrate_kbps = d.bitrate;
+        d.load_values(application);
+        d.emcy.reset();
+        d.errctl.reset();
+        if application {
+            d.encoder.reset();
+        }
+        d.apply_comm_config(now);
+        d.pdo.set_active(false, now);
+        if d.node_id == UNCONFIGURED {
+            // CiA 305: no node-id, no NMT: wait in LSS for one.
+            d.nmt = NmtState::Initialising;
+            self.lss.force_configuration();
+            return;
+        }
+        d.nmt = NmtState::PreOperational;
+        d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
+        if !d.model.features.tmi_emcy {
+            d.emcy.power_on();
+        }
+        d.flush_emcy();
+    }
+
+    /// Handles one received frame at `now`.
+    pub fn handle_frame(&mut self, f: &Frame, now: Instant) {
+        if !self.dev.powered {
+            return;
+        }
+        self.dev.now = now;
+        if !self.dev.can_hear(now) {
+            return;
+        }
+        let Some(id) = f.std_id() else { return };
+        let d = &mut self.dev;
+        if id == cob::LSS_RX {
+            if let Some(r) = self.lss.handle(f.data(), now, d) {
+                d.tx.push(Frame::std8(cob::LSS_TX, r));
+            }
+            self.after_lss(now);
+            return;
+        }
+        if d.node_id == UNCONFIGURED {
+            return;
+        }
+        let node = d.node_id as u16;
+        if id == cob::NMT {
+            if f.is_remote() {
+                return;
+            }
+            if let Some(c) = NmtCommand::parse(f.data(), d.node_id) {
+                self.nmt_command(c, now);
+            }
+            return;
+        }
+        if id == cob::SDO_RX + node && !f.is_remote() {
+            if d.nmt.sdo_allowed() {
+                if let Some(r) = self.sdo.handle(f.data(), now, d) {
+                    match d.sdo_hold_until.take() {
+                        Some(t) => self.held_sdo = Some((t, r)),
+                        None => {
+                            d.tx.push(Frame::std8(cob::SDO_TX + node, r));
+                        }
+                    }
+                }
+                d.flush_emcy();
+            }
+            return;
+        }
+        if id == cob::ERRCTL + node {
+            // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
+            if d.model.features.node_guarding && (f.is_remote() || f.dlc() == 0) {
+                let b = d.errctl.guard_request(d.nmt, now);
+                d.tx.push(Frame::std_len(
+                    cob::ERRCTL + node,
+                    [b, 0, 0, 0, 0, 0, 0, 0],
+                    1,
+                ));
+                d.update_pdo_activity(now);
+            }
+            return;
+        }
+        if !d.nmt.sdo_allowed() {
+            return;
+        }
+        let sync_id = d.od.value(0x1005, 0).unwrap_or(0x80);
+        if sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote() {
+            if f.dlc() <= 1 {
+                let Device { pdo, od, tx, .. } = d;
+                pdo.on_sync(od, now, &mut |fr| {
+                    tx.push(fr);
+                });
+            }
+            return;
+        }
+        if f.is_remote() && d.model.features.tpdo_rtr {
+            let Device { pdo, od, tx, .. } = d;
+            pdo.on_rtr(id, od, now, &mut |fr| {
+                tx.push(fr);
+            });
+        }
+    }
+
+    fn nmt_command(&mut self, c: NmtCommand, now: Instant) {
+        let d = &mut self.dev;
+        match c {
+            NmtCommand::Start => {
+                if d.encoder.lockout() {
+                    // TMI lock-out: stays pre-operational and repeats the EMCY (§3.12).
+                    d.encoder.repeat_lockout_emcy(&mut d.emcy);
+                    d.flush_emcy();
+                    return;
+                }
+                d.nmt = NmtState::Operational;
+            }
+            NmtCommand::Stop => d.nmt = NmtState::Stopped,
+            NmtCommand::EnterPreOperational => d.nmt = NmtState::PreOperational,
+            NmtCommand::ResetNode => return self.reset(true, now),
+            NmtCommand::ResetCommunication => return self.reset(false, now),
+        }
+        d.update_pdo_activity(now);
+    }
+
+    fn after_lss(&mut self, now: Instant) {
+        // A node that was unconfigured enters NMT once it has a node-id and LSS is waiting.
+        let d = &self.dev;
+        if d.node_id == UNCONFIGURED
+            && d.pending_node_id != UNCONFIGURED
+            && !self.lss.in_configuration()
+        {
+            self.reset(false, now);
+        }
+    }
+
+    /// Feeds one measurement cycle's sample to the CiA 406 application.
+    pub fn update_sample(&mut self, s: &Sample, now: Instant) {
+        if !self.dev.powered {
+            return;
+        }
+        self.dev.now = now;
+        let d = &mut self.dev;
+        let forced_preop = {
+            let mut cx = AppCtx {
+                od: &mut d.od,
+                emcy: &mut d.emcy,
+                pdo: &mut d.pdo,
+                model: d.model,
+                now,
+            };
+            d.encoder.cycle(s, &mut cx)
+        };
+        if forced_preop && d.nmt == NmtState::Operational {
+            d.nmt = NmtState::PreOperational;
+            d.update_pdo_activity(now);
+        }
+        d.flush_emcy();
+        d.run_pdos(now);
+    }
+
+    /// Handles every deadline that has passed at `now`.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        if !self.dev.powered {
+            return;
+        }
+        self.dev.now = now;
+        if let Some((t, r)) = self.held_sdo {
+            if now >= t {
+                self.held_sdo = None;
+                let id = cob::SDO_TX + self.dev.node_id as u16;
+                self.dev.tx.push(Frame::std8(id, r));
+            }
+        }
+        if let Some(r) = self.sdo.handle_timeout(now) {
+            let id = cob::SDO_TX + self.dev.node_id as u16;
+            self.dev.tx.push(Frame::std8(id, r));
+        }
+        self.lss.handle_timeout(now, &mut self.dev);
+        self.after_lss(now);
+        let d = &mut self.dev;
+        if d.node_id == UNCONFIGURED || d.nmt == NmtState::Initialising {
+            return;
+        }
+        while let Some(ev) = d.errctl.handle_timeout(now, d.nmt) {
+            match ev {
+                ErrCtlEvent::Heartbeat(b) => {
+                    d.tx.push(Frame::std_len(
+                        cob::ERRCTL + d.node_id as u16,
+                        [b, 0, 0, 0, 0, 0, 0, 0],
+                        1,
+                    ));
+                }
+                ErrCtlEvent::LifeGuardingLost => {
+                    d.emcy
+                        .raise(emcy::code::LIFE_GUARD, emcy::reg::COMMUNICATION, [0; 5]);
+                    d.update_pdo_activity(now);
+                }
+            }
+        }
+        d.run_pdos(now);
+        d.flush_emcy();
+    }
+
+    /// The next instant at which [`Node::handle_timeout`] has work.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if !self.dev.powered {
+            return None;
+        }
+        let d = &self.dev;
+        let cands = [
+            self.held_sdo.map(|(t, _)| t),
+            self.sdo.poll_timeout(),
+            self.lss.poll_timeout(),
+            d.errctl.poll_timeout(),
+            d.pdo.poll_timeout(),
+            d.emcy.poll_timeout().filter(|_| d.nmt != NmtState::Stopped),
+        ];
+        cands.into_iter().flatten().min()
+    }
+
+    /// Takes the next frame to send. Frames produced while the node's bit rate differs from the
+    /// bus (or during a bit-rate switch) are lost, as on a real bus.
+    pub fn poll_transmit(&mut self) -> Option<Frame> {
+        let d = &mut self.dev;
+        while let Some(f) = d.tx.pop() {
+            if d.can_talk(d.now) {
+                return Some(f);
+            }
+            d.stats.tx_wrong_bitrate = d.stats.tx_wrong_bitrate.wrapping_add(1);
+        }
+        None
+    }
+
+    /// Tells the node the bit rate of the bus it is attached to (virtual buses).
+    pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
+        self.dev.bus_bitrate = kbps;
+    }
+
+    /// The device state (read-only view for hosts and tests).
+    pub fn device(&self) -> &Device<S> {
+        &self.dev
+    }
+
+    /// Mutable access to the storage backend (hosts: fault injection, inspection).
+    pub fn storage_mut(&mut self) -> &mut S {
+        &mut self.dev.storage
+    }
+
+    /// Mutable access to the CiA 406 application (fault injection, presets from a control
+    /// interface).
+    pub fn encoder_mut(&mut self) -> &mut Encoder {
+        &mut self.dev.encoder
+    }
+
+    /// Raises (or with `active == false` clears) a device error from outside the CANopen
+    /// services: supply voltage, temperature, CAN controller states (fault injection, or the
+    /// real hardware's monitors on an MCU).
+    pub fn set_error(&mut self, code: u16, reg_bits: u8, mfr: [u8; 5], active: bool) {
+        let d = &mut self.dev;
+        if active {
+            d.emcy.raise(code, reg_bits, mfr);
+        } else {
+            d.emcy.clear(code);
+        }
+        d.flush_emcy();
+    }
+
+    /// Reads an object as an SDO client would see it, bypassing the bus (hosts, tests).
+    pub fn read_object(&mut self, index: u16, sub: u8) -> Result<u32, Abort> {
+        let mut b = [0u8; 4];
+        let n = ObjectAccess::read(&mut self.dev, index, sub, 0, &mut b)?;
+        Ok(le_u32(&b[..n]))
+    }
+}
+
+impl<S: Storage> Device<S> {
+    /// The product model.
+    pub fn model(&self) -> &'static Model {
+        self.model
+    }
+    /// The unit configuration (with the active node-id and bit rate).
+    pub fn config(&self) -> &DeviceConfig {
+        &self.cfg
+    }
+    /// The object dictionary.
+    pub fn od(&self) -> &Dictionary {
+        &self.od
+    }
+    /// The NMT state.
+    pub fn nmt_state(&self) -> NmtState {
+        self.nmt
+    }
+    /// Active node-id ([`UNCONFIGURED`] = none).
+    pub fn node_id(&self) -> u8 {
+        self.node_id
+    }
+    /// Active bit rate in kbit/s (0 = autobaud not yet locked).
+    pub fn bitrate(&self) -> u16 {
+        self.bitrate
+    }
+    /// Counters.
+    pub fn stats(&self) -> Stats {
+        self.stats
+    }
+    /// The EMCY producer.
+    pub fn emcy(&self) -> &Emcy {
+        &self.emcy
+    }
+    /// The TPDOs.
+    pub fn tpdos(&self) -> &Tpdos {
+        &self.pdo
+    }
+    /// The CiA 406 application.
+    pub fn encoder(&self) -> &Encoder {
+        &self.encoder
+    }
+    /// The LSS address (0x1018/1…4).
+    pub fn lss_address(&self) -> [u32; 4] {
+        [1, 2, 3, 4].map(|s| self.od.value(0x1018, s).unwrap_or(0))
+    }
+    /// Node-id and bit rate that the next reset activates.
+    pub fn pending(&self) -> (u8, u16) {
+        (self.pending_node_id, self.pending_bitrate)
+    }
+
+    /// Whether the node can receive at `now` (bit rate matches, not switching).
+    fn can_hear(&mut self, now: Instant) -> bool {
+        if let Some(t) = self.silent_until {
+            if now < t {
+                return false;
+            }
+        }
+        match self.bus_bitrate {
+            None => true,
+            Some(bus) if self.bitrate == 0 => {
+                // Autobaud (TMI): lock on after a few frames of continuous traffic (R19).
+                self.autobaud_frames += 1;
+                if self.autobaud_frames >= 4 {
+                    self.bitrate = bus;
+                    self.cfg.bitrate_kbps = bus;
+                }
+                false
+            }
+            Some(bus) => {
+                if bus == self.bitrate {
+                    true
+                } else {
+                    self.stats.rx_wrong_bitrate = self.stats.rx_wrong_bitrate.wrapping_add(1);
+                    false
+                }
+            }
+        }
+    }
+
+    fn can_talk(&self, now: Instant) -> bool {
+        if self.silent_until.is_some_and(|t| now < t) {
+            return false;
+        }
+        match self.bus_bitrate {
+            None => true,
+            Some(bus) => bus == self.bitrate,
+        }
+    }
+
+    /// Sets the pending node-id (LSS configure node-id, TMI 0x2000).
+    pub(crate) fn set_pending_node_id(&mut self, id: u8) {
+        self.pending_node_id = id;
+    }
+
+    /// Sets the pending bit rate (LSS configure bit timing, TMI 0x2001).
+    pub(crate) fn set_pending_bitrate(&mut self, kbps: u16) {
+        self.pending_bitrate = kbps;
+    }
+
+    /// Makes `kbps` the active bit rate now (LSS activate bit timing).
+    pub(crate) fn activate_bitrate(&mut self, kbps: u16) {
+        self.bitrate = kbps;
+        self.cfg.bitrate_kbps = kbps;
+        self.autobaud_frames = 0;
+    }
+
+    fn params(&self) -> Params<'_> {
+        Params {
+            model: self.model,
+            cfg: &self.cfg,
+        }
+    }
+
+    /// Reloads values: communication objects always, application objects on reset node.
+    /// Defaults first, then whatever the stored image holds for those ranges (D6).
+    fn load_values(&mut self, application: bool) {
+        let p = Params {
+            model: self.model,
+            cfg: &self.cfg,
+        };
+        let node = self.node_id;
+        self.od.load_defaults(0x1000, 0x1FFF, &p, node);
+        if application {
+            self.od.load_defaults(0x2000, 0xFFFF, &p, node);
+        }
+        let mut buf = [0u8; IMAGE_MAX];
+        let Ok(n) = self.storage.load(&mut buf) else {
+            return;
+        };
+        let Ok(recs) = storage::parse_image(&buf[..n], self.model.features.tag) else {
+            return;
+        };
+        for (k, v) in recs {
+            let index = (k >> 8) as u16;
+            if k > 0x00FF_FFFF || (!application && index >= 0x2000) {
+                continue;
+            }
+            if let Ok(slot) = self.od.find(index, k as u8) {
+                if self.od.entry(slot).group != Group::Volatile {
+                    self.od.set(slot, v);
+                }
+            }
+        }
+        // D15: stored TPDO COB-IDs that were the default for another node-id follow this one.
+        for n in 0..self.model.features.tpdos as usize {
+            if let Ok(slot) = self.od.find(pdo::comm_index(n), 1) {
+                let v = self.od.get(slot);
+                let base = 0x180 + 0x100 * n as u32;
+                let id = v & 0x7FF;
+                if id > base && id <= base + 0x7F && id != base + node as u32 {
+                    self.od.set(slot, (v & !0x7FF) | (base + node as u32));
+                }
+            }
+        }
+        if let Some(slot) = self.od.find(0x1014, 0).ok() {
+            let v = self.od.get(slot);
+            let id = v & 0x7FF;
+            if id > 0x80 && id <= 0xFF && id != 0x80 + node as u32 {
+                self.od.set(slot, (v & !0x7FF) | (0x80 + node as u32));
+            }
+        }
+    }
+
+    /// Pushes the cached service configuration from the dictionary after a reload.
+    fn apply_comm_config(&mut self, now: Instant) {
+        self.pdo
+            .configure_all(self.model.features.tpdos as usize, &self.od);
+        let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
+        self.errctl.set_heartbeat(hb, now);
+        let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
+        let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
+        self.errctl.set_guarding(gt, lf, now);
+        self.emcy
+            .set_inhibit(self.od.value(0x1015, 0).unwrap_or(0) as u16);
+        self.sync_error_register();
+    }
+
+    fn sync_error_register(&mut self) {
+        let r = self.emcy.register();
+        self.od.set_value(0x1001, 0, r as u32);
+        let n = self.emcy.history_len();
+        self.od.set_value(0x1003, 0, n as u32);
+        for i in 1..=emcy::HISTORY_LEN {
+            self.od
+                .set_value(0x1003, i as u8, self.emcy.history(i).unwrap_or(0));
+        }
+    }
+
+    /// Moves EMCYs whose inhibit time allows into the transmit queue and mirrors the error
+    /// register and history into the dictionary.
+    fn flush_emcy(&mut self) {
+        self.sync_error_register();
+        if self.nmt == NmtState::Stopped || self.node_id == UNCONFIGURED {
+            return;
+        }
+        let cobid = self
+            .od
+            .value(0x1014, 0)
+            .unwrap_or(0x80 + self.node_id as u32);
+        while let Some(p) = self.emcy.poll(self.now) {
+            if cobid & 0x8000_0000 == 0 {
+                self.tx.push(Frame::std8((cobid & 0x7FF) as u16, p));
+            }
+        }
+    }
+
+    fn run_pdos(&mut self, now: Instant) {
+        let Device { pdo, od, tx, .. } = self;
+        pdo.handle_timeout(od, now, &mut |f| {
+            tx.push(f);
+        });
+    }
+
+    /// PDOs run in Operational unless life guarding was lost (D11).
+    fn update_pdo_activity(&mut self, now: Instant) {
+        let on = self.nmt == NmtState::Operational && !self.errctl.life_guard_lost;
+        self.pdo.set_active(on, now);
+        if !self.errctl.life_guard_lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
+            self.emcy.clear(emcy::code::LIFE_GUARD);
+            self.flush_emcy();
+        }
+    }
+
+    fn report_corrupt_storage(&mut self) {
+        self.encoder.storage_corrupt(&mut self.emcy, self.model);
+        if !self.encoder.handles_storage_corrupt(self.model) {
+            self.emcy.raise(emcy::code::DATA_SET, 0, [0; 5]);
+        }
+        self.flush_emcy();
+    }
+
+    /// Writes the stored image: `groups` selects what "save" covers (0x1010 sub 1 all, 2 comm,
+    /// 3 application); the rest keeps what was stored before.
+    pub(crate) fn store(&mut self, sub: u8) -> Result<(), Abort> {
+        let mut old = [0u8; IMAGE_MAX];
+        let old_len = self.storage.load(&mut old).unwrap_or(0);
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
+        let covers = |index: u16, group: Group| match sub {
+            2 => group == Group::Comm || (group != Group::Volatile && index < 0x2000),
+            3 => index >= 0x2000 && group != Group::Volatile,
+            _ => group != Group::Volatile,
+        };
+        for (slot, e) in self.od.entries().iter().enumerate() {
+            if covers(e.index, e.group) {
+                w.push(e.key(), self.od.get(slot));
+            }
+        }
+        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
+            for (k, v) in recs {
+                let keep = k > 0x00FF_FFFF
+                    || self.od.find((k >> 8) as u16, k as u8).is_ok_and(|s| {
+                        let e = self.od.entry(s);
+                        !covers(e.index, e.group)
+                    });
+                if keep {
+                    w.push(k, v);
+                }
+            }
+        }
+        let n = w.finish();
+        self.storage.save(&buf[..n]).map_err(|_| Abort::CannotStore)
+    }
+
+    /// "load" / "kill": forgets the stored parameters of the selected groups (the LSS
+    /// configuration stays); defaults apply at the next reset (D7).
+    pub(crate) fn forget(&mut self, sub: u8) -> Result<(), Abort> {
+        let mut old = [0u8; IMAGE_MAX];
+        let old_len = match self.storage.load(&mut old) {
+            Ok(n) => n,
+            Err(StorageError::Empty) => return Ok(()),
+            Err(StorageError::Corrupt) => 0,
+            Err(StorageError::Io) => return Err(Abort::CannotStore),
+        };
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
+        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
+            for (k, v) in recs {
+                let index = (k >> 8) as u16;
+                let keep = match sub {
+                    2 => k > 0x00FF_FFFF || index >= 0x2000,
+                    3 => k > 0x00FF_FFFF || index < 0x2000,
+                    _ => k > 0x00FF_FFFF,
+                };
+                if keep {
+                    w.push(k, v);
+                }
+            }
+        }
+        let n = w.finish();
+        self.storage.save(&buf[..n]).map_err(|_| Abort::CannotStore)
+    }
+
+    /// LSS "store configuration": keeps the pending node-id and bit rate.
+    pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
+        let mut old = [0u8; IMAGE_MAX];
+        let old_len = self.storage.load(&mut old).unwrap_or(0);
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
+        w.push(storage::KEY_LSS_NODE_ID, self.pending_node_id as u32);
+        w.push(storage::KEY_LSS_BITRATE, self.pending_bitrate as u32);
+        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
+            for (k, v) in recs {
+                if k != storage::KEY_LSS_NODE_ID && k != storage::KEY_LSS_BITRATE {
+                    w.push(k, v);
+                }
+            }
+        }
+        let n = w.finish();
+        self.storage.save(&buf[..n])?;
+        self.stored_lss = (Some(self.pending_node_id), Some(self.pending_bitrate));
+        Ok(())
+    }
+
+    /// Service-level rules for a write that passed the table's checks.
+    fn validate(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
+        match index {
+            0x1003 => Ok(()),
+            0x1005 => {
+                // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused.
+                if raw & 0x6000_0000 != 0 {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            0x1014 => {
+                if raw & 0x2000_0000 != 0 {
+                    return Err(Abort::InvalidValue);
+                }
+                let cur = self.od.value(0x1014, 0).unwrap_or(0);
+                if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            0x1800..=0x1BFF => {
+                let tmi = self.model.features.tmi_emcy;
+                self.pdo.validate(&self.od, index, sub, raw, tmi)
+            }
+            0x2000..=0x9FFF => {
+                let cx = crate::encoder::AppView {
+                    od: &self.od,
+                    model: self.model,
+                    cfg: &self.cfg,
+                };
+                self.encoder.validate(index, sub, raw, &cx)
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Side effects once a write has landed.
+    fn written(&mut self, index: u16, sub: u8, raw: u32) {
+        let now = self.now;
+        match index {
+            0x1003 => {
+                self.emcy.clear_history();
+                self.sync_error_register();
+            }
+            0x100C | 0x100D => {
+                let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
+                let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
+                self.errctl.set_guarding(gt, lf, now);
+            }
+            0x1015 => self.emcy.set_inhibit(raw as u16),
+            0x1017 => self.errctl.set_heartbeat(raw as u16, now),
+            0x1800..=0x1803 | 0x1A00..=0x1A03 => {
+                let n = (index & 0x3) as usize;
+                self.pdo.configure(n, &self.od);
+                if index == 0x1800 && sub == 5 {
+                    // D12: 0x6200 and TPDO1's event timer are one value.
+                    self.od.set_value(0x6200, 0, raw);
+                }
+                let on = self.pdo.active();
+                if on {
+                    self.pdo.set_active(false, now);
+                    self.pdo.set_active(true, now);
+                }
+            }
+            0x6200 => {
+                self.od.set_value(0x1800, 5, raw);
+                self.pdo.configure(0, &self.od);
+                if self.pdo.active() {
+                    self.pdo.set_active(false, now);
+                    self.pdo.set_active(true, now);
+                }
+            }
+            0x2000 if self.model.features.tmi_emcy => self.pending_node_id = raw as u8,
+            0x2001 if self.model.features.tmi_emcy => {
+                self.pending_bitrate = if raw == 0xFFFF { 0 } else { raw as u16 };
+            }
+            _ => {
+                if index >= 0x2000 {
+                    let mut cx = AppCtx {
+                        od: &mut self.od,
+                        emcy: &mut self.emcy,
+                        pdo: &mut self.pdo,
+                        model: self.model,
+                        now,
+                    };
+                    self.encoder.written(index, sub, raw, &mut cx);
+                }
+            }
+        }
+    }
+
+    fn storage_command(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
+        let f = self.model.features;
+        if index == 0x1010 {
+            let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
+            if raw != SIG_SAVE && !kill {
+                return Err(Abort::CannotStore);
+            }
+            if f.store_preop_only && self.nmt != NmtState::PreOperational {
+                return Err(Abort::WrongState);
+            }
+            if kill {
+                self.forget(sub)?;
+            } else {
+                self.store(sub)?;
+            }
+        } else {
+            if raw != SIG_LOAD {
+                return Err(Abort::CannotStore);
+            }
+            self.forget(sub)?;
+        }
+        self.sdo_hold_until = Some(self.now + STORE_TIME);
+        Ok(())
+    }
+}
+
+impl<S: Storage> ObjectAccess for Device<S> {
+    fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let slot = self.od.find(index, sub)?;
+        if !self.od.entry(slot).access.readable() {
+            return Err(Abort::WriteOnly);
+        }
+        Ok(self.od.size_of(slot))
+    }
+
+    fn read(&mut self, index: u16, sub: u8, offset: usize, buf: &mut [u8]) -> Result<usize, Abort> {
+        let slot = self.od.find(index, sub)?;
+        if !self.od.entry(slot).access.readable() {
+            return Err(Abort::WriteOnly);
+        }
+        let mut tmp = [0u8; 64];
+        let n = self.od.read_bytes(slot, &mut tmp);
+        if offset >= n {
+            return Ok(0);
+        }
+        let k = (n - offset).min(buf.len());
+        buf[..k].copy_from_slice(&tmp[offset..offset + k]);
+        Ok(k)
+    }
+
+    fn download_size(&mut self, index: u16, sub: u8) -> Result<Option<usize>, Abort> {
+        let slot = self.od.find(index, sub)?;
+        let e = self.od.entry(slot);
+        if !e.access.writable() {
+            return Err(Abort::ReadOnly);
+        }
+        Ok(e.ty.size())
+    }
+
+    fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), Abort> {
+        let slot = self.od.find(index, sub)?;
+        let e = self.od.entry(slot);
+        if !e.access.writable() {
+            return Err(Abort::ReadOnly);
+        }
+        let Some(size) = e.ty.size() else {
+            return Err(Abort::UnsupportedAccess);
+        };
+        if data.len() > size {
+            return Err(Abort::LengthTooHigh);
+        }
+        if data.len() < size {
+            return Err(Abort::LengthTooLow);
+        }
+        let raw = le_u32(data);
+        if matches!(index, 0x1010 | 0x1011) {
+            return self.storage_command(index, sub, raw);
+        }
+        if e.ty == DataType::Boolean && raw > 1 {
+            return Err(Abort::InvalidValue);
+        }
+        if !e.accepts(raw) {
+            return Err(if e.above_range(raw) {
+                Abort::ValueTooHigh
+            } else if e.below_range(raw) {
+                Abort::ValueTooLow
+            } else {
+                Abort::InvalidValue
+            });
+        }
+        self.validate(index, sub, raw)?;
+        self.od.set(slot, raw);
+        self.written(index, sub, raw);
+        Ok(())
+    }
+}

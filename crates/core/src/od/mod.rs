@@ -1,0 +1,175 @@
+//! The object dictionary as data.
+//!
+//! Each product model declares its dictionary once, as a sorted table of [`Entry`]s
+//! (`models/`). Everything else reads that table: the SDO server's access, size and range checks,
+//! PDO mapping checks, persistence (the storage group of each entry), and EDS export. The
+//! current values live in a fixed array parallel to the table (one `u32` per entry), so a
+//! dictionary costs 4 bytes per entry of RAM and no allocation.
+
+mod types;
+
+pub use types::{Abort, Access, DataType, Default, Entry, Group, Param, Range};
+
+/// Most entries a model's table may have (the value array is sized for it).
+pub const MAX_ENTRIES: usize = 224;
+
+/// Configuration-dependent values that [`Default::Param`] entries resolve against.
+pub trait ParamSource {
+    /// The value of `p` for this unit, as raw bits of the entry's type.
+    fn param(&self, p: Param) -> u32;
+}
+
+/// The current values of a model's dictionary.
+#[derive(Clone)]
+pub struct Dictionary {
+    entries: &'static [Entry],
+    values: [u32; MAX_ENTRIES],
+}
+
+impl Dictionary {
+    /// A dictionary for `entries` (sorted by index, sub-index; at most [`MAX_ENTRIES`]) with all
+    /// values zero; call [`Dictionary::load_defaults`] next.
+    pub fn new(entries: &'static [Entry]) -> Self {
+        debug_assert!(entries.len() <= MAX_ENTRIES);
+        debug_assert!(
+            entries.windows(2).all(|w| w[0].key() < w[1].key()),
+            "table not sorted"
+        );
+        Dictionary {
+            entries,
+            values: [0; MAX_ENTRIES],
+        }
+    }
+
+    /// The model's table.
+    #[inline]
+    pub fn entries(&self) -> &'static [Entry] {
+        self.entries
+    }
+
+    /// Finds the slot of `index`/`sub`, with the abort code CiA 301 gives when it is missing.
+    #[inline]
+    pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let key = (index as u32) << 8 | sub as u32;
+        match self.entries.binary_search_by_key(&key, Entry::key) {
+            Ok(slot) => Ok(slot),
+            Err(pos) => {
+                let has_index = self.entries.get(pos).is_some_and(|e| e.index == index)
+                    || pos > 0 && self.entries[pos - 1].index == index;
+                Err(if has_index {
+                    Abort::NoSub
+                } else {
+                    Abort::NoObject
+                })
+            }
+        }
+    }
+
+    /// Whether any entry of `index` exists.
+    pub fn has_object(&self, index: u16) -> bool {
+        !matches!(self.find(index, 0), Err(Abort::NoObject))
+    }
+
+    /// The entry in `slot`.
+    #[inline]
+    pub fn entry(&self, slot: usize) -> &'static Entry {
+        &self.entries[slot]
+    }
+
+    /// Raw value of `slot`.
+    #[inline]
+    pub fn get(&self, slot: usize) -> u32 {
+        self.values[slot]
+    }
+
+    /// Sets the raw value of `slot` without any check (the application's side: live values,
+    /// values derived by services).
+    #[inline]
+    pub fn set(&mut self, slot: usize, raw: u32) {
+        self.values[slot] = raw;
+    }
+
+    /// Raw value of `index`/`sub`, if it exists.
+    #[inline]
+    pub fn value(&self, index: u16, sub: u8) -> Option<u32> {
+        self.find(index, sub).ok().map(|s| self.values[s])
+    }
+
+    /// Sets `index`/`sub` if it exists (application side, unchecked); returns whether it did.
+    #[inline]
+    pub fn set_value(&mut self, index: u16, sub: u8, raw: u32) -> bool {
+        match self.find(index, sub) {
+            Ok(s) => {
+                self.values[s] = raw;
+                true
+            }
+            Err(_) => false,
+        }
+    }
+
+    /// The default of `slot` for this unit.
+    pub fn default_of(&self, slot: usize, params: &dyn ParamSource, node_id: u8) -> u32 {
+        resolve_default(&self.entries[slot], params, node_id)
+    }
+
+    /// Loads the defaults of every entry whose index is within `lo..=hi`.
+    pub fn load_defaults(&mut self, lo: u16, hi: u16, params: &dyn ParamSource, node_id: u8) {
+        for (slot, e) in self.entries.iter().enumerate() {
+            if e.index >= lo && e.index <= hi {
+                self.values[slot] = resolve_default(e, params, node_id);
+            }
+        }
+    }
+
+    /// Copies the value of `slot` as it appears on the wire (little-endian, exact type size;
+    /// strings as their bytes) into `buf`, returning the length.
+    pub fn read_bytes(&self, slot: usize, buf: &mut [u8]) -> usize {
+        let e = &self.entries[slot];
+        match e.ty.size() {
+            Some(n) => {
+                let n = n.min(buf.len());
+                buf[..n].copy_from_slice(&self.values[slot].to_le_bytes()[..n]);
+                n
+            }
+            None => match e.default {
+                Default::Str(s) => {
+                    let n = s.len().min(buf.len());
+                    buf[..n].copy_from_slice(&s.as_bytes()[..n]);
+                    n
+                }
+                _ => 0,
+            },
+        }
+    }
+
+    /// The size in bytes an SDO upload of `slot` has.
+    pub fn size_of(&self, slot: usize) -> usize {
+        let e = &self.entries[slot];
+        match e.ty.size() {
+            Some(n) => n,
+            None => match e.default {
+                Default::Str(s) => s.len(),
+                _ => 0,
+            },
+        }
+    }
+}
+
+/// Resolves the boot value of one entry.
+pub fn resolve_default(e: &Entry, params: &dyn ParamSource, node_id: u8) -> u32 {
+    match e.default {
+        Default::Const(v) => v,
+        Default::NodeId(base) => base.wrapping_add(node_id as u32),
+        Default::Param(p) => params.param(p),
+        Default::Str(_) | Default::Live => 0,
+    }
+}
+
+/// Little-endian raw value of up to 4 bytes.
+#[inline]
+pub fn le_u32(data: &[u8]) -> u32 {
+    let mut b = [0u8; 4];
+    let n = data.len().min(4);
+    b[..n].copy_from_slice(&data[..n]);
+    u32::from_le_bytes(b)
+}

@@ -1,0 +1,403 @@
+use core::fmt;
+
+/// CiA 301 basic data types that the sensors' dictionaries use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DataType {
+    /// BOOLEAN (0x0001), one byte 0 / 1.
+    Boolean,
+    /// INTEGER8 (0x0002).
+    Integer8,
+    /// INTEGER16 (0x0003).
+    Integer16,
+    /// INTEGER32 (0x0004).
+    Integer32,
+    /// UNSIGNED8 (0x0005).
+    Unsigned8,
+    /// UNSIGNED16 (0x0006).
+    Unsigned16,
+    /// UNSIGNED32 (0x0007).
+    Unsigned32,
+    /// VISIBLE_STRING (0x0009).
+    VisibleString,
+    /// DOMAIN (0x000F).
+    Domain,
+}
+
+impl DataType {
+    /// Size in bytes of a numeric type; `None` for strings and domains.
+    pub const fn size(self) -> Option<usize> {
+        match self {
+            DataType::Boolean | DataType::Integer8 | DataType::Unsigned8 => Some(1),
+            DataType::Integer16 | DataType::Unsigned16 => Some(2),
+            DataType::Integer32 | DataType::Unsigned32 => Some(4),
+            DataType::VisibleString | DataType::Domain => None,
+        }
+    }
+    /// Size in bits of a numeric type (for PDO mapping), 0 otherwise.
+    pub const fn bits(self) -> u8 {
+        match self.size() {
+            Some(n) => (n * 8) as u8,
+            None => 0,
+        }
+    }
+    /// Whether the type is a signed integer.
+    pub const fn is_signed(self) -> bool {
+        matches!(
+            self,
+            DataType::Integer8 | DataType::Integer16 | DataType::Integer32
+        )
+    }
+    /// The CiA 301 data-type index (as used in EDS files).
+    pub const fn code(self) -> u16 {
+        match self {
+            DataType::Boolean => 0x0001,
+            DataType::Integer8 => 0x0002,
+            DataType::Integer16 => 0x0003,
+            DataType::Integer32 => 0x0004,
+            DataType::Unsigned8 => 0x0005,
+            DataType::Unsigned16 => 0x0006,
+            DataType::Unsigned32 => 0x0007,
+            DataType::VisibleString => 0x0009,
+            DataType::Domain => 0x000F,
+        }
+    }
+    /// Interprets the low `size()` bytes of a stored raw value as a signed 64-bit number (sign
+    /// extended for signed types).
+    pub const fn to_i64(self, raw: u32) -> i64 {
+        match self {
+            DataType::Integer8 => raw as u8 as i8 as i64,
+            DataType::Integer16 => raw as u16 as i16 as i64,
+            DataType::Integer32 => raw as i32 as i64,
+            _ => raw as i64,
+        }
+    }
+    /// Natural range of the type, as (min, max).
+    pub const fn natural_range(self) -> (i64, i64) {
+        match self {
+            DataType::Boolean => (0, 1),
+            DataType::Integer8 => (i8::MIN as i64, i8::MAX as i64),
+            DataType::Integer16 => (i16::MIN as i64, i16::MAX as i64),
+            DataType::Integer32 => (i32::MIN as i64, i32::MAX as i64),
+            DataType::Unsigned8 => (0, u8::MAX as i64),
+            DataType::Unsigned16 => (0, u16::MAX as i64),
+            DataType::Unsigned32 | DataType::VisibleString | DataType::Domain => {
+                (0, u32::MAX as i64)
+            }
+        }
+    }
+}
+
+/// Access rights of an entry as seen from the bus.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Access {
+    /// Read only; the application may change the value (live values).
+    Ro,
+    /// Write only.
+    Wo,
+    /// Read and write.
+    Rw,
+    /// Read only and never changes.
+    Const,
+}
+
+impl Access {
+    /// Readable over SDO.
+    pub const fn readable(self) -> bool {
+        !matches!(self, Access::Wo)
+    }
+    /// Writable over SDO.
+    pub const fn writable(self) -> bool {
+        matches!(self, Access::Rw | Access::Wo)
+    }
+    /// The EDS `AccessType` keyword.
+    pub const fn eds(self) -> &'static str {
+        match self {
+            Access::Ro => "ro",
+            Access::Wo => "wo",
+            Access::Rw => "rw",
+            Access::Const => "const",
+        }
+    }
+}
+
+/// Which non-volatile storage group an entry belongs to (CiA 301 0x1010 / 0x1011 sub-indices).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Group {
+    /// Not stored: reloaded from its default at every reset.
+    Volatile,
+    /// Communication parameter (0x1000–0x1FFF; "save" on 0x1010/1 or /2).
+    Comm,
+    /// Application / manufacturer parameter (0x2000–0x9FFF; "save" on 0x1010/1 or /3).
+    App,
+    /// Stored automatically by the device whenever it changes (e.g. life-time temperature).
+    Auto,
+}
+
+/// Values that depend on the unit's configuration rather than on the model alone.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Param {
+    /// 0x1000 device type (D1: depends on the number of channels).
+    DeviceType,
+    /// 0x1018/2 product code (TMI: bit-coded from the variant).
+    ProductCode,
+    /// 0x1018/4 serial number.
+    SerialNumber,
+    /// Active node-id (0x100B, TMI 0x2000).
+    NodeId,
+    /// Configured bit rate in kbit/s (TMI 0x2001).
+    BitRateKbps,
+    /// Position measuring step in nm (0x6005/1, 0x6501).
+    PositionStepNm,
+    /// Velocity measuring step in 0.01 mm/s (0x6005/2).
+    VelocityStep,
+    /// Start of the measuring range, in position steps (0x650A/2, work-area low limit).
+    MinPosition,
+    /// End of the measuring range, in position steps (0x650A/3, work-area high limit).
+    MaxPosition,
+    /// Number of position channels (sub 0 of per-channel arrays).
+    Channels,
+}
+
+/// Where an entry's value at boot (and after a restore) comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Default {
+    /// A fixed number (raw little-endian bits, sign-extended types stored as two's complement).
+    Const(u32),
+    /// `base + node-id` (pre-defined connection set COB-IDs).
+    NodeId(u32),
+    /// A fixed string (VISIBLE_STRING, const / ro).
+    Str(&'static str),
+    /// A configuration-dependent value.
+    Param(Param),
+    /// A live value computed by the application; no default (reads its current value, 0 at boot).
+    Live,
+}
+
+/// Values the SDO server accepts for an entry beyond the type's natural range.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Range {
+    /// Any value of the type.
+    Any,
+    /// Inclusive numeric range (interpreted with the entry's signedness).
+    MinMax(i64, i64),
+    /// One of an explicit list (raw values).
+    OneOf(&'static [u32]),
+}
+
+/// One object-dictionary entry (an index / sub-index pair): everything SDO access checks, PDO
+/// mapping checks, persistence and EDS export need to know about it. Each model declares its
+/// dictionary as one sorted table of these.
+#[derive(Clone, Copy, Debug)]
+pub struct Entry {
+    /// Object index.
+    pub index: u16,
+    /// Sub-index.
+    pub sub: u8,
+    /// Name (EDS `ParameterName`).
+    pub name: &'static str,
+    /// Data type.
+    pub ty: DataType,
+    /// Access over SDO.
+    pub access: Access,
+    /// May be mapped into a TPDO.
+    pub pdo: bool,
+    /// Value at boot / after restore.
+    pub default: Default,
+    /// Accepted values on write.
+    pub range: Range,
+    /// Storage group.
+    pub group: Group,
+}
+
+impl Entry {
+    /// The `index << 8 | sub` key the table is sorted by.
+    pub const fn key(&self) -> u32 {
+        (self.index as u32) << 8 | self.sub as u32
+    }
+
+    /// Whether a raw value is acceptable for this entry (type range and declared range).
+    pub fn accepts(&self, raw: u32) -> bool {
+        let v = self.ty.to_i64(raw);
+        let (lo, hi) = self.ty.natural_range();
+        if v < lo || v > hi {
+            return false;
+        }
+        match self.range {
+            Range::Any => true,
+            Range::MinMax(lo, hi) => v >= lo && v <= hi,
+            Range::OneOf(list) => list.contains(&raw),
+        }
+    }
+
+    /// Whether a raw value is above the declared range (for the "too high" abort code).
+    pub fn above_range(&self, raw: u32) -> bool {
+        match self.range {
+            Range::MinMax(_, hi) => self.ty.to_i64(raw) > hi,
+            _ => false,
+        }
+    }
+
+    /// Whether a raw value is below the declared range (for the "too low" abort code).
+    pub fn below_range(&self, raw: u32) -> bool {
+        match self.range {
+            Range::MinMax(lo, _) => self.ty.to_i64(raw) < lo,
+            _ => false,
+        }
+    }
+}
+
+/// CiA 301 SDO abort codes (SPEC §4).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
+pub enum Abort {
+    /// Toggle bit not alternated.
+    Toggle = 0x0503_0000,
+    /// SDO protocol timed out.
+    Timeout = 0x0504_0000,
+    /// Client/server command specifier not valid or unknown.
+    InvalidCommand = 0x0504_0001,
+    /// Invalid block size (block mode only).
+    BlockSize = 0x0504_0002,
+    /// Invalid sequence number (block mode only).
+    BlockSequence = 0x0504_0003,
+    /// CRC error (block mode only).
+    Crc = 0x0504_0004,
+    /// Out of memory.
+    OutOfMemory = 0x0504_0005,
+    /// Unsupported access to an object.
+    UnsupportedAccess = 0x0601_0000,
+    /// Attempt to read a write-only object.
+    WriteOnly = 0x0601_0001,
+    /// Attempt to write a read-only object.
+    ReadOnly = 0x0601_0002,
+    /// Object does not exist in the object dictionary.
+    NoObject = 0x0602_0000,
+    /// Object cannot be mapped to the PDO.
+    NotMappable = 0x0604_0041,
+    /// The number and length of the objects to be mapped would exceed the PDO length.
+    MappingLength = 0x0604_0042,
+    /// General parameter incompatibility reason.
+    ParamIncompatible = 0x0604_0043,
+    /// General internal incompatibility in the device.
+    InternalIncompatible = 0x0604_0047,
+    /// Access failed due to a hardware error.
+    Hardware = 0x0606_0000,
+    /// Data type does not match, length of service parameter does not match.
+    LengthMismatch = 0x0607_0010,
+    /// Data type does not match, length of service parameter too high.
+    LengthTooHigh = 0x0607_0012,
+    /// Data type does not match, length of service parameter too low.
+    LengthTooLow = 0x0607_0013,
+    /// Sub-index does not exist.
+    NoSub = 0x0609_0011,
+    /// Invalid value for parameter (download only).
+    InvalidValue = 0x0609_0030,
+    /// Value of parameter written too high (download only).
+    ValueTooHigh = 0x0609_0031,
+    /// Value of parameter written too low (download only).
+    ValueTooLow = 0x0609_0032,
+    /// Maximum value is less than minimum value.
+    MaxLessThanMin = 0x0609_0036,
+    /// General error.
+    General = 0x0800_0000,
+    /// Data cannot be transferred or stored to the application.
+    CannotStore = 0x0800_0020,
+    /// … because of local control.
+    LocalControl = 0x0800_0021,
+    /// … because of the present device state.
+    WrongState = 0x0800_0022,
+    /// No data available.
+    NoData = 0x0800_0024,
+}
+
+impl Abort {
+    /// Every abort code, for tables and tests.
+    pub const ALL: [Abort; 29] = [
+        Abort::Toggle,
+        Abort::Timeout,
+        Abort::InvalidCommand,
+        Abort::BlockSize,
+        Abort::BlockSequence,
+        Abort::Crc,
+        Abort::OutOfMemory,
+        Abort::UnsupportedAccess,
+        Abort::WriteOnly,
+        Abort::ReadOnly,
+        Abort::NoObject,
+        Abort::NotMappable,
+        Abort::MappingLength,
+        Abort::ParamIncompatible,
+        Abort::InternalIncompatible,
+        Abort::Hardware,
+        Abort::LengthMismatch,
+        Abort::LengthTooHigh,
+        Abort::LengthTooLow,
+        Abort::NoSub,
+        Abort::InvalidValue,
+        Abort::ValueTooHigh,
+        Abort::ValueTooLow,
+        Abort::MaxLessThanMin,
+        Abort::General,
+        Abort::CannotStore,
+        Abort::LocalControl,
+        Abort::WrongState,
+        Abort::NoData,
+    ];
+
+    /// The 32-bit code.
+    pub const fn code(self) -> u32 {
+        self as u32
+    }
+
+    /// Looks a code up.
+    pub fn from_code(code: u32) -> Option<Abort> {
+        Abort::ALL.iter().copied().find(|a| a.code() == code)
+    }
+
+    /// The CiA 301 meaning, for tools and logs.
+    pub const fn meaning(self) -> &'static str {
+        match self {
+            Abort::Toggle => "Toggle bit not alternated",
+            Abort::Timeout => "SDO protocol timed out",
+            Abort::InvalidCommand => "Client/server command specifier not valid or unknown",
+            Abort::BlockSize => "Invalid block size",
+            Abort::BlockSequence => "Invalid sequence number",
+            Abort::Crc => "CRC error",
+            Abort::OutOfMemory => "Out of memory",
+            Abort::UnsupportedAccess => "Unsupported access to an object",
+            Abort::WriteOnly => "Attempt to read a write only object",
+            Abort::ReadOnly => "Attempt to write a read only object",
+            Abort::NoObject => "Object does not exist in the object dictionary",
+            Abort::NotMappable => "Object cannot be mapped to the PDO",
+            Abort::MappingLength => "Number and length of mapped objects exceed PDO length",
+            Abort::ParamIncompatible => "General parameter incompatibility",
+            Abort::InternalIncompatible => "General internal incompatibility in the device",
+            Abort::Hardware => "Access failed due to a hardware error",
+            Abort::LengthMismatch => {
+                "Data type does not match, length of service parameter does not match"
+            }
+            Abort::LengthTooHigh => {
+                "Data type does not match, length of service parameter too high"
+            }
+            Abort::LengthTooLow => "Data type does not match, length of service parameter too low",
+            Abort::NoSub => "Sub-index does not exist",
+            Abort::InvalidValue => "Invalid value for parameter",
+            Abort::ValueTooHigh => "Value of parameter written too high",
+            Abort::ValueTooLow => "Value of parameter written too low",
+            Abort::MaxLessThanMin => "Maximum value is less than minimum value",
+            Abort::General => "General error",
+            Abort::CannotStore => "Data cannot be transferred or stored to the application",
+            Abort::LocalControl => "Data cannot be transferred or stored because of local control",
+            Abort::WrongState => {
+                "Data cannot be transferred or stored because of the present device state"
+            }
+            Abort::NoData => "No data available",
+        }
+    }
+}
+
+impl fmt::Display for Abort {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "0x{:08X} {}", self.code(), self.meaning())
+    }
+}

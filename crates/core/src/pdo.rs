@@ -1,0 +1,379 @@
+//! TPDOs and the SYNC consumer (CiA 301 §7.2.2, §7.2.5): communication parameters 0x1800+n,
+//! mapping 0x1A00+n, transmission types, inhibit and event timers, and the validation rules of
+//! SPEC §5 for dynamic mapping.
+
+use crate::od::{Abort, Dictionary};
+use crate::wire::{Duration, Frame, Instant};
+
+/// Most TPDOs any model has.
+pub const MAX_TPDOS: usize = 4;
+/// Most mapping entries per TPDO.
+pub const MAX_MAP: usize = 8;
+
+/// COB-ID bit 31: PDO does not exist / is not valid.
+pub const COB_INVALID: u32 = 0x8000_0000;
+/// COB-ID bit 30: no RTR allowed on this PDO.
+pub const COB_NO_RTR: u32 = 0x4000_0000;
+/// COB-ID bit 29: 29-bit identifier (not supported).
+pub const COB_EXTENDED: u32 = 0x2000_0000;
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Mapped {
+    slot: u16,
+    bytes: u8,
+}
+
+/// One TPDO's cached configuration and timers.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Tpdo {
+    cob: u32,
+    ttype: u8,
+    inhibit: Duration,
+    event: Duration,
+    map: [Mapped; MAX_MAP],
+    n_map: u8,
+    len: u8,
+    next_event: Option<Instant>,
+    inhibit_until: Instant,
+    pending: bool,
+    sync_count: u8,
+    changed: bool,
+    /// Event timer periods that passed without a transmission because the host was late.
+    pub missed: u32,
+}
+
+impl Tpdo {
+    /// Whether the PDO exists (COB-ID bit 31 clear) and maps something.
+    pub fn valid(&self) -> bool {
+        self.cob & COB_INVALID == 0 && self.n_map > 0
+    }
+    /// The 11-bit CAN-ID.
+    pub fn can_id(&self) -> u16 {
+        (self.cob & 0x7FF) as u16
+    }
+    /// The transmission type.
+    pub fn transmission_type(&self) -> u8 {
+        self.ttype
+    }
+    fn asynchronous(&self) -> bool {
+        self.ttype >= 254
+    }
+}
+
+/// All TPDOs of a node.
+#[derive(Clone, Debug, Default)]
+pub struct Tpdos {
+    pdos: [Tpdo; MAX_TPDOS],
+    count: usize,
+    active: bool,
+}
+
+/// Index of the communication parameter record of TPDO `n` (0-based).
+pub const fn comm_index(n: usize) -> u16 {
+    0x1800 + n as u16
+}
+/// Index of the mapping record of TPDO `n` (0-based).
+pub const fn map_index(n: usize) -> u16 {
+    0x1A00 + n as u16
+}
+
+/// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs).
+pub fn restricted_id(id: u32) -> bool {
+    matches!(id, 0x000 | 0x001..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
+}
+
+impl Tpdos {
+    /// Re-reads every TPDO's configuration from the dictionary (after reset or load).
+    pub fn configure_all(&mut self, count: usize, od: &Dictionary) {
+        self.count = count.min(MAX_TPDOS);
+        for n in 0..self.count {
+            self.configure(n, od);
+        }
+    }
+
+    /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
+    pub fn configure(&mut self, n: usize, od: &Dictionary) {
+        let Some(p) = self.pdos.get_mut(n) else {
+            return;
+        };
+        let ci = comm_index(n);
+        p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
+        p.ttype = od.value(ci, 2).unwrap_or(254) as u8;
+        p.inhibit = Duration::from_micros(od.value(ci, 3).unwrap_or(0) as u64 * 100);
+        p.event = Duration::from_millis(od.value(ci, 5).unwrap_or(0) as u64);
+        let mi = map_index(n);
+        let count = od.value(mi, 0).unwrap_or(0) as usize;
+        p.n_map = 0;
+        p.len = 0;
+        for k in 1..=count.min(MAX_MAP) {
+            let Some(raw) = od.value(mi, k as u8) else {
+                break;
+            };
+            let Ok(slot) = od.find((raw >> 16) as u16, (raw >> 8) as u8) else {
+                break;
+            };
+            let bytes = ((raw & 0xFF) / 8) as u8;
+            if p.len + bytes > 8 {
+                break;
+            }
+            p.map[p.n_map as usize] = Mapped {
+                slot: slot as u16,
+                bytes,
+            };
+            p.n_map += 1;
+            p.len += bytes;
+        }
+        p.next_event = None;
+        p.pending = false;
+        p.sync_count = 0;
+    }
+
+    /// Validates a write to a TPDO parameter (`index` in 0x1800.. or 0x1A00..) before it lands.
+    pub fn validate(
+        &self,
+        od: &Dictionary,
+        index: u16,
+        sub: u8,
+        raw: u32,
+        event_gt_inhibit: bool,
+    ) -> Result<(), Abort> {
+        if (0x1800..0x1800 + self.count as u16).contains(&index) {
+            let cur = od.value(index, 1).unwrap_or(COB_INVALID);
+            match sub {
+                1 => {
+                    if raw & COB_EXTENDED != 0 {
+                        return Err(Abort::InvalidValue);
+                    }
+                    let valid_now = cur & COB_INVALID == 0;
+                    let valid_new = raw & COB_INVALID == 0;
+                    // Changing the CAN-ID of a valid PDO is refused; toggling bits 31 / 30 is not.
+                    if valid_now && valid_new && (cur & 0x7FF) != (raw & 0x7FF) {
+                        return Err(Abort::InvalidValue);
+                    }
+                    if valid_new && restricted_id(raw & 0x7FF) {
+                        return Err(Abort::InvalidValue);
+                    }
+                }
+                2 => {
+                    if (241..=253).contains(&(raw as u8)) {
+                        return Err(Abort::InvalidValue);
+                    }
+                }
+                3 | 5 if event_gt_inhibit => {
+                    // TMI R27: the event timer must stay above the inhibit time (0 excepted).
+                    let (inh, ev) = if sub == 3 {
+                        (raw, od.value(index, 5).unwrap_or(0))
+                    } else {
+                        (od.value(index, 3).unwrap_or(0), raw)
+                    };
+                    if ev != 0 && (ev as u64) * 10 <= inh as u64 {
+                        return Err(Abort::InvalidValue);
+                    }
+                }
+                _ => {}
+            }
+            return Ok(());
+        }
+        if (0x1A00..0x1A00 + self.count as u16).contains(&index) {
+            let n_entries = od
+                .entries()
+                .iter()
+                .filter(|e| e.index == index && e.sub > 0)
+                .count();
+            if sub == 0 {
+                let n = raw as usize;
+                if n > n_entries {
+                    return Err(Abort::MappingLength);
+                }
+                let mut bits = 0u32;
+                for k in 1..=n {
+                    let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
+                    check_mappable(od, e)?;
+                    bits += e & 0xFF;
+                }
+                if bits > 64 {
+                    return Err(Abort::MappingLength);
+                }
+            } else {
+                // The manuals' procedure: set sub 0 to zero before changing entries.
+                if od.value(index, 0).unwrap_or(0) != 0 {
+                    return Err(Abort::UnsupportedAccess);
+                }
+                if raw != 0 {
+                    check_mappable(od, raw)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Starts or stops production (entering / leaving Operational, life guarding).
+    pub fn set_active(&mut self, active: bool, now: Instant) {
+        if active && !self.active {
+            for p in &mut self.pdos[..self.count] {
+                p.next_event =
+                    (p.valid() && p.asynchronous() && p.event.micros() > 0).then(|| now + p.event);
+                p.pending = false;
+                p.sync_count = 0;
+                p.changed = true;
+            }
+        }
+        if !active {
+            for p in &mut self.pdos[..self.count] {
+                p.next_event = None;
+                p.pending = false;
+            }
+        }
+        self.active = active;
+    }
+
+    /// Whether PDOs are being produced.
+    pub fn active(&self) -> bool {
+        self.active
+    }
+
+    /// A mapped value changed. `event` marks application events (cam / work-area state
+    /// changes) that trigger asynchronous TPDOs mapping `slot`.
+    pub fn value_changed(&mut self, slot: usize, event: bool) {
+        for p in &mut self.pdos[..self.count] {
+            if !p.valid()
+                || !p.map[..p.n_map as usize]
+                    .iter()
+                    .any(|m| m.slot as usize == slot)
+            {
+                continue;
+            }
+            p.changed = true;
+            if event && self.active && p.asynchronous() {
+                // Sent by `handle_timeout` once the inhibit time allows.
+                p.pending = true;
+            }
+        }
+    }
+
+    /// A SYNC arrived: produces synchronous TPDOs into `out`.
+    pub fn on_sync(&mut self, od: &Dictionary, now: Instant, out: &mut dyn FnMut(Frame)) {
+        if !self.active {
+            return;
+        }
+        for p in &mut self.pdos[..self.count] {
+            if !p.valid() || p.asynchronous() {
+                continue;
+            }
+            let send = if p.ttype == 0 {
+                core::mem::take(&mut p.changed)
+            } else {
+                p.sync_count += 1;
+                if p.sync_count >= p.ttype {
+                    p.sync_count = 0;
+                    true
+                } else {
+                    false
+                }
+            };
+            if send {
+                out(build(p, od));
+                p.inhibit_until = now + p.inhibit;
+            }
+        }
+    }
+
+    /// A remote request for CAN-ID `id`: answers a TPDO that allows RTR.
+    pub fn on_rtr(
+        &mut self,
+        id: u16,
+        od: &Dictionary,
+        now: Instant,
+        out: &mut dyn FnMut(Frame),
+    ) -> bool {
+        if !self.active {
+            return false;
+        }
+        for p in &mut self.pdos[..self.count] {
+            if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
+                out(build(p, od));
+                p.inhibit_until = now + p.inhibit;
+                return true;
+            }
+        }
+        false
+    }
+
+    /// The earliest deadline of any TPDO.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if !self.active {
+            return None;
+        }
+        let mut t: Option<Instant> = None;
+        for p in self.pdos[..self.count].iter().filter(|p| p.valid()) {
+            let mut c = p.next_event;
+            if p.pending {
+                c = Some(c.map_or(p.inhibit_until, |x| x.min(p.inhibit_until)));
+            }
+            if let Some(c) = c {
+                t = Some(t.map_or(c, |x| x.min(c)));
+            }
+        }
+        t
+    }
+
+    /// Produces the asynchronous TPDOs that are due at `now`.
+    pub fn handle_timeout(&mut self, od: &Dictionary, now: Instant, out: &mut dyn FnMut(Frame)) {
+        if !self.active {
+            return;
+        }
+        for p in &mut self.pdos[..self.count] {
+            if !p.valid() || !p.asynchronous() {
+                continue;
+            }
+            if let Some(t) = p.next_event {
+                if now >= t {
+                    // Absolute schedule: the next period starts where this one was due.
+                    let per = p.event.micros().max(1);
+                    let mut next = t.micros() + per;
+                    if next <= now.micros() {
+                        let skipped = (now.micros() - next) / per + 1;
+                        p.missed = p.missed.wrapping_add(skipped as u32);
+                        next += skipped * per;
+                    }
+                    p.next_event = Some(Instant(next));
+                    p.pending = true;
+                }
+            }
+            if p.pending && now >= p.inhibit_until {
+                p.pending = false;
+                p.changed = false;
+                out(build(p, od));
+                p.inhibit_until = now + p.inhibit;
+            }
+        }
+    }
+
+    /// Read access to TPDO `n` (0-based).
+    pub fn get(&self, n: usize) -> Option<&Tpdo> {
+        self.pdos[..self.count].get(n)
+    }
+}
+
+fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
+    let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
+    let e = od.entry(slot);
+    let bits = raw & 0xFF;
+    if !e.pdo || !e.access.readable() || bits == 0 || bits % 8 != 0 || bits > e.ty.bits() as u32 {
+        return Err(Abort::NotMappable);
+    }
+    Ok(())
+}
+
+#[inline]
+fn build(p: &Tpdo, od: &Dictionary) -> Frame {
+    let mut data = [0u8; 8];
+    let mut at = 0usize;
+    for m in &p.map[..p.n_map as usize] {
+        let v = od.get(m.slot as usize).to_le_bytes();
+        let n = m.bytes as usize;
+        data[at..at + n].copy_from_slice(&v[..n]);
+        at += n;
+    }
+    Frame::std_len(p.can_id(), data, p.len)
+}

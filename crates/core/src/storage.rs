@@ -1,0 +1,242 @@
+//! Non-volatile storage (CiA 301 0x1010 / 0x1011, CiA 305 "store configuration").
+//!
+//! The core serialises what must survive a power cycle into one self-checking image; a
+//! [`Storage`] implementation (a file on the host, a flash page on a microcontroller) only keeps
+//! the bytes. Image layout (all little-endian):
+//!
+//! ```text
+//! magic "CPOS" · version u8 · model tag u8 · record count u16 · records · CRC-32 of all before
+//! record = key u32 (index << 8 | sub, or an LSS key) · value u32
+//! ```
+//!
+//! A torn or corrupt image fails its CRC and is never loaded.
+
+/// Largest image any model produces (header + records + CRC).
+pub const IMAGE_MAX: usize = 8 + 8 * 240 + 4;
+
+const MAGIC: &[u8; 4] = b"CPOS";
+const VERSION: u8 = 1;
+
+/// Record key of the LSS-configured node-id (outside the index space).
+pub const KEY_LSS_NODE_ID: u32 = 0xFF00_0001;
+/// Record key of the LSS-configured bit rate (kbit/s).
+pub const KEY_LSS_BITRATE: u32 = 0xFF00_0002;
+
+/// Why the storage medium could not do what was asked.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StorageError {
+    /// Nothing has been stored yet.
+    Empty,
+    /// The stored bytes are torn or corrupt (bad magic, version, length or checksum).
+    Corrupt,
+    /// The medium failed (I/O error, flash write error).
+    Io,
+}
+
+/// A place to keep one image across power cycles. Implementations write atomically: after a
+/// crash during `save`, `load` returns either the old or the new image.
+pub trait Storage {
+    /// Reads the stored image into `buf`, returning its length.
+    fn load(&mut self, buf: &mut [u8]) -> Result<usize, StorageError>;
+    /// Replaces the stored image.
+    fn save(&mut self, image: &[u8]) -> Result<(), StorageError>;
+    /// Deletes the stored image.
+    fn erase(&mut self) -> Result<(), StorageError>;
+}
+
+/// Storage that keeps nothing (a unit with no non-volatile memory, or tests).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoStorage;
+
+impl Storage for NoStorage {
+    fn load(&mut self, _buf: &mut [u8]) -> Result<usize, StorageError> {
+        Err(StorageError::Empty)
+    }
+    fn save(&mut self, _image: &[u8]) -> Result<(), StorageError> {
+        Err(StorageError::Io)
+    }
+    fn erase(&mut self) -> Result<(), StorageError> {
+        Ok(())
+    }
+}
+
+/// Storage in RAM: survives resets and simulated power cycles of the node that owns it. Used by
+/// tests and as the MCU-independent reference.
+#[derive(Clone)]
+pub struct RamStorage {
+    buf: [u8; IMAGE_MAX],
+    len: Option<usize>,
+    /// Number of completed saves (tests look at it).
+    pub saves: u32,
+    /// When set, every save fails (fault injection).
+    pub fail: bool,
+}
+
+impl core::default::Default for RamStorage {
+    fn default() -> Self {
+        RamStorage {
+            buf: [0; IMAGE_MAX],
+            len: None,
+            saves: 0,
+            fail: false,
+        }
+    }
+}
+
+impl RamStorage {
+    /// Flips one bit of the stored image (fault injection: stored-data corruption).
+    pub fn corrupt(&mut self) {
+        if let Some(n) = self.len {
+            if n > 0 {
+                self.buf[n / 2] ^= 0x10;
+            }
+        }
+    }
+}
+
+impl Storage for RamStorage {
+    fn load(&mut self, buf: &mut [u8]) -> Result<usize, StorageError> {
+        let n = self.len.ok_or(StorageError::Empty)?;
+        if buf.len() < n {
+            return Err(StorageError::Corrupt);
+        }
+        buf[..n].copy_from_slice(&self.buf[..n]);
+        Ok(n)
+    }
+    fn save(&mut self, image: &[u8]) -> Result<(), StorageError> {
+        if self.fail || image.len() > self.buf.len() {
+            return Err(StorageError::Io);
+        }
+        self.buf[..image.len()].copy_from_slice(image);
+        self.len = Some(image.len());
+        self.saves += 1;
+        Ok(())
+    }
+    fn erase(&mut self) -> Result<(), StorageError> {
+        if self.fail {
+            return Err(StorageError::Io);
+        }
+        self.len = None;
+        Ok(())
+    }
+}
+
+/// Builds an image in a caller-provided buffer.
+pub struct ImageWriter<'a> {
+    buf: &'a mut [u8],
+    len: usize,
+    count: u16,
+}
+
+impl<'a> ImageWriter<'a> {
+    /// Starts an image for the model with `model_tag`. `buf` must hold [`IMAGE_MAX`] bytes.
+    pub fn new(buf: &'a mut [u8], model_tag: u8) -> Self {
+        buf[..4].copy_from_slice(MAGIC);
+        buf[4] = VERSION;
+        buf[5] = model_tag;
+        buf[6] = 0;
+        buf[7] = 0;
+        ImageWriter {
+            buf,
+            len: 8,
+            count: 0,
+        }
+    }
+
+    /// Appends one record; returns false when the buffer is full.
+    pub fn push(&mut self, key: u32, value: u32) -> bool {
+        if self.len + 8 + 4 > self.buf.len() {
+            return false;
+        }
+        self.buf[self.len..self.len + 4].copy_from_slice(&key.to_le_bytes());
+        self.buf[self.len + 4..self.len + 8].copy_from_slice(&value.to_le_bytes());
+        self.len += 8;
+        self.count += 1;
+        true
+    }
+
+    /// Seals the image with its count and CRC; returns its length.
+    pub fn finish(self) -> usize {
+        self.buf[6..8].copy_from_slice(&self.count.to_le_bytes());
+        let crc = crc32(&self.buf[..self.len]);
+        self.buf[self.len..self.len + 4].copy_from_slice(&crc.to_le_bytes());
+        self.len + 4
+    }
+}
+
+/// Checks an image and iterates over its records.
+pub fn parse_image(
+    image: &[u8],
+    model_tag: u8,
+) -> Result<impl Iterator<Item = (u32, u32)> + '_, StorageError> {
+    if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
+        return Err(StorageError::Corrupt);
+    }
+    let count = u16::from_le_bytes([image[6], image[7]]) as usize;
+    let body = 8 + count * 8;
+    if image.len() != body + 4 {
+        return Err(StorageError::Corrupt);
+    }
+    let crc = u32::from_le_bytes([
+        image[body],
+        image[body + 1],
+        image[body + 2],
+        image[body + 3],
+    ]);
+    if crc != crc32(&image[..body]) {
+        return Err(StorageError::Corrupt);
+    }
+    Ok(image[8..body].chunks_exact(8).map(|r| {
+        (
+            u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
+            u32::from_le_bytes([r[4], r[5], r[6], r[7]]),
+        )
+    }))
+}
+
+/// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut crc = 0xFFFF_FFFFu32;
+    for &b in data {
+        crc ^= b as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc32_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
+
+    #[test]
+    fn image_round_trip_and_corruption() {
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, 3);
+        assert!(w.push(0x1017_00, 100));
+        assert!(w.push(KEY_LSS_NODE_ID, 5));
+        let n = w.finish();
+        let recs: [(u32, u32); 2] = {
+            let mut it = parse_image(&buf[..n], 3).unwrap();
+            [it.next().unwrap(), it.next().unwrap()]
+        };
+        assert_eq!(recs, [(0x1017_00, 100), (KEY_LSS_NODE_ID, 5)]);
+        assert!(parse_image(&buf[..n], 2).is_err(), "other model");
+        for i in 0..n {
+            let mut b = buf;
+            b[i] ^= 1;
+            assert!(parse_image(&b[..n], 3).is_err(), "flip at {i} not detected");
+        }
+        assert!(parse_image(&buf[..n - 1], 3).is_err(), "torn");
+    }
+}

@@ -1,0 +1,391 @@
+//! candump `-L` log lines: `(1700000000.123456) can0 123#DEADBEEF`.
+//!
+//! Frames: `123#DEADBEEF` (3-digit standard id, upper-case data), `12345678#..` (8-digit
+//! extended id), `080#` (no data), `705#R` / `705#R1` (remote frame, with DLC when > 0). This is
+//! what can-utils' `candump -L` writes and `canplayer` and python-can's `can.LogReader` read.
+
+use std::io::{self, BufRead, Write};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use canpos_core::Frame;
+
+/// One log line.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LogEntry {
+    /// When the frame was seen (microsecond resolution in the file).
+    pub timestamp: SystemTime,
+    /// Interface name, e.g. `can0`.
+    pub interface: String,
+    /// The frame.
+    pub frame: Frame,
+}
+
+/// Why a line could not be parsed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ParseError {
+    /// Missing or malformed `(SEC.USEC)`.
+    #[error("bad timestamp: expected `(SECONDS.MICROS)`")]
+    Timestamp,
+    /// Missing interface name.
+    #[error("missing interface name")]
+    Interface,
+    /// Missing or malformed `ID#DATA`.
+    #[error("bad frame `{0}`: expected ID#DATA, e.g. 123#DEADBEEF, 080#, 705#R")]
+    Frame(String),
+    /// CAN FD (`ID##FLAGS DATA`) is not supported.
+    #[error("CAN FD frames are not supported")]
+    Fd,
+    /// Unexpected text after the frame.
+    #[error("unexpected text after the frame")]
+    Trailing,
+}
+
+/// A parse error with the line it happened on (1-based), or an I/O error.
+#[derive(Debug, thiserror::Error)]
+pub enum LogError {
+    /// A malformed line.
+    #[error("line {line}: {error}")]
+    Parse {
+        /// 1-based line number.
+        line: usize,
+        /// What is wrong.
+        error: ParseError,
+    },
+    /// Reading failed.
+    #[error("reading log: {0}")]
+    Io(#[from] io::Error),
+}
+
+/// Formats one line (without newline).
+pub fn format_line(timestamp: SystemTime, interface: &str, frame: &Frame) -> String {
+    let mut s = String::with_capacity(48);
+    let t = timestamp.duration_since(UNIX_EPOCH).unwrap_or_default();
+    use std::fmt::Write as _;
+    let _ = write!(s, "({}.{:06}) {interface} ", t.as_secs(), t.subsec_micros());
+    let _ = if frame.is_extended() {
+        write!(s, "{:08X}#", frame.id())
+    } else {
+        write!(s, "{:03X}#", frame.id())
+    };
+    if frame.is_remote() {
+        s.push('R');
+        if frame.dlc() > 0 {
+            let _ = write!(s, "{}", frame.dlc());
+        }
+    } else {
+        for b in frame.data() {
+            let _ = write!(s, "{b:02X}");
+        }
+    }
+    s
+}
+
+fn parse_timestamp(tok: &str) -> Result<SystemTime, ParseError> {
+    let inner = tok
+        .strip_prefix('(')
+        .and_then(|t| t.strip_suffix(')'))
+        .ok_or(ParseError::Timestamp)?;
+    crate::socketcand::codec::parse_timestamp(inner).ok_or(ParseError::Timestamp)
+}
+
+fn hex(s: &str) -> Option<u32> {
+    if s.is_empty() || !s.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return None;
+    }
+    u32::from_str_radix(s, 16).ok()
+}
+
+/// Parses the `ID#DATA` part.
+pub fn parse_frame(tok: &str) -> Result<Frame, ParseError> {
+    let bad = || ParseError::Frame(tok.chars().take(40).collect());
+    let (id_s, rest) = tok.split_once('#').ok_or_else(bad)?;
+    if rest.starts_with('#') {
+        return Err(ParseError::Fd);
+    }
+    let extended = match id_s.len() {
+        3 => false,
+        8 => true,
+        _ => return Err(bad()),
+    };
+    let id = hex(id_s).ok_or_else(bad)?;
+    if let Some(r) = rest.strip_prefix(['R', 'r']) {
+        let dlc = match r {
+            "" => 0,
+            d if d.len() == 1 => hex(d).filter(|&d| d <= 8).ok_or_else(bad)? as u8,
+            _ => return Err(bad()),
+        };
+        return Frame::remote(id, extended, dlc).map_err(|_| bad());
+    }
+    // can-utils allows `.` between bytes for readability.
+    let digits: Vec<u8> = rest.bytes().filter(|&b| b != b'.').collect();
+    if !digits.len().is_multiple_of(2) || digits.len() > 16 {
+        return Err(bad());
+    }
+    let mut data = [0u8; 8];
+    for (i, pair) in digits.chunks(2).enumerate() {
+        let s = std::str::from_utf8(pair).map_err(|_| bad())?;
+        data[i] = hex(s).ok_or_else(bad)? as u8;
+    }
+    Frame::with_id(id, extended, &data[..digits.len() / 2]).map_err(|_| bad())
+}
+
+/// Parses one line.
+pub fn parse_line(line: &str) -> Result<LogEntry, ParseError> {
+    let mut tok = line.split_ascii_whitespace();
+    let timestamp = parse_timestamp(tok.next().ok_or(ParseError::Timestamp)?)?;
+    let interface = tok.next().ok_or(ParseError::Interface)?.to_string();
+    let frame = parse_frame(tok.next().ok_or_else(|| ParseError::Frame(String::new()))?)?;
+    // candump -L of newer can-utils may append ` T` / ` R` (tx/rx direction); accept that.
+    match (tok.next(), tok.next()) {
+        (None, _) | (Some("T" | "R"), None) => {}
+        _ => return Err(ParseError::Trailing),
+    }
+    Ok(LogEntry {
+        timestamp,
+        interface,
+        frame,
+    })
+}
+
+/// Writes frames as candump `-L` lines.
+pub struct LogWriter<W: Write> {
+    out: W,
+    interface: String,
+}
+
+impl<W: Write> LogWriter<W> {
+    /// A writer labelling every line with `interface` (e.g. `can0`).
+    pub fn new(out: W, interface: &str) -> Self {
+        LogWriter {
+            out,
+            interface: interface.to_string(),
+        }
+    }
+
+    /// Writes one frame.
+    pub fn write(&mut self, timestamp: SystemTime, frame: &Frame) -> io::Result<()> {
+        let line = format_line(timestamp, &self.interface, frame);
+        self.out.write_all(line.as_bytes())?;
+        self.out.write_all(b"\n")
+    }
+
+    /// Writes an entry with its own interface name.
+    pub fn write_entry(&mut self, e: &LogEntry) -> io::Result<()> {
+        let line = format_line(e.timestamp, &e.interface, &e.frame);
+        self.out.write_all(line.as_bytes())?;
+        self.out.write_all(b"\n")
+    }
+
+    /// Flushes the underlying writer.
+    pub fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
+    }
+
+    /// Returns the underlying writer.
+    pub fn into_inner(self) -> W {
+        self.out
+    }
+}
+
+/// Reads candump `-L` lines; an iterator of entries. Blank lines are skipped.
+pub struct LogReader<R: BufRead> {
+    input: R,
+    line_no: usize,
+    line: String,
+}
+
+impl<R: BufRead> LogReader<R> {
+    /// A reader over `input`.
+    pub fn new(input: R) -> Self {
+        LogReader {
+            input,
+            line_no: 0,
+            line: String::new(),
+        }
+    }
+
+    /// The number of the last line read (1-based).
+    pub fn line_number(&self) -> usize {
+        self.line_no
+    }
+}
+
+impl<R: BufRead> Iterator for LogReader<R> {
+    type Item = Result<LogEntry, LogError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            self.line.clear();
+            match self.input.read_line(&mut self.line) {
+                Ok(0) => return None,
+                Ok(_) => {}
+                Err(e) => return Some(Err(LogError::Io(e))),
+            }
+            self.line_no += 1;
+            let l = self.line.trim();
+            if l.is_empty() {
+                continue;
+            }
+            return Some(parse_line(l).map_err(|error| LogError::Parse {
+                line: self.line_no,
+                error,
+            }));
+        }
+    }
+}
+
+/// Microsecond-truncated timestamp, as a log stores it.
+pub fn truncate_to_micros(t: SystemTime) -> SystemTime {
+    let d = t.duration_since(UNIX_EPOCH).unwrap_or_default();
+    UNIX_EPOCH + Duration::new(d.as_secs(), d.subsec_micros() * 1000)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn t(s: u64, us: u32) -> SystemTime {
+        UNIX_EPOCH + Duration::new(s, us * 1000)
+    }
+
+    #[test]
+    fn formats_exactly() {
+        let ts = t(1700000000, 123456);
+        let cases = [
+            (
+                Frame::new(0x123, &[0xDE, 0xAD, 0xBE, 0xEF]).unwrap(),
+                "(1700000000.123456) can0 123#DEADBEEF",
+            ),
+            (
+                Frame::new(0x080, &[]).unwrap(),
+                "(1700000000.123456) can0 080#",
+            ),
+            (
+                Frame::remote(0x705, false, 0).unwrap(),
+                "(1700000000.123456) can0 705#R",
+            ),
+            (
+                Frame::remote(0x705, false, 1).unwrap(),
+                "(1700000000.123456) can0 705#R1",
+            ),
+            (
+                Frame::with_id(0x12345678, true, &[1]).unwrap(),
+                "(1700000000.123456) can0 12345678#01",
+            ),
+        ];
+        for (f, s) in cases {
+            assert_eq!(format_line(ts, "can0", &f), s);
+            assert_eq!(
+                parse_line(s).unwrap(),
+                LogEntry {
+                    timestamp: ts,
+                    interface: "can0".into(),
+                    frame: f
+                }
+            );
+        }
+    }
+
+    #[test]
+    fn parses_variants() {
+        assert_eq!(
+            parse_frame("123#de.ad").unwrap(),
+            Frame::new(0x123, &[0xDE, 0xAD]).unwrap()
+        );
+        assert_eq!(
+            parse_line("(1.5) vcan0 123# T").unwrap().timestamp,
+            t(1, 500_000)
+        );
+        assert_eq!(parse_frame("123##1DEAD"), Err(ParseError::Fd));
+        // python-can's CanutilsLogWriter appends the direction.
+        let e = parse_line("(1.500000) can0 705#R R").unwrap();
+        assert_eq!(e.frame, Frame::remote(0x705, false, 0).unwrap());
+    }
+
+    #[test]
+    fn rejects_bad_lines() {
+        for (line, want) in [
+            ("", ParseError::Timestamp),
+            ("1.0 can0 123#", ParseError::Timestamp),
+            ("(1.x) can0 123#", ParseError::Timestamp),
+            ("(1.0)", ParseError::Interface),
+            ("(1.0) can0", ParseError::Frame(String::new())),
+            ("(1.0) can0 12#00", ParseError::Frame("12#00".into())),
+            ("(1.0) can0 800#00", ParseError::Frame("800#00".into())),
+            ("(1.0) can0 123#0", ParseError::Frame("123#0".into())),
+            (
+                "(1.0) can0 123#000000000000000000",
+                ParseError::Frame("123#000000000000000000".into()),
+            ),
+            ("(1.0) can0 123#R9", ParseError::Frame("123#R9".into())),
+            ("(1.0) can0 123#ZZ", ParseError::Frame("123#ZZ".into())),
+            ("(1.0) can0 123 #00", ParseError::Frame("123".into())),
+            ("(1.0) can0 123#00 extra stuff", ParseError::Trailing),
+        ] {
+            assert_eq!(parse_line(line), Err(want), "{line}");
+        }
+    }
+
+    #[test]
+    fn reader_reports_line_numbers() {
+        let log = "(1.000000) can0 123#01\n\n(2.000000) can0 nonsense\n(3.000000) can0 080#\n";
+        let mut r = LogReader::new(log.as_bytes());
+        assert_eq!(
+            r.next().unwrap().unwrap().frame,
+            Frame::new(0x123, &[1]).unwrap()
+        );
+        let e = r.next().unwrap().unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "line 3: bad frame `nonsense`: expected ID#DATA, e.g. 123#DEADBEEF, 080#, 705#R"
+        );
+        assert_eq!(
+            r.next().unwrap().unwrap().frame,
+            Frame::new(0x80, &[]).unwrap()
+        );
+        assert!(r.next().is_none());
+        assert_eq!(r.line_number(), 4);
+    }
+
+    fn arb_frame() -> impl Strategy<Value = Frame> {
+        (
+            0u32..0x2000_0000,
+            any::<bool>(),
+            any::<bool>(),
+            proptest::collection::vec(any::<u8>(), 0..=8),
+            0u8..=8,
+        )
+            .prop_map(|(id, ext, rtr, data, dlc)| {
+                let id = if ext { id } else { id & 0x7FF };
+                if rtr {
+                    Frame::remote(id, ext, dlc).unwrap()
+                } else {
+                    Frame::with_id(id, ext, &data).unwrap()
+                }
+            })
+    }
+
+    proptest! {
+        #[test]
+        fn roundtrip(frames in proptest::collection::vec((arb_frame(), 0u64..5_000_000_000, 0u32..1_000_000), 0..20)) {
+            let mut w = LogWriter::new(Vec::new(), "vcan0");
+            for (f, s, us) in &frames {
+                w.write(t(*s, *us), f).unwrap();
+            }
+            let bytes = w.into_inner();
+            let got: Vec<LogEntry> = LogReader::new(&bytes[..]).collect::<Result<_, _>>().unwrap();
+            prop_assert_eq!(got.len(), frames.len());
+            for (e, (f, s, us)) in got.iter().zip(&frames) {
+                prop_assert_eq!(&e.frame, f);
+                prop_assert_eq!(e.timestamp, t(*s, *us));
+                prop_assert_eq!(&e.interface, "vcan0");
+            }
+        }
+
+        #[test]
+        fn parse_never_panics(s in "\\PC{0,80}") {
+            let _ = parse_line(&s);
+        }
+    }
+}

@@ -1,0 +1,621 @@
+//! The [`Transport`] trait the runtime drives nodes through, and bus URLs.
+//!
+//! # Design: every transport is a channel
+//!
+//! Every transport in this crate delivers received frames into a bounded
+//! [`crossbeam_channel`] queue, filled either by the bus itself (in-process [`mem`](crate::mem)
+//! bus, in-process hub participants) or by one reader thread per connection (socketcand client,
+//! SocketCAN). [`Transport::receiver`] exposes that queue, so:
+//!
+//! - a thread driving **one** node calls [`Transport::recv_deadline`] with the node's next timer
+//!   deadline and wakes exactly at the frame or at the deadline, whichever comes first;
+//! - a thread driving **many** nodes builds one [`crossbeam_channel::Select`] over all their
+//!   receivers and waits with [`Select::ready_deadline`](crossbeam_channel::Select::ready_deadline)
+//!   on the earliest deadline, then drains the ready transports with [`Transport::try_recv`].
+//!   No per-node thread and no polling are needed; sending never blocks on the network peer.
+//!
+//! A receiver that reports *disconnected* means the transport died (peer closed, interface
+//! gone); the next `recv_*` call returns the reason as an error.
+
+use std::fmt;
+use std::io;
+use std::net::ToSocketAddrs;
+use std::str::FromStr;
+use std::time::{Duration, Instant, SystemTime};
+
+use canpos_core::Frame;
+pub use crossbeam_channel::Receiver;
+
+/// A received frame with the time it was seen on the bus.
+///
+/// On socketcand the timestamp is the one the server put in the `< frame ... >` element; on the
+/// in-process bus it is the time of the `send`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RxFrame {
+    /// The frame.
+    pub frame: Frame,
+    /// When the frame was on the bus (wall clock).
+    pub timestamp: SystemTime,
+}
+
+impl RxFrame {
+    /// A frame stamped with the current wall-clock time.
+    pub fn now(frame: Frame) -> Self {
+        RxFrame {
+            frame,
+            timestamp: SystemTime::now(),
+        }
+    }
+}
+
+/// A connection to a CAN bus, as seen by one node (or one tool).
+///
+/// Frames sent through a transport are not received back by the same transport.
+pub trait Transport: Send {
+    /// Puts a frame on the bus. Never waits for other participants to read.
+    fn send(&mut self, frame: &Frame) -> io::Result<()>;
+
+    /// Waits up to `timeout` (`None`: forever, `Some(ZERO)`: just poll) for a frame.
+    ///
+    /// `Ok(None)` means the timeout passed; an error means the transport is dead.
+    fn recv_timeout(&mut self, timeout: Option<Duration>) -> io::Result<Option<RxFrame>> {
+        let rx = self.receiver();
+        let r = match timeout {
+            None => rx
+                .recv()
+                .map_err(|_| crossbeam_channel::RecvTimeoutError::Disconnected),
+            Some(t) if t.is_zero() => rx.try_recv().map_err(|e| match e {
+                crossbeam_channel::TryRecvError::Empty => {
+                    crossbeam_channel::RecvTimeoutError::Timeout
+                }
+                crossbeam_channel::TryRecvError::Disconnected => {
+                    crossbeam_channel::RecvTimeoutError::Disconnected
+                }
+            }),
+            Some(t) => rx.recv_timeout(t),
+        };
+        match r {
+            Ok(f) => Ok(Some(f)),
+            Err(crossbeam_channel::RecvTimeoutError::Timeout) => Ok(None),
+            Err(crossbeam_channel::RecvTimeoutError::Disconnected) => Err(self.dead_error()),
+        }
+    }
+
+    /// Waits for a frame until the absolute `deadline` (monotonic clock).
+    ///
+    /// Waking is as precise as the OS allows: the underlying channel wait is deadline-based, so
+    /// there is no drift from re-computing relative timeouts.
+    fn recv_deadline(&mut self, deadline: Instant) -> io::Result<Option<RxFrame>> {
+        match self.receiver().recv_deadline(deadline) {
+            Ok(f) => Ok(Some(f)),
+            Err(crossbeam_channel::RecvTimeoutError::Timeout) => Ok(None),
+            Err(crossbeam_channel::RecvTimeoutError::Disconnected) => Err(self.dead_error()),
+        }
+    }
+
+    /// Returns a frame if one is queued, without waiting.
+    fn try_recv(&mut self) -> io::Result<Option<RxFrame>> {
+        self.recv_timeout(Some(Duration::ZERO))
+    }
+
+    /// The queue received frames arrive in; use it to wait on many transports at once
+    /// (see the [module docs](self)). Taking frames from it directly is allowed.
+    fn receiver(&self) -> &Receiver<RxFrame>;
+
+    /// Why the transport stopped, once its receiver reports disconnected.
+    fn dead_error(&self) -> io::Error {
+        io::Error::new(io::ErrorKind::ConnectionAborted, "CAN transport closed")
+    }
+
+    /// The bus bit rate in kbit/s, when the bus models one (the in-process bus can); a node
+    /// configured for another bit rate must neither send nor receive.
+    fn bus_bitrate(&self) -> Option<u32> {
+        None
+    }
+
+    /// Frames this transport lost because its receive queue was full.
+    fn dropped(&self) -> u64 {
+        0
+    }
+
+    /// A short description for logs, e.g. the URL.
+    fn describe(&self) -> String;
+}
+
+impl<T: Transport + ?Sized> Transport for Box<T> {
+    fn send(&mut self, frame: &Frame) -> io::Result<()> {
+        (**self).send(frame)
+    }
+    fn recv_timeout(&mut self, timeout: Option<Duration>) -> io::Result<Option<RxFrame>> {
+        (**self).recv_timeout(timeout)
+    }
+    fn recv_deadline(&mut self, deadline: Instant) -> io::Result<Option<RxFrame>> {
+        (**self).recv_deadline(deadline)
+    }
+    fn try_recv(&mut self) -> io::Result<Option<RxFrame>> {
+        (**self).try_recv()
+    }
+    fn receiver(&self) -> &Receiver<RxFrame> {
+        (**self).receiver()
+    }
+    fn dead_error(&self) -> io::Error {
+        (**self).dead_error()
+    }
+    fn bus_bitrate(&self) -> Option<u32> {
+        (**self).bus_bitrate()
+    }
+    fn dropped(&self) -> u64 {
+        (**self).dropped()
+    }
+    fn describe(&self) -> String {
+        (**self).describe()
+    }
+}
+
+/// Errors of [`open`] and [`BusUrl::parse`].
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The URL could not be understood.
+    #[error("bad bus URL `{url}`: {reason}")]
+    BadUrl {
+        /// The URL as given.
+        url: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// Connecting or the protocol handshake failed.
+    #[error("cannot connect to `{url}`: {source}")]
+    Connect {
+        /// The URL.
+        url: String,
+        /// The cause; `ConnectionRefused` when nothing listens there.
+        #[source]
+        source: io::Error,
+    },
+    /// The SocketCAN interface could not be opened.
+    #[error("cannot open SocketCAN interface `{iface}`: {source}")]
+    SocketCan {
+        /// Interface name.
+        iface: String,
+        /// The cause.
+        #[source]
+        source: io::Error,
+    },
+    /// This build lacks the transport (e.g. the `socketcan` cargo feature is off).
+    #[error("`{0}` transport is not compiled in (enable the `socketcan` cargo feature)")]
+    Unsupported(String),
+}
+
+impl Error {
+    /// True when nothing listens at a socketcand URL (the caller may start an embedded hub).
+    pub fn is_connection_refused(&self) -> bool {
+        matches!(self, Error::Connect { source, .. } if source.kind() == io::ErrorKind::ConnectionRefused)
+    }
+}
+
+/// Default socketcand TCP port.
+pub const DEFAULT_PORT: u16 = 29536;
+/// Default socketcand host (loopback only, unless asked otherwise).
+pub const DEFAULT_HOST: &str = "127.0.0.1";
+/// Default socketcand channel.
+pub const DEFAULT_CHANNEL: &str = "can0";
+/// The default bus URL.
+pub const DEFAULT_URL: &str = "socketcand://127.0.0.1:29536/can0";
+
+/// A parsed bus URL.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum BusUrl {
+    /// `socketcand://HOST:PORT/CHANNEL`; missing parts take the defaults
+    /// (`socketcand://` = `socketcand://127.0.0.1:29536/can0`).
+    Socketcand {
+        /// Host name or IP address (IPv6 without brackets).
+        host: String,
+        /// TCP port.
+        port: u16,
+        /// Channel (virtual bus) name.
+        channel: String,
+    },
+    /// `socketcan://IFACE`: a Linux SocketCAN interface.
+    SocketCan {
+        /// Interface name, e.g. `can0`, `vcan0`.
+        iface: String,
+    },
+    /// `mem://NAME`: a named in-process bus (see [`MemBus::named`](crate::mem::MemBus::named)).
+    Mem {
+        /// Bus name.
+        name: String,
+    },
+}
+
+fn bad(url: &str, reason: impl Into<String>) -> Error {
+    Error::BadUrl {
+        url: url.to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// A name that can be put into a socketcand element or an interface: printable, no spaces or
+/// angle brackets.
+fn check_name(url: &str, what: &str, name: &str, max: usize) -> Result<(), Error> {
+    if name.is_empty() {
+        return Err(bad(url, format!("empty {what}")));
+    }
+    if name.len() > max {
+        return Err(bad(url, format!("{what} longer than {max} characters")));
+    }
+    if let Some(c) = name
+        .chars()
+        .find(|c| !c.is_ascii_graphic() || matches!(c, '<' | '>' | '/'))
+    {
+        return Err(bad(url, format!("{what} `{name}` contains {c:?}")));
+    }
+    Ok(())
+}
+
+impl BusUrl {
+    /// Parses a bus URL; see the variants for the accepted forms.
+    pub fn parse(url: &str) -> Result<BusUrl, Error> {
+        let Some((scheme, rest)) = url.split_once("://") else {
+            return Err(bad(
+                url,
+                "missing scheme; expected socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME",
+            ));
+        };
+        match scheme.to_ascii_lowercase().as_str() {
+            "socketcand" => Self::parse_socketcand(url, rest),
+            "socketcan" => {
+                // Linux IFNAMSIZ is 16 including the NUL.
+                check_name(url, "interface name", rest, 15)?;
+                Ok(BusUrl::SocketCan {
+                    iface: rest.to_string(),
+                })
+            }
+            "mem" => {
+                check_name(url, "bus name", rest, 64)?;
+                Ok(BusUrl::Mem {
+                    name: rest.to_string(),
+                })
+            }
+            other => Err(bad(
+                url,
+                format!("unknown scheme `{other}`; expected socketcand, socketcan or mem"),
+            )),
+        }
+    }
+
+    fn parse_socketcand(url: &str, rest: &str) -> Result<BusUrl, Error> {
+        let (authority, channel) = match rest.split_once('/') {
+            Some((a, c)) => (a, c),
+            None => (rest, ""),
+        };
+        let channel = if channel.is_empty() {
+            DEFAULT_CHANNEL
+        } else {
+            channel
+        };
+        check_name(url, "channel", channel, 64)?;
+        let (host, port) = if authority.is_empty() {
+            (DEFAULT_HOST, None)
+        } else if let Some(v6) = authority.strip_prefix('[') {
+            let Some((h, after)) = v6.split_once(']') else {
+                return Err(bad(url, "unclosed `[` in IPv6 host"));
+            };
+            match after {
+                "" => (h, None),
+                p => match p.strip_prefix(':') {
+                    Some(p) => (h, Some(p)),
+                    None => return Err(bad(url, "expected `:PORT` after `]`")),
+                },
+            }
+        } else {
+            match authority.rsplit_once(':') {
+                Some((h, _)) if h.contains(':') => {
+                    return Err(bad(
+                        url,
+                        "IPv6 hosts must be written in brackets: [::1]:29536",
+                    ))
+                }
+                Some((h, p)) => (h, Some(p)),
+                None => (authority, None),
+            }
+        };
+        if host.is_empty() {
+            return Err(bad(url, "empty host"));
+        }
+        if host.chars().any(|c| c.is_whitespace() || c == '@') {
+            return Err(bad(url, format!("bad host `{host}`")));
+        }
+        let port = match port {
+            None => DEFAULT_PORT,
+            Some(p) => match p.parse::<u16>() {
+                Ok(0) => return Err(bad(url, "port 0 is not a valid port to connect to")),
+                Ok(p) => p,
+                Err(_) => return Err(bad(url, format!("bad port `{p}` (expected 1-65535)"))),
+            },
+        };
+        Ok(BusUrl::Socketcand {
+            host: host.to_string(),
+            port,
+            channel: channel.to_string(),
+        })
+    }
+}
+
+impl FromStr for BusUrl {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self, Error> {
+        BusUrl::parse(s)
+    }
+}
+
+impl fmt::Display for BusUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } if host.contains(':') => write!(f, "socketcand://[{host}]:{port}/{channel}"),
+            BusUrl::Socketcand {
+                host,
+                port,
+                channel,
+            } => write!(f, "socketcand://{host}:{port}/{channel}"),
+            BusUrl::SocketCan { iface } => write!(f, "socketcan://{iface}"),
+            BusUrl::Mem { name } => write!(f, "mem://{name}"),
+        }
+    }
+}
+
+/// How long [`open`] waits for a socketcand server to accept and complete the handshake.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Opens a bus by URL (see [`BusUrl`]).
+///
+/// For socketcand, [`Error::is_connection_refused`] tells that nothing listens at the address.
+pub fn open(url: &str) -> Result<Box<dyn Transport>, Error> {
+    open_url(&BusUrl::parse(url)?)
+}
+
+/// Opens an already parsed bus URL.
+pub fn open_url(url: &BusUrl) -> Result<Box<dyn Transport>, Error> {
+    match url {
+        BusUrl::Socketcand {
+            host,
+            port,
+            channel,
+        } => {
+            let connect = || -> io::Result<crate::socketcand::Client> {
+                let mut last = None;
+                for addr in (host.as_str(), *port).to_socket_addrs()? {
+                    match crate::socketcand::Client::connect_timeout(addr, channel, CONNECT_TIMEOUT)
+                    {
+                        Ok(c) => return Ok(c),
+                        Err(e) => last = Some(e),
+                    }
+                }
+                Err(last.unwrap_or_else(|| {
+                    io::Error::new(io::ErrorKind::NotFound, "host resolved to no address")
+                }))
+            };
+            connect()
+                .map(|c| Box::new(c) as Box<dyn Transport>)
+                .map_err(|source| Error::Connect {
+                    url: url.to_string(),
+                    source,
+                })
+        }
+        BusUrl::Mem { name } => Ok(Box::new(crate::mem::MemBus::named(name).attach())),
+        #[cfg(feature = "socketcan")]
+        BusUrl::SocketCan { iface } => crate::socketcan::SocketCanTransport::open(iface)
+            .map(|t| Box::new(t) as Box<dyn Transport>)
+            .map_err(|source| Error::SocketCan {
+                iface: iface.clone(),
+                source,
+            }),
+        #[cfg(not(feature = "socketcan"))]
+        BusUrl::SocketCan { .. } => Err(Error::Unsupported("socketcan".into())),
+    }
+}
+
+/// Opens `url`; for a socketcand URL where nothing listens, starts an embedded hub on that
+/// address instead and joins its channel in-process (what `canpos run` does so that a single
+/// command gives python-can something to connect to).
+///
+/// Returns the hub handle when one was started: keep it alive as long as the bus is needed
+/// (dropping it stops serving TCP clients).
+pub fn open_or_host(
+    url: &str,
+) -> Result<(Box<dyn Transport>, Option<crate::socketcand::HubHandle>), Error> {
+    let parsed = BusUrl::parse(url)?;
+    let BusUrl::Socketcand {
+        host,
+        port,
+        channel,
+    } = &parsed
+    else {
+        return open_url(&parsed).map(|t| (t, None));
+    };
+    // Two attempts: another process may win the race to bind between our connect and bind.
+    let mut last = None;
+    for _ in 0..2 {
+        match open_url(&parsed) {
+            Ok(t) => return Ok((t, None)),
+            Err(e) if e.is_connection_refused() => last = Some(e),
+            Err(e) => return Err(e),
+        }
+        match crate::socketcand::Hub::bind((host.as_str(), *port)) {
+            Ok(hub) => {
+                let port_ = hub.attach(channel);
+                let handle = hub.spawn().map_err(|source| Error::Connect {
+                    url: parsed.to_string(),
+                    source,
+                })?;
+                tracing::info!(addr = %handle.local_addr(), "no socketcand server found; started an embedded hub");
+                return Ok((Box::new(port_), Some(handle)));
+            }
+            Err(e) if e.kind() == io::ErrorKind::AddrInUse => continue,
+            Err(source) => {
+                return Err(Error::Connect {
+                    url: parsed.to_string(),
+                    source,
+                })
+            }
+        }
+    }
+    Err(last.unwrap_or_else(|| bad(url, "unreachable")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sc(host: &str, port: u16, channel: &str) -> BusUrl {
+        BusUrl::Socketcand {
+            host: host.into(),
+            port,
+            channel: channel.into(),
+        }
+    }
+
+    #[test]
+    fn parses_socketcand_urls() {
+        assert_eq!(
+            BusUrl::parse(DEFAULT_URL).unwrap(),
+            sc("127.0.0.1", 29536, "can0")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://").unwrap(),
+            sc("127.0.0.1", 29536, "can0")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://host").unwrap(),
+            sc("host", 29536, "can0")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://h:1/").unwrap(),
+            sc("h", 1, "can0")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://h:1/vcan3").unwrap(),
+            sc("h", 1, "vcan3")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://[::1]:7/x").unwrap(),
+            sc("::1", 7, "x")
+        );
+        assert_eq!(
+            BusUrl::parse("socketcand://[::1]/x").unwrap(),
+            sc("::1", 29536, "x")
+        );
+        assert_eq!(
+            BusUrl::parse("SocketCAND://h:2/c").unwrap(),
+            sc("h", 2, "c")
+        );
+        let u = BusUrl::parse("socketcand://[::1]:7/x").unwrap();
+        assert_eq!(u.to_string(), "socketcand://[::1]:7/x");
+        assert_eq!(BusUrl::parse(&u.to_string()).unwrap(), u);
+    }
+
+    #[test]
+    fn parses_other_schemes() {
+        assert_eq!(
+            BusUrl::parse("socketcan://vcan0").unwrap(),
+            BusUrl::SocketCan {
+                iface: "vcan0".into()
+            }
+        );
+        assert_eq!(
+            BusUrl::parse("mem://line1").unwrap(),
+            BusUrl::Mem {
+                name: "line1".into()
+            }
+        );
+    }
+
+    #[test]
+    fn rejects_bad_urls_with_reasons() {
+        for (url, needle) in [
+            ("", "missing scheme"),
+            ("127.0.0.1:29536", "missing scheme"),
+            ("tcp://x", "unknown scheme `tcp`"),
+            ("socketcand://h:99999/c", "bad port `99999`"),
+            ("socketcand://h:abc/c", "bad port `abc`"),
+            ("socketcand://h:0/c", "port 0"),
+            ("socketcand://:5/c", "empty host"),
+            ("socketcand://::1:5/c", "brackets"),
+            ("socketcand://[::1/c", "unclosed"),
+            ("socketcand://[::1]x/c", "`:PORT`"),
+            ("socketcand://h/a b", "contains ' '"),
+            ("socketcand://h/a>", "contains '>'"),
+            ("socketcand://h/a/b", "contains '/'"),
+            ("socketcan://", "empty interface"),
+            ("socketcan://averyveryverylongname", "longer than 15"),
+            ("mem://", "empty bus name"),
+        ] {
+            let e = BusUrl::parse(url).expect_err(url).to_string();
+            assert!(e.contains(needle), "{url}: {e}");
+            assert!(e.contains(&format!("`{url}`")), "{e}");
+        }
+    }
+
+    #[test]
+    fn open_reports_refused_connection() {
+        // Bind then drop a listener to get a port that (almost surely) refuses.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let e = match open(&format!("socketcand://127.0.0.1:{port}/can0")) {
+            Err(e) => e,
+            Ok(_) => panic!("connected to a closed port"),
+        };
+        assert!(e.is_connection_refused(), "{e}");
+        assert!(e.to_string().contains("cannot connect"), "{e}");
+    }
+
+    #[test]
+    fn open_mem_shares_named_bus() {
+        let mut a = open("mem://transport-test-bus").unwrap();
+        let mut b = open("mem://transport-test-bus").unwrap();
+        let f = Frame::new(0x123, &[1, 2]).unwrap();
+        a.send(&f).unwrap();
+        let got = b
+            .recv_timeout(Some(Duration::from_secs(1)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(got.frame, f);
+        assert_eq!(a.try_recv().unwrap(), None);
+    }
+
+    #[test]
+    fn open_or_host_starts_a_hub_then_reuses_it() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let url = format!("socketcand://127.0.0.1:{port}/can0");
+        let (mut first, hub) = open_or_host(&url).unwrap();
+        let hub = hub.expect("a hub should have been started");
+        let (mut second, none) = open_or_host(&url).unwrap();
+        assert!(none.is_none(), "second open must connect to the first hub");
+        // Past the 20 ms hold-back the hub applies after raw mode.
+        std::thread::sleep(Duration::from_millis(25));
+        let f = Frame::new(0x1, &[2]).unwrap();
+        second.send(&f).unwrap();
+        let got = first
+            .recv_timeout(Some(Duration::from_secs(5)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(got.frame, f);
+        first.send(&f).unwrap();
+        let got = second
+            .recv_timeout(Some(Duration::from_secs(5)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(got.frame, f);
+        drop(hub);
+    }
+}
