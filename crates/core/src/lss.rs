@@ -1,13 +1,173 @@
 //! LSS slave (CiA 305): commissioning node-id and bit rate on 0x7E5 / 0x7E4.
+//!
+//! The LSS slave runs beside the NMT state machine in one of two states, *waiting* and
+//! *configuration*. Every request is an 8-byte frame on 0x7E5 whose byte 0 is the command
+//! specifier; answers go out on 0x7E4, 8 bytes, byte 0 repeating the specifier.
+//!
+//! | cs | service | states | answer |
+//! | --- | --- | --- | --- |
+//! | 0x04 | switch state global (byte 1: 0 waiting, 1 configuration) | both | none |
+//! | 0x40…0x43 | switch state selective (vendor, product, revision, serial) | waiting | 0x44 |
+//! | 0x11 | configure node-id | configuration | 0x11 status |
+//! | 0x13 | configure bit timing (table, index) | configuration | 0x13 status |
+//! | 0x15 | activate bit timing (switch delay ms, LE) | configuration | none |
+//! | 0x17 | store configuration | configuration | 0x17 status |
+//! | 0x46…0x4B | identify remote slave (vendor, product, revision low/high, serial low/high) | both | 0x4F |
+//! | 0x4C | identify non-configured remote slave | both | 0x50 |
+//! | 0x51 | fastscan (DS 305 V2 models only) | waiting, non-configured | 0x4F |
+//! | 0x5A…0x5E | inquire vendor, product, revision, serial, node-id | configuration | value |
+//!
+//! Anything else (unknown specifiers, DLC ≠ 8, services outside their state) is ignored without
+//! an answer, as CiA 305 requires of a slave: the master relies on the silence.
+//!
+//! The rules the seeds leave open follow CiA 305 as implemented by CANopenNode (OD.md G14):
+//! 32-bit values are little-endian in bytes 1…4, the switch delay is 16 bit LE in bytes 1…2 and
+//! covers two periods (before and after the switch), the bit-timing table is the CiA table 0.
 
-use crate::node::Device;
+use crate::node::{Device, UNCONFIGURED};
 use crate::storage::Storage;
-use crate::wire::Instant;
+use crate::wire::{Duration, Instant};
+
+/// LSS command specifiers (byte 0 of every LSS frame).
+pub mod cs {
+    /// Switch state global (byte 1: 0 = waiting, 1 = configuration).
+    pub const SWITCH_GLOBAL: u8 = 0x04;
+    /// Configure node-id.
+    pub const CONFIGURE_NODE_ID: u8 = 0x11;
+    /// Configure bit timing parameters.
+    pub const CONFIGURE_BIT_TIMING: u8 = 0x13;
+    /// Activate bit timing parameters.
+    pub const ACTIVATE_BIT_TIMING: u8 = 0x15;
+    /// Store configuration.
+    pub const STORE_CONFIGURATION: u8 = 0x17;
+    /// Switch state selective: vendor-id.
+    pub const SWITCH_SEL_VENDOR: u8 = 0x40;
+    /// Switch state selective: product code.
+    pub const SWITCH_SEL_PRODUCT: u8 = 0x41;
+    /// Switch state selective: revision number.
+    pub const SWITCH_SEL_REVISION: u8 = 0x42;
+    /// Switch state selective: serial number.
+    pub const SWITCH_SEL_SERIAL: u8 = 0x43;
+    /// Switch state selective: the slave's answer.
+    pub const SWITCH_SEL_RESPONSE: u8 = 0x44;
+    /// Identify remote slave: vendor-id.
+    pub const IDENTIFY_VENDOR: u8 = 0x46;
+    /// Identify remote slave: product code.
+    pub const IDENTIFY_PRODUCT: u8 = 0x47;
+    /// Identify remote slave: revision number, low bound.
+    pub const IDENTIFY_REVISION_LOW: u8 = 0x48;
+    /// Identify remote slave: revision number, high bound.
+    pub const IDENTIFY_REVISION_HIGH: u8 = 0x49;
+    /// Identify remote slave: serial number, low bound.
+    pub const IDENTIFY_SERIAL_LOW: u8 = 0x4A;
+    /// Identify remote slave: serial number, high bound.
+    pub const IDENTIFY_SERIAL_HIGH: u8 = 0x4B;
+    /// Identify non-configured remote slave.
+    pub const IDENTIFY_NON_CONFIGURED: u8 = 0x4C;
+    /// Identify slave (answer to identify remote slave and fastscan).
+    pub const IDENTIFY_SLAVE: u8 = 0x4F;
+    /// Identify non-configured slave (answer to 0x4C).
+    pub const IDENTIFY_NON_CONFIGURED_SLAVE: u8 = 0x50;
+    /// Fastscan (DS 305 V2).
+    pub const FASTSCAN: u8 = 0x51;
+    /// Inquire identity vendor-id.
+    pub const INQUIRE_VENDOR: u8 = 0x5A;
+    /// Inquire identity product code.
+    pub const INQUIRE_PRODUCT: u8 = 0x5B;
+    /// Inquire identity revision number.
+    pub const INQUIRE_REVISION: u8 = 0x5C;
+    /// Inquire identity serial number.
+    pub const INQUIRE_SERIAL: u8 = 0x5D;
+    /// Inquire node-id.
+    pub const INQUIRE_NODE_ID: u8 = 0x5E;
+}
+
+/// Fastscan `bitChecked` value that resets every non-configured slave's scan (CiA 305).
+pub const FASTSCAN_CONFIRM: u8 = 0x80;
+
+/// Status byte: service done.
+const OK: u8 = 0;
+/// Status byte of configure node-id / bit timing: value out of range / not supported.
+const REFUSED: u8 = 1;
+/// Status byte of store configuration: storage media access error.
+const STORAGE_ERROR: u8 = 2;
+
+/// The CiA 305 bit-timing table 0 in kbit/s, by index (5 is reserved, 9 is automatic
+/// bit-rate detection, which canpos represents as 0).
+const BIT_TIMING_TABLE: [Option<u16>; 10] = [
+    Some(1000),
+    Some(800),
+    Some(500),
+    Some(250),
+    Some(125),
+    None,
+    Some(50),
+    Some(20),
+    Some(10),
+    Some(0),
+];
+
+/// The bit rate in kbit/s of CiA 305 table-0 entry `index` (0 = automatic detection), `None`
+/// for a reserved or unknown index. Whether a model accepts it is a separate question (D9).
+pub fn bit_timing_kbps(index: u8) -> Option<u16> {
+    BIT_TIMING_TABLE.get(index as usize).copied().flatten()
+}
+
+/// Progress through a multi-frame LSS sequence (switch selective, identify remote slave): how
+/// many frames arrived in order, and whether all of them matched so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Sequence {
+    step: u8,
+    matched: bool,
+    /// The low bound of the range being received (identify remote slave).
+    low: u32,
+}
+
+impl Sequence {
+    /// Frame `step` of the sequence arrived; returns false (and starts over) if it is out of
+    /// order. Frame 0 always (re)starts the sequence, so a master can retry at any point.
+    fn advance(&mut self, step: u8, matched: bool) -> bool {
+        if step == 0 {
+            *self = Sequence {
+                step: 1,
+                matched,
+                low: 0,
+            };
+            return true;
+        }
+        if self.step != step {
+            *self = Sequence::default();
+            return false;
+        }
+        self.step += 1;
+        self.matched &= matched;
+        true
+    }
+}
+
+/// An "activate bit timing" in progress. CiA 305: the slave stops sending and receiving, waits
+/// the switch delay, switches its bit rate, waits the delay again, then goes on at the new rate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct BitSwitch {
+    /// End of the first delay: the new bit rate becomes active.
+    switch_at: Instant,
+    /// End of the second delay: the node talks again.
+    resume_at: Instant,
+    /// The bit rate to switch to (kbit/s).
+    kbps: u16,
+    /// The first period is over (the bit rate has been switched).
+    switched: bool,
+}
 
 /// LSS slave state (waiting / configuration) beside the NMT state machine.
 #[derive(Clone, Debug, Default)]
 pub struct LssSlave {
     configuration: bool,
+    selective: Sequence,
+    identify: Sequence,
+    /// Which LSS address part (0 vendor … 3 serial) fastscan is checking.
+    fastscan_pos: u8,
+    switch: Option<BitSwitch>,
 }
 
 impl LssSlave {
@@ -25,23 +185,225 @@ impl LssSlave {
     pub fn handle<S: Storage>(
         &mut self,
         data: &[u8],
-        _now: Instant,
-        _dev: &mut Device<S>,
+        now: Instant,
+        dev: &mut Device<S>,
     ) -> Option<[u8; 8]> {
-        if data.len() != 8 {
+        // CiA 305 frames are always 8 bytes; anything else is not LSS and gets no answer.
+        let d: &[u8; 8] = data.try_into().ok()?;
+        let value = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
+        let addr = dev.lss_address();
+        match d[0] {
+            cs::SWITCH_GLOBAL => {
+                match d[1] {
+                    0 => {
+                        self.configuration = false;
+                        // Leaving configuration ends any half-done selection.
+                        self.selective = Sequence::default();
+                    }
+                    1 => self.configuration = true,
+                    _ => {}
+                }
+                None
+            }
+            // Selection only makes sense for slaves still waiting (CiA 305 state table);
+            // a slave already in configuration ignores it, as CANopenNode does.
+            c @ cs::SWITCH_SEL_VENDOR..=cs::SWITCH_SEL_SERIAL if !self.configuration => {
+                let part = c - cs::SWITCH_SEL_VENDOR;
+                let ok = self.selective.advance(part, value == addr[part as usize]);
+                if ok && part == 3 {
+                    let all = self.selective.matched;
+                    self.selective = Sequence::default();
+                    if all {
+                        self.configuration = true;
+                        return Some(answer(cs::SWITCH_SEL_RESPONSE, 0));
+                    }
+                }
+                None
+            }
+            c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => self.identify(c, value, &addr),
+            cs::IDENTIFY_NON_CONFIGURED => {
+                unconfigured(dev).then(|| answer(cs::IDENTIFY_NON_CONFIGURED_SLAVE, 0))
+            }
+            cs::FASTSCAN => self.fastscan(d, value, &addr, dev),
+            _ if !self.configuration => None,
+            // From here on: services of the configuration state only.
+            cs::CONFIGURE_NODE_ID => {
+                let id = d[1];
+                if (1..=127).contains(&id) || id == UNCONFIGURED {
+                    // Takes effect at the next reset communication (or, for a node that has
+                    // none yet, when it is switched back to waiting: node.rs `after_lss`).
+                    dev.set_pending_node_id(id);
+                    Some(answer(cs::CONFIGURE_NODE_ID, OK))
+                } else {
+                    Some(answer(cs::CONFIGURE_NODE_ID, REFUSED))
+                }
+            }
+            cs::CONFIGURE_BIT_TIMING => {
+                let (table, index) = (d[1], d[2]);
+                let supported = dev.model().features.lss_bit_timing.contains(&index);
+                match bit_timing_kbps(index) {
+                    Some(kbps) if table == 0 && supported => {
+                        dev.set_pending_bitrate(kbps);
+                        Some(answer(cs::CONFIGURE_BIT_TIMING, OK))
+                    }
+                    _ => Some(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
+                }
+            }
+            cs::ACTIVATE_BIT_TIMING => {
+                let delay = Duration::from_millis(u16::from_le_bytes([d[1], d[2]]) as u64);
+                let kbps = dev.pending().1;
+                let switch_at = now + delay;
+                let resume_at = switch_at + delay;
+                self.switch = Some(BitSwitch {
+                    switch_at,
+                    resume_at,
+                    kbps,
+                    switched: false,
+                });
+                // Deaf and mute for both periods; Device checks this on every frame.
+                dev.silent_until = Some(resume_at);
+                self.handle_timeout(now, dev);
+                None
+            }
+            cs::STORE_CONFIGURATION => {
+                let status = match dev.store_lss() {
+                    Ok(()) => OK,
+                    Err(_) => STORAGE_ERROR,
+                };
+                Some(answer(cs::STORE_CONFIGURATION, status))
+            }
+            c @ cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL => {
+                let v = addr[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
+                Some([c, v[0], v[1], v[2], v[3], 0, 0, 0])
+            }
+            // The manuals' example answers `5E 7F` for a node running as 127: the active
+            // node-id, not a pending one (0xFF while the node has none).
+            cs::INQUIRE_NODE_ID => Some(answer(cs::INQUIRE_NODE_ID, dev.node_id)),
+            _ => None,
+        }
+    }
+
+    /// Identify remote slave (0x46…0x4B): answers 0x4F after the sixth frame if vendor and
+    /// product equal the slave's and revision and serial lie within the bounds (inclusive).
+    /// Valid in both LSS states (CiA 305), so a master can look for slaves at any time.
+    fn identify(&mut self, c: u8, value: u32, addr: &[u32; 4]) -> Option<[u8; 8]> {
+        let step = c - cs::IDENTIFY_VENDOR;
+        let matched = match step {
+            0 => value == addr[0],
+            1 => value == addr[1],
+            // Low bounds are kept until their high bound arrives.
+            2 | 4 => true,
+            3 => (self.identify.low..=value).contains(&addr[2]),
+            _ => (self.identify.low..=value).contains(&addr[3]),
+        };
+        if !self.identify.advance(step, matched) {
             return None;
         }
-        if data[0] == 0x04 {
-            self.configuration = data[1] == 1;
+        if step == 2 || step == 4 {
+            self.identify.low = value;
+        }
+        if step == 5 {
+            let all = self.identify.matched;
+            self.identify = Sequence::default();
+            return all.then(|| answer(cs::IDENTIFY_SLAVE, 0));
         }
         None
+    }
+
+    /// Fastscan (CiA 305 V2): byte 5 `bitChecked`, byte 6 `lssSub`, byte 7 `lssNext`. Only
+    /// non-configured slaves in waiting state take part, so that configured nodes and a slave
+    /// already found (now in configuration) stay out of the next scan.
+    fn fastscan<S: Storage>(
+        &mut self,
+        d: &[u8; 8],
+        id_number: u32,
+        addr: &[u32; 4],
+        dev: &Device<S>,
+    ) -> Option<[u8; 8]> {
+        if !dev.model().features.lss_fastscan || self.configuration || !unconfigured(dev) {
+            return None;
+        }
+        let (bit_checked, sub, next) = (d[5], d[6], d[7]);
+        if bit_checked == FASTSCAN_CONFIRM {
+            // Reset: every participant answers and starts again with the vendor-id.
+            self.fastscan_pos = 0;
+            return Some(answer(cs::IDENTIFY_SLAVE, 0));
+        }
+        if bit_checked > 31 || sub > 3 || next > 3 || sub != self.fastscan_pos {
+            return None;
+        }
+        // Bits bit_checked…31 are compared; the lower ones are still unknown to the master.
+        let mask = u32::MAX << bit_checked;
+        if addr[sub as usize] & mask != id_number & mask {
+            return None;
+        }
+        self.fastscan_pos = next;
+        if bit_checked == 0 && next < sub {
+            // All 128 bits confirmed (lssNext wraps back): this slave is the one found.
+            self.configuration = true;
+            self.fastscan_pos = 0;
+        }
+        Some(answer(cs::IDENTIFY_SLAVE, 0))
     }
 
     /// Deadline of a pending bit-rate switch.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        None
+        self.switch
+            .map(|s| if s.switched { s.resume_at } else { s.switch_at })
     }
 
     /// Advances a pending bit-rate switch.
-    pub fn handle_timeout<S: Storage>(&mut self, _now: Instant, _dev: &mut Device<S>) {}
+    pub fn handle_timeout<S: Storage>(&mut self, now: Instant, dev: &mut Device<S>) {
+        let Some(s) = self.switch.as_mut() else {
+            return;
+        };
+        if !s.switched && now >= s.switch_at {
+            dev.activate_bitrate(s.kbps);
+            s.switched = true;
+        }
+        if s.switched && now >= s.resume_at {
+            dev.silent_until = None;
+            self.switch = None;
+        }
+    }
+}
+
+/// An LSS answer frame: specifier, status / byte 1, zeros.
+const fn answer(c: u8, status: u8) -> [u8; 8] {
+    [c, status, 0, 0, 0, 0, 0, 0]
+}
+
+/// A node takes part in fastscan / answers "identify non-configured" only while it has neither
+/// an active nor a pending node-id: one that already got a pending id will enter NMT with it.
+fn unconfigured<S: Storage>(dev: &Device<S>) -> bool {
+    dev.node_id == UNCONFIGURED && dev.pending().0 == UNCONFIGURED
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_zero() {
+        assert_eq!(bit_timing_kbps(0), Some(1000));
+        assert_eq!(bit_timing_kbps(4), Some(125));
+        assert_eq!(bit_timing_kbps(5), None);
+        assert_eq!(bit_timing_kbps(8), Some(10));
+        assert_eq!(bit_timing_kbps(9), Some(0));
+        assert_eq!(bit_timing_kbps(10), None);
+        assert_eq!(bit_timing_kbps(0xFF), None);
+    }
+
+    #[test]
+    fn sequence_restarts_and_rejects_out_of_order() {
+        let mut s = Sequence::default();
+        assert!(!s.advance(1, true));
+        assert!(s.advance(0, true));
+        assert!(s.advance(1, false));
+        assert!(!s.matched);
+        assert!(s.advance(0, true));
+        assert!(s.matched && s.step == 1);
+        assert!(!s.advance(2, true));
+        assert_eq!(s.step, 0);
+    }
 }

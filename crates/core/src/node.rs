@@ -137,6 +137,8 @@ impl<S: Storage> Node<S> {
         self.sdo.reset();
         self.held_sdo = None;
         self.lss = LssSlave::default();
+        // A bit-rate switch cut short by the power cycle must not keep the node deaf.
+        self.dev.silent_until = None;
         self.dev.emcy = Emcy::default();
         self.dev.encoder = Encoder::default();
         self.dev.stored_lss = (None, None);

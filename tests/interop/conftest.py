@@ -1,0 +1,133 @@
+"""Fixtures: a canpos socketcand hub, canpos sensors, and a python-canopen network on it.
+
+python-canopen and python-can are the independent master here: everything they see goes
+through the same loopback socketcand protocol a user's tools would use.
+"""
+import os
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import can
+import canopen
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = os.environ.get("CANPOS_BIN", str(ROOT / "target" / "release" / "canpos"))
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_port(port, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.02)
+    raise RuntimeError(f"nothing listens on 127.0.0.1:{port}")
+
+
+class Proc:
+    """A canpos child process that is always reaped."""
+
+    def __init__(self, args, log):
+        self.args = [BIN, *args]
+        self.log = open(log, "ab")
+        self.p = subprocess.Popen(self.args, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def stop(self, sig_kill=False):
+        if self.p.poll() is None:
+            self.p.kill() if sig_kill else self.p.terminate()
+            try:
+                self.p.wait(5)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait(5)
+        self.log.close()
+
+
+@pytest.fixture
+def hub(tmp_path):
+    port = free_port()
+    p = Proc(["bus", "serve", "--listen", f"127.0.0.1:{port}"], tmp_path / "hub.log")
+    try:
+        wait_port(port)
+        yield port
+    finally:
+        p.stop()
+
+
+@pytest.fixture
+def bus_url(hub):
+    return f"socketcand://127.0.0.1:{hub}/can0"
+
+
+@pytest.fixture
+def network(hub):
+    net = canopen.Network()
+    net.connect(interface="socketcand", host="127.0.0.1", port=hub, channel="can0")
+    try:
+        yield net
+    finally:
+        net.disconnect()
+
+
+@pytest.fixture
+def sensors(bus_url, tmp_path):
+    """Starts canpos sensors on the hub: ``sensors(model="th", node_id=127, ...)``."""
+    procs = []
+
+    def start(model="th", node_id=None, serial=None, state_dir=None, extra=()):
+        args = ["run", "--model", model, "--bus", bus_url, "--ideal", "--magnet", "250",
+                "--state-dir", str(state_dir or tmp_path / "state")]
+        if node_id is not None:
+            args += ["--node-id", str(node_id)]
+        if serial is not None:
+            args += ["--serial", str(serial)]
+        args += list(extra)
+        p = Proc(args, tmp_path / f"run-{len(procs)}.log")
+        procs.append(p)
+        return p
+
+    yield start
+    for p in procs:
+        p.stop()
+
+
+def wait_bootup(network, node_id, proc_start, timeout=10.0):
+    """Starts the sensor with ``proc_start()`` and waits for its boot-up on 0x700 + id."""
+    seen = []
+
+    def cb(cob_id, data, ts):
+        if len(data) == 1 and data[0] == 0:
+            seen.append(ts)
+
+    network.subscribe(0x700 + node_id, cb)
+    try:
+        proc = proc_start()
+        end = time.monotonic() + timeout
+        while not seen and time.monotonic() < end:
+            time.sleep(0.005)
+        assert seen, f"no boot-up from node {node_id}"
+        return proc
+    finally:
+        network.unsubscribe(0x700 + node_id, cb)
+
+
+def add_node(network, node_id, model="th"):
+    node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+    network.add_node(node)
+    node.sdo.RESPONSE_TIMEOUT = 2.0
+    return node
+
+
+def export_eds(model, path):
+    subprocess.run([BIN, "eds", "--model", model, "--output", str(path)], check=True)
+    return path

@@ -1,0 +1,195 @@
+"""python-canopen (an independently written CANopen master) against canpos over socketcand."""
+import struct
+import subprocess
+import time
+
+import can
+import canopen
+import pytest
+from canopen.sdo.exceptions import SdoAbortedError
+
+from conftest import BIN, add_node, export_eds, wait_bootup
+
+
+def u32(node, index, sub):
+    return struct.unpack("<I", node.sdo.upload(index, sub))[0]
+
+
+def test_bootup_and_identity_th(network, sensors):
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    assert u32(node, 0x1000, 0) == 0x00080196
+    assert u32(node, 0x1018, 1) == 0x40
+    assert u32(node, 0x1018, 2) == 0x43333034
+    assert node.sdo.upload(0x1008, 0) == b"C304"
+
+
+def test_every_type_read_write(network, sensors):
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    # UNSIGNED8 / 16 / 32, INTEGER16 / 32, VISIBLE_STRING.
+    assert node.sdo.upload(0x1001, 0) == b"\x00"
+    node.sdo.download(0x1017, 0, struct.pack("<H", 250))
+    assert node.sdo.upload(0x1017, 0) == struct.pack("<H", 250)
+    node.sdo.download(0x1800, 5, struct.pack("<H", 7))
+    assert node.sdo.upload(0x1800, 5) == struct.pack("<H", 7)
+    assert len(node.sdo.upload(0x6020, 1)) == 4
+    assert len(node.sdo.upload(0x6030, 1)) == 2
+    assert node.sdo.upload(0x1009, 0) == b"1.00"
+    with pytest.raises(SdoAbortedError) as e:
+        node.sdo.download(0x1000, 0, b"\0\0\0\0")
+    assert e.value.code == 0x06010002
+    with pytest.raises(SdoAbortedError) as e:
+        node.sdo.upload(0x1234, 0)
+    assert e.value.code == 0x06020000
+
+
+def test_segmented_and_block_transfer_th(network, sensors):
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    node.sdo.download(0x1017, 0, struct.pack("<H", 300), force_segment=True)
+    assert node.sdo.upload(0x1017, 0) == struct.pack("<H", 300)
+    with node.sdo.open(0x1008, 0, "rb", block_transfer=True) as f:
+        assert f.read() == b"C304"
+
+
+def test_segmented_refused_on_tmi(network, sensors):
+    wait_bootup(network, 127, lambda: sensors("tmi"))
+    node = add_node(network, 127)
+    with pytest.raises(SdoAbortedError) as e:
+        node.sdo.download(0x1017, 0, struct.pack("<H", 300), force_segment=True)
+    assert e.value.code == 0x05040001
+    with pytest.raises(SdoAbortedError) as e:
+        with node.sdo.open(0x1018, 1, "rb", block_transfer=True) as f:
+            f.read()
+    assert e.value.code == 0x05040001
+
+
+def test_heartbeat(network, sensors):
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    node.sdo.download(0x1017, 0, struct.pack("<H", 100))
+    stamps = []
+    network.subscribe(0x77F, lambda c, d, t: stamps.append((t, bytes(d))))
+    time.sleep(1.05)
+    assert 9 <= len(stamps) <= 12, stamps
+    assert all(d == b"\x7f" for _, d in stamps)
+    node.nmt.state = "OPERATIONAL"
+    node.nmt.wait_for_heartbeat(1.0)
+    assert node.nmt.state == "OPERATIONAL"
+
+
+@pytest.mark.parametrize("model,third", [("th", 0x6300), ("e-series", 0x6400)])
+def test_tpdo_examples_4_and_5_and_default_pdo(network, sensors, tmp_path, model, third):
+    eds = export_eds(model, tmp_path / f"{model}.eds")
+    wait_bootup(network, 127, lambda: sensors(model))
+    node = canopen.RemoteNode(127, str(eds))
+    network.add_node(node)
+    node.tpdo.read()
+    pdo1 = node.tpdo[1]
+    assert pdo1.enabled
+    assert [(v.index, v.subindex) for v in pdo1.map] == [(0x6020, 1), (0x6030, 1), (third, 1)]
+    # Manual examples 4 and 5: event-driven 254, 10 ms, remapped to position + velocity.
+    pdo1.trans_type = 254
+    pdo1.event_timer = 10
+    pdo1.clear()
+    pdo1.add_variable(0x6020, 1)
+    pdo1.add_variable(0x6030, 1)
+    pdo1.enabled = True
+    pdo1.save()
+    node.tpdo.read()
+    assert [(v.index, v.subindex) for v in node.tpdo[1].map] == [(0x6020, 1), (0x6030, 1)]
+    node.nmt.state = "OPERATIONAL"
+    node.tpdo[1].wait_for_reception(2)
+    step_nm = u32(node, 0x6005, 1)
+    pos = node.tpdo[1].map[0].raw
+    assert abs(pos * step_nm / 1e6 - 250.0) < 0.01, pos
+    assert node.tpdo[1].map[1].raw == 0
+    # Rate: about one PDO per 10 ms.
+    n = []
+    network.subscribe(0x1FF, lambda c, d, t: n.append(t))
+    time.sleep(0.5)
+    assert 35 <= len(n) <= 60, len(n)
+
+
+def test_lss_commission_node_id_5(network, sensors, tmp_path):
+    wait_bootup(network, 127, lambda: sensors("th", state_dir=tmp_path / "s"))
+    lss = network.lss
+    lss.send_switch_state_global(lss.CONFIGURATION_STATE)
+    assert lss.inquire_node_id() == 127
+    lss.configure_node_id(5)
+    lss.configure_bit_timing(2)  # 500 kbit/s
+    lss.store_configuration()
+    lss.send_switch_state_global(lss.WAITING_STATE)
+    booted = []
+    network.subscribe(0x705, lambda c, d, t: booted.append(bytes(d)))
+    network.nmt.send_command(0x81)  # reset node (all)
+    end = time.monotonic() + 3
+    while not booted and time.monotonic() < end:
+        time.sleep(0.01)
+    assert booted and booted[0] == b"\x00"
+    node = add_node(network, 5)
+    assert u32(node, 0x1018, 1) == 0x40
+
+
+def test_store_restart_restore(network, sensors, tmp_path):
+    state = tmp_path / "persist"
+    p = wait_bootup(network, 127, lambda: sensors("th", state_dir=state))
+    node = add_node(network, 127)
+    node.sdo.download(0x1017, 0, struct.pack("<H", 1234))
+    node.sdo.download(0x1010, 1, b"save")
+    p.stop()
+    wait_bootup(network, 127, lambda: sensors("th", state_dir=state))
+    assert node.sdo.upload(0x1017, 0) == struct.pack("<H", 1234)
+    node.sdo.download(0x1011, 1, b"load")
+    node.nmt.send_command(0x81)
+    time.sleep(0.3)
+    assert node.sdo.upload(0x1017, 0) == struct.pack("<H", 0)
+
+
+@pytest.mark.parametrize("model", ["th", "e-series", "tmi"])
+def test_eds_import_matches_device(network, sensors, tmp_path, model):
+    eds = export_eds(model, tmp_path / f"{model}.eds")
+    od = canopen.import_od(str(eds), 127)
+    wait_bootup(network, 127, lambda: sensors(model))
+    node = add_node(network, 127)
+    checked = 0
+    for obj in od.values():
+        subs = obj.values() if hasattr(obj, "values") else [obj]
+        for var in subs:
+            if not var.readable or var.default is None or var.data_type in (0x0F,):
+                continue
+            raw = node.sdo.upload(var.index, var.subindex)
+            if var.data_type == 0x09:
+                assert raw.decode() == var.default, (hex(var.index), var.subindex)
+            else:
+                assert var.decode_raw(raw) == var.default, (hex(var.index), var.subindex, raw)
+            checked += 1
+    assert checked > 20
+
+
+def test_record_is_readable_by_python_can(network, sensors, tmp_path, bus_url):
+    log = tmp_path / "rec.log"
+    rec = subprocess.Popen([BIN, "record", str(log), "--bus", bus_url, "--duration", "2"])
+    time.sleep(0.5)
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    node.nmt.state = "OPERATIONAL"
+    rec.wait(10)
+    msgs = list(can.LogReader(str(log)))
+    assert any(m.arbitration_id == 0x77F and bytes(m.data) == b"\x00" for m in msgs)
+    assert sum(m.arbitration_id == 0x1FF for m in msgs) > 50
+
+
+def test_two_sensors_and_python_canopen_share_a_hub(network, sensors, tmp_path):
+    wait_bootup(network, 10, lambda: sensors("th", node_id=10, serial=1, state_dir=tmp_path / "a"))
+    wait_bootup(network, 11, lambda: sensors("e-series", node_id=11, serial=2, state_dir=tmp_path / "b"))
+    a, b = add_node(network, 10), add_node(network, 11)
+    assert a.sdo.upload(0x1008, 0) == b"C304"
+    assert b.sdo.upload(0x1008, 0) == b"MTS"
+    network.nmt.state = "OPERATIONAL"
+    seen = {0x18A: 0, 0x18B: 0}
+    for cob in seen:
+        network.subscribe(cob, lambda c, d, t: seen.__setitem__(c, seen[c] + 1))
+    time.sleep(0.3)
+    assert seen[0x18A] > 100 and seen[0x18B] > 100, seen
