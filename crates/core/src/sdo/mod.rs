@@ -2,8 +2,9 @@
 //! 0x580+id, with the abort codes of SPEC §4.
 
 mod server;
+pub mod wire;
 
-pub use server::{SdoServer, SDO_TIMEOUT};
+pub use server::{SdoServer, TransferKind, SDO_BUF_LEN, SDO_TIMEOUT, SERVER_BLKSIZE};
 
 use crate::od::Abort;
 

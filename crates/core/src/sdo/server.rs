@@ -1,3 +1,4 @@
+use super::wire::{self, Mux, Request, MAX_BLKSIZE, SEGMENT_DATA};
 use super::{abort_payload, ObjectAccess};
 use crate::od::Abort;
 use crate::wire::{Duration, Instant};
@@ -5,92 +6,637 @@ use crate::wire::{Duration, Instant};
 /// Time after which an unfinished segmented / block transfer is aborted (0x05040000).
 pub const SDO_TIMEOUT: Duration = Duration::from_millis(1000);
 
-/// The SDO server state machine.
-#[derive(Clone, Debug, Default)]
+/// Capacity of the server's transfer buffer: the largest value a segmented or block transfer
+/// can carry. Larger transfers are refused with 0x05040005 (out of memory).
+pub const SDO_BUF_LEN: usize = 64;
+
+/// Block size the server announces for block downloads (the CTT log's value). The buffer, not
+/// the block size, bounds a transfer: data beyond [`SDO_BUF_LEN`] is refused.
+pub const SERVER_BLKSIZE: u8 = MAX_BLKSIZE;
+
+/// The kind of an unfinished transfer (for hosts' status displays and tests).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TransferKind {
+    /// Segmented download (client → server).
+    SegmentedDownload,
+    /// Segmented upload (server → client).
+    SegmentedUpload,
+    /// Block download: inside a sub-block most frames get no answer.
+    BlockDownload,
+    /// Block upload: one request can be answered by a whole block of segments.
+    BlockUpload,
+}
+
+/// Where a transfer stands between two requests.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum State {
+    Idle,
+    /// Segmented download: `buf[..len]` received so far.
+    DownSeg {
+        toggle: bool,
+        size: Option<usize>,
+    },
+    /// Segmented upload: `buf[..len]` is the value, `pos` bytes sent.
+    UpSeg {
+        toggle: bool,
+    },
+    /// Block download. `raw` bytes received in order (the last segment's padding included),
+    /// `seq` the last segment received in order in this block, `last` once the c-bit segment
+    /// arrived (then the end frame is due).
+    BlkDown {
+        crc: bool,
+        size: Option<usize>,
+        raw: usize,
+        seq: u8,
+        last: bool,
+    },
+    /// Block upload initiated: waiting for the start request.
+    BlkUpInit {
+        crc: bool,
+        blksize: u8,
+    },
+    /// Block upload: the block starting at byte `pos` has `segs` segments; `next` is the next
+    /// segment [`SdoServer::poll_transmit`] emits. Waiting for the block ack.
+    BlkUp {
+        crc: bool,
+        segs: u8,
+        next: u8,
+        blksize: u8,
+    },
+    /// Block upload end sent: waiting for the client's end response.
+    BlkUpEnd,
+}
+
+/// The SDO server state machine (CiA 301 §7.2.4): expedited, segmented and block transfers in
+/// both directions, with one transfer buffer of [`SDO_BUF_LEN`] bytes.
+///
+/// Choices where CiA 301 leaves room:
+/// - An initiate request that arrives while a transfer is unfinished abandons that transfer
+///   without an abort frame and is served as a new transfer: the client has evidently given the
+///   old one up, and answering with an abort *and* a response would give one request two
+///   answers. Inside a block-download sub-block every frame is a segment (`c | seqno`), so
+///   there a frame is never read as an initiate; `0x80` (c = 1, seqno 0, invalid as a segment)
+///   is read as the client's abort.
+/// - Abort frames carry the multiplexor of the transfer in progress; outside a transfer they
+///   echo bytes 1…3 of the request.
+/// - Lengths: an indicated size that differs from the object's fixed size is 0x06070012 /
+///   0x06070013 (direction known); data that then differs from the client's own indicated size
+///   is 0x06070010 (length mismatch).
+/// - Block download segments that arrive out of order (lost or repeated) are ignored and
+///   acknowledged by the last in-order sequence number, so the client repeats from there; a
+///   sequence number of 0 or above the block size is 0x05040003.
+#[derive(Clone, Debug)]
 pub struct SdoServer {
     /// Requests ignored because their DLC was not 8.
     pub bad_dlc: u32,
+    segmented: bool,
+    block: bool,
+    state: State,
+    mux: Mux,
+    buf: [u8; SDO_BUF_LEN],
+    /// Valid bytes in `buf` (download: received; upload: the value's size).
+    len: usize,
+    /// Upload: bytes confirmed sent (segmented) or the start of the current block (block).
+    pos: usize,
+    deadline: Option<Instant>,
+}
+
+impl Default for SdoServer {
+    fn default() -> Self {
+        SdoServer::new(true, true)
+    }
 }
 
 impl SdoServer {
-    /// A server with no transfer in progress.
-    pub fn new() -> Self {
-        SdoServer::default()
+    /// A server with no transfer in progress; `segmented` / `block` select the transfer types
+    /// the model supports (a model without them answers their initiates with 0x05040001).
+    pub fn new(segmented: bool, block: bool) -> Self {
+        SdoServer {
+            bad_dlc: 0,
+            segmented,
+            block,
+            state: State::Idle,
+            mux: Mux::default(),
+            buf: [0; SDO_BUF_LEN],
+            len: 0,
+            pos: 0,
+            deadline: None,
+        }
     }
 
     /// Aborts any transfer in progress without sending anything (NMT reset).
-    pub fn reset(&mut self) {}
+    pub fn reset(&mut self) {
+        self.state = State::Idle;
+        self.deadline = None;
+        self.len = 0;
+        self.pos = 0;
+    }
+
+    /// Whether a segmented or block transfer is unfinished.
+    pub fn busy(&self) -> bool {
+        self.state != State::Idle
+    }
+
+    /// The unfinished transfer, if any: its kind and the object it addresses.
+    pub fn transfer(&self) -> Option<(TransferKind, Mux)> {
+        let k = match self.state {
+            State::Idle => return None,
+            State::DownSeg { .. } => TransferKind::SegmentedDownload,
+            State::UpSeg { .. } => TransferKind::SegmentedUpload,
+            State::BlkDown { .. } => TransferKind::BlockDownload,
+            State::BlkUpInit { .. } | State::BlkUp { .. } | State::BlkUpEnd => {
+                TransferKind::BlockUpload
+            }
+        };
+        Some((k, self.mux))
+    }
 
     /// Handles one request frame's data (any length; DLC ≠ 8 is ignored and counted).
-    /// Returns the response payload, if one is due.
+    /// Returns the response payload, if one is due. Block-upload segments are not returned
+    /// here: take them with [`SdoServer::poll_transmit`] after every call.
     pub fn handle(
         &mut self,
         data: &[u8],
-        _now: Instant,
+        now: Instant,
         od: &mut dyn ObjectAccess,
     ) -> Option<[u8; 8]> {
         let Ok(req) = <[u8; 8]>::try_from(data) else {
             self.bad_dlc = self.bad_dlc.wrapping_add(1);
             return None;
         };
-        let index = u16::from_le_bytes([req[1], req[2]]);
-        let sub = req[3];
-        let r = match req[0] >> 5 {
-            1 => self.download_initiate(&req, index, sub, od),
-            2 => self.upload_initiate(index, sub, od),
-            4 => return None, // abort from the client: nothing to answer
-            _ => Err(Abort::InvalidCommand),
-        };
-        Some(r.unwrap_or_else(|a| abort_payload(index, sub, a)))
-    }
-
-    fn upload_initiate(
-        &mut self,
-        index: u16,
-        sub: u8,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let size = od.upload_size(index, sub)?;
-        if size > 4 || size == 0 {
-            return Err(Abort::UnsupportedAccess);
+        if let State::BlkDown { last: false, .. } = self.state {
+            return self.block_download_segment(&req, now);
         }
-        let mut r = [0u8; 8];
-        od.read(index, sub, 0, &mut r[4..8])?;
-        r[0] = 0x43 | ((4 - size as u8) << 2);
-        r[1..3].copy_from_slice(&index.to_le_bytes());
-        r[3] = sub;
-        Ok(r)
-    }
-
-    fn download_initiate(
-        &mut self,
-        req: &[u8; 8],
-        index: u16,
-        sub: u8,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let cmd = req[0];
-        if cmd & 0x02 == 0 {
-            return Err(Abort::UnsupportedAccess);
+        let parsed = Request::parse(&req);
+        if let Request::Abort { .. } = parsed {
+            // The client's abort ends any transfer and is never answered.
+            self.reset();
+            return None;
         }
-        let fixed = od.download_size(index, sub)?;
-        let len = if cmd & 0x01 != 0 {
-            4 - ((cmd >> 2) & 3) as usize
+        let mux = if self.state == State::Idle || parsed.is_initiate() {
+            Mux::from_frame(&req)
         } else {
-            fixed.unwrap_or(4).min(4)
+            self.mux
         };
-        od.write(index, sub, &req[4..4 + len])?;
-        let i = index.to_le_bytes();
-        Ok([0x60, i[0], i[1], sub, 0, 0, 0, 0])
+        let r = self.dispatch(parsed, od);
+        match r {
+            Ok(r) => {
+                if self.state == State::Idle {
+                    self.deadline = None;
+                } else {
+                    self.deadline = Some(now + SDO_TIMEOUT);
+                }
+                r
+            }
+            Err(a) => {
+                let m = if self.state == State::Idle {
+                    mux
+                } else {
+                    self.mux
+                };
+                self.reset();
+                Some(abort_payload(m.index, m.sub, a))
+            }
+        }
+    }
+
+    fn dispatch(
+        &mut self,
+        req: Request,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<Option<[u8; 8]>, Abort> {
+        if req.is_initiate() {
+            // A new transfer replaces an unfinished one (see the type's docs).
+            self.reset();
+        }
+        match (req, self.state) {
+            (
+                Request::DownloadInitiate {
+                    mux,
+                    expedited,
+                    size,
+                    data,
+                },
+                _,
+            ) => {
+                self.mux = mux;
+                if expedited {
+                    self.download_expedited(mux, size, &data, od).map(Some)
+                } else {
+                    self.download_segmented_initiate(mux, size, od).map(Some)
+                }
+            }
+            (Request::UploadInitiate { mux }, _) => {
+                self.mux = mux;
+                self.upload_initiate(mux, od).map(Some)
+            }
+            (
+                Request::BlockUploadInitiate {
+                    mux,
+                    crc,
+                    blksize,
+                    pst,
+                },
+                _,
+            ) => {
+                self.mux = mux;
+                self.block_upload_initiate(mux, crc, blksize, pst, od)
+                    .map(Some)
+            }
+            (Request::BlockDownloadInitiate { mux, crc, size }, _) => {
+                self.mux = mux;
+                self.block_download_initiate(mux, crc, size, od).map(Some)
+            }
+            (
+                Request::DownloadSegment {
+                    toggle,
+                    unused,
+                    last,
+                    data,
+                },
+                State::DownSeg { toggle: t, size },
+            ) => {
+                if toggle != t {
+                    return Err(Abort::Toggle);
+                }
+                let k = SEGMENT_DATA.saturating_sub(unused as usize);
+                self.append(data.get(..k).unwrap_or(&[]), size)?;
+                if last {
+                    self.finish_download(size, od)?;
+                    self.state = State::Idle;
+                } else {
+                    self.state = State::DownSeg { toggle: !t, size };
+                }
+                Ok(Some(wire::download_segment_ack(t)))
+            }
+            (Request::UploadSegment { toggle }, State::UpSeg { toggle: t }) => {
+                if toggle != t {
+                    return Err(Abort::Toggle);
+                }
+                let end = self.len.min(self.pos + SEGMENT_DATA);
+                let chunk = self.buf.get(self.pos..end).unwrap_or(&[]);
+                let last = end >= self.len;
+                let r = wire::upload_segment(t, chunk, last);
+                self.pos = end;
+                self.state = if last {
+                    State::Idle
+                } else {
+                    State::UpSeg { toggle: !t }
+                };
+                Ok(Some(r))
+            }
+            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) => {
+                self.pos = 0;
+                self.start_block(crc, blksize);
+                Ok(None)
+            }
+            (
+                Request::BlockUploadAck { ackseq, blksize },
+                State::BlkUp {
+                    crc, segs, next, ..
+                },
+            ) => {
+                // SDO-27: an ackseq beyond what was sent is a bad sequence number.
+                if ackseq > segs || ackseq >= next {
+                    return Err(Abort::BlockSequence);
+                }
+                if blksize == 0 || blksize > MAX_BLKSIZE {
+                    return Err(Abort::BlockSize);
+                }
+                let acked = self.pos + ackseq as usize * SEGMENT_DATA;
+                let last_in_block = self.pos + segs as usize * SEGMENT_DATA >= self.len;
+                if last_in_block && ackseq == segs {
+                    let before = self.pos + (segs as usize - 1) * SEGMENT_DATA;
+                    let in_last = self.len.saturating_sub(before);
+                    let unused = (SEGMENT_DATA - in_last) as u8;
+                    let c = if crc {
+                        wire::crc16(self.buf.get(..self.len).unwrap_or(&[]))
+                    } else {
+                        0
+                    };
+                    self.state = State::BlkUpEnd;
+                    return Ok(Some(wire::block_upload_end(unused, c)));
+                }
+                // Repeat from the first segment the client did not confirm.
+                self.pos = acked;
+                self.start_block(crc, blksize);
+                Ok(None)
+            }
+            (Request::BlockUploadEnd, State::BlkUpEnd) => {
+                self.state = State::Idle;
+                Ok(None)
+            }
+            (
+                Request::BlockDownloadEnd { unused, crc },
+                State::BlkDown {
+                    crc: use_crc,
+                    size,
+                    raw,
+                    last: true,
+                    ..
+                },
+            ) => {
+                let total = raw
+                    .checked_sub(unused as usize)
+                    .ok_or(Abort::LengthMismatch)?;
+                if total > SDO_BUF_LEN {
+                    return Err(Abort::OutOfMemory);
+                }
+                if size.is_some_and(|s| s != total) {
+                    return Err(Abort::LengthMismatch);
+                }
+                let data = self.buf.get(..total).unwrap_or(&[]);
+                if use_crc && wire::crc16(data) != crc {
+                    return Err(Abort::Crc);
+                }
+                od.write(self.mux.index, self.mux.sub, data)?;
+                self.state = State::Idle;
+                Ok(Some(wire::block_download_end_ack()))
+            }
+            // Unknown specifiers and requests that do not fit the transfer's state.
+            _ => Err(Abort::InvalidCommand),
+        }
+    }
+
+    fn download_expedited(
+        &mut self,
+        mux: Mux,
+        size: Option<u32>,
+        data: &[u8; 4],
+        od: &mut dyn ObjectAccess,
+    ) -> Result<[u8; 8], Abort> {
+        let fixed = od.download_size(mux.index, mux.sub)?;
+        // 0x22 (size not indicated): the object's own size, at most the 4 bytes there are.
+        let len = match size {
+            Some(n) => n as usize,
+            None => fixed.unwrap_or(4).min(4),
+        };
+        od.write(mux.index, mux.sub, data.get(..len).unwrap_or(data))?;
+        Ok(wire::download_initiate_ack(mux))
+    }
+
+    fn download_segmented_initiate(
+        &mut self,
+        mux: Mux,
+        size: Option<u32>,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<[u8; 8], Abort> {
+        if !self.segmented {
+            return Err(Abort::InvalidCommand);
+        }
+        let size = self.check_download_size(mux, size, od)?;
+        self.len = 0;
+        self.state = State::DownSeg {
+            toggle: false,
+            size,
+        };
+        Ok(wire::download_initiate_ack(mux))
+    }
+
+    /// Initiate-time checks of a segmented / block download: the object is writable and an
+    /// indicated size fits the object and the buffer.
+    fn check_download_size(
+        &mut self,
+        mux: Mux,
+        size: Option<u32>,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<Option<usize>, Abort> {
+        let fixed = od.download_size(mux.index, mux.sub)?;
+        let Some(n) = size else { return Ok(None) };
+        let n = usize::try_from(n).unwrap_or(usize::MAX);
+        match fixed {
+            Some(f) if n > f => Err(Abort::LengthTooHigh),
+            Some(f) if n < f => Err(Abort::LengthTooLow),
+            _ if n > SDO_BUF_LEN => Err(Abort::OutOfMemory),
+            _ => Ok(Some(n)),
+        }
+    }
+
+    /// Adds segment data to the buffer.
+    fn append(&mut self, data: &[u8], size: Option<usize>) -> Result<(), Abort> {
+        let end = self.len + data.len();
+        if size.is_some_and(|s| end > s) {
+            return Err(Abort::LengthMismatch);
+        }
+        let dst = self.buf.get_mut(self.len..end).ok_or(Abort::OutOfMemory)?;
+        dst.copy_from_slice(data);
+        self.len = end;
+        Ok(())
+    }
+
+    fn finish_download(
+        &mut self,
+        size: Option<usize>,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<(), Abort> {
+        if size.is_some_and(|s| s != self.len) {
+            return Err(Abort::LengthMismatch);
+        }
+        let data = self.buf.get(..self.len).unwrap_or(&[]);
+        od.write(self.mux.index, self.mux.sub, data)
+    }
+
+    fn upload_initiate(&mut self, mux: Mux, od: &mut dyn ObjectAccess) -> Result<[u8; 8], Abort> {
+        let size = od.upload_size(mux.index, mux.sub)?;
+        if (1..=4).contains(&size) {
+            let mut b = [0u8; 4];
+            let n = od.read(mux.index, mux.sub, 0, &mut b)?;
+            return Ok(wire::expedited_upload(
+                mux,
+                b.get(..n.clamp(1, 4)).unwrap_or(&b),
+            ));
+        }
+        // Longer (or empty) values need a segmented transfer.
+        if !self.segmented {
+            return Err(Abort::InvalidCommand);
+        }
+        self.load(mux, size, od)?;
+        self.state = State::UpSeg { toggle: false };
+        Ok(wire::upload_initiate_segmented(mux, self.len as u32))
+    }
+
+    /// Reads the whole value into the buffer, so every segment comes from one snapshot.
+    fn load(&mut self, mux: Mux, size: usize, od: &mut dyn ObjectAccess) -> Result<(), Abort> {
+        if size > SDO_BUF_LEN {
+            return Err(Abort::OutOfMemory);
+        }
+        let n = od.read(mux.index, mux.sub, 0, &mut self.buf[..size])?;
+        self.len = n.min(size);
+        self.pos = 0;
+        Ok(())
+    }
+
+    fn block_upload_initiate(
+        &mut self,
+        mux: Mux,
+        crc: bool,
+        blksize: u8,
+        pst: u8,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<[u8; 8], Abort> {
+        if !self.block {
+            return Err(Abort::InvalidCommand);
+        }
+        if blksize == 0 || blksize > MAX_BLKSIZE {
+            return Err(Abort::BlockSize);
+        }
+        let size = od.upload_size(mux.index, mux.sub)?;
+        if pst != 0 && size <= pst as usize {
+            // Protocol switch: the client allows a plain upload for a value this small.
+            return self.upload_initiate(mux, od);
+        }
+        self.load(mux, size, od)?;
+        self.state = State::BlkUpInit { crc, blksize };
+        Ok(wire::block_upload_initiate(mux, crc, self.len as u32))
+    }
+
+    /// Sets up the block that starts at `self.pos`; `poll_transmit` emits its segments.
+    fn start_block(&mut self, crc: bool, blksize: u8) {
+        let left = self.len.saturating_sub(self.pos);
+        // An empty rest still needs one (empty, c = 1) segment.
+        let needed = left.div_ceil(SEGMENT_DATA).max(1);
+        let segs = needed.min(blksize as usize) as u8;
+        self.state = State::BlkUp {
+            crc,
+            segs,
+            next: 1,
+            blksize,
+        };
+    }
+
+    fn block_download_initiate(
+        &mut self,
+        mux: Mux,
+        crc: bool,
+        size: Option<u32>,
+        od: &mut dyn ObjectAccess,
+    ) -> Result<[u8; 8], Abort> {
+        if !self.block {
+            return Err(Abort::InvalidCommand);
+        }
+        let size = self.check_download_size(mux, size, od)?;
+        self.len = 0;
+        self.state = State::BlkDown {
+            crc,
+            size,
+            raw: 0,
+            seq: 0,
+            last: false,
+        };
+        Ok(wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE))
+    }
+
+    /// One frame inside a block-download sub-block.
+    fn block_download_segment(&mut self, req: &[u8; 8], now: Instant) -> Option<[u8; 8]> {
+        let State::BlkDown {
+            crc,
+            size,
+            raw,
+            seq,
+            ..
+        } = self.state
+        else {
+            return None;
+        };
+        if req[0] == 0x80 {
+            // c = 1 with seqno 0 is no segment: it is the client's abort.
+            self.reset();
+            return None;
+        }
+        let s = req[0] & 0x7F;
+        let c = req[0] & 0x80 != 0;
+        let fail = |me: &mut Self, a: Abort| {
+            let m = me.mux;
+            me.reset();
+            Some(abort_payload(m.index, m.sub, a))
+        };
+        if s == 0 || s > SERVER_BLKSIZE {
+            return fail(self, Abort::BlockSequence);
+        }
+        self.deadline = Some(now + SDO_TIMEOUT);
+        let mut raw = raw;
+        let mut seq = seq;
+        let mut last = false;
+        if s == seq.wrapping_add(1) {
+            let data = req.get(1..8).unwrap_or(&[]);
+            let room = SDO_BUF_LEN.saturating_sub(self.len);
+            if !c && data.len() > room {
+                return fail(self, Abort::OutOfMemory);
+            }
+            if !c && size.is_some_and(|sz| raw + data.len() > sz) {
+                return fail(self, Abort::LengthMismatch);
+            }
+            // The last segment's padding may not fit: its length is known only at the end.
+            let k = data.len().min(room);
+            if let (Some(dst), Some(src)) =
+                (self.buf.get_mut(self.len..self.len + k), data.get(..k))
+            {
+                dst.copy_from_slice(src);
+            }
+            self.len += k;
+            raw += data.len();
+            seq = s;
+            last = c;
+        }
+        // Out-of-order segments are dropped; the ack tells the client where to resume.
+        let block_end = c || s == SERVER_BLKSIZE;
+        self.state = State::BlkDown {
+            crc,
+            size,
+            raw,
+            seq: if block_end { 0 } else { seq },
+            last,
+        };
+        block_end.then(|| wire::block_download_ack(seq, SERVER_BLKSIZE))
+    }
+
+    /// The next block-upload segment to send, if a block is being sent. Call after
+    /// [`SdoServer::handle`] until it returns `None`.
+    pub fn poll_transmit(&mut self) -> Option<[u8; 8]> {
+        let State::BlkUp {
+            crc,
+            segs,
+            next,
+            blksize,
+        } = self.state
+        else {
+            return None;
+        };
+        if next > segs {
+            return None;
+        }
+        let start = self.pos + (next as usize - 1) * SEGMENT_DATA;
+        let end = self.len.min(start + SEGMENT_DATA);
+        let last = end >= self.len;
+        let data = self.buf.get(start..end).unwrap_or(&[]);
+        let f = wire::block_segment(next, last, data);
+        self.state = State::BlkUp {
+            crc,
+            segs,
+            next: next + 1,
+            blksize,
+        };
+        Some(f)
     }
 
     /// The deadline of a transfer in progress.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        None
+        if self.state == State::Idle {
+            None
+        } else {
+            self.deadline
+        }
     }
 
-    /// Aborts a transfer whose deadline passed; returns the abort payload.
-    pub fn handle_timeout(&mut self, _now: Instant) -> Option<[u8; 8]> {
-        None
+    /// Aborts a transfer whose deadline passed; returns the abort payload (0x05040000).
+    pub fn handle_timeout(&mut self, now: Instant) -> Option<[u8; 8]> {
+        match self.poll_timeout() {
+            Some(t) if now >= t => {
+                let m = self.mux;
+                self.reset();
+                Some(abort_payload(m.index, m.sub, Abort::Timeout))
+            }
+            _ => None,
+        }
     }
 }

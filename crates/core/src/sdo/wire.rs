@@ -1,0 +1,312 @@
+//! SDO command bytes (CiA 301 §7.2.4.3): decoding of client requests, encoding of server
+//! responses, and the block-transfer CRC. Pure functions over 8-byte payloads, so a host-side
+//! SDO client can reuse them.
+
+/// Multiplexor of an SDO transfer: the object it addresses.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Mux {
+    /// Object index.
+    pub index: u16,
+    /// Sub-index.
+    pub sub: u8,
+}
+
+impl Mux {
+    /// The multiplexor in bytes 1…3 of a frame.
+    pub const fn from_frame(f: &[u8; 8]) -> Mux {
+        Mux {
+            index: u16::from_le_bytes([f[1], f[2]]),
+            sub: f[3],
+        }
+    }
+}
+
+/// Largest block size (segments per block) CiA 301 allows.
+pub const MAX_BLKSIZE: u8 = 127;
+
+/// Bytes of data an SDO segment carries.
+pub const SEGMENT_DATA: usize = 7;
+
+/// A client request, decoded from its command byte. Block-download sub-block segments are not
+/// decodable without the server's state (their first byte is `c | seqno`), so the server reads
+/// those raw.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Request {
+    /// ccs 1: initiate download. `expedited`: the data is in bytes 4…7 and `size` (if
+    /// indicated) is its length; otherwise `size` is the indicated total of a segmented transfer.
+    DownloadInitiate {
+        /// Target object.
+        mux: Mux,
+        /// e bit.
+        expedited: bool,
+        /// Data length (expedited, s = 1) or total size (segmented, s = 1).
+        size: Option<u32>,
+        /// Bytes 4…7.
+        data: [u8; 4],
+    },
+    /// ccs 0: download segment.
+    DownloadSegment {
+        /// t bit.
+        toggle: bool,
+        /// n: bytes at the end of `data` that carry no data.
+        unused: u8,
+        /// c bit: last segment.
+        last: bool,
+        /// Bytes 1…7.
+        data: [u8; 7],
+    },
+    /// ccs 2: initiate upload.
+    UploadInitiate {
+        /// Source object.
+        mux: Mux,
+    },
+    /// ccs 3: upload segment request.
+    UploadSegment {
+        /// t bit.
+        toggle: bool,
+    },
+    /// ccs 4: abort transfer.
+    Abort {
+        /// Object of the aborted transfer.
+        mux: Mux,
+        /// Abort code.
+        code: u32,
+    },
+    /// ccs 5, cs 0: initiate block upload.
+    BlockUploadInitiate {
+        /// Source object.
+        mux: Mux,
+        /// cc bit: the client wants a CRC.
+        crc: bool,
+        /// Segments per block.
+        blksize: u8,
+        /// Protocol switch threshold in bytes (0 = no switch allowed).
+        pst: u8,
+    },
+    /// ccs 5, cs 1: end of block upload (client confirms the end frame).
+    BlockUploadEnd,
+    /// ccs 5, cs 2: block acknowledgement.
+    BlockUploadAck {
+        /// Last segment received in sequence.
+        ackseq: u8,
+        /// Segments per block for the next block.
+        blksize: u8,
+    },
+    /// ccs 5, cs 3: start of the block upload.
+    BlockUploadStart,
+    /// ccs 6, cs 0: initiate block download.
+    BlockDownloadInitiate {
+        /// Target object.
+        mux: Mux,
+        /// cc bit: the client will send a CRC.
+        crc: bool,
+        /// Indicated total size.
+        size: Option<u32>,
+    },
+    /// ccs 6, cs 1: end of block download.
+    BlockDownloadEnd {
+        /// n: bytes of the last segment that carried no data.
+        unused: u8,
+        /// CRC of the data (meaningful only if both sides agreed on CRC).
+        crc: u16,
+    },
+    /// ccs 7: not a CiA 301 command.
+    Unknown,
+}
+
+impl Request {
+    /// Decodes a request frame (outside a block-download sub-block).
+    pub fn parse(f: &[u8; 8]) -> Request {
+        let b0 = f[0];
+        let mux = Mux::from_frame(f);
+        let le32 = u32::from_le_bytes([f[4], f[5], f[6], f[7]]);
+        match b0 >> 5 {
+            0 => {
+                let mut data = [0u8; 7];
+                data.copy_from_slice(&f[1..8]);
+                Request::DownloadSegment {
+                    toggle: b0 & 0x10 != 0,
+                    unused: (b0 >> 1) & 0x07,
+                    last: b0 & 0x01 != 0,
+                    data,
+                }
+            }
+            1 => {
+                let expedited = b0 & 0x02 != 0;
+                let indicated = b0 & 0x01 != 0;
+                let size = match (expedited, indicated) {
+                    (_, false) => None,
+                    (true, true) => Some(4 - u32::from((b0 >> 2) & 0x03)),
+                    (false, true) => Some(le32),
+                };
+                Request::DownloadInitiate {
+                    mux,
+                    expedited,
+                    size,
+                    data: [f[4], f[5], f[6], f[7]],
+                }
+            }
+            2 => Request::UploadInitiate { mux },
+            3 => Request::UploadSegment {
+                toggle: b0 & 0x10 != 0,
+            },
+            4 => Request::Abort { mux, code: le32 },
+            5 => match b0 & 0x03 {
+                0 => Request::BlockUploadInitiate {
+                    mux,
+                    crc: b0 & 0x04 != 0,
+                    blksize: f[4],
+                    pst: f[5],
+                },
+                1 => Request::BlockUploadEnd,
+                2 => Request::BlockUploadAck {
+                    ackseq: f[1],
+                    blksize: f[2],
+                },
+                _ => Request::BlockUploadStart,
+            },
+            6 => {
+                if b0 & 0x01 == 0 {
+                    Request::BlockDownloadInitiate {
+                        mux,
+                        crc: b0 & 0x04 != 0,
+                        size: (b0 & 0x02 != 0).then_some(le32),
+                    }
+                } else {
+                    Request::BlockDownloadEnd {
+                        unused: (b0 >> 2) & 0x07,
+                        crc: u16::from_le_bytes([f[1], f[2]]),
+                    }
+                }
+            }
+            _ => Request::Unknown,
+        }
+    }
+
+    /// Whether the request starts a new transfer.
+    pub const fn is_initiate(&self) -> bool {
+        matches!(
+            self,
+            Request::DownloadInitiate { .. }
+                | Request::UploadInitiate { .. }
+                | Request::BlockUploadInitiate { .. }
+                | Request::BlockDownloadInitiate { .. }
+        )
+    }
+}
+
+fn with_mux(b0: u8, mux: Mux, tail: [u8; 4]) -> [u8; 8] {
+    let i = mux.index.to_le_bytes();
+    [b0, i[0], i[1], mux.sub, tail[0], tail[1], tail[2], tail[3]]
+}
+
+/// Expedited upload response (scs 2, e = 1, s = 1) with 1…4 bytes of `data`; more are cut.
+pub fn expedited_upload(mux: Mux, data: &[u8]) -> [u8; 8] {
+    let n = data.len().clamp(1, 4);
+    let mut tail = [0u8; 4];
+    let k = data.len().min(4);
+    tail[..k].copy_from_slice(&data[..k]);
+    with_mux(0x43 | (((4 - n) as u8) << 2), mux, tail)
+}
+
+/// Segmented upload initiate response with the size indicated (0x41).
+pub fn upload_initiate_segmented(mux: Mux, size: u32) -> [u8; 8] {
+    with_mux(0x41, mux, size.to_le_bytes())
+}
+
+/// Upload segment response: up to 7 bytes of `data`, n = unused bytes, c = `last`.
+pub fn upload_segment(toggle: bool, data: &[u8], last: bool) -> [u8; 8] {
+    let k = data.len().min(SEGMENT_DATA);
+    let mut r = [0u8; 8];
+    r[0] = (u8::from(toggle) << 4) | (((SEGMENT_DATA - k) as u8) << 1) | u8::from(last);
+    r[1..1 + k].copy_from_slice(&data[..k]);
+    r
+}
+
+/// Download initiate response (scs 3, 0x60).
+pub fn download_initiate_ack(mux: Mux) -> [u8; 8] {
+    with_mux(0x60, mux, [0; 4])
+}
+
+/// Download segment response (scs 1) echoing the toggle bit.
+pub fn download_segment_ack(toggle: bool) -> [u8; 8] {
+    [0x20 | (u8::from(toggle) << 4), 0, 0, 0, 0, 0, 0, 0]
+}
+
+/// Block download initiate response (scs 5, ss 0): server CRC support and block size.
+pub fn block_download_initiate_ack(mux: Mux, crc: bool, blksize: u8) -> [u8; 8] {
+    with_mux(0xA0 | (u8::from(crc) << 2), mux, [blksize, 0, 0, 0])
+}
+
+/// Block download acknowledgement (scs 5, ss 2): last segment received in order, next size.
+pub fn block_download_ack(ackseq: u8, blksize: u8) -> [u8; 8] {
+    [0xA2, ackseq, blksize, 0, 0, 0, 0, 0]
+}
+
+/// Block download end response (scs 5, ss 1).
+pub fn block_download_end_ack() -> [u8; 8] {
+    [0xA1, 0, 0, 0, 0, 0, 0, 0]
+}
+
+/// Block upload initiate response (scs 6, ss 0) with the size indicated.
+pub fn block_upload_initiate(mux: Mux, crc: bool, size: u32) -> [u8; 8] {
+    with_mux(0xC2 | (u8::from(crc) << 2), mux, size.to_le_bytes())
+}
+
+/// One block-upload segment: `c | seqno`, then up to 7 bytes (the rest zero).
+pub fn block_segment(seq: u8, last: bool, data: &[u8]) -> [u8; 8] {
+    let k = data.len().min(SEGMENT_DATA);
+    let mut r = [0u8; 8];
+    r[0] = (u8::from(last) << 7) | (seq & 0x7F);
+    r[1..1 + k].copy_from_slice(&data[..k]);
+    r
+}
+
+/// Block upload end (scs 6, ss 1): unused bytes of the last segment and the CRC.
+pub fn block_upload_end(unused: u8, crc: u16) -> [u8; 8] {
+    let c = crc.to_le_bytes();
+    [0xC1 | ((unused & 0x07) << 2), c[0], c[1], 0, 0, 0, 0, 0]
+}
+
+/// CRC-16 of block transfers: CCITT polynomial 0x1021, initial value 0, no reflection (the
+/// XMODEM variant CiA 301 specifies).
+pub fn crc16(data: &[u8]) -> u16 {
+    let mut crc: u16 = 0;
+    for &b in data {
+        crc ^= u16::from(b) << 8;
+        for _ in 0..8 {
+            crc = if crc & 0x8000 != 0 {
+                (crc << 1) ^ 0x1021
+            } else {
+                crc << 1
+            };
+        }
+    }
+    crc
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc_matches_conformance_example() {
+        // CONFORMANCE SDO-23: "CANopenDemoPIC32" → 0x43F3.
+        assert_eq!(crc16(b"CANopenDemoPIC32"), 0x43F3);
+        assert_eq!(crc16(b"123456789"), 0x31C3);
+        assert_eq!(crc16(&[0, 0]), 0);
+    }
+
+    #[test]
+    fn command_bytes() {
+        let m = Mux {
+            index: 0x1000,
+            sub: 0,
+        };
+        assert_eq!(expedited_upload(m, &[1])[0], 0x4F);
+        assert_eq!(expedited_upload(m, &[1, 2, 3])[0], 0x47);
+        assert_eq!(block_upload_end(3, 0)[0], 0xCD);
+        assert_eq!(block_upload_end(5, 0)[0], 0xD5);
+        assert_eq!(upload_segment(true, &[1, 2], true)[0], 0x1B);
+    }
+}
