@@ -27,6 +27,8 @@ pub const SIG_LOAD: u32 = 0x6461_6F6C;
 pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
 /// "kill" as the TMI manual prints it (D23).
 pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
+/// [`Device::store`] selector for the values the device stores by itself ([`Group::Auto`]).
+const STORE_AUTO: u8 = 0xFE;
 /// Minimum time a store takes before the SDO answer (D7).
 pub const STORE_TIME: Duration = Duration::from_millis(20);
 
@@ -60,6 +62,9 @@ pub struct Device<S: Storage> {
     pub(crate) bus_bitrate: Option<u16>,
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
+    /// Node-id and bit rate the unit was built with: what a power-on falls back to when
+    /// nothing is stored (`cfg` follows the active values, so it cannot serve).
+    pub(crate) factory_lss: (u8, u16),
     autobaud_frames: u8,
     /// Node-id and bit rate as stored by LSS (kept across "restore defaults").
     pub(crate) stored_lss: (Option<u8>, Option<u16>),
@@ -98,7 +103,7 @@ impl<S: Storage> Node<S> {
     /// A node of `model` with unit configuration `cfg`, powered off. Call [`Node::power_on`].
     pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
         Node {
-            sdo: SdoServer::new(),
+            sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
             held_sdo: None,
             lss: LssSlave::default(),
             dev: Device {
@@ -113,6 +118,7 @@ impl<S: Storage> Node<S> {
                 pending_bitrate: cfg.bitrate_kbps,
                 bus_bitrate: None,
                 silent_until: None,
+                factory_lss: (cfg.node_id, cfg.bitrate_kbps),
                 autobaud_frames: 0,
                 stored_lss: (None, None),
                 tx: TxQueue::default(),
@@ -163,8 +169,10 @@ impl<S: Storage> Node<S> {
             Err(_) => true,
         };
         self.dev.stats.storage_corrupt = corrupt;
-        self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(self.dev.cfg.node_id);
-        self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(self.dev.cfg.bitrate_kbps);
+        // Unstored LSS changes (even ones a reset activated) are gone after a power cycle.
+        let (factory_id, factory_kbps) = self.dev.factory_lss;
+        self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(factory_id);
+        self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(factory_kbps);
         self.dev.bitrate = self.dev.pending_bitrate;
         self.reset(true, now);
         if corrupt {
@@ -252,6 +260,10 @@ impl<S: Storage> Node<S> {
                         }
                     }
                 }
+                // Block-upload segments (a whole block answers one request).
+                while let Some(s) = self.sdo.poll_transmit() {
+                    d.tx.push(Frame::std8(cob::SDO_TX + node, s));
+                }
                 d.flush_emcy();
             }
             return;
@@ -302,7 +314,11 @@ impl<S: Storage> Node<S> {
                 }
                 d.nmt = NmtState::Operational;
             }
-            NmtCommand::Stop => d.nmt = NmtState::Stopped,
+            NmtCommand::Stop => {
+                d.nmt = NmtState::Stopped;
+                // No SDO in Stopped: an unfinished transfer ends silently (no timeout abort).
+                self.sdo.reset();
+            }
             NmtCommand::EnterPreOperational => d.nmt = NmtState::PreOperational,
             NmtCommand::ResetNode => return self.reset(true, now),
             NmtCommand::ResetCommunication => return self.reset(false, now),
@@ -334,10 +350,18 @@ impl<S: Storage> Node<S> {
                 emcy: &mut d.emcy,
                 pdo: &mut d.pdo,
                 model: d.model,
+                cfg: &d.cfg,
+                nmt: d.nmt,
+                bitrate_kbps: d.bitrate,
                 now,
             };
             d.encoder.cycle(s, &mut cx)
         };
+        if d.encoder.take_auto_dirty() {
+            // Values the device keeps by itself (TH 0x2901 life extremes, D19). A failing
+            // medium only loses this update; the next change tries again.
+            let _ = d.store(STORE_AUTO);
+        }
         if forced_preop && d.nmt == NmtState::Operational {
             d.nmt = NmtState::PreOperational;
             d.update_pdo_activity(now);
@@ -424,6 +448,11 @@ impl<S: Storage> Node<S> {
         self.dev.bus_bitrate = kbps;
     }
 
+    /// The SDO server (read-only view: counters, transfer in progress).
+    pub fn sdo_server(&self) -> &SdoServer {
+        &self.sdo
+    }
+
     /// The device state (read-only view for hosts and tests).
     pub fn device(&self) -> &Device<S> {
         &self.dev
@@ -438,6 +467,36 @@ impl<S: Storage> Node<S> {
     /// interface).
     pub fn encoder_mut(&mut self) -> &mut Encoder {
         &mut self.dev.encoder
+    }
+
+    /// Injects (`active`) or removes a fault the CiA 406 application reports the way the
+    /// model's manual says (EMCY code and bytes, error register, alarms, TMI 0x1002 bits and
+    /// lock-out).
+    pub fn inject_fault(&mut self, fault: crate::encoder::Fault, active: bool) {
+        if !self.dev.powered {
+            return;
+        }
+        let d = &mut self.dev;
+        let now = d.now;
+        let forced_preop = {
+            let mut cx = AppCtx {
+                od: &mut d.od,
+                emcy: &mut d.emcy,
+                pdo: &mut d.pdo,
+                model: d.model,
+                cfg: &d.cfg,
+                nmt: d.nmt,
+                bitrate_kbps: d.bitrate,
+                now,
+            };
+            d.encoder.inject(fault, active, &mut cx)
+        };
+        if forced_preop && d.nmt == NmtState::Operational {
+            d.nmt = NmtState::PreOperational;
+            d.update_pdo_activity(now);
+        }
+        d.flush_emcy();
+        d.run_pdos(now);
     }
 
     /// Raises (or with `active == false` clears) a device error from outside the CANopen
@@ -700,6 +759,7 @@ impl<S: Storage> Device<S> {
         let mut buf = [0u8; IMAGE_MAX];
         let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
         let covers = |index: u16, group: Group| match sub {
+            STORE_AUTO => group == Group::Auto,
             2 => group == Group::Comm || (group != Group::Volatile && index < 0x2000),
             3 => index >= 0x2000 && group != Group::Volatile,
             _ => group != Group::Volatile,
@@ -859,6 +919,9 @@ impl<S: Storage> Device<S> {
                         emcy: &mut self.emcy,
                         pdo: &mut self.pdo,
                         model: self.model,
+                        cfg: &self.cfg,
+                        nmt: self.nmt,
+                        bitrate_kbps: self.bitrate,
                         now,
                     };
                     self.encoder.written(index, sub, raw, &mut cx);
@@ -907,6 +970,8 @@ impl<S: Storage> ObjectAccess for Device<S> {
         if !self.od.entry(slot).access.readable() {
             return Err(Abort::WriteOnly);
         }
+        // Values derived from others (0x6500, 0x6509, TMI 0x1002) are current when read.
+        self.encoder.refresh(index, &mut self.od, self.nmt);
         let mut tmp = [0u8; 64];
         let n = self.od.read_bytes(slot, &mut tmp);
         if offset >= n {
