@@ -1,0 +1,1063 @@
+//! The commissioning-master side of `canpos`: NMT, SDO, LSS, scan, monitor, EDS export and
+//! candump record / replay, against any bus URL.
+//!
+//! Exit codes of every command: 0 success, 1 the device refused (SDO abort, LSS error status)
+//! or nothing was found, 2 no answer within the timeout. Errors before anything was sent (bad
+//! arguments, bus not reachable) are returned as `Err` for the caller to report.
+//!
+//! The protocol pieces ([`SdoClient`], [`LssMaster`], [`decode`]) are independent of the
+//! command line so that other commands (benchmarks, tests) can reuse them.
+
+pub mod decode;
+pub mod lss;
+pub mod sdo;
+
+use std::collections::{HashMap, VecDeque};
+use std::fs::File;
+use std::io::{self, BufRead, BufReader, BufWriter, Write};
+use std::path::PathBuf;
+use std::time::{Duration, Instant, SystemTime};
+
+use anyhow::{anyhow, bail, Context, Result};
+use canpos_core::Frame;
+use canpos_host::candump::{format_line, LogReader, LogWriter};
+use canpos_host::transport::{self, BusUrl, RxFrame, Transport, DEFAULT_URL};
+use clap::{Args, Subcommand, ValueEnum};
+
+pub use lss::{Inquire, LssAddress, LssError, LssMaster, LssStatus};
+pub use sdo::{SdoClient, SdoError, ValueType};
+
+/// Exit code: success.
+pub const EXIT_OK: i32 = 0;
+/// Exit code: the device refused (abort, error status) or nothing was found.
+pub const EXIT_REFUSED: i32 = 1;
+/// Exit code: no answer in time.
+pub const EXIT_TIMEOUT: i32 = 2;
+
+/// The bus option every master command takes.
+#[derive(Args, Debug, Clone)]
+pub struct BusArg {
+    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME.
+    #[arg(long, global = true, default_value = DEFAULT_URL, value_name = "URL")]
+    pub bus: String,
+}
+
+fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
+    transport::open(url).with_context(|| {
+        format!("cannot open the bus {url} (is `canpos bus serve` or `canpos run` running?)")
+    })
+}
+
+fn ms(v: u64) -> Duration {
+    Duration::from_millis(v)
+}
+
+/// Parses a node-id: decimal or 0x-hex, within `min..=127`.
+fn parse_node(s: &str, min: u8) -> Result<u8> {
+    let v = sdo::parse_u64(s).ok_or_else(|| anyhow!("node-id `{s}` is not a number"))?;
+    if v < min as u64 || v > 127 {
+        bail!("node-id {v} out of range {min}..=127");
+    }
+    Ok(v as u8)
+}
+
+/// Parses an object index: hex, with or without `0x` (`0x1018` and `1018` are the same).
+fn parse_index(s: &str) -> Result<u16> {
+    let h = s
+        .strip_prefix("0x")
+        .or_else(|| s.strip_prefix("0X"))
+        .unwrap_or(s);
+    u16::from_str_radix(h, 16)
+        .map_err(|_| anyhow!("index `{s}` is not a 16-bit hex number (e.g. 0x1018 or 1018)"))
+}
+
+/// Parses a sub-index: decimal, or hex with `0x`.
+fn parse_sub(s: &str) -> Result<u8> {
+    sdo::parse_u64(s)
+        .and_then(|v| u8::try_from(v).ok())
+        .ok_or_else(|| anyhow!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
+}
+
+fn parse_u32_arg(s: &str) -> Result<u32, String> {
+    sdo::parse_u64(s)
+        .and_then(|v| u32::try_from(v).ok())
+        .ok_or_else(|| format!("`{s}` is not a 32-bit number (decimal or 0x-hex)"))
+}
+
+// ---------------------------------------------------------------------------------------- NMT
+
+/// NMT commands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum NmtCommand {
+    /// Start (operational), 0x01.
+    Start,
+    /// Stop, 0x02.
+    Stop,
+    /// Enter pre-operational, 0x80.
+    Preop,
+    /// Reset node (application), 0x81.
+    Reset,
+    /// Reset communication, 0x82.
+    ResetComm,
+}
+
+impl NmtCommand {
+    /// The command specifier byte.
+    pub fn byte(self) -> u8 {
+        match self {
+            NmtCommand::Start => 0x01,
+            NmtCommand::Stop => 0x02,
+            NmtCommand::Preop => 0x80,
+            NmtCommand::Reset => 0x81,
+            NmtCommand::ResetComm => 0x82,
+        }
+    }
+}
+
+/// `canpos nmt`: send an NMT command.
+#[derive(Args, Debug, Clone)]
+pub struct NmtArgs {
+    /// The command.
+    pub command: NmtCommand,
+    /// Node-id (1…127), or 0 for all nodes.
+    #[arg(long, default_value = "0")]
+    pub node: String,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+}
+
+/// Sends an NMT command (unconfirmed: NMT has no answer except the boot-up after a reset).
+pub fn nmt(a: NmtArgs) -> Result<i32> {
+    let node = parse_node(&a.node, 0)?;
+    let mut bus = open_bus(&a.bus.bus)?;
+    bus.send(&Frame::std_len(
+        0x000,
+        [a.command.byte(), node, 0, 0, 0, 0, 0, 0],
+        2,
+    ))
+    .context("sending the NMT command")?;
+    let target = if node == 0 {
+        "all nodes".to_string()
+    } else {
+        format!("node {node}")
+    };
+    println!(
+        "NMT {} sent to {target}",
+        decode::nmt_command_name(a.command.byte())
+    );
+    Ok(EXIT_OK)
+}
+
+// ---------------------------------------------------------------------------------------- SDO
+
+/// `canpos sdo`: read or write an object.
+#[derive(Args, Debug, Clone)]
+pub struct SdoArgs {
+    #[command(subcommand)]
+    #[allow(missing_docs)]
+    pub cmd: SdoCmd,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// Time to wait for each answer, in ms.
+    #[arg(long, global = true, default_value_t = 1000, value_name = "MS")]
+    pub timeout: u64,
+}
+
+/// SDO operations. INDEX is hex (`0x1018` or `1018`); SUB is decimal or `0x`-hex.
+#[derive(Subcommand, Debug, Clone)]
+pub enum SdoCmd {
+    /// Read (upload) an object and print its value.
+    Read {
+        /// Node-id 1…127.
+        node: String,
+        /// Object index, hex (0x1018 or 1018).
+        index: String,
+        /// Sub-index, decimal or 0x-hex.
+        sub: String,
+        /// How to show the value (default: number for ≤ 4 bytes, else text or hex).
+        #[arg(long = "type", short = 't', value_enum)]
+        ty: Option<ValueType>,
+    },
+    /// Write (download) an object.
+    Write {
+        /// Node-id 1…127.
+        node: String,
+        /// Object index, hex (0x1018 or 1018).
+        index: String,
+        /// Sub-index, decimal or 0x-hex.
+        sub: String,
+        /// The value: decimal or 0x-hex for numbers, text for str, hex bytes for bytes.
+        #[arg(allow_hyphen_values = true)]
+        value: String,
+        /// The object's type (sets the size written).
+        #[arg(long = "type", short = 't', value_enum)]
+        ty: ValueType,
+    },
+}
+
+fn sdo_failure(e: SdoError) -> Result<i32> {
+    eprintln!("{e}");
+    match e {
+        SdoError::Abort(_) | SdoError::Protocol(_) => Ok(EXIT_REFUSED),
+        SdoError::Timeout => Ok(EXIT_TIMEOUT),
+        SdoError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
+    }
+}
+
+/// Reads or writes one object.
+pub fn sdo(a: SdoArgs) -> Result<i32> {
+    match a.cmd {
+        SdoCmd::Read {
+            node,
+            index,
+            sub,
+            ty,
+        } => {
+            let (node, index, sub) = (
+                parse_node(&node, 1)?,
+                parse_index(&index)?,
+                parse_sub(&sub)?,
+            );
+            let mut bus = open_bus(&a.bus.bus)?;
+            let mut c = SdoClient::new(&mut *bus, node, ms(a.timeout));
+            match c.upload(index, sub) {
+                Ok(d) => match ty {
+                    None => {
+                        println!("{}", sdo::format_auto(&d));
+                        Ok(EXIT_OK)
+                    }
+                    Some(t) => match t.decode(&d) {
+                        Ok(s) => {
+                            println!("{s}");
+                            Ok(EXIT_OK)
+                        }
+                        Err(m) => {
+                            eprintln!("{m}; raw: {}", sdo::hex_string(&d));
+                            Ok(EXIT_REFUSED)
+                        }
+                    },
+                },
+                Err(e) => sdo_failure(e),
+            }
+        }
+        SdoCmd::Write {
+            node,
+            index,
+            sub,
+            value,
+            ty,
+        } => {
+            let (node, index, sub) = (
+                parse_node(&node, 1)?,
+                parse_index(&index)?,
+                parse_sub(&sub)?,
+            );
+            let data = ty.encode(&value).map_err(|m| anyhow!(m))?;
+            let mut bus = open_bus(&a.bus.bus)?;
+            let mut c = SdoClient::new(&mut *bus, node, ms(a.timeout));
+            match c.download(index, sub, &data) {
+                Ok(()) => {
+                    println!("ok");
+                    Ok(EXIT_OK)
+                }
+                Err(e) => sdo_failure(e),
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------- LSS
+
+/// `canpos lss`: layer setting services. Most need a node in configuration state first
+/// (`switch-global config` with a single node on the bus, or `switch-selective`).
+#[derive(Args, Debug, Clone)]
+pub struct LssArgs {
+    #[command(subcommand)]
+    #[allow(missing_docs)]
+    pub cmd: LssCmd,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// Time to wait for an answer, in ms (default 1000; for fastscan: per step, default 25).
+    #[arg(long, global = true, value_name = "MS")]
+    pub timeout: Option<u64>,
+}
+
+/// LSS modes for `switch-global`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LssMode {
+    /// Configuration state.
+    Config,
+    /// Waiting state.
+    Waiting,
+}
+
+/// What `lss inquire` asks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum InquireWhat {
+    /// Vendor-id.
+    Vendor,
+    /// Product code.
+    Product,
+    /// Revision number.
+    Revision,
+    /// Serial number.
+    Serial,
+    /// Node-id.
+    NodeId,
+    /// All of the above.
+    All,
+}
+
+/// LSS services.
+#[derive(Subcommand, Debug, Clone)]
+pub enum LssCmd {
+    /// Switch state global: all nodes to configuration or waiting state.
+    SwitchGlobal {
+        /// Target state.
+        mode: LssMode,
+    },
+    /// Switch state selective: the node with this address enters configuration state.
+    SwitchSelective {
+        /// Vendor-id (0x1018/1).
+        #[arg(long, value_parser = parse_u32_arg)]
+        vendor: u32,
+        /// Product code (0x1018/2).
+        #[arg(long, value_parser = parse_u32_arg)]
+        product: u32,
+        /// Revision number (0x1018/3).
+        #[arg(long, value_parser = parse_u32_arg)]
+        revision: u32,
+        /// Serial number (0x1018/4).
+        #[arg(long, value_parser = parse_u32_arg)]
+        serial: u32,
+    },
+    /// Configure node-id (1…127, or 255 = unconfigured); effective after reset communication.
+    SetNodeId {
+        /// The new node-id.
+        id: String,
+    },
+    /// Configure the bit rate (kbit/s: 1000, 800, 500, 250, 125, 50, 20, 10).
+    SetBitrate {
+        /// Bit rate in kbit/s.
+        kbps: u32,
+    },
+    /// Activate bit timing: all nodes switch to the configured bit rate.
+    Activate {
+        /// Switch delay in ms.
+        #[arg(long, default_value_t = 100)]
+        delay: u16,
+    },
+    /// Store configuration (node-id and bit rate) in the node's non-volatile memory.
+    Store,
+    /// Inquire identity values or the node-id of the node in configuration state.
+    Inquire {
+        /// What to ask.
+        #[arg(value_enum, default_value = "all")]
+        what: InquireWhat,
+    },
+    /// Identify non-configured remote slaves (any node without a node-id?).
+    IdentifyUnconfigured,
+    /// Fastscan: find one non-configured node's LSS address and put it in configuration state.
+    Fastscan,
+}
+
+fn lss_failure(e: LssError) -> Result<i32> {
+    match e {
+        LssError::Timeout => {
+            eprintln!("{e}");
+            Ok(EXIT_TIMEOUT)
+        }
+        LssError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
+    }
+}
+
+fn lss_status(cs: u8, what: &str, r: Result<LssStatus, LssError>) -> Result<i32> {
+    match r {
+        Ok(s) if s.ok() => {
+            println!("{what}: ok");
+            Ok(EXIT_OK)
+        }
+        Ok(s) => {
+            eprintln!(
+                "{what}: error status {} ({}), manufacturer code {}",
+                s.code,
+                lss::status_meaning(cs, s.code),
+                s.spec
+            );
+            Ok(EXIT_REFUSED)
+        }
+        Err(e) => lss_failure(e),
+    }
+}
+
+/// Runs one LSS service.
+pub fn lss(a: LssArgs) -> Result<i32> {
+    // Validate before touching the bus.
+    let node_id = match &a.cmd {
+        LssCmd::SetNodeId { id } => {
+            let v = sdo::parse_u64(id).ok_or_else(|| anyhow!("node-id `{id}` is not a number"))?;
+            if !(1..=127).contains(&v) && v != 255 {
+                bail!("node-id {v} out of range (1..=127, or 255 for unconfigured)");
+            }
+            v as u8
+        }
+        _ => 0,
+    };
+    let bit_index = match &a.cmd {
+        LssCmd::SetBitrate { kbps } => lss::bit_timing_index(*kbps).ok_or_else(|| {
+            anyhow!(
+                "{kbps} kbit/s is not in CiA 305 table 0 (1000, 800, 500, 250, 125, 50, 20, 10)"
+            )
+        })?,
+        _ => 0,
+    };
+    let is_fastscan = matches!(a.cmd, LssCmd::Fastscan);
+    let timeout = ms(a.timeout.unwrap_or(if is_fastscan { 25 } else { 1000 }));
+    let mut bus = open_bus(&a.bus.bus)?;
+    let mut m = LssMaster::new(&mut *bus, timeout);
+    match a.cmd {
+        LssCmd::SwitchGlobal { mode } => {
+            if let Err(e) = m.switch_global(mode == LssMode::Config) {
+                return lss_failure(e);
+            }
+            println!(
+                "switch state global: {}",
+                match mode {
+                    LssMode::Config => "configuration",
+                    LssMode::Waiting => "waiting",
+                }
+            );
+            Ok(EXIT_OK)
+        }
+        LssCmd::SwitchSelective {
+            vendor,
+            product,
+            revision,
+            serial,
+        } => {
+            let addr = LssAddress {
+                vendor,
+                product,
+                revision,
+                serial,
+            };
+            match m.switch_selective(&addr) {
+                Ok(()) => {
+                    println!("selected ({addr}): configuration state");
+                    Ok(EXIT_OK)
+                }
+                Err(LssError::Timeout) => {
+                    eprintln!("no node with {addr} answered");
+                    Ok(EXIT_TIMEOUT)
+                }
+                Err(e) => lss_failure(e),
+            }
+        }
+        LssCmd::SetNodeId { .. } => lss_status(
+            0x11,
+            &format!("configure node-id {node_id}"),
+            m.configure_node_id(node_id),
+        ),
+        LssCmd::SetBitrate { kbps } => lss_status(
+            0x13,
+            &format!("configure bit timing {kbps} kbit/s (table 0 index {bit_index})"),
+            m.configure_bit_timing(bit_index),
+        ),
+        LssCmd::Activate { delay } => {
+            if let Err(e) = m.activate_bit_timing(delay) {
+                return lss_failure(e);
+            }
+            println!("activate bit timing sent (switch delay {delay} ms)");
+            Ok(EXIT_OK)
+        }
+        LssCmd::Store => lss_status(0x17, "store configuration", m.store()),
+        LssCmd::Inquire { what } => {
+            let list: &[(Inquire, &str)] = match what {
+                InquireWhat::Vendor => &[(Inquire::Vendor, "vendor-id")],
+                InquireWhat::Product => &[(Inquire::Product, "product code")],
+                InquireWhat::Revision => &[(Inquire::Revision, "revision")],
+                InquireWhat::Serial => &[(Inquire::Serial, "serial number")],
+                InquireWhat::NodeId => &[(Inquire::NodeId, "node-id")],
+                InquireWhat::All => &[
+                    (Inquire::Vendor, "vendor-id"),
+                    (Inquire::Product, "product code"),
+                    (Inquire::Revision, "revision"),
+                    (Inquire::Serial, "serial number"),
+                    (Inquire::NodeId, "node-id"),
+                ],
+            };
+            for (q, name) in list {
+                match m.inquire(*q) {
+                    Ok(v) if *q == Inquire::NodeId => {
+                        let note = if v == 0xFF { " (unconfigured)" } else { "" };
+                        println!("{name}: {v}{note}");
+                    }
+                    Ok(v) => println!("{name}: 0x{v:08X} ({v})"),
+                    Err(e) => return lss_failure(e),
+                }
+            }
+            Ok(EXIT_OK)
+        }
+        LssCmd::IdentifyUnconfigured => match m.identify_non_configured() {
+            Ok(true) => {
+                println!("a non-configured node is present");
+                Ok(EXIT_OK)
+            }
+            Ok(false) => {
+                println!("no non-configured node answered");
+                Ok(EXIT_REFUSED)
+            }
+            Err(e) => lss_failure(e),
+        },
+        LssCmd::Fastscan => match m.fastscan(timeout) {
+            Ok(Some(addr)) => {
+                println!("found {addr}");
+                println!("the node is now in LSS configuration state");
+                Ok(EXIT_OK)
+            }
+            Ok(None) => {
+                println!("no non-configured node answered the fastscan");
+                Ok(EXIT_REFUSED)
+            }
+            Err(LssError::Timeout) => {
+                eprintln!("fastscan lost the node during confirmation; try a longer --timeout");
+                Ok(EXIT_TIMEOUT)
+            }
+            Err(e) => lss_failure(e),
+        },
+    }
+}
+
+// --------------------------------------------------------------------------------------- scan
+
+/// `canpos scan`: find the nodes on the bus and show their identity.
+#[derive(Args, Debug, Clone)]
+pub struct ScanArgs {
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// How long to collect answers after the last request, and the per-read timeout of the
+    /// identity reads, in ms.
+    #[arg(long, default_value_t = 300, value_name = "MS")]
+    pub timeout: u64,
+}
+
+/// One node found by [`scan_bus`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ScanResult {
+    /// Node-id.
+    pub node: u8,
+    /// 0x1000, when the node answered SDO.
+    pub device_type: Option<u32>,
+    /// 0x1018/1…4 (missing sub-indices are `None`).
+    pub identity: [Option<u32>; 4],
+    /// 0x1008.
+    pub name: Option<String>,
+    /// Last NMT state seen in a heartbeat / boot-up, if any.
+    pub state: Option<u8>,
+}
+
+/// Finds nodes: SDO upload of 0x1000 to every node-id, plus heartbeats and boot-ups heard,
+/// then reads each node's identity.
+pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<ScanResult>> {
+    let mut found: HashMap<u8, ScanResult> = HashMap::new();
+    let mut note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
+        let f = rx.frame;
+        if f.is_extended() || f.is_remote() {
+            return;
+        }
+        let id = f.id() as u16;
+        let node = (id & 0x7F) as u8;
+        match (id & 0x780, f.data()) {
+            (0x580, [0x43, 0x00, 0x10, 0x00, a, b, c, d]) if node != 0 => {
+                let e = found.entry(node).or_default();
+                e.node = node;
+                e.device_type = Some(u32::from_le_bytes([*a, *b, *c, *d]));
+            }
+            (0x580, [0x80, 0x00, 0x10, 0x00, ..]) if node != 0 => {
+                found.entry(node).or_default().node = node;
+            }
+            (0x700, [s]) if node != 0 => {
+                let e = found.entry(node).or_default();
+                e.node = node;
+                e.state = Some(*s & 0x7F);
+            }
+            _ => {}
+        }
+    };
+    // Requests go out in small bursts: a real adapter's transmit queue (and a slow hub client)
+    // would drop frames if all 127 were queued at once.
+    for node in 1..=127u8 {
+        bus.send(&Frame::std8(
+            0x600 + node as u16,
+            [0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0],
+        ))?;
+        if node % 16 == 0 {
+            let until = Instant::now() + ms(2);
+            while let Some(rx) = bus.recv_deadline(until)? {
+                note(&mut found, rx);
+            }
+        }
+    }
+    let until = Instant::now() + timeout;
+    while let Some(rx) = bus.recv_deadline(until)? {
+        note(&mut found, rx);
+    }
+    let mut nodes: Vec<ScanResult> = found.into_values().collect();
+    nodes.sort_by_key(|n| n.node);
+    for n in &mut nodes {
+        let mut c = SdoClient::new(bus, n.node, timeout);
+        if n.device_type.is_none() {
+            match c.read_u32(0x1000, 0) {
+                Ok(v) => n.device_type = Some(v),
+                // A node that does not answer SDO (stopped) yields no more information.
+                Err(SdoError::Timeout) => continue,
+                Err(SdoError::Io(e)) => return Err(e),
+                Err(_) => {}
+            }
+        }
+        for sub in 1..=4u8 {
+            match c.read_u32(0x1018, sub) {
+                Ok(v) => n.identity[sub as usize - 1] = Some(v),
+                Err(SdoError::Io(e)) => return Err(e),
+                Err(_) => {}
+            }
+        }
+        match c.upload(0x1008, 0) {
+            Ok(d) => {
+                n.name = Some(
+                    String::from_utf8_lossy(&d)
+                        .trim_end_matches('\0')
+                        .to_string(),
+                )
+            }
+            Err(SdoError::Io(e)) => return Err(e),
+            Err(_) => {}
+        }
+    }
+    Ok(nodes)
+}
+
+/// Scans the bus and prints one line per node.
+pub fn scan(a: ScanArgs) -> Result<i32> {
+    let mut bus = open_bus(&a.bus.bus)?;
+    let nodes = scan_bus(&mut *bus, ms(a.timeout)).context("scanning the bus")?;
+    if nodes.is_empty() {
+        println!("no node found");
+        return Ok(EXIT_REFUSED);
+    }
+    let hex = |v: Option<u32>| v.map_or("-".to_string(), |v| format!("0x{v:08X}"));
+    println!("node  device-type  vendor      product     revision    serial      name       state");
+    for n in &nodes {
+        println!(
+            "{:>4}  {:<11}  {:<10}  {:<10}  {:<10}  {:<10}  {:<9}  {}",
+            n.node,
+            hex(n.device_type),
+            hex(n.identity[0]),
+            hex(n.identity[1]),
+            hex(n.identity[2]),
+            n.identity[3].map_or("-".to_string(), |v| v.to_string()),
+            n.name.as_deref().unwrap_or("-"),
+            n.state.map_or("-", decode::nmt_state_name),
+        );
+    }
+    Ok(EXIT_OK)
+}
+
+// ------------------------------------------------------------------------------------ monitor
+
+/// `canpos monitor`: print decoded bus traffic.
+#[derive(Args, Debug, Clone)]
+pub struct MonitorArgs {
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// Only traffic of this node (NMT and SYNC are always shown).
+    #[arg(long)]
+    pub node: Option<String>,
+    /// Stop after this many frames printed.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop after this many seconds.
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// Also print each frame as a candump -L line.
+    #[arg(long)]
+    pub raw: bool,
+    /// Do not read PDO mapping and measuring steps by SDO (pure listening).
+    #[arg(long)]
+    pub passive: bool,
+    /// SDO timeout for the configuration reads, in ms.
+    #[arg(long, default_value_t = 200, value_name = "MS")]
+    pub timeout: u64,
+}
+
+/// The state of a running monitor: what is known about each node.
+#[derive(Default)]
+pub struct Monitor {
+    nodes: HashMap<u8, Option<decode::NodeInfo>>,
+    /// COB-ID → (node, mapping) for the TPDOs learned.
+    tpdo: HashMap<u16, (u8, u8, Vec<u32>)>,
+}
+
+impl Monitor {
+    /// A monitor that knows nothing yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// The node that produced `f` (boot-up, heartbeat, EMCY, TPDO, SDO answer), if any.
+    fn producer(f: &Frame) -> Option<u8> {
+        if f.is_extended() {
+            return None;
+        }
+        let id = f.id() as u16;
+        let node = (id & 0x7F) as u8;
+        let fc = id & 0x780;
+        (node != 0 && matches!(fc, 0x080 | 0x180 | 0x280 | 0x380 | 0x480 | 0x580 | 0x700))
+            .then_some(node)
+    }
+
+    /// Whether the node's configuration still has to be read.
+    pub fn needs_query(&self, f: &Frame) -> Option<u8> {
+        let n = Self::producer(f)?;
+        (!self.nodes.contains_key(&n)).then_some(n)
+    }
+
+    /// Records what was read about `node` (`None`: it could not be read).
+    pub fn learn(&mut self, node: u8, info: Option<decode::NodeInfo>) {
+        if let Some(i) = &info {
+            self.tpdo.retain(|_, (n, _, _)| *n != node);
+            for (num, cob, map) in &i.tpdos {
+                self.tpdo.insert(*cob, (node, *num, map.clone()));
+            }
+        }
+        self.nodes.insert(node, info);
+    }
+
+    /// Forgets a node (after a boot-up its mapping may have changed).
+    pub fn forget(&mut self, node: u8) {
+        self.nodes.remove(&node);
+        self.tpdo.retain(|_, (n, _, _)| *n != node);
+    }
+
+    /// Reads a node's measuring steps and TPDO configuration by SDO.
+    pub fn query(client: &mut SdoClient<'_>) -> Result<decode::NodeInfo, SdoError> {
+        let mut info = decode::NodeInfo {
+            position_step_nm: match client.read_u32(0x6005, 1) {
+                Ok(v) => Some(v),
+                // No answer at all: nothing else will answer either.
+                Err(e @ (SdoError::Timeout | SdoError::Io(_))) => return Err(e),
+                Err(_) => None,
+            },
+            ..Default::default()
+        };
+        info.velocity_step = client.read_u32(0x6005, 2).ok();
+        for n in 0..4u16 {
+            let cob = match client.read_u32(0x1800 + n, 1) {
+                Ok(v) => v,
+                Err(SdoError::Abort(_)) => break,
+                Err(e) => return Err(e),
+            };
+            if cob & 0x8000_0000 != 0 {
+                continue;
+            }
+            let count = client.read_u32(0x1A00 + n, 0)?.min(64);
+            let mut map = Vec::new();
+            for s in 1..=count as u8 {
+                map.push(client.read_u32(0x1A00 + n, s)?);
+            }
+            info.tpdos.push((n as u8 + 1, (cob & 0x7FF) as u16, map));
+        }
+        Ok(info)
+    }
+
+    /// Decodes one frame into a line of text (without timestamp).
+    pub fn describe(&self, f: &Frame) -> String {
+        if !f.is_extended() && !f.is_remote() {
+            if let Some((node, num, map)) = self.tpdo.get(&(f.id() as u16)) {
+                let info = self
+                    .nodes
+                    .get(node)
+                    .and_then(|i| i.as_ref())
+                    .cloned()
+                    .unwrap_or_default();
+                return format!(
+                    "node {node} TPDO{num} {}",
+                    decode::decode_pdo(&info, map, f.data())
+                );
+            }
+        }
+        decode::describe(f).unwrap_or_else(|| {
+            format!(
+                "0x{:03X} {}",
+                f.id(),
+                if f.is_remote() {
+                    "RTR".to_string()
+                } else {
+                    sdo::hex_string(f.data())
+                }
+            )
+        })
+    }
+
+    /// Whether `f` concerns `node` (for `--node`).
+    pub fn concerns(&self, f: &Frame, node: u8) -> bool {
+        if f.is_extended() {
+            return false;
+        }
+        let id = f.id() as u16;
+        if let Some((n, _, _)) = self.tpdo.get(&id) {
+            return *n == node;
+        }
+        match id {
+            0x000 => f.data().get(1).is_some_and(|n| *n == 0 || *n == node),
+            0x080 => true,
+            0x7E4 | 0x7E5 => true,
+            _ => (id & 0x7F) as u8 == node && id >= 0x080,
+        }
+    }
+}
+
+fn elapsed_since(start: SystemTime, t: SystemTime) -> f64 {
+    t.duration_since(start)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or_else(|e| -e.duration().as_secs_f64())
+}
+
+/// Prints decoded traffic until `--count` / `--duration` is reached (or forever).
+pub fn monitor(a: MonitorArgs) -> Result<i32> {
+    let only = a.node.as_deref().map(|n| parse_node(n, 1)).transpose()?;
+    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
+        bail!("--duration must be a non-negative number of seconds");
+    }
+    let mut bus = open_bus(&a.bus.bus)?;
+    let iface = interface_name(&a.bus.bus);
+    let start = SystemTime::now();
+    let end = a
+        .duration
+        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+    let mut mon = Monitor::new();
+    let mut pending: VecDeque<RxFrame> = VecDeque::new();
+    let mut printed = 0u64;
+    let out = io::stdout();
+    let mut out = out.lock();
+    loop {
+        if a.count.is_some_and(|c| printed >= c) {
+            break;
+        }
+        let rx = match pending.pop_front() {
+            Some(rx) => rx,
+            None => {
+                let r = match end {
+                    Some(e) => bus.recv_deadline(e)?,
+                    None => bus.recv_timeout(None)?,
+                };
+                match r {
+                    Some(rx) => rx,
+                    None => break,
+                }
+            }
+        };
+        let f = rx.frame;
+        // A boot-up means the node's configuration may have been reset: read it again.
+        if !f.is_extended() && (0x701..=0x77F).contains(&f.id()) && f.data() == [0] {
+            mon.forget((f.id() & 0x7F) as u8);
+        }
+        if let Some(node) = mon.needs_query(&f).filter(|_| !a.passive) {
+            if only.is_none_or(|o| o == node) {
+                let mut c = SdoClient::new(&mut *bus, node, ms(a.timeout)).keep_other_frames();
+                let info = Monitor::query(&mut c);
+                pending.extend(c.take_other_frames());
+                match info {
+                    Ok(i) => mon.learn(node, Some(i)),
+                    Err(e) => {
+                        writeln!(
+                            out,
+                            "# node {node}: cannot read its PDO configuration ({e})"
+                        )?;
+                        mon.learn(node, None);
+                    }
+                }
+            }
+        }
+        if only.is_some_and(|n| !mon.concerns(&f, n)) {
+            continue;
+        }
+        let t = elapsed_since(start, rx.timestamp);
+        if a.raw {
+            writeln!(out, "{}", format_line(rx.timestamp, &iface, &f))?;
+        }
+        writeln!(out, "[{t:10.6}] {}", mon.describe(&f))?;
+        printed += 1;
+    }
+    out.flush()?;
+    Ok(EXIT_OK)
+}
+
+// ---------------------------------------------------------------------------------------- EDS
+
+/// `canpos eds`: write a model's EDS (CiA 306) file.
+#[derive(Args, Debug, Clone)]
+pub struct EdsArgs {
+    /// Model name: th, e-series, tmi.
+    #[arg(long)]
+    pub model: String,
+    /// Output file (default: standard output).
+    #[arg(long, short = 'o')]
+    pub output: Option<PathBuf>,
+}
+
+/// Exports a model's EDS file.
+pub fn eds(a: EdsArgs) -> Result<i32> {
+    let names: Vec<&str> = canpos_core::models::all().iter().map(|m| m.name).collect();
+    let Some(_model) = canpos_core::models::by_name(&a.model) else {
+        bail!("unknown model `{}` (known: {})", a.model, names.join(", "));
+    };
+    let _ = &a.output;
+    bail!("EDS export is not available in this build yet (the EDS writer is not implemented)")
+}
+
+// ------------------------------------------------------------------------- record and replay
+
+/// The interface name written into candump logs: the socketcand channel, the SocketCAN
+/// interface or the in-process bus name.
+fn interface_name(url: &str) -> String {
+    match BusUrl::parse(url) {
+        Ok(BusUrl::Socketcand { channel, .. }) => channel,
+        Ok(BusUrl::SocketCan { iface }) => iface,
+        Ok(BusUrl::Mem { name }) => name,
+        Err(_) => "can0".to_string(),
+    }
+}
+
+/// `canpos record`: write bus traffic to a candump `-L` log.
+#[derive(Args, Debug, Clone)]
+pub struct RecordArgs {
+    /// Log file (`-` = standard output).
+    pub file: PathBuf,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// Stop after this many seconds.
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// Stop after this many frames.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Interface name written in the log (default: the bus channel / interface name).
+    #[arg(long)]
+    pub interface: Option<String>,
+}
+
+/// Records frames until `--duration` / `--count` (or until killed; the file is flushed
+/// whenever the bus is idle, so an interrupted recording keeps what was seen).
+pub fn record(a: RecordArgs) -> Result<i32> {
+    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
+        bail!("--duration must be a non-negative number of seconds");
+    }
+    let out: Box<dyn Write> = if a.file.as_os_str() == "-" {
+        Box::new(io::stdout())
+    } else {
+        Box::new(
+            File::create(&a.file).with_context(|| format!("cannot create {}", a.file.display()))?,
+        )
+    };
+    let iface = a
+        .interface
+        .clone()
+        .unwrap_or_else(|| interface_name(&a.bus.bus));
+    let mut w = LogWriter::new(BufWriter::new(out), &iface);
+    let mut bus = open_bus(&a.bus.bus)?;
+    let end = a
+        .duration
+        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+    let mut n = 0u64;
+    while a.count.is_none_or(|c| n < c) {
+        let r = match end {
+            Some(e) => bus.recv_deadline(e)?,
+            None => bus.recv_timeout(None)?,
+        };
+        let Some(rx) = r else { break };
+        w.write(rx.timestamp, &rx.frame)?;
+        n += 1;
+        if bus.receiver().is_empty() {
+            w.flush()?;
+        }
+    }
+    w.flush()?;
+    if a.file.as_os_str() != "-" {
+        eprintln!("recorded {n} frames to {}", a.file.display());
+    }
+    Ok(EXIT_OK)
+}
+
+/// `canpos replay`: send the frames of a candump `-L` log with their original timing.
+#[derive(Args, Debug, Clone)]
+pub struct ReplayArgs {
+    /// Log file (`-` = standard input).
+    pub file: PathBuf,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+    /// Time scale: 2 = twice as fast; 0 = as fast as possible.
+    #[arg(long, default_value_t = 1.0)]
+    pub speed: f64,
+    /// Start again at the end of the file (until killed).
+    #[arg(long = "loop")]
+    pub repeat: bool,
+}
+
+fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
+    if path.as_os_str() == "-" {
+        return Ok(Box::new(BufReader::new(io::stdin())));
+    }
+    let f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    Ok(Box::new(BufReader::new(f)))
+}
+
+/// Replays a log; the frames keep their relative spacing, divided by `--speed`.
+pub fn replay(a: ReplayArgs) -> Result<i32> {
+    if !(a.speed.is_finite() && a.speed >= 0.0) {
+        bail!("--speed must be a non-negative number");
+    }
+    if a.repeat && a.file.as_os_str() == "-" {
+        bail!("--loop needs a file, not standard input");
+    }
+    // Parse everything first so a malformed log fails before anything goes on the bus.
+    let entries = LogReader::new(open_log(&a.file)?)
+        .collect::<Result<Vec<_>, _>>()
+        .with_context(|| format!("reading {}", a.file.display()))?;
+    let mut bus = open_bus(&a.bus.bus)?;
+    let Some(first) = entries.first().map(|e| e.timestamp) else {
+        eprintln!("{}: no frames", a.file.display());
+        return Ok(EXIT_OK);
+    };
+    let mut sent = 0u64;
+    loop {
+        let t0 = Instant::now();
+        for e in &entries {
+            if a.speed > 0.0 {
+                let rel = e.timestamp.duration_since(first).unwrap_or_default();
+                let due = t0 + rel.div_f64(a.speed);
+                let now = Instant::now();
+                if due > now {
+                    std::thread::sleep(due - now);
+                }
+            }
+            bus.send(&e.frame).context("sending a frame")?;
+            sent += 1;
+        }
+        if !a.repeat {
+            break;
+        }
+    }
+    eprintln!("replayed {sent} frames");
+    Ok(EXIT_OK)
+}
+
+#[cfg(test)]
+mod tests;
