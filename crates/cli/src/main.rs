@@ -1,1 +1,107 @@
-fn main() {}
+//! `canpos`: run simulated CANopen position sensors, serve a virtual bus, and act as the
+//! commissioning master. `canpos` without arguments runs the demo.
+//!
+//! Exit codes: 0 success, 1 failure (the message says why), 2 bad command line.
+
+mod device;
+mod master;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// A software twin of CANopen magnetostrictive position sensors (Temposonics TH, E-Series,
+/// Novotechnik TMI).
+///
+/// Without a command, runs the demo: a virtual bus, a TH sensor moving on a sine and a live view.
+#[derive(Debug, Parser)]
+#[command(name = "canpos", version, propagate_version = true)]
+struct Cli {
+    /// More log output on stderr (-v debug, -vv trace); RUST_LOG overrides.
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    verbose: u8,
+    /// Less log output (warnings and errors only).
+    #[arg(short, long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    cmd: Option<Cmd>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Virtual CAN buses.
+    #[command(subcommand)]
+    Bus(device::BusCmd),
+    /// Run one simulated sensor on a bus.
+    Run(device::RunArgs),
+    /// Run several sensors on one bus with motion profiles and timed faults (TOML file).
+    Scenario(device::ScenarioArgs),
+    /// Drive a running sensor through its control interface.
+    Ctl(device::CtlArgs),
+    /// The demo (also what `canpos` without arguments runs).
+    Demo(device::DemoArgs),
+    /// Send an NMT command (start, stop, preop, reset, reset-comm).
+    Nmt(master::NmtArgs),
+    /// Read or write an object by SDO.
+    Sdo(master::SdoArgs),
+    /// Layer setting services: switch, set node-id / bit rate, store, inquire, fastscan.
+    Lss(master::LssArgs),
+    /// Find the nodes on a bus.
+    Scan(master::ScanArgs),
+    /// Show the bus traffic decoded (positions in mm, velocities in mm/s, EMCYs, heartbeats).
+    Monitor(master::MonitorArgs),
+    /// Write a model's EDS (CiA 306) file.
+    Eds(master::EdsArgs),
+    /// Record the bus to a candump -L log.
+    Record(master::RecordArgs),
+    /// Replay a candump -L log onto a bus.
+    Replay(master::ReplayArgs),
+}
+
+fn init_logging(verbose: u8, quiet: bool) {
+    use tracing_subscriber::EnvFilter;
+    let default = match (quiet, verbose) {
+        (true, _) => "warn",
+        (false, 0) => "info",
+        (false, 1) => "debug",
+        _ => "trace",
+    };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_target(false)
+        .init();
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging(cli.verbose, cli.quiet);
+    let result = match cli.cmd {
+        None => device::demo(device::DemoArgs {
+            motion: "sine:center=500,amp=300,period=4".into(),
+            ..Default::default()
+        }),
+        Some(Cmd::Bus(device::BusCmd::Serve(a))) => device::bus_serve(a),
+        Some(Cmd::Run(a)) => device::run(a),
+        Some(Cmd::Scenario(a)) => device::scenario(a),
+        Some(Cmd::Ctl(a)) => device::ctl(a),
+        Some(Cmd::Demo(a)) => device::demo(a),
+        Some(Cmd::Nmt(a)) => master::nmt(a),
+        Some(Cmd::Sdo(a)) => master::sdo(a),
+        Some(Cmd::Lss(a)) => master::lss(a),
+        Some(Cmd::Scan(a)) => master::scan(a),
+        Some(Cmd::Monitor(a)) => master::monitor(a),
+        Some(Cmd::Eds(a)) => master::eds(a),
+        Some(Cmd::Record(a)) => master::record(a),
+        Some(Cmd::Replay(a)) => master::replay(a),
+    };
+    match result {
+        Ok(code) => ExitCode::from(code.clamp(0, 255) as u8),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}

@@ -379,8 +379,11 @@ impl<S: Storage> Node<S> {
         if let Some((t, r)) = self.held_sdo {
             if now >= t {
                 self.held_sdo = None;
-                let id = cob::SDO_TX + self.dev.node_id as u16;
-                self.dev.tx.push(Frame::std8(id, r));
+                // A node stopped during the store time no longer serves SDO.
+                if self.dev.nmt.sdo_allowed() {
+                    let id = cob::SDO_TX + self.dev.node_id as u16;
+                    self.dev.tx.push(Frame::std8(id, r));
+                }
             }
         }
         if let Some(r) = self.sdo.handle_timeout(now) {
@@ -626,13 +629,6 @@ impl<S: Storage> Device<S> {
         self.autobaud_frames = 0;
     }
 
-    fn params(&self) -> Params<'_> {
-        Params {
-            model: self.model,
-            cfg: &self.cfg,
-        }
-    }
-
     /// Reloads values: communication objects always, application objects on reset node.
     /// Defaults first, then whatever the stored image holds for those ranges (D6).
     fn load_values(&mut self, application: bool) {
@@ -674,7 +670,7 @@ impl<S: Storage> Device<S> {
                 }
             }
         }
-        if let Some(slot) = self.od.find(0x1014, 0).ok() {
+        if let Ok(slot) = self.od.find(0x1014, 0) {
             let v = self.od.get(slot);
             let id = v & 0x7FF;
             if id > 0x80 && id <= 0xFF && id != 0x80 + node as u32 {

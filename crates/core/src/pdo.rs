@@ -154,11 +154,8 @@ impl Tpdos {
                         return Err(Abort::InvalidValue);
                     }
                 }
-                2 => {
-                    if (241..=253).contains(&(raw as u8)) {
-                        return Err(Abort::InvalidValue);
-                    }
-                }
+                // D10: 241–253 are reserved.
+                2 if (241..=253).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
                 3 | 5 if event_gt_inhibit => {
                     // TMI R27: the event timer must stay above the inhibit time (0 excepted).
                     let (inh, ev) = if sub == 3 {
@@ -359,7 +356,7 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
     let e = od.entry(slot);
     let bits = raw & 0xFF;
-    if !e.pdo || !e.access.readable() || bits == 0 || bits % 8 != 0 || bits > e.ty.bits() as u32 {
+    if !e.pdo || !e.access.readable() || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits() as u32 {
         return Err(Abort::NotMappable);
     }
     Ok(())

@@ -125,8 +125,7 @@ impl Storage for FileStorage {
         };
         // Read one byte more than any image can be, to tell "too long" from "fits".
         let mut bytes = Vec::with_capacity(IMAGE_MAX + 1);
-        if let Err(e) = f
-            .by_ref()
+        if let Err(e) = Read::by_ref(&mut f)
             .take((IMAGE_MAX + 1) as u64)
             .read_to_end(&mut bytes)
         {
@@ -176,7 +175,7 @@ mod tests {
     fn image(value: u32) -> Vec<u8> {
         let mut buf = [0u8; IMAGE_MAX];
         let mut w = ImageWriter::new(&mut buf, 1);
-        w.push(0x1017_00, value);
+        w.push(0x0010_1700, value);
         let n = w.finish();
         buf[..n].to_vec()
     }

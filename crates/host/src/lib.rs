@@ -5,16 +5,24 @@
 //! - [`mem`]: an in-process bus.
 //! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
 //! - [`candump`]: candump `-L` log lines.
+//! - [`file_storage`]: a device's non-volatile storage as one atomically written file.
+//! - [`runtime`]: drives simulated sensors on a bus on absolute deadlines.
+//! - [`control`]: the JSON-lines control interface.
 #![deny(missing_docs)]
 
 pub mod candump;
+pub mod control;
+pub mod file_storage;
 pub mod mem;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
+pub mod runtime;
 pub mod socketcand;
 pub mod transport;
 
 pub use crossbeam_channel;
+pub use file_storage::FileStorage;
+pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use mem::{MemBus, MemPort};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
 pub use transport::{open, open_or_host, BusUrl, Error, RxFrame, Transport, DEFAULT_URL};

@@ -1,0 +1,796 @@
+//! The device side of the command line: `bus serve`, `run`, `scenario`, `ctl` and the demo.
+
+use std::io::Write as _;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use canpos_core::models::{self, DeviceConfig};
+use canpos_core::Frame;
+use canpos_host::control::{self, Request};
+use canpos_host::crossbeam_channel::{self, Receiver};
+use canpos_host::runtime::{self, Runtime, RuntimeHandle, SensorSetup};
+use canpos_host::{FileStorage, Hub, Transport};
+use canpos_sim::motion::{MotionSpec, Profile, Profiles};
+use canpos_sim::{parse_order_code, SensorSpec};
+use clap::{Args, Subcommand};
+use serde::Deserialize;
+
+/// Default socketcand hub address.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
+
+/// Model names the command line accepts (some may not be built into the core yet).
+const MODEL_NAMES: [&str; 3] = ["th", "e-series", "tmi"];
+
+// ---------------------------------------------------------------------------------------------
+// Ctrl-C / SIGTERM
+
+/// A receiver that gets one message per Ctrl-C / SIGTERM. Installed once per process.
+pub fn stop_signal() -> Result<Receiver<()>> {
+    let (tx, rx) = crossbeam_channel::unbounded();
+    ctrlc::set_handler(move || {
+        let _ = tx.send(());
+    })
+    .context("cannot install the Ctrl-C / SIGTERM handler")?;
+    Ok(rx)
+}
+
+// ---------------------------------------------------------------------------------------------
+// bus serve
+
+/// `canpos bus …`
+#[derive(Debug, Subcommand)]
+pub enum BusCmd {
+    /// Serve a virtual CAN bus over the socketcand protocol (python-can `interface="socketcand"`).
+    ///
+    /// Every channel name is its own isolated bus shared by all connected clients. Prints the
+    /// address it listens on and runs until Ctrl-C / SIGTERM.
+    Serve(ServeArgs),
+}
+
+/// Options of `canpos bus serve`.
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// Address to listen on (loopback by default; other addresses only when given here).
+    #[arg(long, value_name = "ADDR", default_value = DEFAULT_LISTEN)]
+    pub listen: String,
+}
+
+/// Runs `canpos bus serve`.
+pub fn bus_serve(args: ServeArgs) -> Result<i32> {
+    let stop = stop_signal()?;
+    let hub = Hub::bind(args.listen.as_str())
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let addr = hub.local_addr();
+    if !addr.ip().is_loopback() {
+        tracing::warn!(%addr, "the bus is reachable from the network");
+    }
+    let handle = hub.spawn().context("cannot start the hub")?;
+    println!("canpos bus: socketcand hub listening on {addr} (any channel name, e.g. can0)");
+    let _ = std::io::stdout().flush();
+    while handle.is_running() {
+        if stop.recv_timeout(Duration::from_millis(200)).is_ok() {
+            break;
+        }
+    }
+    tracing::info!(stats = ?handle.stats(), "hub stopping");
+    handle.shutdown().context("hub shutdown")?;
+    Ok(0)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Building a sensor
+
+/// What selects and configures one simulated sensor (shared by `run` and scenario files).
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorOpts {
+    /// `th`, `e-series` or `tmi`.
+    pub model: Option<String>,
+    /// A product order code (selects model, stroke, resolution, bit rate, magnets).
+    pub order_code: Option<String>,
+    /// Node-id (1…127, 255 = unconfigured).
+    pub node_id: Option<u8>,
+    /// Serial number.
+    pub serial: Option<u32>,
+    /// Static magnet positions, mm.
+    #[serde(default)]
+    pub magnets: Vec<f64>,
+    /// Motion spec.
+    pub motion: Option<String>,
+    /// No measurement errors.
+    #[serde(default)]
+    pub ideal: bool,
+    /// Noise / unit error seed (default: the serial number).
+    pub seed: Option<u64>,
+}
+
+fn sim_model(name: &str) -> Option<canpos_sim::Model> {
+    canpos_sim::Model::ALL
+        .into_iter()
+        .find(|m| m.name() == name)
+}
+
+fn core_model(name: &str) -> Result<&'static models::Model> {
+    if !MODEL_NAMES.contains(&name) {
+        bail!(
+            "unknown model `{name}`; expected one of: {}",
+            MODEL_NAMES.join(", ")
+        );
+    }
+    models::by_name(name).ok_or_else(|| {
+        let have: Vec<_> = models::all().iter().map(|m| m.name).collect();
+        anyhow!(
+            "model `{name}` is not available in this build yet (available: {})",
+            have.join(", ")
+        )
+    })
+}
+
+/// Builds the runtime's description of a sensor from the options.
+pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
+    let (model, mut cfg, spec): (&'static models::Model, DeviceConfig, SensorSpec) =
+        match (&o.model, &o.order_code) {
+            (Some(_), Some(_)) => bail!("give either a model or an order code, not both"),
+            (_, Some(code)) => {
+                let oc =
+                    parse_order_code(code).with_context(|| format!("bad order code `{code}`"))?;
+                let model = core_model(oc.model_name())?;
+                let spec = oc.sensor_spec()?;
+                let mut cfg = model.default_config;
+                cfg.stroke_mm = oc.stroke_mm.round() as u32;
+                cfg.position_step_nm = oc.resolution_nm();
+                cfg.channels = oc.magnets as u8;
+                cfg.bitrate_kbps = oc.bit_rate_kbit as u16;
+                cfg.cycle_us = spec.cycle_time_us;
+                (model, cfg, spec)
+            }
+            (m, None) => {
+                let name = m.as_deref().unwrap_or("th");
+                let model = core_model(name)?;
+                let cfg = model.default_config;
+                let sm =
+                    sim_model(name).ok_or_else(|| anyhow!("no measurement model for `{name}`"))?;
+                let spec =
+                    SensorSpec::for_model(sm, f64::from(cfg.stroke_mm), cfg.channels as usize)?;
+                (model, cfg, spec)
+            }
+        };
+    cfg.cycle_us = spec.cycle_time_us;
+    if let Some(id) = o.node_id {
+        if !(1..=127).contains(&id) && id != 255 {
+            bail!("node-id {id} is out of range (1…127, or 255 = unconfigured)");
+        }
+        cfg.node_id = id;
+    }
+    if let Some(s) = o.serial {
+        cfg.serial = s;
+    }
+    let motion: Box<dyn canpos_sim::motion::Motion> = match (&o.motion, o.magnets.is_empty()) {
+        (Some(_), false) => bail!("give either --magnet positions or --motion, not both"),
+        (Some(m), true) => MotionSpec::parse(m)
+            .with_context(|| format!("bad motion spec `{m}`"))?
+            .build()?,
+        (None, false) => {
+            for &mm in &o.magnets {
+                if !mm.is_finite() {
+                    bail!("magnet position {mm} is not a number");
+                }
+            }
+            Box::new(Profiles(
+                o.magnets
+                    .iter()
+                    .map(|&pos_mm| Profile::Static { pos_mm })
+                    .collect(),
+            ))
+        }
+        // Default: one magnet per channel, evenly spread over the stroke.
+        (None, true) => {
+            let n = f64::from(cfg.channels.max(1));
+            Box::new(Profiles(
+                (0..cfg.channels.max(1))
+                    .map(|k| Profile::Static {
+                        pos_mm: spec.stroke_mm * (f64::from(k) + 1.0) / (n + 1.0),
+                    })
+                    .collect(),
+            ))
+        }
+    };
+    let path = runtime::state_file(state_dir, model.name, cfg.serial);
+    Ok(SensorSetup {
+        name: format!("{}-{}", model.name, cfg.serial),
+        model,
+        cfg,
+        spec,
+        seed: o.seed.unwrap_or(u64::from(cfg.serial)),
+        ideal: o.ideal,
+        motion,
+        storage: FileStorage::new(path),
+    })
+}
+
+/// `--node-id`: 1…127 or 255.
+pub fn parse_node_id(s: &str) -> Result<u8, String> {
+    let v: u16 = parse_int(s).map_err(|_| format!("`{s}` is not a number"))?;
+    match v {
+        1..=127 | 255 => Ok(v as u8),
+        _ => Err(format!(
+            "{v} is out of range (1…127, or 255 = unconfigured)"
+        )),
+    }
+}
+
+fn parse_int(s: &str) -> Result<u16, std::num::ParseIntError> {
+    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
+        Some(h) => u16::from_str_radix(h, 16),
+        None => s.parse(),
+    }
+}
+
+/// `--bus-bitrate`: kbit/s (`250`) or bit/s (`250000`); must be a CAN bit rate.
+pub fn parse_bitrate(s: &str) -> Result<u32, String> {
+    let v: u32 = s
+        .trim_end_matches("k")
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number"))?;
+    let kbps = if v >= 10_000 { v / 1000 } else { v };
+    const OK: [u32; 9] = [10, 20, 50, 125, 250, 500, 800, 1000, 100];
+    if OK.contains(&kbps) && (v < 10_000 || v.is_multiple_of(1000)) {
+        Ok(kbps)
+    } else {
+        Err(format!(
+            "{s} is not a CAN bit rate (kbit/s: 10, 20, 50, 100, 125, 250, 500, 800, 1000; or the same in bit/s)"
+        ))
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// run
+
+/// Options of `canpos run`.
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// Product model: th, e-series or tmi (default th).
+    #[arg(long, value_name = "MODEL", conflicts_with = "order_code")]
+    pub model: Option<String>,
+    /// Product order code, e.g. TH…C3041…: selects model, stroke, resolution, bit rate and magnets.
+    #[arg(long, value_name = "CODE")]
+    pub order_code: Option<String>,
+    /// Node-id at first start (1…127; 255 = unconfigured, waits for LSS). Stored LSS values win.
+    #[arg(long, value_name = "N", value_parser = parse_node_id)]
+    pub node_id: Option<u8>,
+    /// Serial number (0x1018/4); also names the state file.
+    #[arg(long, value_name = "N")]
+    pub serial: Option<u32>,
+    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME. A socketcand URL
+    /// where nothing listens starts an embedded hub there.
+    #[arg(long, value_name = "URL", default_value = canpos_host::DEFAULT_URL)]
+    pub bus: String,
+    /// Bit rate of the bus in kbit/s (or bit/s); a node set to another rate falls silent.
+    #[arg(long, value_name = "KBPS", value_parser = parse_bitrate)]
+    pub bus_bitrate: Option<u32>,
+    /// Directory of the state files (<model>-<serial>.bin). Default: $CANPOS_STATE_DIR,
+    /// $XDG_STATE_HOME/canpos, ~/.local/state/canpos or ./canpos-state.
+    #[arg(long, value_name = "DIR")]
+    pub state_dir: Option<PathBuf>,
+    /// A static magnet at MM (mm from the zero point); once per magnet.
+    #[arg(long = "magnet", value_name = "MM", allow_negative_numbers = true)]
+    pub magnets: Vec<f64>,
+    /// Motion profile, e.g. sine:center=500,amp=200,period=4 or csv:FILE (see docs/CONTROL.md).
+    #[arg(long, value_name = "SPEC", conflicts_with = "magnets")]
+    pub motion: Option<String>,
+    /// No measurement errors (linearity, noise, hysteresis, temperature).
+    #[arg(long)]
+    pub ideal: bool,
+    /// Seed of the unit's errors and noise (default: the serial number).
+    #[arg(long, value_name = "N")]
+    pub seed: Option<u64>,
+    /// Serve the JSON-lines control interface on ADDR (e.g. 127.0.0.1:29600).
+    #[arg(long, value_name = "ADDR")]
+    pub control: Option<String>,
+}
+
+/// Opens the bus (or hosts it), reporting what happened.
+fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
+    let (t, hub) = canpos_host::open_or_host(url)?;
+    if let Some(h) = &hub {
+        eprintln!(
+            "canpos: nothing listened at {url}; started an embedded socketcand hub on {}",
+            h.local_addr()
+        );
+    }
+    Ok((t, hub))
+}
+
+/// Waits for Ctrl-C or for the runtime to end by itself; then stops it.
+fn supervise(handle: RuntimeHandle, stop: &Receiver<()>) -> Result<i32> {
+    loop {
+        if stop.recv_timeout(Duration::from_millis(100)).is_ok() {
+            let late = handle.stop()?;
+            tracing::info!(%late, "stopped");
+            return Ok(0);
+        }
+        if handle.is_finished() {
+            return match handle.join() {
+                Ok(_) => Ok(0),
+                Err(e) => Err(anyhow!("the bus connection ended: {e}")),
+            };
+        }
+    }
+}
+
+fn start_control(addr: &str, rt: &RuntimeHandle) -> Result<control::ControlServer> {
+    let srv = control::serve(addr, rt.control())
+        .with_context(|| format!("cannot serve the control interface on {addr}"))?;
+    eprintln!("canpos: control interface on {}", srv.local_addr());
+    Ok(srv)
+}
+
+/// Runs `canpos run`.
+pub fn run(a: RunArgs) -> Result<i32> {
+    let stop = stop_signal()?;
+    let opts = SensorOpts {
+        model: a.model,
+        order_code: a.order_code,
+        node_id: a.node_id,
+        serial: a.serial,
+        magnets: a.magnets,
+        motion: a.motion,
+        ideal: a.ideal,
+        seed: a.seed,
+    };
+    let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
+    let setup = build_setup(&opts, &state_dir)?;
+    let (transport, _hub) = open_bus(&a.bus)?;
+    let desc = transport.describe();
+    let mut rt = Runtime::new(transport, a.bus_bitrate);
+    let name = setup.name.clone();
+    let node_id = setup.cfg.node_id;
+    let path = setup.storage.path().to_path_buf();
+    rt.add(setup);
+    // Boot-up right away (≤ 50 ms after start); everything else comes after.
+    rt.power_on_all();
+    let handle = rt.spawn()?;
+    eprintln!(
+        "canpos: {name} (node-id {node_id}) on {desc}; state file {}",
+        path.display()
+    );
+    let _ctl = match &a.control {
+        Some(addr) => Some(start_control(addr, &handle)?),
+        None => None,
+    };
+    supervise(handle, &stop)
+}
+
+// ---------------------------------------------------------------------------------------------
+// ctl
+
+/// Options of `canpos ctl`.
+#[derive(Debug, Args)]
+pub struct CtlArgs {
+    /// Address of the control interface (the --control of `canpos run` / the scenario).
+    #[arg(long, value_name = "ADDR")]
+    pub control: String,
+    /// Sensor index in a scenario (0-based; default 0).
+    #[arg(long, value_name = "N")]
+    pub sensor: Option<usize>,
+    /// What to do.
+    #[command(subcommand)]
+    pub action: CtlAction,
+}
+
+/// `canpos ctl` actions.
+#[derive(Debug, Subcommand)]
+pub enum CtlAction {
+    /// Move magnet N (0-based) to MM, or `none` to take it off the rod.
+    Magnet {
+        /// Magnet index (0-based).
+        n: usize,
+        /// Position in mm, or `none`.
+        #[arg(allow_negative_numbers = true)]
+        mm: String,
+        /// Speed limit of the move in mm/s (jump when absent).
+        #[arg(long, value_name = "MM_S")]
+        velocity: Option<f64>,
+    },
+    /// Start a motion profile, e.g. sine:center=500,amp=200,period=4.
+    Motion {
+        /// The motion spec.
+        spec: String,
+    },
+    /// Turn a fault on or off (missing-magnet, extra-magnet, magnets-too-close, sensor-error,
+    /// supply-voltage, over-temperature, storage-corrupt, error-passive, bus-off, can-overrun,
+    /// power-cycle).
+    Fault {
+        /// Fault name.
+        name: String,
+        /// on or off.
+        #[arg(value_parser = ["on", "off"])]
+        state: String,
+        /// Fault parameter (extra magnet mm, supply V, temperature °C).
+        #[arg(long, allow_negative_numbers = true)]
+        value: Option<f64>,
+        /// Channel for missing-magnet / magnets-too-close (0-based).
+        #[arg(long)]
+        channel: Option<usize>,
+    },
+    /// Power off and on again (stored data reloaded, boot-up sent).
+    PowerCycle,
+    /// Set the ambient temperature in °C.
+    Ambient {
+        /// °C.
+        #[arg(allow_negative_numbers = true)]
+        celsius: f64,
+    },
+    /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors).
+    State,
+}
+
+/// Runs `canpos ctl`.
+pub fn ctl(a: CtlArgs) -> Result<i32> {
+    let sensor = a.sensor;
+    let req = match a.action {
+        CtlAction::Magnet { n, mm, velocity } => Request::Magnet {
+            sensor,
+            index: n,
+            mm: if mm.eq_ignore_ascii_case("none") {
+                None
+            } else {
+                Some(
+                    mm.parse()
+                        .map_err(|_| anyhow!("`{mm}` is not a position in mm (or `none`)"))?,
+                )
+            },
+            velocity,
+        },
+        CtlAction::Motion { spec } => Request::Motion { sensor, spec },
+        CtlAction::Fault {
+            name,
+            state,
+            value,
+            channel,
+        } => Request::Fault {
+            sensor,
+            name,
+            on: state == "on",
+            value,
+            channel,
+        },
+        CtlAction::PowerCycle => Request::PowerCycle { sensor },
+        CtlAction::Ambient { celsius } => Request::Ambient { sensor, celsius },
+        CtlAction::State => Request::State { sensor },
+    };
+    let pretty = matches!(req, Request::State { .. });
+    let answer = control::call(a.control.as_str(), &req, Duration::from_secs(10))
+        .with_context(|| format!("cannot reach the control interface at {}", a.control))?;
+    if answer["ok"] == true {
+        if pretty {
+            println!("{}", serde_json::to_string_pretty(&answer)?);
+        } else {
+            println!("{answer}");
+        }
+        Ok(0)
+    } else {
+        eprintln!(
+            "error: {}",
+            answer["error"].as_str().unwrap_or("request refused")
+        );
+        Ok(1)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// scenario
+
+/// Options of `canpos scenario`.
+#[derive(Debug, Args)]
+pub struct ScenarioArgs {
+    /// The scenario file (TOML; see examples/scenario.toml).
+    pub file: PathBuf,
+    /// Override the file's bus URL.
+    #[arg(long, value_name = "URL")]
+    pub bus: Option<String>,
+    /// Override the file's state directory.
+    #[arg(long, value_name = "DIR")]
+    pub state_dir: Option<PathBuf>,
+    /// Override the file's control address.
+    #[arg(long, value_name = "ADDR")]
+    pub control: Option<String>,
+}
+
+/// A scenario file.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Bus URL (default: the default socketcand URL).
+    pub bus: Option<String>,
+    /// Bus bit rate, kbit/s.
+    pub bus_bitrate: Option<u32>,
+    /// State directory.
+    pub state_dir: Option<PathBuf>,
+    /// Control interface address.
+    pub control: Option<String>,
+    /// Stop after this many seconds (default: run until Ctrl-C).
+    pub duration: Option<f64>,
+    /// The sensors.
+    #[serde(default, rename = "sensor")]
+    pub sensors: Vec<SensorOpts>,
+    /// Timed events: control requests at a time.
+    #[serde(default, rename = "event")]
+    pub events: Vec<Event>,
+}
+
+/// A timed event: a control request sent `at` seconds after the start.
+#[derive(Debug, Deserialize)]
+pub struct Event {
+    /// Seconds after the start.
+    pub at: f64,
+    /// The request (same fields as the control interface).
+    #[serde(flatten)]
+    pub request: Request,
+}
+
+/// Reads and checks a scenario file.
+pub fn load_scenario(path: &Path) -> Result<Scenario> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let sc: Scenario =
+        toml::from_str(&text).with_context(|| format!("bad scenario file {}", path.display()))?;
+    if sc.sensors.is_empty() {
+        bail!("{}: no [[sensor]] defined", path.display());
+    }
+    for (i, e) in sc.events.iter().enumerate() {
+        if !(e.at.is_finite() && e.at >= 0.0) {
+            bail!("{}: event {i}: `at` must be ≥ 0 s", path.display());
+        }
+    }
+    if let Some(d) = sc.duration {
+        if !(d.is_finite() && d > 0.0) {
+            bail!("{}: duration must be > 0 s", path.display());
+        }
+    }
+    Ok(sc)
+}
+
+/// Runs `canpos scenario`.
+pub fn scenario(a: ScenarioArgs) -> Result<i32> {
+    let stop = stop_signal()?;
+    let mut sc = load_scenario(&a.file)?;
+    let state_dir = a
+        .state_dir
+        .or(sc.state_dir.take())
+        .unwrap_or_else(runtime::default_state_dir);
+    let mut setups = Vec::new();
+    for (i, s) in sc.sensors.iter().enumerate() {
+        setups.push(build_setup(s, &state_dir).with_context(|| format!("sensor {i}"))?);
+    }
+    let url = a
+        .bus
+        .or(sc.bus.take())
+        .unwrap_or_else(|| canpos_host::DEFAULT_URL.to_string());
+    let (transport, _hub) = open_bus(&url)?;
+    let mut rt = Runtime::new(transport, sc.bus_bitrate);
+    for s in setups {
+        eprintln!(
+            "canpos: sensor {}: {} node-id {}",
+            rt.len(),
+            s.name,
+            s.cfg.node_id
+        );
+        rt.add(s);
+    }
+    rt.power_on_all();
+    let handle = rt.spawn()?;
+    let _ctl = match a.control.or(sc.control.take()) {
+        Some(addr) => Some(start_control(&addr, &handle)?),
+        None => None,
+    };
+    // Timed events on their own thread, on absolute times from the start.
+    let ctl = handle.control();
+    let mut events = std::mem::take(&mut sc.events);
+    events.sort_by(|a, b| a.at.total_cmp(&b.at));
+    let t0 = std::time::Instant::now();
+    std::thread::spawn(move || {
+        for e in events {
+            runtime::sleep_until(t0 + Duration::from_secs_f64(e.at));
+            let answer = ctl.request(e.request.clone());
+            if answer["ok"] == true {
+                tracing::info!(at = e.at, request = ?e.request, "event");
+            } else {
+                tracing::error!(at = e.at, request = ?e.request, answer = %answer, "event refused");
+            }
+        }
+    });
+    if let Some(d) = sc.duration {
+        let end = t0 + Duration::from_secs_f64(d);
+        loop {
+            if stop.recv_deadline(end).is_ok() || std::time::Instant::now() >= end {
+                break;
+            }
+        }
+        handle.stop()?;
+        return Ok(0);
+    }
+    supervise(handle, &stop)
+}
+
+// ---------------------------------------------------------------------------------------------
+// demo
+
+/// Options of the demo (`canpos` with no arguments, or `canpos demo`).
+#[derive(Debug, Args, Default)]
+pub struct DemoArgs {
+    /// Hub address (default 127.0.0.1:29536, or a free port when that one is taken).
+    #[arg(long, value_name = "ADDR")]
+    pub listen: Option<String>,
+    /// Motion of the magnet.
+    #[arg(
+        long,
+        value_name = "SPEC",
+        default_value = "sine:center=500,amp=300,period=4"
+    )]
+    pub motion: String,
+    /// Stop after this many seconds (default: until Ctrl-C).
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+}
+
+fn sdo_upload(port: &mut dyn Transport, node: u8, index: u16, sub: u8) -> Result<u32> {
+    let [lo, hi] = index.to_le_bytes();
+    port.send(&Frame::new(0x600 + u16::from(node), &[0x40, lo, hi, sub, 0, 0, 0, 0]).unwrap())?;
+    let end = std::time::Instant::now() + Duration::from_secs(1);
+    while let Some(rx) = port.recv_deadline(end)? {
+        let d = rx.frame.data();
+        if rx.frame.std_id() == Some(0x580 + u16::from(node))
+            && d.len() == 8
+            && d[1..4] == [lo, hi, sub]
+        {
+            if d[0] == 0x80 {
+                bail!(
+                    "SDO abort {:#010x} reading {index:#06x}/{sub}",
+                    u32::from_le_bytes([d[4], d[5], d[6], d[7]])
+                );
+            }
+            return Ok(u32::from_le_bytes([d[4], d[5], d[6], d[7]]));
+        }
+    }
+    bail!("no SDO answer reading {index:#06x}/{sub}")
+}
+
+/// Runs the demo.
+pub fn demo(a: DemoArgs) -> Result<i32> {
+    let stop = stop_signal()?;
+    let hub = match &a.listen {
+        Some(l) => Hub::bind(l.as_str()).with_context(|| format!("cannot listen on {l}"))?,
+        None => Hub::bind(DEFAULT_LISTEN)
+            .or_else(|_| Hub::bind("127.0.0.1:0"))
+            .context("cannot start the hub")?,
+    };
+    let addr: SocketAddr = hub.local_addr();
+    let node_port = hub.attach("can0");
+    let mut mon = hub.attach("can0");
+    let hub = hub.spawn()?;
+    let state_dir = std::env::temp_dir().join(format!("canpos-demo-{}", std::process::id()));
+    let opts = SensorOpts {
+        motion: Some(a.motion.clone()),
+        ideal: false,
+        ..SensorOpts::default()
+    };
+    let setup = build_setup(&opts, &state_dir)?;
+    let node = setup.cfg.node_id;
+    let mut rt = Runtime::new(Box::new(node_port), None);
+    rt.add(setup);
+    rt.power_on_all();
+    let handle = rt.spawn()?;
+    println!(
+        "canpos demo: a Temposonics TH (node-id {node}) moving on {}",
+        a.motion
+    );
+    println!(
+        "  virtual bus: socketcand hub on {addr}, channel can0 — python-can: \
+         can.Bus(interface=\"socketcand\", host=\"{}\", port={}, channel=\"can0\")",
+        addr.ip(),
+        addr.port()
+    );
+    println!("  Ctrl-C to stop.");
+    let result = demo_view(&mut mon, node, &handle, &stop, a.duration);
+    println!();
+    let _ = handle.stop();
+    let _ = hub.shutdown();
+    let _ = std::fs::remove_dir_all(&state_dir);
+    result.map(|()| 0)
+}
+
+fn demo_view(
+    mon: &mut dyn Transport,
+    node: u8,
+    rt: &RuntimeHandle,
+    stop: &Receiver<()>,
+    duration: Option<f64>,
+) -> Result<()> {
+    // Measuring steps (0x6005) scale the PDO values; the encoder falls back to 1 µm and
+    // 1 mm/s when the dictionary has no 0x6005, so the view does the same.
+    let step_nm = f64::from(sdo_upload(mon, node, 0x6005, 1).unwrap_or(1000));
+    let vstep = f64::from(sdo_upload(mon, node, 0x6005, 2).unwrap_or(100));
+    // NMT start: the TPDOs begin.
+    mon.send(&Frame::new(0x000, &[0x01, node]).unwrap())?;
+    let tpdo1 = 0x180 + u16::from(node);
+    let t0 = std::time::Instant::now();
+    let mut next_print = t0;
+    let mut count = 0u64;
+    let mut last = None;
+    loop {
+        if stop.try_recv().is_ok() {
+            return Ok(());
+        }
+        if duration.is_some_and(|d| t0.elapsed().as_secs_f64() >= d) {
+            return Ok(());
+        }
+        if rt.is_finished() {
+            bail!("the sensor stopped");
+        }
+        while let Some(rx) = mon.recv_deadline(next_print)? {
+            if rx.frame.std_id() == Some(tpdo1) {
+                count += 1;
+                last = Some(rx.frame);
+            }
+        }
+        next_print += Duration::from_millis(100);
+        let st = rt.control().request(Request::State { sensor: None });
+        let (pos, vel, cam) = match last {
+            Some(f) if f.data().len() >= 7 => {
+                let d = f.data();
+                let p = i32::from_le_bytes([d[0], d[1], d[2], d[3]]);
+                let v = i16::from_le_bytes([d[4], d[5]]);
+                (
+                    f64::from(p) * step_nm / 1e6,
+                    f64::from(v) * vstep / 100.0,
+                    d[6],
+                )
+            }
+            _ => (f64::NAN, f64::NAN, 0),
+        };
+        let wa = st["work_area"][0].as_u64().unwrap_or(0);
+        print!(
+            "\r  {:<16} pos {pos:9.3} mm   vel {vel:+9.2} mm/s   cams {cam:04b}   work area {wa:03b}   TPDOs {count:<7}",
+            st["nmt"].as_str().unwrap_or("?"),
+        );
+        let _ = std::io::stdout().flush();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bitrate_parsing() {
+        assert_eq!(parse_bitrate("250"), Ok(250));
+        assert_eq!(parse_bitrate("250000"), Ok(250));
+        assert_eq!(parse_bitrate("1000"), Ok(1000));
+        assert!(parse_bitrate("251").is_err());
+        assert!(parse_bitrate("abc").is_err());
+    }
+
+    #[test]
+    fn node_id_parsing() {
+        assert_eq!(parse_node_id("127"), Ok(127));
+        assert_eq!(parse_node_id("0x7F"), Ok(127));
+        assert_eq!(parse_node_id("255"), Ok(255));
+        assert!(parse_node_id("0").is_err());
+        assert!(parse_node_id("128").is_err());
+    }
+
+    #[test]
+    fn example_scenario_parses() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/scenario.toml");
+        let sc = load_scenario(&p).unwrap();
+        assert!(sc.sensors.len() >= 2);
+        assert!(!sc.events.is_empty());
+        let dir = tempfile::tempdir().unwrap();
+        for s in &sc.sensors {
+            build_setup(s, dir.path()).unwrap();
+        }
+    }
+}

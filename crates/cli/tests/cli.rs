@@ -1,0 +1,405 @@
+//! The `canpos` binary as a user runs it: help, errors and exit codes, `bus serve` + `run` seen
+//! through a raw socketcand client, and SIGKILL in the middle of stores.
+
+use std::net::TcpListener;
+use std::path::Path;
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use canpos_core::storage::{parse_image, IMAGE_MAX};
+use canpos_core::Frame;
+use canpos_host::{SocketcandClient, Transport};
+
+const BIN: &str = env!("CARGO_BIN_EXE_canpos");
+
+fn canpos(args: &[&str]) -> Output {
+    Command::new(BIN)
+        .args(args)
+        .stdin(Stdio::null())
+        .output()
+        .expect("run canpos")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A child process killed when dropped.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn spawn(args: &[&str]) -> Proc {
+    Proc(
+        Command::new(BIN)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn canpos"),
+    )
+}
+
+fn wait_port(port: u16) {
+    let end = Instant::now() + Duration::from_secs(10);
+    while Instant::now() < end {
+        if std::net::TcpStream::connect(("127.0.0.1", port)).is_ok() {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("nothing listens on {port}");
+}
+
+fn client(port: u16) -> SocketcandClient {
+    let c = SocketcandClient::connect(("127.0.0.1", port), "can0").unwrap();
+    // The hub holds frames back for ~20 ms after raw mode.
+    std::thread::sleep(Duration::from_millis(30));
+    c
+}
+
+fn wait_frame(c: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
+    let end = Instant::now() + within;
+    while let Ok(Some(rx)) = c.recv_deadline(end) {
+        if rx.frame.std_id() == Some(id) {
+            return Some(rx.frame);
+        }
+    }
+    None
+}
+
+fn sdo(c: &mut dyn Transport, node: u8, req: [u8; 8]) -> Option<[u8; 8]> {
+    c.send(&Frame::new(0x600 + u16::from(node), &req).unwrap())
+        .unwrap();
+    let f = wait_frame(c, 0x580 + u16::from(node), Duration::from_secs(3))?;
+    f.data().try_into().ok()
+}
+
+#[test]
+fn help_for_every_command() {
+    let o = canpos(&["--help"]);
+    assert!(o.status.success());
+    let t = text(&o);
+    for cmd in [
+        "bus", "run", "scenario", "ctl", "nmt", "sdo", "lss", "scan", "monitor", "eds", "record",
+        "replay",
+    ] {
+        assert!(t.contains(cmd), "--help lacks {cmd}: {t}");
+    }
+    for args in [
+        &["bus", "--help"][..],
+        &["bus", "serve", "--help"],
+        &["run", "--help"],
+        &["scenario", "--help"],
+        &["ctl", "--help"],
+        &["ctl", "fault", "--help"],
+        &["demo", "--help"],
+        &["nmt", "--help"],
+        &["sdo", "--help"],
+        &["lss", "--help"],
+        &["scan", "--help"],
+        &["monitor", "--help"],
+        &["eds", "--help"],
+        &["record", "--help"],
+        &["replay", "--help"],
+    ] {
+        let o = canpos(args);
+        assert!(o.status.success(), "{args:?}: {}", text(&o));
+        assert!(text(&o).contains("Usage:"), "{args:?}: {}", text(&o));
+    }
+}
+
+#[test]
+fn bad_arguments_fail_with_a_message() {
+    for (args, code, needle) in [
+        (&["frobnicate"][..], 2, "unrecognized subcommand"),
+        (&["run", "--node-id", "0"], 2, "out of range"),
+        (&["run", "--node-id", "x"], 2, "not a number"),
+        (&["run", "--bus-bitrate", "333"], 2, "not a CAN bit rate"),
+        (
+            &["run", "--model", "th", "--order-code", "X"],
+            2,
+            "cannot be used with",
+        ),
+        (
+            &["run", "--magnet", "1", "--motion", "static:1"],
+            2,
+            "cannot be used with",
+        ),
+        (&["run", "--model", "nosuch"], 1, "unknown model `nosuch`"),
+        (&["run", "--motion", "wobble:1"], 1, "bad motion spec"),
+        (&["run", "--bus", "tcp://x"], 1, "unknown scheme"),
+        (&["ctl", "state"], 2, "--control"),
+        (
+            &[
+                "ctl",
+                "--control",
+                "127.0.0.1:1",
+                "fault",
+                "bus-off",
+                "maybe",
+            ],
+            2,
+            "invalid value",
+        ),
+        (&["scenario", "/nonexistent.toml"], 1, "cannot read"),
+    ] {
+        let o = canpos(args);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(code), "{args:?}: {t}");
+        assert!(t.contains(needle), "{args:?}: expected `{needle}` in {t}");
+    }
+    let port = free_port();
+    let o = canpos(&["ctl", "--control", &format!("127.0.0.1:{port}"), "state"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        text(&o).contains("cannot reach the control interface"),
+        "{}",
+        text(&o)
+    );
+}
+
+#[test]
+fn serve_and_run_boot_up_and_sdo_over_socketcand() {
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let _hub = spawn(&["bus", "serve", "--listen", &format!("127.0.0.1:{port}")]);
+    wait_port(port);
+    let mut c = client(port);
+    let ctl_port = free_port();
+    let _run = spawn(&[
+        "run",
+        "--bus",
+        &format!("socketcand://127.0.0.1:{port}/can0"),
+        "--ideal",
+        "--magnet",
+        "250",
+        "--state-dir",
+        dir.path().to_str().unwrap(),
+        "--control",
+        &format!("127.0.0.1:{ctl_port}"),
+    ]);
+    let boot = wait_frame(&mut c, 0x77F, Duration::from_secs(10)).expect("boot-up");
+    assert_eq!(boot.data(), &[0]);
+    let r = sdo(&mut c, 127, [0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).expect("SDO answer");
+    assert_eq!(r[0], 0x43, "{r:x?}");
+    assert_eq!(&r[1..4], &[0x00, 0x10, 0x00]);
+    // The control interface answers state and moves the magnet.
+    wait_port(ctl_port);
+    let ctl = format!("127.0.0.1:{ctl_port}");
+    let o = canpos(&["ctl", "--control", &ctl, "magnet", "0", "400"]);
+    assert!(o.status.success(), "{}", text(&o));
+    std::thread::sleep(Duration::from_millis(50));
+    let o = canpos(&["ctl", "--control", &ctl, "state"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let st: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(st["node_id"], 127);
+    assert_eq!(st["nmt"], "pre-operational");
+    assert_eq!(st["true_mm"][0], 400.0);
+    let o = canpos(&["ctl", "--control", &ctl, "fault", "nonsense", "on"]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(text(&o).contains("unknown fault"), "{}", text(&o));
+}
+
+#[test]
+fn run_starts_an_embedded_hub_when_none_listens() {
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let _run = spawn(&[
+        "run",
+        "--bus",
+        &format!("socketcand://127.0.0.1:{port}/can0"),
+        "--node-id",
+        "5",
+        "--state-dir",
+        dir.path().to_str().unwrap(),
+    ]);
+    wait_port(port);
+    let mut c = client(port);
+    let r = sdo(&mut c, 5, [0x40, 0x18, 0x10, 4, 0, 0, 0, 0]).expect("SDO answer");
+    assert_eq!(r[0], 0x43, "{r:x?}");
+    assert_eq!(u32::from_le_bytes([r[4], r[5], r[6], r[7]]), 17_143_876);
+}
+
+/// The stored 0x1017 value in a state file, or why it cannot be loaded.
+fn stored_heartbeat(path: &Path) -> Result<Option<u32>, String> {
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e.to_string()),
+    };
+    if bytes.len() > IMAGE_MAX {
+        return Err("too long".into());
+    }
+    let tag = canpos_core::models::by_name("th").unwrap().features.tag;
+    let found = parse_image(&bytes, tag)
+        .map_err(|e| format!("{e:?}"))?
+        .find(|&(k, _)| k == 0x0010_1700)
+        .map(|(_, v)| v);
+    Ok(found)
+}
+
+/// SIGKILL at varying points of a store, `n` times: the state file always loads and holds the
+/// old or the new value, and a store that was answered is never lost.
+fn kill_during_store(n: u32) {
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let _hub = spawn(&["bus", "serve", "--listen", &format!("127.0.0.1:{port}")]);
+    wait_port(port);
+    let mut c = client(port);
+    let url = format!("socketcand://127.0.0.1:{port}/can0");
+    let path = dir.path().join("th-17143876.bin");
+    let mut answered_stores = 0;
+    for i in 0..n {
+        let mut run = spawn(&[
+            "run",
+            "--bus",
+            &url,
+            "--node-id",
+            "9",
+            "--state-dir",
+            dir.path().to_str().unwrap(),
+        ]);
+        wait_frame(&mut c, 0x709, Duration::from_secs(10)).expect("boot-up");
+        // The value stored by an earlier run is back after the restart.
+        let r = sdo(&mut c, 9, [0x40, 0x17, 0x10, 0, 0, 0, 0, 0]).expect("read 0x1017");
+        let before = stored_heartbeat(&path).unwrap();
+        if let Some(v) = before {
+            assert_eq!(
+                u32::from(u16::from_le_bytes([r[4], r[5]])),
+                v,
+                "iteration {i}"
+            );
+        }
+        let value = 1000 + i as u16;
+        let [lo, hi] = value.to_le_bytes();
+        let r = sdo(&mut c, 9, [0x2B, 0x17, 0x10, 0, lo, hi, 0, 0]).expect("write 0x1017");
+        assert_eq!(r[0], 0x60, "{r:x?}");
+        c.send(&Frame::new(0x609, &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e']).unwrap())
+            .unwrap();
+        // Kill somewhere between "before the store" and "after its answer" (≥ 20 ms).
+        let delay = Duration::from_micros(u64::from(i * 7919 % 30_000));
+        let answered = wait_frame(&mut c, 0x589, delay).is_some();
+        run.0.kill().unwrap();
+        run.0.wait().unwrap();
+        drop(run);
+        let after = stored_heartbeat(&path)
+            .unwrap_or_else(|e| panic!("iteration {i}: state file does not load: {e}"));
+        assert!(
+            after == before || after == Some(u32::from(value)),
+            "iteration {i}: {after:?} is neither old {before:?} nor new {value}"
+        );
+        if answered {
+            assert_eq!(
+                after,
+                Some(u32::from(value)),
+                "iteration {i}: answered store lost"
+            );
+            answered_stores += 1;
+        }
+        // Heartbeat frames of the killed run must not confuse the next iteration.
+        while let Ok(Some(_)) = c.try_recv() {}
+    }
+    eprintln!("{n} kills, {answered_stores} of them after the store was answered");
+    // Both sides of the race must have been exercised.
+    assert!(
+        answered_stores > 0 && answered_stores < n,
+        "{answered_stores} of {n}"
+    );
+}
+
+/// The issue's 100 kills (about 4 s).
+#[test]
+fn sigkill_during_store_never_leaves_a_bad_state_file() {
+    kill_during_store(100);
+}
+
+#[test]
+fn demo_runs_and_shows_positions() {
+    let port = free_port();
+    let o = canpos(&[
+        "demo",
+        "--listen",
+        &format!("127.0.0.1:{port}"),
+        "--duration",
+        "1.5",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains(&format!("127.0.0.1:{port}")), "{t}");
+    assert!(t.contains("operational"), "{t}");
+    assert!(t.contains(" mm/s"), "{t}");
+}
+
+#[test]
+fn scenario_runs_two_sensors_with_events() {
+    let port = free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("s.toml");
+    std::fs::write(
+        &file,
+        format!(
+            r#"
+bus = "socketcand://127.0.0.1:{port}/can0"
+state_dir = "{}"
+duration = 1.0
+[[sensor]]
+node_id = 1
+serial = 1
+magnets = [100.0]
+[[sensor]]
+node_id = 2
+serial = 2
+motion = "sine:center=500,amp=100,period=1"
+[[event]]
+at = 0.3
+sensor = 1
+cmd = "fault"
+name = "supply-voltage"
+on = true
+"#,
+            dir.path().display()
+        ),
+    )
+    .unwrap();
+    let mut run = Proc(
+        Command::new(BIN)
+            .args(["scenario", file.to_str().unwrap()])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap(),
+    );
+    wait_port(port);
+    let mut c = client(port);
+    // Sensor 1 (node 2) raises EMCY 0x3100 at 0.3 s.
+    let end = Instant::now() + Duration::from_secs(5);
+    let mut seen = false;
+    while let Ok(Some(rx)) = c.recv_deadline(end) {
+        if rx.frame.std_id() == Some(0x82) && rx.frame.data()[..2] == [0x00, 0x31] {
+            seen = true;
+            break;
+        }
+    }
+    assert!(seen, "no EMCY 0x3100 from node 2");
+    let status = run.0.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+}

@@ -1,0 +1,1040 @@
+//! The runtime: drives one or many simulated sensors ([`canpos_core::Node`] + [`canpos_sim::Sensor`])
+//! on one bus, on absolute deadlines.
+//!
+//! # Design
+//!
+//! One thread per bus. Each turn of its loop:
+//!
+//! 1. drains received frames and hands each to every node;
+//! 2. runs every measurement cycle that is due (motion → [`Sensor::measure`] →
+//!    [`Node::update_sample`]); cycles are scheduled as `start + k × cycle`, never as
+//!    "now + cycle", so they do not drift;
+//! 3. runs [`Node::handle_timeout`] for every node whose [`Node::poll_timeout`] has passed;
+//! 4. routes what the nodes send: to the transport **and** to the other nodes of this runtime
+//!    (they share the bus; a transport never echoes a frame to its sender);
+//! 5. answers control requests ([`crate::control`]);
+//! 6. sleeps until the earliest of all deadlines, a received frame, or a control request.
+//!
+//! The sleep is a [`crossbeam_channel::Select`] over the transport's receive queue and the
+//! control queue (so frames are handled at once), ended a little before the deadline
+//! ([`EARLY_WAKE`]) and finished with `clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`: the
+//! futex wait behind the channel is only as precise as the scheduler makes it, the absolute
+//! sleep is the precise part. The thread's timer slack is set to 1 ns (`PR_SET_TIMERSLACK`),
+//! without which Linux rounds every timed sleep up by 50 µs. [`Lateness`] records how late each
+//! timed wake was.
+//!
+//! Time: the core's [`Instant`] is microseconds since the runtime was created
+//! (`CLOCK_MONOTONIC`, via [`std::time::Instant`]).
+
+use std::io;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use canpos_core::models::{DeviceConfig, Model};
+use canpos_core::nmt::NmtState;
+use canpos_core::{Frame, Instant, Node};
+use canpos_sim::motion::{LiveHandle, LiveMotion, Motion, MotionSpec};
+use canpos_sim::{Faults, Sensor, SensorSpec};
+use crossbeam_channel::{Receiver, Select, Sender};
+use serde_json::{json, Value};
+
+use crate::control::{Fault, Request};
+use crate::file_storage::FileStorage;
+use crate::transport::Transport;
+
+/// How long before a deadline the channel wait ends and the precise absolute sleep takes over.
+/// A frame arriving in this window waits at most this long.
+pub const EARLY_WAKE: Duration = Duration::from_micros(200);
+
+/// Everything needed to build one simulated sensor.
+pub struct SensorSetup {
+    /// Label for logs and the control interface (e.g. `th-17143876`).
+    pub name: String,
+    /// The CANopen model.
+    pub model: &'static Model,
+    /// Unit configuration (node-id, bit rate, serial, stroke, steps, channels, cycle).
+    pub cfg: DeviceConfig,
+    /// Technical data for the measurement model.
+    pub spec: SensorSpec,
+    /// Seed of the unit's errors and noise.
+    pub seed: u64,
+    /// No measurement errors at all.
+    pub ideal: bool,
+    /// Where the magnets are (static positions, a profile, a CSV trajectory).
+    pub motion: Box<dyn Motion>,
+    /// Non-volatile storage of the node.
+    pub storage: FileStorage,
+}
+
+/// The default state file of a unit: `<state_dir>/<model>-<serial>.bin`.
+pub fn state_file(state_dir: &std::path::Path, model: &str, serial: u32) -> PathBuf {
+    state_dir.join(format!("{model}-{serial}.bin"))
+}
+
+/// The default state directory: `$CANPOS_STATE_DIR`, else `$XDG_STATE_HOME/canpos`, else
+/// `$HOME/.local/state/canpos`, else `./canpos-state`.
+pub fn default_state_dir() -> PathBuf {
+    if let Some(d) = std::env::var_os("CANPOS_STATE_DIR").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d);
+    }
+    if let Some(d) = std::env::var_os("XDG_STATE_HOME").filter(|d| !d.is_empty()) {
+        return PathBuf::from(d).join("canpos");
+    }
+    if let Some(h) = std::env::var_os("HOME").filter(|d| !d.is_empty()) {
+        return PathBuf::from(h).join(".local/state/canpos");
+    }
+    PathBuf::from("canpos-state")
+}
+
+/// One simulated sensor inside the runtime.
+struct SimDevice {
+    name: String,
+    node: Node<FileStorage>,
+    sensor: Sensor,
+    motion: LiveMotion,
+    live: LiveHandle,
+    cycle_us: u64,
+    /// Next measurement cycle (absolute).
+    next_cycle: Instant,
+    /// Time origin of the motion source.
+    t0: Instant,
+    faults: Vec<Fault>,
+    /// Bus-off: the CAN controller neither sends nor receives.
+    bus_off: bool,
+    last_true: Vec<Option<f64>>,
+    frames_sent: u64,
+}
+
+impl SimDevice {
+    fn new(s: SensorSetup, now: Instant) -> SimDevice {
+        let cycle_us = u64::from(s.cfg.cycle_us.max(100));
+        let motion = LiveMotion::new(s.motion);
+        let live = motion.handle();
+        SimDevice {
+            name: s.name,
+            node: Node::new(s.model, s.cfg, s.storage),
+            sensor: Sensor::new(s.spec, s.seed, s.ideal),
+            motion,
+            live,
+            cycle_us,
+            next_cycle: now,
+            t0: now,
+            faults: Vec::new(),
+            bus_off: false,
+            last_true: Vec::new(),
+            frames_sent: 0,
+        }
+    }
+
+    /// Runs every measurement cycle due at `now` (only called while powered).
+    fn run_cycles(&mut self, now: Instant) {
+        // After a long stall (suspend, debugger) skip ahead instead of bursting.
+        if now.0 > self.next_cycle.0 + 100 * self.cycle_us {
+            let missed = (now.0 - self.next_cycle.0) / self.cycle_us;
+            tracing::warn!(sensor = %self.name, missed, "measurement cycles skipped after a stall");
+            self.next_cycle = Instant(self.next_cycle.0 + missed * self.cycle_us);
+        }
+        while self.next_cycle <= now {
+            let at = self.next_cycle;
+            let t_s = at.0.saturating_sub(self.t0.0) as f64 / 1e6;
+            self.last_true = self.motion.positions_mm(t_s);
+            let sample = self.sensor.measure(t_s, &self.last_true);
+            self.node.update_sample(&sample, at);
+            self.next_cycle = Instant(at.0 + self.cycle_us);
+        }
+    }
+
+    fn deadline(&self) -> Instant {
+        match self.node.poll_timeout() {
+            Some(t) if t < self.next_cycle => t,
+            _ => self.next_cycle,
+        }
+    }
+}
+
+/// Statistics of timed wake-ups: how late the thread woke after a deadline.
+#[derive(Clone, Copy, Debug)]
+pub struct Lateness {
+    /// Histogram: `hist[k]` counts wake-ups `k` µs late (the last bucket: that or more).
+    hist: [u32; 1001],
+    /// Timed wake-ups measured.
+    pub count: u64,
+    /// Sum of lateness, µs.
+    pub sum_us: u64,
+    /// Largest lateness, µs.
+    pub max_us: u64,
+    /// Wake-ups later than 50 µs.
+    pub over_50us: u64,
+    /// Wake-ups later than 200 µs.
+    pub over_200us: u64,
+}
+
+impl Default for Lateness {
+    fn default() -> Self {
+        Lateness {
+            hist: [0; 1001],
+            count: 0,
+            sum_us: 0,
+            max_us: 0,
+            over_50us: 0,
+            over_200us: 0,
+        }
+    }
+}
+
+impl Lateness {
+    fn record(&mut self, us: u64) {
+        self.hist[us.min(1000) as usize] += 1;
+        self.count += 1;
+        self.sum_us += us;
+        self.max_us = self.max_us.max(us);
+        self.over_50us += u64::from(us > 50);
+        self.over_200us += u64::from(us > 200);
+    }
+
+    /// The lateness (µs) that fraction `q` (0…1) of the wake-ups did not exceed; capped at
+    /// 1000 µs.
+    pub fn quantile_us(&self, q: f64) -> u64 {
+        let want = (self.count as f64 * q).ceil() as u64;
+        let mut seen = 0u64;
+        for (us, &n) in self.hist.iter().enumerate() {
+            seen += u64::from(n);
+            if seen >= want.max(1) {
+                return us as u64;
+            }
+        }
+        1000
+    }
+
+    /// Mean lateness in µs.
+    pub fn mean_us(&self) -> f64 {
+        if self.count == 0 {
+            0.0
+        } else {
+            self.sum_us as f64 / self.count as f64
+        }
+    }
+}
+
+impl std::fmt::Display for Lateness {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} timed wake-ups, late by: median {} µs, p99 {} µs, mean {:.1} µs, max {} µs; {} over 50 µs, {} over 200 µs",
+            self.count,
+            self.quantile_us(0.5),
+            self.quantile_us(0.99),
+            self.mean_us(),
+            self.max_us,
+            self.over_50us,
+            self.over_200us
+        )
+    }
+}
+
+/// A message to the runtime thread.
+enum Msg {
+    Request(Request, Sender<Value>),
+    Stop,
+}
+
+/// Sends control requests to a running [`Runtime`]; cheap to clone, usable from any thread.
+#[derive(Clone)]
+pub struct ControlHandle {
+    tx: Sender<Msg>,
+}
+
+impl ControlHandle {
+    /// Sends `req` and waits for the answer (`{"ok":true,…}` or `{"ok":false,"error":…}`).
+    pub fn request(&self, req: Request) -> Value {
+        let (tx, rx) = crossbeam_channel::bounded(1);
+        if self.tx.send(Msg::Request(req, tx)).is_err() {
+            return json!({"ok": false, "error": "the runtime has stopped"});
+        }
+        rx.recv_timeout(Duration::from_secs(10)).unwrap_or_else(
+            |_| json!({"ok": false, "error": "the runtime did not answer within 10 s"}),
+        )
+    }
+
+    /// Asks the runtime to stop (returns at once).
+    pub fn stop(&self) {
+        let _ = self.tx.send(Msg::Stop);
+    }
+}
+
+/// Drives simulated sensors on one transport. Build it, [`Runtime::add`] sensors, then
+/// [`Runtime::run`] (blocking) or [`Runtime::spawn`].
+pub struct Runtime {
+    transport: Box<dyn Transport>,
+    devices: Vec<SimDevice>,
+    powered: Vec<bool>,
+    epoch: std::time::Instant,
+    bus_bitrate: Option<u16>,
+    rx: Receiver<Msg>,
+    tx: Sender<Msg>,
+    lateness: Lateness,
+    started: bool,
+}
+
+/// A runtime running on its own thread.
+pub struct RuntimeHandle {
+    control: ControlHandle,
+    thread: Option<JoinHandle<io::Result<Lateness>>>,
+    stopped: Arc<AtomicBool>,
+}
+
+impl RuntimeHandle {
+    /// The control handle.
+    pub fn control(&self) -> ControlHandle {
+        self.control.clone()
+    }
+
+    /// Whether the runtime thread has ended (transport died or stopped).
+    pub fn is_finished(&self) -> bool {
+        self.stopped.load(Ordering::SeqCst) || self.thread.as_ref().is_none_or(|t| t.is_finished())
+    }
+
+    /// Stops the runtime and waits for its thread; returns the wake-up statistics.
+    pub fn stop(mut self) -> io::Result<Lateness> {
+        self.control.stop();
+        self.join_inner()
+    }
+
+    /// Waits for the runtime thread to end on its own (transport closed, or a stop request
+    /// through a [`ControlHandle`]).
+    pub fn join(mut self) -> io::Result<Lateness> {
+        self.join_inner()
+    }
+
+    fn join_inner(&mut self) -> io::Result<Lateness> {
+        match self.thread.take() {
+            Some(t) => t
+                .join()
+                .unwrap_or_else(|_| Err(io::Error::other("runtime thread panicked"))),
+            None => Ok(Lateness::default()),
+        }
+    }
+}
+
+impl Drop for RuntimeHandle {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            self.control.stop();
+            let _ = self.join_inner();
+        }
+    }
+}
+
+impl Runtime {
+    /// A runtime on `transport`. `bus_bitrate_kbps` overrides the transport's own notion of the
+    /// bus bit rate (a socketcand bus has none): nodes configured for another bit rate fall
+    /// silent (SPEC §9).
+    pub fn new(transport: Box<dyn Transport>, bus_bitrate_kbps: Option<u32>) -> Runtime {
+        let (tx, rx) = crossbeam_channel::bounded(64);
+        let bus_bitrate = bus_bitrate_kbps
+            .or_else(|| transport.bus_bitrate())
+            .map(|b| b.min(u32::from(u16::MAX)) as u16);
+        Runtime {
+            transport,
+            devices: Vec::new(),
+            powered: Vec::new(),
+            epoch: std::time::Instant::now(),
+            bus_bitrate,
+            rx,
+            tx,
+            lateness: Lateness::default(),
+            started: false,
+        }
+    }
+
+    /// The core's clock: µs since the runtime was created.
+    pub fn now(&self) -> Instant {
+        Instant(self.epoch.elapsed().as_micros() as u64)
+    }
+
+    fn to_std(&self, t: Instant) -> std::time::Instant {
+        self.epoch + Duration::from_micros(t.0)
+    }
+
+    /// Adds a sensor (powered off until [`Runtime::power_on_all`] or the start of
+    /// [`Runtime::run`]); returns its index for control requests.
+    pub fn add(&mut self, setup: SensorSetup) -> usize {
+        let now = self.now();
+        let mut d = SimDevice::new(setup, now);
+        d.node.set_bus_bitrate(self.bus_bitrate);
+        self.devices.push(d);
+        self.powered.push(false);
+        self.devices.len() - 1
+    }
+
+    /// Number of sensors.
+    pub fn len(&self) -> usize {
+        self.devices.len()
+    }
+
+    /// True when no sensor was added.
+    pub fn is_empty(&self) -> bool {
+        self.devices.is_empty()
+    }
+
+    /// A handle to send control requests (also works before the runtime runs: they are
+    /// answered once it does).
+    pub fn control(&self) -> ControlHandle {
+        ControlHandle {
+            tx: self.tx.clone(),
+        }
+    }
+
+    /// Powers every sensor on now: each sends its boot-up at once.
+    pub fn power_on_all(&mut self) {
+        let now = self.now();
+        for i in 0..self.devices.len() {
+            self.power_on(i, now);
+        }
+        self.route(now);
+        self.started = true;
+    }
+
+    fn power_on(&mut self, i: usize, now: Instant) {
+        let d = &mut self.devices[i];
+        d.node.power_on(now);
+        d.next_cycle = now;
+        self.powered[i] = true;
+        tracing::info!(sensor = %d.name, node_id = d.node.device().node_id(),
+            bitrate_kbps = d.node.device().bitrate(), "powered on");
+    }
+
+    fn power_off(&mut self, i: usize) {
+        self.devices[i].node.power_off();
+        self.powered[i] = false;
+    }
+
+    /// Runs until stopped through a [`ControlHandle`] or until the transport dies; returns the
+    /// wake-up statistics.
+    pub fn run(mut self) -> io::Result<Lateness> {
+        set_timer_slack_1ns();
+        if !self.started {
+            self.power_on_all();
+        }
+        let result = self.run_loop();
+        tracing::info!(lateness = %self.lateness, "runtime stopped");
+        result.map(|()| self.lateness)
+    }
+
+    /// Runs on a new thread.
+    pub fn spawn(self) -> io::Result<RuntimeHandle> {
+        let control = self.control();
+        let stopped = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&stopped);
+        let thread = std::thread::Builder::new()
+            .name("canpos-runtime".into())
+            .spawn(move || {
+                let r = self.run();
+                flag.store(true, Ordering::SeqCst);
+                r
+            })?;
+        Ok(RuntimeHandle {
+            control,
+            thread: Some(thread),
+            stopped,
+        })
+    }
+
+    fn run_loop(&mut self) -> io::Result<()> {
+        loop {
+            let now = self.now();
+            self.turn(now)?;
+            // Control requests.
+            loop {
+                match self.rx.try_recv() {
+                    Ok(Msg::Stop) => return Ok(()),
+                    Ok(Msg::Request(req, reply)) => {
+                        let now = self.now();
+                        let answer = self.handle_request(req, now);
+                        self.route(now);
+                        let _ = reply.send(answer);
+                    }
+                    Err(_) => break,
+                }
+            }
+            let deadline = self.deadline();
+            self.wait(deadline)?;
+        }
+    }
+
+    /// One turn: frames in, cycles, timers, frames out.
+    fn turn(&mut self, now: Instant) -> io::Result<()> {
+        while let Some(rx) = self.transport.try_recv()? {
+            self.deliver(&rx.frame, None, now);
+            self.route(now);
+        }
+        for i in 0..self.devices.len() {
+            if self.powered[i] {
+                self.devices[i].run_cycles(now);
+                let d = &mut self.devices[i];
+                if d.node.poll_timeout().is_some_and(|t| t <= now) {
+                    d.node.handle_timeout(now);
+                }
+            } else {
+                let d = &mut self.devices[i];
+                while d.next_cycle <= now {
+                    d.next_cycle = Instant(d.next_cycle.0 + d.cycle_us);
+                }
+            }
+        }
+        self.route(now);
+        Ok(())
+    }
+
+    /// Hands a frame to every node except `from`.
+    fn deliver(&mut self, f: &Frame, from: Option<usize>, now: Instant) {
+        for (i, d) in self.devices.iter_mut().enumerate() {
+            if Some(i) != from && !d.bus_off {
+                d.node.handle_frame(f, now);
+            }
+        }
+    }
+
+    /// Sends what the nodes queued, to the transport and to the other local nodes, until no
+    /// node has anything left (an answer may trigger another answer).
+    fn route(&mut self, now: Instant) {
+        for _ in 0..1000 {
+            let mut any = false;
+            for i in 0..self.devices.len() {
+                while let Some(f) = self.devices[i].node.poll_transmit() {
+                    if self.devices[i].bus_off {
+                        continue;
+                    }
+                    any = true;
+                    self.devices[i].frames_sent += 1;
+                    if let Err(e) = self.transport.send(&f) {
+                        tracing::warn!(error = %e, "send failed");
+                    }
+                    self.deliver(&f, Some(i), now);
+                }
+            }
+            if !any {
+                return;
+            }
+        }
+        tracing::warn!("frame routing did not settle after 1000 rounds");
+    }
+
+    fn deadline(&self) -> Option<Instant> {
+        self.devices
+            .iter()
+            .zip(&self.powered)
+            .map(|(d, &p)| if p { d.deadline() } else { d.next_cycle })
+            .min()
+    }
+
+    /// Sleeps until `deadline`, a received frame or a control message.
+    fn wait(&mut self, deadline: Option<Instant>) -> io::Result<()> {
+        let target = deadline.map(|d| self.to_std(d));
+        let early = target.map(|t| t.checked_sub(EARLY_WAKE).unwrap_or(t));
+        let ready = {
+            let mut sel = Select::new();
+            sel.recv(self.transport.receiver());
+            sel.recv(&self.rx);
+            match early {
+                Some(e) if e <= std::time::Instant::now() => None,
+                Some(e) => sel.ready_deadline(e).ok(),
+                None => Some(sel.ready()),
+            }
+        };
+        if ready.is_some() {
+            return Ok(());
+        }
+        if let Some(t) = target {
+            sleep_until(t);
+            let late = std::time::Instant::now().saturating_duration_since(t);
+            self.lateness.record(late.as_micros() as u64);
+        }
+        Ok(())
+    }
+
+    /// Answers one control request.
+    fn handle_request(&mut self, req: Request, now: Instant) -> Value {
+        match self.try_request(req, now) {
+            Ok(v) => v,
+            Err(e) => json!({"ok": false, "error": e}),
+        }
+    }
+
+    fn sensor_index(&self, s: Option<usize>) -> Result<usize, String> {
+        let i = s.unwrap_or(0);
+        if i < self.devices.len() {
+            Ok(i)
+        } else {
+            Err(format!(
+                "sensor {i} does not exist (this runtime has {} sensor(s), numbered from 0)",
+                self.devices.len()
+            ))
+        }
+    }
+
+    fn try_request(&mut self, req: Request, now: Instant) -> Result<Value, String> {
+        match req {
+            Request::Magnet {
+                sensor,
+                index,
+                mm,
+                velocity,
+            } => {
+                let i = self.sensor_index(sensor)?;
+                let live = &self.devices[i].live;
+                match mm {
+                    Some(mm) => live.set_point(index, mm, velocity),
+                    None => live.remove(index),
+                }
+                .map_err(|e| e.to_string())?;
+                Ok(json!({"ok": true}))
+            }
+            Request::Motion { sensor, spec } => {
+                let i = self.sensor_index(sensor)?;
+                let spec = MotionSpec::parse(&spec).map_err(|e| e.to_string())?;
+                let MotionSpec::Profiles(profiles) = spec else {
+                    return Err(
+                        "a CSV trajectory can only be given at start (--motion csv:FILE)".into(),
+                    );
+                };
+                let live = &self.devices[i].live;
+                for (k, p) in profiles.into_iter().enumerate() {
+                    live.start_profile(k, p).map_err(|e| e.to_string())?;
+                }
+                Ok(json!({"ok": true}))
+            }
+            Request::Fault {
+                sensor,
+                name,
+                on,
+                value,
+                channel,
+            } => {
+                let i = self.sensor_index(sensor)?;
+                let fault: Fault = name.parse()?;
+                self.apply_fault(i, fault, on, value, channel, now)?;
+                Ok(json!({"ok": true, "faults": self.fault_names(i)}))
+            }
+            Request::PowerCycle { sensor } => {
+                let i = self.sensor_index(sensor)?;
+                self.power_off(i);
+                self.devices[i].sensor.power_cycle();
+                self.power_on(i, now);
+                Ok(json!({"ok": true}))
+            }
+            Request::Ambient { sensor, celsius } => {
+                let i = self.sensor_index(sensor)?;
+                self.devices[i]
+                    .sensor
+                    .set_ambient_temperature_c(celsius)
+                    .map_err(|e| e.to_string())?;
+                Ok(json!({"ok": true}))
+            }
+            Request::State { sensor } => {
+                let i = self.sensor_index(sensor)?;
+                Ok(self.state(i))
+            }
+        }
+    }
+
+    fn fault_names(&self, i: usize) -> Vec<&'static str> {
+        self.devices[i].faults.iter().map(|f| f.name()).collect()
+    }
+
+    fn apply_fault(
+        &mut self,
+        i: usize,
+        fault: Fault,
+        on: bool,
+        value: Option<f64>,
+        channel: Option<usize>,
+        now: Instant,
+    ) -> Result<(), String> {
+        use canpos_core::emcy::code;
+        let d = &mut self.devices[i];
+        let mut faults: Faults = d.sensor.faults().clone();
+        let spec = d.sensor.spec().clone();
+        let ch = channel.unwrap_or(0);
+        match fault {
+            Fault::MissingMagnet => {
+                let slot = faults
+                    .missing_channels
+                    .get_mut(ch)
+                    .ok_or_else(|| format!("channel {ch} out of range"))?;
+                *slot = on;
+            }
+            Fault::ExtraMagnet => {
+                faults.extra_magnet_mm = on.then(|| value.unwrap_or(spec.stroke_mm * 0.9));
+            }
+            Fault::MagnetsTooClose => faults.too_close_channel = on.then_some(ch),
+            // The encoder sees no positions and raises 0x5000 (register 0x81) itself.
+            Fault::SensorError => faults.transducer_error = on,
+            Fault::SupplyVoltage => {
+                faults.supply_voltage_v = on.then(|| value.unwrap_or(spec.supply.min_v - 2.0));
+            }
+            Fault::OverTemperature => {
+                faults.temperature_c =
+                    on.then(|| value.unwrap_or(spec.operating_temperature_c.1 + 10.0));
+            }
+            _ => {}
+        }
+        d.sensor.set_faults(faults).map_err(|e| e.to_string())?;
+        // Error register bits: 0x01 generic, 0x04 voltage, 0x08 temperature, 0x10 communication.
+        match fault {
+            Fault::SupplyVoltage => d.node.set_error(code::MAIN_VOLTAGE, 0x05, [0; 5], on),
+            Fault::OverTemperature => d.node.set_error(code::TEMPERATURE, 0x09, [0; 5], on),
+            Fault::ErrorPassive => d.node.set_error(code::ERROR_PASSIVE, 0x11, [0; 5], on),
+            Fault::CanOverrun => d.node.set_error(code::CAN_OVERRUN, 0x11, [0; 5], on),
+            Fault::BusOff => {
+                if on {
+                    d.bus_off = true;
+                } else if d.bus_off {
+                    // Recovery: the controller is back on the bus and reports it (0x8140),
+                    // then the condition is over (EMCY 0x0000).
+                    d.bus_off = false;
+                    d.node
+                        .set_error(code::BUS_OFF_RECOVERED, 0x11, [0; 5], true);
+                    d.node
+                        .set_error(code::BUS_OFF_RECOVERED, 0x11, [0; 5], false);
+                }
+            }
+            // Off: nothing to undo; the next store writes a good image again.
+            Fault::StorageCorrupt if on => {
+                d.node
+                    .storage_mut()
+                    .corrupt()
+                    .map_err(|e| format!("cannot corrupt the state file: {e}"))?;
+            }
+            Fault::PowerCycle => {
+                if on {
+                    self.power_off(i);
+                } else if !self.powered[i] {
+                    self.devices[i].sensor.power_cycle();
+                    self.power_on(i, now);
+                }
+            }
+            _ => {}
+        }
+        let d = &mut self.devices[i];
+        d.faults.retain(|f| *f != fault);
+        if on {
+            d.faults.push(fault);
+        }
+        Ok(())
+    }
+
+    /// The `state` answer of sensor `i`.
+    fn state(&mut self, i: usize) -> Value {
+        let powered = self.powered[i];
+        let bus = self.bus_bitrate;
+        let lateness = self.lateness;
+        let names = self.fault_names(i);
+        let d = &mut self.devices[i];
+        let dev = d.node.device();
+        let nmt = match dev.nmt_state() {
+            NmtState::Initialising => "initialising",
+            NmtState::PreOperational => "pre-operational",
+            NmtState::Operational => "operational",
+            NmtState::Stopped => "stopped",
+        };
+        let node_id = dev.node_id();
+        let bitrate = dev.bitrate();
+        let channels = dev.config().channels as usize;
+        let model = dev.model().name;
+        let serial = dev.config().serial;
+        let storage_corrupt = dev.stats().storage_corrupt;
+        let step_nm = d.node.read_object(0x6005, 1).unwrap_or(1000) as f64;
+        let vstep = d.node.read_object(0x6005, 2).unwrap_or(100) as f64;
+        let mut reported = Vec::new();
+        let mut velocity = Vec::new();
+        let mut cams = Vec::new();
+        let mut work_area = Vec::new();
+        for ch in 0..channels {
+            let sub = ch as u8 + 1;
+            cams.push(d.node.read_object(0x6300, sub).ok());
+            work_area.push(d.node.read_object(0x6400, sub).ok());
+            reported.push(
+                d.node
+                    .read_object(0x6020, sub)
+                    .ok()
+                    .map(|r| r as i32 as f64 * step_nm / 1e6),
+            );
+            velocity.push(
+                d.node
+                    .read_object(0x6030, sub)
+                    .ok()
+                    .map(|r| r as u16 as i16 as f64 * vstep / 100.0),
+            );
+        }
+        let err_reg = d.node.read_object(0x1001, 0).ok();
+        let alarms = d.node.read_object(0x6503, 0).ok();
+        json!({
+            "ok": true,
+            "sensor": i,
+            "name": d.name,
+            "model": model,
+            "serial": serial,
+            "powered": powered,
+            "bus_off": d.bus_off,
+            "nmt": nmt,
+            "node_id": node_id,
+            "bitrate_kbps": bitrate,
+            "bus_bitrate_kbps": bus,
+            "true_mm": d.last_true,
+            "reported_mm": reported,
+            "velocity_mm_s": velocity,
+            "cam_state": cams,
+            "work_area": work_area,
+            "error_register": err_reg,
+            "alarms": alarms,
+            "temperature_c": d.sensor.internal_temperature_c(),
+            "supply_v": d.sensor.supply_voltage_v(),
+            "faults": names,
+            "storage_corrupt_at_boot": storage_corrupt,
+            "storage": d.node.storage_mut().path().display().to_string(),
+            "frames_sent": d.frames_sent,
+            "wake_lateness_us": {
+                "median": lateness.quantile_us(0.5),
+                "p99": lateness.quantile_us(0.99),
+                "mean": lateness.mean_us(),
+                "max": lateness.max_us,
+                "count": lateness.count,
+            },
+        })
+    }
+}
+
+/// Sets this thread's timer slack to 1 ns: without it, Linux may delay every timed wake by up
+/// to the default 50 µs slack.
+pub fn set_timer_slack_1ns() {
+    // SAFETY: prctl with PR_SET_TIMERSLACK takes one integer argument and touches no memory.
+    let r = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
+    if r != 0 {
+        tracing::debug!(error = %io::Error::last_os_error(), "PR_SET_TIMERSLACK failed");
+    }
+}
+
+/// Sleeps until `t` on the monotonic clock with an absolute deadline (no drift from computing
+/// relative timeouts, restarts after signals).
+pub fn sleep_until(t: std::time::Instant) {
+    // std::time::Instant is CLOCK_MONOTONIC on Linux; rebuild the absolute timespec from the
+    // current reading of that clock plus the remaining duration.
+    let remaining = t.saturating_duration_since(std::time::Instant::now());
+    if remaining.is_zero() {
+        return;
+    }
+    let mut now = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec into the pointer we own.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
+    let total_ns = now.tv_nsec as u128 + remaining.as_nanos();
+    let ts = libc::timespec {
+        tv_sec: now.tv_sec + (total_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (total_ns % 1_000_000_000) as libc::c_long,
+    };
+    loop {
+        // SAFETY: `ts` is a valid timespec; the remainder pointer may be null for TIMER_ABSTIME.
+        let r = unsafe {
+            libc::clock_nanosleep(
+                libc::CLOCK_MONOTONIC,
+                libc::TIMER_ABSTIME,
+                &ts,
+                std::ptr::null_mut(),
+            )
+        };
+        if r != libc::EINTR {
+            return;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mem::MemBus;
+    use canpos_sim::motion::{Profile, Profiles};
+
+    fn th_setup(dir: &std::path::Path, node_id: u8, serial: u32) -> SensorSetup {
+        let model = canpos_core::models::by_name("th").unwrap();
+        let mut cfg = model.default_config;
+        cfg.node_id = node_id;
+        cfg.serial = serial;
+        SensorSetup {
+            name: format!("th-{serial}"),
+            model,
+            cfg,
+            spec: SensorSpec::th(f64::from(cfg.stroke_mm), 1).unwrap(),
+            seed: 1,
+            ideal: true,
+            motion: Box::new(Profiles(vec![Profile::Static { pos_mm: 250.0 }])),
+            storage: FileStorage::new(state_file(dir, "th", serial)),
+        }
+    }
+
+    fn recv_id(port: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
+        let end = std::time::Instant::now() + within;
+        while let Ok(Some(rx)) = port.recv_deadline(end) {
+            if rx.frame.std_id() == Some(id) {
+                return Some(rx.frame);
+            }
+        }
+        None
+    }
+
+    #[test]
+    fn boots_answers_sdo_and_routes_between_local_nodes() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        rt.add(th_setup(dir.path(), 5, 1));
+        rt.add(th_setup(dir.path(), 6, 2));
+        let h = rt.spawn().unwrap();
+        let boot = recv_id(&mut master, 0x705, Duration::from_secs(2)).expect("boot-up");
+        assert_eq!(boot.data(), &[0]);
+        master
+            .send(&Frame::new(0x605, &[0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap())
+            .unwrap();
+        let r = recv_id(&mut master, 0x585, Duration::from_secs(2)).expect("SDO answer");
+        assert_eq!(r.data()[0], 0x43, "{r:?}");
+        assert_eq!(&r.data()[4..8], &0x0008_0196u32.to_le_bytes());
+        // Node 6's heartbeat consumer is not involved; check the state request instead.
+        let st = h.control().request(Request::State { sensor: Some(1) });
+        assert_eq!(st["ok"], true, "{st}");
+        assert_eq!(st["node_id"], 6);
+        assert_eq!(st["nmt"], "pre-operational");
+        let reported = st["reported_mm"][0].as_f64().unwrap();
+        assert!((reported - 250.0).abs() < 0.01, "{st}");
+        let bad = h.control().request(Request::State { sensor: Some(9) });
+        assert_eq!(bad["ok"], false);
+        h.stop().unwrap();
+    }
+
+    #[test]
+    fn event_timer_1ms_gives_about_1000_tpdos_per_second() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new().with_queue_len(8192);
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        rt.add(th_setup(dir.path(), 1, 3));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x701, Duration::from_secs(2)).expect("boot-up");
+        // 0x1800/5 event timer = 1 ms, then NMT start.
+        master
+            .send(&Frame::new(0x601, &[0x2B, 0x00, 0x18, 0x05, 1, 0, 0, 0]).unwrap())
+            .unwrap();
+        let r = recv_id(&mut master, 0x581, Duration::from_secs(2)).expect("SDO answer");
+        assert_eq!(r.data()[0], 0x60, "{r:?}");
+        master
+            .send(&Frame::new(0x000, &[0x01, 1]).unwrap())
+            .unwrap();
+        let start = std::time::Instant::now();
+        let mut n = 0u32;
+        while start.elapsed() < Duration::from_secs(1) {
+            if let Ok(Some(rx)) = master.recv_timeout(Some(Duration::from_millis(50))) {
+                if rx.frame.std_id() == Some(0x181) {
+                    n += 1;
+                }
+            }
+        }
+        let late = h.stop().unwrap();
+        eprintln!("TPDOs in 1 s: {n}; {late}");
+        assert!((700..=1300).contains(&n), "{n} TPDOs in 1 s");
+    }
+
+    #[test]
+    fn faults_raise_the_documented_emcys() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        // Four magnets on a four-channel unit, so no channel starts out missing.
+        let mut s = th_setup(dir.path(), 7, 4);
+        s.cfg.channels = 4;
+        s.spec = SensorSpec::th(1000.0, 4).unwrap();
+        s.motion = Box::new(Profiles(
+            [100.0, 300.0, 500.0, 700.0]
+                .map(|pos_mm| Profile::Static { pos_mm })
+                .to_vec(),
+        ));
+        rt.add(s);
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x707, Duration::from_secs(2)).expect("boot-up");
+        // Drop the power-on EMCY (TH sends one after the boot-up).
+        std::thread::sleep(Duration::from_millis(50));
+        while let Ok(Some(_)) = master.try_recv() {}
+        let c = h.control();
+        for (name, code, reg) in [
+            ("supply-voltage", 0x3100u16, 0x05u8),
+            ("over-temperature", 0x4200, 0x09),
+            ("error-passive", 0x8120, 0x11),
+            ("can-overrun", 0x8110, 0x11),
+            ("missing-magnet", 0x5000, 0x81),
+        ] {
+            let a = c.request(Request::Fault {
+                sensor: None,
+                name: name.into(),
+                on: true,
+                value: None,
+                channel: None,
+            });
+            assert_eq!(a["ok"], true, "{a}");
+            let f = recv_id(&mut master, 0x87, Duration::from_secs(2)).expect(name);
+            assert_eq!(
+                u16::from_le_bytes([f.data()[0], f.data()[1]]),
+                code,
+                "{name}"
+            );
+            assert_eq!(
+                f.data()[2] & reg,
+                reg,
+                "{name}: register {:#x}",
+                f.data()[2]
+            );
+            let a = c.request(Request::Fault {
+                sensor: None,
+                name: name.into(),
+                on: false,
+                value: None,
+                channel: None,
+            });
+            assert_eq!(a["ok"], true, "{a}");
+            let f = recv_id(&mut master, 0x87, Duration::from_secs(2)).expect(name);
+            assert_eq!(&f.data()[..2], &[0, 0], "{name} cleared");
+            let st = c.request(Request::State { sensor: None });
+            assert_eq!(st["error_register"], 0, "{st}");
+        }
+        h.stop().unwrap();
+    }
+}
+
+#[cfg(test)]
+mod timing {
+    use super::*;
+
+    /// Not an assertion of this machine's timer quality: prints the bare `clock_nanosleep`
+    /// lateness for comparison with the runtime's (`cargo test -- --ignored --nocapture`).
+    #[test]
+    #[ignore = "measurement, prints numbers"]
+    fn bare_clock_nanosleep_lateness() {
+        set_timer_slack_1ns();
+        let mut l = Lateness::default();
+        let start = std::time::Instant::now();
+        for k in 1..=5000u64 {
+            let t = start + Duration::from_micros(k * 1000);
+            sleep_until(t);
+            l.record(
+                std::time::Instant::now()
+                    .saturating_duration_since(t)
+                    .as_micros() as u64,
+            );
+        }
+        eprintln!("bare clock_nanosleep: {l}");
+    }
+}
