@@ -17,10 +17,12 @@
 //! | [`lss`] | CiA 305 | layer setting services |
 //! | [`encoder`] | CiA 406 | the encoder application |
 //! | [`models`] | — | TH, E-Series, TMI dictionaries |
+//! | [`eds`] | CiA 306 | EDS export from the model tables |
 //! | [`node`] | — | the services wired together |
 #![no_std]
 #![deny(missing_docs)]
 
+pub mod eds;
 pub mod emcy;
 pub mod encoder;
 pub mod errctl;

@@ -1,5 +1,19 @@
 //! CiA 406 encoder profile: channels, preset / offset, measuring steps, velocity, cams, work
-//! areas, alarms.
+//! areas, alarms, and the device-side error reactions of each model (SPEC §10, §11).
+//!
+//! The application keeps in [`Encoder`] only what the dictionary cannot hold: the last measured
+//! position of each channel (for velocity and for re-evaluating states after a write), the cam
+//! hysteresis memory, and the fault conditions. Everything a master can see lives in the
+//! dictionary, so one cycle reads its parameters there and writes its results there.
+//!
+//! Per channel n (sub-index n):
+//!
+//! ```text
+//! steps    = floor(measured_nm / 0x6005/1)            (measured from the start of the range)
+//! steps'   = max_steps − steps   if 0x6000 bit 0 (counts decrease away from the head)
+//! position = steps' + offset_n                       (offset from the last preset, 0x650C/n)
+//! velocity = Δnm / Δt in 0x6005/2 units (0.01 mm/s), rounded, sign flipped with bit 0
+//! ```
 
 mod sample;
 
@@ -7,6 +21,7 @@ pub use sample::{Sample, MAX_CHANNELS};
 
 use crate::emcy::{self, Emcy};
 use crate::models::{DeviceConfig, Model};
+use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 use crate::pdo::Tpdos;
 use crate::wire::Instant;
@@ -21,6 +36,12 @@ pub struct AppCtx<'a> {
     pub pdo: &'a mut Tpdos,
     /// The product model.
     pub model: &'static Model,
+    /// The unit configuration (stroke, cycle time, channel count).
+    pub cfg: &'a DeviceConfig,
+    /// The NMT state (TMI 0x1002 bits 1–0).
+    pub nmt: NmtState,
+    /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
+    pub bitrate_kbps: u16,
     /// Current time.
     pub now: Instant,
 }
@@ -35,88 +56,732 @@ pub struct AppView<'a> {
     pub cfg: &'a DeviceConfig,
 }
 
+/// TMI system-data errors (§1.14, 0x5000 with sub-codes). All but
+/// [`SystemDataError::Unexpected`] lock the sensor out of Operational until a power cycle.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SystemDataError {
+    /// 0x5000 1/2/0, 0x1002 bit 13.
+    WrongMapping,
+    /// 0x5000 1/3/1, 0x1002 bit 12 (third byte lost in the manual's OCR: canpos uses 1).
+    WrongVendorId,
+    /// 0x5000 1/3/2, 0x1002 bit 11 (third byte lost in the manual's OCR: canpos uses 2).
+    WrongScale,
+    /// 0x5000 1/4/0, 0x1002 bit 10.
+    WrongResolution,
+    /// 0x5000 1/5/0, 0x1002 bit 9: forces pre-operational once, no lock-out.
+    Unexpected,
+    /// 0x5000 1/6/0, 0x1002 bit 8.
+    NoSystemData,
+    /// 0x5000 2/1/0, 0x1002 bit 14 (invalid serial number / product code in EEPROM).
+    InvalidSerial,
+}
+
+impl SystemDataError {
+    const ALL: [SystemDataError; 7] = [
+        SystemDataError::WrongMapping,
+        SystemDataError::WrongVendorId,
+        SystemDataError::WrongScale,
+        SystemDataError::WrongResolution,
+        SystemDataError::Unexpected,
+        SystemDataError::NoSystemData,
+        SystemDataError::InvalidSerial,
+    ];
+
+    fn bit(self) -> u16 {
+        1 << self as u16
+    }
+
+    /// EMCY bytes 3–5 (D13 layout: one byte per field of the manual's table).
+    fn mfr(self) -> [u8; 5] {
+        match self {
+            SystemDataError::WrongMapping => [1, 2, 0, 0, 0],
+            SystemDataError::WrongVendorId => [1, 3, 1, 0, 0],
+            SystemDataError::WrongScale => [1, 3, 2, 0, 0],
+            SystemDataError::WrongResolution => [1, 4, 0, 0, 0],
+            SystemDataError::Unexpected => [1, 5, 0, 0, 0],
+            SystemDataError::NoSystemData => [1, 6, 0, 0, 0],
+            SystemDataError::InvalidSerial => [2, 1, 0, 0, 0],
+        }
+    }
+
+    fn status_bit(self) -> u32 {
+        match self {
+            SystemDataError::WrongMapping => 1 << 13,
+            SystemDataError::WrongVendorId => 1 << 12,
+            SystemDataError::WrongScale => 1 << 11,
+            SystemDataError::WrongResolution => 1 << 10,
+            SystemDataError::Unexpected => 1 << 9,
+            SystemDataError::NoSystemData => 1 << 8,
+            SystemDataError::InvalidSerial => 1 << 14,
+        }
+    }
+
+    fn locks_out(self) -> bool {
+        self != SystemDataError::Unexpected
+    }
+}
+
+/// A fault that surfaces in the CANopen core (SPEC §11). Magnet faults (missing, extra, too
+/// close) arrive through the [`Sample`] instead; storage corruption through the storage check
+/// at power-on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fault {
+    /// Sensor (transducer) error: EMCY 0x5000, register 0x81 (TMI: 0x5000 1/1/0, process
+    /// values, cam and work-area states frozen); 0x6503 bit 0.
+    Transducer,
+    /// Supply voltage out of range: EMCY 0x3100, register 0x05 (TH/E Example 3).
+    SupplyVoltage,
+    /// Over-temperature: EMCY 0x4200, register 0x09 (no manual lists a code; CiA 301's
+    /// "device temperature").
+    OverTemperature,
+    /// CAN controller error passive: EMCY 0x8120, register 0x11 (TMI 0x1002 bit 5).
+    CanErrorPassive,
+    /// CAN bus-off: while active the host keeps the node off the bus (TMI 0x1002 bits 4, 3);
+    /// clearing it is the recovery, EMCY 0x8140.
+    CanBusOff,
+    /// CAN controller overrun: EMCY 0x8110 (TMI 0x8110 1/0/0, 0x1002 bit 7).
+    CanOverrun,
+    /// CAN software buffer overflow: EMCY 0x8110 (TMI 0x8110 2/0/0, 0x1002 bit 6).
+    CanBufferOverflow,
+    /// Warning bits of 0x6505 (only bits the model supports in 0x6506 are set, D3).
+    Warning(u16),
+    /// TMI system-data error (lock-out, §1.14). On TH / E-Series it reports as a transducer
+    /// error.
+    SystemData(SystemDataError),
+}
+
+// Condition bits of `Encoder::faults`.
+const F_TRANSDUCER: u16 = 1 << 0;
+const F_VOLTAGE: u16 = 1 << 1;
+const F_TEMPERATURE: u16 = 1 << 2;
+const F_PASSIVE: u16 = 1 << 3;
+const F_BUS_OFF: u16 = 1 << 4;
+const F_OVERRUN: u16 = 1 << 5;
+const F_BUFFER: u16 = 1 << 6;
+const F_EVENT_TIMER: u16 = 1 << 7;
+const F_MISSING: u16 = 1 << 8;
+/// `raised` bit for the shared 0x5000 code.
+const R_HARDWARE: u16 = 1 << 15;
+
+/// Per-channel memory.
+#[derive(Clone, Copy, Debug, Default)]
+struct Channel {
+    /// Last usable measured position (nm from the start of the measuring range).
+    nm: Option<i64>,
+    /// Cycles since `nm` was measured (velocity over a gap).
+    age: u32,
+    /// No usable pulse in the last cycle.
+    missing: bool,
+    /// Cam window state before polarity, for hysteresis (TMI); `None` before the first
+    /// evaluation.
+    inside: [Option<bool>; 4],
+    /// Preset offset where the model has no 0x650C to keep it.
+    offset: i64,
+}
+
 /// The CiA 406 application state (per-channel history the dictionary does not hold).
 #[derive(Clone, Debug, Default)]
 pub struct Encoder {
-    last_nm: [Option<i64>; MAX_CHANNELS],
-    missing: [bool; MAX_CHANNELS],
-    alarm: bool,
+    ch: [Channel; MAX_CHANNELS],
+    /// Active fault conditions (F_* bits).
+    faults: u16,
+    /// EMCY codes this application raised and has not cleared (F_* bits by code).
+    raised: u16,
+    /// Active TMI system-data errors.
+    sysdata: u16,
+    /// 0x5000 reasons already announced (a new one while 0x5000 is active sends another EMCY):
+    /// fault bits in the low half, system-data errors in the high half.
+    hw_seen: u32,
+    /// TMI lock-out: the EMCY that repeats on every refused start.
+    lockout: Option<[u8; 5]>,
+    /// The model reacts by going pre-operational at the end of this call.
+    force_preop: bool,
+    /// Stored data failed to load at the last power-on (TMI 0x1002 bit 14).
+    storage_corrupt: bool,
+    /// Warning bits injected (0x6505).
+    warnings: u16,
+    /// A sample arrived since the last reset (TMI 0x1002 bit 16).
+    receiving: bool,
+    /// TH 0x2901: min / max since start-up.
+    temp_run: Option<(i8, i8)>,
+    /// TH 0x2901: min / max over the operating life (loaded from the dictionary once).
+    temp_life: Option<(i8, i8)>,
+    temp_life_loaded: bool,
+    /// Auto-stored values changed: the node should persist them.
+    auto_dirty: bool,
 }
 
 impl Encoder {
-    /// Forgets runtime state (reset node).
+    /// Forgets runtime state (reset node). What only a power cycle clears stays: the TMI
+    /// lock-out, the storage-corruption flag, the temperature extremes since start-up, and the
+    /// injected fault conditions (the hardware is still faulty after a reset).
     pub fn reset(&mut self) {
-        *self = Encoder::default();
+        let keep = Encoder {
+            faults: self.faults & !F_MISSING & !F_EVENT_TIMER,
+            sysdata: self.sysdata,
+            lockout: self.lockout,
+            storage_corrupt: self.storage_corrupt,
+            warnings: self.warnings,
+            temp_run: self.temp_run,
+            temp_life: self.temp_life,
+            temp_life_loaded: self.temp_life_loaded,
+            ..Encoder::default()
+        };
+        *self = keep;
     }
 
     /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
     /// to pre-operational.
     pub fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let step = cx.od.value(0x6005, 1).unwrap_or(1000).max(1) as i64;
-        let channels = cx.od.value(0x6020, 0).unwrap_or(1) as usize;
-        let mut any_missing = false;
-        for ch in 0..channels.min(MAX_CHANNELS) {
-            let sub = ch as u8 + 1;
-            match s.positions_nm[ch] {
-                Some(nm) => {
-                    let pos = (nm / step) as i32;
-                    cx.od.set_value(0x6020, sub, pos as u32);
-                    if let Some(prev) = self.last_nm[ch] {
-                        let vstep = cx.od.value(0x6005, 2).unwrap_or(100).max(1) as i64;
-                        // nm per cycle → 0.01 mm/s per cycle time (1 ms default).
-                        let v = (nm - prev) * 100 / vstep / 1000;
-                        cx.od.set_value(0x6030, sub, v as i16 as u16 as u32);
+        let tmi = cx.model.features.tmi_emcy;
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        self.receiving = true;
+        // TMI sensor error: "the current process values stay in the object directory; the cam
+        // and work area states stay unchanged" (§1.14).
+        let frozen = tmi && self.faults & F_TRANSDUCER != 0;
+        // TH / E-Series: a transducer error leaves no usable position on any channel.
+        let blind = !tmi && self.faults & F_TRANSDUCER != 0;
+        let mut missing = false;
+        if !frozen {
+            for ch in 0..n {
+                let nm = if blind { None } else { s.positions_nm[ch] };
+                self.measure(ch, nm, cx);
+                missing |= self.ch[ch].missing;
+            }
+            set_flag(&mut self.faults, F_MISSING, missing);
+        }
+        self.temperature(s.temperature_c, cx);
+        if tmi {
+            let short = event_timer_insufficient(cx);
+            set_flag(&mut self.faults, F_EVENT_TIMER, short);
+        }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// Injects (`active`) or removes a fault condition. Returns true when the model's
+    /// reaction forces the node back to pre-operational.
+    pub fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
+        let tmi = cx.model.features.tmi_emcy;
+        match f {
+            Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
+            Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
+            Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
+            Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
+            Fault::CanBusOff => {
+                let was = self.faults & F_BUS_OFF != 0;
+                set_flag(&mut self.faults, F_BUS_OFF, active);
+                if was && !active {
+                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0).
+                    cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
+                }
+            }
+            Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
+            Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
+            Fault::Warning(bits) => {
+                let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
+                if active {
+                    self.warnings |= bits & supported;
+                } else {
+                    self.warnings &= !bits;
+                }
+            }
+            Fault::SystemData(e) if tmi => {
+                let was = self.sysdata & e.bit() != 0;
+                set_flag(&mut self.sysdata, e.bit(), active);
+                if active && !was {
+                    if e.locks_out() {
+                        // Lock-out L: pre-operational until a power cycle; the EMCY repeats
+                        // on every refused start.
+                        self.lockout = Some(e.mfr());
                     }
-                    self.last_nm[ch] = Some(nm);
-                    self.missing[ch] = false;
-                }
-                None => {
-                    self.missing[ch] = true;
-                    any_missing = true;
+                    self.force_preop = true;
                 }
             }
+            Fault::SystemData(_) => set_flag(&mut self.faults, F_TRANSDUCER, active),
         }
-        if any_missing != self.alarm {
-            self.alarm = any_missing;
-            cx.od.set_value(0x6503, 0, any_missing as u32);
-            if any_missing {
-                cx.emcy
-                    .raise(emcy::code::HARDWARE, emcy::reg::MANUFACTURER, [0; 5]);
-            } else {
-                cx.emcy.clear(emcy::code::HARDWARE);
-            }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// Whether a fault condition is active (hosts, tests).
+    pub fn fault_active(&self, f: Fault) -> bool {
+        match f {
+            Fault::Transducer => self.faults & F_TRANSDUCER != 0,
+            Fault::SupplyVoltage => self.faults & F_VOLTAGE != 0,
+            Fault::OverTemperature => self.faults & F_TEMPERATURE != 0,
+            Fault::CanErrorPassive => self.faults & F_PASSIVE != 0,
+            Fault::CanBusOff => self.faults & F_BUS_OFF != 0,
+            Fault::CanOverrun => self.faults & F_OVERRUN != 0,
+            Fault::CanBufferOverflow => self.faults & F_BUFFER != 0,
+            Fault::Warning(bits) => self.warnings & bits != 0,
+            Fault::SystemData(e) => self.sysdata & e.bit() != 0,
         }
-        false
+    }
+
+    /// Whether channel `ch` (0-based) had no usable position in the last cycle.
+    pub fn missing(&self, ch: usize) -> bool {
+        self.ch.get(ch).is_some_and(|c| c.missing)
     }
 
     /// TMI lock-out active (Operational refused until a power cycle).
     pub fn lockout(&self) -> bool {
-        false
+        self.lockout.is_some()
     }
 
     /// Repeats the lock-out EMCY on a refused start.
-    pub fn repeat_lockout_emcy(&self, _emcy: &mut Emcy) {}
+    pub fn repeat_lockout_emcy(&self, emcy: &mut Emcy) {
+        if let Some(mfr) = self.lockout {
+            emcy.event(emcy::code::HARDWARE, mfr);
+        }
+    }
 
-    /// The stored data failed to load.
-    pub fn storage_corrupt(&mut self, _emcy: &mut Emcy, _model: &Model) {}
+    /// The stored data failed to load (called once at power-on, after the reset).
+    pub fn storage_corrupt(&mut self, _emcy: &mut Emcy, _model: &Model) {
+        self.storage_corrupt = true;
+    }
 
     /// Whether the model reports corrupt storage itself (TMI 0x1002 bit 14) instead of the
     /// generic EMCY 0x6300.
-    pub fn handles_storage_corrupt(&self, _model: &Model) -> bool {
-        false
+    pub fn handles_storage_corrupt(&self, model: &Model) -> bool {
+        model.features.tmi_emcy
+    }
+
+    /// Values derived from other objects, brought up to date just before an SDO read of
+    /// `index` (they must be right even when no measurement cycle ran since the change):
+    /// 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002 carries the NMT state.
+    pub fn refresh(&self, index: u16, od: &mut Dictionary, nmt: NmtState) {
+        match index {
+            0x6500 => {
+                let v = od.value(0x6000, 0).unwrap_or(0);
+                od.set_value(0x6500, 0, v);
+            }
+            0x6509 => {
+                let v = od.value(0x650C, 1).unwrap_or(0);
+                od.set_value(0x6509, 0, v);
+            }
+            0x1002 => {
+                od.set_value(0x1002, 0, self.status(nmt));
+            }
+            _ => {}
+        }
+    }
+
+    /// TMI 0x1002 (§1.15): bits 16…3 from the conditions, bits 1–0 the NMT state.
+    pub fn status(&self, nmt: NmtState) -> u32 {
+        let mut v = match nmt {
+            NmtState::Stopped => 0b11,
+            NmtState::Operational => 0b10,
+            NmtState::PreOperational => 0b01,
+            _ => 0b00,
+        };
+        if self.receiving && self.sysdata == 0 {
+            v |= 1 << 16;
+        }
+        if self.faults & F_EVENT_TIMER != 0 {
+            v |= 1 << 15;
+        }
+        if self.storage_corrupt {
+            v |= 1 << 14;
+        }
+        for e in SystemDataError::ALL {
+            if self.sysdata & e.bit() != 0 {
+                v |= e.status_bit();
+            }
+        }
+        if self.faults & F_OVERRUN != 0 {
+            v |= 1 << 7;
+        }
+        if self.faults & F_BUFFER != 0 {
+            v |= 1 << 6;
+        }
+        if self.faults & F_PASSIVE != 0 {
+            v |= 1 << 5;
+        }
+        if self.faults & F_BUS_OFF != 0 {
+            v |= (1 << 4) | (1 << 3);
+        }
+        v
+    }
+
+    /// Whether values of the automatically stored group changed since the last call (the node
+    /// then persists them; TH 0x2901 operating-life extremes, D19).
+    pub fn take_auto_dirty(&mut self) -> bool {
+        core::mem::take(&mut self.auto_dirty)
     }
 
     /// Application rules for a write to 0x2000–0x9FFF.
-    pub fn validate(
-        &self,
-        _index: u16,
-        _sub: u8,
-        _raw: u32,
-        _cx: &AppView<'_>,
-    ) -> Result<(), Abort> {
-        Ok(())
+    pub fn validate(&self, index: u16, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+        match (index, sub) {
+            // D2: only the code-sequence bit.
+            (0x6000, 0) if raw & !1 != 0 => Err(Abort::InvalidValue),
+            // R31: whole µm, not below the variant's minimum step.
+            (0x6005, 1) if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
+            (0x6005, 1) if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
+            // Four cams per channel: bits 4…7 name no cam.
+            (0x6301 | 0x6302, 1..) if raw > 0x0F => Err(Abort::InvalidValue),
+            _ => Ok(()),
+        }
     }
 
     /// Side effects of a write to 0x2000–0x9FFF.
-    pub fn written(&mut self, _index: u16, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+    pub fn written(&mut self, index: u16, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        match index {
+            0x6010 if sub >= 1 => {
+                let ch = sub as usize - 1;
+                if ch < MAX_CHANNELS {
+                    self.preset(ch, raw, cx);
+                    self.publish(ch, cx);
+                }
+            }
+            0x6000 => {
+                cx.od.set_value(0x6500, 0, raw);
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            0x6005 if sub == 1 => {
+                // Offsets stay in position units (the manual says nothing about rescaling a
+                // preset when the step changes): write the preset again after changing it.
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            0x6301..=0x6333 | 0x6401 | 0x6402 if sub >= 1 => {
+                let ch = sub as usize - 1;
+                if ch < n {
+                    self.publish(ch, cx);
+                }
+            }
+            _ => {}
+        }
+        self.sync(cx);
+    }
+
+    /// One channel's measurement: position, velocity, then the states derived from them.
+    fn measure(&mut self, ch: usize, nm: Option<i64>, cx: &mut AppCtx<'_>) {
+        let sub = ch as u8 + 1;
+        let tmi = cx.model.features.tmi_emcy;
+        let c = &mut self.ch[ch];
+        match nm {
+            Some(nm) => {
+                let v = match c.nm {
+                    // First value after boot (or a gap the device cannot bridge): no velocity.
+                    Some(prev) if c.age > 0 => {
+                        let dt_us = c.age as i64 * cx.cfg.cycle_us.max(1) as i64;
+                        velocity(nm - prev, dt_us, cx.od)
+                    }
+                    _ => 0,
+                };
+                c.nm = Some(nm);
+                c.age = 1;
+                c.missing = false;
+                set_live(cx, 0x6030, sub, v as i16 as u16 as u32, false);
+                self.publish(ch, cx);
+            }
+            None => {
+                c.missing = true;
+                c.age = c.age.saturating_add(1);
+                // D13: the position keeps its last value. Velocity (the position difference)
+                // is then 0; TMI keeps its process values unchanged (§1.14).
+                if !tmi {
+                    set_live(cx, 0x6030, sub, 0, false);
+                }
+            }
+        }
+    }
+
+    /// Position of channel `ch` from its last measurement, and its cam / work-area states.
+    fn publish(&mut self, ch: usize, cx: &mut AppCtx<'_>) {
+        let Some(nm) = self.ch[ch].nm else {
+            return;
+        };
+        let sub = ch as u8 + 1;
+        let pos = self.base_steps(nm, cx) + self.offset(ch, cx.od);
+        let pos = pos.clamp(i32::MIN as i64, i32::MAX as i64);
+        set_live(cx, 0x6020, sub, pos as i32 as u32, false);
+        self.cams(ch, pos, cx);
+        self.work_area(ch, pos, nm, cx);
+    }
+
+    /// Position steps before the preset offset: quantised, direction applied.
+    fn base_steps(&self, nm: i64, cx: &AppCtx<'_>) -> i64 {
+        let step = cx
+            .od
+            .value(0x6005, 1)
+            .unwrap_or(cx.cfg.position_step_nm)
+            .max(1) as i64;
+        let steps = nm.div_euclid(step);
+        if cx.od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
+            // Code sequence: counts decrease away from the head, from the end of the range.
+            let max = cx.cfg.stroke_mm as i64 * 1_000_000 / step;
+            max - steps
+        } else {
+            steps
+        }
+    }
+
+    fn offset(&self, ch: usize, od: &Dictionary) -> i64 {
+        match od.value(0x650C, ch as u8 + 1) {
+            Some(v) => v as i32 as i64,
+            None => self.ch[ch].offset,
+        }
+    }
+
+    /// Writing a preset makes the current position read it (SPEC §10); E-Series clears the
+    /// preset with 0xFFFFFFFF.
+    fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
+        let sub = ch as u8 + 1;
+        let offset = if cx.model.features.preset_clear && raw == 0xFFFF_FFFF {
+            cx.od.set_value(0x6010, sub, 0);
+            0
+        } else {
+            // Without any measurement yet, the preset refers to the start of the range.
+            let base = self.ch[ch].nm.map_or(0, |nm| self.base_steps(nm, cx));
+            (raw as i32 as i64 - base).clamp(i32::MIN as i64, i32::MAX as i64)
+        };
+        self.ch[ch].offset = offset;
+        cx.od.set_value(0x650C, sub, offset as i32 as u32);
+        if ch == 0 {
+            cx.od.set_value(0x6509, 0, offset as i32 as u32);
+        }
+    }
+
+    /// Cam states of one channel (D5).
+    fn cams(&mut self, ch: usize, pos: i64, cx: &mut AppCtx<'_>) {
+        let sub = ch as u8 + 1;
+        let enable = cx.od.value(0x6301, sub).unwrap_or(0);
+        let polarity = cx.od.value(0x6302, sub).unwrap_or(0);
+        let window = cx.model.features.window_cams;
+        let mut state = 0u32;
+        for k in 0..4u16 {
+            let low = cx.od.value(0x6310 + k, sub).unwrap_or(0) as i32 as i64;
+            let raw_on = if window {
+                let high = cx.od.value(0x6320 + k, sub).unwrap_or(0) as i32 as i64;
+                let h = cx.od.value(0x6330 + k, sub).unwrap_or(0) as u16 as i64;
+                // Hysteresis moves each switch point by h in the direction of motion: a cam
+                // that is off switches on h inside the window, one that is on switches off h
+                // outside it.
+                let inside = match self.ch[ch].inside[k as usize] {
+                    Some(true) => pos >= low - h && pos <= high + h,
+                    Some(false) => pos >= low + h && pos <= high - h,
+                    None => pos >= low && pos <= high,
+                };
+                self.ch[ch].inside[k as usize] = Some(inside);
+                inside
+            } else {
+                // TH / E-Series threshold cam: active at and beyond the threshold.
+                pos >= low
+            };
+            let bit = 1u32 << k;
+            if enable & bit != 0 && (raw_on ^ (polarity & bit != 0)) {
+                state |= bit;
+            }
+        }
+        if set_live(cx, 0x6300, sub, state, true) && cx.model.features.tmi_emcy {
+            cx.emcy
+                .event(emcy::code::TMI_CAM, [sub, state as u8, 0, 0, 0]);
+        }
+    }
+
+    /// Work-area state of one channel: bit 2 below the low limit, bit 1 above the high limit,
+    /// bit 0 outside the measuring range (TMI §1.11.2 with its inclusive bounds).
+    fn work_area(&mut self, ch: usize, pos: i64, nm: i64, cx: &mut AppCtx<'_>) {
+        let sub = ch as u8 + 1;
+        let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
+        let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
+        let end = cx.cfg.stroke_mm as i64 * 1_000_000;
+        let out = if cx.model.features.tmi_emcy {
+            nm <= 0 || nm >= end
+        } else {
+            nm < 0 || nm > end
+        };
+        let state = ((pos < low) as u32) << 2 | ((pos > high) as u32) << 1 | out as u32;
+        if set_live(cx, 0x6400, sub, state, true) && cx.model.features.tmi_emcy {
+            cx.emcy
+                .event(emcy::code::TMI_WORK_AREA, [sub, 0, state as u8, 0, 0]);
+        }
+    }
+
+    /// TH 0x2901: actual, since start-up and operating-life extremes.
+    fn temperature(&mut self, t: i8, cx: &mut AppCtx<'_>) {
+        if cx.od.find(0x2901, 1).is_err() {
+            return;
+        }
+        if !self.temp_life_loaded {
+            self.temp_life_loaded = true;
+            let max = cx.od.value(0x2901, 4).unwrap_or(0) as u8 as i8;
+            let min = cx.od.value(0x2901, 5).unwrap_or(0) as u8 as i8;
+            // Both 0 is what an empty store gives: nothing recorded yet.
+            self.temp_life = (max != 0 || min != 0).then_some((min, max));
+        }
+        let run = self
+            .temp_run
+            .map_or((t, t), |(lo, hi)| (lo.min(t), hi.max(t)));
+        self.temp_run = Some(run);
+        let life = self
+            .temp_life
+            .map_or((t, t), |(lo, hi)| (lo.min(t), hi.max(t)));
+        if self.temp_life != Some(life) {
+            self.temp_life = Some(life);
+            self.auto_dirty = true;
+        }
+        let b = |v: i8| v as u8 as u32;
+        cx.od.set_value(0x2901, 1, b(t));
+        cx.od.set_value(0x2901, 2, b(run.1));
+        cx.od.set_value(0x2901, 3, b(run.0));
+        cx.od.set_value(0x2901, 4, b(life.1));
+        cx.od.set_value(0x2901, 5, b(life.0));
+    }
+
+    /// Brings alarms, warnings and EMCYs in line with the conditions.
+    fn sync(&mut self, cx: &mut AppCtx<'_>) {
+        let tmi = cx.model.features.tmi_emcy;
+        let position_error = self.faults & (F_MISSING | F_TRANSDUCER) != 0;
+        cx.od.set_value(0x6503, 0, position_error as u32);
+        cx.od.set_value(0x6505, 0, self.warnings as u32);
+        let mirror = cx.od.value(0x6000, 0).unwrap_or(0);
+        cx.od.set_value(0x6500, 0, mirror);
+        if tmi {
+            cx.od.set_value(0x1002, 0, self.status(cx.nmt));
+        }
+
+        // 0x5000: missing magnet, transducer error and (TMI) system-data errors share the
+        // code; each new reason is announced, the code clears when none is left (D13).
+        let mfr_sensor = if tmi { [1, 1, 0, 0, 0] } else { [0; 5] };
+        let mut reasons = (self.faults & (F_MISSING | F_TRANSDUCER)) as u32;
+        if tmi {
+            reasons |= (self.sysdata as u32) << 16;
+        }
+        let fresh = reasons & !self.hw_seen;
+        let active = cx.emcy.is_active(emcy::code::HARDWARE);
+        if reasons != 0 {
+            let mfr = first_mfr(fresh, mfr_sensor);
+            if !active || self.raised & R_HARDWARE == 0 {
+                cx.emcy
+                    .raise(emcy::code::HARDWARE, emcy::reg::MANUFACTURER, mfr);
+                self.raised |= R_HARDWARE;
+            } else if fresh != 0 {
+                cx.emcy.event(emcy::code::HARDWARE, mfr);
+            }
+        } else if self.raised & R_HARDWARE != 0 {
+            self.raised &= !R_HARDWARE;
+            cx.emcy.clear(emcy::code::HARDWARE);
+        }
+        self.hw_seen = reasons;
+
+        let comm = emcy::reg::COMMUNICATION;
+        let conditions: [(u16, u16, u8, [u8; 5]); 6] = [
+            (
+                F_VOLTAGE,
+                emcy::code::MAIN_VOLTAGE,
+                emcy::reg::VOLTAGE,
+                [0; 5],
+            ),
+            (
+                F_TEMPERATURE,
+                emcy::code::TEMPERATURE,
+                emcy::reg::TEMPERATURE,
+                [0; 5],
+            ),
+            (F_PASSIVE, emcy::code::ERROR_PASSIVE, comm, [0; 5]),
+            (F_OVERRUN, emcy::code::CAN_OVERRUN, comm, [1, 0, 0, 0, 0]),
+            (F_BUFFER, emcy::code::CAN_OVERRUN, comm, [2, 0, 0, 0, 0]),
+            (F_EVENT_TIMER, emcy::code::SOFTWARE, 0, [1, 0, 0, 0, 0]),
+        ];
+        for (flag, code, reg, mfr) in conditions {
+            let mfr = if tmi { mfr } else { [0; 5] };
+            let want = self.faults & flag != 0;
+            let have = self.raised & flag != 0;
+            if want && (!have || !cx.emcy.is_active(code)) {
+                if cx.emcy.is_active(code) && !have {
+                    // Same code already active for another reason (overrun and buffer
+                    // overflow share 0x8110): announce without a second raise.
+                    cx.emcy.event(code, mfr);
+                } else {
+                    cx.emcy.raise(code, reg, mfr);
+                }
+                self.raised |= flag;
+            } else if !want && have {
+                self.raised &= !flag;
+                let shared = conditions
+                    .iter()
+                    .any(|&(f, c, _, _)| f != flag && c == code && self.raised & f != 0);
+                if !shared {
+                    cx.emcy.clear(code);
+                }
+            }
+        }
+    }
+}
+
+fn set_flag(bits: &mut u16, flag: u16, on: bool) {
+    if on {
+        *bits |= flag;
+    } else {
+        *bits &= !flag;
+    }
+}
+
+/// The manufacturer bytes announcing the first of the `fresh` 0x5000 reasons.
+fn first_mfr(fresh: u32, sensor: [u8; 5]) -> [u8; 5] {
+    for e in SystemDataError::ALL {
+        if (fresh >> 16) as u16 & e.bit() != 0 {
+            return e.mfr();
+        }
+    }
+    sensor
+}
+
+/// Writes a live value; tells the TPDOs when it changed (`event` for cam / work-area states,
+/// which trigger event-driven TPDOs). Returns whether it changed.
+fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> bool {
+    let Ok(slot) = cx.od.find(index, sub) else {
+        return false;
+    };
+    if cx.od.get(slot) == raw {
+        return false;
+    }
+    cx.od.set(slot, raw);
+    cx.pdo.value_changed(slot, event);
+    true
+}
+
+/// Velocity in 0x6005/2 units (of 0.01 mm/s), rounded half away from zero, positive away
+/// from the head before the code sequence (D18), saturated to INTEGER16.
+fn velocity(dnm: i64, dt_us: i64, od: &Dictionary) -> i64 {
+    let vstep = od.value(0x6005, 2).unwrap_or(100).max(1) as i64;
+    // 1 nm/µs = 1 mm/s = 100 × 0.01 mm/s.
+    let num = dnm as i128 * 100;
+    let den = dt_us as i128 * vstep as i128;
+    let mut v = (2 * num + num.signum() * den) / (2 * den);
+    if od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
+        v = -v;
+    }
+    v.clamp(i16::MIN as i128, i16::MAX as i128) as i64
+}
+
+/// TMI R27: TPDO1's event timer is shorter than one worst-case frame at the active bit rate.
+fn event_timer_insufficient(cx: &AppCtx<'_>) -> bool {
+    if cx.bitrate_kbps == 0 {
+        return false;
+    }
+    let od = &*cx.od;
+    let cob = od.value(0x1800, 1).unwrap_or(0x8000_0000);
+    let ttype = od.value(0x1800, 2).unwrap_or(0);
+    let et_ms = od.value(0x1800, 5).unwrap_or(0);
+    if cob & 0x8000_0000 != 0 || ttype < 254 || et_ms == 0 {
+        return false;
+    }
+    let count = od.value(0x1A00, 0).unwrap_or(0);
+    let bytes: u32 = (1..=count.min(8))
+        .map(|k| (od.value(0x1A00, k as u8).unwrap_or(0) & 0xFF) / 8)
+        .sum::<u32>()
+        .min(8);
+    // 11-bit data frame: 47 bits of frame plus data, plus worst-case stuff bits on the 34 + 8n
+    // stuffable bits (the manuals' "103…126 bits" for 7 bytes).
+    let bits = 47 + 8 * bytes + (34 + 8 * bytes - 1) / 4;
+    let frame_us = bits as u64 * 1000 / cx.bitrate_kbps as u64;
+    (et_ms as u64) * 1000 < frame_us
 }

@@ -1,30 +1,32 @@
 //! Temposonics TH CANbus (manual 551871 rev C, §5): the object dictionary of TH Tables 15–20.
+//!
+//! Where the manual is silent the SPEC decisions apply (D1 device type, D2 0x6000, D3 alarms,
+//! D4 0x6507, D5 threshold cams, D7 store/restore, D18 velocity step, D19 0x2901/0x2101, D20
+//! module identification). Additions the manual does not list: 0x1000 (mandatory), 0x1003 and
+//! 0x1015 (EMCY history / inhibit, SPEC §6), sub 0 of the per-channel arrays, and mapping
+//! sub-entries 4…8 (default 0) so a TPDO can carry eight 8-bit objects (conformance PDO-25).
+//! TPDO inhibit time (0x180x/3) is not in TH Table 16, but its sub 0 reads 5 (highest
+//! sub-index) and it is the CiA 301 object, so TH has it (default 0) like the E-Series.
 
-use super::{DeviceConfig, Features, Model};
+use super::table::{self, channels, TpdoComm};
+use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
 use crate::entry;
-use crate::od::{Default::*, Entry, Param};
+use crate::od::{
+    Access::{Ro, Rw},
+    DataType::*,
+    Default::*,
+    Entry,
+    Group::*,
+    Param,
+    Range::*,
+};
 
-/// The TH's object dictionary.
-pub static ENTRIES: &[Entry] = &[
-    entry!(
-        0x1000,
-        0,
-        "Device type",
-        Unsigned32,
-        Ro,
-        Param(Param::DeviceType)
-    ),
-    entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live),
-    entry!(
-        0x1003,
-        0,
-        "Pre-defined error field: number of errors",
-        Unsigned8,
-        Rw,
-        Const(0),
-        MinMax(0, 0),
-        Volatile
-    ),
+#[rustfmt::skip]
+const COMM: &[Entry] = &[
+    entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
+    // Mappable so eight copies fill a TPDO (conformance PDO-25 / PDO-30).
+    entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
+    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile),
     entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live),
     entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live),
     entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live),
@@ -33,737 +35,175 @@ pub static ENTRIES: &[Entry] = &[
     entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live),
     entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live),
     entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live),
-    entry!(
-        0x1005,
-        0,
-        "COB-ID SYNC",
-        Unsigned32,
-        Rw,
-        Const(0x80),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1008,
-        0,
-        "Manufacturer device name",
-        VisibleString,
-        Const,
-        Str("C304")
-    ),
-    entry!(
-        0x1009,
-        0,
-        "Manufacturer hardware version",
-        VisibleString,
-        Const,
-        Str("1.00")
-    ),
-    entry!(
-        0x100A,
-        0,
-        "Manufacturer software version",
-        VisibleString,
-        Const,
-        Str("1.01")
-    ),
+    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm),
+    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("C304")),
+    entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str("1.00")),
+    entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str("1.01")),
+    // Tracks the active node-id (Table 15 default 0x7F = the default node-id).
     entry!(0x100B, 0, "Node-ID", Unsigned32, Ro, Param(Param::NodeId)),
     entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm),
-    entry!(
-        0x100D,
-        0,
-        "Life time factor",
-        Unsigned8,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x100E,
-        0,
-        "COB-ID guarding protocol",
-        Unsigned32,
-        Ro,
-        NodeId(0x700)
-    ),
-    entry!(
-        0x100F,
-        0,
-        "Number of SDOs supported",
-        Unsigned32,
-        Const,
-        Const(1)
-    ),
-    entry!(
-        0x1010,
-        0,
-        "Store parameters: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(1)
-    ),
-    entry!(
-        0x1010,
-        1,
-        "Store all parameters",
-        Unsigned32,
-        Rw,
-        Const(1),
-        Any,
-        Volatile
-    ),
-    entry!(
-        0x1011,
-        0,
-        "Restore default parameters: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(1)
-    ),
-    entry!(
-        0x1011,
-        1,
-        "Restore all default parameters",
-        Unsigned32,
-        Rw,
-        Const(1),
-        Any,
-        Volatile
-    ),
-    entry!(
-        0x1014,
-        0,
-        "COB-ID EMCY",
-        Unsigned32,
-        Rw,
-        NodeId(0x80),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1015,
-        0,
-        "Inhibit time EMCY",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1017,
-        0,
-        "Producer heartbeat time",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1018,
-        0,
-        "Identity object: number of entries",
-        Unsigned8,
-        Const,
-        Const(4)
-    ),
-    entry!(0x1018, 1, "Vendor-ID", Unsigned32, Ro, Const(0x0000_0040)),
-    entry!(
-        0x1018,
-        2,
-        "Product code",
-        Unsigned32,
-        Ro,
-        Param(Param::ProductCode)
-    ),
-    entry!(
-        0x1018,
-        3,
-        "Revision number",
-        Unsigned32,
-        Ro,
-        Const(0x0001_0005)
-    ),
-    entry!(
-        0x1018,
-        4,
-        "Serial number",
-        Unsigned32,
-        Ro,
-        Param(Param::SerialNumber)
-    ),
-    entry!(
-        0x1800,
-        0,
-        "TPDO1 communication parameter: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(5)
-    ),
-    entry!(
-        0x1800,
-        1,
-        "TPDO1 COB-ID",
-        Unsigned32,
-        Rw,
-        NodeId(0x180),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1800,
-        2,
-        "TPDO1 transmission type",
-        Unsigned8,
-        Rw,
-        Const(0xFE),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1800,
-        3,
-        "TPDO1 inhibit time",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1800,
-        5,
-        "TPDO1 event timer",
-        Unsigned16,
-        Rw,
-        Const(1),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1801,
-        0,
-        "TPDO2 communication parameter: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(5)
-    ),
-    entry!(
-        0x1801,
-        1,
-        "TPDO2 COB-ID",
-        Unsigned32,
-        Rw,
-        NodeId(0x8000_0280),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1801,
-        2,
-        "TPDO2 transmission type",
-        Unsigned8,
-        Rw,
-        Const(0xFE),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1801,
-        3,
-        "TPDO2 inhibit time",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1801,
-        5,
-        "TPDO2 event timer",
-        Unsigned16,
-        Rw,
-        Const(1),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1802,
-        0,
-        "TPDO3 communication parameter: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(5)
-    ),
-    entry!(
-        0x1802,
-        1,
-        "TPDO3 COB-ID",
-        Unsigned32,
-        Rw,
-        NodeId(0x8000_0380),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1802,
-        2,
-        "TPDO3 transmission type",
-        Unsigned8,
-        Rw,
-        Const(0xFE),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1802,
-        3,
-        "TPDO3 inhibit time",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1802,
-        5,
-        "TPDO3 event timer",
-        Unsigned16,
-        Rw,
-        Const(1),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1803,
-        0,
-        "TPDO4 communication parameter: highest sub-index",
-        Unsigned8,
-        Const,
-        Const(5)
-    ),
-    entry!(
-        0x1803,
-        1,
-        "TPDO4 COB-ID",
-        Unsigned32,
-        Rw,
-        NodeId(0x8000_0480),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1803,
-        2,
-        "TPDO4 transmission type",
-        Unsigned8,
-        Rw,
-        Const(0xFE),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1803,
-        3,
-        "TPDO4 inhibit time",
-        Unsigned16,
-        Rw,
-        Const(0),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1803,
-        5,
-        "TPDO4 event timer",
-        Unsigned16,
-        Rw,
-        Const(1),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A00,
-        0,
-        "TPDO1 mapping: number of entries",
-        Unsigned8,
-        Rw,
-        Const(3),
-        MinMax(0, 8),
-        Comm
-    ),
-    entry!(
-        0x1A00,
-        1,
-        "TPDO1 mapping entry 1",
-        Unsigned32,
-        Rw,
-        Const(0x6020_0120),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A00,
-        2,
-        "TPDO1 mapping entry 2",
-        Unsigned32,
-        Rw,
-        Const(0x6030_0110),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A00,
-        3,
-        "TPDO1 mapping entry 3",
-        Unsigned32,
-        Rw,
-        Const(0x6300_0108),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A01,
-        0,
-        "TPDO2 mapping: number of entries",
-        Unsigned8,
-        Rw,
-        Const(3),
-        MinMax(0, 8),
-        Comm
-    ),
-    entry!(
-        0x1A01,
-        1,
-        "TPDO2 mapping entry 1",
-        Unsigned32,
-        Rw,
-        Const(0x6020_0220),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A01,
-        2,
-        "TPDO2 mapping entry 2",
-        Unsigned32,
-        Rw,
-        Const(0x6030_0210),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A01,
-        3,
-        "TPDO2 mapping entry 3",
-        Unsigned32,
-        Rw,
-        Const(0x6300_0208),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A02,
-        0,
-        "TPDO3 mapping: number of entries",
-        Unsigned8,
-        Rw,
-        Const(0),
-        MinMax(0, 8),
-        Comm
-    ),
-    entry!(
-        0x1A02,
-        1,
-        "TPDO3 mapping entry 1",
-        Unsigned32,
-        Rw,
-        Const(0x6020_0320),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A02,
-        2,
-        "TPDO3 mapping entry 2",
-        Unsigned32,
-        Rw,
-        Const(0x6030_0310),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A02,
-        3,
-        "TPDO3 mapping entry 3",
-        Unsigned32,
-        Rw,
-        Const(0x6300_0308),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A03,
-        0,
-        "TPDO4 mapping: number of entries",
-        Unsigned8,
-        Rw,
-        Const(0),
-        MinMax(0, 8),
-        Comm
-    ),
-    entry!(
-        0x1A03,
-        1,
-        "TPDO4 mapping entry 1",
-        Unsigned32,
-        Rw,
-        Const(0x6020_0420),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A03,
-        2,
-        "TPDO4 mapping entry 2",
-        Unsigned32,
-        Rw,
-        Const(0x6030_0410),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x1A03,
-        3,
-        "TPDO4 mapping entry 3",
-        Unsigned32,
-        Rw,
-        Const(0x6300_0408),
-        Any,
-        Comm
-    ),
-    entry!(
-        0x6020,
-        0,
-        "Position value: number of channels",
-        Unsigned8,
-        Const,
-        Const(4)
-    ),
-    entry!(
-        0x6020,
-        1,
-        "Position value channel 1",
-        Integer32,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6020,
-        2,
-        "Position value channel 2",
-        Integer32,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6020,
-        3,
-        "Position value channel 3",
-        Integer32,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6020,
-        4,
-        "Position value channel 4",
-        Integer32,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6030,
-        0,
-        "Speed value: number of channels",
-        Unsigned8,
-        Const,
-        Const(4)
-    ),
-    entry!(
-        0x6030,
-        1,
-        "Speed value channel 1",
-        Integer16,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6030,
-        2,
-        "Speed value channel 2",
-        Integer16,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6030,
-        3,
-        "Speed value channel 3",
-        Integer16,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6030,
-        4,
-        "Speed value channel 4",
-        Integer16,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6300,
-        0,
-        "Cam state register: number of channels",
-        Unsigned8,
-        Const,
-        Const(4)
-    ),
-    entry!(
-        0x6300,
-        1,
-        "Cam state channel 1",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6300,
-        2,
-        "Cam state channel 2",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6300,
-        3,
-        "Cam state channel 3",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6300,
-        4,
-        "Cam state channel 4",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6400,
-        0,
-        "Work area state: number of channels",
-        Unsigned8,
-        Const,
-        Const(4)
-    ),
-    entry!(
-        0x6400,
-        1,
-        "Work area state channel 1",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6400,
-        2,
-        "Work area state channel 2",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6400,
-        3,
-        "Work area state channel 3",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
-    entry!(
-        0x6400,
-        4,
-        "Work area state channel 4",
-        Unsigned8,
-        Ro,
-        Live,
-        Any,
-        Volatile,
-        true
-    ),
+    entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm),
+    entry!(0x100E, 0, "COB-ID guarding protocol", Unsigned32, Rw, NodeId(0x700), Any, Comm),
+    entry!(0x100F, 0, "Number of SDOs supported", Unsigned32, Const, Const(1)),
+    entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(1)),
+    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1011, 0, "Restore default parameters: highest sub-index", Unsigned8, Const, Const(1)),
+    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Comm),
+    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1018, 0, "Identity object: number of entries", Unsigned8, Const, Const(4)),
+    entry!(0x1018, 1, "Vendor-ID", Unsigned32, Const, Const(0x0000_0040)),
+    entry!(0x1018, 2, "Product code", Unsigned32, Const, Const(PRODUCT_CODE)),
+    entry!(0x1018, 3, "Revision number", Unsigned32, Const, Const(0x0001_0005)),
+    entry!(0x1018, 4, "Serial number", Unsigned32, Ro, Param(Param::SerialNumber)),
 ];
 
+/// TH TPDO COB-IDs: TPDO1 valid with RTR allowed, the others not valid (Table 16).
+const fn comm(cob: u32) -> TpdoComm {
+    TpdoComm {
+        cob: NodeId(cob),
+        ttype: 0xFE,
+        ttype_range: Any,
+        inhibit: true,
+        event: Some(1),
+        group: Comm,
+    }
+}
+const T1: ([Entry; 5], usize) = table::tpdo_comm(0x1800, tpdo_comm_names!(1), comm(0x180));
+const T2: ([Entry; 5], usize) = table::tpdo_comm(0x1801, tpdo_comm_names!(2), comm(0x8000_0280));
+const T3: ([Entry; 5], usize) = table::tpdo_comm(0x1802, tpdo_comm_names!(3), comm(0x8000_0380));
+const T4: ([Entry; 5], usize) = table::tpdo_comm(0x1803, tpdo_comm_names!(4), comm(0x8000_0480));
+
+/// Mapping n: position, velocity, cam state of channel n (Table 16; 0x1A03/3 lost in OCR,
+/// completed by the pattern).
+const fn map(n: u32) -> [u32; 8] {
+    [
+        0x6020_0020 | n << 8,
+        0x6030_0010 | n << 8,
+        0x6300_0008 | n << 8,
+        0,
+        0,
+        0,
+        0,
+        0,
+    ]
+}
+
+const CH: usize = 5;
+
+#[rustfmt::skip]
+const MFR: &[Entry] = &[
+    // D19: stored by "save".
+    entry!(0x2101, 0, "Enable bus termination", Boolean, Rw, Const(0), Any, App),
+    entry!(0x2901, 0, "Temperature: number of objects", Unsigned8, Const, Const(5)),
+    entry!(0x2901, 1, "Actual temperature", Integer8, Ro, Live),
+    entry!(0x2901, 2, "Max. temperature since startup", Integer8, Ro, Live),
+    entry!(0x2901, 3, "Min. temperature since startup", Integer8, Ro, Live),
+    // D19: the operating-life extremes are persisted by the device itself.
+    entry!(0x2901, 4, "Max. temperature over operational life", Integer8, Ro, Live, Any, Auto),
+    entry!(0x2901, 5, "Min. temperature over operational life", Integer8, Ro, Live, Any, Auto),
+    // D2: only bit 0 (code sequence); the encoder refuses other bits with 0x06090030.
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App),
+    // D20: stored, no effect (scaling is fixed).
+    entry!(0x6002, 0, "Total measuring range", Unsigned32, Rw, Const(0), Any, App),
+    entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
+    entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(Param::VelocityStep)),
+];
+
+#[rustfmt::skip]
+const STATUS: &[Entry] = &[
+    // D12: one value with 0x1800/5 (node.rs keeps them equal).
+    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App),
+];
+
+#[rustfmt::skip]
+const DIAG: &[Entry] = &[
+    // D2: reads the active 0x6000.
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live),
+    entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
+    // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
+    entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
+    entry!(0x6504, 0, "Supported alarms", Unsigned16, Const, Const(0x0001)),
+    entry!(0x6505, 0, "Warnings", Unsigned16, Ro, Live),
+    entry!(0x6506, 0, "Supported warnings", Unsigned16, Const, Const(0x0004)),
+    // D4.
+    entry!(0x6507, 0, "Profile and software version", Unsigned32, Const, Const(0x0301_0401)),
+    entry!(0x650A, 0, "Module identification: number of entries", Unsigned8, Const, Const(3)),
+    entry!(0x650A, 1, "Manufacturer offset value", Integer32, Const, Const(0)),
+    entry!(0x650A, 2, "Manufacturer min. position value", Integer32, Ro, Param(Param::MinPosition)),
+    entry!(0x650A, 3, "Manufacturer max. position value", Integer32, Ro, Param(Param::MaxPosition)),
+    entry!(0x650B, 0, "Serial number", Unsigned32, Ro, Param(Param::SerialNumber)),
+];
+
+#[rustfmt::skip]
+const PARTS: &[&[Entry]] = &[
+    COMM,
+    T1.0.split_at(T1.1).0,
+    T2.0.split_at(T2.1).0,
+    T3.0.split_at(T3.1).0,
+    T4.0.split_at(T4.1).0,
+    &table::tpdo_map::<9>(0x1A00, tpdo_map_names!(1), 3, map(1), Comm),
+    &table::tpdo_map::<9>(0x1A01, tpdo_map_names!(2), 3, map(2), Comm),
+    &table::tpdo_map::<9>(0x1A02, tpdo_map_names!(3), 0, map(3), Comm),
+    &table::tpdo_map::<9>(0x1A03, tpdo_map_names!(4), 0, map(4), Comm),
+    MFR,
+    &channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, Any, Volatile),
+    &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, Any, Volatile),
+    STATUS,
+    &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, Any, Volatile),
+    &channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, Any, Volatile),
+    &channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), Any, App),
+    &channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), Any, App),
+    DIAG,
+    // The offsets the presets produced (CiA 406), stored with "save" so a preset survives a
+    // power cycle; "load" returns them to 0.
+    &channels::<CH>(0x650C, chnames!("Offset value for multi-sensor devices"; 1, 2, 3, 4), Integer32, Ro, false, Const(0), Any, App),
+];
+
+const N: usize = table::total(PARTS);
+static TABLE: [Entry; N] = table::concat(PARTS);
+const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");
+
+/// The TH's object dictionary.
+pub static ENTRIES: &[Entry] = &TABLE;
+
+/// 0x1018/2: "C304".
+pub const PRODUCT_CODE: u32 = 0x4333_3034;
+
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
-    super::common_param(cfg, p, 0x4333_3034)
+    super::common_param(cfg, p, PRODUCT_CODE)
+}
+
+/// TH §8: 1 to 4 magnets, 2 µm or 5 µm, measurement cycle by stroke length.
+fn derive(mut cfg: DeviceConfig) -> DeviceConfig {
+    cfg.channels = cfg.channels.clamp(1, 4);
+    cfg.position_step_nm = if cfg.position_step_nm <= 2000 {
+        2000
+    } else {
+        5000
+    };
+    cfg.cycle_us = match cfg.stroke_mm {
+        0..=2400 => 1000,
+        2401..=4800 => 2000,
+        _ => 4000,
+    };
+    cfg
 }
 
 /// The TH model.
 pub static TH: Model = Model {
     name: "th",
     product: "Temposonics TH CANbus",
+    vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
     features: Features {
         tag: 1,
@@ -774,6 +214,7 @@ pub static TH: Model = Model {
         tpdo_rtr: true,
         lss_fastscan: true,
         lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
+        bitrates: &[1000, 800, 500, 250, 125, 50, 20],
         store_preop_only: false,
         kill_signature: false,
         preset_clear: false,
@@ -781,6 +222,7 @@ pub static TH: Model = Model {
         window_cams: false,
     },
     param,
+    derive,
     default_config: DeviceConfig {
         node_id: 127,
         bitrate_kbps: 125,

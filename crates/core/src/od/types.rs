@@ -156,6 +156,9 @@ pub enum Param {
     MaxPosition,
     /// Number of position channels (sub 0 of per-channel arrays).
     Channels,
+    /// A value only one model has (e.g. TMI's TPDO2 COB-ID, valid only on two-channel units);
+    /// the model's parameter function defines the number's meaning.
+    Model(u8),
 }
 
 /// Where an entry's value at boot (and after a restore) comes from.

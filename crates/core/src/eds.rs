@@ -1,0 +1,271 @@
+//! EDS export (CiA 306 electronic data sheet), generated from the same model tables the device
+//! runs on, so the file cannot drift from the dictionary.
+//!
+//! Written to any [`core::fmt::Write`] without allocation. Rules (SPEC §12, CONFORMANCE §1 and
+//! §13):
+//!
+//! * TPDO-mappable objects are `ro` (never plain `rw`), and live values carry no
+//!   `DefaultValue` (a conformance tool compares defaults with what it reads).
+//! * Defaults that follow the node-id are written `$NODEID+0x180` style; other unit-dependent
+//!   defaults (product code, serial, measuring steps, limits) are resolved for the given unit.
+//! * Objects with sub-indices are ARRAY (0x8) when all subs after sub 0 share one type,
+//!   RECORD (0x9) otherwise and for the identity and PDO parameter records.
+//! * `LowLimit` / `HighLimit` only where the table declares a range.
+//! * No keys outside CiA 306 (the conformance checker warns about them).
+
+use core::fmt::{self, Write};
+
+use crate::models::{DeviceConfig, Model};
+use crate::od::{resolve_default, DataType, Default, Entry, Param, ParamSource, Range};
+
+/// File information for [`write_eds`] (the core has no clock or file system).
+#[derive(Clone, Copy, Debug)]
+pub struct EdsInfo<'a> {
+    /// `FileName` (e.g. `canpos-th.eds`).
+    pub file_name: &'a str,
+    /// `CreationDate` / `ModificationDate`, `MM-DD-YYYY`.
+    pub date: &'a str,
+    /// `CreationTime` / `ModificationTime`, `hh:mm(AM|PM)`.
+    pub time: &'a str,
+    /// `CreatedBy` / `ModifiedBy`.
+    pub created_by: &'a str,
+}
+
+impl core::default::Default for EdsInfo<'_> {
+    fn default() -> Self {
+        EdsInfo {
+            file_name: "canpos.eds",
+            date: "01-01-2025",
+            time: "12:00PM",
+            created_by: "canpos",
+        }
+    }
+}
+
+struct Unit<'a> {
+    model: &'static Model,
+    cfg: &'a DeviceConfig,
+}
+
+impl ParamSource for Unit<'_> {
+    fn param(&self, p: Param) -> u32 {
+        (self.model.param)(self.cfg, p)
+    }
+}
+
+/// Writes the EDS of `model` for the unit `cfg` to `w`.
+pub fn write_eds(
+    w: &mut dyn Write,
+    model: &'static Model,
+    cfg: &DeviceConfig,
+    info: &EdsInfo<'_>,
+) -> fmt::Result {
+    let unit = Unit { model, cfg };
+    let value = |index: u16, sub: u8| -> u32 {
+        model
+            .entries
+            .iter()
+            .find(|e| e.index == index && e.sub == sub)
+            .map_or(0, |e| resolve_default(e, &unit, cfg.node_id))
+    };
+
+    writeln!(w, "[FileInfo]")?;
+    writeln!(w, "FileName={}", info.file_name)?;
+    writeln!(w, "FileVersion=1")?;
+    writeln!(w, "FileRevision=0")?;
+    writeln!(w, "EDSVersion=4.0")?;
+    writeln!(w, "Description={} (canpos software twin)", model.product)?;
+    writeln!(w, "CreationTime={}", info.time)?;
+    writeln!(w, "CreationDate={}", info.date)?;
+    writeln!(w, "CreatedBy={}", info.created_by)?;
+    writeln!(w, "ModificationTime={}", info.time)?;
+    writeln!(w, "ModificationDate={}", info.date)?;
+    writeln!(w, "ModifiedBy={}", info.created_by)?;
+    writeln!(w)?;
+
+    let f = &model.features;
+    writeln!(w, "[DeviceInfo]")?;
+    writeln!(w, "VendorName={}", model.vendor)?;
+    writeln!(w, "VendorNumber=0x{:08X}", value(0x1018, 1))?;
+    writeln!(w, "ProductName={}", model.product)?;
+    writeln!(w, "ProductNumber=0x{:08X}", value(0x1018, 2))?;
+    writeln!(w, "RevisionNumber=0x{:08X}", value(0x1018, 3))?;
+    writeln!(w, "OrderCode={}", model.name)?;
+    for rate in [10u16, 20, 50, 125, 250, 500, 800, 1000] {
+        writeln!(w, "BaudRate_{}={}", rate, f.bitrates.contains(&rate) as u8)?;
+    }
+    writeln!(w, "SimpleBootUpMaster=0")?;
+    writeln!(w, "SimpleBootUpSlave=1")?;
+    writeln!(w, "Granularity=8")?;
+    writeln!(w, "DynamicChannelsSupported=0")?;
+    writeln!(w, "GroupMessaging=0")?;
+    writeln!(w, "NrOfRXPDO=0")?;
+    writeln!(w, "NrOfTXPDO={}", f.tpdos)?;
+    writeln!(w, "LSS_Supported=1")?;
+    writeln!(w)?;
+
+    // The mapping checks accept only objects in the table: no dummy entries.
+    writeln!(w, "[DummyUsage]")?;
+    for d in 1..=7 {
+        writeln!(w, "Dummy{:04X}=0", d)?;
+    }
+    writeln!(w)?;
+
+    let mandatory = |i: u16| matches!(i, 0x1000 | 0x1001 | 0x1018);
+    let manufacturer = |i: u16| (0x2000..0x6000).contains(&i);
+    write_list(w, "MandatoryObjects", model.entries, &|i| mandatory(i))?;
+    write_list(w, "OptionalObjects", model.entries, &|i| {
+        !mandatory(i) && !manufacturer(i)
+    })?;
+    write_list(w, "ManufacturerObjects", model.entries, &|i| {
+        manufacturer(i)
+    })?;
+
+    for obj in objects(model.entries) {
+        write_object(w, obj, &unit, cfg)?;
+    }
+    Ok(())
+}
+
+/// The entries of each object, in table order.
+fn objects(entries: &'static [Entry]) -> impl Iterator<Item = &'static [Entry]> {
+    let mut rest = entries;
+    core::iter::from_fn(move || {
+        let first = rest.first()?;
+        let n = rest.iter().take_while(|e| e.index == first.index).count();
+        let (obj, tail) = rest.split_at(n);
+        rest = tail;
+        Some(obj)
+    })
+}
+
+fn write_list(
+    w: &mut dyn Write,
+    section: &str,
+    entries: &'static [Entry],
+    pick: &dyn Fn(u16) -> bool,
+) -> fmt::Result {
+    let count = objects(entries).filter(|o| pick(o[0].index)).count();
+    writeln!(w, "[{section}]")?;
+    writeln!(w, "SupportedObjects={count}")?;
+    for (i, o) in objects(entries).filter(|o| pick(o[0].index)).enumerate() {
+        writeln!(w, "{}=0x{:04X}", i + 1, o[0].index)?;
+    }
+    writeln!(w)
+}
+
+/// A plain VAR when the object is sub 0 alone, else ARRAY / RECORD with one section per sub.
+fn write_object(
+    w: &mut dyn Write,
+    obj: &'static [Entry],
+    unit: &Unit<'_>,
+    cfg: &DeviceConfig,
+) -> fmt::Result {
+    let first = &obj[0];
+    if obj.len() == 1 && first.sub == 0 {
+        writeln!(w, "[{:04X}]", first.index)?;
+        return write_var(w, first, first.name, unit, cfg);
+    }
+    let index = first.index;
+    let record = matches!(index, 0x1018 | 0x1800..=0x1BFF)
+        || obj
+            .iter()
+            .filter(|e| e.sub > 0)
+            .any(|e| e.ty != obj[obj.len() - 1].ty);
+    writeln!(w, "[{index:04X}]")?;
+    writeln!(w, "ParameterName={}", object_name(first.name))?;
+    writeln!(w, "ObjectType=0x{}", if record { 9 } else { 8 })?;
+    writeln!(w, "SubNumber={}", obj.len())?;
+    writeln!(w)?;
+    for e in obj {
+        writeln!(w, "[{:04X}sub{:X}]", e.index, e.sub)?;
+        write_var(w, e, e.name, unit, cfg)?;
+    }
+    Ok(())
+}
+
+/// The object's name: the sub-0 name up to its ':' ("Identity object: number of entries").
+fn object_name(sub0: &str) -> &str {
+    sub0.split(':').next().unwrap_or(sub0).trim()
+}
+
+fn write_var(
+    w: &mut dyn Write,
+    e: &Entry,
+    name: &str,
+    unit: &Unit<'_>,
+    cfg: &DeviceConfig,
+) -> fmt::Result {
+    writeln!(w, "ParameterName={name}")?;
+    writeln!(w, "ObjectType=0x7")?;
+    writeln!(w, "DataType=0x{:04X}", e.ty.code())?;
+    // Mappable values are produced by the device: ro, never rw (CONFORMANCE EDS-01).
+    let access = if e.pdo && e.access.writable() {
+        "ro"
+    } else {
+        e.access.eds()
+    };
+    writeln!(w, "AccessType={access}")?;
+    if let Some((lo, hi)) = limits(e) {
+        write!(w, "LowLimit=")?;
+        write_number(w, e.ty, lo)?;
+        write!(w, "\nHighLimit=")?;
+        write_number(w, e.ty, hi)?;
+        writeln!(w)?;
+    }
+    match e.default {
+        Default::Live => {}
+        Default::Str(s) => writeln!(w, "DefaultValue={s}")?,
+        Default::NodeId(base) => writeln!(w, "DefaultValue=$NODEID+0x{base:X}")?,
+        Default::Const(v) => {
+            write!(w, "DefaultValue=")?;
+            write_number(w, e.ty, e.ty.to_i64(v))?;
+            writeln!(w)?;
+        }
+        Default::Param(p) => {
+            // A value that moves with the node-id is written relative to it.
+            let at = |id: u8| {
+                let c = DeviceConfig {
+                    node_id: id,
+                    ..*cfg
+                };
+                (unit.model.param)(&c, p)
+            };
+            let (v0, v1) = (at(0), at(1));
+            if v1.wrapping_sub(v0) == 1 && p != Param::BitRateKbps {
+                // "$NODEID+0x0" rather than a bare "$NODEID": python-canopen only resolves
+                // the "+" form.
+                writeln!(w, "DefaultValue=$NODEID+0x{v0:X}")?;
+            } else {
+                write!(w, "DefaultValue=")?;
+                write_number(w, e.ty, e.ty.to_i64(unit.param(p)))?;
+                writeln!(w)?;
+            }
+        }
+    }
+    writeln!(w, "PDOMapping={}", e.pdo as u8)?;
+    writeln!(w)
+}
+
+/// Declared range as EDS limits (lists of allowed values are not expressible; they get the
+/// smallest and largest member).
+fn limits(e: &Entry) -> Option<(i64, i64)> {
+    match e.range {
+        Range::Any => None,
+        Range::MinMax(lo, hi) => Some((lo, hi)),
+        Range::OneOf(list) => {
+            let lo = list.iter().map(|&v| e.ty.to_i64(v)).min()?;
+            let hi = list.iter().map(|&v| e.ty.to_i64(v)).max()?;
+            Some((lo, hi))
+        }
+    }
+}
+
+/// Unsigned values in hex (what tools show for COB-IDs and codes), signed in decimal.
+fn write_number(w: &mut dyn Write, ty: DataType, v: i64) -> fmt::Result {
+    if ty.is_signed() {
+        write!(w, "{v}")
+    } else {
+        write!(w, "0x{:X}", v as u64 & 0xFFFF_FFFF)
+    }
+}
