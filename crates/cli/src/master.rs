@@ -564,7 +564,7 @@ pub struct ScanResult {
 /// then reads each node's identity.
 pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<ScanResult>> {
     let mut found: HashMap<u8, ScanResult> = HashMap::new();
-    let mut note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
+    let note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
         let f = rx.frame;
         if f.is_extended() || f.is_remote() {
             return;
@@ -914,11 +914,27 @@ pub struct EdsArgs {
 /// Exports a model's EDS file.
 pub fn eds(a: EdsArgs) -> Result<i32> {
     let names: Vec<&str> = canpos_core::models::all().iter().map(|m| m.name).collect();
-    let Some(_model) = canpos_core::models::by_name(&a.model) else {
+    let Some(model) = canpos_core::models::by_name(&a.model) else {
         bail!("unknown model `{}` (known: {})", a.model, names.join(", "));
     };
-    let _ = &a.output;
-    bail!("EDS export is not available in this build yet (the EDS writer is not implemented)")
+    let file_name = a
+        .output
+        .as_ref()
+        .and_then(|p| p.file_name())
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| format!("canpos-{}.eds", model.name));
+    let info = canpos_core::eds::EdsInfo { file_name: &file_name, ..Default::default() };
+    let mut text = String::new();
+    canpos_core::eds::write_eds(&mut text, model, &model.default_config, &info)
+        .map_err(|_| anyhow::anyhow!("formatting the EDS failed"))?;
+    match &a.output {
+        Some(p) => std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?,
+        None => {
+            use std::io::Write as _;
+            std::io::stdout().write_all(text.as_bytes())?;
+        }
+    }
+    Ok(0)
 }
 
 // ------------------------------------------------------------------------- record and replay

@@ -23,7 +23,6 @@ mod code {
     pub const TIMEOUT: u32 = 0x0504_0000;
     pub const INVALID_COMMAND: u32 = 0x0504_0001;
     pub const OUT_OF_MEMORY: u32 = 0x0504_0005;
-    pub const LENGTH_MISMATCH: u32 = 0x0607_0010;
 }
 
 /// Why an SDO transfer failed.
@@ -94,11 +93,6 @@ impl<'a> SdoClient<'a> {
     /// The frames kept since the last call (empty unless [`SdoClient::keep_other_frames`]).
     pub fn take_other_frames(&mut self) -> Vec<RxFrame> {
         self.other.as_mut().map(std::mem::take).unwrap_or_default()
-    }
-
-    /// The node this client talks to.
-    pub fn node(&self) -> u8 {
-        self.node
     }
 
     fn rx_id(&self) -> u32 {
@@ -298,9 +292,6 @@ impl<'a> SdoClient<'a> {
         Ok(u32::from_le_bytes(b))
     }
 }
-
-/// Length mismatch abort code, for callers that check a value's size themselves.
-pub const ABORT_LENGTH_MISMATCH: u32 = code::LENGTH_MISMATCH;
 
 /// The value types `canpos sdo` understands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
