@@ -923,7 +923,10 @@ pub fn eds(a: EdsArgs) -> Result<i32> {
         .and_then(|p| p.file_name())
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| format!("canpos-{}.eds", model.name));
-    let info = canpos_core::eds::EdsInfo { file_name: &file_name, ..Default::default() };
+    let info = canpos_core::eds::EdsInfo {
+        file_name: &file_name,
+        ..Default::default()
+    };
     let mut text = String::new();
     canpos_core::eds::write_eds(&mut text, model, &model.default_config, &info)
         .map_err(|_| anyhow::anyhow!("formatting the EDS failed"))?;

@@ -29,6 +29,20 @@ pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
 pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
 /// [`Device::store`] selector for the values the device stores by itself ([`Group::Auto`]).
 const STORE_AUTO: u8 = 0xFE;
+/// Storage record key of TMI object 0x2000 (node-id).
+const KEY_TMI_NODE_ID: u32 = 0x2000 << 8;
+/// Storage record key of TMI object 0x2001 (bit rate, kbit/s, 0xFFFF = autobaud).
+const KEY_TMI_BITRATE: u32 = 0x2001 << 8;
+
+/// TMI 0x2001 value → bit rate in kbit/s (0 = autobaud, D16).
+fn tmi_kbps(raw: u32) -> u16 {
+    if raw == 0xFFFF {
+        0
+    } else {
+        raw as u16
+    }
+}
+
 /// Minimum time a store takes before the SDO answer (D7).
 pub const STORE_TIME: Duration = Duration::from_millis(20);
 
@@ -154,12 +168,22 @@ impl<S: Storage> Node<S> {
         let corrupt = match self.dev.storage.load(&mut buf) {
             Ok(n) => match storage::parse_image(&buf[..n], self.dev.model.features.tag) {
                 Ok(recs) => {
+                    let mut obj = (None, None);
                     for (k, v) in recs {
                         match k {
                             storage::KEY_LSS_NODE_ID => self.dev.stored_lss.0 = Some(v as u8),
                             storage::KEY_LSS_BITRATE => self.dev.stored_lss.1 = Some(v as u16),
+                            KEY_TMI_NODE_ID => obj.0 = Some(v as u8),
+                            KEY_TMI_BITRATE => obj.1 = Some(tmi_kbps(v)),
                             _ => {}
                         }
+                    }
+                    // TMI (R17, R19): node-id / bit rate written to 0x2000 / 0x2001 and saved
+                    // with "save" apply at power-up too; LSS "store configuration" keeps both
+                    // copies equal, so the object copy is the newer one.
+                    if self.dev.model.features.tmi_emcy {
+                        self.dev.stored_lss.0 = obj.0.or(self.dev.stored_lss.0);
+                        self.dev.stored_lss.1 = obj.1.or(self.dev.stored_lss.1);
                     }
                     false
                 }
@@ -818,9 +842,22 @@ impl<S: Storage> Device<S> {
         let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
         w.push(storage::KEY_LSS_NODE_ID, self.pending_node_id as u32);
         w.push(storage::KEY_LSS_BITRATE, self.pending_bitrate as u32);
+        let tmi = self.model.features.tmi_emcy;
+        if tmi {
+            w.push(KEY_TMI_NODE_ID, self.pending_node_id as u32);
+            let kbps = if self.pending_bitrate == 0 {
+                0xFFFF
+            } else {
+                self.pending_bitrate as u32
+            };
+            w.push(KEY_TMI_BITRATE, kbps);
+        }
         if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
             for (k, v) in recs {
-                if k != storage::KEY_LSS_NODE_ID && k != storage::KEY_LSS_BITRATE {
+                let replaced = k == storage::KEY_LSS_NODE_ID
+                    || k == storage::KEY_LSS_BITRATE
+                    || (tmi && (k == KEY_TMI_NODE_ID || k == KEY_TMI_BITRATE));
+                if !replaced {
                     w.push(k, v);
                 }
             }
@@ -906,7 +943,7 @@ impl<S: Storage> Device<S> {
             }
             0x2000 if self.model.features.tmi_emcy => self.pending_node_id = raw as u8,
             0x2001 if self.model.features.tmi_emcy => {
-                self.pending_bitrate = if raw == 0xFFFF { 0 } else { raw as u16 };
+                self.pending_bitrate = tmi_kbps(raw);
             }
             _ => {
                 if index >= 0x2000 {

@@ -185,6 +185,10 @@ impl Tpdos {
                 let mut bits = 0u32;
                 for k in 1..=n {
                     let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
+                    if e == 0 {
+                        // An empty entry cannot be counted in.
+                        return Err(Abort::NotMappable);
+                    }
                     check_mappable(od, e)?;
                     bits += e & 0xFF;
                 }
@@ -356,7 +360,12 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
     let e = od.entry(slot);
     let bits = raw & 0xFF;
-    if !e.pdo || !e.access.readable() || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits() as u32 {
+    if !e.pdo
+        || !e.access.readable()
+        || bits == 0
+        || !bits.is_multiple_of(8)
+        || bits > e.ty.bits() as u32
+    {
         return Err(Abort::NotMappable);
     }
     Ok(())

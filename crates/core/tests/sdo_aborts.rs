@@ -26,6 +26,8 @@ enum M {
     Th,
     /// TH with the TMI switches: no segmented / block SDO, "save" only in pre-operational.
     TmiLike,
+    /// The real TMI model.
+    Tmi,
 }
 
 struct Case {
@@ -198,11 +200,11 @@ const CASES: &[Case] = &[
     },
     Case {
         abort: Abort::MappingLength,
-        why: "1A00:00 = 4 with 3 entries",
+        why: "1A00:00 = 9, more than the 8 entries (conformance PDO-25)",
         model: M::Th,
         steps: &[
             Sdo("2F 00 1A 00 00 00 00 00"),
-            Sdo("2F 00 1A 00 04 00 00 00"),
+            Sdo("2F 00 1A 00 09 00 00 00"),
         ],
         mux: (0x1A00, 0),
     },
@@ -292,14 +294,11 @@ const CASES: &[Case] = &[
         mux: (0x1003, 0),
     },
     Case {
-        abort: Abort::ValueTooHigh,
-        why: "1A00:00 = 9 (table range 0…8 is checked before the mapping rule)",
-        model: M::Th,
-        steps: &[
-            Sdo("2F 00 1A 00 00 00 00 00"),
-            Sdo("2F 00 1A 00 09 00 00 00"),
-        ],
-        mux: (0x1A00, 0),
+        abort: Abort::ValueTooLow,
+        why: "TMI node-id 0x2000 = 0 (range 1…127, D16)",
+        model: M::Tmi,
+        steps: &[Sdo("2F 00 20 00 00 00 00 00")],
+        mux: (0x2000, 0),
     },
     Case {
         abort: Abort::CannotStore,
@@ -329,10 +328,6 @@ const NOT_PRODUCED: &[(Abort, &str)] = &[
     (
         Abort::WriteOnly,
         "no model has a write-only object; the server path is checked with a mock below",
-    ),
-    (
-        Abort::ValueTooLow,
-        "no TH object declares a lower bound above its type's minimum",
     ),
     (Abort::ParamIncompatible, "no service rule uses it"),
     (Abort::InternalIncompatible, "no service rule uses it"),
@@ -366,6 +361,7 @@ fn run(case: &Case) {
     let model: &'static Model = match case.model {
         M::Th => &TH,
         M::TmiLike => tmi_like(),
+        M::Tmi => canpos_core::models::by_name("tmi").unwrap(),
     };
     let mut r = Rig::new(model);
     r.take();

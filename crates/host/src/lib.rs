@@ -14,15 +14,15 @@ pub mod candump;
 pub mod control;
 pub mod file_storage;
 pub mod mem;
+pub mod runtime;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
-pub mod runtime;
 pub mod socketcand;
 pub mod transport;
 
 pub use crossbeam_channel;
 pub use file_storage::FileStorage;
-pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use mem::{MemBus, MemPort};
+pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
 pub use transport::{open, open_or_host, BusUrl, Error, RxFrame, Transport, DEFAULT_URL};
