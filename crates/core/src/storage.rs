@@ -223,14 +223,14 @@ mod tests {
     fn image_round_trip_and_corruption() {
         let mut buf = [0u8; IMAGE_MAX];
         let mut w = ImageWriter::new(&mut buf, 3);
-        assert!(w.push(0x1017_00, 100));
+        assert!(w.push(0x0010_1700, 100));
         assert!(w.push(KEY_LSS_NODE_ID, 5));
         let n = w.finish();
         let recs: [(u32, u32); 2] = {
             let mut it = parse_image(&buf[..n], 3).unwrap();
             [it.next().unwrap(), it.next().unwrap()]
         };
-        assert_eq!(recs, [(0x1017_00, 100), (KEY_LSS_NODE_ID, 5)]);
+        assert_eq!(recs, [(0x0010_1700, 100), (KEY_LSS_NODE_ID, 5)]);
         assert!(parse_image(&buf[..n], 2).is_err(), "other model");
         for i in 0..n {
             let mut b = buf;
