@@ -249,7 +249,13 @@ impl<S: Storage> Node<S> {
             return;
         }
         self.dev.now = now;
+        let autobaud = self.dev.bitrate == 0;
         if !self.dev.can_hear(now) {
+            // Autobaud just locked: the node joins the bus and announces itself (R19).
+            let d = &mut self.dev;
+            if autobaud && d.bitrate != 0 && d.node_id != UNCONFIGURED {
+                d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
+            }
             return;
         }
         let Some(id) = f.std_id() else { return };

@@ -83,3 +83,34 @@ fn kill_in_both_byte_orders_deletes_the_stored_set() {
         );
     }
 }
+
+#[test]
+fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
+    let mut r = tmi();
+    // 0x2001 := 0xFFFF (autobaud, D16), save, power cycle on a 250 kbit/s bus.
+    assert_eq!(r.req(0x67F, &hex("2B 01 20 00 FF FF 00 00")).1, hex("60 01 20 00 00 00 00 00"));
+    store(&mut r, "23 10 10 01 73 61 76 65");
+    r.node.set_bus_bitrate(Some(250));
+    r.node.power_off();
+    r.node.power_on(r.now);
+    assert!(r.take().is_empty(), "silent until the bit rate is detected");
+    assert_eq!(r.node.device().bitrate(), 0);
+    // R19: continuous traffic of 4–5 messages lets it detect the rate; it then boots up.
+    let mut heard = Vec::new();
+    for _ in 0..4 {
+        heard.extend(r.send(0x123, &[1, 2, 3]));
+    }
+    assert_eq!(r.node.device().bitrate(), 250);
+    assert_eq!(heard.len(), 1);
+    assert_eq!((heard[0].std_id(), heard[0].data()), (Some(0x77F), &[0u8][..]));
+    assert_eq!(r.req(0x67F, &hex("40 00 10 00 00 00 00 00")).0, 0x5FF);
+}
+
+#[test]
+fn wrong_bit_rate_node_is_silent_and_deaf() {
+    let mut r = tmi();
+    r.node.set_bus_bitrate(Some(500));
+    assert!(r.send(0x67F, &hex("40 00 10 00 00 00 00 00")).is_empty());
+    r.node.set_bus_bitrate(Some(250));
+    assert_eq!(r.req(0x67F, &hex("40 00 10 00 00 00 00 00")).0, 0x5FF);
+}
