@@ -654,7 +654,6 @@ impl Runtime {
         channel: Option<usize>,
         now: Instant,
     ) -> Result<(), String> {
-        use canpos_core::emcy::code;
         let d = &mut self.devices[i];
         let mut faults: Faults = d.sensor.faults().clone();
         let spec = d.sensor.spec().clone();
@@ -683,23 +682,21 @@ impl Runtime {
             _ => {}
         }
         d.sensor.set_faults(faults).map_err(|e| e.to_string())?;
-        // Error register bits: 0x01 generic, 0x04 voltage, 0x08 temperature, 0x10 communication.
+        // The core knows how each model reports these (EMCY code and bytes, error register,
+        // TMI 0x1002 bits and reactions); the runtime only says what happened.
+        use canpos_core::encoder::Fault as Core;
         match fault {
-            Fault::SupplyVoltage => d.node.set_error(code::MAIN_VOLTAGE, 0x05, [0; 5], on),
-            Fault::OverTemperature => d.node.set_error(code::TEMPERATURE, 0x09, [0; 5], on),
-            Fault::ErrorPassive => d.node.set_error(code::ERROR_PASSIVE, 0x11, [0; 5], on),
-            Fault::CanOverrun => d.node.set_error(code::CAN_OVERRUN, 0x11, [0; 5], on),
+            Fault::SensorError => d.node.inject_fault(Core::Transducer, on),
+            Fault::SupplyVoltage => d.node.inject_fault(Core::SupplyVoltage, on),
+            Fault::OverTemperature => d.node.inject_fault(Core::OverTemperature, on),
+            Fault::ErrorPassive => d.node.inject_fault(Core::CanErrorPassive, on),
+            Fault::CanOverrun => d.node.inject_fault(Core::CanOverrun, on),
             Fault::BusOff => {
-                if on {
-                    d.bus_off = true;
-                } else if d.bus_off {
-                    // Recovery: the controller is back on the bus and reports it (0x8140),
-                    // then the condition is over (EMCY 0x0000).
-                    d.bus_off = false;
-                    d.node
-                        .set_error(code::BUS_OFF_RECOVERED, 0x11, [0; 5], true);
-                    d.node
-                        .set_error(code::BUS_OFF_RECOVERED, 0x11, [0; 5], false);
+                // While bus-off the runtime keeps the node off the bus; clearing it is the
+                // recovery the core reports (0x8140).
+                if on || d.bus_off {
+                    d.bus_off = on;
+                    d.node.inject_fault(Core::CanBusOff, on);
                 }
             }
             // Off: nothing to undo; the next store writes a good image again.
