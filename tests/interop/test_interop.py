@@ -193,3 +193,48 @@ def test_two_sensors_and_python_canopen_share_a_hub(network, sensors, tmp_path):
         network.subscribe(cob, lambda c, d, t: seen.__setitem__(c, seen[c] + 1))
     time.sleep(0.3)
     assert seen[0x18A] > 100 and seen[0x18B] > 100, seen
+
+
+@pytest.mark.parametrize("model", ["th", "tmi"])
+def test_injected_faults_reach_python_canopen(network, sensors, tmp_path, model):
+    import json
+    import socket
+
+    from conftest import free_port
+
+    port = free_port()
+    wait_bootup(network, 127, lambda: sensors(model, extra=["--control", f"127.0.0.1:{port}"]))
+    node = add_node(network, 127)
+
+    def ctl(req):
+        with socket.create_connection(("127.0.0.1", port), timeout=2) as s:
+            s.sendall((json.dumps(req) + "\n").encode())
+            return json.loads(s.makefile().readline())
+
+    def wait_emcy(code, after):
+        # Poll the consumer's log: the EMCY may arrive before a blocking wait would start.
+        end = time.monotonic() + 2
+        while time.monotonic() < end:
+            for e in node.emcy.log[after:]:
+                if e.code == code:
+                    return e
+            time.sleep(0.01)
+        return None
+
+    n = len(node.emcy.log)
+    assert ctl({"cmd": "fault", "name": "missing-magnet", "on": True})["ok"]
+    err = wait_emcy(0x5000, n)
+    assert err is not None and err.register == 0x81
+    assert node.sdo.upload(0x1001, 0) == b"\x81"
+    alarms = node.sdo.upload(0x6503, 0)
+    assert alarms[0] & 1 == 1
+    n = len(node.emcy.log)
+    assert ctl({"cmd": "fault", "name": "missing-magnet", "on": False})["ok"]
+    ok = wait_emcy(0x0000, n)
+    assert ok is not None and ok.register == 0
+    n = len(node.emcy.log)
+    assert ctl({"cmd": "fault", "name": "supply-voltage", "on": True})["ok"]
+    err = wait_emcy(0x3100, n)
+    assert err is not None and err.register & 0x04
+    state = ctl({"cmd": "state"})
+    assert state["ok"]
