@@ -49,6 +49,8 @@ pub mod code {
     pub const COB_COLLISION: u16 = 0x8150;
     /// PDO not processed due to length error.
     pub const PDO_LENGTH: u16 = 0x8210;
+    /// Unexpected SYNC data length (CiA 301).
+    pub const SYNC_LENGTH: u16 = 0x8240;
     /// TMI: cam state changed.
     pub const TMI_CAM: u16 = 0x9080;
     /// TMI: work area state changed.
@@ -73,6 +75,9 @@ pub struct Emcy {
     next_allowed: Instant,
     /// EMCYs that could not be queued (pending queue full).
     pub lost: u32,
+    /// Bumped whenever the error register or the history may have changed, so the device
+    /// mirrors them into 0x1001 / 0x1003 only then (not on every frame).
+    generation: u32,
 }
 
 impl core::default::Default for Emcy {
@@ -87,18 +92,32 @@ impl core::default::Default for Emcy {
             inhibit: Duration::ZERO,
             next_allowed: Instant::ZERO,
             lost: 0,
+            generation: 0,
         }
     }
 }
 
 impl Emcy {
     /// The error register (0x1001) as the active errors make it.
+    #[inline]
     pub fn register(&self) -> u8 {
         let mut r = 0;
         for &(_, bits) in &self.active[..self.n_active] {
             r |= bits | reg::GENERIC;
         }
         r
+    }
+
+    /// A counter that changes whenever [`Emcy::register`] or the history may have changed.
+    #[inline]
+    pub fn generation(&self) -> u32 {
+        self.generation
+    }
+
+    /// Whether an EMCY waits to be sent.
+    #[inline]
+    pub fn has_pending(&self) -> bool {
+        self.n_pending > 0
     }
 
     /// Whether `code` is active.
@@ -121,6 +140,7 @@ impl Emcy {
             self.active[self.n_active] = (code, reg_bits);
             self.n_active += 1;
         }
+        self.generation = self.generation.wrapping_add(1);
         self.record(code, mfr);
         let r = self.register();
         self.queue(code, r, mfr);
@@ -143,6 +163,7 @@ impl Emcy {
         };
         self.active.copy_within(i + 1..self.n_active, i);
         self.n_active -= 1;
+        self.generation = self.generation.wrapping_add(1);
         if self.n_active == 0 {
             self.queue(code::NO_ERROR, 0, [0; 5]);
         }
@@ -158,6 +179,7 @@ impl Emcy {
     pub fn reset(&mut self) {
         self.n_active = 0;
         self.n_pending = 0;
+        self.generation = self.generation.wrapping_add(1);
         self.next_allowed = Instant::ZERO;
     }
 
@@ -177,6 +199,7 @@ impl Emcy {
     pub fn clear_history(&mut self) {
         self.n_history = 0;
         self.history = [0; HISTORY_LEN];
+        self.generation = self.generation.wrapping_add(1);
     }
 
     fn record(&mut self, code: u16, mfr: [u8; 5]) {
@@ -186,6 +209,7 @@ impl Emcy {
         self.history.copy_within(0..HISTORY_LEN - 1, 1);
         self.history[0] = entry;
         self.n_history = (self.n_history + 1).min(HISTORY_LEN);
+        self.generation = self.generation.wrapping_add(1);
     }
 
     fn queue(&mut self, code: u16, register: u8, mfr: [u8; 5]) {
@@ -200,6 +224,7 @@ impl Emcy {
     }
 
     /// When the next queued EMCY may go out, if one waits.
+    #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
         (self.n_pending > 0).then_some(self.next_allowed)
     }

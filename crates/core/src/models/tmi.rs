@@ -67,6 +67,11 @@ const COMM: &[Entry] = &[
     entry!(0x1018, 2, "Product code", Unsigned32, Ro, Param(Param::ProductCode)),
     entry!(0x1018, 3, "Revision number", Unsigned32, Const, Const(0x0002_0003)),
     entry!(0x1018, 4, "Serial number", Unsigned32, Ro, Param(Param::SerialNumber)),
+    // CiA 301 default SDO server parameters: the COB-IDs follow the node-id (conformance
+    // SDO-12 reads them).
+    entry!(0x1200, 0, "SDO server parameter: highest sub-index", Unsigned8, Const, Const(2)),
+    entry!(0x1200, 1, "COB-ID client to server", Unsigned32, Ro, NodeId(0x600)),
+    entry!(0x1200, 2, "COB-ID server to client", Unsigned32, Ro, NodeId(0x580)),
 ];
 
 /// TPDO1: asynchronous with event timer (§1.2.5). The manual gives no event-timer default;

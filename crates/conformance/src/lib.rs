@@ -1,0 +1,60 @@
+//! canpos-conformance: the CiA conformance-test-tool catalogue (`CONFORMANCE.md` of the
+//! project's shared notes) as an automated suite.
+//!
+//! * [`harness`]: the tool's master side (raw frames, NMT master, SYNC producer, guarding,
+//!   capture, SDO client with expedited / segmented / block transfers and forged frames,
+//!   sensor hooks in place of RPDO-triggered events).
+//! * [`backend`]: a `canpos_core::Node` on a virtual clock, or a real-time device over the
+//!   socketcand transport.
+//! * [`eds`]: a small INI / EDS reader for the EDS-driven cases.
+//! * [`cases`]: one function per catalogue case.
+//! * [`report`]: runs every case for every model and renders `docs/CONFORMANCE.md`.
+
+pub mod backend;
+pub mod cases;
+pub mod eds;
+pub mod harness;
+pub mod report;
+
+use canpos_core::models::Model;
+
+pub use backend::{Backend, SocketcandDut, VirtualDut};
+pub use cases::{Case, Outcome, CASES};
+pub use harness::Harness;
+
+/// A harness on a fresh virtual-clock device of `model`, past its boot-up.
+pub fn virtual_harness(model: &'static Model) -> Harness {
+    let mut h = Harness::new(Box::new(VirtualDut::new(model)));
+    let boot = h.take();
+    assert!(
+        boot.iter()
+            .any(|(_, f)| f.std_id() == Some(0x77F) && f.data() == [0]),
+        "no boot-up at power-on"
+    );
+    h
+}
+
+/// The case with catalogue ID `id`.
+pub fn case(id: &str) -> &'static Case {
+    CASES
+        .iter()
+        .find(|c| c.id == id)
+        .unwrap_or_else(|| panic!("no case {id}"))
+}
+
+/// Runs case `id` for `model` on the virtual clock (panics on failure).
+pub fn run_virtual(id: &str, model: &'static Model) -> Outcome {
+    let c = case(id);
+    let mut h = virtual_harness(model);
+    (c.run)(&mut h)
+}
+
+/// Runs case `id` on every model; an n.a. verdict is printed with its reason.
+pub fn run_all_models(id: &str) {
+    for m in canpos_core::models::all() {
+        match run_virtual(id, m) {
+            Outcome::Pass => {}
+            Outcome::Na(why) => println!("{id} {}: n.a. ({why})", m.name),
+        }
+    }
+}
