@@ -1,7 +1,13 @@
-"""Fixtures: a canpos socketcand hub, canpos sensors, and a python-canopen network on it.
+"""Fixtures: a bus (canpos socketcand hub, or Linux SocketCAN vcan0), canpos sensors on it, and a
+python-canopen network on it.
 
 python-canopen and python-can are the independent master here: everything they see goes
-through the same loopback socketcand protocol a user's tools would use.
+through the same socketcand protocol or SocketCAN interface a user's tools would use.
+
+Every test runs once per transport (`test_x[socketcand]`, `test_x[socketcan]`): socketcand always,
+SocketCAN where `vcan0` exists (the UML step of scripts/test.sh runs the suite inside a guest
+with vcan0: scripts/uml/run-in-uml.sh). `CANPOS_INTEROP_TRANSPORTS=socketcan` (comma-separated)
+picks the transports explicitly.
 """
 import os
 import socket
@@ -15,6 +21,25 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = os.environ.get("CANPOS_BIN", str(ROOT / "target" / "release" / "canpos"))
+VCAN = "vcan0"
+
+
+def vcan_available():
+    return Path(f"/sys/class/net/{VCAN}").exists()
+
+
+def transports():
+    env = os.environ.get("CANPOS_INTEROP_TRANSPORTS")
+    if env:
+        return [t.strip() for t in env.split(",") if t.strip()]
+    return ["socketcand", "socketcan"] if vcan_available() else ["socketcand"]
+
+
+@pytest.fixture(params=transports())
+def transport(request):
+    if request.param == "socketcan" and not vcan_available():
+        pytest.skip(f"no {VCAN} here (run under scripts/uml/run-in-uml.sh)")
+    return request.param
 
 
 def free_port():
@@ -65,14 +90,20 @@ def hub(tmp_path):
 
 
 @pytest.fixture
-def bus_url(hub):
-    return f"socketcand://127.0.0.1:{hub}/can0"
+def bus_url(transport, request):
+    if transport == "socketcan":
+        return f"socketcan://{VCAN}"
+    return f"socketcand://127.0.0.1:{request.getfixturevalue('hub')}/can0"
 
 
 @pytest.fixture
-def network(hub):
+def network(transport, bus_url):
     net = canopen.Network()
-    net.connect(interface="socketcand", host="127.0.0.1", port=hub, channel="can0")
+    if transport == "socketcan":
+        net.connect(interface="socketcan", channel=VCAN)
+    else:
+        port = int(bus_url.rsplit(":", 1)[1].split("/")[0])
+        net.connect(interface="socketcand", host="127.0.0.1", port=port, channel="can0")
     try:
         yield net
     finally:

@@ -1,4 +1,5 @@
-"""python-canopen (an independently written CANopen master) against canpos over socketcand."""
+"""python-canopen (an independently written CANopen master) against canpos, over socketcand and
+over Linux SocketCAN (vcan0; see conftest.py)."""
 import struct
 import subprocess
 import time
@@ -8,7 +9,7 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import BIN, add_node, export_eds, wait_bootup
+from conftest import BIN, VCAN, add_node, export_eds, wait_bootup
 
 
 def u32(node, index, sub):
@@ -238,3 +239,58 @@ def test_injected_faults_reach_python_canopen(network, sensors, tmp_path, model)
     assert err is not None and err.register & 0x04
     state = ctl({"cmd": "state"})
     assert state["ok"]
+
+
+def test_node_guarding(network, sensors, transport):
+    """python-canopen's node guarding: remote frames on 0x700 + id. Over SocketCAN these are true
+    RTR frames; socketcand cannot carry RTR, so python-can sends a zero-length data frame."""
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    answers = []
+    network.subscribe(0x77F, lambda c, d, t: answers.append(bytes(d)))
+    observer = None
+    if transport == "socketcan":
+        observer = can.Bus(interface="socketcan", channel=VCAN,
+                           can_filters=[{"can_id": 0x77F, "can_mask": 0x7FF}])
+    try:
+        node.nmt.start_node_guarding(0.05)
+        time.sleep(0.5)
+        node.nmt.stop_node_guarding()
+        time.sleep(0.05)
+        assert len(answers) >= 5, answers
+        assert all(len(a) == 1 and a[0] & 0x7F == 0x7F for a in answers), answers
+        toggles = [a[0] >> 7 for a in answers]
+        assert all(x != y for x, y in zip(toggles, toggles[1:])), toggles
+        if observer is not None:
+            seen = []
+            while (m := observer.recv(0.05)) is not None:
+                seen.append(m)
+            requests = [m for m in seen if m.is_remote_frame]
+            assert len(requests) >= 5, seen
+            assert not [m for m in seen if not m.is_remote_frame and m.dlc == 0], seen
+    finally:
+        if observer is not None:
+            observer.shutdown()
+
+
+def test_error_frames_do_not_disturb_the_node(network, sensors, transport):
+    """CAN error frames (only SocketCAN carries them) are counted and logged by canpos, not
+    crashed on; an error-passive report gives EMCY 0x8120."""
+    if transport != "socketcan":
+        pytest.skip("error frames exist on SocketCAN only")
+    wait_bootup(network, 127, lambda: sensors("th"))
+    node = add_node(network, 127)
+    emcys = []
+    network.subscribe(0xFF, lambda c, d, t: emcys.append(bytes(d)))
+    with can.Bus(interface="socketcan", channel=VCAN) as bus:
+        # CAN_ERR_CRTL with data[1] = CAN_ERR_CRTL_TX_PASSIVE, then other error classes.
+        bus.send(can.Message(arbitration_id=0x004, is_extended_id=False, is_error_frame=True,
+                             data=[0, 0x20, 0, 0, 0, 0, 0, 0]))
+        for cls in (0x008, 0x020, 0x080):
+            bus.send(can.Message(arbitration_id=cls, is_extended_id=False, is_error_frame=True,
+                                 data=[0xFF] * 8))
+    assert u32(node, 0x1000, 0) == 0x00080196
+    end = time.monotonic() + 2
+    while not any(e[:2] == b"\x20\x81" for e in emcys) and time.monotonic() < end:
+        time.sleep(0.01)
+    assert any(e[:2] == b"\x20\x81" for e in emcys), emcys

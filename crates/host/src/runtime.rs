@@ -43,7 +43,10 @@ use serde_json::{json, Value};
 
 use crate::control::{Fault, Request};
 use crate::file_storage::FileStorage;
-use crate::transport::Transport;
+use crate::transport::{BusState, Transport};
+
+/// How long the CAN overrun EMCY (0x8110) stays active after the transport last lost a frame.
+pub const OVERRUN_HOLD: Duration = Duration::from_secs(1);
 
 /// How long before a deadline the channel wait ends and the precise absolute sleep takes over.
 /// A frame arriving in this window waits at most this long.
@@ -277,6 +280,16 @@ pub struct Runtime {
     tx: Sender<Msg>,
     lateness: Lateness,
     started: bool,
+    /// Lost frames of the transport already reported.
+    drops_seen: u64,
+    /// While frames are being lost: when the overrun EMCY is cleared.
+    overrun_until: Option<Instant>,
+    /// Controller state last seen on the transport.
+    bus_state: BusState,
+    /// Install receive filters on transports that support them (SocketCAN).
+    kernel_filter: bool,
+    /// The COB-IDs last given to [`Transport::set_rx_filter`].
+    filter: Option<Vec<u16>>,
 }
 
 /// A runtime running on its own thread.
@@ -347,7 +360,18 @@ impl Runtime {
             tx,
             lateness: Lateness::default(),
             started: false,
+            drops_seen: 0,
+            overrun_until: None,
+            bus_state: BusState::ErrorActive,
+            kernel_filter: true,
+            filter: None,
         }
+    }
+
+    /// Whether to restrict reception to the nodes' COB-IDs on transports that filter in the
+    /// kernel (SocketCAN; on by default): NMT, SYNC, LSS, SDO, error control and remote frames.
+    pub fn set_kernel_filter(&mut self, on: bool) {
+        self.kernel_filter = on;
     }
 
     /// The core's clock: µs since the runtime was created.
@@ -467,10 +491,13 @@ impl Runtime {
 
     /// One turn: frames in, cycles, timers, frames out.
     fn turn(&mut self, now: Instant) -> io::Result<()> {
+        let mut received = false;
         while let Some(rx) = self.transport.try_recv()? {
+            received = true;
             self.deliver(&rx.frame, None, now);
             self.route(now);
         }
+        self.watch_transport(now, received);
         for i in 0..self.devices.len() {
             if self.powered[i] {
                 self.devices[i].run_cycles(now);
@@ -528,7 +555,86 @@ impl Runtime {
             .iter()
             .zip(&self.powered)
             .map(|(d, &p)| if p { d.deadline() } else { d.next_cycle })
+            .chain(self.overrun_until)
             .min()
+    }
+
+    /// Reacts to what the transport reports about the bus: lost frames (CAN overrun EMCY
+    /// 0x8110, cleared [`OVERRUN_HOLD`] after the last loss), the controller's error state
+    /// (error passive 0x8120, recovered from bus-off 0x8140), and keeps its receive filter on
+    /// the nodes' COB-IDs (re-checked after received frames, which may change them).
+    fn watch_transport(&mut self, now: Instant, received: bool) {
+        // The core reports these per model (EMCY codes and bytes, error register, TMI 0x1002);
+        // lost frames are its "software buffer overflow" (0x8110), separate from the injectable
+        // controller overrun (`can-overrun`), and error passive / bus-off are left alone while
+        // the same fault is injected by hand.
+        use canpos_core::encoder::Fault as Core;
+        let dropped = self.transport.dropped();
+        if dropped > self.drops_seen {
+            tracing::warn!(
+                lost = dropped - self.drops_seen,
+                total = dropped,
+                "CAN frames lost"
+            );
+            self.drops_seen = dropped;
+            if self.overrun_until.is_none() {
+                for d in &mut self.devices {
+                    d.node.inject_fault(Core::CanBufferOverflow, true);
+                }
+            }
+            self.overrun_until = Some(Instant(now.0 + OVERRUN_HOLD.as_micros() as u64));
+        } else if self.overrun_until.is_some_and(|t| t <= now) {
+            self.overrun_until = None;
+            for d in &mut self.devices {
+                d.node.inject_fault(Core::CanBufferOverflow, false);
+            }
+        }
+        let state = self.transport.bus_state();
+        if state != self.bus_state {
+            let old = std::mem::replace(&mut self.bus_state, state);
+            tracing::warn!(from = ?old, to = ?state, "CAN controller state");
+            for d in &mut self.devices {
+                let passive = state == BusState::ErrorPassive;
+                if (passive || old == BusState::ErrorPassive)
+                    && !d.faults.contains(&Fault::ErrorPassive)
+                {
+                    d.node.inject_fault(Core::CanErrorPassive, passive);
+                }
+                // Leaving bus-off is the recovery the core reports (0x8140). The kernel keeps a
+                // real controller off the bus; the runtime does not mute the node itself.
+                if (state == BusState::BusOff || old == BusState::BusOff) && !d.bus_off {
+                    d.node
+                        .inject_fault(Core::CanBusOff, state == BusState::BusOff);
+                }
+            }
+        }
+        if self.kernel_filter && (received || self.filter.is_none()) {
+            self.update_filter();
+        }
+    }
+
+    /// The standard COB-IDs the nodes listen to; remote frames always pass the filter.
+    fn update_filter(&mut self) {
+        let mut ids = vec![0x000, 0x7E5];
+        for d in &mut self.devices {
+            let id = u16::from(d.node.device().node_id());
+            if (1..=127).contains(&id) {
+                ids.extend([0x600 + id, 0x700 + id]);
+            }
+            let sync = d.node.read_object(0x1005, 0).unwrap_or(0x80);
+            ids.push((sync & 0x7FF) as u16);
+        }
+        ids.sort_unstable();
+        ids.dedup();
+        if self.filter.as_ref() == Some(&ids) {
+            return;
+        }
+        match self.transport.set_rx_filter(&ids) {
+            Ok(true) => tracing::debug!(cob_ids = ?ids, "receive filter set"),
+            Ok(false) => {}
+            Err(e) => tracing::warn!(error = %e, "cannot set the receive filter"),
+        }
+        self.filter = Some(ids);
     }
 
     /// Sleeps until `deadline`, a received frame or a control message.
@@ -638,6 +744,10 @@ impl Runtime {
                 let i = self.sensor_index(sensor)?;
                 Ok(self.state(i))
             }
+            Request::ResetLateness => {
+                self.lateness = Lateness::default();
+                Ok(json!({"ok": true}))
+            }
         }
     }
 
@@ -691,13 +801,11 @@ impl Runtime {
             Fault::OverTemperature => d.node.inject_fault(Core::OverTemperature, on),
             Fault::ErrorPassive => d.node.inject_fault(Core::CanErrorPassive, on),
             Fault::CanOverrun => d.node.inject_fault(Core::CanOverrun, on),
-            Fault::BusOff => {
-                // While bus-off the runtime keeps the node off the bus; clearing it is the
-                // recovery the core reports (0x8140).
-                if on || d.bus_off {
-                    d.bus_off = on;
-                    d.node.inject_fault(Core::CanBusOff, on);
-                }
+            // While bus-off the runtime keeps the node off the bus; clearing it is the
+            // recovery the core reports (0x8140).
+            Fault::BusOff if on || d.bus_off => {
+                d.bus_off = on;
+                d.node.inject_fault(Core::CanBusOff, on);
             }
             // Off: nothing to undo; the next store writes a good image again.
             Fault::StorageCorrupt if on => {
@@ -794,6 +902,11 @@ impl Runtime {
             "storage_corrupt_at_boot": storage_corrupt,
             "storage": d.node.storage_mut().path().display().to_string(),
             "frames_sent": d.frames_sent,
+            // Event-timer periods the TPDOs skipped because the runtime woke too late.
+            "tpdo_missed": (0..4)
+                .filter_map(|n| d.node.device().tpdos().get(n))
+                .map(|p| u64::from(p.missed))
+                .sum::<u64>(),
             "wake_lateness_us": {
                 "median": lateness.quantile_us(0.5),
                 "p99": lateness.quantile_us(0.99),

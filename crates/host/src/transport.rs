@@ -48,6 +48,18 @@ impl RxFrame {
     }
 }
 
+/// Error state of the CAN controller (ISO 11898-1 fault confinement).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum BusState {
+    /// Normal operation.
+    #[default]
+    ErrorActive,
+    /// An error counter passed 127: the controller may only send passive error flags.
+    ErrorPassive,
+    /// The transmit error counter passed 255: the controller is off the bus.
+    BusOff,
+}
+
 /// A connection to a CAN bus, as seen by one node (or one tool).
 ///
 /// Frames sent through a transport are not received back by the same transport.
@@ -113,9 +125,24 @@ pub trait Transport: Send {
         None
     }
 
-    /// Frames this transport lost because its receive queue was full.
+    /// Frames this transport lost because its receive queue was full (SocketCAN: also frames
+    /// the kernel or the controller dropped, and frames given up after a full transmit queue).
     fn dropped(&self) -> u64 {
         0
+    }
+
+    /// The CAN controller's error state, where the transport can know it (SocketCAN error
+    /// frames); otherwise always error-active.
+    fn bus_state(&self) -> BusState {
+        BusState::ErrorActive
+    }
+
+    /// Asks the transport to deliver only frames with these standard COB-IDs (plus remote
+    /// frames); `Ok(true)` when it did (SocketCAN kernel filters), `Ok(false)` when it does not
+    /// filter. Other frames may still arrive.
+    fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+        let _ = std_ids;
+        Ok(false)
     }
 
     /// A short description for logs, e.g. the URL.
@@ -146,6 +173,12 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn dropped(&self) -> u64 {
         (**self).dropped()
+    }
+    fn bus_state(&self) -> BusState {
+        (**self).bus_state()
+    }
+    fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+        (**self).set_rx_filter(std_ids)
     }
     fn describe(&self) -> String {
         (**self).describe()
