@@ -3,6 +3,7 @@
 //!
 //! Exit codes: 0 success, 1 failure (the message says why), 2 bad command line.
 
+mod bench;
 mod device;
 mod master;
 
@@ -56,6 +57,8 @@ enum Cmd {
     Record(master::RecordArgs),
     /// Replay a candump -L log onto a bus.
     Replay(master::ReplayArgs),
+    /// Performance instruments: core ops/s, scale, SDO round trip, boot time.
+    Bench(bench::BenchArgs),
 }
 
 fn init_logging(verbose: u8, quiet: bool) {
@@ -96,6 +99,7 @@ fn main() -> ExitCode {
         Some(Cmd::Eds(a)) => master::eds(a),
         Some(Cmd::Record(a)) => master::record(a),
         Some(Cmd::Replay(a)) => master::replay(a),
+        Some(Cmd::Bench(a)) => bench::bench(a),
     };
     match result {
         Ok(code) => ExitCode::from(code.clamp(0, 255) as u8),

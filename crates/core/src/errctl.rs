@@ -73,6 +73,7 @@ impl ErrCtl {
     }
 
     /// The next deadline of this service.
+    #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
         match (self.next_heartbeat, self.guard_deadline) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -81,6 +82,7 @@ impl ErrCtl {
     }
 
     /// Handles expired timers; call until it returns `None`.
+    #[inline]
     pub fn handle_timeout(&mut self, now: Instant, state: NmtState) -> Option<ErrCtlEvent> {
         if let (Some(t), Some(p)) = (self.next_heartbeat, self.heartbeat) {
             if now >= t {

@@ -172,6 +172,7 @@ pub struct LssSlave {
 
 impl LssSlave {
     /// Whether the slave is in LSS configuration state.
+    #[inline]
     pub fn in_configuration(&self) -> bool {
         self.configuration
     }
@@ -347,6 +348,7 @@ impl LssSlave {
     }
 
     /// Deadline of a pending bit-rate switch.
+    #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
         self.switch
             .map(|s| if s.switched { s.resume_at } else { s.switch_at })

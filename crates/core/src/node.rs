@@ -43,6 +43,11 @@ fn tmi_kbps(raw: u32) -> u16 {
     }
 }
 
+/// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
+fn stored_node_id(v: u32) -> Option<u8> {
+    ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
+}
+
 /// Minimum time a store takes before the SDO answer (D7).
 pub const STORE_TIME: Duration = Duration::from_millis(20);
 
@@ -92,6 +97,62 @@ pub struct Device<S: Storage> {
     /// A store completed: the SDO answer waits until this instant (D7).
     pub(crate) sdo_hold_until: Option<Instant>,
     pub(crate) stats: Stats,
+    /// Slots of the objects the per-frame paths touch.
+    hot: HotSlots,
+    /// The last `(index << 8 | sub, slot)` found: an SDO request looks its object up twice
+    /// (size, then access), and masters poll the same object again and again.
+    memo: (u32, usize),
+    /// [`Emcy::generation`] last mirrored into 0x1001 / 0x1003.
+    emcy_synced: u32,
+}
+
+/// No such object in this model's table.
+const NO_SLOT: u16 = u16::MAX;
+
+/// Slots of the objects that per-frame paths read or write, found once per node: the model
+/// table is static, so a slot never moves, and a frame then costs no dictionary search.
+#[derive(Clone, Copy, Debug)]
+struct HotSlots {
+    /// 0x1005 COB-ID SYNC.
+    sync: u16,
+    /// 0x1014 COB-ID EMCY.
+    emcy_cob: u16,
+    /// 0x1001 error register.
+    err_reg: u16,
+    /// 0x1003 sub 0…8.
+    hist: [u16; 1 + emcy::HISTORY_LEN],
+}
+
+impl HotSlots {
+    fn new(od: &Dictionary) -> Self {
+        let slot = |index: u16, sub: u8| od.find(index, sub).map_or(NO_SLOT, |s| s as u16);
+        let mut hist = [NO_SLOT; 1 + emcy::HISTORY_LEN];
+        for (i, h) in hist.iter_mut().enumerate() {
+            *h = slot(0x1003, i as u8);
+        }
+        HotSlots {
+            sync: slot(0x1005, 0),
+            emcy_cob: slot(0x1014, 0),
+            err_reg: slot(0x1001, 0),
+            hist,
+        }
+    }
+}
+
+impl Dictionary {
+    /// Value of a slot from [`HotSlots`], `None` when the model lacks the object.
+    #[inline]
+    fn hot(&self, slot: u16) -> Option<u32> {
+        (slot != NO_SLOT).then(|| self.get(slot as usize))
+    }
+
+    /// Sets a slot from [`HotSlots`] if the model has the object.
+    #[inline]
+    fn set_hot(&mut self, slot: u16, raw: u32) {
+        if slot != NO_SLOT {
+            self.set(slot as usize, raw);
+        }
+    }
 }
 
 /// A CANopen position sensor node.
@@ -100,6 +161,12 @@ pub struct Node<S: Storage> {
     held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
     dev: Device<S>,
+    /// [`Node::poll_timeout`] in µs (`u64::MAX`: none), recomputed at the end of every method
+    /// that can change a deadline: hosts ask after every frame, and a cached answer is free.
+    deadline: u64,
+    /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
+    /// future a timer expiry can only concern TPDOs.
+    other_due: u64,
 }
 
 struct Params<'a> {
@@ -116,14 +183,18 @@ impl ParamSource for Params<'_> {
 impl<S: Storage> Node<S> {
     /// A node of `model` with unit configuration `cfg`, powered off. Call [`Node::power_on`].
     pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
+        let od = Dictionary::new(model.entries);
+        let hot = HotSlots::new(&od);
         Node {
             sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
             held_sdo: None,
             lss: LssSlave::default(),
+            deadline: u64::MAX,
+            other_due: u64::MAX,
             dev: Device {
                 model,
                 cfg,
-                od: Dictionary::new(model.entries),
+                od,
                 nmt: NmtState::Initialising,
                 powered: false,
                 node_id: cfg.node_id,
@@ -144,6 +215,9 @@ impl<S: Storage> Node<S> {
                 now: Instant::ZERO,
                 sdo_hold_until: None,
                 stats: Stats::default(),
+                hot,
+                memo: (u32::MAX, 0),
+                emcy_synced: 0,
             },
         }
     }
@@ -171,9 +245,14 @@ impl<S: Storage> Node<S> {
                     let mut obj = (None, None);
                     for (k, v) in recs {
                         match k {
-                            storage::KEY_LSS_NODE_ID => self.dev.stored_lss.0 = Some(v as u8),
+                            // A checksummed image can still hold an impossible node-id (a
+                            // hand-edited or foreign file; found by fuzzing): ignore it rather
+                            // than talk on COB-IDs of node 0 or 200.
+                            storage::KEY_LSS_NODE_ID => {
+                                self.dev.stored_lss.0 = stored_node_id(v).or(self.dev.stored_lss.0)
+                            }
                             storage::KEY_LSS_BITRATE => self.dev.stored_lss.1 = Some(v as u16),
-                            KEY_TMI_NODE_ID => obj.0 = Some(v as u8),
+                            KEY_TMI_NODE_ID => obj.0 = stored_node_id(v).or(obj.0),
                             KEY_TMI_BITRATE => obj.1 = Some(tmi_kbps(v)),
                             _ => {}
                         }
@@ -202,12 +281,39 @@ impl<S: Storage> Node<S> {
         if corrupt {
             self.dev.report_corrupt_storage();
         }
+        self.refresh_deadline();
+    }
+
+    /// Recomputes the cached deadlines (see `deadline`, `other_due`).
+    fn refresh_deadline(&mut self) {
+        let d = &self.dev;
+        if !d.powered {
+            self.deadline = u64::MAX;
+            self.other_due = u64::MAX;
+            return;
+        }
+        let mut t = u64::MAX;
+        let mut take = |c: Option<Instant>| {
+            if let Some(c) = c {
+                t = t.min(c.0);
+            }
+        };
+        take(self.held_sdo.map(|(t, _)| t));
+        take(self.sdo.poll_timeout());
+        take(self.lss.poll_timeout());
+        take(d.errctl.poll_timeout());
+        if d.nmt != NmtState::Stopped {
+            take(d.emcy.poll_timeout());
+        }
+        self.other_due = t;
+        self.deadline = t.min(d.pdo.due_us());
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
     pub fn power_off(&mut self) {
         self.dev.powered = false;
         self.dev.tx.clear();
+        self.refresh_deadline();
     }
 
     /// NMT reset node (`application == true`) or reset communication.
@@ -244,10 +350,18 @@ impl<S: Storage> Node<S> {
     }
 
     /// Handles one received frame at `now`.
+    #[inline]
     pub fn handle_frame(&mut self, f: &Frame, now: Instant) {
         if !self.dev.powered {
             return;
         }
+        if self.handle_frame_inner(f, now) {
+            self.refresh_deadline();
+        }
+    }
+
+    /// Returns whether the frame concerned the node (only then can a deadline have changed).
+    fn handle_frame_inner(&mut self, f: &Frame, now: Instant) -> bool {
         self.dev.now = now;
         let autobaud = self.dev.bitrate == 0;
         if !self.dev.can_hear(now) {
@@ -256,29 +370,33 @@ impl<S: Storage> Node<S> {
             if autobaud && d.bitrate != 0 && d.node_id != UNCONFIGURED {
                 d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
             }
-            return;
+            return true;
         }
-        let Some(id) = f.std_id() else { return };
+        let Some(id) = f.std_id() else { return false };
+        // Most traffic on a busy bus is other nodes' PDOs: recognise it before anything else.
+        if self.dev.ignores(id, f.is_remote()) {
+            return false;
+        }
         let d = &mut self.dev;
         if id == cob::LSS_RX {
             if let Some(r) = self.lss.handle(f.data(), now, d) {
                 d.tx.push(Frame::std8(cob::LSS_TX, r));
             }
             self.after_lss(now);
-            return;
+            return true;
         }
         if d.node_id == UNCONFIGURED {
-            return;
+            return true;
         }
         let node = d.node_id as u16;
         if id == cob::NMT {
             if f.is_remote() {
-                return;
+                return true;
             }
             if let Some(c) = NmtCommand::parse(f.data(), d.node_id) {
                 self.nmt_command(c, now);
             }
-            return;
+            return true;
         }
         if id == cob::SDO_RX + node && !f.is_remote() {
             if d.nmt.sdo_allowed() {
@@ -296,7 +414,7 @@ impl<S: Storage> Node<S> {
                 }
                 d.flush_emcy();
             }
-            return;
+            return true;
         }
         if id == cob::ERRCTL + node {
             // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
@@ -309,20 +427,26 @@ impl<S: Storage> Node<S> {
                 ));
                 d.update_pdo_activity(now);
             }
-            return;
+            return true;
         }
         if !d.nmt.sdo_allowed() {
-            return;
+            return true;
         }
-        let sync_id = d.od.value(0x1005, 0).unwrap_or(0x80);
+        let sync_id = d.od.hot(d.hot.sync).unwrap_or(0x80);
         if sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote() {
             if f.dlc() <= 1 {
                 let Device { pdo, od, tx, .. } = d;
                 pdo.on_sync(od, now, &mut |fr| {
                     tx.push(fr);
                 });
+            } else if !d.model.features.tmi_emcy {
+                // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
+                // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
+                // The TMI's own EMCY table has no such code, so it ignores the frame.
+                d.emcy.event(emcy::code::SYNC_LENGTH, [0; 5]);
+                d.flush_emcy();
             }
-            return;
+            return true;
         }
         if f.is_remote() && d.model.features.tpdo_rtr {
             let Device { pdo, od, tx, .. } = d;
@@ -330,6 +454,7 @@ impl<S: Storage> Node<S> {
                 tx.push(fr);
             });
         }
+        true
     }
 
     fn nmt_command(&mut self, c: NmtCommand, now: Instant) {
@@ -398,14 +523,39 @@ impl<S: Storage> Node<S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
+        self.refresh_deadline();
     }
 
     /// Handles every deadline that has passed at `now`.
+    #[inline]
     pub fn handle_timeout(&mut self, now: Instant) {
         if !self.dev.powered {
             return;
         }
         self.dev.now = now;
+        // Fast path for a producing node: while every other deadline is in the future, the
+        // steps of the full path would all do nothing but the TPDOs'.
+        let d = &mut self.dev;
+        if now.0 < self.other_due && d.node_id != UNCONFIGURED && d.nmt != NmtState::Initialising {
+            d.run_pdos(now);
+            if d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending() {
+                self.deadline = self.other_due.min(d.pdo.due_us());
+            } else {
+                d.flush_emcy();
+                self.refresh_deadline();
+            }
+            return;
+        }
+        self.handle_timeout_slow(now);
+    }
+
+    #[inline(never)]
+    fn handle_timeout_slow(&mut self, now: Instant) {
+        self.handle_timeout_full(now);
+        self.refresh_deadline();
+    }
+
+    fn handle_timeout_full(&mut self, now: Instant) {
         if let Some((t, r)) = self.held_sdo {
             if now >= t {
                 self.held_sdo = None;
@@ -448,23 +598,13 @@ impl<S: Storage> Node<S> {
 
     /// The next instant at which [`Node::handle_timeout`] has work.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        if !self.dev.powered {
-            return None;
-        }
-        let d = &self.dev;
-        let cands = [
-            self.held_sdo.map(|(t, _)| t),
-            self.sdo.poll_timeout(),
-            self.lss.poll_timeout(),
-            d.errctl.poll_timeout(),
-            d.pdo.poll_timeout(),
-            d.emcy.poll_timeout().filter(|_| d.nmt != NmtState::Stopped),
-        ];
-        cands.into_iter().flatten().min()
+        // Kept current by every method that changes a deadline (0 while powered off).
+        (self.deadline != u64::MAX).then_some(Instant(self.deadline))
     }
 
     /// Takes the next frame to send. Frames produced while the node's bit rate differs from the
     /// bus (or during a bit-rate switch) are lost, as on a real bus.
+    #[inline]
     pub fn poll_transmit(&mut self) -> Option<Frame> {
         let d = &mut self.dev;
         while let Some(f) = d.tx.pop() {
@@ -530,6 +670,7 @@ impl<S: Storage> Node<S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
+        self.refresh_deadline();
     }
 
     /// Raises (or with `active == false` clears) a device error from outside the CANopen
@@ -543,6 +684,7 @@ impl<S: Storage> Node<S> {
             d.emcy.clear(code);
         }
         d.flush_emcy();
+        self.refresh_deadline();
     }
 
     /// Reads an object as an SDO client would see it, bypassing the bus (hosts, tests).
@@ -601,6 +743,29 @@ impl<S: Storage> Device<S> {
     /// Node-id and bit rate that the next reset activates.
     pub fn pending(&self) -> (u8, u16) {
         (self.pending_node_id, self.pending_bitrate)
+    }
+
+    /// Whether a standard frame `id` is none of the node's business: not LSS, NMT, its SDO or
+    /// error control, SYNC, nor (where the model allows) a remote request. Mirrors the checks of
+    /// `Node::handle_frame_inner` that would end in doing nothing.
+    #[inline]
+    fn ignores(&self, id: u16, remote: bool) -> bool {
+        if id == cob::LSS_RX {
+            return false;
+        }
+        if self.node_id == UNCONFIGURED {
+            return true;
+        }
+        let node = self.node_id as u16;
+        if id == cob::NMT || id == cob::SDO_RX + node || id == cob::ERRCTL + node {
+            return false;
+        }
+        if !self.nmt.sdo_allowed() {
+            return true;
+        }
+        let sync_id = self.od.hot(self.hot.sync).unwrap_or(0x80);
+        let is_sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !remote;
+        !(is_sync || remote && self.model.features.tpdo_rtr)
     }
 
     /// Whether the node can receive at `now` (bit rate matches, not switching).
@@ -700,8 +865,8 @@ impl<S: Storage> Device<S> {
                 }
             }
         }
-        if let Ok(slot) = self.od.find(0x1014, 0) {
-            let v = self.od.get(slot);
+        if let Some(v) = self.od.hot(self.hot.emcy_cob) {
+            let slot = self.hot.emcy_cob as usize;
             let id = v & 0x7FF;
             if id > 0x80 && id <= 0xFF && id != 0x80 + node as u32 {
                 self.od.set(slot, (v & !0x7FF) | (0x80 + node as u32));
@@ -724,26 +889,41 @@ impl<S: Storage> Device<S> {
     }
 
     fn sync_error_register(&mut self) {
+        let h = self.hot;
         let r = self.emcy.register();
-        self.od.set_value(0x1001, 0, r as u32);
+        self.od.set_hot(h.err_reg, r as u32);
         let n = self.emcy.history_len();
-        self.od.set_value(0x1003, 0, n as u32);
+        self.od.set_hot(h.hist[0], n as u32);
         for i in 1..=emcy::HISTORY_LEN {
             self.od
-                .set_value(0x1003, i as u8, self.emcy.history(i).unwrap_or(0));
+                .set_hot(h.hist[i], self.emcy.history(i).unwrap_or(0));
         }
+        self.emcy_synced = self.emcy.generation();
     }
 
     /// Moves EMCYs whose inhibit time allows into the transmit queue and mirrors the error
     /// register and history into the dictionary.
+    #[inline]
     fn flush_emcy(&mut self) {
-        self.sync_error_register();
-        if self.nmt == NmtState::Stopped || self.node_id == UNCONFIGURED {
+        // Runs after every frame and timer: the usual "nothing to do" stays inline.
+        if self.emcy.generation() != self.emcy_synced || self.emcy.has_pending() {
+            self.flush_emcy_slow();
+        }
+    }
+
+    fn flush_emcy_slow(&mut self) {
+        // Nothing else writes 0x1001 / 0x1003 between resets, so an unchanged EMCY state needs
+        // no mirroring (this runs after every frame).
+        if self.emcy.generation() != self.emcy_synced {
+            self.sync_error_register();
+        }
+        if !self.emcy.has_pending() || self.nmt == NmtState::Stopped || self.node_id == UNCONFIGURED
+        {
             return;
         }
         let cobid = self
             .od
-            .value(0x1014, 0)
+            .hot(self.hot.emcy_cob)
             .unwrap_or(0x80 + self.node_id as u32);
         while let Some(p) = self.emcy.poll(self.now) {
             if cobid & 0x8000_0000 == 0 {
@@ -874,13 +1054,24 @@ impl<S: Storage> Device<S> {
         Ok(())
     }
 
+    /// 0x1003 sub-indices beyond the number of recorded errors hold no data (CiA 301; the
+    /// conformance tool's EMCY-03 expects the read of 1003:01 to abort when the history is
+    /// empty).
+    fn history_has(&self, index: u16, sub: u8) -> Result<(), Abort> {
+        if index == 0x1003 && sub as usize > self.emcy.history_len() {
+            return Err(Abort::NoData);
+        }
+        Ok(())
+    }
+
     /// Service-level rules for a write that passed the table's checks.
     fn validate(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
         match index {
             0x1003 => Ok(()),
             0x1005 => {
-                // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused.
-                if raw & 0x6000_0000 != 0 {
+                // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
+                // the CiA 301 restricted CAN-IDs (conformance OTH-10).
+                if raw & 0x6000_0000 != 0 || pdo::restricted_id(raw & 0x7FF) {
                     return Err(Abort::InvalidValue);
                 }
                 Ok(())
@@ -889,7 +1080,11 @@ impl<S: Storage> Device<S> {
                 if raw & 0x2000_0000 != 0 {
                     return Err(Abort::InvalidValue);
                 }
-                let cur = self.od.value(0x1014, 0).unwrap_or(0);
+                // A valid EMCY COB-ID may not be a restricted CAN-ID (conformance OTH-10).
+                if raw & 0x8000_0000 == 0 && pdo::restricted_id(raw & 0x7FF) {
+                    return Err(Abort::InvalidValue);
+                }
+                let cur = self.od.hot(self.hot.emcy_cob).unwrap_or(0);
                 if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
                     return Err(Abort::InvalidValue);
                 }
@@ -995,34 +1190,44 @@ impl<S: Storage> Device<S> {
     }
 }
 
+impl<S: Storage> Device<S> {
+    /// [`Dictionary::find`] with a one-entry memo (the table never changes, so a found slot
+    /// stays right).
+    #[inline]
+    fn find(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let key = (index as u32) << 8 | sub as u32;
+        if self.memo.0 == key {
+            return Ok(self.memo.1);
+        }
+        let slot = self.od.find(index, sub)?;
+        self.memo = (key, slot);
+        Ok(slot)
+    }
+}
+
 impl<S: Storage> ObjectAccess for Device<S> {
     fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
-        let slot = self.od.find(index, sub)?;
+        let slot = self.find(index, sub)?;
         if !self.od.entry(slot).access.readable() {
             return Err(Abort::WriteOnly);
         }
+        self.history_has(index, sub)?;
         Ok(self.od.size_of(slot))
     }
 
     fn read(&mut self, index: u16, sub: u8, offset: usize, buf: &mut [u8]) -> Result<usize, Abort> {
-        let slot = self.od.find(index, sub)?;
+        let slot = self.find(index, sub)?;
         if !self.od.entry(slot).access.readable() {
             return Err(Abort::WriteOnly);
         }
+        self.history_has(index, sub)?;
         // Values derived from others (0x6500, 0x6509, TMI 0x1002) are current when read.
         self.encoder.refresh(index, &mut self.od, self.nmt);
-        let mut tmp = [0u8; 64];
-        let n = self.od.read_bytes(slot, &mut tmp);
-        if offset >= n {
-            return Ok(0);
-        }
-        let k = (n - offset).min(buf.len());
-        buf[..k].copy_from_slice(&tmp[offset..offset + k]);
-        Ok(k)
+        Ok(self.od.read_at(slot, offset, buf))
     }
 
     fn download_size(&mut self, index: u16, sub: u8) -> Result<Option<usize>, Abort> {
-        let slot = self.od.find(index, sub)?;
+        let slot = self.find(index, sub)?;
         let e = self.od.entry(slot);
         if !e.access.writable() {
             return Err(Abort::ReadOnly);
@@ -1031,7 +1236,7 @@ impl<S: Storage> ObjectAccess for Device<S> {
     }
 
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), Abort> {
-        let slot = self.od.find(index, sub)?;
+        let slot = self.find(index, sub)?;
         let e = self.od.entry(slot);
         if !e.access.writable() {
             return Err(Abort::ReadOnly);

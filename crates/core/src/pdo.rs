@@ -20,7 +20,10 @@ pub const COB_EXTENDED: u32 = 0x2000_0000;
 #[derive(Clone, Copy, Debug, Default)]
 struct Mapped {
     slot: u16,
-    bytes: u8,
+    /// Bit position of the entry in the frame's data read as a little-endian u64.
+    shift: u8,
+    /// The entry's bytes of the value (`bytes` of them, at most 4).
+    mask: u32,
 }
 
 /// One TPDO's cached configuration and timers.
@@ -61,11 +64,29 @@ impl Tpdo {
 }
 
 /// All TPDOs of a node.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct Tpdos {
     pdos: [Tpdo; MAX_TPDOS],
     count: usize,
     active: bool,
+    /// Bit n: TPDO n is valid (the only ones with timers).
+    valid_mask: u8,
+    /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
+    /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
+    /// a comparison instead of a walk over all TPDOs.
+    due: u64,
+}
+
+impl Default for Tpdos {
+    fn default() -> Self {
+        Tpdos {
+            pdos: [Tpdo::default(); MAX_TPDOS],
+            count: 0,
+            active: false,
+            valid_mask: 0,
+            due: u64::MAX,
+        }
+    }
 }
 
 /// Index of the communication parameter record of TPDO `n` (0-based).
@@ -89,6 +110,37 @@ impl Tpdos {
         for n in 0..self.count {
             self.configure(n, od);
         }
+        self.refresh();
+    }
+
+    /// Recomputes `valid_mask` and `due` after a change of configuration.
+    fn refresh(&mut self) {
+        let mut mask = 0u8;
+        for (n, p) in self.pdos[..self.count].iter().enumerate() {
+            if p.valid() {
+                mask |= 1 << n;
+            }
+        }
+        self.valid_mask = mask;
+        self.refresh_due();
+    }
+
+    /// Recomputes `due` after a change of timers (validity unchanged).
+    #[inline]
+    fn refresh_due(&mut self) {
+        let mut t = u64::MAX;
+        let mut mask = self.valid_mask;
+        while mask != 0 {
+            let p = &self.pdos[mask.trailing_zeros() as usize];
+            mask &= mask - 1;
+            if let Some(e) = p.next_event {
+                t = t.min(e.0);
+            }
+            if p.pending {
+                t = t.min(p.inhibit_until.0);
+            }
+        }
+        self.due = if self.active { t } else { u64::MAX };
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
@@ -116,9 +168,16 @@ impl Tpdos {
             if p.len + bytes > 8 {
                 break;
             }
+            // Precomputed so that building a TPDO is one mask and one shift per entry.
+            let b = u32::from(bytes).min(4);
             p.map[p.n_map as usize] = Mapped {
                 slot: slot as u16,
-                bytes,
+                shift: 8 * p.len,
+                mask: if b == 4 {
+                    u32::MAX
+                } else {
+                    (1u32 << (8 * b)) - 1
+                },
             };
             p.n_map += 1;
             p.len += bytes;
@@ -126,6 +185,7 @@ impl Tpdos {
         p.next_event = None;
         p.pending = false;
         p.sync_count = 0;
+        self.refresh();
     }
 
     /// Validates a write to a TPDO parameter (`index` in 0x1800.. or 0x1A00..) before it lands.
@@ -226,6 +286,7 @@ impl Tpdos {
             }
         }
         self.active = active;
+        self.refresh_due();
     }
 
     /// Whether PDOs are being produced.
@@ -250,6 +311,7 @@ impl Tpdos {
                 p.pending = true;
             }
         }
+        self.refresh_due();
     }
 
     /// A SYNC arrived: produces synchronous TPDOs into `out`.
@@ -277,6 +339,7 @@ impl Tpdos {
                 p.inhibit_until = now + p.inhibit;
             }
         }
+        self.refresh_due();
     }
 
     /// A remote request for CAN-ID `id`: answers a TPDO that allows RTR.
@@ -294,6 +357,7 @@ impl Tpdos {
             if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
                 out(build(p, od));
                 p.inhibit_until = now + p.inhibit;
+                self.refresh_due();
                 return true;
             }
         }
@@ -301,30 +365,34 @@ impl Tpdos {
     }
 
     /// The earliest deadline of any TPDO.
+    #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        if !self.active {
-            return None;
-        }
-        let mut t: Option<Instant> = None;
-        for p in self.pdos[..self.count].iter().filter(|p| p.valid()) {
-            let mut c = p.next_event;
-            if p.pending {
-                c = Some(c.map_or(p.inhibit_until, |x| x.min(p.inhibit_until)));
-            }
-            if let Some(c) = c {
-                t = Some(t.map_or(c, |x| x.min(c)));
-            }
-        }
-        t
+        (self.due != u64::MAX).then_some(Instant(self.due))
+    }
+
+    /// [`Tpdos::poll_timeout`] in µs, `u64::MAX` for none.
+    #[inline]
+    pub(crate) fn due_us(&self) -> u64 {
+        self.due
     }
 
     /// Produces the asynchronous TPDOs that are due at `now`.
+    #[inline(always)]
     pub fn handle_timeout(&mut self, od: &Dictionary, now: Instant, out: &mut dyn FnMut(Frame)) {
-        if !self.active {
+        // Nothing is due before `due` (it is `u64::MAX` while inactive).
+        if now.0 < self.due {
             return;
         }
-        for p in &mut self.pdos[..self.count] {
-            if !p.valid() || !p.asynchronous() {
+        // `due` is recomputed in the same pass: only valid asynchronous TPDOs have timers.
+        let mut due = u64::MAX;
+        let mut mask = self.valid_mask;
+        while mask != 0 {
+            let n = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            let Some(p) = self.pdos.get_mut(n) else {
+                break;
+            };
+            if !p.asynchronous() {
                 continue;
             }
             if let Some(t) = p.next_event {
@@ -347,7 +415,15 @@ impl Tpdos {
                 out(build(p, od));
                 p.inhibit_until = now + p.inhibit;
             }
+            if let Some(e) = p.next_event {
+                due = due.min(e.0);
+            }
+            if p.pending {
+                due = due.min(p.inhibit_until.0);
+            }
         }
+        // Reached only while active (`due` is `u64::MAX` otherwise).
+        self.due = due;
     }
 
     /// Read access to TPDO `n` (0-based).
@@ -373,13 +449,11 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
 
 #[inline]
 fn build(p: &Tpdo, od: &Dictionary) -> Frame {
-    let mut data = [0u8; 8];
-    let mut at = 0usize;
+    // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
+    // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
+    let mut acc = 0u64;
     for m in &p.map[..p.n_map as usize] {
-        let v = od.get(m.slot as usize).to_le_bytes();
-        let n = m.bytes as usize;
-        data[at..at + n].copy_from_slice(&v[..n]);
-        at += n;
+        acc |= u64::from(od.get(m.slot as usize) & m.mask) << (m.shift & 63);
     }
-    Frame::std_len(p.can_id(), data, p.len)
+    Frame::std_len(p.can_id(), acc.to_le_bytes(), p.len)
 }

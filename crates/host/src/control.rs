@@ -91,6 +91,9 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         sensor: Option<usize>,
     },
+    /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
+    /// so a measurement covers a chosen window, not the start-up.
+    ResetLateness,
 }
 
 /// The faults the control interface can inject (SPEC §11).

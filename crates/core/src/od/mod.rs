@@ -142,6 +142,52 @@ impl Dictionary {
         }
     }
 
+    /// Copies the wire bytes of `slot` from byte `offset` on into `buf` (as much as fits);
+    /// returns the bytes copied. Same bytes as [`Dictionary::read_bytes`] into a 64-byte buffer
+    /// (the SDO server's buffer size) and then sliced, without the intermediate copy.
+    #[inline]
+    pub fn read_at(&self, slot: usize, offset: usize, buf: &mut [u8]) -> usize {
+        const CAP: usize = 64;
+        let e = &self.entries[slot];
+        // Numbers from the start (every expedited upload): fixed-length copies, no memcpy call.
+        if offset == 0 {
+            let le = self.values[slot].to_le_bytes();
+            match (e.ty.size(), &mut *buf) {
+                (Some(1), [b0, ..]) => {
+                    *b0 = le[0];
+                    return 1;
+                }
+                (Some(2), [b0, b1, ..]) => {
+                    [*b0, *b1] = [le[0], le[1]];
+                    return 2;
+                }
+                (Some(4), [b0, b1, b2, b3, ..]) => {
+                    [*b0, *b1, *b2, *b3] = le;
+                    return 4;
+                }
+                _ => {}
+            }
+        }
+        let le;
+        let src: &[u8] = match e.ty.size() {
+            Some(n) => {
+                le = self.values[slot].to_le_bytes();
+                &le[..n.min(4)]
+            }
+            None => match e.default {
+                Default::Str(s) => s.as_bytes(),
+                _ => &[],
+            },
+        };
+        let src = &src[..src.len().min(CAP)];
+        let Some(rest) = src.get(offset..) else {
+            return 0;
+        };
+        let k = rest.len().min(buf.len());
+        buf[..k].copy_from_slice(&rest[..k]);
+        k
+    }
+
     /// The size in bytes an SDO upload of `slot` has.
     pub fn size_of(&self, slot: usize) -> usize {
         let e = &self.entries[slot];
@@ -168,8 +214,10 @@ pub fn resolve_default(e: &Entry, params: &dyn ParamSource, node_id: u8) -> u32 
 /// Little-endian raw value of up to 4 bytes.
 #[inline]
 pub fn le_u32(data: &[u8]) -> u32 {
-    let mut b = [0u8; 4];
-    let n = data.len().min(4);
-    b[..n].copy_from_slice(&data[..n]);
-    u32::from_le_bytes(b)
+    // Byte by byte rather than a variable-length copy, which compiles to a memcpy call.
+    let mut v = 0u32;
+    for (i, &x) in data.iter().take(4).enumerate() {
+        v |= u32::from(x) << (8 * i);
+    }
+    v
 }

@@ -133,6 +133,7 @@ impl SdoServer {
     }
 
     /// Whether a segmented or block transfer is unfinished.
+    #[inline]
     pub fn busy(&self) -> bool {
         self.state != State::Idle
     }
@@ -166,6 +167,30 @@ impl SdoServer {
         };
         if let State::BlkDown { last: false, .. } = self.state {
             return self.block_download_segment(&req, now);
+        }
+        // Expedited transfers outside a transfer are what masters mostly send (polling,
+        // configuration): served without decoding a `Request`, with the same checks and
+        // answers as `dispatch` (an upload that turns out segmented takes the general path).
+        if self.state == State::Idle {
+            let b0 = req[0];
+            if b0 >> 5 == 2 {
+                if let Some(r) = self.fast_upload(&req, od) {
+                    return Some(r);
+                }
+            } else if b0 >> 5 == 1 && b0 & 0x02 != 0 {
+                let mux = Mux::from_frame(&req);
+                self.reset();
+                self.mux = mux;
+                let size = (b0 & 0x01 != 0).then(|| 4 - u32::from((b0 >> 2) & 0x03));
+                let data = [req[4], req[5], req[6], req[7]];
+                return Some(match self.download_expedited(mux, size, &data, od) {
+                    Ok(r) => r,
+                    Err(a) => {
+                        self.reset();
+                        abort_payload(mux.index, mux.sub, a)
+                    }
+                });
+            }
         }
         let parsed = Request::parse(&req);
         if let Request::Abort { .. } = parsed {
@@ -436,6 +461,40 @@ impl SdoServer {
         od.write(self.mux.index, self.mux.sub, data)
     }
 
+    /// Upload initiate while idle, for values of 1…4 bytes (and refusals); `None` when the
+    /// value needs a segmented transfer, which the general path then handles.
+    #[inline]
+    fn fast_upload(&mut self, req: &[u8; 8], od: &mut dyn ObjectAccess) -> Option<[u8; 8]> {
+        let mux = Mux::from_frame(req);
+        let size = od.upload_size(mux.index, mux.sub);
+        if matches!(size, Ok(n) if !(1..=4).contains(&n)) {
+            return None;
+        }
+        self.reset();
+        self.mux = mux;
+        let r = size.and_then(|_| {
+            let mut b = [0u8; 4];
+            let n = od.read(mux.index, mux.sub, 0, &mut b)?;
+            // `b` is zero beyond the `n` bytes read: it is the response's data field as is.
+            let unused = (4 - n.clamp(1, 4)) as u8;
+            let i = mux.index.to_le_bytes();
+            Ok([
+                0x43 | unused << 2,
+                i[0],
+                i[1],
+                mux.sub,
+                b[0],
+                b[1],
+                b[2],
+                b[3],
+            ])
+        });
+        Some(r.unwrap_or_else(|a| {
+            self.reset();
+            abort_payload(mux.index, mux.sub, a)
+        }))
+    }
+
     fn upload_initiate(&mut self, mux: Mux, od: &mut dyn ObjectAccess) -> Result<[u8; 8], Abort> {
         let size = od.upload_size(mux.index, mux.sub)?;
         if (1..=4).contains(&size) {
@@ -592,6 +651,7 @@ impl SdoServer {
 
     /// The next block-upload segment to send, if a block is being sent. Call after
     /// [`SdoServer::handle`] until it returns `None`.
+    #[inline]
     pub fn poll_transmit(&mut self) -> Option<[u8; 8]> {
         let State::BlkUp {
             crc,
@@ -620,6 +680,7 @@ impl SdoServer {
     }
 
     /// The deadline of a transfer in progress.
+    #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
         if self.state == State::Idle {
             None
@@ -629,6 +690,7 @@ impl SdoServer {
     }
 
     /// Aborts a transfer whose deadline passed; returns the abort payload (0x05040000).
+    #[inline]
     pub fn handle_timeout(&mut self, now: Instant) -> Option<[u8; 8]> {
         match self.poll_timeout() {
             Some(t) if now >= t => {
