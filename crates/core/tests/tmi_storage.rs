@@ -88,7 +88,10 @@ fn kill_in_both_byte_orders_deletes_the_stored_set() {
 fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     let mut r = tmi();
     // 0x2001 := 0xFFFF (autobaud, D16), save, power cycle on a 250 kbit/s bus.
-    assert_eq!(r.req(0x67F, &hex("2B 01 20 00 FF FF 00 00")).1, hex("60 01 20 00 00 00 00 00"));
+    assert_eq!(
+        r.req(0x67F, &hex("2B 01 20 00 FF FF 00 00")).1,
+        hex("60 01 20 00 00 00 00 00")
+    );
     store(&mut r, "23 10 10 01 73 61 76 65");
     r.node.set_bus_bitrate(Some(250));
     r.node.power_off();
@@ -102,7 +105,10 @@ fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     }
     assert_eq!(r.node.device().bitrate(), 250);
     assert_eq!(heard.len(), 1);
-    assert_eq!((heard[0].std_id(), heard[0].data()), (Some(0x77F), &[0u8][..]));
+    assert_eq!(
+        (heard[0].std_id(), heard[0].data()),
+        (Some(0x77F), &[0u8][..])
+    );
     assert_eq!(r.req(0x67F, &hex("40 00 10 00 00 00 00 00")).0, 0x5FF);
 }
 
