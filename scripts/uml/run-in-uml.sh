@@ -4,7 +4,7 @@
 #   CARGO_TARGET_X86_64_UNKNOWN_LINUX_GNU_RUNNER=scripts/uml/run-in-uml.sh cargo test ...
 #
 # The guest's root is the host's / through hostfs, read-only; the working directory is kept, the
-# environment is passed in, /tmp (and TMPDIR) is a tmpfs, and CANPOS_VCAN=1 is set. Writable host
+# environment is passed in, TMPDIR is a tmpfs (/run/tmp), and CANPOS_VCAN=1 is set. Writable host
 # directories: CANPOS_UML_RW="DIR1 DIR2" (mounted read-write by hostfs). The guest's console
 # (stdout and stderr of CMD, merged) goes to this script's stdout.
 #
@@ -40,7 +40,7 @@ q() { printf "'%s'" "${1//\'/\'\\\'\'}"; }
     echo "export $name=$(q "${kv#*=}")"
   done < <(env -0)
   echo "export PATH=$(q "$PATH")"
-  echo "export TMPDIR=/tmp CANPOS_VCAN=1 TERM=dumb"
+  echo "export TMPDIR=/run/tmp CANPOS_VCAN=1 TERM=dumb"
 } >"$RUN/env"
 
 {
@@ -51,6 +51,13 @@ q() { printf "'%s'" "${1//\'/\'\\\'\'}"; }
 } >"$RUN/cmd"
 
 RW="$RUN ${CANPOS_UML_RW:-}"
+# A tmpfs over /tmp would hide a checkout, kit or run directory that lives under /tmp (CI clones
+# anywhere): the guest's scratch space is /run/tmp, and /tmp gets a tmpfs only when nothing of
+# ours is below it.
+TMP_MOUNT='$B mount -t tmpfs tmp /tmp'
+for p in "$ROOT" "$KIT" "$RUN" "$PWD"; do
+  case "$p/" in /tmp/*) TMP_MOUNT=':' ;; esac
+done
 cat >"$RUN/init" <<INIT
 #!$BB sh
 B=$BB
@@ -58,8 +65,9 @@ M=$KIT/modules
 \$B mount -t proc proc /proc
 \$B mount -t sysfs sys /sys
 \$B mount -t devtmpfs dev /dev 2>/dev/null || \$B mount -t tmpfs dev /dev
-\$B mount -t tmpfs tmp /tmp
-\$B mount -t tmpfs run /run 2>/dev/null
+\$B mount -t tmpfs run /run
+\$B mkdir -p /run/tmp
+${TMP_MOUNT}
 \$B mkdir -p /dev/pts /dev/shm
 \$B mount -t devpts pts /dev/pts 2>/dev/null
 \$B mount -t tmpfs shm /dev/shm 2>/dev/null

@@ -6,6 +6,7 @@
 mod bench;
 mod device;
 mod master;
+mod soak;
 
 use std::process::ExitCode;
 
@@ -59,6 +60,8 @@ enum Cmd {
     Replay(master::ReplayArgs),
     /// Performance instruments: core ops/s, scale, SDO round trip, boot time.
     Bench(bench::BenchArgs),
+    /// Scale soak: N TH sensors at a 1 ms event timer; checks drift, RSS growth, deadline misses.
+    Soak(soak::SoakArgs),
 }
 
 fn init_logging(verbose: u8, quiet: bool) {
@@ -100,6 +103,7 @@ fn main() -> ExitCode {
         Some(Cmd::Record(a)) => master::record(a),
         Some(Cmd::Replay(a)) => master::replay(a),
         Some(Cmd::Bench(a)) => bench::bench(a),
+        Some(Cmd::Soak(a)) => soak::soak(a),
     };
     match result {
         Ok(code) => ExitCode::from(code.clamp(0, 255) as u8),
