@@ -270,7 +270,7 @@ pub struct RunArgs {
     /// Bit rate of the bus in kbit/s (or bit/s); a node set to another rate falls silent.
     #[arg(long, value_name = "KBPS", value_parser = parse_bitrate)]
     pub bus_bitrate: Option<u32>,
-    /// Directory of the state files (<model>-<serial>.bin). Default: $CANPOS_STATE_DIR,
+    /// Directory of the state files (MODEL-SERIAL.bin). Default: $CANPOS_STATE_DIR,
     /// $XDG_STATE_HOME/canpos, ~/.local/state/canpos or ./canpos-state.
     #[arg(long, value_name = "DIR")]
     pub state_dir: Option<PathBuf>,
