@@ -167,6 +167,10 @@ pub struct Node<S: Storage> {
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs.
     other_due: u64,
+    /// `u64::MAX` while powered with a node-id and out of initialisation, else 0: the timer
+    /// fast path applies while `now < other_due & timer_gate` (one comparison). Set where
+    /// those change: `reset` and `power_off`.
+    timer_gate: u64,
 }
 
 struct Params<'a> {
@@ -191,6 +195,7 @@ impl<S: Storage> Node<S> {
             lss: LssSlave::default(),
             deadline: u64::MAX,
             other_due: u64::MAX,
+            timer_gate: 0,
             dev: Device {
                 model,
                 cfg,
@@ -312,12 +317,24 @@ impl<S: Storage> Node<S> {
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
     pub fn power_off(&mut self) {
         self.dev.powered = false;
+        self.timer_gate = 0;
         self.dev.tx.clear();
         self.refresh_deadline();
     }
 
     /// NMT reset node (`application == true`) or reset communication.
     fn reset(&mut self, application: bool, now: Instant) {
+        self.reset_inner(application, now);
+        // Node-id and NMT state (initialising or not) change nowhere else.
+        let d = &self.dev;
+        self.timer_gate = if d.node_id != UNCONFIGURED && d.nmt != NmtState::Initialising {
+            u64::MAX
+        } else {
+            0
+        };
+    }
+
+    fn reset_inner(&mut self, application: bool, now: Instant) {
         let d = &mut self.dev;
         d.now = now;
         self.sdo.reset();
@@ -529,14 +546,12 @@ impl<S: Storage> Node<S> {
     /// Handles every deadline that has passed at `now`.
     #[inline]
     pub fn handle_timeout(&mut self, now: Instant) {
-        if !self.dev.powered {
-            return;
-        }
-        self.dev.now = now;
         // Fast path for a producing node: while every other deadline is in the future, the
-        // steps of the full path would all do nothing but the TPDOs'.
-        let d = &mut self.dev;
-        if now.0 < self.other_due && d.node_id != UNCONFIGURED && d.nmt != NmtState::Initialising {
+        // steps of the full path would all do nothing but the TPDOs'. (`timer_gate` is 0
+        // while powered off, unconfigured or initialising.)
+        if now.0 < self.other_due & self.timer_gate {
+            let d = &mut self.dev;
+            d.now = now;
             d.run_pdos(now);
             if d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending() {
                 self.deadline = self.other_due.min(d.pdo.due_us());
@@ -546,6 +561,10 @@ impl<S: Storage> Node<S> {
             }
             return;
         }
+        if !self.dev.powered {
+            return;
+        }
+        self.dev.now = now;
         self.handle_timeout_slow(now);
     }
 
@@ -607,13 +626,11 @@ impl<S: Storage> Node<S> {
     #[inline]
     pub fn poll_transmit(&mut self) -> Option<Frame> {
         let d = &mut self.dev;
-        while let Some(f) = d.tx.pop() {
-            if d.can_talk(d.now) {
-                return Some(f);
-            }
-            d.stats.tx_wrong_bitrate = d.stats.tx_wrong_bitrate.wrapping_add(1);
+        let f = d.tx.pop()?;
+        if d.can_talk(d.now) {
+            return Some(f);
         }
-        None
+        d.poll_transmit_lost()
     }
 
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
@@ -766,6 +783,20 @@ impl<S: Storage> Device<S> {
         let sync_id = self.od.hot(self.hot.sync).unwrap_or(0x80);
         let is_sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !remote;
         !(is_sync || remote && self.model.features.tpdo_rtr)
+    }
+
+    /// [`Node::poll_transmit`] once a frame was lost: counts it and the rest that are lost.
+    #[cold]
+    #[inline(never)]
+    fn poll_transmit_lost(&mut self) -> Option<Frame> {
+        self.stats.tx_wrong_bitrate = self.stats.tx_wrong_bitrate.wrapping_add(1);
+        while let Some(f) = self.tx.pop() {
+            if self.can_talk(self.now) {
+                return Some(f);
+            }
+            self.stats.tx_wrong_bitrate = self.stats.tx_wrong_bitrate.wrapping_add(1);
+        }
+        None
     }
 
     /// Whether the node can receive at `now` (bit rate matches, not switching).
@@ -1065,9 +1096,9 @@ impl<S: Storage> Device<S> {
     }
 
     /// Service-level rules for a write that passed the table's checks.
+    #[inline]
     fn validate(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
         match index {
-            0x1003 => Ok(()),
             0x1005 => {
                 // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
                 // the CiA 301 restricted CAN-IDs (conformance OTH-10).
@@ -1090,6 +1121,15 @@ impl<S: Storage> Device<S> {
                 }
                 Ok(())
             }
+            0x1800..=0x1BFF | 0x2000..=0x9FFF => self.validate_service(index, sub, raw),
+            _ => Ok(()),
+        }
+    }
+
+    /// [`Device::validate`] for the PDO parameters and the application's objects.
+    #[inline(never)]
+    fn validate_service(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
+        match index {
             0x1800..=0x1BFF => {
                 let tmi = self.model.features.tmi_emcy;
                 self.pdo.validate(&self.od, index, sub, raw, tmi)
@@ -1107,7 +1147,20 @@ impl<S: Storage> Device<S> {
     }
 
     /// Side effects once a write has landed.
+    #[inline]
     fn written(&mut self, index: u16, sub: u8, raw: u32) {
+        // Most communication objects have none: no call for them.
+        if matches!(
+            index,
+            0x1003 | 0x100C | 0x100D | 0x1015 | 0x1017 | 0x1800..=0x1803 | 0x1A00..=0x1A03
+        ) || index >= 0x2000
+        {
+            self.written_slow(index, sub, raw);
+        }
+    }
+
+    #[inline(never)]
+    fn written_slow(&mut self, index: u16, sub: u8, raw: u32) {
         let now = self.now;
         match index {
             0x1003 => {
@@ -1164,6 +1217,8 @@ impl<S: Storage> Device<S> {
         }
     }
 
+    // Out of line: its image buffers would give every write a 4 KiB stack frame.
+    #[inline(never)]
     fn storage_command(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
         let f = self.model.features;
         if index == 0x1010 {
@@ -1237,20 +1292,59 @@ impl<S: Storage> ObjectAccess for Device<S> {
 
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), Abort> {
         let slot = self.find(index, sub)?;
+        if !self.od.entry(slot).access.writable() {
+            return Err(Abort::ReadOnly);
+        }
+        self.write_slot(slot, index, sub, data.len(), le_u32(data))
+    }
+
+    #[inline]
+    fn write_expedited(
+        &mut self,
+        index: u16,
+        sub: u8,
+        size: Option<u32>,
+        data: &[u8; 4],
+    ) -> Result<(), Abort> {
+        // `download_size` and `write` with one lookup: the same checks in the same order.
+        let slot = self.find(index, sub)?;
         let e = self.od.entry(slot);
         if !e.access.writable() {
             return Err(Abort::ReadOnly);
         }
+        let len = match size {
+            Some(n) => n as usize,
+            None => e.ty.size().unwrap_or(4),
+        }
+        .min(4);
+        // `le_u32` of the first `len` bytes.
+        let raw = u32::from_le_bytes(*data) & (u64::from(u32::MAX) >> (32 - 8 * len as u32)) as u32;
+        self.write_slot(slot, index, sub, len, raw)
+    }
+}
+
+impl<S: Storage> Device<S> {
+    /// The checks and side effects of a write of `len` bytes (`raw`, little-endian) to a
+    /// writable object.
+    #[inline]
+    fn write_slot(
+        &mut self,
+        slot: usize,
+        index: u16,
+        sub: u8,
+        len: usize,
+        raw: u32,
+    ) -> Result<(), Abort> {
+        let e = self.od.entry(slot);
         let Some(size) = e.ty.size() else {
             return Err(Abort::UnsupportedAccess);
         };
-        if data.len() > size {
+        if len > size {
             return Err(Abort::LengthTooHigh);
         }
-        if data.len() < size {
+        if len < size {
             return Err(Abort::LengthTooLow);
         }
-        let raw = le_u32(data);
         if matches!(index, 0x1010 | 0x1011) {
             return self.storage_command(index, sub, raw);
         }

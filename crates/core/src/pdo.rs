@@ -7,6 +7,7 @@ use crate::wire::{Duration, Frame, Instant};
 
 /// Most TPDOs any model has.
 pub const MAX_TPDOS: usize = 4;
+const _: () = assert!(MAX_TPDOS.is_power_of_two() && MAX_TPDOS <= 8);
 /// Most mapping entries per TPDO.
 pub const MAX_MAP: usize = 8;
 
@@ -99,9 +100,28 @@ pub const fn map_index(n: usize) -> u16 {
 }
 
 /// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs).
+#[inline]
 pub fn restricted_id(id: u32) -> bool {
+    // One bit per 11-bit CAN-ID (a table lookup instead of eight range compares).
+    id < 0x800 && RESTRICTED[(id >> 6) as usize] >> (id & 63) & 1 != 0
+}
+
+const fn restricted_by_range(id: u32) -> bool {
     matches!(id, 0x000 | 0x001..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
 }
+
+/// Bit `id % 64` of word `id / 64`: [`restricted_by_range`] of `id`.
+static RESTRICTED: [u64; 32] = {
+    let mut t = [0u64; 32];
+    let mut id = 0u32;
+    while id < 0x800 {
+        if restricted_by_range(id) {
+            t[(id >> 6) as usize] |= 1 << (id & 63);
+        }
+        id += 1;
+    }
+    t
+};
 
 impl Tpdos {
     /// Re-reads every TPDO's configuration from the dictionary (after reset or load).
@@ -387,11 +407,10 @@ impl Tpdos {
         let mut due = u64::MAX;
         let mut mask = self.valid_mask;
         while mask != 0 {
-            let n = mask.trailing_zeros() as usize;
+            // `valid_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
+            let n = (mask.trailing_zeros() & (MAX_TPDOS as u32 - 1)) as usize;
             mask &= mask - 1;
-            let Some(p) = self.pdos.get_mut(n) else {
-                break;
-            };
+            let p = &mut self.pdos[n];
             if !p.asynchronous() {
                 continue;
             }
@@ -452,8 +471,21 @@ fn build(p: &Tpdo, od: &Dictionary) -> Frame {
     // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
     // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
     let mut acc = 0u64;
-    for m in &p.map[..p.n_map as usize] {
+    for m in p.map.iter().take(p.n_map as usize) {
         acc |= u64::from(od.get(m.slot as usize) & m.mask) << (m.shift & 63);
     }
-    Frame::std_len(p.can_id(), acc.to_le_bytes(), p.len)
+    // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
+    Frame::std_checked(p.can_id(), acc.to_le_bytes(), p.len)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restricted_table_matches_ranges() {
+        for id in 0..0x1_0000u32 {
+            assert_eq!(restricted_id(id), restricted_by_range(id), "{id:#X}");
+        }
+    }
 }

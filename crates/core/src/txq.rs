@@ -4,6 +4,9 @@ use crate::wire::Frame;
 
 /// Capacity of the transmit queue.
 pub const TXQ_LEN: usize = 64;
+/// Ring index mask (the capacity is a power of two: masks instead of `%` and bounds checks).
+const MASK: usize = TXQ_LEN - 1;
+const _: () = assert!(TXQ_LEN.is_power_of_two());
 
 /// Fixed-capacity FIFO of frames; when full, new frames are dropped and counted (the CAN
 /// overrun condition a real controller reports).
@@ -35,8 +38,7 @@ impl TxQueue {
             self.overruns = self.overruns.wrapping_add(1);
             return false;
         }
-        let i = (self.head + self.len) % TXQ_LEN;
-        self.buf[i] = f;
+        self.buf[(self.head + self.len) & MASK] = f;
         self.len += 1;
         true
     }
@@ -46,8 +48,8 @@ impl TxQueue {
         if self.len == 0 {
             return None;
         }
-        let f = self.buf[self.head];
-        self.head = (self.head + 1) % TXQ_LEN;
+        let f = self.buf[self.head & MASK];
+        self.head = (self.head + 1) & MASK;
         self.len -= 1;
         Some(f)
     }

@@ -219,6 +219,7 @@ impl Entry {
     }
 
     /// Whether a raw value is acceptable for this entry (type range and declared range).
+    #[inline]
     pub fn accepts(&self, raw: u32) -> bool {
         let v = self.ty.to_i64(raw);
         let (lo, hi) = self.ty.natural_range();

@@ -22,6 +22,24 @@ pub trait ObjectAccess {
     fn download_size(&mut self, index: u16, sub: u8) -> Result<Option<usize>, Abort>;
     /// Writes a complete value (all checks, then side effects).
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), Abort>;
+    /// An expedited download: [`ObjectAccess::download_size`], then [`ObjectAccess::write`] of
+    /// the first `size` bytes of `data` (size not indicated: the object's own size, at most 4).
+    /// Implementations may do both in one lookup; the checks and their order stay the same.
+    #[inline]
+    fn write_expedited(
+        &mut self,
+        index: u16,
+        sub: u8,
+        size: Option<u32>,
+        data: &[u8; 4],
+    ) -> Result<(), Abort> {
+        let fixed = self.download_size(index, sub)?;
+        let len = match size {
+            Some(n) => n as usize,
+            None => fixed.unwrap_or(4).min(4),
+        };
+        self.write(index, sub, data.get(..len).unwrap_or(data))
+    }
 }
 
 /// Encodes an abort frame's payload.

@@ -155,7 +155,52 @@ impl SdoServer {
     /// Handles one request frame's data (any length; DLC ≠ 8 is ignored and counted).
     /// Returns the response payload, if one is due. Block-upload segments are not returned
     /// here: take them with [`SdoServer::poll_transmit`] after every call.
+    #[inline(always)]
     pub fn handle(
+        &mut self,
+        data: &[u8],
+        now: Instant,
+        od: &mut dyn ObjectAccess,
+    ) -> Option<[u8; 8]> {
+        // Expedited transfers outside a transfer are what masters mostly send (polling,
+        // configuration): served without decoding a `Request`, with the same checks and
+        // answers as the general path (an upload that turns out segmented takes that path),
+        // and small enough to inline into the caller.
+        if self.state == State::Idle {
+            if let Ok(req) = <[u8; 8]>::try_from(data) {
+                let b0 = req[0];
+                if b0 >> 5 == 2 {
+                    if let Some(r) = self.fast_upload(&req, od) {
+                        return Some(r);
+                    }
+                } else if b0 >> 5 == 1 && b0 & 0x02 != 0 {
+                    return Some(self.fast_download(&req, od));
+                }
+            }
+        }
+        self.handle_general(data, now, od)
+    }
+
+    /// An expedited download initiate in state `Idle` (see [`SdoServer::handle`]).
+    #[inline]
+    fn fast_download(&mut self, req: &[u8; 8], od: &mut dyn ObjectAccess) -> [u8; 8] {
+        let b0 = req[0];
+        let mux = Mux::from_frame(req);
+        self.reset();
+        self.mux = mux;
+        let size = (b0 & 0x01 != 0).then(|| 4 - u32::from((b0 >> 2) & 0x03));
+        let data = [req[4], req[5], req[6], req[7]];
+        match self.download_expedited(mux, size, &data, od) {
+            Ok(r) => r,
+            Err(a) => {
+                self.reset();
+                abort_payload(mux.index, mux.sub, a)
+            }
+        }
+    }
+
+    #[inline(never)]
+    fn handle_general(
         &mut self,
         data: &[u8],
         now: Instant,
@@ -167,30 +212,6 @@ impl SdoServer {
         };
         if let State::BlkDown { last: false, .. } = self.state {
             return self.block_download_segment(&req, now);
-        }
-        // Expedited transfers outside a transfer are what masters mostly send (polling,
-        // configuration): served without decoding a `Request`, with the same checks and
-        // answers as `dispatch` (an upload that turns out segmented takes the general path).
-        if self.state == State::Idle {
-            let b0 = req[0];
-            if b0 >> 5 == 2 {
-                if let Some(r) = self.fast_upload(&req, od) {
-                    return Some(r);
-                }
-            } else if b0 >> 5 == 1 && b0 & 0x02 != 0 {
-                let mux = Mux::from_frame(&req);
-                self.reset();
-                self.mux = mux;
-                let size = (b0 & 0x01 != 0).then(|| 4 - u32::from((b0 >> 2) & 0x03));
-                let data = [req[4], req[5], req[6], req[7]];
-                return Some(match self.download_expedited(mux, size, &data, od) {
-                    Ok(r) => r,
-                    Err(a) => {
-                        self.reset();
-                        abort_payload(mux.index, mux.sub, a)
-                    }
-                });
-            }
         }
         let parsed = Request::parse(&req);
         if let Request::Abort { .. } = parsed {
@@ -383,6 +404,7 @@ impl SdoServer {
         }
     }
 
+    #[inline]
     fn download_expedited(
         &mut self,
         mux: Mux,
@@ -390,13 +412,9 @@ impl SdoServer {
         data: &[u8; 4],
         od: &mut dyn ObjectAccess,
     ) -> Result<[u8; 8], Abort> {
-        let fixed = od.download_size(mux.index, mux.sub)?;
-        // 0x22 (size not indicated): the object's own size, at most the 4 bytes there are.
-        let len = match size {
-            Some(n) => n as usize,
-            None => fixed.unwrap_or(4).min(4),
-        };
-        od.write(mux.index, mux.sub, data.get(..len).unwrap_or(data))?;
+        // download_size + write (0x22, size not indicated: the object's own size, at most the
+        // 4 bytes there are), in one call.
+        od.write_expedited(mux.index, mux.sub, size, data)?;
         Ok(wire::download_initiate_ack(mux))
     }
 

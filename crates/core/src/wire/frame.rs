@@ -101,6 +101,20 @@ impl Frame {
         }
     }
 
+    /// A standard data frame whose `id` (≤ 0x7FF) and `dlc` (≤ 8) the caller has checked
+    /// (debug builds assert it); hot paths with precomputed values.
+    #[inline]
+    pub(crate) const fn std_checked(id: u16, data: [u8; 8], dlc: u8) -> Self {
+        debug_assert!(id <= 0x7FF && dlc <= 8);
+        Frame {
+            id: id as u32,
+            extended: false,
+            rtr: false,
+            dlc,
+            data,
+        }
+    }
+
     /// The identifier (11 or 29 bits).
     #[inline]
     pub const fn id(&self) -> u32 {
