@@ -13,25 +13,10 @@ pub const LSS_TX: u16 = 0x7E5;
 /// LSS slave → master COB-ID.
 pub const LSS_RX: u32 = 0x7E4;
 
-/// Bit rates of CiA 305 bit timing table 0, by index (`None`: reserved / auto).
-pub const BIT_TIMING_TABLE0: [Option<u32>; 9] = [
-    Some(1000),
-    Some(800),
-    Some(500),
-    Some(250),
-    Some(125),
-    None,
-    Some(50),
-    Some(20),
-    Some(10),
-];
-
-/// Index in table 0 of a bit rate in kbit/s.
+/// Index in CiA 305 bit-timing table 0 of a bit rate in kbit/s (the slave's own table).
 pub fn bit_timing_index(kbps: u32) -> Option<u8> {
-    BIT_TIMING_TABLE0
-        .iter()
-        .position(|b| *b == Some(kbps))
-        .map(|i| i as u8)
+    let kbps = u16::try_from(kbps).ok().filter(|&k| k != 0)?;
+    (0..=u8::MAX).find(|&i| canpos_core::lss::bit_timing_kbps(i) == Some(kbps))
 }
 
 /// The 128-bit LSS address (0x1018 sub 1…4).
