@@ -517,17 +517,8 @@ impl<S: Storage> Node<S> {
         self.dev.now = now;
         let d = &mut self.dev;
         let forced_preop = {
-            let mut cx = AppCtx {
-                od: &mut d.od,
-                emcy: &mut d.emcy,
-                pdo: &mut d.pdo,
-                model: d.model,
-                cfg: &d.cfg,
-                nmt: d.nmt,
-                bitrate_kbps: d.bitrate,
-                now,
-            };
-            d.encoder.cycle(s, &mut cx)
+            let (encoder, mut cx) = d.app(now);
+            encoder.cycle(s, &mut cx)
         };
         if d.encoder.take_auto_dirty() {
             // Values the device keeps by itself (TH 0x2901 life extremes, D19). A failing
@@ -669,17 +660,8 @@ impl<S: Storage> Node<S> {
         let d = &mut self.dev;
         let now = d.now;
         let forced_preop = {
-            let mut cx = AppCtx {
-                od: &mut d.od,
-                emcy: &mut d.emcy,
-                pdo: &mut d.pdo,
-                model: d.model,
-                cfg: &d.cfg,
-                nmt: d.nmt,
-                bitrate_kbps: d.bitrate,
-                now,
-            };
-            d.encoder.inject(fault, active, &mut cx)
+            let (encoder, mut cx) = d.app(now);
+            encoder.inject(fault, active, &mut cx)
         };
         if forced_preop && d.nmt == NmtState::Operational {
             d.nmt = NmtState::PreOperational;
@@ -903,6 +885,21 @@ impl<S: Storage> Device<S> {
                 self.od.set(slot, (v & !0x7FF) | (0x80 + node as u32));
             }
         }
+    }
+
+    /// The encoder and the context it runs in (disjoint borrows of the device).
+    fn app(&mut self, now: Instant) -> (&mut Encoder, AppCtx<'_>) {
+        let cx = AppCtx {
+            od: &mut self.od,
+            emcy: &mut self.emcy,
+            pdo: &mut self.pdo,
+            model: self.model,
+            cfg: &self.cfg,
+            nmt: self.nmt,
+            bitrate_kbps: self.bitrate,
+            now,
+        };
+        (&mut self.encoder, cx)
     }
 
     /// Pushes the cached service configuration from the dictionary after a reload.
@@ -1201,17 +1198,8 @@ impl<S: Storage> Device<S> {
             }
             _ => {
                 if index >= 0x2000 {
-                    let mut cx = AppCtx {
-                        od: &mut self.od,
-                        emcy: &mut self.emcy,
-                        pdo: &mut self.pdo,
-                        model: self.model,
-                        cfg: &self.cfg,
-                        nmt: self.nmt,
-                        bitrate_kbps: self.bitrate,
-                        now,
-                    };
-                    self.encoder.written(index, sub, raw, &mut cx);
+                    let (encoder, mut cx) = self.app(now);
+                    encoder.written(index, sub, raw, &mut cx);
                 }
             }
         }
