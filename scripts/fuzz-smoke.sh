@@ -5,11 +5,20 @@
 # and exits 0: the rest of CI must not depend on it. cargo-fuzz is installed when missing.
 # A crash in any target fails (exit 1); its input is left in fuzz/artifacts/TARGET/.
 #
-#   FUZZ_SECONDS=N   seconds per target (default 20)
+# Every run uses a fixed seed, a fresh scratch corpus seeded from the committed one and a
+# bound on executions as well as time, so a CI failure reproduces from the printed command.
+#
+#   FUZZ_SECONDS=N   upper bound in seconds per target (default 45)
+#   FUZZ_RUNS=N      executions per target (default: per target, about 20 s each here)
+#   FUZZ_SEED=N      libFuzzer seed (default 1)
 #   FUZZ_TARGETS="a b"  subset of targets (default: all)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-secs=${FUZZ_SECONDS:-20}
+secs=${FUZZ_SECONDS:-45}
+# Executions that take about 20 s per target on the 2-core development machine.
+declare -A default_runs=([node_frames]=22000 [socketcand_stream]=200000 [state_file]=36000
+  [text_parsers]=130000)
+seed=${FUZZ_SEED:-1}
 targets=${FUZZ_TARGETS:-"node_frames socketcand_stream state_file text_parsers"}
 
 if ! cargo +nightly --version >/dev/null 2>&1; then
@@ -29,15 +38,23 @@ cd fuzz
 cargo +nightly fuzz build
 for t in $targets; do
   # New inputs go to a scratch corpus (first directory), so CI never grows the committed one.
+  runs=${FUZZ_RUNS:-${default_runs[$t]:-20000}}
   scratch=target/ci-corpus/$t
+  rm -rf "$scratch"
   mkdir -p "$scratch"
-  echo "--- fuzz $t for ${secs} s"
-  if ! cargo +nightly fuzz run "$t" "$scratch" "corpus/$t" -- \
+  echo "--- fuzz $t: seed $seed, $runs runs, at most ${secs} s"
+  if ! cargo +nightly fuzz run "$t" "$scratch" "corpus/$t" -- -seed="$seed" -runs="$runs" \
       -max_total_time="$secs" -print_final_stats=1 >"target/ci-$t.log" 2>&1; then
-    tail -n 40 "target/ci-$t.log" >&2
-    echo "!!! FAILED: fuzz target $t found a crash (input in fuzz/artifacts/$t/)" >&2
+    # The panic message and the libFuzzer verdict first: the tail alone may be only statistics.
+    grep -E "panicked at|^thread '|ERROR: libFuzzer|SUMMARY|Test unit written|^Error:" \
+      "target/ci-$t.log" | head -n 20 >&2 || true
+    grep -A3 "panicked at" "target/ci-$t.log" | head -n 12 >&2 || true
+    tail -n 25 "target/ci-$t.log" >&2
+    echo "!!! FAILED: fuzz target $t (input in fuzz/artifacts/$t/; rerun:" \
+      "cd fuzz && cargo +nightly fuzz run $t fuzz/artifacts/$t/<file>)" >&2
     exit 1
   fi
   grep -E '^#[0-9]+[[:space:]]+DONE' "target/ci-$t.log" || tail -n 3 "target/ci-$t.log"
 done
-echo "fuzz smoke: $(wc -w <<<"$targets") targets x ${secs} s clean in $(($(date +%s) - t0)) s"
+rm -rf target/scratch
+echo "fuzz smoke: $(wc -w <<<"$targets") targets (seed $seed, a fixed number of runs or ${secs} s each) clean in $(($(date +%s) - t0)) s"

@@ -19,8 +19,13 @@ use canpos_host::FileStorage;
 
 fn path() -> &'static PathBuf {
     static P: OnceLock<PathBuf> = OnceLock::new();
+    // A scratch file inside the fuzz crate's own target directory, not the shared /tmp:
+    // the target must not depend on (or litter) the machine it runs on.
     P.get_or_init(|| {
-        std::env::temp_dir().join(format!("canpos-fuzz-state-{}.bin", std::process::id()))
+        let d = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/target/scratch"));
+        std::fs::create_dir_all(&d)
+            .unwrap_or_else(|e| panic!("environment: cannot create {}: {e}", d.display()));
+        d.join(format!("state-{}.bin", std::process::id()))
     })
 }
 
@@ -59,7 +64,9 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         }
 
         // The file path: FileStorage must hand the core exactly the file's bytes (or refuse).
-        std::fs::write(path(), bytes).unwrap();
+        std::fs::write(path(), bytes).unwrap_or_else(|e| {
+            panic!("environment: cannot write {}: {e}", path().display())
+        });
         let mut fs = FileStorage::new(path());
         let mut buf = [0u8; IMAGE_MAX];
         if let Ok(n) = fs.load(&mut buf) {

@@ -19,8 +19,11 @@ use canpos_sim::parse_order_code;
 fn dir() -> &'static PathBuf {
     static D: OnceLock<PathBuf> = OnceLock::new();
     D.get_or_init(|| {
-        let d = std::env::temp_dir().join(format!("canpos-fuzz-text-{}", std::process::id()));
-        std::fs::create_dir_all(&d).unwrap();
+        // Scratch space inside the fuzz crate's own target directory, not the shared /tmp.
+        let d = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/target/scratch"))
+            .join(format!("text-{}", std::process::id()));
+        std::fs::create_dir_all(&d)
+            .unwrap_or_else(|e| panic!("environment: cannot create {}: {e}", d.display()));
         d
     })
 }
@@ -60,7 +63,8 @@ fn motion(s: &str) {
 
 fn scenario(s: &str) {
     let path = dir().join("scenario.toml");
-    std::fs::write(&path, s).unwrap();
+    std::fs::write(&path, s)
+        .unwrap_or_else(|e| panic!("environment: cannot write {}: {e}", path.display()));
     let Ok(sc) = device::load_scenario(&path) else {
         return;
     };
