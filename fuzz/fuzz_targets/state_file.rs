@@ -64,9 +64,8 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         }
 
         // The file path: FileStorage must hand the core exactly the file's bytes (or refuse).
-        std::fs::write(path(), bytes).unwrap_or_else(|e| {
-            panic!("environment: cannot write {}: {e}", path().display())
-        });
+        std::fs::write(path(), bytes)
+            .unwrap_or_else(|e| panic!("environment: cannot write {}: {e}", path().display()));
         let mut fs = FileStorage::new(path());
         let mut buf = [0u8; IMAGE_MAX];
         if let Ok(n) = fs.load(&mut buf) {
