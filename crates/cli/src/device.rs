@@ -320,11 +320,27 @@ fn supervise(handle: RuntimeHandle, stop: &Receiver<()>) -> Result<i32> {
     }
 }
 
-fn start_control(addr: &str, rt: &RuntimeHandle) -> Result<control::ControlServer> {
-    let srv = control::serve(addr, rt.control())
-        .with_context(|| format!("cannot serve the control interface on {addr}"))?;
+/// Binds the control interface's address; done before the sensors boot, so that whoever
+/// sees a boot-up can connect to the control interface at once.
+fn bind_control(addr: Option<&str>) -> Result<Option<std::net::TcpListener>> {
+    addr.map(|addr| {
+        std::net::TcpListener::bind(addr)
+            .with_context(|| format!("cannot serve the control interface on {addr}"))
+    })
+    .transpose()
+}
+
+fn start_control(
+    listener: Option<std::net::TcpListener>,
+    rt: &RuntimeHandle,
+) -> Result<Option<control::ControlServer>> {
+    let Some(listener) = listener else {
+        return Ok(None);
+    };
+    let srv =
+        control::serve_on(listener, rt.control()).context("cannot serve the control interface")?;
     eprintln!("canpos: control interface on {}", srv.local_addr());
-    Ok(srv)
+    Ok(Some(srv))
 }
 
 /// Runs `canpos run`.
@@ -349,6 +365,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     let node_id = setup.cfg.node_id;
     let path = setup.storage.path().to_path_buf();
     rt.add(setup);
+    let listener = bind_control(a.control.as_deref())?;
     // Boot-up right away (≤ 50 ms after start); everything else comes after.
     rt.power_on_all();
     let handle = rt.spawn()?;
@@ -356,10 +373,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
         "canpos: {name} (node-id {node_id}) on {desc}; state file {}",
         path.display()
     );
-    let _ctl = match &a.control {
-        Some(addr) => Some(start_control(addr, &handle)?),
-        None => None,
-    };
+    let _ctl = start_control(listener, &handle)?;
     supervise(handle, &stop)
 }
 
@@ -580,12 +594,10 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
         );
         rt.add(s);
     }
+    let listener = bind_control(a.control.or(sc.control.take()).as_deref())?;
     rt.power_on_all();
     let handle = rt.spawn()?;
-    let _ctl = match a.control.or(sc.control.take()) {
-        Some(addr) => Some(start_control(&addr, &handle)?),
-        None => None,
-    };
+    let _ctl = start_control(listener, &handle)?;
     // Timed events on their own thread, on absolute times from the start.
     let ctl = handle.control();
     let mut events = std::mem::take(&mut sc.events);

@@ -202,7 +202,13 @@ impl ControlServer {
 /// thread (clients are test harnesses: few, long-lived). Warns when `addr` is not loopback:
 /// the interface has no authentication.
 pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<ControlServer> {
-    let listener = TcpListener::bind(addr)?;
+    serve_on(TcpListener::bind(addr)?, handle)
+}
+
+/// [`serve`] on a listener bound earlier: a host binds before its sensors boot, so that a
+/// client that saw the boot-up can connect at once (connections wait in the backlog until
+/// the runtime is up).
+pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<ControlServer> {
     let addr = listener.local_addr()?;
     if !addr.ip().is_loopback() {
         tracing::warn!(%addr, "control interface reachable from the network (no authentication)");
