@@ -541,15 +541,8 @@ impl<S: Storage> Node<S> {
         // steps of the full path would all do nothing but the TPDOs'. (`timer_gate` is 0
         // while powered off, unconfigured or initialising.)
         if now.0 < self.other_due & self.timer_gate {
-            let d = &mut self.dev;
-            d.now = now;
-            d.run_pdos(now);
-            if d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending() {
-                self.deadline = self.other_due.min(d.pdo.due_us());
-            } else {
-                d.flush_emcy();
-                self.refresh_deadline();
-            }
+            self.dev.run_pdos(now);
+            self.after_tpdo_timers(now);
             return;
         }
         if !self.dev.powered {
@@ -604,6 +597,53 @@ impl<S: Storage> Node<S> {
         }
         d.run_pdos(now);
         d.flush_emcy();
+    }
+
+    /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline.
+    #[inline(always)]
+    fn after_tpdo_timers(&mut self, now: Instant) {
+        let d = &mut self.dev;
+        d.now = now;
+        if d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending() {
+            self.deadline = self.other_due.min(d.pdo.due_us());
+        } else {
+            d.flush_emcy();
+            self.refresh_deadline();
+        }
+    }
+
+    /// One step of a host loop: runs the timers due at `now` (as [`Node::handle_timeout`])
+    /// and takes the next frame to send (as [`Node::poll_transmit`]). Call it until it
+    /// returns `None`; then wait for a frame or [`Node::poll_timeout`].
+    ///
+    /// A producing node spends its time here. When nothing is queued and only TPDO timers
+    /// are due, the first TPDO goes straight to the caller instead of through the transmit
+    /// queue (any further one is queued behind it): same frames, same order.
+    #[inline(always)]
+    pub fn poll(&mut self, now: Instant) -> Option<Frame> {
+        if now.0 >= self.deadline {
+            if now.0 < self.other_due & self.timer_gate
+                && self.dev.tx.is_empty()
+                && self.dev.can_talk(now)
+            {
+                let mut first = None;
+                let Device { pdo, od, tx, .. } = &mut self.dev;
+                pdo.handle_timeout(od, now, &mut |f| {
+                    if first.is_none() {
+                        first = Some(f);
+                    } else {
+                        tx.push(f);
+                    }
+                });
+                self.after_tpdo_timers(now);
+                if first.is_some() {
+                    return first;
+                }
+            } else {
+                self.handle_timeout(now);
+            }
+        }
+        self.poll_transmit()
     }
 
     /// The next instant at which [`Node::handle_timeout`] has work.

@@ -18,9 +18,14 @@ pub const COB_NO_RTR: u32 = 0x4000_0000;
 /// COB-ID bit 29: 29-bit identifier (not supported).
 pub const COB_EXTENDED: u32 = 0x2000_0000;
 
+/// No deadline (timers are µs instants; `u64::MAX` is never reached).
+const NEVER: u64 = u64::MAX;
+const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
+
 #[derive(Clone, Copy, Debug, Default)]
 struct Mapped {
-    slot: u16,
+    /// Dictionary slot (every slot fits a `u8`: `MAX_ENTRIES` ≤ 256).
+    slot: u8,
     /// Bit position of the entry in the frame's data read as a little-endian u64.
     shift: u8,
     /// The entry's bytes of the value (`bytes` of them, at most 4).
@@ -28,7 +33,7 @@ struct Mapped {
 }
 
 /// One TPDO's cached configuration and timers.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug)]
 pub struct Tpdo {
     cob: u32,
     ttype: u8,
@@ -37,13 +42,34 @@ pub struct Tpdo {
     map: [Mapped; MAX_MAP],
     n_map: u8,
     len: u8,
-    next_event: Option<Instant>,
+    /// Next event-timer expiry in µs, [`NEVER`] when the timer is off.
+    next_event: u64,
     inhibit_until: Instant,
     pending: bool,
     sync_count: u8,
     changed: bool,
     /// Event timer periods that passed without a transmission because the host was late.
     pub missed: u32,
+}
+
+impl core::default::Default for Tpdo {
+    fn default() -> Self {
+        Tpdo {
+            cob: COB_INVALID,
+            ttype: 0,
+            inhibit: Duration::ZERO,
+            event: Duration::ZERO,
+            map: [Mapped::default(); MAX_MAP],
+            n_map: 0,
+            len: 0,
+            next_event: NEVER,
+            inhibit_until: Instant::ZERO,
+            pending: false,
+            sync_count: 0,
+            changed: false,
+            missed: 0,
+        }
+    }
 }
 
 impl Tpdo {
@@ -70,8 +96,8 @@ pub struct Tpdos {
     pdos: [Tpdo; MAX_TPDOS],
     count: usize,
     active: bool,
-    /// Bit n: TPDO n is valid (the only ones with timers).
-    valid_mask: u8,
+    /// Bit n: TPDO n is valid and asynchronous (254 / 255): the only ones with timers.
+    timer_mask: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
     /// a comparison instead of a walk over all TPDOs.
@@ -84,8 +110,8 @@ impl Default for Tpdos {
             pdos: [Tpdo::default(); MAX_TPDOS],
             count: 0,
             active: false,
-            valid_mask: 0,
-            due: u64::MAX,
+            timer_mask: 0,
+            due: NEVER,
         }
     }
 }
@@ -133,34 +159,32 @@ impl Tpdos {
         self.refresh();
     }
 
-    /// Recomputes `valid_mask` and `due` after a change of configuration.
+    /// Recomputes `timer_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
         let mut mask = 0u8;
         for (n, p) in self.pdos[..self.count].iter().enumerate() {
-            if p.valid() {
+            if p.valid() && p.asynchronous() {
                 mask |= 1 << n;
             }
         }
-        self.valid_mask = mask;
+        self.timer_mask = mask;
         self.refresh_due();
     }
 
     /// Recomputes `due` after a change of timers (validity unchanged).
     #[inline]
     fn refresh_due(&mut self) {
-        let mut t = u64::MAX;
-        let mut mask = self.valid_mask;
+        let mut t = NEVER;
+        let mut mask = self.timer_mask;
         while mask != 0 {
             let p = &self.pdos[mask.trailing_zeros() as usize];
             mask &= mask - 1;
-            if let Some(e) = p.next_event {
-                t = t.min(e.0);
-            }
+            t = t.min(p.next_event);
             if p.pending {
                 t = t.min(p.inhibit_until.0);
             }
         }
-        self.due = if self.active { t } else { u64::MAX };
+        self.due = if self.active { t } else { NEVER };
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
@@ -191,7 +215,7 @@ impl Tpdos {
             // Precomputed so that building a TPDO is one mask and one shift per entry.
             let b = u32::from(bytes).min(4);
             p.map[p.n_map as usize] = Mapped {
-                slot: slot as u16,
+                slot: slot as u8,
                 shift: 8 * p.len,
                 mask: if b == 4 {
                     u32::MAX
@@ -202,7 +226,7 @@ impl Tpdos {
             p.n_map += 1;
             p.len += bytes;
         }
-        p.next_event = None;
+        p.next_event = NEVER;
         p.pending = false;
         p.sync_count = 0;
         self.refresh();
@@ -292,8 +316,11 @@ impl Tpdos {
     pub fn set_active(&mut self, active: bool, now: Instant) {
         if active && !self.active {
             for p in &mut self.pdos[..self.count] {
-                p.next_event =
-                    (p.valid() && p.asynchronous() && p.event.micros() > 0).then(|| now + p.event);
+                p.next_event = if p.valid() && p.asynchronous() && p.event.micros() > 0 {
+                    (now + p.event).0
+                } else {
+                    NEVER
+                };
                 p.pending = false;
                 p.sync_count = 0;
                 p.changed = true;
@@ -301,7 +328,7 @@ impl Tpdos {
         }
         if !active {
             for p in &mut self.pdos[..self.count] {
-                p.next_event = None;
+                p.next_event = NEVER;
                 p.pending = false;
             }
         }
@@ -321,7 +348,7 @@ impl Tpdos {
             if !p.valid()
                 || !p.map[..p.n_map as usize]
                     .iter()
-                    .any(|m| m.slot as usize == slot)
+                    .any(|m| usize::from(m.slot) == slot)
             {
                 continue;
             }
@@ -404,29 +431,25 @@ impl Tpdos {
             return;
         }
         // `due` is recomputed in the same pass: only valid asynchronous TPDOs have timers.
-        let mut due = u64::MAX;
-        let mut mask = self.valid_mask;
+        let mut due = NEVER;
+        let mut mask = self.timer_mask;
         while mask != 0 {
-            // `valid_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
+            // `timer_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
             let n = (mask.trailing_zeros() & (MAX_TPDOS as u32 - 1)) as usize;
             mask &= mask - 1;
             let p = &mut self.pdos[n];
-            if !p.asynchronous() {
-                continue;
-            }
-            if let Some(t) = p.next_event {
-                if now >= t {
-                    // Absolute schedule: the next period starts where this one was due.
-                    let per = p.event.micros().max(1);
-                    let mut next = t.micros() + per;
-                    if next <= now.micros() {
-                        let skipped = (now.micros() - next) / per + 1;
-                        p.missed = p.missed.wrapping_add(skipped as u32);
-                        next += skipped * per;
-                    }
-                    p.next_event = Some(Instant(next));
-                    p.pending = true;
+            let t = p.next_event;
+            if now.0 >= t {
+                // Absolute schedule: the next period starts where this one was due.
+                let per = p.event.micros().max(1);
+                let mut next = t + per;
+                if next <= now.0 {
+                    let skipped = (now.0 - next) / per + 1;
+                    p.missed = p.missed.wrapping_add(skipped as u32);
+                    next += skipped * per;
                 }
+                p.next_event = next;
+                p.pending = true;
             }
             if p.pending && now >= p.inhibit_until {
                 p.pending = false;
@@ -434,14 +457,12 @@ impl Tpdos {
                 out(build(p, od));
                 p.inhibit_until = now + p.inhibit;
             }
-            if let Some(e) = p.next_event {
-                due = due.min(e.0);
-            }
+            due = due.min(p.next_event);
             if p.pending {
                 due = due.min(p.inhibit_until.0);
             }
         }
-        // Reached only while active (`due` is `u64::MAX` otherwise).
+        // Reached only while active (`due` is `NEVER` otherwise).
         self.due = due;
     }
 
@@ -472,7 +493,7 @@ fn build(p: &Tpdo, od: &Dictionary) -> Frame {
     // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
     let mut acc = 0u64;
     for m in p.map.iter().take(p.n_map as usize) {
-        acc |= u64::from(od.get(m.slot as usize) & m.mask) << (m.shift & 63);
+        acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
     }
     // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
     Frame::std_checked(p.can_id(), acc.to_le_bytes(), p.len)

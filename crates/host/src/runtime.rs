@@ -9,11 +9,12 @@
 //! 2. runs every measurement cycle that is due (motion → [`Sensor::measure`] →
 //!    [`Node::update_sample`]); cycles are scheduled as `start + k × cycle`, never as
 //!    "now + cycle", so they do not drift;
-//! 3. runs [`Node::handle_timeout`] for every node whose [`Node::poll_timeout`] has passed;
-//! 4. routes what the nodes send: to the transport **and** to the other nodes of this runtime
-//!    (they share the bus; a transport never echoes a frame to its sender);
-//! 5. answers control requests ([`crate::control`]);
-//! 6. sleeps until the earliest of all deadlines, a received frame, or a control request.
+//! 3. polls every node ([`Node::poll`]: the timers that are due — TPDO event timers,
+//!    heartbeat, SDO timeout, EMCY inhibit — then the frames it has to send) and routes what
+//!    they send: to the transport **and** to the other nodes of this runtime (they share the
+//!    bus; a transport never echoes a frame to its sender);
+//! 4. answers control requests ([`crate::control`]);
+//! 5. sleeps until the earliest of all deadlines, a received frame, or a control request.
 //!
 //! The sleep is a [`crossbeam_channel::Select`] over the transport's receive queue and the
 //! control queue (so frames are handled at once), ended a little before the deadline
@@ -500,11 +501,8 @@ impl Runtime {
         self.watch_transport(now, received);
         for i in 0..self.devices.len() {
             if self.powered[i] {
+                // The node's timers run in `route` (`Node::poll`), after every cycle's values.
                 self.devices[i].run_cycles(now);
-                let d = &mut self.devices[i];
-                if d.node.poll_timeout().is_some_and(|t| t <= now) {
-                    d.node.handle_timeout(now);
-                }
             } else {
                 let d = &mut self.devices[i];
                 while d.next_cycle <= now {
@@ -525,13 +523,14 @@ impl Runtime {
         }
     }
 
-    /// Sends what the nodes queued, to the transport and to the other local nodes, until no
-    /// node has anything left (an answer may trigger another answer).
+    /// Runs the nodes' due timers and sends what they produce, to the transport and to the
+    /// other local nodes, until no node has anything left (an answer may trigger another
+    /// answer).
     fn route(&mut self, now: Instant) {
         for _ in 0..1000 {
             let mut any = false;
             for i in 0..self.devices.len() {
-                while let Some(f) = self.devices[i].node.poll_transmit() {
+                while let Some(f) = self.devices[i].node.poll(now) {
                     if self.devices[i].bus_off {
                         continue;
                     }

@@ -10,8 +10,9 @@ mod types;
 
 pub use types::{Abort, Access, DataType, Default, Entry, Group, Param, Range};
 
-/// Most entries a model's table may have (the value array is sized for it).
-pub const MAX_ENTRIES: usize = 224;
+/// Most entries a model's table may have (the value array is sized for it). 256, so that a
+/// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
+pub const MAX_ENTRIES: usize = 256;
 
 /// Configuration-dependent values that [`Default::Param`] entries resolve against.
 pub trait ParamSource {
@@ -80,6 +81,12 @@ impl Dictionary {
     #[inline]
     pub fn get(&self, slot: usize) -> u32 {
         self.values[slot]
+    }
+
+    /// Raw value of `slot` given as a `u8` (every slot fits; no bounds check).
+    #[inline(always)]
+    pub fn get_u8(&self, slot: u8) -> u32 {
+        self.values[slot as usize]
     }
 
     /// Sets the raw value of `slot` without any check (the application's side: live values,
