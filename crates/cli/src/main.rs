@@ -25,6 +25,10 @@ struct Cli {
     /// Less log output (warnings and errors only).
     #[arg(short, long, global = true)]
     quiet: bool,
+    /// Run under SCHED_FIFO at this priority (1-99) with all memory locked, so that other load
+    /// on the machine cannot make the sensors miss periods (needs root or CAP_SYS_NICE).
+    #[arg(long, global = true, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
+    rt_priority: Option<u8>,
     #[command(subcommand)]
     cmd: Option<Cmd>,
 }
@@ -84,6 +88,14 @@ fn init_logging(verbose: u8, quiet: bool) {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging(cli.verbose, cli.quiet);
+    if let Some(p) = cli.rt_priority {
+        // Before any thread starts: they inherit the policy.
+        if let Err(e) = canpos_host::realtime::enter(p) {
+            eprintln!("canpos: --rt-priority: {e}");
+            return ExitCode::from(1);
+        }
+        tracing::info!(priority = p, "running under SCHED_FIFO, memory locked");
+    }
     let result = match cli.cmd {
         None => device::demo(device::DemoArgs {
             motion: "sine:center=500,amp=300,period=4".into(),

@@ -14,6 +14,7 @@ pub mod candump;
 pub mod control;
 pub mod file_storage;
 pub mod mem;
+pub mod realtime;
 pub mod runtime;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
