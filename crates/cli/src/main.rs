@@ -25,9 +25,10 @@ struct Cli {
     /// Less log output (warnings and errors only).
     #[arg(short, long, global = true)]
     quiet: bool,
-    /// Run under SCHED_FIFO at this priority (1-99) with all memory locked, so that other load
-    /// on the machine cannot make the sensors miss periods (needs root or CAP_SYS_NICE).
-    #[arg(long, global = true, value_name = "N", value_parser = clap::value_parser!(u8).range(1..=99))]
+    /// Run under SCHED_FIFO at this priority (2-99; helper threads one lower) with all memory
+    /// locked, so that other load on the machine cannot make the sensors miss periods (needs
+    /// root or CAP_SYS_NICE).
+    #[arg(long, global = true, value_name = "N", value_parser = clap::value_parser!(u8).range(2..=99))]
     rt_priority: Option<u8>,
     #[command(subcommand)]
     cmd: Option<Cmd>,

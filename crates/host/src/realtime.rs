@@ -8,18 +8,49 @@
 //! fault (e.g. of a code page dropped from the page cache under I/O load) stalls a period.
 
 use std::io;
+use std::sync::atomic::{AtomicU8, Ordering};
 
-/// Puts the whole process under `SCHED_FIFO` at `priority` (1…99) and locks its current and
-/// future memory (`mlockall`). Call it before starting threads: threads inherit the policy.
-/// Needs root or `CAP_SYS_NICE` / `CAP_IPC_LOCK` (or an `rtprio` / `memlock` ulimit).
+/// The priority given to runtime threads (0: real-time scheduling not requested).
+static RUNTIME_PRIORITY: AtomicU8 = AtomicU8::new(0);
+
+/// Puts the process under `SCHED_FIFO` and locks its current and future memory (`mlockall`).
+/// Call it before starting threads: threads inherit the policy. The calling thread (and so
+/// every helper thread started later: hub, control, observers) gets `priority − 1`; runtime
+/// threads raise themselves to `priority` ([`runtime_thread`]), so that no helper of the same
+/// process can hold the CPU a timed wake-up needs (equal SCHED_FIFO priorities never preempt
+/// each other). Needs root or `CAP_SYS_NICE` / `CAP_IPC_LOCK` (or `rtprio` / `memlock` limits).
 pub fn enter(priority: u8) -> io::Result<()> {
-    if !(1..=99).contains(&priority) {
+    if !(2..=99).contains(&priority) {
         return Err(io::Error::new(
             io::ErrorKind::InvalidInput,
-            format!("real-time priority {priority} is outside 1…99"),
+            format!("real-time priority {priority} is outside 2…99"),
         ));
     }
-    // SAFETY: plain system calls on this process with a valid, initialised parameter block.
+    set_fifo(priority - 1)?;
+    // SAFETY: mlockall has no memory-safety preconditions.
+    if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } != 0 {
+        let e = io::Error::last_os_error();
+        return Err(io::Error::new(
+            e.kind(),
+            format!("mlockall: {e} (needs root, CAP_IPC_LOCK or a memlock limit)"),
+        ));
+    }
+    RUNTIME_PRIORITY.store(priority, Ordering::Relaxed);
+    Ok(())
+}
+
+/// Raises the calling runtime thread to the priority given to [`enter`]; does nothing when
+/// real-time scheduling was not requested.
+pub fn runtime_thread() -> io::Result<()> {
+    match RUNTIME_PRIORITY.load(Ordering::Relaxed) {
+        0 => Ok(()),
+        p => set_fifo(p),
+    }
+}
+
+/// `SCHED_FIFO` at `priority` for the calling thread (threads it starts inherit it).
+fn set_fifo(priority: u8) -> io::Result<()> {
+    // SAFETY: a plain system call on the calling thread with an initialised parameter block.
     let rc = unsafe {
         let param = libc::sched_param {
             sched_priority: i32::from(priority),
@@ -30,17 +61,7 @@ pub fn enter(priority: u8) -> io::Result<()> {
         let e = io::Error::last_os_error();
         return Err(io::Error::new(
             e.kind(),
-            format!(
-                "SCHED_FIFO priority {priority}: {e} (needs root, CAP_SYS_NICE or an rtprio limit)"
-            ),
-        ));
-    }
-    // SAFETY: mlockall has no memory-safety preconditions.
-    if unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) } != 0 {
-        let e = io::Error::last_os_error();
-        return Err(io::Error::new(
-            e.kind(),
-            format!("mlockall: {e} (needs root, CAP_IPC_LOCK or a memlock limit)"),
+            format!("SCHED_FIFO {priority}: {e} (needs root, CAP_SYS_NICE or an rtprio limit)"),
         ));
     }
     Ok(())
@@ -62,10 +83,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn priority_out_of_range_is_refused_before_any_system_call() {
-        assert_eq!(enter(0).unwrap_err().kind(), io::ErrorKind::InvalidInput);
+    fn out_of_range_is_refused_and_nothing_changes_unless_requested() {
+        assert_eq!(enter(1).unwrap_err().kind(), io::ErrorKind::InvalidInput);
         assert_eq!(enter(100).unwrap_err().kind(), io::ErrorKind::InvalidInput);
-        // Nothing changed for this (test) process.
+        assert_ne!(current().0, libc::SCHED_FIFO);
+        // Not requested: a runtime thread stays as it is.
+        runtime_thread().unwrap();
         assert_ne!(current().0, libc::SCHED_FIFO);
     }
 }

@@ -134,11 +134,12 @@ impl SimDevice {
     }
 
     /// Runs every measurement cycle due at `now` (only called while powered).
-    fn run_cycles(&mut self, now: Instant) {
+    /// Runs the measurement cycles due at `now`; returns how many were skipped after a stall.
+    fn run_cycles(&mut self, now: Instant) -> u64 {
         // After a long stall (suspend, debugger) skip ahead instead of bursting.
+        let mut missed = 0;
         if now.0 > self.next_cycle.0 + 100 * self.cycle_us {
-            let missed = (now.0 - self.next_cycle.0) / self.cycle_us;
-            tracing::warn!(sensor = %self.name, missed, "measurement cycles skipped after a stall");
+            missed = (now.0 - self.next_cycle.0) / self.cycle_us;
             self.next_cycle = Instant(self.next_cycle.0 + missed * self.cycle_us);
         }
         while self.next_cycle <= now {
@@ -149,6 +150,7 @@ impl SimDevice {
             self.node.update_sample(&sample, at);
             self.next_cycle = Instant(at.0 + self.cycle_us);
         }
+        missed
     }
 
     fn deadline(&self) -> Instant {
@@ -457,6 +459,10 @@ impl Runtime {
         let thread = std::thread::Builder::new()
             .name("canpos-runtime".into())
             .spawn(move || {
+                // Above the process's other threads when `--rt-priority` was given.
+                if let Err(e) = crate::realtime::runtime_thread() {
+                    tracing::warn!(error = %e, "runtime thread keeps the process's priority");
+                }
                 let r = self.run();
                 flag.store(true, Ordering::SeqCst);
                 r
@@ -499,16 +505,29 @@ impl Runtime {
             self.route(now);
         }
         self.watch_transport(now, received);
+        // One warning per stall for the whole runtime, not one per sensor.
+        let (mut stalled, mut missed_max) = (0usize, 0u64);
         for i in 0..self.devices.len() {
             if self.powered[i] {
                 // The node's timers run in `route` (`Node::poll`), after every cycle's values.
-                self.devices[i].run_cycles(now);
+                let missed = self.devices[i].run_cycles(now);
+                if missed > 0 {
+                    stalled += 1;
+                    missed_max = missed_max.max(missed);
+                }
             } else {
                 let d = &mut self.devices[i];
                 while d.next_cycle <= now {
                     d.next_cycle = Instant(d.next_cycle.0 + d.cycle_us);
                 }
             }
+        }
+        if stalled > 0 {
+            tracing::warn!(
+                sensors = stalled,
+                missed = missed_max,
+                "measurement cycles skipped after a stall (the runtime ran late)"
+            );
         }
         self.route(now);
         Ok(())
