@@ -263,6 +263,7 @@ impl LssSlave {
                 });
                 // Deaf and mute for both periods; Device checks this on every frame.
                 dev.silent_until = Some(resume_at);
+                dev.update_talk();
                 self.handle_timeout(now, dev);
                 None
             }
@@ -365,6 +366,7 @@ impl LssSlave {
         }
         if s.switched && now >= s.resume_at {
             dev.silent_until = None;
+            dev.update_talk();
             self.switch = None;
         }
     }

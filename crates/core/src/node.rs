@@ -81,6 +81,10 @@ pub struct Device<S: Storage> {
     pub(crate) bus_bitrate: Option<u16>,
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
+    /// The node may send from this instant (µs) on: `silent_until`, or never while the bus
+    /// runs another bit rate. Derived from the three fields above by `update_talk`, which
+    /// every change of them calls: sending is checked per frame, so one comparison.
+    talk_from: u64,
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
     pub(crate) factory_lss: (u8, u16),
@@ -167,10 +171,13 @@ pub struct Node<S: Storage> {
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs.
     other_due: u64,
-    /// `u64::MAX` while powered with a node-id and out of initialisation, else 0: the timer
-    /// fast path applies while `now < other_due & timer_gate` (one comparison). Set where
+    /// `u64::MAX` while powered with a node-id and out of initialisation, else 0. Set where
     /// those change: `reset` and `power_off`.
     timer_gate: u64,
+    /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
+    /// `other_due & timer_gate`, or 0 while an EMCY waits or the error register needs
+    /// mirroring (the full path flushes them). Kept by `update_fast_due`.
+    fast_due: u64,
 }
 
 struct Params<'a> {
@@ -196,6 +203,7 @@ impl<S: Storage> Node<S> {
             deadline: u64::MAX,
             other_due: u64::MAX,
             timer_gate: 0,
+            fast_due: 0,
             dev: Device {
                 model,
                 cfg,
@@ -208,6 +216,7 @@ impl<S: Storage> Node<S> {
                 pending_bitrate: cfg.bitrate_kbps,
                 bus_bitrate: None,
                 silent_until: None,
+                talk_from: 0,
                 factory_lss: (cfg.node_id, cfg.bitrate_kbps),
                 autobaud_frames: 0,
                 stored_lss: (None, None),
@@ -238,6 +247,7 @@ impl<S: Storage> Node<S> {
         self.lss = LssSlave::default();
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
+        self.dev.update_talk();
         self.dev.emcy = Emcy::default();
         self.dev.encoder = Encoder::default();
         self.dev.stored_lss = (None, None);
@@ -282,6 +292,7 @@ impl<S: Storage> Node<S> {
         self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(factory_id);
         self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(factory_kbps);
         self.dev.bitrate = self.dev.pending_bitrate;
+        self.dev.update_talk();
         self.reset(true, now);
         if corrupt {
             self.dev.report_corrupt_storage();
@@ -295,6 +306,7 @@ impl<S: Storage> Node<S> {
         if !d.powered {
             self.deadline = u64::MAX;
             self.other_due = u64::MAX;
+            self.update_fast_due();
             return;
         }
         let mut t = u64::MAX;
@@ -312,6 +324,19 @@ impl<S: Storage> Node<S> {
         }
         self.other_due = t;
         self.deadline = t.min(d.pdo.due_us());
+        self.update_fast_due();
+    }
+
+    /// Recomputes `fast_due` from `other_due`, `timer_gate` and the EMCY state; every method
+    /// that changes one of them ends here (the fast path itself changes none).
+    fn update_fast_due(&mut self) {
+        let d = &self.dev;
+        let emcy_idle = d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending();
+        self.fast_due = if emcy_idle {
+            self.other_due & self.timer_gate
+        } else {
+            0
+        };
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
@@ -332,6 +357,7 @@ impl<S: Storage> Node<S> {
         } else {
             0
         };
+        self.update_fast_due();
     }
 
     fn reset_inner(&mut self, application: bool, now: Instant) {
@@ -342,6 +368,7 @@ impl<S: Storage> Node<S> {
         d.sdo_hold_until = None;
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
+        d.update_talk();
         d.cfg.node_id = d.node_id;
         d.cfg.bitrate_kbps = d.bitrate;
         d.load_values(application);
@@ -538,9 +565,9 @@ impl<S: Storage> Node<S> {
     #[inline]
     pub fn handle_timeout(&mut self, now: Instant) {
         // Fast path for a producing node: while every other deadline is in the future, the
-        // steps of the full path would all do nothing but the TPDOs'. (`timer_gate` is 0
-        // while powered off, unconfigured or initialising.)
-        if now.0 < self.other_due & self.timer_gate {
+        // steps of the full path would all do nothing but the TPDOs'. (`fast_due` is 0
+        // while powered off, unconfigured, initialising or with EMCY work.)
+        if now.0 < self.fast_due {
             self.dev.run_pdos(now);
             self.after_tpdo_timers(now);
             return;
@@ -599,17 +626,14 @@ impl<S: Storage> Node<S> {
         d.flush_emcy();
     }
 
-    /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline.
+    /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
+    /// (TPDOs change neither the other deadlines nor the EMCY state).
     #[inline(always)]
     fn after_tpdo_timers(&mut self, now: Instant) {
         let d = &mut self.dev;
         d.now = now;
-        if d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending() {
-            self.deadline = self.other_due.min(d.pdo.due_us());
-        } else {
-            d.flush_emcy();
-            self.refresh_deadline();
-        }
+        debug_assert!(d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending());
+        self.deadline = self.other_due.min(d.pdo.due_us());
     }
 
     /// One step of a host loop: runs the timers due at `now` (as [`Node::handle_timeout`])
@@ -617,24 +641,16 @@ impl<S: Storage> Node<S> {
     /// returns `None`; then wait for a frame or [`Node::poll_timeout`].
     ///
     /// A producing node spends its time here. When nothing is queued and only TPDO timers
-    /// are due, the first TPDO goes straight to the caller instead of through the transmit
-    /// queue (any further one is queued behind it): same frames, same order.
+    /// are due, the first due TPDO goes straight to the caller instead of through the transmit
+    /// queue; another one due at the same time comes from the next call: same frames, same
+    /// order.
     #[inline(always)]
     pub fn poll(&mut self, now: Instant) -> Option<Frame> {
         if now.0 >= self.deadline {
-            if now.0 < self.other_due & self.timer_gate
-                && self.dev.tx.is_empty()
-                && self.dev.can_talk(now)
-            {
-                let mut first = None;
-                let Device { pdo, od, tx, .. } = &mut self.dev;
-                pdo.handle_timeout(od, now, &mut |f| {
-                    if first.is_none() {
-                        first = Some(f);
-                    } else {
-                        tx.push(f);
-                    }
-                });
+            if now.0 < self.fast_due && self.dev.tx.is_empty() && self.dev.can_talk(now) {
+                // `now ≥ deadline` and `now < other_due`: the TPDOs' `due` has passed.
+                let Device { pdo, od, .. } = &mut self.dev;
+                let first = pdo.scan_due(od, now);
                 self.after_tpdo_timers(now);
                 if first.is_some() {
                     return first;
@@ -667,6 +683,7 @@ impl<S: Storage> Node<S> {
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
     pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
         self.dev.bus_bitrate = kbps;
+        self.dev.update_talk();
     }
 
     /// The SDO server (read-only view: counters, transfer in progress).
@@ -835,6 +852,7 @@ impl<S: Storage> Device<S> {
                 self.autobaud_frames += 1;
                 if self.autobaud_frames >= 4 {
                     self.bitrate = bus;
+                    self.update_talk();
                     self.cfg.bitrate_kbps = bus;
                 }
                 false
@@ -850,14 +868,23 @@ impl<S: Storage> Device<S> {
         }
     }
 
+    #[inline(always)]
     fn can_talk(&self, now: Instant) -> bool {
-        if self.silent_until.is_some_and(|t| now < t) {
-            return false;
-        }
+        debug_assert_eq!(self.talk_from, self.talk_from_now(), "update_talk missed");
+        now.0 >= self.talk_from
+    }
+
+    /// What `talk_from` must be.
+    fn talk_from_now(&self) -> u64 {
         match self.bus_bitrate {
-            None => true,
-            Some(bus) => bus == self.bitrate,
+            Some(bus) if bus != self.bitrate => u64::MAX,
+            _ => self.silent_until.map_or(0, |t| t.0),
         }
+    }
+
+    /// Recomputes `talk_from` after a change of `bitrate`, `bus_bitrate` or `silent_until`.
+    pub(crate) fn update_talk(&mut self) {
+        self.talk_from = self.talk_from_now();
     }
 
     /// Sets the pending node-id (LSS configure node-id, TMI 0x2000).
@@ -875,6 +902,7 @@ impl<S: Storage> Device<S> {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
         self.autobaud_frames = 0;
+        self.update_talk();
     }
 
     /// Reloads values: communication objects always, application objects on reset node.

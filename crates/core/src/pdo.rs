@@ -20,6 +20,8 @@ pub const COB_EXTENDED: u32 = 0x2000_0000;
 
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
+/// `Tpdos::single` when zero or several TPDOs have timers.
+const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -36,9 +38,14 @@ struct Mapped {
 #[derive(Clone, Copy, Debug)]
 pub struct Tpdo {
     cob: u32,
+    /// `cob`'s 11-bit CAN-ID, kept with it (read for every frame).
+    id: u16,
     ttype: u8,
     inhibit: Duration,
     event: Duration,
+    /// `event` in µs, at least 1: the event timer's period (the timer only runs when
+    /// `event` > 0; the floor keeps the schedule's division defined regardless).
+    period_us: u64,
     map: [Mapped; MAX_MAP],
     n_map: u8,
     len: u8,
@@ -56,9 +63,11 @@ impl core::default::Default for Tpdo {
     fn default() -> Self {
         Tpdo {
             cob: COB_INVALID,
+            id: 0,
             ttype: 0,
             inhibit: Duration::ZERO,
             event: Duration::ZERO,
+            period_us: 1,
             map: [Mapped::default(); MAX_MAP],
             n_map: 0,
             len: 0,
@@ -79,7 +88,7 @@ impl Tpdo {
     }
     /// The 11-bit CAN-ID.
     pub fn can_id(&self) -> u16 {
-        (self.cob & 0x7FF) as u16
+        self.id
     }
     /// The transmission type.
     pub fn transmission_type(&self) -> u8 {
@@ -87,6 +96,47 @@ impl Tpdo {
     }
     fn asynchronous(&self) -> bool {
         self.ttype >= 254
+    }
+
+    /// The timers of an asynchronous TPDO at `now`: the event timer on its absolute
+    /// schedule, then the inhibit time. Returns the frame when it is to be sent now.
+    #[inline(always)]
+    fn step(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
+        let t = self.next_event;
+        // The event timer expired (it is `NEVER` while off).
+        let fired = now.0 >= t;
+        if fired {
+            // Absolute schedule: the next period starts where this one was due.
+            let per = self.period_us;
+            let mut next = t + per;
+            if next <= now.0 {
+                let skipped = (now.0 - next) / per + 1;
+                self.missed = self.missed.wrapping_add(skipped as u32);
+                next += skipped * per;
+            }
+            self.next_event = next;
+        }
+        if (fired || self.pending) && now >= self.inhibit_until {
+            self.pending = false;
+            self.changed = false;
+            self.inhibit_until = now + self.inhibit;
+            return Some(build(self, od));
+        }
+        if fired {
+            // Held back by the inhibit time.
+            self.pending = true;
+        }
+        None
+    }
+
+    /// The earliest instant at which [`Tpdo::step`] has work.
+    #[inline(always)]
+    fn own_due(&self) -> u64 {
+        if self.pending {
+            self.next_event.min(self.inhibit_until.0)
+        } else {
+            self.next_event
+        }
     }
 }
 
@@ -98,6 +148,9 @@ pub struct Tpdos {
     active: bool,
     /// Bit n: TPDO n is valid and asynchronous (254 / 255): the only ones with timers.
     timer_mask: u8,
+    /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
+    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk.
+    single: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
     /// a comparison instead of a walk over all TPDOs.
@@ -111,6 +164,7 @@ impl Default for Tpdos {
             count: 0,
             active: false,
             timer_mask: 0,
+            single: NO_SINGLE,
             due: NEVER,
         }
     }
@@ -168,6 +222,11 @@ impl Tpdos {
             }
         }
         self.timer_mask = mask;
+        self.single = if mask.is_power_of_two() {
+            mask.trailing_zeros() as u8
+        } else {
+            NO_SINGLE
+        };
         self.refresh_due();
     }
 
@@ -194,9 +253,11 @@ impl Tpdos {
         };
         let ci = comm_index(n);
         p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
+        p.id = (p.cob & 0x7FF) as u16;
         p.ttype = od.value(ci, 2).unwrap_or(254) as u8;
         p.inhibit = Duration::from_micros(od.value(ci, 3).unwrap_or(0) as u64 * 100);
         p.event = Duration::from_millis(od.value(ci, 5).unwrap_or(0) as u64);
+        p.period_us = p.event.micros().max(1);
         let mi = map_index(n);
         let count = od.value(mi, 0).unwrap_or(0) as usize;
         p.n_map = 0;
@@ -423,14 +484,38 @@ impl Tpdos {
         self.due
     }
 
-    /// Produces the asynchronous TPDOs that are due at `now`.
-    #[inline(always)]
+    /// Produces the asynchronous TPDOs that are due at `now`, in TPDO order.
+    #[inline]
     pub fn handle_timeout(&mut self, od: &Dictionary, now: Instant, out: &mut dyn FnMut(Frame)) {
-        // Nothing is due before `due` (it is `u64::MAX` while inactive).
-        if now.0 < self.due {
-            return;
+        while let Some(f) = self.poll_due(od, now) {
+            out(f);
         }
-        // `due` is recomputed in the same pass: only valid asynchronous TPDOs have timers.
+    }
+
+    /// The first asynchronous TPDO due at `now` (in TPDO order), built; any other one due stays
+    /// due (`due` ≤ `now`: the earliest deadline may then be reported early, never late) for
+    /// the next call. Calling this until `None` is
+    /// [`Tpdos::handle_timeout`]; a host loop calls it once per frame it can send, so a TPDO
+    /// goes out without passing through a queue.
+    #[inline(always)]
+    pub fn poll_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
+        // Nothing is due before `due` (it is `NEVER` while inactive).
+        if now.0 < self.due {
+            return None;
+        }
+        self.scan_due(od, now)
+    }
+
+    /// [`Tpdos::poll_due`] for a caller that knows `due` has passed (the node's timer fast
+    /// path): the walk over the timers, which also recomputes `due`.
+    #[inline(always)]
+    pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
+        if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
+            // One TPDO with a timer: its own deadlines are all there is.
+            let f = p.step(od, now);
+            self.due = p.own_due();
+            return f;
+        }
         let mut due = NEVER;
         let mut mask = self.timer_mask;
         while mask != 0 {
@@ -438,32 +523,21 @@ impl Tpdos {
             let n = (mask.trailing_zeros() & (MAX_TPDOS as u32 - 1)) as usize;
             mask &= mask - 1;
             let p = &mut self.pdos[n];
-            let t = p.next_event;
-            if now.0 >= t {
-                // Absolute schedule: the next period starts where this one was due.
-                let per = p.event.micros().max(1);
-                let mut next = t + per;
-                if next <= now.0 {
-                    let skipped = (now.0 - next) / per + 1;
-                    p.missed = p.missed.wrapping_add(skipped as u32);
-                    next += skipped * per;
-                }
-                p.next_event = next;
-                p.pending = true;
+            if let Some(f) = p.step(od, now) {
+                // The TPDOs after this one are looked at by the next call: until then
+                // something may still be due now.
+                self.due = if mask == 0 {
+                    due.min(p.own_due())
+                } else {
+                    now.0
+                };
+                return Some(f);
             }
-            if p.pending && now >= p.inhibit_until {
-                p.pending = false;
-                p.changed = false;
-                out(build(p, od));
-                p.inhibit_until = now + p.inhibit;
-            }
-            due = due.min(p.next_event);
-            if p.pending {
-                due = due.min(p.inhibit_until.0);
-            }
+            due = due.min(p.own_due());
         }
-        // Reached only while active (`due` is `NEVER` otherwise).
+        // `due` is `NEVER` while inactive: no timer runs then.
         self.due = due;
+        None
     }
 
     /// Read access to TPDO `n` (0-based).
@@ -487,7 +561,7 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     Ok(())
 }
 
-#[inline]
+#[inline(always)]
 fn build(p: &Tpdo, od: &Dictionary) -> Frame {
     // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
     // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).

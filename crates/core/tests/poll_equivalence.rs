@@ -1,12 +1,17 @@
-//! `Node::poll(now)` is documented as `handle_timeout(now)` when a deadline has passed, then
-//! `poll_transmit()`. Its fast path hands a due TPDO out without the transmit queue; this
-//! property test drives two nodes with the same stimuli, one through each API, and requires
-//! the same frames in the same order after every stimulus, and the same deadlines.
+//! The TPDO timer path that a producing node spends its time in, tested three ways:
 //!
-//! The stimuli aim at what the fast path depends on: TPDO timers (event timer, inhibit time,
-//! transmission type, validity, several TPDOs due together), NMT state, SYNC, heartbeat,
-//! EMCY from samples without a magnet, bit-rate mismatch (frames lost), power cycles, and time
-//! stepped through every deadline or in jumps.
+//! - `Node::poll(now)` is documented as `handle_timeout(now)` when a deadline has passed, then
+//!   `poll_transmit()`. Its fast path hands a due TPDO out without the transmit queue; one
+//!   property drives two nodes with the same stimuli, one through each API, and requires the
+//!   same frames in the same order after every stimulus, and the same deadlines. The stimuli
+//!   aim at what the fast path depends on: TPDO timers (event timer, inhibit time,
+//!   transmission type, validity, several TPDOs due together), NMT state, SYNC, heartbeat,
+//!   EMCY from samples without a magnet, bit-rate mismatch (frames lost), power cycles, and
+//!   time stepped through every deadline or in jumps.
+//! - Both APIs share the timer walk, so two more properties check it against oracles written
+//!   here from CiA 301's rules, not from the implementation: every event timer keeps its
+//!   absolute schedule, TPDOs due together come in TPDO order (also for a late host), and the
+//!   inhibit time holds a TPDO back and then sends it.
 
 use canpos_core::encoder::Sample;
 use canpos_core::models;
@@ -183,5 +188,186 @@ proptest! {
         for s in &stims {
             p.apply(s)?;
         }
+    }
+}
+
+/// SDO expedited download; whether the node accepted it.
+fn sdo_write(n: &mut Node<RamStorage>, id: u16, index: u16, sub: u8, v: u32, now: Instant) -> bool {
+    let [i0, i1] = index.to_le_bytes();
+    let [v0, v1, v2, v3] = v.to_le_bytes();
+    // The objects' sizes: mapping counts and transmission type 1 byte, times 2, the rest 4.
+    let cs = match (index & 0xFF00, sub) {
+        (0x1A00, 0) | (0x1800, 2) => 0x2F,
+        (0x1800, 3 | 5) => 0x2B,
+        _ => 0x23,
+    };
+    n.handle_frame(
+        &Frame::std8(0x600 + id, [cs, i0, i1, sub, v0, v1, v2, v3]),
+        now,
+    );
+    let mut answers = Vec::new();
+    while let Some(f) = n.poll(now) {
+        answers.push(f);
+    }
+    answers.first().map(|f| f.raw()[0]) == Some(0x60)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// An independent oracle for the timer walk (`poll` and `handle_timeout` share it): every
+    /// TPDO of the model made asynchronous with its own event timer produces exactly one frame
+    /// at `start + k × period`, and TPDOs due at the same instant come in TPDO order, whether
+    /// the host wakes at every deadline or late.
+    #[test]
+    fn every_event_timer_keeps_its_absolute_schedule(
+        model in 0usize..3,
+        periods in proptest::collection::vec(1u32..6, 4),
+        late in proptest::collection::vec(0u64..2500, 0..40),
+    ) {
+        let model = models::all()[model];
+        let mut n = Node::new(model, model.default_config, RamStorage::default());
+        n.power_on(Instant::ZERO);
+        while n.poll(Instant::ZERO).is_some() {}
+        let id = u16::from(model.default_config.node_id);
+        let count = usize::from(model.features.tpdos);
+        let map1 = n.read_object(0x1A00, 1).expect("TPDO1 maps something");
+        let now = Instant(1_000);
+        // (TPDO index, CAN-ID) of the TPDOs the model lets us configure so.
+        let mut cobs: Vec<(usize, u16)> = Vec::new();
+        for (k, &period) in periods.iter().enumerate().take(count) {
+            let (comm, map) = (0x1800 + k as u16, 0x1A00 + k as u16);
+            let cob = 0x180 + 0x100 * k as u32 + u32::from(id);
+            // Valid, asynchronous, no inhibit time, its own period; one mapped value. A model
+            // that fixes one of these for a TPDO (read-only or limited) leaves it out.
+            let mut ok = sdo_write(&mut n, id, comm, 1, cob | 0x8000_0000, now);
+            ok &= sdo_write(&mut n, id, map, 0, 0, now);
+            ok &= sdo_write(&mut n, id, map, 1, map1, now);
+            ok &= sdo_write(&mut n, id, map, 0, 1, now);
+            let _ = sdo_write(&mut n, id, comm, 2, 254, now);
+            ok &= n.read_object(comm, 2).is_ok_and(|t| t >= 254);
+            let _ = sdo_write(&mut n, id, comm, 3, 0, now);
+            ok &= n.read_object(comm, 3).map_or(true, |i| i == 0);
+            ok &= sdo_write(&mut n, id, comm, 5, period, now);
+            let valid = sdo_write(&mut n, id, comm, 1, if ok { cob } else { cob | 0x8000_0000 }, now);
+            if ok && valid {
+                cobs.push((k, cob as u16));
+            }
+        }
+        prop_assert!(!cobs.is_empty(), "no TPDO could be configured");
+        n.handle_frame(&Frame::new(0x000, &[0x01, 0]).expect("NMT"), now);
+        while n.poll(now).is_some() {}
+
+        // The host: wakes at every deadline, sometimes late (but never later than the
+        // shortest period, so no period is skipped).
+        let end = now.0 + 30_000;
+        let mut got: Vec<(u64, u16)> = Vec::new();
+        let mut t = now;
+        let mut k = 0;
+        while let Some(d) = n.poll_timeout() {
+            if d.0 > end {
+                break;
+            }
+            let delay = late.get(k).copied().unwrap_or(0) % 900;
+            k += 1;
+            t = Instant(d.0.max(t.0) + delay);
+            while let Some(f) = n.poll(t) {
+                got.push((t.0, f.std_id().expect("standard id")));
+            }
+        }
+        // The oracle: frame k of TPDO j is due at now + k × period_j; a late host sends it
+        // at its wake-up, TPDOs in index order among those due together.
+        let due: Vec<(u64, usize)> = {
+            let mut v: Vec<(u64, usize)> = cobs
+                .iter()
+                .enumerate()
+                .flat_map(|(j, &(k, _))| {
+                    let p = u64::from(periods[k]) * 1000;
+                    (1..).map(move |i| (now.0 + i * p, j)).take_while(|&(t, _)| t <= end)
+                })
+                .collect();
+            v.sort();
+            v
+        };
+        let sent: Vec<u16> = got.iter().map(|&(_, c)| c).collect();
+        let mut want: Vec<u16> = Vec::new();
+        // Group the oracle's frames by the wake-up that serves them.
+        let wakes: Vec<u64> = {
+            let mut w: Vec<u64> = got.iter().map(|&(t, _)| t).collect();
+            w.dedup();
+            w
+        };
+        let mut i = 0;
+        for &w in &wakes {
+            let mut batch: Vec<usize> = Vec::new();
+            while i < due.len() && due[i].0 <= w {
+                batch.push(due[i].1);
+                i += 1;
+            }
+            batch.sort();
+            want.extend(batch.iter().map(|&j| cobs[j].1));
+        }
+        prop_assert!(
+            i + cobs.len() >= due.len(),
+            "frames missing: {} of {}",
+            i,
+            due.len()
+        );
+        prop_assert_eq!(sent, want);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// An independent oracle for the inhibit time of an event-timer TPDO: each expiry makes the
+    /// TPDO pending; it goes out at the expiry or when the inhibit time since the previous
+    /// frame ends, whichever is later; expiries while it waits merge into that one frame.
+    #[test]
+    fn inhibit_time_holds_and_then_sends_the_tpdo(
+        model in 0usize..3,
+        period_ms in 1u32..6,
+        inhibit_100us in 0u32..60,
+    ) {
+        let model = models::all()[model];
+        let mut n = Node::new(model, model.default_config, RamStorage::default());
+        n.power_on(Instant::ZERO);
+        while n.poll(Instant::ZERO).is_some() {}
+        let id = u16::from(model.default_config.node_id);
+        let now = Instant(1_000);
+        // TMI refuses an inhibit time not below the event timer: the values that landed count.
+        let _ = sdo_write(&mut n, id, 0x1800, 5, period_ms, now);
+        let _ = sdo_write(&mut n, id, 0x1800, 3, inhibit_100us, now);
+        let p = u64::from(n.read_object(0x1800, 5).expect("event timer")) * 1000;
+        let inh = u64::from(n.read_object(0x1800, 3).expect("inhibit time")) * 100;
+        prop_assume!(p > 0 && n.read_object(0x1800, 2).is_ok_and(|t| t >= 254));
+        n.handle_frame(&Frame::new(0x000, &[0x01, 0]).expect("NMT"), now);
+        while n.poll(now).is_some() {}
+
+        let end = now.0 + 40_000;
+        let mut got = Vec::new();
+        while let Some(d) = n.poll_timeout() {
+            if d.0 > end {
+                break;
+            }
+            while let Some(f) = n.poll(d) {
+                if f.std_id() == Some(0x180 + id) {
+                    got.push(d.0);
+                }
+            }
+        }
+        let mut want = Vec::new();
+        let (mut fire, mut free_at) = (now.0 + p, 0u64);
+        loop {
+            let send = fire.max(free_at);
+            if send > end {
+                break;
+            }
+            want.push(send);
+            free_at = send + inh;
+            // Expiries up to the send merged into it; the next one after it starts anew.
+            fire = now.0 + ((send - now.0) / p + 1) * p;
+        }
+        prop_assert_eq!(got, want, "period {} µs, inhibit {} µs", p, inh);
     }
 }
