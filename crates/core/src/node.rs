@@ -175,8 +175,9 @@ pub struct Node<S: Storage> {
     /// those change: `reset` and `power_off`.
     timer_gate: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
-    /// `other_due & timer_gate`, or 0 while an EMCY waits or the error register needs
-    /// mirroring (the full path flushes them). Kept by `update_fast_due`.
+    /// `other_due & timer_gate`, kept by `update_fast_due`. (EMCY needs no term of its own:
+    /// every entry point flushes what it raised, and an EMCY held back by its inhibit time
+    /// has its deadline in `other_due`.)
     fast_due: u64,
 }
 
@@ -327,16 +328,11 @@ impl<S: Storage> Node<S> {
         self.update_fast_due();
     }
 
-    /// Recomputes `fast_due` from `other_due`, `timer_gate` and the EMCY state; every method
-    /// that changes one of them ends here (the fast path itself changes none).
+    /// Recomputes `fast_due` from `other_due` and `timer_gate`; every method that changes
+    /// one of them ends here (the fast path itself changes neither).
+    #[inline(always)]
     fn update_fast_due(&mut self) {
-        let d = &self.dev;
-        let emcy_idle = d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending();
-        self.fast_due = if emcy_idle {
-            self.other_due & self.timer_gate
-        } else {
-            0
-        };
+        self.fast_due = self.other_due & self.timer_gate;
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
@@ -632,7 +628,17 @@ impl<S: Storage> Node<S> {
     fn after_tpdo_timers(&mut self, now: Instant) {
         let d = &mut self.dev;
         d.now = now;
-        debug_assert!(d.emcy.generation() == d.emcy_synced && !d.emcy.has_pending());
+        // Nothing for the EMCY service to do (see `fast_due`).
+        debug_assert!(d.emcy.generation() == d.emcy_synced, "EMCY not mirrored");
+        // (A stopped node keeps its EMCYs until it leaves Stopped.)
+        debug_assert!(
+            !d.emcy.has_pending()
+                || d.nmt == NmtState::Stopped
+                || d.emcy.poll_timeout().is_some_and(|t| now < t),
+            "EMCY due: {:?} at {now:?}, nmt {:?}",
+            d.emcy.poll_timeout(),
+            d.nmt
+        );
         self.deadline = self.other_due.min(d.pdo.due_us());
     }
 
