@@ -24,13 +24,10 @@ fn booted(model: &'static Model, channels: u8) -> Node<NoStorage> {
     n
 }
 
-/// Timers if due, then one frame out.
+/// Timers if due, then one frame out (`Node::poll`, what the host runtime calls).
 #[inline(always)]
 fn step_out(n: &mut Node<NoStorage>, now: Instant) -> Option<Frame> {
-    if n.poll_timeout().is_some_and(|t| t <= now) {
-        n.handle_timeout(now);
-    }
-    n.poll_transmit()
+    n.poll(now)
 }
 
 fn sdo(n: &mut Node<NoStorage>, id: u16, req: [u8; 8], now: Instant) -> [u8; 8] {
