@@ -1,7 +1,9 @@
 //! canpos-core: the CANopen device as firmware would run it.
 //!
 //! `#![no_std]`, no allocation, sans-IO: frames go in through [`node::Node::handle_frame`], come
-//! out of [`node::Node::poll_transmit`], and time is passed in by the caller. One module per
+//! out of [`node::Node::poll`] (the timers due at the given time, then the next frame; or the
+//! separate [`node::Node::handle_timeout`] and [`node::Node::poll_transmit`]), and time is
+//! passed in by the caller, who sleeps until [`node::Node::poll_timeout`]. One module per
 //! CANopen service, so each standard's rules live in one place:
 //!
 //! | module | standard | what |
