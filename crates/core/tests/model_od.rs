@@ -87,6 +87,8 @@ fn other_value(e: &Entry, cur: u32) -> u32 {
     match (e.index, e.sub) {
         (0x1003, 0) => 0,
         (0x1005, _) => 0x81,
+        // Guarding moves to a CAN-ID no service reserves.
+        (0x100E, _) => 0x300,
         // Toggle "not valid" (allowed while valid, SPEC §5) keeping the CAN-ID.
         (0x1014, _) | (0x1800..=0x1803, 1) => cur ^ 0x8000_0000,
         (0x6000, _) => cur ^ 1,

@@ -26,6 +26,32 @@ use crate::od::{Abort, Dictionary};
 use crate::pdo::Tpdos;
 use crate::wire::Instant;
 
+/// The CiA 406 object rules, as [`crate::od::Hook::App`] numbers in the model tables: each
+/// object names the rule that governs it, so no index list is repeated here.
+pub mod hook {
+    /// 0x6000 operating parameters: only the code-sequence bit (D2); positions follow it.
+    pub const CODE_SEQUENCE: u8 = 1;
+    /// 0x6005/1 position measuring step (writable on TMI, R31): whole µm, not below the
+    /// variant's minimum; positions follow it.
+    pub const MEASURING_STEP: u8 = 2;
+    /// 0x6010/n preset: the current position reads the written value (SPEC §10).
+    pub const PRESET: u8 = 3;
+    /// 0x6301/n cam enable, 0x6302/n cam polarity: one bit per cam, four cams.
+    pub const CAM_SWITCH: u8 = 4;
+    /// 0x631x / 0x632x / 0x633x cam limits and hysteresis: the cam states follow.
+    pub const CAM_LIMIT: u8 = 5;
+    /// 0x6401/n, 0x6402/n work-area limits: the work-area state follows.
+    pub const WORK_AREA_LIMIT: u8 = 6;
+    /// 0x6200 cyclic timer: one value with TPDO1's event timer (D12).
+    pub const CYCLIC_TIMER: u8 = 7;
+    /// 0x6500 operating status: reads the active 0x6000 (D2).
+    pub const OPERATING_STATUS: u8 = 8;
+    /// 0x6509 offset value: reads the offset of channel 1's preset (0x650C/1).
+    pub const OFFSET: u8 = 9;
+    /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
+    pub const MANUFACTURER_STATUS: u8 = 10;
+}
+
 /// What the application may touch while it runs a cycle or reacts to a write.
 pub struct AppCtx<'a> {
     /// The dictionary (live values are written here).
@@ -347,20 +373,21 @@ impl Encoder {
         model.features.tmi_emcy
     }
 
-    /// Values derived from other objects, brought up to date just before an SDO read of
-    /// `index` (they must be right even when no measurement cycle ran since the change):
-    /// 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002 carries the NMT state.
-    pub fn refresh(&self, index: u16, od: &mut Dictionary, nmt: NmtState) {
-        match index {
-            0x6500 => {
+    /// Values derived from other objects, brought up to date just before an SDO read of an
+    /// object with application hook `h` (they must be right even when no measurement cycle ran
+    /// since the change): 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002
+    /// carries the NMT state.
+    pub fn refresh(&self, h: u8, od: &mut Dictionary, nmt: NmtState) {
+        match h {
+            hook::OPERATING_STATUS => {
                 let v = od.value(0x6000, 0).unwrap_or(0);
                 od.set_value(0x6500, 0, v);
             }
-            0x6509 => {
+            hook::OFFSET => {
                 let v = od.value(0x650C, 1).unwrap_or(0);
                 od.set_value(0x6509, 0, v);
             }
-            0x1002 => {
+            hook::MANUFACTURER_STATUS => {
                 od.set_value(0x1002, 0, self.status(nmt));
             }
             _ => {}
@@ -410,46 +437,51 @@ impl Encoder {
         core::mem::take(&mut self.auto_dirty)
     }
 
-    /// Application rules for a write to 0x2000–0x9FFF.
-    pub fn validate(&self, index: u16, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
-        match (index, sub) {
+    /// The rule of application hook `h` for a write of `raw` to `sub`.
+    pub fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+        match h {
             // D2: only the code-sequence bit.
-            (0x6000, 0) if raw & !1 != 0 => Err(Abort::InvalidValue),
+            hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
             // R31: whole µm, not below the variant's minimum step.
-            (0x6005, 1) if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
-            (0x6005, 1) if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
+            hook::MEASURING_STEP if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
+            hook::MEASURING_STEP if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
             // Four cams per channel: bits 4…7 name no cam.
-            (0x6301 | 0x6302, 1..) if raw > 0x0F => Err(Abort::InvalidValue),
+            hook::CAM_SWITCH if sub >= 1 && raw > 0x0F => Err(Abort::InvalidValue),
             _ => Ok(()),
         }
     }
 
-    /// Side effects of a write to 0x2000–0x9FFF.
-    pub fn written(&mut self, index: u16, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+    /// The side effects of application hook `h` once `raw` was written to `sub`.
+    pub fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
-        match index {
-            0x6010 if sub >= 1 => {
-                let ch = sub as usize - 1;
+        match h {
+            hook::PRESET => {
+                let ch = (sub as usize).wrapping_sub(1);
                 if ch < MAX_CHANNELS {
                     self.preset(ch, raw, cx);
                     self.publish(ch, cx);
                 }
             }
-            0x6000 => {
+            hook::CODE_SEQUENCE => {
                 cx.od.set_value(0x6500, 0, raw);
                 for ch in 0..n {
                     self.publish(ch, cx);
                 }
             }
-            0x6005 if sub == 1 => {
+            hook::MEASURING_STEP => {
                 // Offsets stay in position units (the manual says nothing about rescaling a
                 // preset when the step changes): write the preset again after changing it.
                 for ch in 0..n {
                     self.publish(ch, cx);
                 }
             }
-            0x6301..=0x6333 | 0x6401 | 0x6402 if sub >= 1 => {
-                let ch = sub as usize - 1;
+            hook::CYCLIC_TIMER => {
+                // D12: one value with TPDO1's event timer.
+                cx.od.set_value(0x1800, 5, raw);
+                cx.pdo.reconfigure(0, cx.od, cx.now);
+            }
+            hook::CAM_SWITCH | hook::CAM_LIMIT | hook::WORK_AREA_LIMIT => {
+                let ch = (sub as usize).wrapping_sub(1);
                 if ch < n {
                     self.publish(ch, cx);
                 }
@@ -457,6 +489,14 @@ impl Encoder {
             _ => {}
         }
         self.sync(cx);
+    }
+
+    /// A communication parameter `sub` of TPDO `n` changed: 0x6200 is one value with TPDO1's
+    /// event timer (D12).
+    pub fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        if n == 0 && sub == 5 {
+            cx.od.set_value(0x6200, 0, raw);
+        }
     }
 
     /// One channel's measurement: position, velocity, then the states derived from them.
