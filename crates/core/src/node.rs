@@ -7,7 +7,7 @@
 use crate::emcy::{self, Emcy};
 use crate::encoder::{AppCtx, Encoder, Sample};
 use crate::errctl::{ErrCtl, ErrCtlEvent};
-use crate::lss::LssSlave;
+use crate::lss::{self, LssSlave};
 use crate::models::{DeviceConfig, Model};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource};
@@ -315,6 +315,7 @@ impl<S: Storage> Node<S> {
         take(self.held_sdo.map(|(t, _)| t));
         take(self.sdo.poll_timeout());
         take(self.lss.poll_timeout());
+        take(d.silent_until);
         take(d.errctl.poll_timeout());
         if d.nmt != NmtState::Stopped {
             take(d.emcy.poll_timeout());
@@ -372,9 +373,12 @@ impl<S: Storage> Node<S> {
         d.apply_comm_config(now);
         d.pdo.set_active(false, now);
         if d.node_id == UNCONFIGURED {
-            // CiA 305: no node-id, no NMT: wait in LSS for one.
+            // CiA 305: no node-id, no NMT: wait in LSS for one, in LSS waiting for a master to
+            // select (DS 305 V2), or in configuration by itself (TMI R7).
             d.nmt = NmtState::Initialising;
-            self.lss.force_configuration();
+            if d.model.features.lss_unconfigured_configures {
+                self.lss.force_configuration();
+            }
             return;
         }
         d.nmt = NmtState::PreOperational;
@@ -415,7 +419,20 @@ impl<S: Storage> Node<S> {
         }
         let d = &mut self.dev;
         if id == cob::LSS_RX {
-            if let Some(r) = self.lss.handle(f.data(), now, d) {
+            let view = d.lss_view();
+            let reply = match self.lss.handle(f.data(), now, &view) {
+                lss::Output::Silent => None,
+                lss::Output::Answer(a) => Some(a),
+                lss::Output::Do(r) => {
+                    let ok = d.lss_request(r);
+                    if let Some(kbps) = self.lss.handle_timeout(now) {
+                        // A switch delay of 0: the new bit rate is active at once.
+                        d.activate_bitrate(kbps);
+                    }
+                    lss::confirm(r, ok)
+                }
+            };
+            if let Some(r) = reply {
                 d.tx.push(Frame::std8(cob::LSS_TX, r));
             }
             self.after_lss(now);
@@ -588,7 +605,14 @@ impl<S: Storage> Node<S> {
             let id = cob::SDO_TX + self.dev.node_id as u16;
             self.dev.tx.push(Frame::std8(id, r));
         }
-        self.lss.handle_timeout(now, &mut self.dev);
+        if let Some(kbps) = self.lss.handle_timeout(now) {
+            self.dev.activate_bitrate(kbps);
+        }
+        if self.dev.silent_until.is_some_and(|t| now >= t) {
+            // The bit-rate switch is over: the node talks again.
+            self.dev.silent_until = None;
+            self.dev.update_talk();
+        }
         self.after_lss(now);
         let d = &mut self.dev;
         if d.node_id == UNCONFIGURED || d.nmt == NmtState::Initialising {
@@ -885,14 +909,54 @@ impl<S: Storage> Device<S> {
         self.talk_from = self.talk_from_now();
     }
 
-    /// Sets the pending node-id (LSS configure node-id, TMI 0x2000).
-    pub(crate) fn set_pending_node_id(&mut self, id: u8) {
-        self.pending_node_id = id;
+    /// What the LSS slave needs to know of the node for one frame.
+    fn lss_view(&self) -> lss::LssView {
+        lss::LssView {
+            address: self.lss_address(),
+            node_id: self.node_id,
+            pending: (self.pending_node_id, self.pending_bitrate),
+            fastscan: self.model.features.lss_fastscan,
+            bit_timing: self.model.features.lss_bit_timing,
+        }
     }
 
-    /// Sets the pending bit rate (LSS configure bit timing, TMI 0x2001).
-    pub(crate) fn set_pending_bitrate(&mut self, kbps: u16) {
+    /// Carries out what an LSS request asks; returns whether it succeeded.
+    fn lss_request(&mut self, r: lss::Request) -> bool {
+        match r {
+            lss::Request::ConfigureNodeId(id) => self.set_pending_node_id(id),
+            lss::Request::ConfigureBitRate(kbps) => self.set_pending_bitrate(kbps),
+            lss::Request::ActivateBitRate { silent_until } => {
+                // Deaf and mute for both switch delays; checked on every frame.
+                self.silent_until = Some(silent_until);
+                self.update_talk();
+            }
+            lss::Request::StoreConfiguration => return self.store_lss().is_ok(),
+        }
+        true
+    }
+
+    /// Sets the pending node-id (LSS configure node-id) and the objects that copy it (TMI
+    /// 0x2000), so that every copy says the same.
+    fn set_pending_node_id(&mut self, id: u8) {
+        self.pending_node_id = id;
+        if id != UNCONFIGURED {
+            self.set_hooked(Hook::PendingNodeId, id as u32);
+        }
+    }
+
+    /// Sets the pending bit rate (LSS configure bit timing) and its object copies (TMI 0x2001).
+    fn set_pending_bitrate(&mut self, kbps: u16) {
         self.pending_bitrate = kbps;
+        self.set_hooked(Hook::PendingBitRate, object_of_kbps(kbps));
+    }
+
+    /// Sets every entry with `hook` (rare paths only: it scans the table).
+    fn set_hooked(&mut self, hook: Hook, raw: u32) {
+        for slot in 0..self.od.entries().len() {
+            if self.od.entry(slot).hook == hook {
+                self.od.set(slot, raw);
+            }
+        }
     }
 
     /// Makes `kbps` the active bit rate now (LSS activate bit timing).
@@ -924,11 +988,11 @@ impl<S: Storage> Device<S> {
         else {
             return;
         };
-        let mut saved_node = None;
+        let saved_node = recs
+            .clone()
+            .find(|&(k, _)| k == storage::KEY_SAVED_NODE_ID)
+            .and_then(|(_, v)| stored_node_id(v));
         for (k, v) in recs {
-            if k == storage::KEY_SAVED_NODE_ID {
-                saved_node = stored_node_id(v);
-            }
             if !storage::is_object_key(k) {
                 continue;
             }

@@ -219,7 +219,7 @@ impl<'a> ImageWriter<'a> {
 pub fn parse_image(
     image: &[u8],
     model_tag: u8,
-) -> Result<impl Iterator<Item = (u32, u32)> + '_, StorageError> {
+) -> Result<impl Iterator<Item = (u32, u32)> + Clone + '_, StorageError> {
     if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
         return Err(StorageError::Corrupt);
     }
@@ -250,7 +250,7 @@ pub fn load_image<'a, S: Storage>(
     st: &mut S,
     model_tag: u8,
     buf: &'a mut [u8; IMAGE_MAX],
-) -> Result<impl Iterator<Item = (u32, u32)> + 'a, StorageError> {
+) -> Result<impl Iterator<Item = (u32, u32)> + Clone + 'a, StorageError> {
     let n = st.load(buf)?;
     parse_image(&buf[..n], model_tag)
 }

@@ -497,10 +497,14 @@ impl Runtime {
     }
 
     /// One turn: frames in, cycles, timers, frames out.
-    fn turn(&mut self, now: Instant) -> io::Result<()> {
+    fn turn(&mut self, mut now: Instant) -> io::Result<()> {
         let mut received = false;
         while let Some(rx) = self.transport.try_recv()? {
             received = true;
+            // Each frame at the time it is handled, not the time the turn began: a request that
+            // waited behind others (or behind a slow store) would otherwise be answered early
+            // by its own clock (the D7 store time counts from the request).
+            now = self.now().max(now);
             self.deliver(&rx.frame, None, now);
             self.route(now);
         }

@@ -201,8 +201,6 @@ struct Channel {
     /// Cam window state before polarity, for hysteresis (TMI); `None` before the first
     /// evaluation.
     inside: [Option<bool>; 4],
-    /// Preset offset where the model has no 0x650C to keep it.
-    offset: i64,
 }
 
 /// The CiA 406 application state (per-channel history the dictionary does not hold).
@@ -274,7 +272,9 @@ impl Encoder {
                 self.measure(ch, nm, cx);
                 missing |= self.ch[ch].missing;
             }
-            set_flag(&mut self.faults, F_MISSING, missing);
+            // A blind transducer's lost pulses are that error, not a second event: its EMCY
+            // goes out once (0x5000 is announced per event).
+            set_flag(&mut self.faults, F_MISSING, missing && !blind);
         }
         self.temperature(s.temperature_c, cx);
         if tmi {
@@ -538,7 +538,7 @@ impl Encoder {
             return;
         };
         let sub = ch as u8 + 1;
-        let pos = self.base_steps(nm, cx) + self.offset(ch, cx.od);
+        let pos = self.base_steps(nm, cx) + self.offset(ch, cx);
         let pos = pos.clamp(i32::MIN as i64, i32::MAX as i64);
         set_live(cx, 0x6020, sub, pos as i32 as u32, false);
         self.cams(ch, pos, cx);
@@ -562,16 +562,25 @@ impl Encoder {
         }
     }
 
-    fn offset(&self, ch: usize, od: &Dictionary) -> i64 {
-        match od.value(0x650C, ch as u8 + 1) {
-            Some(v) => v as i32 as i64,
-            None => self.ch[ch].offset,
-        }
+    /// The offset added to channel `ch`'s steps: the one the last preset produced (0x650C/n),
+    /// or on a model whose preset is a zero-point shift the preset itself (TMI, see
+    /// [`crate::models::Features::preset_zero_shift`]).
+    fn offset(&self, ch: usize, cx: &AppCtx<'_>) -> i64 {
+        let sub = ch as u8 + 1;
+        let index = if cx.model.features.preset_zero_shift {
+            0x6010
+        } else {
+            0x650C
+        };
+        cx.od.value(index, sub).unwrap_or(0) as i32 as i64
     }
 
     /// Writing a preset makes the current position read it (SPEC §10); E-Series clears the
-    /// preset with 0xFFFFFFFF.
+    /// preset with 0xFFFFFFFF. On a zero-shift model the preset is the offset itself.
     fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
+        if cx.model.features.preset_zero_shift {
+            return;
+        }
         let sub = ch as u8 + 1;
         let offset = if cx.model.features.preset_clear && raw == 0xFFFF_FFFF {
             cx.od.set_value(0x6010, sub, 0);
@@ -581,7 +590,6 @@ impl Encoder {
             let base = self.ch[ch].nm.map_or(0, |nm| self.base_steps(nm, cx));
             (raw as i32 as i64 - base).clamp(i32::MIN as i64, i32::MAX as i64)
         };
-        self.ch[ch].offset = offset;
         cx.od.set_value(0x650C, sub, offset as i32 as u32);
         if ch == 0 {
             cx.od.set_value(0x6509, 0, offset as i32 as u32);
@@ -632,8 +640,15 @@ impl Encoder {
         let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
         let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
         let end = cx.cfg.stroke_mm as i64 * 1_000_000;
-        let out = if cx.model.features.tmi_emcy {
-            nm <= 0 || nm >= end
+        let out = if cx.model.features.preset_zero_shift {
+            // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length" (the
+            // length in position steps).
+            let step = cx
+                .od
+                .value(0x6005, 1)
+                .unwrap_or(cx.cfg.position_step_nm)
+                .max(1) as i64;
+            pos <= self.offset(ch, cx) || pos >= end / step
         } else {
             nm < 0 || nm > end
         };

@@ -211,6 +211,7 @@ pub static E_SERIES: Model = Model {
         store_preop_only: false,
         kill_signature: false,
         preset_clear: true,
+        preset_zero_shift: false,
         tmi_emcy: false,
         window_cams: false,
         power_on_emcy: true,

@@ -40,6 +40,12 @@ pub struct Features {
     pub kill_signature: bool,
     /// E-Series: writing 0xFFFFFFFF to a preset clears it.
     pub preset_clear: bool,
+    /// The preset (0x6010/n) is the position value at the start of the measuring range, added
+    /// to every measurement, rather than the value the current position takes when it is
+    /// written (TMI: it has no 0x650C offset object, and its work-area bit 0 is set at
+    /// "Position <= Preset Value", 002 §1.11.2, which only this reading makes the start of the
+    /// range; DECISIONS.md).
+    pub preset_zero_shift: bool,
     /// TMI-style EMCY table and reactions (0x9080 / 0x9090 on cam / work-area changes, 0x5000
     /// with sub-codes, lock-out).
     pub tmi_emcy: bool,

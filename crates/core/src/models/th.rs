@@ -224,6 +224,7 @@ pub static TH: Model = Model {
         store_preop_only: false,
         kill_signature: false,
         preset_clear: false,
+        preset_zero_shift: false,
         tmi_emcy: false,
         window_cams: false,
         power_on_emcy: true,

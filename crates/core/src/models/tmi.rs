@@ -245,6 +245,7 @@ pub static TMI: Model = Model {
         store_preop_only: true,
         kill_signature: true,
         preset_clear: false,
+        preset_zero_shift: true,
         tmi_emcy: true,
         window_cams: true,
         power_on_emcy: false,
