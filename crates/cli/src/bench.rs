@@ -26,7 +26,7 @@ use crate::master::SdoClient;
 use anyhow::{bail, ensure, Context as _, Result};
 use canpos_core::models::{self, Model};
 use canpos_core::storage::NoStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use clap::{Args, Subcommand, ValueEnum};
 
 /// `canpos bench` options.
@@ -102,7 +102,7 @@ fn parse_hex16(s: &str) -> Result<u16, String> {
 }
 
 /// A node of `model` after power-on, boot-up frames taken, in pre-operational.
-fn booted(model: &'static Model) -> Node<NoStorage> {
+fn booted(model: &'static Model) -> SensorNode<NoStorage> {
     let mut n = Node::new(model, model.default_config, NoStorage);
     n.power_on(Instant(0));
     while n.poll_transmit().is_some() {}
@@ -112,7 +112,7 @@ fn booted(model: &'static Model) -> Node<NoStorage> {
 /// The node's full processing step after an input: its timers if due, then one frame out
 /// ([`Node::poll`], what the host runtime calls).
 #[inline(always)]
-fn step_out(n: &mut Node<NoStorage>, now: Instant) -> Option<Frame> {
+fn step_out(n: &mut SensorNode<NoStorage>, now: Instant) -> Option<Frame> {
     n.poll(now)
 }
 
@@ -602,9 +602,9 @@ fn size() -> Result<i32> {
     let line = json!({
         "bench": "size",
         "models": models::all().map(|m| m.name),
-        "node_no_storage": size_of::<Node<NoStorage>>(),
-        "node_ram_storage": size_of::<Node<RamStorage>>(),
-        "node_file_storage": size_of::<Node<canpos_host::FileStorage>>(),
+        "node_no_storage": size_of::<SensorNode<NoStorage>>(),
+        "node_ram_storage": size_of::<SensorNode<RamStorage>>(),
+        "node_file_storage": size_of::<SensorNode<canpos_host::FileStorage>>(),
         "dictionary": size_of::<canpos_core::od::Dictionary>(),
         "tx_queue": size_of::<canpos_core::txq::TxQueue>(),
         "sdo_server": size_of::<canpos_core::sdo::SdoServer>(),

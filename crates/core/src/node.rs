@@ -4,8 +4,9 @@
 //! `poll_timeout`, `update_sample`. [`Device`] holds the state the services share; the SDO
 //! server and the LSS slave sit beside it so they can borrow it mutably while they run.
 
+use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
-use crate::encoder::{AppCtx, Encoder, Sample};
+use crate::encoder::Encoder;
 use crate::errctl::{ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave};
 use crate::models::{DeviceConfig, Model};
@@ -90,7 +91,7 @@ pub struct Stats {
 }
 
 /// The state all services share: dictionary, NMT state, identity, queues, storage.
-pub struct Device<S: Storage> {
+pub struct Device<A: Application, S: Storage> {
     pub(crate) model: &'static Model,
     pub(crate) cfg: DeviceConfig,
     pub(crate) od: Dictionary,
@@ -122,7 +123,7 @@ pub struct Device<S: Storage> {
     pub(crate) emcy: Emcy,
     pub(crate) errctl: ErrCtl,
     pub(crate) pdo: Tpdos,
-    pub(crate) encoder: Encoder,
+    pub(crate) app: A,
     pub(crate) storage: S,
     pub(crate) now: Instant,
     /// A store completed: the SDO answer waits until this instant (D7).
@@ -187,11 +188,11 @@ impl Dictionary {
 }
 
 /// A CANopen position sensor node.
-pub struct Node<S: Storage> {
+pub struct Node<A: Application, S: Storage> {
     sdo: SdoServer,
     held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
-    dev: Device<S>,
+    dev: Device<A, S>,
     /// [`Node::poll_timeout`] in µs (`u64::MAX`: none), recomputed at the end of every method
     /// that can change a deadline: hosts ask after every frame, and a cached answer is free.
     deadline: u64,
@@ -219,9 +220,18 @@ impl ParamSource for Params<'_> {
     }
 }
 
-impl<S: Storage> Node<S> {
-    /// A node of `model` with unit configuration `cfg`, powered off. Call [`Node::power_on`].
+impl<S: Storage> Node<Encoder, S> {
+    /// A sensor of `model` (the CiA 406 application) with unit configuration `cfg`, powered
+    /// off. Call [`Node::power_on`].
     pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
+        Node::with_app(model, cfg, Encoder::default(), storage)
+    }
+}
+
+impl<A: Application, S: Storage> Node<A, S> {
+    /// A node of the device `model` describes, running application `app`, powered off. Call
+    /// [`Node::power_on`].
+    pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
         let od = Dictionary::new(model.entries);
         let hot = HotSlots::new(&od);
         Node {
@@ -252,7 +262,7 @@ impl<S: Storage> Node<S> {
                 emcy: Emcy::default(),
                 errctl: ErrCtl::default(),
                 pdo: Tpdos::default(),
-                encoder: Encoder::default(),
+                app,
                 storage,
                 now: Instant::ZERO,
                 sdo_hold_until: None,
@@ -277,7 +287,7 @@ impl<S: Storage> Node<S> {
         self.dev.silent_until = None;
         self.dev.update_talk();
         self.dev.emcy = Emcy::default();
-        self.dev.encoder = Encoder::default();
+        self.dev.app.power_on();
         self.dev.stored_lss = (None, None);
         self.dev.stats.storage_corrupt = false;
         // Stored LSS values override the factory configuration.
@@ -368,7 +378,7 @@ impl<S: Storage> Node<S> {
         d.emcy.reset();
         d.errctl.reset();
         if application {
-            d.encoder.reset();
+            d.app.reset();
         }
         d.apply_comm_config(now);
         d.pdo.set_active(false, now);
@@ -510,9 +520,8 @@ impl<S: Storage> Node<S> {
         let d = &mut self.dev;
         match c {
             NmtCommand::Start => {
-                if d.encoder.lockout() {
-                    // TMI lock-out: stays pre-operational and repeats the EMCY (§3.12).
-                    d.encoder.repeat_lockout_emcy(&mut d.emcy);
+                if d.app.refuses_start(&mut d.emcy) {
+                    // E.g. the TMI lock-out: stays pre-operational, the EMCY repeats (§1.14).
                     d.flush_emcy();
                     return;
                 }
@@ -541,18 +550,18 @@ impl<S: Storage> Node<S> {
         }
     }
 
-    /// Feeds one measurement cycle's sample to the CiA 406 application.
-    pub fn update_sample(&mut self, s: &Sample, now: Instant) {
+    /// Feeds one process cycle's sample (a measurement) to the application.
+    pub fn update_sample(&mut self, s: &A::Sample, now: Instant) {
         if !self.dev.powered {
             return;
         }
         self.dev.now = now;
         let d = &mut self.dev;
         let forced_preop = {
-            let (encoder, mut cx) = d.app(now);
-            encoder.cycle(s, &mut cx)
+            let (app, mut cx) = d.app_ctx(now);
+            app.cycle(s, &mut cx)
         };
-        if d.encoder.take_auto_dirty() {
+        if d.app.take_auto_dirty() {
             // Values the device keeps by itself (TH 0x2901 life extremes, D19). A failing
             // medium only loses this update; the next change tries again.
             let _ = d.store(Scope::Auto);
@@ -714,7 +723,7 @@ impl<S: Storage> Node<S> {
     }
 
     /// The device state (read-only view for hosts and tests).
-    pub fn device(&self) -> &Device<S> {
+    pub fn device(&self) -> &Device<A, S> {
         &self.dev
     }
 
@@ -723,24 +732,23 @@ impl<S: Storage> Node<S> {
         &mut self.dev.storage
     }
 
-    /// Mutable access to the CiA 406 application (fault injection, presets from a control
-    /// interface).
-    pub fn encoder_mut(&mut self) -> &mut Encoder {
-        &mut self.dev.encoder
+    /// Mutable access to the application (fault injection, presets from a control interface).
+    pub fn app_mut(&mut self) -> &mut A {
+        &mut self.dev.app
     }
 
     /// Injects (`active`) or removes a fault the CiA 406 application reports the way the
     /// model's manual says (EMCY code and bytes, error register, alarms, TMI 0x1002 bits and
     /// lock-out).
-    pub fn inject_fault(&mut self, fault: crate::encoder::Fault, active: bool) {
+    pub fn inject_fault(&mut self, fault: A::Fault, active: bool) {
         if !self.dev.powered {
             return;
         }
         let d = &mut self.dev;
         let now = d.now;
         let forced_preop = {
-            let (encoder, mut cx) = d.app(now);
-            encoder.inject(fault, active, &mut cx)
+            let (app, mut cx) = d.app_ctx(now);
+            app.inject(fault, active, &mut cx)
         };
         if forced_preop && d.nmt == NmtState::Operational {
             d.nmt = NmtState::PreOperational;
@@ -773,7 +781,7 @@ impl<S: Storage> Node<S> {
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// The product model.
     pub fn model(&self) -> &'static Model {
         self.model
@@ -810,9 +818,9 @@ impl<S: Storage> Device<S> {
     pub fn tpdos(&self) -> &Tpdos {
         &self.pdo
     }
-    /// The CiA 406 application.
-    pub fn encoder(&self) -> &Encoder {
-        &self.encoder
+    /// The application.
+    pub fn app(&self) -> &A {
+        &self.app
     }
     /// The LSS address (0x1018/1…4).
     pub fn lss_address(&self) -> [u32; 4] {
@@ -1042,8 +1050,8 @@ impl<S: Storage> Device<S> {
         ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
     }
 
-    /// The encoder and the context it runs in (disjoint borrows of the device).
-    fn app(&mut self, now: Instant) -> (&mut Encoder, AppCtx<'_>) {
+    /// The application and the context it runs in (disjoint borrows of the device).
+    fn app_ctx(&mut self, now: Instant) -> (&mut A, AppCtx<'_>) {
         let cx = AppCtx {
             od: &mut self.od,
             emcy: &mut self.emcy,
@@ -1054,7 +1062,7 @@ impl<S: Storage> Device<S> {
             bitrate_kbps: self.bitrate,
             now,
         };
-        (&mut self.encoder, cx)
+        (&mut self.app, cx)
     }
 
     /// Hands guard time, life time factor and the guarding COB-ID (0x100E where the model has
@@ -1144,8 +1152,9 @@ impl<S: Storage> Device<S> {
     }
 
     fn report_corrupt_storage(&mut self) {
-        self.encoder.storage_corrupt(&mut self.emcy, self.model);
-        if !self.encoder.handles_storage_corrupt(self.model) {
+        let now = self.now;
+        let (app, mut cx) = self.app_ctx(now);
+        if !app.storage_corrupt(&mut cx) {
             self.emcy.raise(emcy::code::DATA_SET, 0, [0; 5]);
         }
         self.flush_emcy();
@@ -1286,12 +1295,12 @@ impl<S: Storage> Device<S> {
                 self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
             Hook::App(h) => {
-                let cx = crate::encoder::AppView {
+                let cx = AppView {
                     od: &self.od,
                     model: self.model,
                     cfg: &self.cfg,
                 };
-                self.encoder.validate(h, e.sub, raw, &cx)
+                self.app.validate(h, e.sub, raw, &cx)
             }
             _ => Ok(()),
         }
@@ -1321,15 +1330,15 @@ impl<S: Storage> Device<S> {
                 let n = (e.index & 0x1FF) as usize;
                 self.pdo.reconfigure(n, &self.od, now);
                 if e.hook == Hook::TpdoComm {
-                    let (encoder, mut cx) = self.app(now);
-                    encoder.tpdo_comm_written(n, e.sub, raw, &mut cx);
+                    let (app, mut cx) = self.app_ctx(now);
+                    app.tpdo_comm_written(n, e.sub, raw, &mut cx);
                 }
             }
             Hook::PendingNodeId => self.pending_node_id = raw as u8,
             Hook::PendingBitRate => self.pending_bitrate = kbps_of_object(raw),
             Hook::App(h) => {
-                let (encoder, mut cx) = self.app(now);
-                encoder.written(h, e.sub, raw, &mut cx);
+                let (app, mut cx) = self.app_ctx(now);
+                app.written(h, e.sub, raw, &mut cx);
             }
             Hook::None
             | Hook::SyncCobId
@@ -1369,7 +1378,7 @@ impl<S: Storage> Device<S> {
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// [`Dictionary::find`] with a one-entry memo (the table never changes, so a found slot
     /// stays right).
     #[inline]
@@ -1384,7 +1393,7 @@ impl<S: Storage> Device<S> {
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
     /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
     /// expects the read of 1003:01 to abort when the history is empty).
@@ -1401,7 +1410,7 @@ impl<S: Storage> Device<S> {
     }
 }
 
-impl<S: Storage> ObjectAccess for Device<S> {
+impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
     fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
         let slot = self.find(index, sub)?;
         self.readable(slot)?;
@@ -1413,7 +1422,7 @@ impl<S: Storage> ObjectAccess for Device<S> {
         self.readable(slot)?;
         // Values the application derives from others are current when read.
         if let Hook::App(h) = self.od.entry(slot).hook {
-            self.encoder.refresh(h, &mut self.od, self.nmt);
+            self.app.refresh(h, &mut self.od, self.nmt);
         }
         Ok(self.od.read_at(slot, offset, buf))
     }
@@ -1460,7 +1469,7 @@ impl<S: Storage> ObjectAccess for Device<S> {
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// The checks and side effects of a write of `len` bytes (`raw`, little-endian) to a
     /// writable object.
     #[inline]

@@ -6,11 +6,11 @@
 
 use canpos_core::models::{by_name, Model};
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 
 /// Nodes on one virtual bus.
 struct Bus {
-    nodes: Vec<Node<RamStorage>>,
+    nodes: Vec<SensorNode<RamStorage>>,
     now: Instant,
 }
 

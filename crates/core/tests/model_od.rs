@@ -402,7 +402,7 @@ fn default_tpdo_is_byte_exact() {
 fn per_node_state_fits_4_kib() {
     use canpos_core::encoder::Encoder;
     use canpos_core::storage::NoStorage;
-    let node = std::mem::size_of::<canpos_core::Node<NoStorage>>();
+    let node = std::mem::size_of::<canpos_core::SensorNode<NoStorage>>();
     assert!(node <= 4096, "Node is {node} bytes");
     assert!(std::mem::size_of::<Encoder>() <= 512);
     for m in models::all() {

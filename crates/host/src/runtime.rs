@@ -36,7 +36,7 @@ use std::time::Duration;
 
 use canpos_core::models::{DeviceConfig, Model};
 use canpos_core::nmt::NmtState;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use canpos_sim::motion::{LiveHandle, LiveMotion, Motion, MotionSpec};
 use canpos_sim::{Faults, Sensor, SensorSpec};
 use crossbeam_channel::{Receiver, Select, Sender};
@@ -96,7 +96,7 @@ pub fn default_state_dir() -> PathBuf {
 /// One simulated sensor inside the runtime.
 struct SimDevice {
     name: String,
-    node: Node<FileStorage>,
+    node: SensorNode<FileStorage>,
     sensor: Sensor,
     motion: LiveMotion,
     live: LiveHandle,

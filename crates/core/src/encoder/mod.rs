@@ -19,12 +19,10 @@ mod sample;
 
 pub use sample::{Sample, MAX_CHANNELS};
 
+use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
-use crate::models::{DeviceConfig, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
-use crate::pdo::Tpdos;
-use crate::wire::Instant;
 
 /// The CiA 406 object rules, as [`crate::od::Hook::App`] numbers in the model tables: each
 /// object names the rule that governs it, so no index list is repeated here.
@@ -50,36 +48,6 @@ pub mod hook {
     pub const OFFSET: u8 = 9;
     /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
     pub const MANUFACTURER_STATUS: u8 = 10;
-}
-
-/// What the application may touch while it runs a cycle or reacts to a write.
-pub struct AppCtx<'a> {
-    /// The dictionary (live values are written here).
-    pub od: &'a mut Dictionary,
-    /// EMCY producer.
-    pub emcy: &'a mut Emcy,
-    /// TPDOs (told about changed mapped values).
-    pub pdo: &'a mut Tpdos,
-    /// The product model.
-    pub model: &'static Model,
-    /// The unit configuration (stroke, cycle time, channel count).
-    pub cfg: &'a DeviceConfig,
-    /// The NMT state (TMI 0x1002 bits 1–0).
-    pub nmt: NmtState,
-    /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
-    pub bitrate_kbps: u16,
-    /// Current time.
-    pub now: Instant,
-}
-
-/// Read-only view for write validation.
-pub struct AppView<'a> {
-    /// The dictionary.
-    pub od: &'a Dictionary,
-    /// The product model.
-    pub model: &'static Model,
-    /// The unit configuration.
-    pub cfg: &'a DeviceConfig,
 }
 
 /// TMI system-data errors (§1.14, 0x5000 with sub-codes). All but
@@ -236,100 +204,6 @@ pub struct Encoder {
 }
 
 impl Encoder {
-    /// Forgets runtime state (reset node). What only a power cycle clears stays: the TMI
-    /// lock-out, the storage-corruption flag, the temperature extremes since start-up, and the
-    /// injected fault conditions (the hardware is still faulty after a reset).
-    pub fn reset(&mut self) {
-        let keep = Encoder {
-            faults: self.faults & !F_MISSING & !F_EVENT_TIMER,
-            sysdata: self.sysdata,
-            lockout: self.lockout,
-            storage_corrupt: self.storage_corrupt,
-            warnings: self.warnings,
-            temp_run: self.temp_run,
-            temp_life: self.temp_life,
-            temp_life_loaded: self.temp_life_loaded,
-            ..Encoder::default()
-        };
-        *self = keep;
-    }
-
-    /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
-    /// to pre-operational.
-    pub fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
-        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
-        self.receiving = true;
-        // TMI sensor error: "the current process values stay in the object directory; the cam
-        // and work area states stay unchanged" (§1.14).
-        let frozen = tmi && self.faults & F_TRANSDUCER != 0;
-        // TH / E-Series: a transducer error leaves no usable position on any channel.
-        let blind = !tmi && self.faults & F_TRANSDUCER != 0;
-        let mut missing = false;
-        if !frozen {
-            for ch in 0..n {
-                let nm = if blind { None } else { s.positions_nm[ch] };
-                self.measure(ch, nm, cx);
-                missing |= self.ch[ch].missing;
-            }
-            // A blind transducer's lost pulses are that error, not a second event: its EMCY
-            // goes out once (0x5000 is announced per event).
-            set_flag(&mut self.faults, F_MISSING, missing && !blind);
-        }
-        self.temperature(s.temperature_c, cx);
-        if tmi {
-            let short = event_timer_insufficient(cx);
-            set_flag(&mut self.faults, F_EVENT_TIMER, short);
-        }
-        self.sync(cx);
-        core::mem::take(&mut self.force_preop)
-    }
-
-    /// Injects (`active`) or removes a fault condition. Returns true when the model's
-    /// reaction forces the node back to pre-operational.
-    pub fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
-        match f {
-            Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
-            Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
-            Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
-            Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
-            Fault::CanBusOff => {
-                let was = self.faults & F_BUS_OFF != 0;
-                set_flag(&mut self.faults, F_BUS_OFF, active);
-                if was && !active {
-                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0).
-                    cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
-                }
-            }
-            Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
-            Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
-            Fault::Warning(bits) => {
-                let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
-                if active {
-                    self.warnings |= bits & supported;
-                } else {
-                    self.warnings &= !bits;
-                }
-            }
-            Fault::SystemData(e) if tmi => {
-                let was = self.sysdata & e.bit() != 0;
-                set_flag(&mut self.sysdata, e.bit(), active);
-                if active && !was {
-                    if e.locks_out() {
-                        // Lock-out L: pre-operational until a power cycle; the EMCY repeats
-                        // on every refused start.
-                        self.lockout = Some(e.mfr());
-                    }
-                    self.force_preop = true;
-                }
-            }
-            Fault::SystemData(_) => set_flag(&mut self.faults, F_TRANSDUCER, active),
-        }
-        self.sync(cx);
-        core::mem::take(&mut self.force_preop)
-    }
-
     /// Whether a fault condition is active (hosts, tests).
     pub fn fault_active(&self, f: Fault) -> bool {
         match f {
@@ -345,53 +219,14 @@ impl Encoder {
         }
     }
 
-    /// Whether channel `ch` (0-based) had no usable position in the last cycle.
-    pub fn missing(&self, ch: usize) -> bool {
-        self.ch.get(ch).is_some_and(|c| c.missing)
-    }
-
     /// TMI lock-out active (Operational refused until a power cycle).
     pub fn lockout(&self) -> bool {
         self.lockout.is_some()
     }
 
-    /// Repeats the lock-out EMCY on a refused start.
-    pub fn repeat_lockout_emcy(&self, emcy: &mut Emcy) {
-        if let Some(mfr) = self.lockout {
-            emcy.event(emcy::code::HARDWARE, mfr);
-        }
-    }
-
-    /// The stored data failed to load (called once at power-on, after the reset).
-    pub fn storage_corrupt(&mut self, _emcy: &mut Emcy, _model: &Model) {
-        self.storage_corrupt = true;
-    }
-
-    /// Whether the model reports corrupt storage itself (TMI 0x1002 bit 14) instead of the
-    /// generic EMCY 0x6300.
-    pub fn handles_storage_corrupt(&self, model: &Model) -> bool {
-        model.features.tmi_emcy
-    }
-
-    /// Values derived from other objects, brought up to date just before an SDO read of an
-    /// object with application hook `h` (they must be right even when no measurement cycle ran
-    /// since the change): 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002
-    /// carries the NMT state.
-    pub fn refresh(&self, h: u8, od: &mut Dictionary, nmt: NmtState) {
-        match h {
-            hook::OPERATING_STATUS => {
-                let v = od.value(0x6000, 0).unwrap_or(0);
-                od.set_value(0x6500, 0, v);
-            }
-            hook::OFFSET => {
-                let v = od.value(0x650C, 1).unwrap_or(0);
-                od.set_value(0x6509, 0, v);
-            }
-            hook::MANUFACTURER_STATUS => {
-                od.set_value(0x1002, 0, self.status(nmt));
-            }
-            _ => {}
-        }
+    /// Whether channel `ch` (0-based) had no usable position in the last cycle.
+    pub fn missing(&self, ch: usize) -> bool {
+        self.ch.get(ch).is_some_and(|c| c.missing)
     }
 
     /// TMI 0x1002 (§1.15): bits 16…3 from the conditions, bits 1–0 the NMT state.
@@ -429,74 +264,6 @@ impl Encoder {
             v |= (1 << 4) | (1 << 3);
         }
         v
-    }
-
-    /// Whether values of the automatically stored group changed since the last call (the node
-    /// then persists them; TH 0x2901 operating-life extremes, D19).
-    pub fn take_auto_dirty(&mut self) -> bool {
-        core::mem::take(&mut self.auto_dirty)
-    }
-
-    /// The rule of application hook `h` for a write of `raw` to `sub`.
-    pub fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
-        match h {
-            // D2: only the code-sequence bit.
-            hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
-            // R31: whole µm, not below the variant's minimum step.
-            hook::MEASURING_STEP if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
-            hook::MEASURING_STEP if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
-            // Four cams per channel: bits 4…7 name no cam.
-            hook::CAM_SWITCH if sub >= 1 && raw > 0x0F => Err(Abort::InvalidValue),
-            _ => Ok(()),
-        }
-    }
-
-    /// The side effects of application hook `h` once `raw` was written to `sub`.
-    pub fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
-        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
-        match h {
-            hook::PRESET => {
-                let ch = (sub as usize).wrapping_sub(1);
-                if ch < MAX_CHANNELS {
-                    self.preset(ch, raw, cx);
-                    self.publish(ch, cx);
-                }
-            }
-            hook::CODE_SEQUENCE => {
-                cx.od.set_value(0x6500, 0, raw);
-                for ch in 0..n {
-                    self.publish(ch, cx);
-                }
-            }
-            hook::MEASURING_STEP => {
-                // Offsets stay in position units (the manual says nothing about rescaling a
-                // preset when the step changes): write the preset again after changing it.
-                for ch in 0..n {
-                    self.publish(ch, cx);
-                }
-            }
-            hook::CYCLIC_TIMER => {
-                // D12: one value with TPDO1's event timer.
-                cx.od.set_value(0x1800, 5, raw);
-                cx.pdo.reconfigure(0, cx.od, cx.now);
-            }
-            hook::CAM_SWITCH | hook::CAM_LIMIT | hook::WORK_AREA_LIMIT => {
-                let ch = (sub as usize).wrapping_sub(1);
-                if ch < n {
-                    self.publish(ch, cx);
-                }
-            }
-            _ => {}
-        }
-        self.sync(cx);
-    }
-
-    /// A communication parameter `sub` of TPDO `n` changed: 0x6200 is one value with TPDO1's
-    /// event timer (D12).
-    pub fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
-        if n == 0 && sub == 5 {
-            cx.od.set_value(0x6200, 0, raw);
-        }
     }
 
     /// One channel's measurement: position, velocity, then the states derived from them.
@@ -768,6 +535,214 @@ impl Encoder {
                 }
             }
         }
+    }
+}
+
+impl Application for Encoder {
+    type Sample = Sample;
+    type Fault = Fault;
+
+    fn power_on(&mut self) {
+        *self = Encoder::default();
+    }
+
+    /// Forgets runtime state (reset node). What only a power cycle clears stays: the TMI
+    /// lock-out, the storage-corruption flag, the temperature extremes since start-up, and the
+    /// injected fault conditions (the hardware is still faulty after a reset).
+    fn reset(&mut self) {
+        let keep = Encoder {
+            faults: self.faults & !F_MISSING & !F_EVENT_TIMER,
+            sysdata: self.sysdata,
+            lockout: self.lockout,
+            storage_corrupt: self.storage_corrupt,
+            warnings: self.warnings,
+            temp_run: self.temp_run,
+            temp_life: self.temp_life,
+            temp_life_loaded: self.temp_life_loaded,
+            ..Encoder::default()
+        };
+        *self = keep;
+    }
+
+    /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
+    /// to pre-operational.
+    fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
+        let tmi = cx.model.features.tmi_emcy;
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        self.receiving = true;
+        // TMI sensor error: "the current process values stay in the object directory; the cam
+        // and work area states stay unchanged" (§1.14).
+        let frozen = tmi && self.faults & F_TRANSDUCER != 0;
+        // TH / E-Series: a transducer error leaves no usable position on any channel.
+        let blind = !tmi && self.faults & F_TRANSDUCER != 0;
+        let mut missing = false;
+        if !frozen {
+            for ch in 0..n {
+                let nm = if blind { None } else { s.positions_nm[ch] };
+                self.measure(ch, nm, cx);
+                missing |= self.ch[ch].missing;
+            }
+            // A blind transducer's lost pulses are that error, not a second event: its EMCY
+            // goes out once (0x5000 is announced per event).
+            set_flag(&mut self.faults, F_MISSING, missing && !blind);
+        }
+        self.temperature(s.temperature_c, cx);
+        if tmi {
+            let short = event_timer_insufficient(cx);
+            set_flag(&mut self.faults, F_EVENT_TIMER, short);
+        }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// Injects (`active`) or removes a fault condition. Returns true when the model's
+    /// reaction forces the node back to pre-operational.
+    fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
+        let tmi = cx.model.features.tmi_emcy;
+        match f {
+            Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
+            Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
+            Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
+            Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
+            Fault::CanBusOff => {
+                let was = self.faults & F_BUS_OFF != 0;
+                set_flag(&mut self.faults, F_BUS_OFF, active);
+                if was && !active {
+                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0).
+                    cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
+                }
+            }
+            Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
+            Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
+            Fault::Warning(bits) => {
+                let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
+                if active {
+                    self.warnings |= bits & supported;
+                } else {
+                    self.warnings &= !bits;
+                }
+            }
+            Fault::SystemData(e) if tmi => {
+                let was = self.sysdata & e.bit() != 0;
+                set_flag(&mut self.sysdata, e.bit(), active);
+                if active && !was {
+                    if e.locks_out() {
+                        // Lock-out L: pre-operational until a power cycle; the EMCY repeats
+                        // on every refused start.
+                        self.lockout = Some(e.mfr());
+                    }
+                    self.force_preop = true;
+                }
+            }
+            Fault::SystemData(_) => set_flag(&mut self.faults, F_TRANSDUCER, active),
+        }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// The rule of application hook `h` for a write of `raw` to `sub`.
+    fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+        match h {
+            // D2: only the code-sequence bit.
+            hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
+            // R31: whole µm, not below the variant's minimum step.
+            hook::MEASURING_STEP if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
+            hook::MEASURING_STEP if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
+            // Four cams per channel: bits 4…7 name no cam.
+            hook::CAM_SWITCH if sub >= 1 && raw > 0x0F => Err(Abort::InvalidValue),
+            _ => Ok(()),
+        }
+    }
+
+    /// The side effects of application hook `h` once `raw` was written to `sub`.
+    fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        match h {
+            hook::PRESET => {
+                let ch = (sub as usize).wrapping_sub(1);
+                if ch < MAX_CHANNELS {
+                    self.preset(ch, raw, cx);
+                    self.publish(ch, cx);
+                }
+            }
+            hook::CODE_SEQUENCE => {
+                cx.od.set_value(0x6500, 0, raw);
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            hook::MEASURING_STEP => {
+                // Offsets stay in position units (the manual says nothing about rescaling a
+                // preset when the step changes): write the preset again after changing it.
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            hook::CYCLIC_TIMER => {
+                // D12: one value with TPDO1's event timer.
+                cx.od.set_value(0x1800, 5, raw);
+                cx.pdo.reconfigure(0, cx.od, cx.now);
+            }
+            hook::CAM_SWITCH | hook::CAM_LIMIT | hook::WORK_AREA_LIMIT => {
+                let ch = (sub as usize).wrapping_sub(1);
+                if ch < n {
+                    self.publish(ch, cx);
+                }
+            }
+            _ => {}
+        }
+        self.sync(cx);
+    }
+
+    /// A communication parameter `sub` of TPDO `n` changed: 0x6200 is one value with TPDO1's
+    /// event timer (D12).
+    fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        if n == 0 && sub == 5 {
+            cx.od.set_value(0x6200, 0, raw);
+        }
+    }
+
+    /// Values derived from other objects, brought up to date just before an SDO read of an
+    /// object with application hook `h` (they must be right even when no measurement cycle ran
+    /// since the change): 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002
+    /// carries the NMT state.
+    fn refresh(&self, h: u8, od: &mut Dictionary, nmt: NmtState) {
+        match h {
+            hook::OPERATING_STATUS => {
+                let v = od.value(0x6000, 0).unwrap_or(0);
+                od.set_value(0x6500, 0, v);
+            }
+            hook::OFFSET => {
+                let v = od.value(0x650C, 1).unwrap_or(0);
+                od.set_value(0x6509, 0, v);
+            }
+            hook::MANUFACTURER_STATUS => {
+                od.set_value(0x1002, 0, self.status(nmt));
+            }
+            _ => {}
+        }
+    }
+
+    /// Whether values of the automatically stored group changed since the last call (the node
+    /// then persists them; TH 0x2901 operating-life extremes, D19).
+    fn take_auto_dirty(&mut self) -> bool {
+        core::mem::take(&mut self.auto_dirty)
+    }
+
+    /// The TMI lock-out (§1.14): the start is refused and the lock-out EMCY repeats.
+    fn refuses_start(&self, emcy: &mut Emcy) -> bool {
+        if let Some(mfr) = self.lockout {
+            emcy.event(emcy::code::HARDWARE, mfr);
+            return true;
+        }
+        false
+    }
+
+    /// The TMI reports corrupt storage itself (0x1002 bit 14); the others leave it to the
+    /// generic EMCY 0x6300.
+    fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
+        self.storage_corrupt = true;
+        cx.model.features.tmi_emcy
     }
 }
 
