@@ -155,27 +155,25 @@ struct BitSwitch {
     kbps: u16,
 }
 
-/// What the node is, as the LSS slave needs to know it for one frame.
-#[derive(Clone, Copy, Debug)]
-pub struct LssView {
+/// What the LSS slave needs to know of the node. Asked per frame, and the LSS address only by
+/// the services that compare it (an inquiry of the node-id needs no dictionary search).
+pub trait LssNode {
     /// The LSS address: 0x1018 sub 1…4 (vendor-id, product code, revision, serial).
-    pub address: [u32; 4],
+    fn address(&self) -> [u32; 4];
     /// Active node-id ([`UNCONFIGURED`] = none).
-    pub node_id: u8,
+    fn node_id(&self) -> u8;
     /// Node-id and bit rate (kbit/s) that the next reset activates.
-    pub pending: (u8, u16),
+    fn pending(&self) -> (u8, u16);
     /// The model answers fastscan (DS 305 V2).
-    pub fastscan: bool,
+    fn fastscan(&self) -> bool;
     /// CiA 305 table-0 bit-timing indices the model accepts (D9).
-    pub bit_timing: &'static [u8],
-}
+    fn bit_timing(&self) -> &'static [u8];
 
-impl LssView {
     /// A node takes part in fastscan / answers "identify non-configured" only while it has
     /// neither an active nor a pending node-id: one that already got a pending id will enter
     /// NMT with it.
     fn unconfigured(&self) -> bool {
-        self.node_id == UNCONFIGURED && self.pending.0 == UNCONFIGURED
+        self.node_id() == UNCONFIGURED && self.pending().0 == UNCONFIGURED
     }
 }
 
@@ -247,13 +245,12 @@ impl LssSlave {
     }
 
     /// Handles one frame on 0x7E5.
-    pub fn handle(&mut self, data: &[u8], now: Instant, node: &LssView) -> Output {
+    pub fn handle(&mut self, data: &[u8], now: Instant, node: &impl LssNode) -> Output {
         // CiA 305 frames are always 8 bytes; anything else is not LSS and gets no answer.
         let Ok(d) = <&[u8; 8]>::try_from(data) else {
             return Output::Silent;
         };
         let value = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
-        let addr = &node.address;
         let answer_if = |a: Option<[u8; 8]>| a.map_or(Output::Silent, Output::Answer);
         match d[0] {
             cs::SWITCH_GLOBAL => {
@@ -272,7 +269,9 @@ impl LssSlave {
             // a slave already in configuration ignores it, as CANopenNode does.
             c @ cs::SWITCH_SEL_VENDOR..=cs::SWITCH_SEL_SERIAL if !self.configuration => {
                 let part = c - cs::SWITCH_SEL_VENDOR;
-                let ok = self.selective.advance(part, value == addr[part as usize]);
+                let ok = self
+                    .selective
+                    .advance(part, value == node.address()[part as usize]);
                 if ok && part == 3 {
                     let all = self.selective.matched;
                     self.selective = Sequence::default();
@@ -284,7 +283,7 @@ impl LssSlave {
                 Output::Silent
             }
             c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => {
-                answer_if(self.identify(c, value, addr))
+                answer_if(self.identify(c, value, &node.address()))
             }
             cs::IDENTIFY_NON_CONFIGURED => answer_if(
                 node.unconfigured()
@@ -305,7 +304,7 @@ impl LssSlave {
             }
             cs::CONFIGURE_BIT_TIMING => {
                 let (table, index) = (d[1], d[2]);
-                let supported = node.bit_timing.contains(&index);
+                let supported = node.bit_timing().contains(&index);
                 match bit_timing_kbps(index) {
                     Some(kbps) if table == 0 && supported => {
                         Output::Do(Request::ConfigureBitRate(kbps))
@@ -318,7 +317,7 @@ impl LssSlave {
                 let switch_at = now + delay;
                 self.switch = Some(BitSwitch {
                     switch_at,
-                    kbps: node.pending.1,
+                    kbps: node.pending().1,
                 });
                 Output::Do(Request::ActivateBitRate {
                     silent_until: switch_at + delay,
@@ -326,12 +325,12 @@ impl LssSlave {
             }
             cs::STORE_CONFIGURATION => Output::Do(Request::StoreConfiguration),
             c @ cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL => {
-                let v = addr[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
+                let v = node.address()[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
                 Output::Answer([c, v[0], v[1], v[2], v[3], 0, 0, 0])
             }
             // The manuals' example answers `5E 7F` for a node running as 127: the active
             // node-id, not a pending one (0xFF while the node has none).
-            cs::INQUIRE_NODE_ID => Output::Answer(answer(cs::INQUIRE_NODE_ID, node.node_id)),
+            cs::INQUIRE_NODE_ID => Output::Answer(answer(cs::INQUIRE_NODE_ID, node.node_id())),
             _ => Output::Silent,
         }
     }
@@ -366,11 +365,11 @@ impl LssSlave {
     /// Fastscan (CiA 305 V2): byte 5 `bitChecked`, byte 6 `lssSub`, byte 7 `lssNext`. Only
     /// non-configured slaves in waiting state take part, so that configured nodes and a slave
     /// already found (now in configuration) stay out of the next scan.
-    fn fastscan(&mut self, d: &[u8; 8], id_number: u32, node: &LssView) -> Option<[u8; 8]> {
-        if !node.fastscan || self.configuration || !node.unconfigured() {
+    fn fastscan(&mut self, d: &[u8; 8], id_number: u32, node: &impl LssNode) -> Option<[u8; 8]> {
+        if !node.fastscan() || self.configuration || !node.unconfigured() {
             return None;
         }
-        let addr = &node.address;
+        let addr = &node.address();
         let (bit_checked, sub, next) = (d[5], d[6], d[7]);
         if bit_checked == FASTSCAN_CONFIRM {
             // Reset: every participant answers and starts again with the vendor-id.

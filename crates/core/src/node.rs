@@ -429,8 +429,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         let d = &mut self.dev;
         if id == cob::LSS_RX {
-            let view = d.lss_view();
-            let reply = match self.lss.handle(f.data(), now, &view) {
+            let reply = match self.lss.handle(f.data(), now, &*d) {
                 lss::Output::Silent => None,
                 lss::Output::Answer(a) => Some(a),
                 lss::Output::Do(r) => {
@@ -917,16 +916,6 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.talk_from = self.talk_from_now();
     }
 
-    /// What the LSS slave needs to know of the node for one frame.
-    fn lss_view(&self) -> lss::LssView {
-        lss::LssView {
-            address: self.lss_address(),
-            node_id: self.node_id,
-            pending: (self.pending_node_id, self.pending_bitrate),
-            fastscan: self.model.features.lss_fastscan,
-            bit_timing: self.model.features.lss_bit_timing,
-        }
-    }
 
     /// Carries out what an LSS request asks; returns whether it succeeded.
     fn lss_request(&mut self, r: lss::Request) -> bool {
@@ -1310,7 +1299,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[inline]
     fn written(&mut self, e: &Entry, raw: u32) {
         // Most objects have none: no call for them.
-        if e.hook != Hook::None {
+        if e.hook.acts_when_written() {
             self.written_slow(e, raw);
         }
     }
@@ -1340,11 +1329,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                 let (app, mut cx) = self.app_ctx(now);
                 app.written(h, e.sub, raw, &mut cx);
             }
-            Hook::None
-            | Hook::SyncCobId
-            | Hook::EmcyCobId
-            | Hook::StoreParameters
-            | Hook::RestoreDefaults => {}
+            _ => {}
         }
     }
 
@@ -1407,6 +1392,24 @@ impl<A: Application, S: Storage> Device<A, S> {
             return Err(Abort::NoData);
         }
         Ok(())
+    }
+}
+
+impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
+    fn address(&self) -> [u32; 4] {
+        self.lss_address()
+    }
+    fn node_id(&self) -> u8 {
+        self.node_id
+    }
+    fn pending(&self) -> (u8, u16) {
+        (self.pending_node_id, self.pending_bitrate)
+    }
+    fn fastscan(&self) -> bool {
+        self.model.features.lss_fastscan
+    }
+    fn bit_timing(&self) -> &'static [u8] {
+        self.model.features.lss_bit_timing
     }
 }
 

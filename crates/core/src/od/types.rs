@@ -256,6 +256,22 @@ pub struct Entry {
     pub hook: Hook,
 }
 
+impl Hook {
+    /// Whether a write sets something in motion once the value has landed (the other hooks
+    /// only check a write, or act instead of storing it).
+    #[inline]
+    pub const fn acts_when_written(self) -> bool {
+        !matches!(
+            self,
+            Hook::None
+                | Hook::SyncCobId
+                | Hook::EmcyCobId
+                | Hook::StoreParameters
+                | Hook::RestoreDefaults
+        )
+    }
+}
+
 impl Entry {
     /// The entry with `hook` (table construction).
     pub const fn with_hook(mut self, hook: Hook) -> Entry {
