@@ -229,6 +229,16 @@ impl Emcy {
         (self.n_pending > 0).then_some(self.next_allowed)
     }
 
+    /// [`Emcy::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        if self.n_pending > 0 {
+            self.next_allowed.0
+        } else {
+            u64::MAX
+        }
+    }
+
     /// Takes the next EMCY payload whose inhibit time has passed.
     pub fn poll(&mut self, now: Instant) -> Option<[u8; 8]> {
         if self.n_pending == 0 || now < self.next_allowed {

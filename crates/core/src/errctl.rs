@@ -88,10 +88,14 @@ impl ErrCtl {
     /// The next deadline of this service.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        match (self.next_heartbeat, self.guard_deadline) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        (self.due_us() != u64::MAX).then_some(Instant(self.due_us()))
+    }
+
+    /// [`ErrCtl::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        let us = |t: Option<Instant>| t.map_or(u64::MAX, |t| t.0);
+        us(self.next_heartbeat).min(us(self.guard_deadline))
     }
 
     /// Handles expired timers; call until it returns `None`.

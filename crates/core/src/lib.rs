@@ -37,6 +37,7 @@ pub mod od;
 pub mod pdo;
 pub mod sdo;
 pub mod storage;
+mod timers;
 pub mod txq;
 pub mod wire;
 

@@ -399,6 +399,12 @@ impl LssSlave {
         self.switch.map(|s| s.switch_at)
     }
 
+    /// [`LssSlave::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        self.switch.map_or(u64::MAX, |s| s.switch_at.0)
+    }
+
     /// Advances a pending bit-rate switch: the bit rate to make active now, once the first
     /// switch delay is over.
     pub fn handle_timeout(&mut self, now: Instant) -> Option<u16> {

@@ -15,6 +15,7 @@ use crate::od::{le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param
 use crate::pdo::{self, Tpdos};
 use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
+use crate::timers::{Timer, TimerTable, NEVER};
 use crate::txq::TxQueue;
 use crate::wire::{cob, Duration, Frame, Instant};
 
@@ -110,8 +111,8 @@ pub struct Device<A: Application, S: Storage> {
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
     /// The node may send from this instant (µs) on: `silent_until`, or never while the bus
-    /// runs another bit rate. Derived from the three fields above by `update_talk`, which
-    /// every change of them calls: sending is checked per frame, so one comparison.
+    /// runs another bit rate. Derived from the three fields above by the node's epilogue:
+    /// sending is checked per frame, so one comparison.
     talk_from: u64,
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
@@ -193,19 +194,18 @@ pub struct Node<A: Application, S: Storage> {
     held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
     dev: Device<A, S>,
-    /// [`Node::poll_timeout`] in µs (`u64::MAX`: none), recomputed at the end of every method
-    /// that can change a deadline: hosts ask after every frame, and a cached answer is free.
+    /// The services' deadlines, written by [`Node::epilogue`] only.
+    timers: TimerTable,
+    /// [`Node::poll_timeout`] in µs ([`NEVER`]: none), from the epilogue: hosts ask after
+    /// every frame, and an answer kept is free.
     deadline: u64,
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs.
     other_due: u64,
-    /// `u64::MAX` while powered with a node-id and out of initialisation, else 0. Set where
-    /// those change: `reset` and `power_off`.
-    timer_gate: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
-    /// `other_due & timer_gate`, kept by `update_fast_due`. (EMCY needs no term of its own:
-    /// every entry point flushes what it raised, and an EMCY held back by its inhibit time
-    /// has its deadline in `other_due`.)
+    /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
+    /// 0. (EMCY needs no term of its own: the epilogue flushes what was raised, and an EMCY
+    /// held back by its inhibit time has its deadline in `other_due`.)
     fast_due: u64,
 }
 
@@ -238,9 +238,9 @@ impl<A: Application, S: Storage> Node<A, S> {
             sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
             held_sdo: None,
             lss: LssSlave::default(),
-            deadline: u64::MAX,
-            other_due: u64::MAX,
-            timer_gate: 0,
+            timers: TimerTable::default(),
+            deadline: NEVER,
+            other_due: NEVER,
             fast_due: 0,
             dev: Device {
                 model,
@@ -285,7 +285,6 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.lss = LssSlave::default();
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
-        self.dev.update_talk();
         self.dev.emcy = Emcy::default();
         self.dev.app.power_on();
         self.dev.stored_lss = (None, None);
@@ -299,71 +298,69 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(factory_id);
         self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(factory_kbps);
         self.dev.bitrate = self.dev.pending_bitrate;
-        self.dev.update_talk();
         self.reset(true, now);
         if corrupt {
             self.dev.report_corrupt_storage();
         }
-        self.refresh_deadline();
+        self.epilogue();
     }
 
-    /// Recomputes the cached deadlines (see `deadline`, `other_due`).
-    fn refresh_deadline(&mut self) {
-        let d = &self.dev;
+    /// [`Node::epilogue`] out of line: every entry point but the per-frame one.
+    #[inline(never)]
+    fn epilogue(&mut self) {
+        self.epilogue_inline();
+    }
+
+    /// The end of every `&mut` entry point: what was raised goes out as EMCY, the talk gate
+    /// follows the bit rates, and the timer table and the deadlines derived from it are
+    /// written again from the services' own `poll_timeout`s. Nothing else keeps them. Inline
+    /// in [`Node::handle_frame`], where a request's answer waits for it.
+    #[inline(always)]
+    fn epilogue_inline(&mut self) {
+        let d = &mut self.dev;
         if !d.powered {
-            self.deadline = u64::MAX;
-            self.other_due = u64::MAX;
-            self.update_fast_due();
+            self.timers.clear();
+            self.deadline = NEVER;
+            self.other_due = NEVER;
+            self.fast_due = 0;
             return;
         }
-        let mut t = u64::MAX;
-        let mut take = |c: Option<Instant>| {
-            if let Some(c) = c {
-                t = t.min(c.0);
-            }
+        d.flush_emcy();
+        d.update_talk();
+        let t = &mut self.timers;
+        let mut other = NEVER;
+        let mut set = |timer, us: u64| {
+            t.set_us(timer, us);
+            other = other.min(us);
         };
-        take(self.held_sdo.map(|(t, _)| t));
-        take(self.sdo.poll_timeout());
-        take(self.lss.poll_timeout());
-        take(d.silent_until);
-        take(d.errctl.poll_timeout());
-        if d.nmt != NmtState::Stopped {
-            take(d.emcy.poll_timeout());
-        }
-        self.other_due = t;
-        self.deadline = t.min(d.pdo.due_us());
-        self.update_fast_due();
-    }
-
-    /// Recomputes `fast_due` from `other_due` and `timer_gate`; every method that changes
-    /// one of them ends here (the fast path itself changes neither).
-    #[inline(always)]
-    fn update_fast_due(&mut self) {
-        self.fast_due = self.other_due & self.timer_gate;
+        let us = |t: Option<Instant>| t.map_or(NEVER, |t| t.0);
+        set(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
+        set(Timer::SdoTransfer, self.sdo.due_us());
+        set(Timer::LssSwitch, self.lss.due_us());
+        set(Timer::Silence, us(d.silent_until));
+        set(Timer::ErrorControl, d.errctl.due_us());
+        // A stopped node keeps its EMCYs until it leaves Stopped.
+        let stopped = d.nmt == NmtState::Stopped;
+        set(Timer::Emcy, if stopped { NEVER } else { d.emcy.due_us() });
+        debug_assert_eq!(other, self.timers.next());
+        self.other_due = other;
+        // The TPDOs keep their own schedule (the hot path reads it directly).
+        self.deadline = other.min(d.pdo.due_us());
+        // A node without a node-id stays in initialisation (`reset`), so one test says both.
+        debug_assert!(d.node_id != UNCONFIGURED || d.nmt == NmtState::Initialising);
+        let runs = d.nmt != NmtState::Initialising;
+        self.fast_due = if runs { self.other_due } else { 0 };
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
     pub fn power_off(&mut self) {
         self.dev.powered = false;
-        self.timer_gate = 0;
         self.dev.tx.clear();
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// NMT reset node (`application == true`) or reset communication.
     fn reset(&mut self, application: bool, now: Instant) {
-        self.reset_inner(application, now);
-        // Node-id and NMT state (initialising or not) change nowhere else.
-        let d = &self.dev;
-        self.timer_gate = if d.node_id != UNCONFIGURED && d.nmt != NmtState::Initialising {
-            u64::MAX
-        } else {
-            0
-        };
-        self.update_fast_due();
-    }
-
-    fn reset_inner(&mut self, application: bool, now: Instant) {
         let d = &mut self.dev;
         d.now = now;
         self.sdo.reset();
@@ -371,7 +368,6 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.sdo_hold_until = None;
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
-        d.update_talk();
         d.cfg.node_id = d.node_id;
         d.cfg.bitrate_kbps = d.bitrate;
         d.load_values(application);
@@ -396,7 +392,6 @@ impl<A: Application, S: Storage> Node<A, S> {
         if d.model.features.power_on_emcy {
             d.emcy.power_on();
         }
-        d.flush_emcy();
     }
 
     /// Handles one received frame at `now`.
@@ -406,7 +401,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             return;
         }
         if self.handle_frame_inner(f, now) {
-            self.refresh_deadline();
+            self.epilogue_inline();
         }
     }
 
@@ -474,7 +469,6 @@ impl<A: Application, S: Storage> Node<A, S> {
                 while let Some(s) = self.sdo.poll_transmit() {
                     d.tx.push(Frame::std8(cob::SDO_TX + node, s));
                 }
-                d.flush_emcy();
             }
             return true;
         }
@@ -502,7 +496,6 @@ impl<A: Application, S: Storage> Node<A, S> {
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
                 // The TMI's own EMCY table has no such code, so it ignores the frame.
                 d.emcy.event(emcy::code::SYNC_LENGTH, [0; 5]);
-                d.flush_emcy();
             }
             return true;
         }
@@ -521,7 +514,6 @@ impl<A: Application, S: Storage> Node<A, S> {
             NmtCommand::Start => {
                 if d.app.refuses_start(&mut d.emcy) {
                     // E.g. the TMI lock-out: stays pre-operational, the EMCY repeats (§1.14).
-                    d.flush_emcy();
                     return;
                 }
                 d.nmt = NmtState::Operational;
@@ -571,7 +563,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Handles every deadline that has passed at `now`.
@@ -595,31 +587,40 @@ impl<A: Application, S: Storage> Node<A, S> {
     #[inline(never)]
     fn handle_timeout_slow(&mut self, now: Instant) {
         self.handle_timeout_full(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     fn handle_timeout_full(&mut self, now: Instant) {
-        if let Some((t, r)) = self.held_sdo {
-            if now >= t {
-                self.held_sdo = None;
-                // A node stopped during the store time no longer serves SDO.
-                if self.dev.nmt.sdo_allowed() {
-                    let id = cob::SDO_TX + self.dev.node_id as u16;
-                    self.dev.tx.push(Frame::std8(id, r));
-                }
+        // The table says which services have a deadline that passed (the epilogue of the
+        // entry point before wrote it); the others have nothing to do.
+        let due = |t| self.timers.due(t, now.0);
+        let (held, transfer, switch, silence) = (
+            due(Timer::HeldSdo),
+            due(Timer::SdoTransfer),
+            due(Timer::LssSwitch),
+            due(Timer::Silence),
+        );
+        if let Some((_, r)) = self.held_sdo.take_if(|_| held) {
+            // A node stopped during the store time no longer serves SDO.
+            if self.dev.nmt.sdo_allowed() {
+                let id = cob::SDO_TX + self.dev.node_id as u16;
+                self.dev.tx.push(Frame::std8(id, r));
             }
         }
-        if let Some(r) = self.sdo.handle_timeout(now) {
-            let id = cob::SDO_TX + self.dev.node_id as u16;
-            self.dev.tx.push(Frame::std8(id, r));
+        if transfer {
+            if let Some(r) = self.sdo.handle_timeout(now) {
+                let id = cob::SDO_TX + self.dev.node_id as u16;
+                self.dev.tx.push(Frame::std8(id, r));
+            }
         }
-        if let Some(kbps) = self.lss.handle_timeout(now) {
-            self.dev.activate_bitrate(kbps);
+        if switch {
+            if let Some(kbps) = self.lss.handle_timeout(now) {
+                self.dev.activate_bitrate(kbps);
+            }
         }
-        if self.dev.silent_until.is_some_and(|t| now >= t) {
+        if silence {
             // The bit-rate switch is over: the node talks again.
             self.dev.silent_until = None;
-            self.dev.update_talk();
         }
         self.after_lss(now);
         let d = &mut self.dev;
@@ -643,7 +644,6 @@ impl<A: Application, S: Storage> Node<A, S> {
             }
         }
         d.run_pdos(now);
-        d.flush_emcy();
     }
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
@@ -663,6 +663,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             d.emcy.poll_timeout(),
             d.nmt
         );
+        // The epilogue for the one schedule that can have changed.
         self.deadline = self.other_due.min(d.pdo.due_us());
     }
 
@@ -713,7 +714,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
     pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
         self.dev.bus_bitrate = kbps;
-        self.dev.update_talk();
+        self.epilogue();
     }
 
     /// The SDO server (read-only view: counters, transfer in progress).
@@ -755,7 +756,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Raises (or with `active == false` clears) a device error from outside the CANopen
@@ -768,8 +769,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         } else {
             d.emcy.clear(code);
         }
-        d.flush_emcy();
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Reads an object as an SDO client would see it, bypassing the bus (hosts, tests).
@@ -881,7 +881,6 @@ impl<A: Application, S: Storage> Device<A, S> {
                 self.autobaud_frames += 1;
                 if self.autobaud_frames >= 4 {
                     self.bitrate = bus;
-                    self.update_talk();
                     self.cfg.bitrate_kbps = bus;
                 }
                 false
@@ -911,11 +910,11 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
     }
 
-    /// Recomputes `talk_from` after a change of `bitrate`, `bus_bitrate` or `silent_until`.
+    /// Recomputes `talk_from` from `bitrate`, `bus_bitrate` and `silent_until` (the node's
+    /// epilogue).
     pub(crate) fn update_talk(&mut self) {
         self.talk_from = self.talk_from_now();
     }
-
 
     /// Carries out what an LSS request asks; returns whether it succeeded.
     fn lss_request(&mut self, r: lss::Request) -> bool {
@@ -925,7 +924,6 @@ impl<A: Application, S: Storage> Device<A, S> {
             lss::Request::ActivateBitRate { silent_until } => {
                 // Deaf and mute for both switch delays; checked on every frame.
                 self.silent_until = Some(silent_until);
-                self.update_talk();
             }
             lss::Request::StoreConfiguration => return self.store_lss().is_ok(),
         }
@@ -961,7 +959,6 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
         self.autobaud_frames = 0;
-        self.update_talk();
     }
 
     /// Reloads values: the entries a reset communication covers always, every other one on
@@ -1233,9 +1230,10 @@ impl<A: Application, S: Storage> Device<A, S> {
         Ok(())
     }
 
-    /// The rule of an entry's hook for a write that passed the table's checks.
+    /// The rule of an entry's hook for a write of `raw` over `cur` that passed the table's
+    /// checks.
     #[inline]
-    fn validate(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
+    fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
         match e.hook {
             Hook::None => Ok(()),
             Hook::SyncCobId => {
@@ -1254,7 +1252,6 @@ impl<A: Application, S: Storage> Device<A, S> {
                 if raw & 0x8000_0000 == 0 && pdo::restricted_id(raw & 0x7FF) {
                     return Err(Abort::InvalidValue);
                 }
-                let cur = self.od.hot(self.hot.emcy_cob).unwrap_or(0);
                 if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
                     return Err(Abort::InvalidValue);
                 }
@@ -1502,7 +1499,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                 Abort::InvalidValue
             });
         }
-        self.validate(e, raw)?;
+        self.validate(e, self.od.get(slot), raw)?;
         self.od.set(slot, raw);
         self.written(e, raw);
         Ok(())
