@@ -36,8 +36,8 @@ mod spec;
 
 pub use error::{Error, Result};
 pub use order_code::{parse_order_code, OrderCode};
-pub use sensor::{Faults, Sensor, UnitErrors, DEFAULT_AMBIENT_C};
+pub use sensor::{CycleTiming, Faults, Sensor, UnitErrors, DEFAULT_AMBIENT_C};
 pub use spec::{
-    ErrorBound, Model, SensorSpec, SupplyRange, Variant, REFERENCE_TEMPERATURE_C,
+    ErrorBound, Model, NoiseSpec, SensorSpec, SupplyRange, Variant, REFERENCE_TEMPERATURE_C,
     WAVEGUIDE_SPEED_MM_PER_US,
 };
