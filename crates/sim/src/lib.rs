@@ -7,8 +7,12 @@
 //! * [`motion`]: where the magnets truly are — static, sine, triangle, trapezoid ramp, steps,
 //!   CSV trajectories, live set-points — and the textual spec parser used by the CLI.
 //! * [`Sensor`]: one unit; per measurement cycle it turns true positions into a
-//!   [`canpos_core::encoder::Sample`] (channels ordered from the head, missing magnets,
-//!   seeded error budget, internal temperature), with [`Faults`] injection.
+//!   [`canpos_core::encoder::Sample`] (channels ordered from the head, missing magnets, soft
+//!   stroke edges, seeded error budget, electronics temperature), with [`Faults`] injection;
+//!   [`Sensor::cycle`] publishes each measurement after the strain pulse's time of flight
+//!   (the next cycle boundary), and electronics and waveguide follow the ambient temperature
+//!   with first-order lags. Every term, its source and how to turn it off:
+//!   `docs/MEASUREMENT.md`.
 //!
 //! Everything is deterministic: randomness comes from a per-sensor seed (ChaCha8), there is no
 //! global state.
