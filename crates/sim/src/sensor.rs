@@ -136,7 +136,15 @@ impl UnitErrors {
     /// the start and the end is taken off (start and end are adjusted at final inspection,
     /// 001 "Active measuring range").
     fn linearity_u(&self, u: f64) -> f64 {
-        let (r0, r1) = (self.raw_u(0.0), self.raw_u(1.0));
+        // r(0) = Σ a_k sin φ_k, r(1) = Σ (−1)^k a_k sin φ_k.
+        let (r0, r1) = self.linearity_harmonics.iter().enumerate().fold(
+            (0.0, 0.0),
+            |(r0, r1), (i, (a, phi))| {
+                let v = a * phi.sin();
+                let sign = if i % 2 == 0 { -1.0 } else { 1.0 }; // k = i + 1
+                (r0 + v, r1 + sign * v)
+            },
+        );
         self.raw_u(u) - (r0 + (r1 - r0) * u)
     }
 
