@@ -810,6 +810,30 @@ mod tests {
     }
 
     #[test]
+    fn thermal_time_scale_scales_both_time_constants() {
+        let dir = tempfile::tempdir().unwrap();
+        let plain = build_setup(&SensorOpts::default(), dir.path())
+            .unwrap()
+            .spec;
+        let o = SensorOpts {
+            thermal_time_scale: Some(0.01),
+            ..SensorOpts::default()
+        };
+        let fast = build_setup(&o, dir.path()).unwrap().spec;
+        assert!((fast.thermal_time_constant_s - plain.thermal_time_constant_s * 0.01).abs() < 1e-9);
+        assert!(
+            (fast.waveguide_time_constant_s - plain.waveguide_time_constant_s * 0.01).abs() < 1e-9
+        );
+        for bad in [0.0, -1.0, f64::NAN] {
+            let o = SensorOpts {
+                thermal_time_scale: Some(bad),
+                ..SensorOpts::default()
+            };
+            assert!(build_setup(&o, dir.path()).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
     fn example_scenario_parses() {
         let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/scenario.toml");
         let sc = load_scenario(&p).unwrap();
