@@ -15,6 +15,8 @@ pub struct ErrCtl {
     guard_deadline: Option<Instant>,
     /// A life-guarding event happened and no guard request has come since.
     pub life_guard_lost: bool,
+    /// CAN-ID on which guard requests are answered (0x100E; pre-defined 0x700 + node-id).
+    guarding_id: u16,
 }
 
 /// What a timer expiry produced.
@@ -54,6 +56,17 @@ impl ErrCtl {
         if self.life_time.is_none() {
             self.life_guard_lost = false;
         }
+    }
+
+    /// Sets the CAN-ID of the guarding protocol (0x100E).
+    pub fn set_guarding_id(&mut self, id: u16) {
+        self.guarding_id = id;
+    }
+
+    /// The CAN-ID on which guard requests are answered.
+    #[inline]
+    pub fn guarding_id(&self) -> u16 {
+        self.guarding_id
     }
 
     /// Clears the toggle and guarding state (reset communication).

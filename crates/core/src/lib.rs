@@ -24,6 +24,7 @@
 #![no_std]
 #![deny(missing_docs)]
 
+pub mod app;
 pub mod eds;
 pub mod emcy;
 pub mod encoder;
@@ -40,4 +41,7 @@ pub mod txq;
 pub mod wire;
 
 pub use node::Node;
+
+/// A position sensor: the CiA 301 / 305 stack running the CiA 406 application.
+pub type SensorNode<S> = Node<encoder::Encoder, S>;
 pub use wire::{Duration, Frame, Instant};

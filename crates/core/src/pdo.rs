@@ -247,6 +247,17 @@ impl Tpdos {
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
+    /// [`Tpdos::configure`] after a parameter of TPDO `n` changed: a running PDO restarts its
+    /// timers from `now` with the new values.
+    pub fn reconfigure(&mut self, n: usize, od: &Dictionary, now: Instant) {
+        self.configure(n, od);
+        if self.active() {
+            self.set_active(false, now);
+            self.set_active(true, now);
+        }
+    }
+
+    /// Reads TPDO `n`'s parameters from the dictionary.
     pub fn configure(&mut self, n: usize, od: &Dictionary) {
         let Some(p) = self.pdos.get_mut(n) else {
             return;

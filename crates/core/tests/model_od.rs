@@ -87,6 +87,8 @@ fn other_value(e: &Entry, cur: u32) -> u32 {
     match (e.index, e.sub) {
         (0x1003, 0) => 0,
         (0x1005, _) => 0x81,
+        // Guarding moves to a CAN-ID no service reserves.
+        (0x100E, _) => 0x300,
         // Toggle "not valid" (allowed while valid, SPEC §5) keeping the CAN-ID.
         (0x1014, _) | (0x1800..=0x1803, 1) => cur ^ 0x8000_0000,
         (0x6000, _) => cur ^ 1,
@@ -401,7 +403,7 @@ fn default_tpdo_is_byte_exact() {
 fn per_node_state_fits_4_kib() {
     use canpos_core::encoder::Encoder;
     use canpos_core::storage::NoStorage;
-    let node = std::mem::size_of::<canpos_core::Node<NoStorage>>();
+    let node = std::mem::size_of::<canpos_core::SensorNode<NoStorage>>();
     assert!(node <= 4096, "Node is {node} bytes");
     assert!(std::mem::size_of::<Encoder>() <= 512);
     for m in models::all() {

@@ -39,7 +39,7 @@ use std::time::Duration;
 
 use canpos_core::models::{DeviceConfig, Model};
 use canpos_core::nmt::NmtState;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use canpos_sim::motion::{LiveHandle, LiveMotion, Motion, MotionSpec};
 use canpos_sim::{Faults, Sensor, SensorSpec};
 use crossbeam_channel::{Receiver, Select, Sender};
@@ -99,7 +99,7 @@ pub fn default_state_dir() -> PathBuf {
 /// One simulated sensor inside the runtime.
 struct SimDevice {
     name: String,
-    node: Node<FileStorage>,
+    node: SensorNode<FileStorage>,
     sensor: Sensor,
     motion: LiveMotion,
     live: LiveHandle,
@@ -520,10 +520,14 @@ impl Runtime {
     }
 
     /// One turn: frames in, cycles, timers, frames out.
-    fn turn(&mut self, now: Instant) -> io::Result<()> {
+    fn turn(&mut self, mut now: Instant) -> io::Result<()> {
         let mut received = false;
         while let Some(rx) = self.transport.try_recv()? {
             received = true;
+            // Each frame at the time it is handled, not the time the turn began: a request that
+            // waited behind others (or behind a slow store) would otherwise be answered early
+            // by its own clock (the D7 store time counts from the request).
+            now = self.now().max(now);
             self.deliver(&rx.frame, None, now);
             self.route(now);
         }

@@ -8,7 +8,7 @@
 
 mod types;
 
-pub use types::{Abort, Access, DataType, Default, Entry, Group, Param, Range};
+pub use types::{Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
 
 /// Most entries a model's table may have (the value array is sized for it). 256, so that a
 /// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
