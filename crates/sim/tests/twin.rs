@@ -3,7 +3,7 @@
 
 use canpos_core::models::{by_name, Model};
 use canpos_core::storage::RamStorage;
-use canpos_core::{Instant, Node};
+use canpos_core::{Instant, Node, SensorNode};
 use canpos_sim::{Sensor, SensorSpec};
 
 const SPEED_MM_S: f64 = 100.0;
@@ -109,7 +109,7 @@ fn constant_speed_within_error_budget() {
 /// cycle per call.
 struct Chain {
     sensor: Sensor,
-    node: Node<RamStorage>,
+    node: SensorNode<RamStorage>,
     k: u64,
     cycle_us: u64,
 }
