@@ -916,7 +916,6 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.talk_from = self.talk_from_now();
     }
 
-
     /// Carries out what an LSS request asks; returns whether it succeeded.
     fn lss_request(&mut self, r: lss::Request) -> bool {
         match r {
