@@ -104,6 +104,8 @@ pub struct SensorOpts {
     pub ideal: bool,
     /// Noise / unit error seed (default: the serial number).
     pub seed: Option<u64>,
+    /// Factor on the thermal time constants (electronics, waveguide); default 1.
+    pub thermal_time_scale: Option<f64>,
 }
 
 fn sim_model(name: &str) -> Option<canpos_sim::Model> {
@@ -158,6 +160,14 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
             }
         };
     cfg.cycle_us = spec.cycle_time_us;
+    let mut spec = spec;
+    if let Some(k) = o.thermal_time_scale {
+        if !(k.is_finite() && k > 0.0) {
+            bail!("thermal time scale {k} must be a positive number");
+        }
+        spec.thermal_time_constant_s *= k;
+        spec.waveguide_time_constant_s *= k;
+    }
     if let Some(id) = o.node_id {
         if !(1..=127).contains(&id) && id != 255 {
             bail!("node-id {id} is out of range (1…127, or 255 = unconfigured)");
@@ -286,6 +296,10 @@ pub struct RunArgs {
     /// Seed of the unit's errors and noise (default: the serial number).
     #[arg(long, value_name = "N")]
     pub seed: Option<u64>,
+    /// Multiply the thermal time constants (electronics 600 s, waveguide 1200 s) by K, e.g.
+    /// 0.01 to watch an ambient step settle in seconds (see docs/MEASUREMENT.md).
+    #[arg(long, value_name = "K")]
+    pub thermal_time_scale: Option<f64>,
     /// Serve the JSON-lines control interface on ADDR (e.g. 127.0.0.1:29600).
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
@@ -355,6 +369,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
         motion: a.motion,
         ideal: a.ideal,
         seed: a.seed,
+        thermal_time_scale: a.thermal_time_scale,
     };
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     let setup = build_setup(&opts, &state_dir)?;
@@ -792,6 +807,30 @@ mod tests {
         assert_eq!(parse_node_id("255"), Ok(255));
         assert!(parse_node_id("0").is_err());
         assert!(parse_node_id("128").is_err());
+    }
+
+    #[test]
+    fn thermal_time_scale_scales_both_time_constants() {
+        let dir = tempfile::tempdir().unwrap();
+        let plain = build_setup(&SensorOpts::default(), dir.path())
+            .unwrap()
+            .spec;
+        let o = SensorOpts {
+            thermal_time_scale: Some(0.01),
+            ..SensorOpts::default()
+        };
+        let fast = build_setup(&o, dir.path()).unwrap().spec;
+        assert!((fast.thermal_time_constant_s - plain.thermal_time_constant_s * 0.01).abs() < 1e-9);
+        assert!(
+            (fast.waveguide_time_constant_s - plain.waveguide_time_constant_s * 0.01).abs() < 1e-9
+        );
+        for bad in [0.0, -1.0, f64::NAN] {
+            let o = SensorOpts {
+                thermal_time_scale: Some(bad),
+                ..SensorOpts::default()
+            };
+            assert!(build_setup(&o, dir.path()).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -379,7 +379,8 @@ fn default_tpdo_is_byte_exact() {
     assert_eq!(f.len(), 1);
     assert_eq!(f[0].1.data(), &[0x87, 0x60, 0x00, 0x00, 0xC8, 0x00, 0x00]);
 
-    // E-Series: 12355 steps of 10 µm, 100 × 1 mm/s; work-area high limit 1000 → bit 1.
+    // E-Series: 123.555 mm = 12355.5 steps of 10 µm → 12356 (to nearest, halves up), 100 × 1
+    // mm/s; work-area high limit 1000 → bit 1.
     let e = models::by_name("e-series").unwrap();
     let mut r = Rig::new(e);
     r.take();
@@ -395,7 +396,7 @@ fn default_tpdo_is_byte_exact() {
         .filter(|(_, f)| f.std_id() == Some(0x1FF))
         .collect();
     assert_eq!(f.len(), 1);
-    assert_eq!(f[0].1.data(), &[0x43, 0x30, 0x00, 0x00, 0x64, 0x00, 0x02]);
+    assert_eq!(f[0].1.data(), &[0x44, 0x30, 0x00, 0x00, 0x64, 0x00, 0x02]);
 }
 
 #[test]

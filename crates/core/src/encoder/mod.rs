@@ -9,7 +9,7 @@
 //! Per channel n (sub-index n):
 //!
 //! ```text
-//! steps    = floor(measured_nm / 0x6005/1)            (measured from the start of the range)
+//! steps    = round(measured_nm / 0x6005/1)            (to nearest, halves up; from the range start)
 //! steps'   = max_steps − steps   if 0x6000 bit 0 (counts decrease away from the head)
 //! position = steps' + offset_n                       (offset from the last preset, 0x650C/n)
 //! velocity = Δnm / Δt in 0x6005/2 units (0.01 mm/s), rounded, sign flipped with bit 0
@@ -319,7 +319,8 @@ impl Encoder {
             .value(0x6005, 1)
             .unwrap_or(cx.cfg.position_step_nm)
             .max(1) as i64;
-        let steps = nm.div_euclid(step);
+        // Round to nearest: truncating would bias every reading by −step / 2 (issue 15).
+        let steps = (nm + step / 2).div_euclid(step);
         if cx.od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
             // Code sequence: counts decrease away from the head, from the end of the range.
             let max = cx.cfg.stroke_mm as i64 * 1_000_000 / step;
