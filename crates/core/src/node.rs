@@ -286,6 +286,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
         self.dev.emcy = Emcy::default();
+        let on_change = self.dev.model.features.emcy_on_register_change;
+        self.dev.emcy.set_reset_on_register_change(on_change);
         self.dev.app.power_on();
         self.dev.stored_lss = (None, None);
         self.dev.stats.storage_corrupt = false;

@@ -314,7 +314,14 @@ fn supply_voltage_fault_matches_manual_example_3() {
     r.node.inject_fault(Fault::CanBusOff, true);
     assert!(r.take().is_empty());
     r.node.inject_fault(Fault::CanBusOff, false);
-    assert_eq!(emcys(&r.take()), vec![hex("40 81 00 00 00 00 00 00")]);
+    // Recovered, then the error reset the TH's EMCYs go along with.
+    assert_eq!(
+        emcys(&r.take()),
+        vec![
+            hex("40 81 00 00 00 00 00 00"),
+            hex("00 00 00 00 00 00 00 00")
+        ]
+    );
     r.node.inject_fault(Fault::CanOverrun, true);
     assert_eq!(emcys(&r.take()), vec![hex("10 81 11 00 00 00 00 00")]);
     r.node.inject_fault(Fault::OverTemperature, true);

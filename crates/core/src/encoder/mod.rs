@@ -130,6 +130,14 @@ pub enum Fault {
     OverTemperature,
     /// CAN controller error passive: EMCY 0x8120, register 0x11 (TMI 0x1002 bit 5).
     CanErrorPassive,
+    /// A communication error of no more specific kind: EMCY 0x8100 "Communication (generic)",
+    /// register 0x11 (TH Table 5, E-Series EMCY table). The TMI's table has no such code: it
+    /// reports nothing.
+    Communication,
+    /// One PDO not processed because of its length: a one-shot EMCY 0x8210 (TH Table 5,
+    /// E-Series EMCY table; the sensors have no RPDO, so only the injected event raises it).
+    /// Not in the TMI's table: nothing. `active == false` does nothing.
+    PdoLength,
     /// CAN bus-off: while active the host keeps the node off the bus (TMI 0x1002 bits 4, 3);
     /// clearing it is the recovery, EMCY 0x8140.
     CanBusOff,
@@ -154,6 +162,7 @@ const F_OVERRUN: u16 = 1 << 5;
 const F_BUFFER: u16 = 1 << 6;
 const F_EVENT_TIMER: u16 = 1 << 7;
 const F_MISSING: u16 = 1 << 8;
+const F_COMMUNICATION: u16 = 1 << 9;
 /// `raised` bit for the shared 0x5000 code.
 const R_HARDWARE: u16 = 1 << 15;
 
@@ -211,6 +220,8 @@ impl Encoder {
             Fault::SupplyVoltage => self.faults & F_VOLTAGE != 0,
             Fault::OverTemperature => self.faults & F_TEMPERATURE != 0,
             Fault::CanErrorPassive => self.faults & F_PASSIVE != 0,
+            Fault::Communication => self.faults & F_COMMUNICATION != 0,
+            Fault::PdoLength => false,
             Fault::CanBusOff => self.faults & F_BUS_OFF != 0,
             Fault::CanOverrun => self.faults & F_OVERRUN != 0,
             Fault::CanBufferOverflow => self.faults & F_BUFFER != 0,
@@ -473,7 +484,7 @@ impl Encoder {
         // 0x5000: missing magnet, transducer error and (TMI) system-data errors share the
         // code; each new reason is announced, the code clears when none is left (D13).
         let mfr_sensor = if tmi { [1, 1, 0, 0, 0] } else { [0; 5] };
-        let mut reasons = (self.faults & (F_MISSING | F_TRANSDUCER)) as u32;
+        let mut reasons = (self.faults & (F_MISSING | sensor_error_faults(tmi))) as u32;
         if tmi {
             reasons |= (self.sysdata as u32) << 16;
         }
@@ -495,7 +506,7 @@ impl Encoder {
         self.hw_seen = reasons;
 
         let comm = emcy::reg::COMMUNICATION;
-        let conditions: [(u16, u16, u8, [u8; 5]); 6] = [
+        let conditions: [(u16, u16, u8, [u8; 5]); 7] = [
             (
                 F_VOLTAGE,
                 emcy::code::MAIN_VOLTAGE,
@@ -509,11 +520,16 @@ impl Encoder {
                 [0; 5],
             ),
             (F_PASSIVE, emcy::code::ERROR_PASSIVE, comm, [0; 5]),
+            (F_COMMUNICATION, emcy::code::COMMUNICATION, comm, [0; 5]),
             (F_OVERRUN, emcy::code::CAN_OVERRUN, comm, [1, 0, 0, 0, 0]),
             (F_BUFFER, emcy::code::CAN_OVERRUN, comm, [2, 0, 0, 0, 0]),
             (F_EVENT_TIMER, emcy::code::SOFTWARE, 0, [1, 0, 0, 0, 0]),
         ];
         for (flag, code, reg, mfr) in conditions {
+            if tmi && flag & TMI_NO_CODE != 0 {
+                // Not in the TMI's EMCY table (see `sensor_error_faults`).
+                continue;
+            }
             let mfr = if tmi { mfr } else { [0; 5] };
             let want = self.faults & flag != 0;
             let have = self.raised & flag != 0;
@@ -573,7 +589,7 @@ impl Application for Encoder {
         self.receiving = true;
         // TMI sensor error: "the current process values stay in the object directory; the cam
         // and work area states stay unchanged" (§1.14).
-        let frozen = tmi && self.faults & F_TRANSDUCER != 0;
+        let frozen = tmi && self.faults & sensor_error_faults(tmi) != 0;
         // TH / E-Series: a transducer error leaves no usable position on any channel.
         let blind = !tmi && self.faults & F_TRANSDUCER != 0;
         let mut missing = false;
@@ -605,12 +621,23 @@ impl Application for Encoder {
             Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
             Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
             Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
+            Fault::Communication => set_flag(&mut self.faults, F_COMMUNICATION, active),
+            Fault::PdoLength => {
+                if active && !tmi {
+                    cx.emcy.event(emcy::code::PDO_LENGTH, [0; 5]);
+                }
+            }
             Fault::CanBusOff => {
                 let was = self.faults & F_BUS_OFF != 0;
                 set_flag(&mut self.faults, F_BUS_OFF, active);
                 if was && !active {
-                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0).
+                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0); on the
+                    // models whose EMCYs follow every change of the error state, the error
+                    // reset follows (TMI: its table has 0x0000 only for the sensor error).
                     cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
+                    if cx.model.features.emcy_on_register_change {
+                        cx.emcy.reset_message();
+                    }
                 }
             }
             Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
@@ -744,6 +771,21 @@ impl Application for Encoder {
     fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
         self.storage_corrupt = true;
         cx.model.features.tmi_emcy
+    }
+}
+
+/// Conditions the TMI's EMCY table (002 §1.14) has no code for. Supply voltage and temperature
+/// reach its electronics as an internal error of the sensing element: the TMI reports them as
+/// its "Sensor Error" (0x5000 1/1/0, with that error's reaction); a generic communication fault
+/// it does not report at all (DECISIONS.md).
+const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION;
+
+/// The conditions that make the model's sensor error (0x5000).
+const fn sensor_error_faults(tmi: bool) -> u16 {
+    if tmi {
+        F_TRANSDUCER | F_VOLTAGE | F_TEMPERATURE
+    } else {
+        F_TRANSDUCER
     }
 }
 

@@ -216,6 +216,7 @@ pub static E_SERIES: Model = Model {
         window_cams: false,
         power_on_emcy: true,
         sync_length_emcy: true,
+        emcy_on_register_change: true,
         event_timer_above_inhibit: false,
         lss_unconfigured_configures: false,
     },

@@ -57,6 +57,11 @@ pub struct Features {
     /// A SYNC with more than one data byte raises EMCY 0x8240 "unexpected SYNC data length"
     /// (CiA 301; the TMI's EMCY table has no such code, so it ignores the frame).
     pub sync_length_emcy: bool,
+    /// An EMCY 0x0000 goes along with every change of the error register when an error
+    /// clears, not only when the last one does (TH / E-Series: "Emergency objects go along
+    /// with changes of the internal error status register"; TMI: 0x0000 is "Sensor Error
+    /// resetted", sent once no error is left). Also the 0x0000 after "recovered from bus-off".
+    pub emcy_on_register_change: bool,
     /// A TPDO's event timer must stay above its inhibit time (TMI R27).
     pub event_timer_above_inhibit: bool,
     /// A node without a valid node-id enters LSS configuration by itself (TMI, DSP 305 V1.1

@@ -250,6 +250,7 @@ pub static TMI: Model = Model {
         window_cams: true,
         power_on_emcy: false,
         sync_length_emcy: false,
+        emcy_on_register_change: false,
         event_timer_above_inhibit: true,
         lss_unconfigured_configures: true,
     },
