@@ -687,7 +687,6 @@ fn size() -> Result<i32> {
         "node_ram_storage": size_of::<SensorNode<RamStorage>>(),
         "node_file_storage": size_of::<SensorNode<canpos_host::FileStorage>>(),
         "dictionary": size_of::<canpos_core::od::Dictionary>(),
-        "tx_queue": size_of::<canpos_core::txq::TxQueue>(),
         "sdo_server": size_of::<canpos_core::sdo::SdoServer>(),
         "tpdos": size_of::<canpos_core::pdo::Tpdos>(),
         "emcy": size_of::<canpos_core::emcy::Emcy>(),
