@@ -438,3 +438,44 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
     while not [e for e in node.emcy.log[n:] if e.code == 0] and time.monotonic() < end:
         time.sleep(0.01)
     assert [e for e in node.emcy.log[n:] if e.code == 0], node.emcy.log[n:]
+
+
+def test_lss_fastscan_and_selection_by_python_canopen(network, sensors, tmp_path):
+    """CiA 305 with python-canopen's LSS master (written independently of canpos's): an
+    unconfigured TH waits in LSS waiting (no answer until selected), fastscan finds it beside a
+    configured E-Series, it boots up with the node-id given; a selective switch makes only the
+    selected node answer."""
+    wait_bootup(network, 10, lambda: sensors("e-series", node_id=10, serial=2,
+                                              state_dir=tmp_path / "e"))
+    sensors("th", node_id=255, serial=4242, state_dir=tmp_path / "th")
+    e = add_node(network, 10)
+    e_addr = [u32(e, 0x1018, s) for s in (1, 2, 3, 4)]
+    lss = network.lss
+    lss.RESPONSE_TIMEOUT = 0.2
+    # Both wait: an inquiry gets no answer (wait for the TH process to be up first).
+    time.sleep(1.0)
+    with pytest.raises(canopen.lss.LssError):
+        lss.inquire_node_id()
+    found, addr = lss.fast_scan()
+    assert found, "fastscan found no unconfigured node"
+    assert addr == [0x40, 0x43333034, 0x00010005, 4242]
+    # The slave found is in configuration: it alone answers.
+    answers = []
+    network.subscribe(0x7E4, lambda c, d, t: answers.append(bytes(d)))
+    assert lss.inquire_node_id() == 0xFF
+    assert len(answers) == 1
+    lss.configure_node_id(20)
+    booted = []
+    network.subscribe(0x714, lambda c, d, t: booted.append(bytes(d)))
+    lss.send_switch_state_global(lss.WAITING_STATE)
+    end = time.monotonic() + 3
+    while not booted and time.monotonic() < end:
+        time.sleep(0.01)
+    assert booted and booted[0] == b"\x00", "no boot-up as node 20"
+    # Selective switch on the E-Series: one answer to the inquiry, the E-Series'.
+    answers.clear()
+    lss.send_switch_state_selective(*e_addr)
+    assert lss.inquire_node_id() == 10
+    time.sleep(0.1)
+    assert len([a for a in answers if a[0] == 0x5E]) == 1, answers
+    lss.send_switch_state_global(lss.WAITING_STATE)

@@ -232,7 +232,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// A node of the device `model` describes, running application `app`, powered off. Call
     /// [`Node::power_on`].
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
-        let od = Dictionary::new(model.entries);
+        let od = Dictionary::new(model.entries, model.keys);
         let hot = HotSlots::new(&od);
         Node {
             sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
@@ -490,9 +490,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         if sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote() {
             if f.dlc() <= 1 {
                 let Device { pdo, od, tx, .. } = d;
-                pdo.on_sync(od, now, &mut |fr| {
-                    tx.push(fr);
-                });
+                pdo.on_sync(od, now, tx);
             } else if d.model.features.sync_length_emcy {
                 // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.

@@ -21,6 +21,7 @@ fn variant(name: &'static str, features: Features) -> &'static Model {
         product: TH.product,
         vendor: TH.vendor,
         entries: TH.entries,
+        keys: TH.keys,
         features,
         param: TH.param,
         derive: TH.derive,

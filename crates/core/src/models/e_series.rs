@@ -168,6 +168,7 @@ const PARTS: &[&[Entry]] = &[
 
 const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "E-Series table unsorted or too large");
 
 /// The E-Series' object dictionary.
@@ -198,6 +199,7 @@ pub static E_SERIES: Model = Model {
     product: "Temposonics E-Series CANopen",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
+    keys: &KEYS,
     features: Features {
         tag: 2,
         tpdos: 4,

@@ -142,6 +142,9 @@ pub struct Model {
     pub vendor: &'static str,
     /// The object dictionary, sorted by index and sub-index.
     pub entries: &'static [Entry],
+    /// `entries[i].key()` for every entry, in the same order (`table::keys`): the dictionary
+    /// searches these, a dense array, rather than the entries.
+    pub keys: &'static [u32],
     /// Behaviour switches.
     pub features: Features,
     /// Resolves [`Param`] defaults for a unit.
@@ -464,6 +467,17 @@ pub(crate) mod table {
             i += 1;
         }
         entries
+    }
+
+    /// The search keys of a table ([`Entry::key`] of each entry, in order).
+    pub const fn keys<const N: usize>(t: &[Entry; N]) -> [u32; N] {
+        let mut out = [0u32; N];
+        let mut i = 0;
+        while i < N {
+            out[i] = t[i].key();
+            i += 1;
+        }
+        out
     }
 
     /// Number of entries in all `parts`.

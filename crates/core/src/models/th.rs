@@ -177,6 +177,7 @@ const PARTS: &[&[Entry]] = &[
 
 const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");
 
 /// The TH's object dictionary.
@@ -211,6 +212,7 @@ pub static TH: Model = Model {
     product: "Temposonics TH CANbus",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
+    keys: &KEYS,
     features: Features {
         tag: 1,
         tpdos: 4,

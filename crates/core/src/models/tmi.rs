@@ -177,6 +177,7 @@ const PARTS: &[&[Entry]] = &[
 
 const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TMI table unsorted or too large");
 
 /// The TMI's object dictionary.
@@ -232,6 +233,7 @@ pub static TMI: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES,
+    keys: &KEYS,
     features: Features {
         tag: 3,
         tpdos: 2,
