@@ -223,6 +223,39 @@ fn core(a: CoreArgs) -> Result<i32> {
                 check(r, 0x7E4, &want)?;
             }
         }
+        _ => start = more_ops(a.op, &mut n, id, now, iters)?,
+    }
+    let el = start.elapsed();
+    // Nothing else may be left over: one answer per request.
+    ensure!(n.poll_transmit().is_none(), "extra frame after the run");
+    let object = match a.op {
+        CoreOp::SdoDownload => format!(" object={:04X}/{}", a.index, a.sub),
+        _ => String::new(),
+    };
+    println!(
+        "op={:?}{object} model={} iterations={} ns_per_op={:.1} total_ms={:.1}",
+        a.op,
+        model.name,
+        iters,
+        el.as_nanos() as f64 / iters.max(1) as f64,
+        el.as_secs_f64() * 1e3
+    );
+    Ok(0)
+}
+
+/// The ops added after the first four, out of line so that their code does not change the
+/// codegen of the first four's loops (their instruction counts stay comparable across stops).
+#[inline(never)]
+fn more_ops(
+    op: CoreOp,
+    n: &mut SensorNode<NoStorage>,
+    id: u8,
+    mut now: Instant,
+    iters: u64,
+) -> Result<StdInstant> {
+    let id16 = u16::from(id);
+    let start;
+    match op {
         CoreOp::SdoUploadAlternating => {
             let objects = [(0x1000u16, 0u8), (0x1018, 1)];
             let mut reqs = Vec::new();
@@ -241,7 +274,7 @@ fn core(a: CoreArgs) -> Result<i32> {
                 now.0 += 1;
                 let (req, want) = &reqs[(k & 1) as usize];
                 n.handle_frame(black_box(req), now);
-                let r = step_out(&mut n, now);
+                let r = step_out(n, now);
                 check(r, 0x580 + id16, want)?;
             }
         }
@@ -258,13 +291,13 @@ fn core(a: CoreArgs) -> Result<i32> {
             while n.poll_transmit().is_some() {}
             let sync = Frame::new(0x080, &[]).map_err(|e| anyhow::anyhow!("SYNC frame: {e:?}"))?;
             n.handle_frame(&sync, now);
-            let want = step_out(&mut n, now).context("no TPDO after the first SYNC")?;
+            let want = step_out(n, now).context("no TPDO after the first SYNC")?;
             ensure!(want.std_id() == Some(0x180 + id16), "not TPDO1: {want:?}");
             start = StdInstant::now();
             for _ in 0..iters {
                 now.0 += 1000;
                 n.handle_frame(black_box(&sync), now);
-                match step_out(&mut n, now) {
+                match step_out(n, now) {
                     Some(f) if f == want => {}
                     other => bail!("expected {want:?} after SYNC at {now:?}, got {other:?}"),
                 }
@@ -278,7 +311,7 @@ fn core(a: CoreArgs) -> Result<i32> {
             start = StdInstant::now();
             for _ in 0..iters {
                 now.0 += 1;
-                if let Some(f) = step_out(&mut n, black_box(now)) {
+                if let Some(f) = step_out(n, black_box(now)) {
                     bail!("idle node sent {f:?}");
                 }
             }
@@ -290,28 +323,16 @@ fn core(a: CoreArgs) -> Result<i32> {
             for _ in 0..iters {
                 now.0 += 1;
                 n.handle_frame(black_box(&pdo), now);
-                if let Some(f) = step_out(&mut n, now) {
+                if let Some(f) = step_out(n, now) {
                     bail!("a foreign PDO made the node send {f:?}");
                 }
             }
         }
+        CoreOp::SdoUpload | CoreOp::SdoDownload | CoreOp::Tpdo | CoreOp::LssInquire => {
+            bail!("{op:?} is measured by core()")
+        }
     }
-    let el = start.elapsed();
-    // Nothing else may be left over: one answer per request.
-    ensure!(n.poll_transmit().is_none(), "extra frame after the run");
-    let object = match a.op {
-        CoreOp::SdoDownload => format!(" object={:04X}/{}", a.index, a.sub),
-        _ => String::new(),
-    };
-    println!(
-        "op={:?}{object} model={} iterations={} ns_per_op={:.1} total_ms={:.1}",
-        a.op,
-        model.name,
-        iters,
-        el.as_nanos() as f64 / iters.max(1) as f64,
-        el.as_secs_f64() * 1e3
-    );
-    Ok(0)
+    Ok(start)
 }
 
 fn u32_frame(cs: u8, index: u16, sub: u8, v: u32) -> [u8; 8] {
