@@ -113,7 +113,7 @@ fn parse_hex16(s: &str) -> Result<u16, String> {
 /// A node of `model` after power-on, boot-up frames taken, in pre-operational.
 fn booted(model: &'static Model) -> SensorNode<NoStorage> {
     let mut n = Node::new(model, model.default_config, NoStorage);
-    n.power_on(Instant(0));
+    n.power_on(Instant::from_micros(0));
     while n.poll_transmit().is_some() {}
     n
 }
@@ -135,7 +135,7 @@ fn core(a: CoreArgs) -> Result<i32> {
     );
     let id16 = u16::from(id);
     let iters = a.iterations;
-    let mut now = Instant(1000);
+    let mut now = Instant::from_micros(1000);
     let start;
     match a.op {
         CoreOp::SdoUpload => {
@@ -146,7 +146,7 @@ fn core(a: CoreArgs) -> Result<i32> {
             let want = u32_frame(0x43, 0x1000, 0, expect);
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
                 check(r, 0x580 + id16, &want)?;
@@ -172,7 +172,7 @@ fn core(a: CoreArgs) -> Result<i32> {
             let want = u32_frame(0x60, index, sub, 0);
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
                 check(r, 0x580 + id16, &want)?;
@@ -201,7 +201,7 @@ fn core(a: CoreArgs) -> Result<i32> {
             );
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1000;
+                now = Instant::from_micros(now.micros() + 1000);
                 // The whole frame (identifier, format, DLC, data) must be the expected one.
                 match step_out(&mut n, now) {
                     Some(f) if f == want => {}
@@ -217,7 +217,7 @@ fn core(a: CoreArgs) -> Result<i32> {
             let want = [0x5E, id, 0, 0, 0, 0, 0, 0];
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
                 check(r, 0x7E4, &want)?;
@@ -271,7 +271,7 @@ fn more_ops(
             }
             start = StdInstant::now();
             for k in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 let (req, want) = &reqs[(k & 1) as usize];
                 n.handle_frame(black_box(req), now);
                 let r = step_out(n, now);
@@ -295,7 +295,7 @@ fn more_ops(
             ensure!(want.std_id() == Some(0x180 + id16), "not TPDO1: {want:?}");
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1000;
+                now = Instant::from_micros(now.micros() + 1000);
                 n.handle_frame(black_box(&sync), now);
                 match step_out(n, now) {
                     Some(f) if f == want => {}
@@ -310,7 +310,7 @@ fn more_ops(
             );
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 if let Some(f) = step_out(n, black_box(now)) {
                     bail!("idle node sent {f:?}");
                 }
@@ -321,7 +321,7 @@ fn more_ops(
             let pdo = Frame::std8(0x180 + other, [1, 2, 3, 4, 5, 6, 7, 8]);
             start = StdInstant::now();
             for _ in 0..iters {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&pdo), now);
                 if let Some(f) = step_out(n, now) {
                     bail!("a foreign PDO made the node send {f:?}");

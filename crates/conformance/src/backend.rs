@@ -73,7 +73,7 @@ impl Backend for VirtualDut {
         self.node.device().model()
     }
     fn send(&mut self, f: &Frame) {
-        self.node.handle_frame(f, Instant(self.now));
+        self.node.handle_frame(f, Instant::from_micros(self.now));
         self.drain();
     }
     fn now_us(&mut self) -> u64 {
@@ -88,15 +88,15 @@ impl Backend for VirtualDut {
                 return Some(x);
             }
             match self.node.poll_timeout() {
-                Some(t) if t.0 <= deadline_us && spins < 1_000_000 => {
+                Some(t) if t.micros() <= deadline_us && spins < 1_000_000 => {
                     spins += 1;
-                    self.now = self.now.max(t.0);
-                    self.node.handle_timeout(Instant(self.now));
+                    self.now = self.now.max(t.micros());
+                    self.node.handle_timeout(Instant::from_micros(self.now));
                     self.drain();
                 }
                 _ => {
                     self.now = self.now.max(deadline_us);
-                    self.node.handle_timeout(Instant(self.now));
+                    self.node.handle_timeout(Instant::from_micros(self.now));
                     self.drain();
                     return self.rx.pop_front();
                 }
@@ -106,12 +106,12 @@ impl Backend for VirtualDut {
     fn power_cycle(&mut self) -> bool {
         self.node.power_off();
         self.rx.clear();
-        self.node.power_on(Instant(self.now));
+        self.node.power_on(Instant::from_micros(self.now));
         self.drain();
         true
     }
     fn update_sample(&mut self, s: &Sample) -> bool {
-        self.node.update_sample(s, Instant(self.now));
+        self.node.update_sample(s, Instant::from_micros(self.now));
         self.drain();
         true
     }

@@ -19,7 +19,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 fn booted(model: &'static Model, channels: u8) -> SensorNode<NoStorage> {
     let cfg = model.configure(model.default_config.with_channels(channels));
     let mut n = Node::new(model, cfg, NoStorage);
-    n.power_on(Instant(0));
+    n.power_on(Instant::from_micros(0));
     while n.poll_transmit().is_some() {}
     n
 }
@@ -47,14 +47,14 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     let mut g = c.benchmark_group(name);
     let mut n = booted(model, 1);
     let id = u16::from(n.device().node_id());
-    let mut now = Instant(1000);
+    let mut now = Instant::from_micros(1000);
 
     let up = Frame::std8(0x600 + id, [0x40, 0x00, 0x10, 0, 0, 0, 0, 0]);
     // Each operation is checked once before it is timed.
     assert_eq!(sdo(&mut n, id, *up.raw(), now)[0], 0x43, "{name}: upload");
     g.bench_function("sdo_expedited_upload_1000", |b| {
         b.iter(|| {
-            now.0 += 1;
+            now = Instant::from_micros(now.micros() + 1);
             n.handle_frame(black_box(&up), now);
             black_box(step_out(&mut n, now))
         })
@@ -69,7 +69,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     );
     g.bench_function("sdo_expedited_download_1014_4B", |b| {
         b.iter(|| {
-            now.0 += 1;
+            now = Instant::from_micros(now.micros() + 1);
             n.handle_frame(black_box(&down), now);
             black_box(step_out(&mut n, now))
         })
@@ -88,7 +88,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
         assert_eq!(sdo(&mut n, id, seg, now)[0], 0x20, "{name}: segment");
         g.bench_function("sdo_segmented_download_1014_4B", |b| {
             b.iter(|| {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 let r1 = sdo(&mut n, id, init, now);
                 let r2 = sdo(&mut n, id, seg, now);
                 black_box((r1, r2))
@@ -111,7 +111,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
         assert!(n.poll_transmit().is_none(), "{name}: block upload end");
         g.bench_function("sdo_block_upload_1008", |b| {
             b.iter(|| {
-                now.0 += 1;
+                now = Instant::from_micros(now.micros() + 1);
                 let r1 = sdo(&mut n, id, [0xA4, 0x08, 0x10, 0, 127, 0, 0, 0], now);
                 n.handle_frame(&Frame::std8(0x600 + id, [0xA3, 0, 0, 0, 0, 0, 0, 0]), now);
                 let seg = step_out(&mut n, now).expect("segment");
@@ -134,7 +134,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     );
     g.bench_function("lss_inquire_node_id", |b| {
         b.iter(|| {
-            now.0 += 1;
+            now = Instant::from_micros(now.micros() + 1);
             l.handle_frame(black_box(&inq), now);
             black_box(step_out(&mut l, now))
         })
@@ -142,7 +142,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
 
     // One TPDO1 with the default mapping at a 1 ms event timer.
     let mut t = booted(model, 1);
-    let mut tnow = Instant(1000);
+    let mut tnow = Instant::from_micros(1000);
     t.handle_frame(
         &Frame::std8(0x600 + id, [0x2B, 0x00, 0x18, 5, 1, 0, 0, 0]),
         tnow,
@@ -152,11 +152,11 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     tnow = t.poll_timeout().expect("TPDO deadline");
     let first = step_out(&mut t, tnow).expect("TPDO");
     assert_eq!(first.std_id(), Some(0x180 + id), "{name}: TPDO1");
-    tnow.0 += 1000;
+    tnow = Instant::from_micros(tnow.micros() + 1000);
     g.bench_function("tpdo_default_mapping", |b| {
         b.iter(|| {
             let f = step_out(&mut t, black_box(tnow));
-            tnow.0 += 1000;
+            tnow = Instant::from_micros(tnow.micros() + 1000);
             black_box(f)
         })
     });
@@ -165,7 +165,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     // measuring range by default), a magnet moving through the range.
     let ch = model.max_channels();
     let mut m = booted(model, ch);
-    let mut mnow = Instant(1000);
+    let mut mnow = Instant::from_micros(1000);
     for sub in 1..=ch {
         for enable in [0xFFu32, 0x0F, 0x03, 0x01] {
             let r = sdo(&mut m, id, expedited(0x6301, sub, enable).map_or_u8(), mnow);
@@ -179,7 +179,7 @@ fn bench_model(c: &mut Criterion, model: &'static Model) {
     let mut pos = 0i64;
     g.bench_function("measurement_cycle_all_cams_work_areas", |b| {
         b.iter(|| {
-            mnow.0 += 1000;
+            mnow = Instant::from_micros(mnow.micros() + 1000);
             pos = (pos + 1_000_000) % 200_000_000;
             for (k, p) in s.positions_nm.iter_mut().take(ch as usize).enumerate() {
                 *p = Some(pos + k as i64 * 10_000_000);

@@ -16,12 +16,12 @@
 //!
 //! let model = &models::th::TH;
 //! let mut node = Node::new(model, model.configure(model.default_config), RamStorage::default());
-//! let mut now = Instant(0);
+//! let mut now = Instant::ZERO;
 //! node.power_on(now);
 //! let mut sent = Vec::new();
 //! // One pass of the main loop per millisecond: a received frame, a measurement, the timers.
 //! for ms in 0..20u64 {
-//!     now = Instant(ms * 1000);
+//!     now = Instant::from_millis(ms);
 //!     if ms == 5 {
 //!         // NMT start from the master (what the CAN driver received).
 //!         node.handle_frame(&Frame::new(0x000, &[0x01, 0x7F]).unwrap(), now);

@@ -135,7 +135,7 @@ proptest! {
             let data = &[c, target, 0][..len];
             let before = node.device().nmt_state();
             t += 100;
-            node.handle_frame(&Frame::new(0x000, data).unwrap(), Instant(t));
+            node.handle_frame(&Frame::new(0x000, data).unwrap(), Instant::from_micros(t));
             let after = node.device().nmt_state();
             prop_assert_eq!(after, expected_after(before, data, 1), "{:02X?} in {:?}", data, before);
             let mut out = Vec::new();

@@ -240,12 +240,15 @@ fn activate_bit_timing_switch_delay_on_virtual_clock() {
     r.node.set_bus_bitrate(Some(125));
     r.take();
     r.advance_ms(1000);
-    let t0 = r.now.0;
+    let t0 = r.now.micros();
     lss_silent(&mut r, "04 01 00 00 00 00 00 00");
     lss_answer(&mut r, "13 00 02 00 00 00 00 00", "13 00 00 00 00 00 00 00");
     // Switch delay 300 ms = 0x012C: bytes 1–2 LSB first.
     lss_silent(&mut r, "15 2C 01 00 00 00 00 00");
-    assert_eq!(r.node.poll_timeout(), Some(Instant(t0 + 300_000)));
+    assert_eq!(
+        r.node.poll_timeout(),
+        Some(Instant::from_micros(t0 + 300_000))
+    );
     // First period: still 125 kbit/s but deaf and mute.
     r.advance_ms(299);
     assert_eq!(r.node.device().bitrate(), 125);
@@ -253,7 +256,10 @@ fn activate_bit_timing_switch_delay_on_virtual_clock() {
     // The switch, exactly at 300 ms.
     r.advance_ms(1);
     assert_eq!(r.node.device().bitrate(), 500);
-    assert_eq!(r.node.poll_timeout(), Some(Instant(t0 + 600_000)));
+    assert_eq!(
+        r.node.poll_timeout(),
+        Some(Instant::from_micros(t0 + 600_000))
+    );
     // Second period: the bus has switched too, the node still waits.
     r.node.set_bus_bitrate(Some(500));
     r.advance_ms(299);

@@ -387,7 +387,8 @@ fn default_tpdo_is_byte_exact() {
     assert_eq!(download(&mut r, 0x6402, 1, &le(1000, 4)), Ok(()));
     r.node.update_sample(&sample(123_455_000), r.now);
     r.advance_ms(1);
-    r.node.update_sample(&sample(123_555_000), Instant(r.now.0));
+    r.node
+        .update_sample(&sample(123_555_000), Instant::from_micros(r.now.micros()));
     r.take();
     r.send(0x000, &[0x01, 0x7F]);
     let f: Vec<_> = r

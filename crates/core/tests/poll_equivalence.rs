@@ -98,7 +98,7 @@ impl Pair {
             fb.push(f);
             prop_assert!(fb.len() < 10_000, "poll does not end");
         }
-        prop_assert_eq!(&fa, &fb, "{} at {} µs", what, now.0);
+        prop_assert_eq!(&fa, &fb, "{} at {} µs", what, now.micros());
         prop_assert_eq!(
             self.a.poll_timeout(),
             self.b.poll_timeout(),
@@ -140,7 +140,7 @@ impl Pair {
                 self.b.update_sample(&smp, self.now);
             }
             Stim::Advance(dt, jump) => {
-                let end = Instant(self.now.0 + u64::from(dt));
+                let end = Instant::from_micros(self.now.micros() + u64::from(dt));
                 if !jump {
                     // As a runtime does: wake at every deadline (A's; B must have the same).
                     let mut guard = 0;
@@ -239,7 +239,7 @@ proptest! {
         let id = u16::from(model.default_config.node_id);
         let count = usize::from(model.features.tpdos);
         let map1 = n.read_object(0x1A00, 1).expect("TPDO1 maps something");
-        let now = Instant(1_000);
+        let now = Instant::from_micros(1_000);
         // (TPDO index, CAN-ID) of the TPDOs the model lets us configure so.
         let mut cobs: Vec<(usize, u16)> = Vec::new();
         for (k, &period) in periods.iter().enumerate().take(count) {
@@ -267,19 +267,19 @@ proptest! {
 
         // The host: wakes at every deadline, sometimes late (but never later than the
         // shortest period, so no period is skipped).
-        let end = now.0 + 30_000;
+        let end = now.micros() + 30_000;
         let mut got: Vec<(u64, u16)> = Vec::new();
         let mut t = now;
         let mut k = 0;
         while let Some(d) = n.poll_timeout() {
-            if d.0 > end {
+            if d.micros() > end {
                 break;
             }
             let delay = late.get(k).copied().unwrap_or(0) % 900;
             k += 1;
-            t = Instant(d.0.max(t.0) + delay);
+            t = Instant::from_micros(d.micros().max(t.micros()) + delay);
             while let Some(f) = n.poll(t) {
-                got.push((t.0, f.std_id().expect("standard id")));
+                got.push((t.micros(), f.std_id().expect("standard id")));
             }
         }
         // The oracle: frame k of TPDO j is due at now + k × period_j; a late host sends it
@@ -290,7 +290,7 @@ proptest! {
                 .enumerate()
                 .flat_map(|(j, &(k, _))| {
                     let p = u64::from(periods[k]) * 1000;
-                    (1..).map(move |i| (now.0 + i * p, j)).take_while(|&(t, _)| t <= end)
+                    (1..).map(move |i| (now.micros() + i * p, j)).take_while(|&(t, _)| t <= end)
                 })
                 .collect();
             v.sort();
@@ -341,7 +341,7 @@ proptest! {
         n.power_on(Instant::ZERO);
         while n.poll(Instant::ZERO).is_some() {}
         let id = u16::from(model.default_config.node_id);
-        let now = Instant(1_000);
+        let now = Instant::from_micros(1_000);
         // TMI refuses an inhibit time not below the event timer: the values that landed count.
         let _ = sdo_write(&mut n, id, 0x1800, 5, period_ms, now);
         let _ = sdo_write(&mut n, id, 0x1800, 3, inhibit_100us, now);
@@ -351,20 +351,20 @@ proptest! {
         n.handle_frame(&Frame::new(0x000, &[0x01, 0]).expect("NMT"), now);
         while n.poll(now).is_some() {}
 
-        let end = now.0 + 40_000;
+        let end = now.micros() + 40_000;
         let mut got = Vec::new();
         while let Some(d) = n.poll_timeout() {
-            if d.0 > end {
+            if d.micros() > end {
                 break;
             }
             while let Some(f) = n.poll(d) {
                 if f.std_id() == Some(0x180 + id) {
-                    got.push(d.0);
+                    got.push(d.micros());
                 }
             }
         }
         let mut want = Vec::new();
-        let (mut fire, mut free_at) = (now.0 + p, 0u64);
+        let (mut fire, mut free_at) = (now.micros() + p, 0u64);
         loop {
             let send = fire.max(free_at);
             if send > end {
@@ -373,7 +373,7 @@ proptest! {
             want.push(send);
             free_at = send + inh;
             // Expiries up to the send merged into it; the next one after it starts anew.
-            fire = now.0 + ((send - now.0) / p + 1) * p;
+            fire = now.micros() + ((send - now.micros()) / p + 1) * p;
         }
         prop_assert_eq!(got, want, "period {} µs, inhibit {} µs", p, inh);
     }

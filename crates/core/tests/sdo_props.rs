@@ -190,7 +190,7 @@ proptest! {
         }
         // Whatever was left unfinished times out with exactly one abort.
         if sdo_on && r.node.sdo_server().busy() {
-            let end = Instant(r.now.0 + 1_000_000);
+            let end = Instant::from_micros(r.now.micros() + 1_000_000);
             let out: Vec<Frame> = r.run_until(end).into_iter().map(|(_, f)| f).collect();
             check_ids(&out)?;
             let aborts: Vec<_> = out

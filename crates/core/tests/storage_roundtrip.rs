@@ -294,7 +294,7 @@ fn stored_objects_take_effect_after_a_power_cycle() {
             .map(|(t, _)| t)
             .collect();
         assert_eq!(hb.len(), 3, "{name}: heartbeats {hb:?}");
-        assert_eq!(hb[1].0 - hb[0].0, 50_000);
+        assert_eq!(hb[1].micros() - hb[0].micros(), 50_000);
         // The preset's offset came back: the first measurement reads the preset's frame of
         // reference, not the raw position.
         let mut s = Sample::default();
@@ -428,9 +428,9 @@ fn save_answers_after_the_store_time() {
                 .unwrap();
             assert_eq!(answer.1.data()[0], 0x60);
             assert!(
-                answer.0 .0 - t0.0 >= 20_000,
+                answer.0.micros() - t0.micros() >= 20_000,
                 "{name}: after {} µs",
-                answer.0 .0 - t0.0
+                answer.0.micros() - t0.micros()
             );
         }
     }

@@ -144,20 +144,21 @@ impl SimDevice {
     fn run_cycles(&mut self, now: Instant) -> u64 {
         // After a long stall (suspend, debugger) skip ahead instead of bursting.
         let mut missed = 0;
-        if now.0 > self.next_cycle.0 + 100 * self.cycle_us {
-            missed = (now.0 - self.next_cycle.0) / self.cycle_us;
-            self.next_cycle = Instant(self.next_cycle.0 + missed * self.cycle_us);
+        if now.micros() > self.next_cycle.micros() + 100 * self.cycle_us {
+            missed = (now.micros() - self.next_cycle.micros()) / self.cycle_us;
+            self.next_cycle =
+                Instant::from_micros(self.next_cycle.micros() + missed * self.cycle_us);
         }
         while self.next_cycle <= now {
             let at = self.next_cycle;
-            let t_s = at.0.saturating_sub(self.t0.0) as f64 / 1e6;
+            let t_s = at.micros().saturating_sub(self.t0.micros()) as f64 / 1e6;
             self.last_true = self.motion.positions_mm(t_s);
             // Nothing is published before the first measurement's pulse has returned.
             if let Some(sample) = self.sensor.cycle(t_s, &self.last_true) {
                 self.node.update_sample(&sample, at);
             }
             self.sync_temperature();
-            self.next_cycle = Instant(at.0 + self.cycle_us);
+            self.next_cycle = Instant::from_micros(at.micros() + self.cycle_us);
         }
         missed
     }
@@ -400,11 +401,11 @@ impl Runtime {
 
     /// The core's clock: µs since the runtime was created.
     pub fn now(&self) -> Instant {
-        Instant(self.epoch.elapsed().as_micros() as u64)
+        Instant::from_micros(self.epoch.elapsed().as_micros() as u64)
     }
 
     fn to_std(&self, t: Instant) -> std::time::Instant {
-        self.epoch + Duration::from_micros(t.0)
+        self.epoch + Duration::from_micros(t.micros())
     }
 
     /// Adds a sensor (powered off until [`Runtime::power_on_all`] or the start of
@@ -545,7 +546,7 @@ impl Runtime {
             } else {
                 let d = &mut self.devices[i];
                 while d.next_cycle <= now {
-                    d.next_cycle = Instant(d.next_cycle.0 + d.cycle_us);
+                    d.next_cycle = Instant::from_micros(d.next_cycle.micros() + d.cycle_us);
                 }
             }
         }
@@ -627,7 +628,9 @@ impl Runtime {
                     d.node.inject_fault(Core::CanBufferOverflow, true);
                 }
             }
-            self.overrun_until = Some(Instant(now.0 + OVERRUN_HOLD.as_micros() as u64));
+            self.overrun_until = Some(Instant::from_micros(
+                now.micros() + OVERRUN_HOLD.as_micros() as u64,
+            ));
         } else if self.overrun_until.is_some_and(|t| t <= now) {
             self.overrun_until = None;
             for d in &mut self.devices {

@@ -31,7 +31,7 @@ fn run(
         let t = t_us as f64 / 1e6;
         let true_mm = START_MM + SPEED_MM_S * t;
         let s = sensor.measure(t, &[Some(true_mm)]);
-        node.update_sample(&s, Instant(t_us));
+        node.update_sample(&s, Instant::from_micros(t_us));
         if k < 3 {
             continue;
         }
@@ -137,7 +137,7 @@ impl Chain {
             self.k += 1;
             let t_us = self.k * self.cycle_us;
             if let Some(s) = self.sensor.cycle(t_us as f64 / 1e6, &[Some(mm)]) {
-                self.node.update_sample(&s, Instant(t_us));
+                self.node.update_sample(&s, Instant::from_micros(t_us));
             }
         }
     }

@@ -3,11 +3,11 @@ use core::ops::{Add, AddAssign, Sub};
 /// A point on the caller's monotonic clock, in microseconds. The core never reads a clock: the
 /// host (or a test's virtual clock) passes `Instant`s in.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct Instant(pub u64);
+pub struct Instant(pub(crate) u64);
 
 /// A span of time in microseconds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub struct Duration(pub u64);
+pub struct Duration(pub(crate) u64);
 
 impl Instant {
     /// Time zero of the clock.

@@ -201,7 +201,7 @@ impl Checker {
                         d.get(2).copied().unwrap_or(0),
                     ]));
                     // A deaf node ignores a later, shorter switch: keep the longest.
-                    let until = Instant(self.now.0 + 2 * delay * 1000 + 1000);
+                    let until = Instant::from_micros(self.now.micros() + 2 * delay * 1000 + 1000);
                     self.deaf_until = self.deaf_until.max(until);
                 }
                 self.node.handle_frame(&f, self.now);
@@ -240,13 +240,13 @@ impl Checker {
             // Diagnosing a fuzz crash: every step with its effect.
             eprintln!(
                 "{:>9} µs op {op:02X} id {id_before}→{} {nmt_before:?}→{:?} out {out:02X?}",
-                self.now.0,
+                self.now.micros(),
                 self.node_id(),
                 self.node.device().nmt_state()
             );
         }
         let ids_after = self.own_ids();
-        let what = format!("op {op:02X} at {} µs", self.now.0);
+        let what = format!("op {op:02X} at {} µs", self.now.micros());
         self.check_frames(&out, &[ids_before, ids_after], &what)?;
         if !self.powered && !out.is_empty() {
             return Err(format!("{what}: powered off but sent {out:?}"));
@@ -308,7 +308,7 @@ impl Checker {
             2 => raw * 1000,
             _ => raw * 100_000,
         };
-        let end = Instant(self.now.0 + dt);
+        let end = Instant::from_micros(self.now.micros() + dt);
         if op & 4 != 0 {
             self.now = end;
             self.node.handle_timeout(end);

@@ -86,7 +86,7 @@ impl Rig {
 
     /// Advances time by `ms` milliseconds.
     pub fn advance_ms(&mut self, ms: u64) -> Vec<(Instant, Frame)> {
-        let t = Instant(self.now.0 + ms * 1000);
+        let t = Instant::from_micros(self.now.micros() + ms * 1000);
         self.run_until(t)
     }
 }
