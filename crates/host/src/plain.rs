@@ -1,0 +1,126 @@
+//! The runtime of a plain CiA 301 device (one [`Node`] with the [`Plain`] application, such as
+//! an [`crate::eds_device`] device): frames in, the node's timers, frames out, and a sleep to
+//! the node's next deadline on the same absolute clock as [`crate::runtime`].
+//!
+//! There is no measurement cycle and no fault model, so the sensor runtime's loop would be
+//! mostly idle parts; this one is that loop reduced to the node. It answers control requests
+//! with an error (a plain device has no magnets or faults to drive).
+
+use std::io;
+use std::time::Duration;
+
+use canpos_core::app::Plain;
+use canpos_core::models::{DeviceConfig, Model};
+use canpos_core::{Instant, Node};
+use serde_json::json;
+
+use crate::file_storage::FileStorage;
+use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle};
+use crate::transport::Transport;
+
+/// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
+pub struct PlainRuntime {
+    transport: Box<dyn Transport>,
+    node: Node<Plain, FileStorage>,
+    epoch: std::time::Instant,
+    lateness: Lateness,
+    powered: bool,
+}
+
+impl PlainRuntime {
+    /// The device `model` describes, unit `cfg`, storage `storage`, on `transport`;
+    /// `bus_bitrate_kbps` as for [`crate::Runtime::new`].
+    pub fn new(
+        transport: Box<dyn Transport>,
+        bus_bitrate_kbps: Option<u32>,
+        model: &'static Model,
+        cfg: DeviceConfig,
+        storage: FileStorage,
+    ) -> PlainRuntime {
+        let mut node = Node::with_app(model, cfg, Plain, storage);
+        let bus = bus_bitrate_kbps
+            .or_else(|| transport.bus_bitrate())
+            .map(|b| b.min(u32::from(u16::MAX)) as u16);
+        node.set_bus_bitrate(bus);
+        PlainRuntime {
+            transport,
+            node,
+            epoch: std::time::Instant::now(),
+            lateness: Lateness::default(),
+            powered: false,
+        }
+    }
+
+    fn now(&self) -> Instant {
+        Instant(self.epoch.elapsed().as_micros() as u64)
+    }
+
+    /// The node (for tests and status output).
+    pub fn node(&self) -> &Node<Plain, FileStorage> {
+        &self.node
+    }
+
+    /// Powers the node on now: its boot-up goes out at once.
+    pub fn power_on(&mut self) -> io::Result<()> {
+        let now = self.now();
+        self.node.power_on(now);
+        self.powered = true;
+        self.flush(now)
+    }
+
+    /// Sends everything the node has to send at `now` (its due timers first).
+    fn flush(&mut self, now: Instant) -> io::Result<()> {
+        while let Some(f) = self.node.poll(now) {
+            if let Err(e) = self.transport.send(&f) {
+                tracing::warn!(error = %e, "send failed");
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs on a new thread (powered on first if [`PlainRuntime::power_on`] was not called)
+    /// until stopped through the handle or until the transport dies.
+    pub fn spawn(mut self) -> io::Result<RuntimeHandle> {
+        let (tx, rx) = crossbeam_channel::bounded(64);
+        RuntimeHandle::spawn_loop(tx, rx, move |msgs| {
+            set_timer_slack_1ns();
+            if !self.powered {
+                self.power_on()?;
+            }
+            let r = self.run_loop(&msgs);
+            tracing::info!(lateness = %self.lateness, "runtime stopped");
+            r.map(|()| self.lateness)
+        })
+    }
+
+    fn run_loop(&mut self, msgs: &crossbeam_channel::Receiver<Msg>) -> io::Result<()> {
+        loop {
+            let mut now = self.now();
+            while let Some(rx) = self.transport.try_recv()? {
+                // Each frame at the time it is handled (the store time counts from it).
+                now = self.now().max(now);
+                self.node.handle_frame(&rx.frame, now);
+                self.flush(now)?;
+            }
+            self.flush(now)?;
+            while let Ok(m) = msgs.try_recv() {
+                match m {
+                    Msg::Stop => return Ok(()),
+                    Msg::Request(_, reply) => {
+                        let _ = reply.send(json!({
+                            "ok": false,
+                            "error": "a plain (EDS / DCF) device has no control requests"
+                        }));
+                    }
+                }
+            }
+            let target = self
+                .node
+                .poll_timeout()
+                .map(|t| self.epoch + Duration::from_micros(t.0));
+            if let Some(late) = wait_until(self.transport.receiver(), msgs, target) {
+                self.lateness.record(late.as_micros() as u64);
+            }
+        }
+    }
+}
