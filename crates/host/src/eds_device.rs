@@ -915,9 +915,6 @@ impl Builder<'_> {
                     self.err(k.line, format!("{}: `{}` is not a number", k.name, k.value))
                 })?;
                 if rel {
-                    if ty != DataType::Unsigned32 {
-                        return Err(self.err(k.line, "$NODEID values must be UNSIGNED32"));
-                    }
                     let base = u32::try_from(v).map_err(|_| {
                         self.err(k.line, format!("{}: offset {v} out of range", k.name))
                     })?;
@@ -988,6 +985,19 @@ impl Builder<'_> {
             let Default::Const(count) = e0.default else {
                 return Err(self.err(line(e0), "a mapping count must be a number"));
             };
+            let have = (1..=pdo::MAX_MAP as u8)
+                .take_while(|&k| find(0x1A00 + n, k).is_some())
+                .count() as u32;
+            if count > have {
+                return Err(self.err(
+                    line(e0),
+                    format!(
+                        "0x{:04X} maps {count} objects but has no sub {}",
+                        0x1A00 + n,
+                        have + 1
+                    ),
+                ));
+            }
             let mut bits = 0u32;
             for k in 1..=count {
                 let Some(m) = u8::try_from(k).ok().and_then(|k| find(0x1A00 + n, k)) else {
@@ -1060,3 +1070,6 @@ fn param(cfg: &DeviceConfig, p: Param) -> u32 {
 
 /// The node of an EDS device.
 pub type PlainNode<S> = canpos_core::Node<Plain, S>;
+
+#[cfg(test)]
+mod tests;
