@@ -171,6 +171,23 @@ def export_eds(model, path):
     return path
 
 
+def check_defaults(node, od):
+    """Reads every readable object of ``od`` that has a default from ``node`` by SDO and checks
+    it; returns how many were checked."""
+    checked = 0
+    for obj in od.values():
+        for var in (obj.values() if hasattr(obj, "values") else [obj]):
+            if not var.readable or var.default is None or var.data_type in (0x0F,):
+                continue
+            raw = node.sdo.upload(var.index, var.subindex)
+            if var.data_type == 0x09:
+                assert raw.decode() == var.default, (hex(var.index), var.subindex)
+            else:
+                assert var.decode_raw(raw) == var.default, (hex(var.index), var.subindex, raw)
+            checked += 1
+    return checked
+
+
 def ctl(port, req):
     """One request on canpos's JSON-lines control interface."""
     import json
