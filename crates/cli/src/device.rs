@@ -307,7 +307,7 @@ pub struct RunArgs {
     /// docs/EDS_DEVICE.md).
     #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS)]
     pub eds: Option<PathBuf>,
-    /// Like --eds, with a DCF: its ParameterValues and [DeviceComissioning] NodeID / Baudrate
+    /// Like --eds, with a DCF: its ParameterValues and `[DeviceComissioning]` NodeID / Baudrate
     /// apply (--node-id / --bus-bitrate win).
     #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS, conflicts_with = "eds")]
     pub dcf: Option<PathBuf>,

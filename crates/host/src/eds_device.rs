@@ -11,7 +11,7 @@
 //! - `[DeviceInfo]`: `VendorName`, `ProductName`, `NrOfTXPDO` (checked against the objects),
 //!   `BaudRate_*`, `LSS_Supported`.
 //!
-//! What the standard says, not the file ([`STANDARD`], one table): which service owns the CiA
+//! What the standard says, not the file (`STANDARD`, one table): which service owns the CiA
 //! 301 objects (their [`Hook`]) and which data type each must have. Storage groups follow
 //! from access and index: rw objects of 0x1000–0x1FFF are communication parameters, rw objects
 //! from 0x2000 on application parameters, everything else is volatile.
