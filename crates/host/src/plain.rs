@@ -16,7 +16,7 @@ use serde_json::json;
 
 use crate::file_storage::FileStorage;
 use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle};
-use crate::transport::Transport;
+use crate::transport::{BusState, Transport};
 
 /// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
 pub struct PlainRuntime {
@@ -94,7 +94,17 @@ impl PlainRuntime {
     }
 
     fn run_loop(&mut self, msgs: &crossbeam_channel::Receiver<Msg>) -> io::Result<()> {
+        let (mut dropped, mut state) = (0, BusState::ErrorActive);
         loop {
+            // Logged only: the sensors' EMCYs for these come from their models' tables.
+            if self.transport.dropped() > dropped {
+                dropped = self.transport.dropped();
+                tracing::warn!(total = dropped, "CAN frames lost");
+            }
+            if self.transport.bus_state() != state {
+                let old = std::mem::replace(&mut state, self.transport.bus_state());
+                tracing::warn!(from = ?old, to = ?state, "CAN controller state");
+            }
             let mut now = self.now();
             while let Some(rx) = self.transport.try_recv()? {
                 // Each frame at the time it is handled (the store time counts from it).
