@@ -188,6 +188,20 @@ def check_defaults(node, od):
     return checked
 
 
+def guard_for_half_a_second(node, answers):
+    """Node guarding by python-canopen every 50 ms for 0.5 s; ``answers`` (filled by a
+    subscription to the node's 0x700 + id) must then hold at least 5 pre-operational answers
+    with the toggle bit alternating."""
+    node.nmt.start_node_guarding(0.05)
+    time.sleep(0.5)
+    node.nmt.stop_node_guarding()
+    time.sleep(0.05)
+    assert len(answers) >= 5, answers
+    assert all(len(a) == 1 and a[0] & 0x7F == 0x7F for a in answers), answers
+    toggles = [a[0] >> 7 for a in answers]
+    assert all(x != y for x, y in zip(toggles, toggles[1:])), toggles
+
+
 def ctl(port, req):
     """One request on canpos's JSON-lines control interface."""
     import json

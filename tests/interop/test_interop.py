@@ -11,7 +11,7 @@ import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
 from conftest import (BIN, VCAN, add_node, check_defaults, ctl, export_eds, free_port,
-                      wait_bootup)
+                      guard_for_half_a_second, wait_bootup)
 
 
 def u32(node, index, sub):
@@ -243,14 +243,7 @@ def test_node_guarding(network, sensors, transport):
         observer = can.Bus(interface="socketcan", channel=VCAN,
                            can_filters=[{"can_id": 0x77F, "can_mask": 0x7FF}])
     try:
-        node.nmt.start_node_guarding(0.05)
-        time.sleep(0.5)
-        node.nmt.stop_node_guarding()
-        time.sleep(0.05)
-        assert len(answers) >= 5, answers
-        assert all(len(a) == 1 and a[0] & 0x7F == 0x7F for a in answers), answers
-        toggles = [a[0] >> 7 for a in answers]
-        assert all(x != y for x, y in zip(toggles, toggles[1:])), toggles
+        guard_for_half_a_second(node, answers)
         if observer is not None:
             seen = []
             while (m := observer.recv(0.05)) is not None:
