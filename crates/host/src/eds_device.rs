@@ -237,7 +237,11 @@ pub fn parse_value(s: &str) -> Option<(i64, bool)> {
 /// [`parse_value`] with `$NODEID` resolved for `node_id` (the conformance tool's reading).
 pub fn parse_number(s: &str, node_id: u8) -> Option<i64> {
     let (v, rel) = parse_value(s)?;
-    Some(if rel { v.saturating_add(i64::from(node_id)) } else { v })
+    Some(if rel {
+        v.saturating_add(i64::from(node_id))
+    } else {
+        v
+    })
 }
 
 fn data_type(code: i64) -> Result<DataType, String> {

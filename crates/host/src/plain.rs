@@ -134,3 +134,64 @@ impl PlainRuntime {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::Request;
+    use crate::eds_device::{build, FileKind, Overrides};
+    use crate::mem::MemBus;
+    use canpos_core::Frame;
+
+    fn recv_id(port: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
+        let end = std::time::Instant::now() + within;
+        while let Ok(Some(rx)) = port.recv_deadline(end) {
+            if rx.frame.std_id() == Some(id) {
+                return Some(rx.frame);
+            }
+        }
+        None
+    }
+
+    #[test]
+    fn an_eds_device_boots_answers_and_stops() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../examples/io-device.eds"
+        ));
+        let o = Overrides {
+            node_id: Some(9),
+            bitrate_kbps: None,
+            serial: None,
+        };
+        let d = build(text, "io.eds", FileKind::Eds, &o).unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let storage = FileStorage::new(d.state_file(dir.path()));
+        let rt = PlainRuntime::new(Box::new(bus.attach()), None, d.model, d.cfg, storage);
+        let h = rt.spawn().unwrap();
+        let boot = recv_id(&mut master, 0x709, Duration::from_secs(2)).expect("boot-up");
+        assert_eq!(boot.data(), &[0]);
+        // 0x2102 "Offset" (INTEGER32, default -500).
+        let req = Frame::new(0x609, &[0x40, 0x02, 0x21, 0, 0, 0, 0, 0]).unwrap();
+        master.send(&req).unwrap();
+        let r = recv_id(&mut master, 0x589, Duration::from_secs(2)).expect("SDO answer");
+        assert_eq!(r.data()[..4], [0x43, 0x02, 0x21, 0]);
+        assert_eq!(&r.data()[4..8], &(-500i32).to_le_bytes());
+        // The heartbeat (50 ms) comes from the loop sleeping to the node's own deadline.
+        let hb = Frame::new(0x609, &[0x2B, 0x17, 0x10, 0, 50, 0, 0, 0]).unwrap();
+        master.send(&hb).unwrap();
+        assert_eq!(
+            recv_id(&mut master, 0x589, Duration::from_secs(2))
+                .unwrap()
+                .data()[0],
+            0x60
+        );
+        let first = recv_id(&mut master, 0x709, Duration::from_secs(1)).expect("heartbeat");
+        assert_eq!(first.data(), &[0x7F]);
+        let bad = h.control().request(Request::State { sensor: None });
+        assert_eq!(bad["ok"], false, "{bad}");
+        h.stop().unwrap();
+    }
+}
