@@ -446,8 +446,10 @@ impl Builder<'_> {
                     ));
                 }
             }
+            // ObjectType is optional (CiA 306: VAR); a SubNumber says it has sub-indices.
             let ot = match sec.key("ObjectType") {
                 Some(k) => self.num(k)?,
+                None if sec.key("SubNumber").is_some() => 9,
                 None => 7,
             };
             let mine = subs.get(&index);

@@ -163,6 +163,19 @@ fn overrides_and_state_file() {
         d.state_file(Path::new("/s")),
         Path::new("/s/eds-00000ca7-00001234-77.bin")
     );
+    // Without ObjectType an object is a VAR, or a RECORD when it has a SubNumber.
+    let implicit = IO.replace(
+        "ObjectType=0x8\nSubNumber=3\n\n[2001sub0]",
+        "SubNumber=3\n\n[2001sub0]",
+    );
+    let implicit2 = implicit.replace(
+        "[2000]\nParameterName=Digital inputs\nObjectType=0x7\n",
+        "[2000]\nParameterName=Digital inputs\n",
+    );
+    assert!(implicit != IO && implicit2 != implicit);
+    let d2 = eds(&implicit2).unwrap();
+    assert_eq!(find(d2.model, 0x2001, 2).default, Default::Const(2000));
+    assert_eq!(find(d2.model, 0x2000, 0).default, Default::Const(0x5A));
     // Another identity, another tag.
     let other = eds(&IO.replace("0x00001234", "0x00001235")).unwrap();
     assert_ne!(other.model.features.tag, d.model.features.tag);
