@@ -171,6 +171,37 @@ def export_eds(model, path):
     return path
 
 
+def check_defaults(node, od):
+    """Reads every readable object of ``od`` that has a default from ``node`` by SDO and checks
+    it; returns how many were checked."""
+    checked = 0
+    for obj in od.values():
+        for var in (obj.values() if hasattr(obj, "values") else [obj]):
+            if not var.readable or var.default is None or var.data_type in (0x0F,):
+                continue
+            raw = node.sdo.upload(var.index, var.subindex)
+            if var.data_type == 0x09:
+                assert raw.decode() == var.default, (hex(var.index), var.subindex)
+            else:
+                assert var.decode_raw(raw) == var.default, (hex(var.index), var.subindex, raw)
+            checked += 1
+    return checked
+
+
+def guard_for_half_a_second(node, answers):
+    """Node guarding by python-canopen every 50 ms for 0.5 s; ``answers`` (filled by a
+    subscription to the node's 0x700 + id) must then hold at least 5 pre-operational answers
+    with the toggle bit alternating."""
+    node.nmt.start_node_guarding(0.05)
+    time.sleep(0.5)
+    node.nmt.stop_node_guarding()
+    time.sleep(0.05)
+    assert len(answers) >= 5, answers
+    assert all(len(a) == 1 and a[0] & 0x7F == 0x7F for a in answers), answers
+    toggles = [a[0] >> 7 for a in answers]
+    assert all(x != y for x, y in zip(toggles, toggles[1:])), toggles
+
+
 def ctl(port, req):
     """One request on canpos's JSON-lines control interface."""
     import json

@@ -10,7 +10,8 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import BIN, VCAN, add_node, ctl, export_eds, free_port, wait_bootup
+from conftest import (BIN, VCAN, add_node, check_defaults, ctl, export_eds, free_port,
+                      guard_for_half_a_second, wait_bootup)
 
 
 def u32(node, index, sub):
@@ -155,19 +156,7 @@ def test_eds_import_matches_device(network, sensors, tmp_path, model):
     od = canopen.import_od(str(eds), 127)
     wait_bootup(network, 127, lambda: sensors(model))
     node = add_node(network, 127)
-    checked = 0
-    for obj in od.values():
-        subs = obj.values() if hasattr(obj, "values") else [obj]
-        for var in subs:
-            if not var.readable or var.default is None or var.data_type in (0x0F,):
-                continue
-            raw = node.sdo.upload(var.index, var.subindex)
-            if var.data_type == 0x09:
-                assert raw.decode() == var.default, (hex(var.index), var.subindex)
-            else:
-                assert var.decode_raw(raw) == var.default, (hex(var.index), var.subindex, raw)
-            checked += 1
-    assert checked > 20
+    assert check_defaults(node, od) > 20
 
 
 def test_record_is_readable_by_python_can(network, sensors, tmp_path, bus_url):
@@ -254,14 +243,7 @@ def test_node_guarding(network, sensors, transport):
         observer = can.Bus(interface="socketcan", channel=VCAN,
                            can_filters=[{"can_id": 0x77F, "can_mask": 0x7FF}])
     try:
-        node.nmt.start_node_guarding(0.05)
-        time.sleep(0.5)
-        node.nmt.stop_node_guarding()
-        time.sleep(0.05)
-        assert len(answers) >= 5, answers
-        assert all(len(a) == 1 and a[0] & 0x7F == 0x7F for a in answers), answers
-        toggles = [a[0] >> 7 for a in answers]
-        assert all(x != y for x, y in zip(toggles, toggles[1:])), toggles
+        guard_for_half_a_second(node, answers)
         if observer is not None:
             seen = []
             while (m := observer.recv(0.05)) is not None:

@@ -303,10 +303,30 @@ pub struct RunArgs {
     /// Serve the JSON-lines control interface on ADDR (e.g. 127.0.0.1:29600).
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
+    /// Serve a plain CiA 301 device described by this EDS file instead of a sensor (see
+    /// docs/EDS_DEVICE.md).
+    #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS)]
+    pub eds: Option<PathBuf>,
+    /// Like --eds, with a DCF: its ParameterValues and `[DeviceComissioning]` NodeID / Baudrate
+    /// apply (--node-id / --bus-bitrate win).
+    #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS, conflicts_with = "eds")]
+    pub dcf: Option<PathBuf>,
 }
 
+/// The sensor options that mean nothing to a device served from an EDS / DCF file.
+const EDS_CONFLICTS: [&str; 8] = [
+    "model",
+    "order_code",
+    "magnets",
+    "motion",
+    "ideal",
+    "seed",
+    "thermal_time_scale",
+    "control",
+];
+
 /// Opens the bus (or hosts it), reporting what happened.
-fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
+pub(crate) fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
     let (t, hub) = canpos_host::open_or_host(url)?;
     if let Some(h) = &hub {
         eprintln!(
@@ -318,7 +338,7 @@ fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHan
 }
 
 /// Waits for Ctrl-C or for the runtime to end by itself; then stops it.
-fn supervise(handle: RuntimeHandle, stop: &Receiver<()>) -> Result<i32> {
+pub(crate) fn supervise(handle: RuntimeHandle, stop: &Receiver<()>) -> Result<i32> {
     loop {
         if stop.recv_timeout(Duration::from_millis(100)).is_ok() {
             let late = handle.stop()?;
@@ -359,6 +379,9 @@ fn start_control(
 
 /// Runs `canpos run`.
 pub fn run(a: RunArgs) -> Result<i32> {
+    if a.eds.is_some() || a.dcf.is_some() {
+        return crate::eds_run::run(a);
+    }
     let stop = stop_signal()?;
     let opts = SensorOpts {
         model: a.model,

@@ -5,6 +5,7 @@
 
 mod bench;
 mod device;
+mod eds_run;
 mod master;
 mod soak;
 

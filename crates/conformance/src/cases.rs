@@ -224,7 +224,8 @@ fn eds_01(h: &mut Harness) -> Outcome {
         "ModificationDate",
         "ModifiedBy",
     ];
-    for (k, _) in eds.ini.section("FileInfo").expect("[FileInfo]") {
+    for k in &eds.ini.section("FileInfo").expect("[FileInfo]").keys {
+        let k = &k.name;
         assert!(FILEINFO.contains(&k.as_str()), "unknown [FileInfo] key {k}");
     }
     for k in [
@@ -250,7 +251,7 @@ fn eds_01(h: &mut Harness) -> Outcome {
     // Object lists and sections agree in both directions, counts included.
     let mut listed = Vec::new();
     for sec in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
-        let keys = eds.ini.section(sec).expect(sec);
+        let keys = &eds.ini.section(sec).expect(sec).keys;
         let n: usize = eds
             .ini
             .get(sec, "SupportedObjects")
@@ -258,9 +259,9 @@ fn eds_01(h: &mut Harness) -> Outcome {
             .parse()
             .unwrap();
         assert_eq!(keys.len(), n + 1, "[{sec}] SupportedObjects");
-        for (k, v) in keys.iter().filter(|(k, _)| k != "SupportedObjects") {
-            let _: usize = k.parse().expect("list key is a number");
-            listed.push(crate::eds::parse_number(v, 0).unwrap() as u16);
+        for k in keys.iter().filter(|k| k.name != "SupportedObjects") {
+            let _: usize = k.name.parse().expect("list key is a number");
+            listed.push(crate::eds::parse_number(&k.value, 0).unwrap() as u16);
         }
     }
     for i in [0x1000u16, 0x1001, 0x1018] {

@@ -3,54 +3,9 @@
 
 use std::collections::BTreeMap;
 
-/// An INI file: section name (upper-cased) → key (as written) → value, in file order.
-#[derive(Debug, Default)]
-pub struct Ini {
-    /// Sections in file order.
-    pub sections: Vec<(String, Vec<(String, String)>)>,
-}
-
-impl Ini {
-    /// Parses INI text. Lines that are neither sections, `key=value` nor comments are errors.
-    pub fn parse(text: &str) -> Result<Ini, String> {
-        let mut ini = Ini::default();
-        for (n, line) in text.lines().enumerate() {
-            let line = line.trim();
-            if line.is_empty() || line.starts_with(';') {
-                continue;
-            }
-            if let Some(name) = line.strip_prefix('[').and_then(|l| l.strip_suffix(']')) {
-                ini.sections.push((name.to_ascii_uppercase(), Vec::new()));
-                continue;
-            }
-            let Some((k, v)) = line.split_once('=') else {
-                return Err(format!("line {}: not key=value: {line}", n + 1));
-            };
-            let Some(sec) = ini.sections.last_mut() else {
-                return Err(format!("line {}: key outside a section", n + 1));
-            };
-            sec.1.push((k.trim().to_string(), v.trim().to_string()));
-        }
-        Ok(ini)
-    }
-
-    /// The keys of section `name` (case-insensitive).
-    pub fn section(&self, name: &str) -> Option<&[(String, String)]> {
-        let up = name.to_ascii_uppercase();
-        self.sections
-            .iter()
-            .find(|(n, _)| *n == up)
-            .map(|(_, k)| k.as_slice())
-    }
-
-    /// Value of `key` (case-insensitive) in section `name`.
-    pub fn get(&self, name: &str, key: &str) -> Option<&str> {
-        self.section(name)?
-            .iter()
-            .find(|(k, _)| k.eq_ignore_ascii_case(key))
-            .map(|(_, v)| v.as_str())
-    }
-}
+pub use canpos_host::eds_device::parse_number;
+use canpos_host::eds_device::section_object;
+pub use canpos_host::ini::Ini;
 
 /// One sub-index as the EDS declares it.
 #[derive(Clone, Debug)]
@@ -108,24 +63,6 @@ impl EdsEntry {
     }
 }
 
-/// Parses an EDS number: decimal, `0x` hex, negative, or `$NODEID+…`.
-pub fn parse_number(s: &str, node_id: u8) -> Option<i64> {
-    let s = s.trim();
-    if let Some(rest) = s.strip_prefix("$NODEID") {
-        let rest = rest.trim().strip_prefix('+').unwrap_or(rest).trim();
-        let base = if rest.is_empty() {
-            0
-        } else {
-            parse_number(rest, node_id)?
-        };
-        return Some(base + i64::from(node_id));
-    }
-    if let Some(h) = s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
-        return i64::from_str_radix(h, 16).ok();
-    }
-    s.parse().ok()
-}
-
 /// A parsed EDS: the INI plus the dictionary in index / sub-index order.
 pub struct Eds {
     /// The raw INI.
@@ -139,29 +76,24 @@ pub struct Eds {
 impl Eds {
     /// Parses EDS text and collects the dictionary from the object sections.
     pub fn parse(text: &str) -> Result<Eds, String> {
-        let ini = Ini::parse(text)?;
+        let ini = Ini::parse(text).map_err(|e| e.to_string())?;
         let mut entries = Vec::new();
         let mut sub_numbers = BTreeMap::new();
-        for (name, _) in &ini.sections {
-            let Some(index) = object_index(name) else {
+        for sec in &ini.sections {
+            let name = sec.name.as_str();
+            let Some((index, None)) = section_object(name) else {
                 continue;
             };
-            if let Some(n) = ini.get(name, "SubNumber") {
+            if let Some(n) = sec.get("SubNumber") {
                 sub_numbers.insert(index, n.parse().map_err(|_| format!("[{name}] SubNumber"))?);
                 continue;
             }
             sub_numbers.entry(index).or_insert(0);
             entries.push(var(&ini, name, index, 0)?);
         }
-        for (name, _) in &ini.sections {
-            if let Some((i, s)) = name.split_once("SUB") {
-                if let (Ok(index), Ok(sub)) =
-                    (u16::from_str_radix(i, 16), u8::from_str_radix(s, 16))
-                {
-                    if i.len() == 4 {
-                        entries.push(var(&ini, name, index, sub)?);
-                    }
-                }
+        for sec in &ini.sections {
+            if let Some((index, Some(sub))) = section_object(&sec.name) {
+                entries.push(var(&ini, &sec.name, index, sub)?);
             }
         }
         entries.sort_by_key(|e| (e.index, e.sub));
@@ -178,13 +110,6 @@ impl Eds {
             .iter()
             .find(|e| e.index == index && e.sub == sub)
     }
-}
-
-/// `"1A00"` → 0x1A00 (object sections are exactly four hex digits).
-fn object_index(name: &str) -> Option<u16> {
-    (name.len() == 4)
-        .then(|| u16::from_str_radix(name, 16).ok())
-        .flatten()
 }
 
 fn var(ini: &Ini, sec: &str, index: u16, sub: u8) -> Result<EdsEntry, String> {

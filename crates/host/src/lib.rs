@@ -7,13 +7,18 @@
 //! - [`candump`]: candump `-L` log lines.
 //! - [`file_storage`]: a device's non-volatile storage as one atomically written file.
 //! - [`runtime`]: drives simulated sensors on a bus on absolute deadlines.
+//! - [`plain`]: drives one plain CiA 301 device (no measurement) the same way.
+//! - [`eds_device`]: a plain device's model built from an EDS / DCF file ([`ini`] reads it).
 //! - [`control`]: the JSON-lines control interface.
 #![deny(missing_docs)]
 
 pub mod candump;
 pub mod control;
+pub mod eds_device;
 pub mod file_storage;
+pub mod ini;
 pub mod mem;
+pub mod plain;
 pub mod realtime;
 pub mod runtime;
 #[cfg(feature = "socketcan")]

@@ -214,7 +214,7 @@ impl Default for Lateness {
 }
 
 impl Lateness {
-    fn record(&mut self, us: u64) {
+    pub(crate) fn record(&mut self, us: u64) {
         self.hist[us.min(1000) as usize] += 1;
         self.count += 1;
         self.sum_us += us;
@@ -264,7 +264,7 @@ impl std::fmt::Display for Lateness {
 }
 
 /// A message to the runtime thread.
-enum Msg {
+pub(crate) enum Msg {
     Request(Request, Sender<Value>),
     Stop,
 }
@@ -325,6 +325,33 @@ pub struct RuntimeHandle {
 }
 
 impl RuntimeHandle {
+    /// Runs `body` on the runtime thread (with the runtime's priority); `body` gets the
+    /// control messages that `tx` sends.
+    pub(crate) fn spawn_loop(
+        tx: Sender<Msg>,
+        rx: Receiver<Msg>,
+        body: impl FnOnce(Receiver<Msg>) -> io::Result<Lateness> + Send + 'static,
+    ) -> io::Result<RuntimeHandle> {
+        let stopped = Arc::new(AtomicBool::new(false));
+        let flag = Arc::clone(&stopped);
+        let thread = std::thread::Builder::new()
+            .name("canpos-runtime".into())
+            .spawn(move || {
+                // Above the process's other threads when `--rt-priority` was given.
+                if let Err(e) = crate::realtime::runtime_thread() {
+                    tracing::warn!(error = %e, "runtime thread keeps the process's priority");
+                }
+                let r = body(rx);
+                flag.store(true, Ordering::SeqCst);
+                r
+            })?;
+        Ok(RuntimeHandle {
+            control: ControlHandle { tx },
+            thread: Some(thread),
+            stopped,
+        })
+    }
+
     /// The control handle.
     pub fn control(&self) -> ControlHandle {
         self.control.clone()
@@ -477,25 +504,8 @@ impl Runtime {
 
     /// Runs on a new thread.
     pub fn spawn(self) -> io::Result<RuntimeHandle> {
-        let control = self.control();
-        let stopped = Arc::new(AtomicBool::new(false));
-        let flag = Arc::clone(&stopped);
-        let thread = std::thread::Builder::new()
-            .name("canpos-runtime".into())
-            .spawn(move || {
-                // Above the process's other threads when `--rt-priority` was given.
-                if let Err(e) = crate::realtime::runtime_thread() {
-                    tracing::warn!(error = %e, "runtime thread keeps the process's priority");
-                }
-                let r = self.run();
-                flag.store(true, Ordering::SeqCst);
-                r
-            })?;
-        Ok(RuntimeHandle {
-            control,
-            thread: Some(thread),
-            stopped,
-        })
+        let (tx, rx) = (self.tx.clone(), self.rx.clone());
+        RuntimeHandle::spawn_loop(tx, rx, move |_| self.run())
     }
 
     fn run_loop(&mut self) -> io::Result<()> {
@@ -688,23 +698,7 @@ impl Runtime {
     /// Sleeps until `deadline`, a received frame or a control message.
     fn wait(&mut self, deadline: Option<Instant>) -> io::Result<()> {
         let target = deadline.map(|d| self.to_std(d));
-        let early = target.map(|t| t.checked_sub(EARLY_WAKE).unwrap_or(t));
-        let ready = {
-            let mut sel = Select::new();
-            sel.recv(self.transport.receiver());
-            sel.recv(&self.rx);
-            match early {
-                Some(e) if e <= std::time::Instant::now() => None,
-                Some(e) => sel.ready_deadline(e).ok(),
-                None => Some(sel.ready()),
-            }
-        };
-        if ready.is_some() {
-            return Ok(());
-        }
-        if let Some(t) = target {
-            sleep_until_precise(t);
-            let late = std::time::Instant::now().saturating_duration_since(t);
+        if let Some(late) = wait_until(self.transport.receiver(), &self.rx, target) {
             self.lateness.record(late.as_micros() as u64);
         }
         Ok(())
@@ -984,6 +978,33 @@ impl Runtime {
             },
         })
     }
+}
+
+/// Waits for a received frame on `frames`, a message on `msgs`, or the absolute `target`: the
+/// channel wait ends [`EARLY_WAKE`] before it and [`sleep_until_precise`] does the rest.
+/// Returns how late the wake was when it slept to `target`, `None` when a channel woke it.
+pub(crate) fn wait_until<T>(
+    frames: &Receiver<crate::transport::RxFrame>,
+    msgs: &Receiver<T>,
+    target: Option<std::time::Instant>,
+) -> Option<Duration> {
+    let early = target.map(|t| t.checked_sub(EARLY_WAKE).unwrap_or(t));
+    let ready = {
+        let mut sel = Select::new();
+        sel.recv(frames);
+        sel.recv(msgs);
+        match early {
+            Some(e) if e <= std::time::Instant::now() => None,
+            Some(e) => sel.ready_deadline(e).ok(),
+            None => Some(sel.ready()),
+        }
+    };
+    if ready.is_some() {
+        return None;
+    }
+    let t = target?;
+    sleep_until_precise(t);
+    Some(std::time::Instant::now().saturating_duration_since(t))
 }
 
 /// Sets this thread's timer slack to 1 ns: without it, Linux may delay every timed wake by up

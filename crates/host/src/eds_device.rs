@@ -1,0 +1,1081 @@
+//! A plain CiA 301 device described by a user's EDS or DCF file (CiA 306): the file becomes a
+//! [`Model`] at run time, served by [`canpos_core::Node`] with the [`Plain`] application.
+//!
+//! The core takes its dictionary as a `&'static [Entry]`; the table built here is leaked
+//! (`Box::leak`) once per process, like the strings it names. What the file says:
+//!
+//! - objects, sub-indices, `ParameterName`, `DataType`, `AccessType`, `PDOMapping`;
+//! - `DefaultValue` (`$NODEID+…` becomes a node-id relative default), `LowLimit` / `HighLimit`;
+//! - with a DCF, `ParameterValue` is the value the device starts with, and
+//!   `[DeviceComissioning]` `NodeID` / `Baudrate` its node-id and bit rate;
+//! - `[DeviceInfo]`: `VendorName`, `ProductName`, `NrOfTXPDO` (checked against the objects),
+//!   `BaudRate_*`, `LSS_Supported`.
+//!
+//! What the standard says, not the file (`STANDARD`, one table): which service owns the CiA
+//! 301 objects (their [`Hook`]) and which data type each must have. Storage groups follow
+//! from access and index: rw objects of 0x1000–0x1FFF are communication parameters, rw objects
+//! from 0x2000 on application parameters, everything else is volatile.
+//!
+//! What the core cannot serve is an error naming the file and line, as is anything malformed:
+//! DOMAIN and 64-bit / REAL / OCTET_STRING types, writable strings, more than
+//! [`MAX_ENTRIES`] entries or [`pdo::MAX_TPDOS`] TPDOs. RPDO objects (0x1400–0x17FF) are left
+//! out with a warning: the core has no RPDOs.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use canpos_core::app::Plain;
+use canpos_core::models::{DeviceConfig, Features, Model};
+use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES};
+use canpos_core::pdo;
+use canpos_core::storage::{crc32, IMAGE_MAX};
+
+use crate::ini::{Ini, Key, Section};
+
+/// What is wrong with an EDS / DCF file, and where.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct EdsError {
+    /// The file as given.
+    pub file: String,
+    /// 1-based line; 0 when the problem is the file as a whole (a missing section).
+    pub line: usize,
+    /// What is wrong.
+    pub msg: String,
+}
+
+impl fmt::Display for EdsError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.line == 0 {
+            write!(f, "{}: {}", self.file, self.msg)
+        } else {
+            write!(f, "{}:{}: {}", self.file, self.line, self.msg)
+        }
+    }
+}
+
+impl std::error::Error for EdsError {}
+
+/// An EDS (device description) or a DCF (one configured device).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FileKind {
+    /// `ParameterValue` and `[DeviceComissioning]` are ignored (with a warning).
+    Eds,
+    /// `ParameterValue` is the start value, `[DeviceComissioning]` gives node-id and bit rate.
+    Dcf,
+}
+
+/// Command-line values that win over the file's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Overrides {
+    /// Node-id (1…127, 255 = unconfigured).
+    pub node_id: Option<u8>,
+    /// The node's bit rate in kbit/s.
+    pub bitrate_kbps: Option<u16>,
+    /// Serial number (0x1018/4).
+    pub serial: Option<u32>,
+}
+
+/// Node-id when neither the command line nor a DCF gives one (that of the sensors).
+pub const DEFAULT_NODE_ID: u8 = 127;
+/// Bit rate in kbit/s when neither the command line nor a DCF gives one and the file allows it.
+pub const DEFAULT_BITRATE: u16 = 125;
+
+/// A device built from a file: the model and the unit configuration to run it with.
+#[derive(Debug)]
+pub struct EdsDevice {
+    /// The model (table and features leaked for the life of the process).
+    pub model: &'static Model,
+    /// Node-id and bit rate (command line, else DCF, else the defaults) and serial number.
+    pub cfg: DeviceConfig,
+    /// Things left out or not used (RPDOs, unlisted objects, …), for the log.
+    pub warnings: Vec<String>,
+    /// 0x1018/1 vendor-id.
+    pub vendor_id: u32,
+    /// 0x1018/2 product code (0 when the file has none).
+    pub product_code: u32,
+}
+
+impl EdsDevice {
+    /// The state file of this device in `state_dir`:
+    /// `eds-VVVVVVVV-PPPPPPPP-SERIAL.bin` (vendor-id, product code in hex, serial number), so
+    /// two devices of different identity never share an image.
+    pub fn state_file(&self, state_dir: &Path) -> PathBuf {
+        let name = format!("eds-{:08x}-{:08x}", self.vendor_id, self.product_code);
+        crate::runtime::state_file(state_dir, &name, self.cfg.serial)
+    }
+}
+
+/// Reads and builds the device of file `path`.
+pub fn load(path: &Path, kind: FileKind, o: &Overrides) -> Result<EdsDevice, EdsError> {
+    let file = path.display().to_string();
+    let text = std::fs::read(path).map_err(|e| EdsError {
+        file: file.clone(),
+        line: 0,
+        msg: format!("cannot read: {e}"),
+    })?;
+    let text = String::from_utf8_lossy(&text);
+    build(&text, &file, kind, o)
+}
+
+/// Builds the device of EDS / DCF text (`file` names it in errors).
+pub fn build(text: &str, file: &str, kind: FileKind, o: &Overrides) -> Result<EdsDevice, EdsError> {
+    let ini = Ini::parse(text).map_err(|e| EdsError {
+        file: file.to_string(),
+        line: e.line,
+        msg: e.msg,
+    })?;
+    Builder {
+        file,
+        kind,
+        warnings: Vec::new(),
+    }
+    .build(&ini, o)
+}
+
+/// One CiA 301 object the standard defines: the service rule that owns it and its data type.
+struct Std {
+    index: std::ops::RangeInclusive<u16>,
+    subs: std::ops::RangeInclusive<u8>,
+    ty: DataType,
+    hook: Hook,
+}
+
+const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType, hook: Hook) -> Std {
+    Std {
+        index: lo..=hi,
+        subs: s0..=s1,
+        ty,
+        hook,
+    }
+}
+
+/// The CiA 301 objects whose meaning the core's services implement, by their standard
+/// indices: the one place that assigns [`Hook`]s to a file's objects.
+const STANDARD: &[Std] = {
+    use DataType::{Unsigned16 as U16, Unsigned32 as U32, Unsigned8 as U8};
+    let t = pdo::MAX_TPDOS as u16 - 1;
+    &[
+        row(0x1000, 0x1000, 0, 0, U32, Hook::None),
+        row(0x1001, 0x1001, 0, 0, U8, Hook::None),
+        row(0x1003, 0x1003, 0, 0, U8, Hook::ErrorHistory),
+        row(0x1003, 0x1003, 1, 0xFE, U32, Hook::ErrorHistory),
+        row(0x1005, 0x1005, 0, 0, U32, Hook::SyncCobId),
+        row(0x100C, 0x100C, 0, 0, U16, Hook::Guarding),
+        row(0x100D, 0x100D, 0, 0, U8, Hook::Guarding),
+        row(0x100E, 0x100E, 0, 0, U32, Hook::GuardingCobId),
+        row(0x1010, 0x1010, 0, 0, U8, Hook::None),
+        row(0x1010, 0x1010, 1, 0x7F, U32, Hook::StoreParameters),
+        row(0x1011, 0x1011, 0, 0, U8, Hook::None),
+        row(0x1011, 0x1011, 1, 0x7F, U32, Hook::RestoreDefaults),
+        row(0x1014, 0x1014, 0, 0, U32, Hook::EmcyCobId),
+        row(0x1015, 0x1015, 0, 0, U16, Hook::EmcyInhibit),
+        row(0x1017, 0x1017, 0, 0, U16, Hook::Heartbeat),
+        row(0x1018, 0x1018, 0, 0, U8, Hook::None),
+        row(0x1018, 0x1018, 1, 4, U32, Hook::None),
+        row(0x1800, 0x1800 + t, 0, 0, U8, Hook::None),
+        row(0x1800, 0x1800 + t, 1, 1, U32, Hook::TpdoComm),
+        row(0x1800, 0x1800 + t, 2, 2, U8, Hook::TpdoComm),
+        row(0x1800, 0x1800 + t, 3, 3, U16, Hook::TpdoComm),
+        row(0x1800, 0x1800 + t, 5, 5, U16, Hook::TpdoComm),
+        row(0x1A00, 0x1A00 + t, 0, 0, U8, Hook::TpdoMap),
+        row(
+            0x1A00,
+            0x1A00 + t,
+            1,
+            pdo::MAX_MAP as u8,
+            U32,
+            Hook::TpdoMap,
+        ),
+    ]
+};
+
+fn standard(index: u16, sub: u8) -> Option<&'static Std> {
+    STANDARD
+        .iter()
+        .find(|s| s.index.contains(&index) && s.subs.contains(&sub))
+}
+
+/// An EDS number: decimal, `0x` hex, octal with a leading 0 (CiA 306), or negative decimal.
+pub fn parse_int(s: &str) -> Option<i64> {
+    let s = s.trim();
+    let (neg, body) = match s.strip_prefix('-') {
+        Some(b) => (true, b.trim_start()),
+        None => (false, s),
+    };
+    let v = if let Some(h) = body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) {
+        i64::from_str_radix(h, 16).ok()?
+    } else if body.len() > 1 && body.starts_with('0') {
+        i64::from_str_radix(&body[1..], 8).ok()?
+    } else if body.bytes().all(|b| b.is_ascii_digit()) && !body.is_empty() {
+        body.parse().ok()?
+    } else {
+        return None;
+    };
+    Some(if neg { -v } else { v })
+}
+
+/// A number that may be relative to the node-id: `$NODEID`, `$NODEID+0x180`, `0x180+$NODEID`.
+/// Returns the number and whether `$NODEID` was in it (then the number is the offset).
+pub fn parse_value(s: &str) -> Option<(i64, bool)> {
+    let s = s.trim();
+    let up = s.to_ascii_uppercase();
+    let Some(at) = up.find("$NODEID") else {
+        return parse_int(s).map(|v| (v, false));
+    };
+    let before = s[..at].trim();
+    let after = s[at + "$NODEID".len()..].trim();
+    let offset = match (before, after) {
+        ("", "") => 0,
+        ("", a) => parse_int(a.strip_prefix('+')?)?,
+        (b, "") => parse_int(b.strip_suffix('+')?)?,
+        _ => return None,
+    };
+    Some((offset, true))
+}
+
+/// [`parse_value`] with `$NODEID` resolved for `node_id` (the conformance tool's reading).
+pub fn parse_number(s: &str, node_id: u8) -> Option<i64> {
+    let (v, rel) = parse_value(s)?;
+    Some(if rel {
+        v.saturating_add(i64::from(node_id))
+    } else {
+        v
+    })
+}
+
+fn data_type(code: i64) -> Result<DataType, String> {
+    Ok(match code {
+        0x0001 => DataType::Boolean,
+        0x0002 => DataType::Integer8,
+        0x0003 => DataType::Integer16,
+        0x0004 => DataType::Integer32,
+        0x0005 => DataType::Unsigned8,
+        0x0006 => DataType::Unsigned16,
+        0x0007 => DataType::Unsigned32,
+        0x0009 => DataType::VisibleString,
+        0x000F => return Err("DOMAIN objects are not supported by canpos-core".into()),
+        0x0008 | 0x000A | 0x000B | 0x000C | 0x000D | 0x0010..=0x001B => {
+            return Err(format!(
+                "DataType 0x{code:04X} is not supported by canpos-core (BOOLEAN, INTEGER8/16/32, \
+                 UNSIGNED8/16/32 and VISIBLE_STRING are)"
+            ))
+        }
+        _ => return Err(format!("unknown DataType 0x{code:04X}")),
+    })
+}
+
+fn access(s: &str) -> Option<Access> {
+    Some(match s.to_ascii_lowercase().as_str() {
+        "ro" => Access::Ro,
+        "wo" => Access::Wo,
+        "rw" | "rwr" | "rww" => Access::Rw,
+        "const" => Access::Const,
+        _ => return None,
+    })
+}
+
+/// The raw bits of `v` as a value of `ty`. A hex number too large for a signed type is read
+/// as its two's-complement bit pattern (how tools write negative limits in hex).
+fn raw_of(ty: DataType, v: i64, text: &str) -> Option<u32> {
+    let (lo, hi) = ty.natural_range();
+    let bits = ty.bits() as u32;
+    let hex = text.trim().to_ascii_lowercase().starts_with("0x");
+    let v = if ty.is_signed() && hex && v > hi && v < 1i64 << bits {
+        v - (1i64 << bits)
+    } else {
+        v
+    };
+    if v < lo || v > hi {
+        return None;
+    }
+    Some(if bits >= 32 {
+        v as u32
+    } else {
+        (v as u32) & ((1u32 << bits) - 1)
+    })
+}
+
+fn leak(s: &str) -> &'static str {
+    Box::leak(s.to_owned().into_boxed_str())
+}
+
+struct Builder<'a> {
+    file: &'a str,
+    kind: FileKind,
+    warnings: Vec<String>,
+}
+
+/// A section name that is an object (`1018` → `(0x1018, None)`) or a sub-index (`1018sub4`
+/// → `(0x1018, Some(4))`), case-insensitive; `None` for every other section.
+pub fn section_object(name: &str) -> Option<(u16, Option<u8>)> {
+    let idx = name.get(..4)?;
+    if !idx.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return None;
+    }
+    let index = u16::from_str_radix(idx, 16).ok()?;
+    let rest = &name[4..];
+    if rest.is_empty() {
+        return Some((index, None));
+    }
+    let sub = rest
+        .get(..3)
+        .filter(|p| p.eq_ignore_ascii_case("sub"))
+        .map(|_| &rest[3..])?;
+    if sub.is_empty() || sub.len() > 2 || !sub.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return None;
+    }
+    Some((index, Some(u8::from_str_radix(sub, 16).ok()?)))
+}
+
+impl Builder<'_> {
+    fn err(&self, line: usize, msg: impl Into<String>) -> EdsError {
+        EdsError {
+            file: self.file.to_string(),
+            line,
+            msg: msg.into(),
+        }
+    }
+
+    fn num(&self, k: &Key) -> Result<i64, EdsError> {
+        parse_int(&k.value)
+            .ok_or_else(|| self.err(k.line, format!("{}: `{}` is not a number", k.name, k.value)))
+    }
+
+    fn build(mut self, ini: &Ini, o: &Overrides) -> Result<EdsDevice, EdsError> {
+        let info = ini
+            .section("DeviceInfo")
+            .ok_or_else(|| self.err(0, "no [DeviceInfo] section"))?;
+        if ini.section("MandatoryObjects").is_none() {
+            return Err(self.err(0, "no [MandatoryObjects] section"));
+        }
+
+        // Objects and their sub-index sections, by index.
+        let mut objects: BTreeMap<u16, &Section> = BTreeMap::new();
+        let mut subs: BTreeMap<u16, BTreeMap<u8, &Section>> = BTreeMap::new();
+        for s in &ini.sections {
+            match section_object(&s.name) {
+                Some((index, None)) => {
+                    objects.insert(index, s);
+                }
+                Some((index, Some(sub))) => {
+                    if let Some(first) = subs.entry(index).or_default().insert(sub, s) {
+                        return Err(self.err(
+                            s.line,
+                            format!(
+                                "[{}] is sub-index {sub} of 0x{index:04X} again (first [{}] on \
+                                 line {})",
+                                s.name, first.name, first.line
+                            ),
+                        ));
+                    }
+                }
+                None => {}
+            }
+        }
+        for (index, m) in &subs {
+            if !objects.contains_key(index) {
+                let s = m.values().next().expect("non-empty");
+                return Err(self.err(
+                    s.line,
+                    format!(
+                        "[{}]: object 0x{index:04X} has no [{index:04X}] section",
+                        s.name
+                    ),
+                ));
+            }
+        }
+        self.check_lists(ini, &objects)?;
+
+        let dcf = self.kind == FileKind::Dcf;
+        let mut entries: Vec<Entry> = Vec::new();
+        let mut value_lines: BTreeMap<u32, usize> = BTreeMap::new();
+        let mut tpdo_objects = 0usize;
+        for (&index, sec) in &objects {
+            if index < 0x1000 {
+                self.warnings.push(format!(
+                    "[{}] (line {}): data type definitions are not objects of the device; \
+                     left out",
+                    sec.name, sec.line
+                ));
+                continue;
+            }
+            if (0x1400..=0x17FF).contains(&index) {
+                self.warnings.push(format!(
+                    "[{}] (line {}): RPDO parameters left out (canpos-core has no RPDOs)",
+                    sec.name, sec.line
+                ));
+                continue;
+            }
+            if (0x1800..=0x19FF).contains(&index) || (0x1A00..=0x1BFF).contains(&index) {
+                let n = usize::from(index & 0x1FF);
+                if n >= pdo::MAX_TPDOS {
+                    return Err(self.err(
+                        sec.line,
+                        format!(
+                            "[{}]: TPDO {} — canpos-core serves at most {} TPDOs",
+                            sec.name,
+                            n + 1,
+                            pdo::MAX_TPDOS
+                        ),
+                    ));
+                }
+                let other = if index < 0x1A00 {
+                    index + 0x200
+                } else {
+                    index - 0x200
+                };
+                if !objects.contains_key(&other) {
+                    return Err(self.err(
+                        sec.line,
+                        format!(
+                            "[{}]: TPDO {} has no [{other:04X}] section",
+                            sec.name,
+                            n + 1
+                        ),
+                    ));
+                }
+                tpdo_objects = tpdo_objects.max(n + 1);
+            }
+            if let Some(k) = sec.key("CompactSubObj") {
+                if self.num(k)? != 0 {
+                    return Err(self.err(
+                        k.line,
+                        "CompactSubObj is not supported; write each sub-index as its own \
+                         [xxxxsubN] section",
+                    ));
+                }
+            }
+            // ObjectType is optional (CiA 306: VAR); a SubNumber says it has sub-indices.
+            let ot = match sec.key("ObjectType") {
+                Some(k) => self.num(k)?,
+                None if sec.key("SubNumber").is_some() => 9,
+                None => 7,
+            };
+            let mine = subs.get(&index);
+            match ot {
+                7 => {
+                    if let Some(m) = mine {
+                        let s = m.values().next().expect("non-empty");
+                        return Err(self.err(
+                            s.line,
+                            format!(
+                                "[{}]: 0x{index:04X} is a VAR, it has no sub-indices",
+                                s.name
+                            ),
+                        ));
+                    }
+                    entries.push(self.var(sec, index, 0, dcf, &mut value_lines)?);
+                }
+                8 | 9 => {
+                    let k = sec.key("SubNumber").ok_or_else(|| {
+                        self.err(
+                            sec.line,
+                            format!("[{}]: ARRAY / RECORD without SubNumber", sec.name),
+                        )
+                    })?;
+                    let n = self.num(k)?;
+                    let have = mine.map_or(0, |m| m.len());
+                    if n < 1 || n as usize != have {
+                        return Err(self.err(
+                            k.line,
+                            format!(
+                                "SubNumber={} but 0x{index:04X} has {have} sub-index section(s)",
+                                k.value
+                            ),
+                        ));
+                    }
+                    let m = mine.expect("have > 0");
+                    if !m.contains_key(&0) {
+                        return Err(self.err(
+                            sec.line,
+                            format!("[{}]: no [{index:04X}sub0] (highest sub-index)", sec.name),
+                        ));
+                    }
+                    for (&sub, s) in m {
+                        if let Some(k) = s.key("ObjectType") {
+                            if self.num(k)? != 7 {
+                                return Err(self.err(k.line, "a sub-index must be a VAR (0x7)"));
+                            }
+                        }
+                        entries.push(self.var(s, index, sub, dcf, &mut value_lines)?);
+                    }
+                }
+                _ => {
+                    let line = sec.key("ObjectType").map_or(sec.line, |k| k.line);
+                    return Err(self.err(
+                        line,
+                        format!(
+                            "ObjectType 0x{ot:X} is not supported (VAR 0x7, ARRAY 0x8 and RECORD \
+                             0x9 are)"
+                        ),
+                    ));
+                }
+            }
+        }
+
+        let mandatory_line = ini.section("MandatoryObjects").map_or(0, |s| s.line);
+        for (i, s) in [(0x1000u16, 0u8), (0x1001, 0), (0x1018, 1)] {
+            if !entries.iter().any(|e| e.index == i && e.sub == s) {
+                return Err(self.err(
+                    mandatory_line,
+                    format!("the mandatory object 0x{i:04X} sub {s} is missing (CiA 301)"),
+                ));
+            }
+        }
+        if entries.len() > MAX_ENTRIES {
+            return Err(self.err(
+                0,
+                format!(
+                    "{} entries (objects and sub-indices); canpos-core serves at most {MAX_ENTRIES}",
+                    entries.len()
+                ),
+            ));
+        }
+        // The image also holds the LSS node-id, bit rate and the saved node-id.
+        let stored = entries
+            .iter()
+            .filter(|e| e.group != Group::Volatile)
+            .count();
+        let max_stored = (IMAGE_MAX - 12) / 8 - 3;
+        if stored > max_stored {
+            return Err(self.err(
+                0,
+                format!(
+                    "{stored} stored (rw) entries; canpos-core's storage image holds {max_stored}"
+                ),
+            ));
+        }
+        self.check_mappings(&entries, &value_lines)?;
+
+        if let Some(k) = info.key("NrOfTXPDO") {
+            if self.num(k)? != tpdo_objects as i64 {
+                self.warnings.push(format!(
+                    "line {}: NrOfTXPDO={} but the file has {tpdo_objects} TPDO(s); the objects \
+                     are served",
+                    k.line, k.value
+                ));
+            }
+        }
+        for d in 1..=7 {
+            if ini
+                .get("DummyUsage", &format!("Dummy{d:04X}"))
+                .and_then(parse_int)
+                == Some(1)
+            {
+                self.warnings.push(format!(
+                    "Dummy{d:04X}=1: dummy mapping is not supported; not mappable"
+                ));
+            }
+        }
+
+        let bitrates: Vec<u16> = [10u16, 20, 50, 125, 250, 500, 800, 1000]
+            .into_iter()
+            .filter(|r| info.get(&format!("BaudRate_{r}")).and_then(parse_int) == Some(1))
+            .collect();
+        let lss = info.get("LSS_Supported").and_then(parse_int).unwrap_or(0) == 1;
+        // CiA 305 bit timing table 0 index of each rate.
+        let lss_bit_timing: Vec<u8> = bitrates
+            .iter()
+            .map(|r| match r {
+                1000 => 0,
+                800 => 1,
+                500 => 2,
+                250 => 3,
+                125 => 4,
+                50 => 6,
+                20 => 7,
+                _ => 8,
+            })
+            .collect();
+
+        let (mut node_id, mut bitrate) = (None, None);
+        if let Some(c) = ini.section("DeviceComissioning") {
+            if dcf {
+                if let Some(k) = c.key("NodeID") {
+                    let v = self.num(k)?;
+                    if !(1..=127).contains(&v) {
+                        return Err(self.err(k.line, format!("NodeID {v} is not 1…127")));
+                    }
+                    node_id = Some(v as u8);
+                }
+                if let Some(k) = c.key("Baudrate") {
+                    let v = self.num(k)?;
+                    if ![10, 20, 50, 100, 125, 250, 500, 800, 1000].contains(&v) {
+                        return Err(self.err(
+                            k.line,
+                            format!("Baudrate {v} is not a CAN bit rate in kbit/s"),
+                        ));
+                    }
+                    bitrate = Some(v as u16);
+                }
+            } else {
+                self.warnings.push(format!(
+                    "[DeviceComissioning] (line {}) ignored in an EDS (use --dcf)",
+                    c.line
+                ));
+            }
+        }
+        let node_id = o.node_id.or(node_id).unwrap_or(DEFAULT_NODE_ID);
+        let bitrate = o.bitrate_kbps.or(bitrate).unwrap_or(
+            if bitrates.is_empty() || bitrates.contains(&DEFAULT_BITRATE) {
+                DEFAULT_BITRATE
+            } else {
+                bitrates[0]
+            },
+        );
+
+        let value = |i: u16, s: u8| {
+            entries
+                .iter()
+                .find(|e| e.index == i && e.sub == s)
+                .and_then(|e| match e.default {
+                    Default::Const(v) => Some(v),
+                    _ => None,
+                })
+        };
+        let vendor_id = value(0x1018, 1).unwrap_or(0);
+        let product_code = value(0x1018, 2).unwrap_or(0);
+        let mut serial = value(0x1018, 4).unwrap_or(0);
+        if let Some(s) = o.serial {
+            match entries.iter_mut().find(|e| e.index == 0x1018 && e.sub == 4) {
+                Some(e) => e.default = Default::Const(s),
+                None => self.warnings.push(
+                    "--serial: the file has no 0x1018 sub 4; only names the state file".into(),
+                ),
+            }
+            serial = s;
+        }
+
+        // Tag: fixed high bits apart from the three sensor models (1…3), low bits from the
+        // identity and the layout, so an image of another EDS device is not loaded.
+        let mut layout = Vec::with_capacity(8 + entries.len() * 6);
+        layout.extend_from_slice(&vendor_id.to_le_bytes());
+        layout.extend_from_slice(&product_code.to_le_bytes());
+        for e in &entries {
+            layout.extend_from_slice(&e.key().to_le_bytes());
+            layout.push(e.ty.code() as u8);
+            layout.push(e.access as u8);
+        }
+        let tag = TAG_BASE | (crc32(&layout) & 0x3F) as u8;
+
+        let features = Features {
+            tag,
+            tpdos: tpdo_objects as u8,
+            sdo_segmented: true,
+            sdo_block: true,
+            node_guarding: objects.contains_key(&0x100C) && objects.contains_key(&0x100D),
+            tpdo_rtr: true,
+            lss_fastscan: lss,
+            lss_bit_timing: Box::leak(lss_bit_timing.into_boxed_slice()),
+            bitrates: Box::leak(bitrates.into_boxed_slice()),
+            store_preop_only: false,
+            kill_signature: false,
+            preset_clear: false,
+            preset_zero_shift: false,
+            tmi_emcy: false,
+            window_cams: false,
+            power_on_emcy: false,
+            sync_length_emcy: true,
+            event_timer_above_inhibit: false,
+            lss_unconfigured_configures: false,
+        };
+        let vendor = leak(info.get("VendorName").unwrap_or(""));
+        let product = leak(info.get("ProductName").unwrap_or(""));
+        let table: &'static [Entry] = Box::leak(entries.into_boxed_slice());
+        let model: &'static Model = Box::leak(Box::new(Model {
+            name: "eds",
+            product,
+            vendor,
+            entries: table,
+            features,
+            param,
+            derive: |c| c,
+            default_config: DeviceConfig {
+                node_id,
+                bitrate_kbps: bitrate,
+                serial,
+                stroke_mm: 0,
+                position_step_nm: 0,
+                channels: 0,
+                cycle_us: 0,
+            },
+        }));
+        Ok(EdsDevice {
+            model,
+            cfg: model.default_config,
+            warnings: self.warnings,
+            vendor_id,
+            product_code,
+        })
+    }
+
+    /// `[MandatoryObjects]` / `[OptionalObjects]` / `[ManufacturerObjects]`: counts agree,
+    /// every listed object has a section; a section nobody lists is only warned about.
+    fn check_lists(
+        &mut self,
+        ini: &Ini,
+        objects: &BTreeMap<u16, &Section>,
+    ) -> Result<(), EdsError> {
+        let mut listed: BTreeMap<u16, usize> = BTreeMap::new();
+        for name in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
+            let Some(sec) = ini.section(name) else {
+                continue;
+            };
+            let k = sec
+                .key("SupportedObjects")
+                .ok_or_else(|| self.err(sec.line, format!("[{name}] without SupportedObjects")))?;
+            let n = self.num(k)?;
+            let items: Vec<&Key> = sec
+                .keys
+                .iter()
+                .filter(|x| !x.name.eq_ignore_ascii_case("SupportedObjects"))
+                .collect();
+            if n < 0 || n as usize != items.len() {
+                return Err(self.err(
+                    k.line,
+                    format!(
+                        "SupportedObjects={} but [{name}] lists {}",
+                        k.value,
+                        items.len()
+                    ),
+                ));
+            }
+            for it in items {
+                match parse_int(&it.name) {
+                    Some(p) if (1..=n).contains(&p) => {}
+                    _ => {
+                        return Err(
+                            self.err(it.line, format!("[{name}] key `{}` is not 1…{n}", it.name))
+                        )
+                    }
+                }
+                let v = self.num(it)?;
+                let index = u16::try_from(v)
+                    .map_err(|_| self.err(it.line, format!("0x{v:X} is not an object index")))?;
+                if let Some(first) = listed.insert(index, it.line) {
+                    return Err(self.err(
+                        it.line,
+                        format!("0x{index:04X} listed again (first on line {first})"),
+                    ));
+                }
+                if !objects.contains_key(&index) {
+                    return Err(self.err(
+                        it.line,
+                        format!("0x{index:04X} is listed but has no [{index:04X}] section"),
+                    ));
+                }
+            }
+        }
+        for (index, sec) in objects {
+            if *index >= 0x1000 && !listed.contains_key(index) {
+                self.warnings.push(format!(
+                    "[{}] (line {}) is in no object list; served anyway",
+                    sec.name, sec.line
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// One VAR (an object or a sub-index) as an [`Entry`].
+    fn var(
+        &mut self,
+        sec: &Section,
+        index: u16,
+        sub: u8,
+        dcf: bool,
+        value_lines: &mut BTreeMap<u32, usize>,
+    ) -> Result<Entry, EdsError> {
+        let need = |k: &str| {
+            sec.key(k)
+                .ok_or_else(|| self.err(sec.line, format!("[{}] has no {k}", sec.name)))
+        };
+        let name = need("ParameterName")?;
+        let dt = need("DataType")?;
+        let ty = data_type(self.num(dt)?).map_err(|m| self.err(dt.line, m))?;
+        let acc = need("AccessType")?;
+        let access = access(&acc.value).ok_or_else(|| {
+            self.err(
+                acc.line,
+                format!(
+                    "AccessType `{}` is not ro, wo, rw, rwr, rww or const",
+                    acc.value
+                ),
+            )
+        })?;
+        let pdo = match sec.key("PDOMapping") {
+            Some(k) => match self.num(k)? {
+                0 => false,
+                1 => true,
+                _ => return Err(self.err(k.line, "PDOMapping is 0 or 1")),
+            },
+            None => false,
+        };
+        let std = standard(index, sub);
+        if let Some(s) = std {
+            if s.ty != ty {
+                return Err(self.err(
+                    dt.line,
+                    format!(
+                        "0x{index:04X} sub {sub} must be {:?} (CiA 301), not {:?}",
+                        s.ty, ty
+                    ),
+                ));
+            }
+        }
+        if (0x1A00..=0x1BFF).contains(&index) && std.is_none() {
+            return Err(self.err(
+                sec.line,
+                format!(
+                    "[{}]: canpos-core maps at most {} objects per TPDO",
+                    sec.name,
+                    pdo::MAX_MAP
+                ),
+            ));
+        }
+        let hook = std.map_or(Hook::None, |s| s.hook);
+
+        let pv = sec.key("ParameterValue");
+        if pv.is_some() && !dcf {
+            self.warnings.push(format!(
+                "[{}]: ParameterValue ignored in an EDS (use --dcf)",
+                sec.name
+            ));
+        }
+        let val = if dcf { pv } else { None }.or_else(|| sec.key("DefaultValue"));
+        let val = val.filter(|k| !k.value.is_empty());
+
+        if ty == DataType::VisibleString {
+            if access.writable() {
+                return Err(self.err(
+                    acc.line,
+                    format!(
+                        "[{}]: a writable VISIBLE_STRING is not supported by canpos-core \
+                         (ro / const only)",
+                        sec.name
+                    ),
+                ));
+            }
+            if pdo {
+                return Err(self.err(
+                    sec.line,
+                    format!("[{}]: a string cannot be mapped", sec.name),
+                ));
+            }
+            let s = val.map_or("", |k| k.value.as_str());
+            if s.len() > 64 {
+                return Err(self.err(
+                    val.map_or(sec.line, |k| k.line),
+                    "a string of more than 64 bytes is not supported by canpos-core",
+                ));
+            }
+            return Ok(Entry {
+                index,
+                sub,
+                name: leak(&name.value),
+                ty,
+                access,
+                pdo: false,
+                default: Default::Str(leak(s)),
+                range: Range::Any,
+                group: Group::Volatile,
+                hook,
+            });
+        }
+
+        let limit = |key: &str| -> Result<Option<i64>, EdsError> {
+            let Some(k) = sec.key(key).filter(|k| !k.value.is_empty()) else {
+                return Ok(None);
+            };
+            let v = self.num(k)?;
+            let raw = raw_of(ty, v, &k.value).ok_or_else(|| {
+                self.err(
+                    k.line,
+                    format!("{key} {} is outside the range of {ty:?}", k.value),
+                )
+            })?;
+            Ok(Some(ty.to_i64(raw)))
+        };
+        let (lo, hi) = (limit("LowLimit")?, limit("HighLimit")?);
+        let range = match (lo, hi) {
+            (None, None) if index == 0x1003 && sub == 0 => Range::MinMax(0, 0),
+            (None, None) => Range::Any,
+            (lo, hi) => {
+                let (nlo, nhi) = ty.natural_range();
+                let (lo, hi) = (lo.unwrap_or(nlo), hi.unwrap_or(nhi));
+                if lo > hi {
+                    return Err(self.err(
+                        sec.key("HighLimit").map_or(sec.line, |k| k.line),
+                        format!("HighLimit {hi} is below LowLimit {lo}"),
+                    ));
+                }
+                Range::MinMax(lo, hi)
+            }
+        };
+
+        let default = match val {
+            None => Default::Const(0),
+            Some(k) => {
+                let (v, rel) = parse_value(&k.value).ok_or_else(|| {
+                    self.err(k.line, format!("{}: `{}` is not a number", k.name, k.value))
+                })?;
+                if rel {
+                    let base = u32::try_from(v).map_err(|_| {
+                        self.err(k.line, format!("{}: offset {v} out of range", k.name))
+                    })?;
+                    Default::NodeId(base)
+                } else {
+                    let raw = raw_of(ty, v, &k.value).ok_or_else(|| {
+                        self.err(
+                            k.line,
+                            format!("{} {} is outside the range of {ty:?}", k.name, k.value),
+                        )
+                    })?;
+                    if let Range::MinMax(lo, hi) = range {
+                        let x = ty.to_i64(raw);
+                        if (x < lo || x > hi) && !(index == 0x1003 && sub == 0) {
+                            return Err(self.err(
+                                k.line,
+                                format!(
+                                    "{} {} is outside LowLimit…HighLimit {lo}…{hi}",
+                                    k.name, k.value
+                                ),
+                            ));
+                        }
+                    }
+                    Default::Const(raw)
+                }
+            }
+        };
+
+        value_lines.insert(
+            (index as u32) << 8 | sub as u32,
+            val.map_or(sec.line, |k| k.line),
+        );
+        let group = match (access, hook) {
+            (_, Hook::StoreParameters | Hook::RestoreDefaults | Hook::ErrorHistory) => {
+                Group::Volatile
+            }
+            (Access::Rw, _) if (0x1000..=0x1FFF).contains(&index) => Group::Comm,
+            (Access::Rw, _) if index >= 0x2000 => Group::App,
+            _ => Group::Volatile,
+        };
+        Ok(Entry {
+            index,
+            sub,
+            name: leak(&name.value),
+            ty,
+            access,
+            pdo: pdo && access.readable(),
+            default,
+            range,
+            group,
+            hook,
+        })
+    }
+
+    /// The default mapping of every TPDO names objects that exist, may be mapped, and fit.
+    fn check_mappings(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        let find = |i: u16, s: u8| entries.iter().find(|e| e.index == i && e.sub == s);
+        // The line of the entry's value (or of its section).
+        let line = |e: &Entry| value_lines.get(&e.key()).copied().unwrap_or(0);
+        for n in 0..pdo::MAX_TPDOS as u16 {
+            let Some(e0) = find(0x1A00 + n, 0) else {
+                continue;
+            };
+            let Default::Const(count) = e0.default else {
+                return Err(self.err(line(e0), "a mapping count must be a number"));
+            };
+            let have = (1..=pdo::MAX_MAP as u8)
+                .take_while(|&k| find(0x1A00 + n, k).is_some())
+                .count() as u32;
+            if count > have {
+                return Err(self.err(
+                    line(e0),
+                    format!(
+                        "0x{:04X} maps {count} objects but has no sub {}",
+                        0x1A00 + n,
+                        have + 1
+                    ),
+                ));
+            }
+            let mut bits = 0u32;
+            for k in 1..=count {
+                let Some(m) = u8::try_from(k).ok().and_then(|k| find(0x1A00 + n, k)) else {
+                    return Err(self.err(
+                        line(e0),
+                        format!(
+                            "0x{:04X} maps {count} objects but has no sub {k}",
+                            0x1A00 + n
+                        ),
+                    ));
+                };
+                let Default::Const(v) = m.default else {
+                    return Err(self.err(line(m), "a mapping entry must be a number"));
+                };
+                let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);
+                let at = line(m);
+                let Some(t) = find(ti, ts) else {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which does not exist",
+                            0x1A00 + n
+                        ),
+                    ));
+                };
+                if !t.pdo {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which has no PDOMapping=1",
+                            0x1A00 + n
+                        ),
+                    ));
+                }
+                if tb != u32::from(t.ty.bits()) {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts} with {tb} bits; it has {}",
+                            0x1A00 + n,
+                            t.ty.bits()
+                        ),
+                    ));
+                }
+                bits += tb;
+            }
+            if bits > 64 {
+                return Err(self.err(
+                    line(e0),
+                    format!("TPDO {} maps {bits} bits; a CAN frame holds 64", n + 1),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The storage image tag of every EDS device has these bits (the sensors' tags are 1…3).
+pub const TAG_BASE: u8 = 0x40;
+
+/// A plain device has no configuration-dependent defaults beyond the unit's identity.
+fn param(cfg: &DeviceConfig, p: Param) -> u32 {
+    match p {
+        Param::NodeId => u32::from(cfg.node_id),
+        Param::BitRateKbps => u32::from(cfg.bitrate_kbps),
+        Param::SerialNumber => cfg.serial,
+        _ => 0,
+    }
+}
+
+/// The node of an EDS device.
+pub type PlainNode<S> = canpos_core::Node<Plain, S>;
+
+#[cfg(test)]
+mod tests;

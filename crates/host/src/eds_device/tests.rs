@@ -1,0 +1,606 @@
+//! The EDS / DCF device: the files canpos exports for its sensors and a hand-written one build
+//! the model they describe; every malformed file is an error with its line; the built node
+//! serves values, limits, PDOs and storage.
+
+use super::*;
+use canpos_core::models;
+use canpos_core::node::{SIG_LOAD, SIG_SAVE};
+use canpos_core::od::{resolve_default, ParamSource};
+use canpos_core::storage::RamStorage;
+use canpos_core::{Frame, Instant, Node};
+
+const IO: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../examples/io-device.eds"
+));
+
+const NONE: Overrides = Overrides {
+    node_id: None,
+    bitrate_kbps: None,
+    serial: None,
+};
+
+fn eds(text: &str) -> Result<EdsDevice, EdsError> {
+    build(text, "x.eds", FileKind::Eds, &NONE)
+}
+
+fn find(m: &Model, index: u16, sub: u8) -> &Entry {
+    m.entries
+        .iter()
+        .find(|e| e.index == index && e.sub == sub)
+        .unwrap_or_else(|| panic!("no {index:04X}/{sub}"))
+}
+
+struct Unit(&'static Model, DeviceConfig);
+impl ParamSource for Unit {
+    fn param(&self, p: Param) -> u32 {
+        (self.0.param)(&self.1, p)
+    }
+}
+
+#[test]
+fn the_exported_eds_of_every_model_rebuilds_its_table() {
+    for m in models::all() {
+        let mut text = String::new();
+        canpos_core::eds::write_eds(
+            &mut text,
+            m,
+            &m.default_config,
+            &canpos_core::eds::EdsInfo::default(),
+        )
+        .unwrap();
+        let d = eds(&text).unwrap_or_else(|e| panic!("{}: {e}", m.name));
+        assert!(d.warnings.is_empty(), "{}: {:?}", m.name, d.warnings);
+        let b = d.model;
+        assert_eq!(b.entries.len(), m.entries.len(), "{}", m.name);
+        assert_eq!(b.features.tpdos, m.features.tpdos);
+        let mut rates = m.features.bitrates.to_vec();
+        rates.sort_unstable();
+        assert_eq!(b.features.bitrates, rates);
+        assert_eq!(b.vendor, m.vendor);
+        let (orig, built) = (Unit(m, m.default_config), Unit(b, b.default_config));
+        for (o, e) in m.entries.iter().zip(b.entries) {
+            let at = format!("{} {:04X}/{}", m.name, o.index, o.sub);
+            assert_eq!(o.key(), e.key(), "{at}");
+            assert_eq!(o.ty, e.ty, "{at}");
+            assert_eq!(o.pdo, e.pdo, "{at}");
+            assert_eq!(o.name, e.name, "{at}");
+            // Mappable objects are exported ro (EDS rule), all else as the table says.
+            if !(o.pdo && o.access == Access::Rw) {
+                assert_eq!(o.access, e.access, "{at}");
+            }
+            if !matches!(
+                o.hook,
+                Hook::App(_) | Hook::PendingNodeId | Hook::PendingBitRate
+            ) {
+                assert_eq!(o.hook, e.hook, "{at}");
+            }
+            if let Default::Str(s) = o.default {
+                assert_eq!(e.default, Default::Str(s), "{at}");
+            } else if o.default != Default::Live {
+                assert_eq!(
+                    resolve_default(o, &orig, 127),
+                    resolve_default(e, &built, 127),
+                    "{at}"
+                );
+            }
+            if let Range::MinMax(..) = o.range {
+                assert_eq!(o.range, e.range, "{at}");
+            }
+        }
+        assert_ne!(b.features.tag, m.features.tag);
+        assert_eq!(b.features.tag & 0xC0, TAG_BASE);
+    }
+}
+
+#[test]
+fn the_hand_written_io_device() {
+    let d = eds(IO).unwrap();
+    let m = d.model;
+    // RPDOs left out, with a warning each.
+    assert_eq!(d.warnings.len(), 2, "{:?}", d.warnings);
+    assert!(d.warnings.iter().all(|w| w.contains("RPDO")));
+    assert!(!m
+        .entries
+        .iter()
+        .any(|e| (0x1400..0x1800).contains(&e.index)));
+    assert_eq!(m.features.tpdos, 2);
+    assert_eq!(m.features.bitrates, &[125, 250, 500, 1000]);
+    assert_eq!(m.features.lss_bit_timing, &[4, 3, 2, 0]);
+    assert!(m.features.lss_fastscan && m.features.node_guarding);
+    assert_eq!((d.vendor_id, d.product_code), (0xCA7, 0x1234));
+    assert_eq!(
+        (d.cfg.node_id, d.cfg.bitrate_kbps, d.cfg.serial),
+        (127, 125, 0x42)
+    );
+    assert!(m.entries.windows(2).all(|w| w[0].key() < w[1].key()));
+    // Hooks by standard index, groups by access and index.
+    assert_eq!(find(m, 0x1017, 0).hook, Hook::Heartbeat);
+    assert_eq!(find(m, 0x1017, 0).group, Group::Comm);
+    assert_eq!(find(m, 0x1010, 2).hook, Hook::StoreParameters);
+    assert_eq!(find(m, 0x1010, 2).group, Group::Volatile);
+    assert_eq!(find(m, 0x1011, 3).hook, Hook::RestoreDefaults);
+    assert_eq!(find(m, 0x100C, 0).hook, Hook::Guarding);
+    assert_eq!(find(m, 0x1003, 0).hook, Hook::ErrorHistory);
+    assert_eq!(find(m, 0x1003, 0).range, Range::MinMax(0, 0));
+    assert_eq!(find(m, 0x1800, 1).hook, Hook::TpdoComm);
+    assert_eq!(find(m, 0x1800, 0).hook, Hook::None);
+    assert_eq!(find(m, 0x1A01, 0).hook, Hook::TpdoMap);
+    assert_eq!(find(m, 0x1014, 0).default, Default::NodeId(0x80));
+    assert_eq!(find(m, 0x1801, 1).default, Default::NodeId(0x8000_0280));
+    assert_eq!(find(m, 0x2101, 0).group, Group::App);
+    assert_eq!(find(m, 0x2200, 0).group, Group::Volatile);
+    assert_eq!(find(m, 0x2000, 0).group, Group::Volatile);
+    // Values and limits in the type's terms.
+    assert_eq!(
+        find(m, 0x2001, 1).default,
+        Default::Const(-1234i16 as u16 as u32)
+    );
+    assert_eq!(find(m, 0x2102, 0).default, Default::Const(-500i32 as u32));
+    assert_eq!(find(m, 0x2102, 0).range, Range::MinMax(-100_000, 100_000));
+    assert_eq!(find(m, 0x2103, 0).range, Range::MinMax(-10, 10));
+    assert_eq!(find(m, 0x2101, 0).range, Range::MinMax(1, 1000));
+    assert_eq!(find(m, 0x2300, 0).default, Default::Str("v1.2-io"));
+    assert_eq!(find(m, 0x1008, 0).access, Access::Const);
+    assert_eq!(find(m, 0x2200, 0).access, Access::Wo);
+    assert!(find(m, 0x2000, 0).pdo && !find(m, 0x2100, 0).pdo);
+}
+
+#[test]
+fn overrides_and_state_file() {
+    let o = Overrides {
+        node_id: Some(5),
+        bitrate_kbps: Some(500),
+        serial: Some(77),
+    };
+    let d = build(IO, "x.eds", FileKind::Eds, &o).unwrap();
+    assert_eq!(
+        (d.cfg.node_id, d.cfg.bitrate_kbps, d.cfg.serial),
+        (5, 500, 77)
+    );
+    assert_eq!(find(d.model, 0x1018, 4).default, Default::Const(77));
+    assert_eq!(
+        d.state_file(Path::new("/s")),
+        Path::new("/s/eds-00000ca7-00001234-77.bin")
+    );
+    // Without ObjectType an object is a VAR, or a RECORD when it has a SubNumber.
+    let implicit = IO.replace(
+        "ObjectType=0x8\nSubNumber=3\n\n[2001sub0]",
+        "SubNumber=3\n\n[2001sub0]",
+    );
+    let implicit2 = implicit.replace(
+        "[2000]\nParameterName=Digital inputs\nObjectType=0x7\n",
+        "[2000]\nParameterName=Digital inputs\n",
+    );
+    assert!(implicit != IO && implicit2 != implicit);
+    let d2 = eds(&implicit2).unwrap();
+    assert_eq!(find(d2.model, 0x2001, 2).default, Default::Const(2000));
+    assert_eq!(find(d2.model, 0x2000, 0).default, Default::Const(0x5A));
+    // Another identity, another tag.
+    let other = eds(&IO.replace("0x00001234", "0x00001235")).unwrap();
+    assert_ne!(other.model.features.tag, d.model.features.tag);
+}
+
+#[test]
+fn a_dcf_brings_its_values_and_commissioning() {
+    let dcf = IO
+        .replace(
+            "DefaultValue=10\nLowLimit=1",
+            "DefaultValue=10\nParameterValue=250\nLowLimit=1",
+        )
+        .replace(
+            "[DummyUsage]",
+            "[DeviceComissioning]\nNodeID=0x21\nBaudrate=500\n\n[DummyUsage]",
+        );
+    let d = build(&dcf, "x.dcf", FileKind::Dcf, &NONE).unwrap();
+    assert_eq!(find(d.model, 0x2101, 0).default, Default::Const(250));
+    assert_eq!((d.cfg.node_id, d.cfg.bitrate_kbps), (0x21, 500));
+    // The command line wins.
+    let o = Overrides {
+        node_id: Some(9),
+        bitrate_kbps: Some(250),
+        serial: None,
+    };
+    let d = build(&dcf, "x.dcf", FileKind::Dcf, &o).unwrap();
+    assert_eq!((d.cfg.node_id, d.cfg.bitrate_kbps), (9, 250));
+    // An EDS ignores both, and says so.
+    let e = eds(&dcf).unwrap();
+    assert_eq!(find(e.model, 0x2101, 0).default, Default::Const(10));
+    assert_eq!((e.cfg.node_id, e.cfg.bitrate_kbps), (127, 125));
+    assert!(e.warnings.iter().any(|w| w.contains("ParameterValue")));
+    assert!(e.warnings.iter().any(|w| w.contains("DeviceComissioning")));
+    // A ParameterValue outside the limits is an error too.
+    let bad = dcf.replace("ParameterValue=250", "ParameterValue=1001");
+    let err = build(&bad, "x.dcf", FileKind::Dcf, &NONE).unwrap_err();
+    assert!(err.msg.contains("outside LowLimit"), "{err}");
+    let bad = dcf.replace("NodeID=0x21", "NodeID=128");
+    let err = build(&bad, "x.dcf", FileKind::Dcf, &NONE).unwrap_err();
+    assert!(err.msg.contains("NodeID"), "{err}");
+}
+
+fn line_of(text: &str, needle: &str) -> usize {
+    text.lines()
+        .position(|l| l == needle)
+        .unwrap_or_else(|| panic!("no line {needle}"))
+        + 1
+}
+
+/// Replaces the line `from` (within the section `[sec]`) by `to`.
+fn edit(sec: &str, from: &str, to: &str) -> String {
+    let start = IO.find(&format!("\n[{sec}]\n")).expect(sec);
+    let at = start + IO[start..].find(&format!("\n{from}\n")).expect(from);
+    format!("{}\n{to}\n{}", &IO[..at], &IO[at + from.len() + 2..])
+}
+
+#[test]
+fn malformed_files_name_the_line() {
+    let sec_line = |name: &str| line_of(IO, &format!("[{name}]"));
+    // (file text, expected line (0 = whole file), words in the message)
+    let cases: Vec<(String, usize, &str)> = vec![
+        (IO.replace("[DeviceInfo]", "[DevInfo]"), 0, "no [DeviceInfo]"),
+        (
+            IO.replace("[MandatoryObjects]", "[Mandatory]"),
+            0,
+            "no [MandatoryObjects]",
+        ),
+        (
+            edit("2101", "DefaultValue=10", "DefaultValue=ten"),
+            sec_line("2101") + 5,
+            "not a number",
+        ),
+        (
+            edit("2101", "DataType=0x0006", "DataType=0x0099"),
+            sec_line("2101") + 3,
+            "unknown DataType 0x0099",
+        ),
+        (
+            edit("2101", "DataType=0x0006", "DataType=0x000F"),
+            sec_line("2101") + 3,
+            "DOMAIN",
+        ),
+        (
+            edit("2101", "DataType=0x0006", "DataType=0x0008"),
+            sec_line("2101") + 3,
+            "not supported",
+        ),
+        (
+            edit("2101", "AccessType=rw", "AccessType=readwrite"),
+            sec_line("2101") + 4,
+            "AccessType",
+        ),
+        (
+            edit("2300", "AccessType=ro", "AccessType=rw"),
+            sec_line("2300") + 4,
+            "writable VISIBLE_STRING",
+        ),
+        (
+            edit("2101", "DefaultValue=10", "DefaultValue=1001"),
+            sec_line("2101") + 5,
+            "outside LowLimit",
+        ),
+        (
+            edit("2101", "HighLimit=1000", "HighLimit=0"),
+            sec_line("2101") + 7,
+            "below LowLimit",
+        ),
+        (
+            edit("2000", "DefaultValue=0x5A", "DefaultValue=256"),
+            sec_line("2000") + 5,
+            "outside the range of Unsigned8",
+        ),
+        (
+            edit("2103", "LowLimit=0xF6", "LowLimit=-129"),
+            sec_line("2103") + 6,
+            "outside the range",
+        ),
+        (
+            edit("2001", "SubNumber=3", "SubNumber=4"),
+            sec_line("2001") + 3,
+            "SubNumber=4 but 0x2001 has 3",
+        ),
+        (
+            IO.replace("[2001sub1]", "[2001sub01]\n[2001sub1]")
+                .replace("[2001sub01]\n", "[2001sub01]\nParameterName=x\n"),
+            sec_line("2001sub1") + 2,
+            "again",
+        ),
+        (IO.replace("[2300]", "[2000]"), sec_line("2300"), "given twice"),
+        (
+            IO.replace("[1018sub4]", "[1019sub4]"),
+            sec_line("1018sub4"),
+            "no [1019] section",
+        ),
+        (
+            edit("1017", "DataType=0x0006", "DataType=0x0007"),
+            sec_line("1017") + 3,
+            "must be Unsigned16",
+        ),
+        (
+            edit("MandatoryObjects", "SupportedObjects=3", "SupportedObjects=4"),
+            sec_line("MandatoryObjects") + 1,
+            "SupportedObjects=4 but",
+        ),
+        (
+            edit("ManufacturerObjects", "8=0x2300", "8=0x2400"),
+            sec_line("ManufacturerObjects") + 9,
+            "no [2400] section",
+        ),
+        (
+            edit("1A00sub3", "DefaultValue=0x21020020", "DefaultValue=0x21000008"),
+            sec_line("1A00sub3") + 5,
+            "no PDOMapping=1",
+        ),
+        (
+            edit("1A00sub3", "DefaultValue=0x21020020", "DefaultValue=0x21020010"),
+            sec_line("1A00sub3") + 5,
+            "with 16 bits",
+        ),
+        (
+            edit("1A00sub3", "DefaultValue=0x21020020", "DefaultValue=0x29990020"),
+            sec_line("1A00sub3") + 5,
+            "does not exist",
+        ),
+        (
+            edit("1A00sub0", "DefaultValue=3", "DefaultValue=5"),
+            sec_line("1A00sub0") + 5,
+            "no sub 5",
+        ),
+        (
+            edit("1A00sub4", "DefaultValue=0", "DefaultValue=0x21020020")
+                .replace("[1A00sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=3", "[1A00sub0]\nParameterName=Number of mapped objects\nObjectType=0x7\nDataType=0x0005\nAccessType=rw\nDefaultValue=4"),
+            sec_line("1A00sub0") + 5,
+            "88 bits",
+        ),
+        (
+            IO.replace("[1801]", "[1804]")
+                .replace("[1801sub", "[1804sub")
+                .replace("13=0x1801", "13=0x1804"),
+            sec_line("1801"),
+            "at most 4 TPDOs",
+        ),
+        (
+            edit("2100", "ObjectType=0x7", "ObjectType=0x2"),
+            sec_line("2100") + 2,
+            "ObjectType 0x2",
+        ),
+        (
+            edit("2001", "SubNumber=3", "SubNumber=3\nCompactSubObj=2"),
+            sec_line("2001") + 4,
+            "CompactSubObj",
+        ),
+        (
+            IO.replace("\nDataType=0x0007\nAccessType=ro\nDefaultValue=0x000F0191", "\nAccessType=ro\nDefaultValue=0x000F0191"),
+            sec_line("1000"),
+            "has no DataType",
+        ),
+        (
+            IO.replace("[1001]", "[1002]").replace("2=0x1001", "2=0x1002"),
+            sec_line("MandatoryObjects"),
+            "0x1001 sub 0 is missing",
+        ),
+        (
+            edit("2100", "PDOMapping=0", "PDOMapping=2"),
+            sec_line("2100") + 6,
+            "PDOMapping",
+        ),
+        (
+            format!("x=1\n{IO}"),
+            1,
+            "before the first",
+        ),
+    ];
+    for (text, line, words) in &cases {
+        let e = eds(text).expect_err(words);
+        assert!(e.msg.contains(words), "expected `{words}`, got: {e}");
+        assert_eq!(e.line, *line, "{words}: {e}");
+        assert!(e.to_string().starts_with("x.eds"), "{e}");
+    }
+}
+
+#[test]
+fn too_many_entries() {
+    // 0x3000 with 254 sub-indices on top of the device's 52 entries.
+    let mut text = IO.replace("8=0x2300", "8=0x2300\n9=0x3000").replace(
+        "[ManufacturerObjects]\nSupportedObjects=8",
+        "[ManufacturerObjects]\nSupportedObjects=9",
+    );
+    text.push_str("\n[3000]\nParameterName=Big\nObjectType=0x8\nSubNumber=255\n");
+    for s in 0..255 {
+        text.push_str(&format!(
+            "[3000sub{s:X}]\nParameterName=b{s}\nDataType=0x0005\nAccessType=ro\n"
+        ));
+    }
+    let e = eds(&text).unwrap_err();
+    assert!(e.msg.contains("at most 256"), "{e}");
+}
+
+/// Every file one edit away from the valid one (a line dropped, or a value garbled) builds or
+/// fails with an error naming a line of the file; none panics.
+#[test]
+fn no_edit_of_the_file_panics() {
+    let lines: Vec<&str> = IO.lines().collect();
+    let n = lines.len();
+    let check = |text: String| match eds(&text) {
+        Ok(_) => {}
+        Err(e) => assert!(e.line <= text.lines().count(), "{e}"),
+    };
+    for i in 0..n {
+        let mut v = lines.clone();
+        v.remove(i);
+        check(v.join("\n"));
+        if let Some((k, _)) = lines[i].split_once('=') {
+            for bad in ["", "0x", "-", "$NODEID+", "99999999999999999999"] {
+                let mut v: Vec<String> = lines.iter().map(|s| s.to_string()).collect();
+                v[i] = format!("{k}={bad}");
+                check(v.join("\n"));
+            }
+        }
+    }
+    for cut in (0..IO.len()).step_by(97) {
+        check(IO[..cut].to_string());
+    }
+}
+
+// --- the built device on the bus -------------------------------------------------------------
+
+const ID: u8 = 5;
+
+fn node() -> Node<Plain, RamStorage> {
+    let o = Overrides {
+        node_id: Some(ID),
+        ..NONE
+    };
+    let d = build(IO, "x.eds", FileKind::Eds, &o).unwrap();
+    let mut n = Node::with_app(d.model, d.cfg, Plain, RamStorage::default());
+    n.power_on(Instant(0));
+    while n.poll(Instant(0)).is_some() {}
+    n
+}
+
+/// One SDO request at `t`; the answer (the node holds a store's answer for 20 ms).
+fn sdo(n: &mut Node<Plain, RamStorage>, t: &mut u64, req: [u8; 8]) -> [u8; 8] {
+    n.handle_frame(&Frame::std8(0x600 + u16::from(ID), req), Instant(*t));
+    for _ in 0..100 {
+        while let Some(f) = n.poll(Instant(*t)) {
+            if f.std_id() == Some(0x580 + u16::from(ID)) {
+                return *f.raw();
+            }
+        }
+        *t += 1000;
+    }
+    panic!("no SDO answer");
+}
+
+fn download(n: &mut Node<Plain, RamStorage>, t: &mut u64, i: u16, s: u8, v: &[u8]) -> Option<u32> {
+    let mut r = [0u8; 8];
+    r[0] = 0x23 | ((4 - v.len() as u8) << 2);
+    r[1..3].copy_from_slice(&i.to_le_bytes());
+    r[3] = s;
+    r[4..4 + v.len()].copy_from_slice(v);
+    let a = sdo(n, t, r);
+    (a[0] == 0x80).then(|| u32::from_le_bytes([a[4], a[5], a[6], a[7]]))
+}
+
+fn upload(n: &mut Node<Plain, RamStorage>, t: &mut u64, i: u16, s: u8) -> u32 {
+    let i = i.to_le_bytes();
+    let a = sdo(n, t, [0x40, i[0], i[1], s, 0, 0, 0, 0]);
+    assert_eq!(a[0] & 0xF3, 0x43, "{a:02X?}");
+    u32::from_le_bytes([a[4], a[5], a[6], a[7]])
+}
+
+#[test]
+fn the_node_serves_values_limits_pdos_and_storage() {
+    let mut n = node();
+    let mut t = 1000;
+    assert_eq!(upload(&mut n, &mut t, 0x1014, 0), 0x80 + u32::from(ID));
+    assert_eq!(upload(&mut n, &mut t, 0x2001, 1) as u16 as i16, -1234);
+    // Limits: too high, too low, and the type's own bounds.
+    assert_eq!(
+        download(&mut n, &mut t, 0x2101, 0, &1001u16.to_le_bytes()),
+        Some(0x0609_0031)
+    );
+    assert_eq!(
+        download(&mut n, &mut t, 0x2101, 0, &0u16.to_le_bytes()),
+        Some(0x0609_0032)
+    );
+    assert_eq!(
+        download(&mut n, &mut t, 0x2103, 0, &[(-11i8) as u8]),
+        Some(0x0609_0032)
+    );
+    assert_eq!(download(&mut n, &mut t, 0x2103, 0, &[(-10i8) as u8]), None);
+    assert_eq!(download(&mut n, &mut t, 0x2000, 0, &[1]), Some(0x0601_0002));
+    assert_eq!(download(&mut n, &mut t, 0x2100, 0, &[2]), Some(0x0609_0030));
+    assert_eq!(download(&mut n, &mut t, 0x2101, 0, &[1]), Some(0x0607_0013));
+    // Write-only: no reads.
+    let a = sdo(&mut n, &mut t, [0x40, 0x00, 0x22, 0, 0, 0, 0, 0]);
+    assert_eq!(u32::from_le_bytes([a[4], a[5], a[6], a[7]]), 0x0601_0001);
+    assert_eq!(
+        download(&mut n, &mut t, 0x2200, 0, &7u16.to_le_bytes()),
+        None
+    );
+
+    // TPDO1 at a 10 ms event timer carries 0x2000, 0x2001/1, 0x2102 once operational.
+    assert_eq!(
+        download(&mut n, &mut t, 0x2102, 0, &(-7i32).to_le_bytes()),
+        None
+    );
+    assert_eq!(
+        download(&mut n, &mut t, 0x1800, 5, &10u16.to_le_bytes()),
+        None
+    );
+    n.handle_frame(&Frame::std_len(0, [1, ID, 0, 0, 0, 0, 0, 0], 2), Instant(t));
+    let mut pdos = Vec::new();
+    for _ in 0..30 {
+        t += 1000;
+        while let Some(f) = n.poll(Instant(t)) {
+            if f.std_id() == Some(0x180 + u16::from(ID)) {
+                pdos.push(f.data().to_vec());
+            }
+        }
+    }
+    assert!((2..=4).contains(&pdos.len()), "{pdos:?}");
+    let mut want = vec![0x5A];
+    want.extend_from_slice(&(-1234i16).to_le_bytes());
+    want.extend_from_slice(&(-7i32).to_le_bytes());
+    assert_eq!(pdos[0], want);
+    // Remapped (disabled first, as CiA 301 wants): a string is not mappable, 0x2101 is.
+    let cob = 0x180 + u32::from(ID);
+    assert_eq!(
+        download(
+            &mut n,
+            &mut t,
+            0x1800,
+            1,
+            &(cob | 0x8000_0000).to_le_bytes()
+        ),
+        None
+    );
+    assert_eq!(download(&mut n, &mut t, 0x1A00, 0, &[0]), None);
+    let string = 0x2300_0008u32.to_le_bytes();
+    assert_eq!(
+        download(&mut n, &mut t, 0x1A00, 1, &string),
+        Some(0x0604_0041)
+    );
+    assert_eq!(
+        download(&mut n, &mut t, 0x1A00, 1, &0x2101_0010u32.to_le_bytes()),
+        None
+    );
+    assert_eq!(download(&mut n, &mut t, 0x1A00, 0, &[1]), None);
+    assert_eq!(
+        download(&mut n, &mut t, 0x1800, 1, &cob.to_le_bytes()),
+        None
+    );
+    let mut last = None;
+    for _ in 0..15 {
+        t += 1000;
+        while let Some(f) = n.poll(Instant(t)) {
+            if f.std_id() == Some(0x180 + u16::from(ID)) {
+                last = Some(f.data().to_vec());
+            }
+        }
+    }
+    assert_eq!(last, Some(10u16.to_le_bytes().to_vec()));
+
+    // Store, power cycle, restore.
+    assert_eq!(
+        download(&mut n, &mut t, 0x1017, 0, &250u16.to_le_bytes()),
+        None
+    );
+    assert_eq!(
+        download(&mut n, &mut t, 0x1010, 1, &SIG_SAVE.to_le_bytes()),
+        None
+    );
+    n.power_off();
+    n.power_on(Instant(t));
+    assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 250);
+    assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -7);
+    assert_eq!(upload(&mut n, &mut t, 0x2103, 0) as u8 as i8, -10);
+    assert_eq!(
+        download(&mut n, &mut t, 0x1011, 1, &SIG_LOAD.to_le_bytes()),
+        None
+    );
+    n.power_off();
+    n.power_on(Instant(t));
+    assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 0);
+    assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -500);
+}

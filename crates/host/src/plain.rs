@@ -1,0 +1,197 @@
+//! The runtime of a plain CiA 301 device (one [`Node`] with the [`Plain`] application, such as
+//! an [`crate::eds_device`] device): frames in, the node's timers, frames out, and a sleep to
+//! the node's next deadline on the same absolute clock as [`crate::runtime`].
+//!
+//! There is no measurement cycle and no fault model, so the sensor runtime's loop would be
+//! mostly idle parts; this one is that loop reduced to the node. It answers control requests
+//! with an error (a plain device has no magnets or faults to drive).
+
+use std::io;
+use std::time::Duration;
+
+use canpos_core::app::Plain;
+use canpos_core::models::{DeviceConfig, Model};
+use canpos_core::{Instant, Node};
+use serde_json::json;
+
+use crate::file_storage::FileStorage;
+use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle};
+use crate::transport::{BusState, Transport};
+
+/// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
+pub struct PlainRuntime {
+    transport: Box<dyn Transport>,
+    node: Node<Plain, FileStorage>,
+    epoch: std::time::Instant,
+    lateness: Lateness,
+    powered: bool,
+}
+
+impl PlainRuntime {
+    /// The device `model` describes, unit `cfg`, storage `storage`, on `transport`;
+    /// `bus_bitrate_kbps` as for [`crate::Runtime::new`].
+    pub fn new(
+        transport: Box<dyn Transport>,
+        bus_bitrate_kbps: Option<u32>,
+        model: &'static Model,
+        cfg: DeviceConfig,
+        storage: FileStorage,
+    ) -> PlainRuntime {
+        let mut node = Node::with_app(model, cfg, Plain, storage);
+        let bus = bus_bitrate_kbps
+            .or_else(|| transport.bus_bitrate())
+            .map(|b| b.min(u32::from(u16::MAX)) as u16);
+        node.set_bus_bitrate(bus);
+        PlainRuntime {
+            transport,
+            node,
+            epoch: std::time::Instant::now(),
+            lateness: Lateness::default(),
+            powered: false,
+        }
+    }
+
+    fn now(&self) -> Instant {
+        Instant(self.epoch.elapsed().as_micros() as u64)
+    }
+
+    /// The node (for tests and status output).
+    pub fn node(&self) -> &Node<Plain, FileStorage> {
+        &self.node
+    }
+
+    /// Powers the node on now: its boot-up goes out at once.
+    pub fn power_on(&mut self) -> io::Result<()> {
+        let now = self.now();
+        self.node.power_on(now);
+        self.powered = true;
+        self.flush(now)
+    }
+
+    /// Sends everything the node has to send at `now` (its due timers first).
+    fn flush(&mut self, now: Instant) -> io::Result<()> {
+        while let Some(f) = self.node.poll(now) {
+            if let Err(e) = self.transport.send(&f) {
+                tracing::warn!(error = %e, "send failed");
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs on a new thread (powered on first if [`PlainRuntime::power_on`] was not called)
+    /// until stopped through the handle or until the transport dies.
+    pub fn spawn(mut self) -> io::Result<RuntimeHandle> {
+        let (tx, rx) = crossbeam_channel::bounded(64);
+        RuntimeHandle::spawn_loop(tx, rx, move |msgs| {
+            set_timer_slack_1ns();
+            if !self.powered {
+                self.power_on()?;
+            }
+            let r = self.run_loop(&msgs);
+            tracing::info!(lateness = %self.lateness, "runtime stopped");
+            r.map(|()| self.lateness)
+        })
+    }
+
+    fn run_loop(&mut self, msgs: &crossbeam_channel::Receiver<Msg>) -> io::Result<()> {
+        let (mut dropped, mut state) = (0, BusState::ErrorActive);
+        loop {
+            // Logged only: the sensors' EMCYs for these come from their models' tables.
+            if self.transport.dropped() > dropped {
+                dropped = self.transport.dropped();
+                tracing::warn!(total = dropped, "CAN frames lost");
+            }
+            if self.transport.bus_state() != state {
+                let old = std::mem::replace(&mut state, self.transport.bus_state());
+                tracing::warn!(from = ?old, to = ?state, "CAN controller state");
+            }
+            let mut now = self.now();
+            while let Some(rx) = self.transport.try_recv()? {
+                // Each frame at the time it is handled (the store time counts from it).
+                now = self.now().max(now);
+                self.node.handle_frame(&rx.frame, now);
+                self.flush(now)?;
+            }
+            self.flush(now)?;
+            while let Ok(m) = msgs.try_recv() {
+                match m {
+                    Msg::Stop => return Ok(()),
+                    Msg::Request(_, reply) => {
+                        let _ = reply.send(json!({
+                            "ok": false,
+                            "error": "a plain (EDS / DCF) device has no control requests"
+                        }));
+                    }
+                }
+            }
+            let target = self
+                .node
+                .poll_timeout()
+                .map(|t| self.epoch + Duration::from_micros(t.0));
+            if let Some(late) = wait_until(self.transport.receiver(), msgs, target) {
+                self.lateness.record(late.as_micros() as u64);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::Request;
+    use crate::eds_device::{build, FileKind, Overrides};
+    use crate::mem::MemBus;
+    use canpos_core::Frame;
+
+    fn recv_id(port: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
+        let end = std::time::Instant::now() + within;
+        while let Ok(Some(rx)) = port.recv_deadline(end) {
+            if rx.frame.std_id() == Some(id) {
+                return Some(rx.frame);
+            }
+        }
+        None
+    }
+
+    #[test]
+    fn an_eds_device_boots_answers_and_stops() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../examples/io-device.eds"
+        ));
+        let o = Overrides {
+            node_id: Some(9),
+            bitrate_kbps: None,
+            serial: None,
+        };
+        let d = build(text, "io.eds", FileKind::Eds, &o).unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let storage = FileStorage::new(d.state_file(dir.path()));
+        let rt = PlainRuntime::new(Box::new(bus.attach()), None, d.model, d.cfg, storage);
+        let h = rt.spawn().unwrap();
+        let boot = recv_id(&mut master, 0x709, Duration::from_secs(2)).expect("boot-up");
+        assert_eq!(boot.data(), &[0]);
+        // 0x2102 "Offset" (INTEGER32, default -500).
+        let req = Frame::new(0x609, &[0x40, 0x02, 0x21, 0, 0, 0, 0, 0]).unwrap();
+        master.send(&req).unwrap();
+        let r = recv_id(&mut master, 0x589, Duration::from_secs(2)).expect("SDO answer");
+        assert_eq!(r.data()[..4], [0x43, 0x02, 0x21, 0]);
+        assert_eq!(&r.data()[4..8], &(-500i32).to_le_bytes());
+        // The heartbeat (50 ms) comes from the loop sleeping to the node's own deadline.
+        let hb = Frame::new(0x609, &[0x2B, 0x17, 0x10, 0, 50, 0, 0, 0]).unwrap();
+        master.send(&hb).unwrap();
+        assert_eq!(
+            recv_id(&mut master, 0x589, Duration::from_secs(2))
+                .unwrap()
+                .data()[0],
+            0x60
+        );
+        let first = recv_id(&mut master, 0x709, Duration::from_secs(1)).expect("heartbeat");
+        assert_eq!(first.data(), &[0x7F]);
+        let bad = h.control().request(Request::State { sensor: None });
+        assert_eq!(bad["ok"], false, "{bad}");
+        h.stop().unwrap();
+    }
+}
