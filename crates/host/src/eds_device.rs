@@ -679,15 +679,19 @@ impl Builder<'_> {
             sync_length_emcy: true,
             event_timer_above_inhibit: false,
             lss_unconfigured_configures: false,
+            // CiA 301: the error reset once no error is left.
+            emcy_on_register_change: false,
         };
         let vendor = leak(info.get("VendorName").unwrap_or(""));
         let product = leak(info.get("ProductName").unwrap_or(""));
         let table: &'static [Entry] = Box::leak(entries.into_boxed_slice());
+        let keys: &'static [u32] = Box::leak(table.iter().map(Entry::key).collect());
         let model: &'static Model = Box::leak(Box::new(Model {
             name: "eds",
             product,
             vendor,
             entries: table,
+            keys,
             features,
             param,
             derive: |c| c,

@@ -52,7 +52,7 @@ impl PlainRuntime {
     }
 
     fn now(&self) -> Instant {
-        Instant(self.epoch.elapsed().as_micros() as u64)
+        Instant::from_micros(self.epoch.elapsed().as_micros() as u64)
     }
 
     /// The node (for tests and status output).
@@ -127,7 +127,7 @@ impl PlainRuntime {
             let target = self
                 .node
                 .poll_timeout()
-                .map(|t| self.epoch + Duration::from_micros(t.0));
+                .map(|t| self.epoch + Duration::from_micros(t.micros()));
             if let Some(late) = wait_until(self.transport.receiver(), msgs, target) {
                 self.lateness.record(late.as_micros() as u64);
             }

@@ -452,16 +452,19 @@ fn node() -> Node<Plain, RamStorage> {
     };
     let d = build(IO, "x.eds", FileKind::Eds, &o).unwrap();
     let mut n = Node::with_app(d.model, d.cfg, Plain, RamStorage::default());
-    n.power_on(Instant(0));
-    while n.poll(Instant(0)).is_some() {}
+    n.power_on(Instant::from_micros(0));
+    while n.poll(Instant::from_micros(0)).is_some() {}
     n
 }
 
 /// One SDO request at `t`; the answer (the node holds a store's answer for 20 ms).
 fn sdo(n: &mut Node<Plain, RamStorage>, t: &mut u64, req: [u8; 8]) -> [u8; 8] {
-    n.handle_frame(&Frame::std8(0x600 + u16::from(ID), req), Instant(*t));
+    n.handle_frame(
+        &Frame::std8(0x600 + u16::from(ID), req),
+        Instant::from_micros(*t),
+    );
     for _ in 0..100 {
-        while let Some(f) = n.poll(Instant(*t)) {
+        while let Some(f) = n.poll(Instant::from_micros(*t)) {
             if f.std_id() == Some(0x580 + u16::from(ID)) {
                 return *f.raw();
             }
@@ -528,11 +531,14 @@ fn the_node_serves_values_limits_pdos_and_storage() {
         download(&mut n, &mut t, 0x1800, 5, &10u16.to_le_bytes()),
         None
     );
-    n.handle_frame(&Frame::std_len(0, [1, ID, 0, 0, 0, 0, 0, 0], 2), Instant(t));
+    n.handle_frame(
+        &Frame::std_len(0, [1, ID, 0, 0, 0, 0, 0, 0], 2),
+        Instant::from_micros(t),
+    );
     let mut pdos = Vec::new();
     for _ in 0..30 {
         t += 1000;
-        while let Some(f) = n.poll(Instant(t)) {
+        while let Some(f) = n.poll(Instant::from_micros(t)) {
             if f.std_id() == Some(0x180 + u16::from(ID)) {
                 pdos.push(f.data().to_vec());
             }
@@ -573,7 +579,7 @@ fn the_node_serves_values_limits_pdos_and_storage() {
     let mut last = None;
     for _ in 0..15 {
         t += 1000;
-        while let Some(f) = n.poll(Instant(t)) {
+        while let Some(f) = n.poll(Instant::from_micros(t)) {
             if f.std_id() == Some(0x180 + u16::from(ID)) {
                 last = Some(f.data().to_vec());
             }
@@ -591,7 +597,7 @@ fn the_node_serves_values_limits_pdos_and_storage() {
         None
     );
     n.power_off();
-    n.power_on(Instant(t));
+    n.power_on(Instant::from_micros(t));
     assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 250);
     assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -7);
     assert_eq!(upload(&mut n, &mut t, 0x2103, 0) as u8 as i8, -10);
@@ -600,7 +606,7 @@ fn the_node_serves_values_limits_pdos_and_storage() {
         None
     );
     n.power_off();
-    n.power_on(Instant(t));
+    n.power_on(Instant::from_micros(t));
     assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 0);
     assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -500);
 }
