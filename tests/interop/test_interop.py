@@ -225,8 +225,13 @@ def test_injected_faults_reach_python_canopen(network, sensors, tmp_path, model)
     assert ok is not None and ok.register == 0
     n = len(node.emcy.log)
     assert ctl({"cmd": "fault", "name": "supply-voltage", "on": True})["ok"]
-    err = wait_emcy(0x3100, n)
-    assert err is not None and err.register & 0x04
+    if model == "tmi":
+        # The TMI's EMCY table has no supply code: its sensor error, 0x5000 1/1/0 (DECISIONS.md).
+        err = wait_emcy(0x5000, n)
+        assert err is not None and err.register == 0x81 and err.data[:3] == b"\x01\x01\x00"
+    else:
+        err = wait_emcy(0x3100, n)
+        assert err is not None and err.register & 0x04
     state = ctl({"cmd": "state"})
     assert state["ok"]
 
