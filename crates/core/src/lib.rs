@@ -43,7 +43,7 @@
 //!
 //! | module | standard | what |
 //! | --- | --- | --- |
-//! | [`wire`] | — | frame, time, COB-ID bases |
+//! | (root) | — | [`Frame`], [`Instant`] / [`Duration`] (µs), the pre-defined COB-ID bases [`cob`]; [`Node`] (the services wired together) and [`Application`] (what a node runs) |
 //! | [`od`] | CiA 301 | object dictionary as data, per-object hooks, abort codes |
 //! | [`nmt`] | CiA 301 | NMT slave states and commands |
 //! | [`sdo`] | CiA 301 | SDO server |
@@ -52,16 +52,14 @@
 //! | [`errctl`] | CiA 301 | boot-up, heartbeat, node guarding |
 //! | [`storage`] | CiA 301 | store / restore scopes, image format |
 //! | [`lss`] | CiA 305 | layer setting services |
-//! | [`app`] | — | the application interface |
 //! | [`encoder`] | CiA 406 | the encoder application |
 //! | [`models`] | — | TH, E-Series, TMI device descriptions |
 //! | [`eds`] | CiA 306 | EDS export from the model tables |
-//! | [`node`] | — | the services wired together |
 #![no_std]
 #![forbid(unsafe_code)]
 #![deny(missing_docs)]
 
-pub mod app;
+mod app;
 pub mod eds;
 pub mod emcy;
 pub mod encoder;
@@ -69,22 +67,25 @@ pub mod errctl;
 pub mod lss;
 pub mod models;
 pub mod nmt;
-pub mod node;
+mod node;
 pub mod od;
 pub mod pdo;
 pub mod sdo;
 pub mod storage;
 mod timers;
 mod txq;
-pub mod wire;
+mod wire;
 
-pub use app::{Application, Plain};
+pub use app::{AppCtx, AppView, Application, Plain};
 pub use encoder::{Encoder, Fault, Sample};
 pub use models::{DeviceConfig, Model};
-pub use node::{Device, Node};
+pub use node::{
+    Device, Node, Stats, SIG_KILL_ASCII, SIG_KILL_MANUAL, SIG_LOAD, SIG_SAVE, STORE_TIME,
+    UNCONFIGURED,
+};
 pub use od::{Abort, Dictionary, Entry, Hook};
 pub use storage::{NoStorage, RamStorage, Scope, Storage, StorageError};
 
 /// A position sensor: the CiA 301 / 305 stack running the CiA 406 application.
 pub type SensorNode<S> = Node<encoder::Encoder, S>;
-pub use wire::{Duration, Frame, Instant};
+pub use wire::{cob, Duration, Frame, FrameError, Instant};

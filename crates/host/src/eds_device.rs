@@ -25,11 +25,11 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use canpos_core::app::Plain;
 use canpos_core::models::{DeviceConfig, Features, Model};
 use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES};
 use canpos_core::pdo;
 use canpos_core::storage::{crc32, IMAGE_MAX};
+use canpos_core::Plain;
 
 use crate::ini::{Ini, Key, Section};
 

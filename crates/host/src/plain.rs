@@ -9,8 +9,8 @@
 use std::io;
 use std::time::Duration;
 
-use canpos_core::app::Plain;
 use canpos_core::models::{DeviceConfig, Model};
+use canpos_core::Plain;
 use canpos_core::{Instant, Node};
 use serde_json::json;
 

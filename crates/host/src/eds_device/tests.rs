@@ -4,10 +4,10 @@
 
 use super::*;
 use canpos_core::models;
-use canpos_core::node::{SIG_LOAD, SIG_SAVE};
 use canpos_core::od::{resolve_default, ParamSource};
 use canpos_core::storage::RamStorage;
 use canpos_core::{Frame, Instant, Node};
+use canpos_core::{SIG_LOAD, SIG_SAVE};
 
 const IO: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
