@@ -456,6 +456,52 @@ pub(crate) mod table {
         out
     }
 
+    /// 0x1003 pre-defined error field (CiA 301, SPEC §6): sub 0 (writing 0 clears the history)
+    /// and eight standard error fields, newest first; the EMCY service owns them all.
+    pub const ERROR_HISTORY: [Entry; 9] = {
+        const NAMES: [&str; 9] = [
+            "Pre-defined error field: number of errors",
+            "Standard error field 1",
+            "Standard error field 2",
+            "Standard error field 3",
+            "Standard error field 4",
+            "Standard error field 5",
+            "Standard error field 6",
+            "Standard error field 7",
+            "Standard error field 8",
+        ];
+        let mut out = [BLANK; 9];
+        let mut i = 0;
+        while i < 9 {
+            out[i] = Entry {
+                index: 0x1003,
+                sub: i as u8,
+                name: NAMES[i],
+                ty: if i == 0 {
+                    DataType::Unsigned8
+                } else {
+                    DataType::Unsigned32
+                },
+                access: if i == 0 { Access::Rw } else { Access::Ro },
+                pdo: false,
+                default: if i == 0 {
+                    Default::Const(0)
+                } else {
+                    Default::Live
+                },
+                range: if i == 0 {
+                    Range::MinMax(0, 0)
+                } else {
+                    Range::Any
+                },
+                group: Group::Volatile,
+                hook: Hook::ErrorHistory,
+            };
+            i += 1;
+        }
+        out
+    };
+
     /// `entries` with `hook` on every sub-index but 0 (a per-channel array whose channel
     /// entries one service rule covers).
     pub const fn hooked<const N: usize>(mut entries: [Entry; N], hook: Hook) -> [Entry; N] {

@@ -23,19 +23,14 @@ use crate::od::{
 };
 
 #[rustfmt::skip]
-const COMM: &[Entry] = &[
+const COMM_HEAD: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
     // Mappable so eight copies fill a TPDO (conformance PDO-25 / PDO-30).
     entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
-    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+];
+
+#[rustfmt::skip]
+const COMM: &[Entry] = &[
     entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("C304")),
     entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str("1.00")),
@@ -145,6 +140,8 @@ const DIAG: &[Entry] = &[
 
 #[rustfmt::skip]
 const PARTS: &[&[Entry]] = &[
+    COMM_HEAD,
+    &table::ERROR_HISTORY,
     COMM,
     T1.0.split_at(T1.1).0,
     T2.0.split_at(T2.1).0,

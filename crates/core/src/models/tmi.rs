@@ -35,20 +35,15 @@ pub const PARAM_TPDO2_COB: u8 = 1;
 pub const BITRATES_2001: &[u32] = &[10, 20, 50, 125, 250, 500, 800, 1000, 0xFFFF];
 
 #[rustfmt::skip]
-const COMM: &[Entry] = &[
+const COMM_HEAD: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
     entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
     // §1.15: status bits, NMT state in bits 1–0.
     entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live).with_hook(Hook::App(hook::MANUFACTURER_STATUS)),
-    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+];
+
+#[rustfmt::skip]
+const COMM: &[Entry] = &[
     entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile).with_hook(Hook::SyncCobId),
     // SPEC §1: the manual names no device; "TMI".
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("TMI")),
@@ -144,6 +139,8 @@ const DIAG: &[Entry] = &[
 
 #[rustfmt::skip]
 const PARTS: &[&[Entry]] = &[
+    COMM_HEAD,
+    &table::ERROR_HISTORY,
     COMM,
     T1.0.split_at(T1.1).0,
     T2.0.split_at(T2.1).0,
