@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use super::Motion;
+use super::{in_range, Motion, MAX_MAGNITUDE};
 use crate::error::{Error, Result};
 
 /// A recorded trajectory for one or more magnets.
@@ -89,10 +89,13 @@ impl CsvTrajectory {
             let t: f64 = fields[0]
                 .parse()
                 .map_err(|_| err(line_no, format!("time \"{}\" is not a number", fields[0])))?;
-            if !t.is_finite() {
+            if !in_range(t) {
                 return Err(err(
                     line_no,
-                    format!("time \"{}\" is not finite", fields[0]),
+                    format!(
+                        "time \"{}\" is not finite or beyond ±{MAX_MAGNITUDE:e} s",
+                        fields[0]
+                    ),
                 ));
             }
             if let Some(&prev) = times.last() {
@@ -115,10 +118,13 @@ impl CsvTrajectory {
                         format!("position {} \"{f}\" is not a number", col + 1),
                     )
                 })?;
-                if !v.is_finite() {
+                if !in_range(v) {
                     return Err(err(
                         line_no,
-                        format!("position {} \"{f}\" is not finite", col + 1),
+                        format!(
+                            "position {} \"{f}\" is not finite or beyond ±{MAX_MAGNITUDE:e} mm",
+                            col + 1
+                        ),
                     ));
                 }
                 row.push(Some(v));
