@@ -110,6 +110,81 @@ pub enum Request {
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
     /// so a measurement covers a chosen window, not the start-up.
     ResetLateness,
+    /// Hands the sensor an NMT command as if a master had sent it, without putting a frame on
+    /// the bus (a scenario's `nmt = "operational"`, or a timed NMT event).
+    Nmt {
+        /// Sensor index.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+        /// `start`, `stop`, `preop`, `reset` or `reset-comm`.
+        command: String,
+    },
+}
+
+/// The NMT commands of [`Request::Nmt`] and their command specifiers (CiA 301).
+pub const NMT_COMMANDS: [(&str, u8); 5] = [
+    ("start", 0x01),
+    ("stop", 0x02),
+    ("preop", 0x80),
+    ("reset", 0x81),
+    ("reset-comm", 0x82),
+];
+
+/// The command specifier of an NMT command name ([`NMT_COMMANDS`]).
+pub fn nmt_command(name: &str) -> Result<u8, String> {
+    NMT_COMMANDS
+        .iter()
+        .find(|(n, _)| n.eq_ignore_ascii_case(name.trim()))
+        .map(|(_, cs)| *cs)
+        .ok_or_else(|| {
+            let known: Vec<_> = NMT_COMMANDS.iter().map(|(n, _)| *n).collect();
+            format!("unknown NMT command `{name}`; known: {}", known.join(", "))
+        })
+}
+
+/// Readable one-line form for logs, e.g. `sensor 1: fault missing-magnet on (channel 0)`.
+impl fmt::Display for Request {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if let Some(s) = self.sensor() {
+            write!(f, "sensor {s}: ")?;
+        }
+        match self {
+            Request::Magnet {
+                index, mm, velocity, ..
+            } => {
+                match mm {
+                    Some(mm) => write!(f, "magnet {index} to {mm} mm")?,
+                    None => write!(f, "magnet {index} off the rod")?,
+                }
+                if let Some(v) = velocity {
+                    write!(f, " at {v} mm/s")?;
+                }
+                Ok(())
+            }
+            Request::Motion { spec, .. } => write!(f, "motion {spec}"),
+            Request::Fault {
+                name,
+                on,
+                value,
+                channel,
+                ..
+            } => {
+                write!(f, "fault {name} {}", if *on { "on" } else { "off" })?;
+                if let Some(v) = value {
+                    write!(f, " value {v}")?;
+                }
+                if let Some(c) = channel {
+                    write!(f, " channel {c}")?;
+                }
+                Ok(())
+            }
+            Request::PowerCycle { .. } => f.write_str("power-cycle"),
+            Request::Ambient { celsius, .. } => write!(f, "ambient {celsius} °C"),
+            Request::State { .. } => f.write_str("state"),
+            Request::ResetLateness => f.write_str("reset-lateness"),
+            Request::Nmt { command, .. } => write!(f, "nmt {command}"),
+        }
+    }
 }
 
 impl Request {
@@ -121,7 +196,8 @@ impl Request {
             | Request::Fault { sensor, .. }
             | Request::PowerCycle { sensor }
             | Request::Ambient { sensor, .. }
-            | Request::State { sensor } => *sensor,
+            | Request::State { sensor }
+            | Request::Nmt { sensor, .. } => *sensor,
             Request::ResetLateness => None,
         }
     }
@@ -181,6 +257,7 @@ impl Request {
                 }
             }
             Request::Ambient { celsius, .. } => check_celsius(*celsius),
+            Request::Nmt { command, .. } => nmt_command(command).map(|_| ()),
             Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness => Ok(()),
         }
     }
@@ -281,7 +358,7 @@ impl FromStr for Fault {
 /// Parses one request line into a request, or the error answer to send back.
 pub fn parse_request(line: &str) -> Result<Request, Value> {
     serde_json::from_str::<Request>(line).map_err(|e| {
-        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, state)")})
+        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, nmt, state)")})
     })
 }
 

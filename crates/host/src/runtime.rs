@@ -805,6 +805,24 @@ impl Runtime {
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
             }
+            Request::Nmt { sensor, command } => {
+                let i = self.sensor_index(sensor)?;
+                let cs = crate::control::nmt_command(&command)?;
+                if !self.powered[i] {
+                    return Err(format!("sensor {i} is powered off"));
+                }
+                let node_id = self.devices[i].node.device().node_id();
+                if !(1..=127).contains(&node_id) {
+                    return Err(format!(
+                        "sensor {i} has no node-id yet (LSS unconfigured); it cannot take NMT commands"
+                    ));
+                }
+                // Addressed to this node only and handed to it alone: the other nodes and the
+                // bus see nothing.
+                let f = Frame::new(0x000, &[cs, node_id]).map_err(|e| format!("{e:?}"))?;
+                self.devices[i].node.handle_frame(&f, now);
+                Ok(json!({"ok": true}))
+            }
         }
     }
 
