@@ -267,10 +267,10 @@ struct ScaleArgs {
     #[arg(long, default_value_t = 1)]
     event_ms: u16,
     /// Length of the measured window in seconds (after the warm-up).
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = crate::limits::parse_positive_seconds)]
     seconds: f64,
     /// Seconds of production before the window starts.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::limits::parse_seconds)]
     warmup: f64,
     /// The bus.
     #[arg(long, value_enum, default_value = "mem")]
@@ -369,7 +369,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
             magnets: vec![250.0],
             ..Default::default()
         };
-        rt.add(build_setup(&opts, &dir.0)?);
+        rt.add(build_setup(&opts, &dir.0)?.setup);
     }
     let handle = rt.spawn()?;
     wait_boot(&mut *master, nodes as usize, Duration::from_secs(10))?;

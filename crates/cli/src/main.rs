@@ -5,7 +5,9 @@
 
 mod bench;
 mod device;
+mod limits;
 mod master;
+mod scenario;
 mod soak;
 
 use std::process::ExitCode;

@@ -682,7 +682,7 @@ pub struct MonitorArgs {
     #[arg(long)]
     pub count: Option<u64>,
     /// Stop after this many seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
     /// Also print each frame as a candump -L line.
     #[arg(long)]
@@ -831,15 +831,12 @@ fn elapsed_since(start: SystemTime, t: SystemTime) -> f64 {
 /// Prints decoded traffic until `--count` / `--duration` is reached (or forever).
 pub fn monitor(a: MonitorArgs) -> Result<i32> {
     let only = a.node.as_deref().map(|n| parse_node(n, 1)).transpose()?;
-    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
-        bail!("--duration must be a non-negative number of seconds");
-    }
     let mut bus = open_bus(&a.bus.bus)?;
     let iface = interface_name(&a.bus.bus);
     let start = SystemTime::now();
     let end = a
         .duration
-        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+        .and_then(|d| crate::limits::deadline(Instant::now(), d));
     let mut mon = Monitor::new();
     let mut pending: VecDeque<RxFrame> = VecDeque::new();
     let mut printed = 0u64;
@@ -962,7 +959,7 @@ pub struct RecordArgs {
     #[allow(missing_docs)]
     pub bus: BusArg,
     /// Stop after this many seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
     /// Stop after this many frames.
     #[arg(long)]
@@ -975,9 +972,6 @@ pub struct RecordArgs {
 /// Records frames until `--duration` / `--count` (or until killed; the file is flushed
 /// whenever the bus is idle, so an interrupted recording keeps what was seen).
 pub fn record(a: RecordArgs) -> Result<i32> {
-    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
-        bail!("--duration must be a non-negative number of seconds");
-    }
     let out: Box<dyn Write> = if a.file.as_os_str() == "-" {
         Box::new(io::stdout())
     } else {
@@ -993,7 +987,7 @@ pub fn record(a: RecordArgs) -> Result<i32> {
     let mut bus = open_bus(&a.bus.bus)?;
     let end = a
         .duration
-        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+        .and_then(|d| crate::limits::deadline(Instant::now(), d));
     let mut n = 0u64;
     while a.count.is_none_or(|c| n < c) {
         let r = match end {
@@ -1022,8 +1016,8 @@ pub struct ReplayArgs {
     #[command(flatten)]
     #[allow(missing_docs)]
     pub bus: BusArg,
-    /// Time scale: 2 = twice as fast; 0 = as fast as possible.
-    #[arg(long, default_value_t = 1.0)]
+    /// Time scale: 2 = twice as fast; 0 = as fast as possible (else 0.001 … 1e6).
+    #[arg(long, default_value_t = 1.0, value_parser = crate::limits::parse_speed)]
     pub speed: f64,
     /// Start again at the end of the file (until killed).
     #[arg(long = "loop")]
@@ -1040,9 +1034,8 @@ fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
 
 /// Replays a log; the frames keep their relative spacing, divided by `--speed`.
 pub fn replay(a: ReplayArgs) -> Result<i32> {
-    if !(a.speed.is_finite() && a.speed >= 0.0) {
-        bail!("--speed must be a non-negative number");
-    }
+    // Checked again for callers that build the arguments in code.
+    crate::limits::parse_speed(&a.speed.to_string()).map_err(|e| anyhow!("--speed {e}"))?;
     if a.repeat && a.file.as_os_str() == "-" {
         bail!("--loop needs a file, not standard input");
     }
@@ -1050,21 +1043,42 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
     let entries = LogReader::new(open_log(&a.file)?)
         .collect::<Result<Vec<_>, _>>()
         .with_context(|| format!("reading {}", a.file.display()))?;
-    let mut bus = open_bus(&a.bus.bus)?;
     let Some(first) = entries.first().map(|e| e.timestamp) else {
         eprintln!("{}: no frames", a.file.display());
         return Ok(EXIT_OK);
     };
+    // Each frame's offset from the start, in seconds of replay; all checked before the first
+    // frame goes out, so that a log too long for this speed sends nothing.
+    let offsets: Vec<f64> = entries
+        .iter()
+        .map(|e| {
+            let rel = e.timestamp.duration_since(first).unwrap_or_default();
+            if a.speed > 0.0 {
+                rel.as_secs_f64() / a.speed
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let span = offsets.iter().copied().fold(0.0, f64::max);
+    crate::limits::check_seconds(span, false).map_err(|e| {
+        anyhow!(
+            "{}: at --speed {} the replay would take {e}",
+            a.file.display(),
+            a.speed
+        )
+    })?;
+    let mut bus = open_bus(&a.bus.bus)?;
     let mut sent = 0u64;
     loop {
         let t0 = Instant::now();
-        for e in &entries {
-            if a.speed > 0.0 {
-                let rel = e.timestamp.duration_since(first).unwrap_or_default();
-                let due = t0 + rel.div_f64(a.speed);
-                let now = Instant::now();
-                if due > now {
-                    std::thread::sleep(due - now);
+        for (e, &off) in entries.iter().zip(&offsets) {
+            if off > 0.0 {
+                if let Some(due) = crate::limits::deadline(t0, off) {
+                    let now = Instant::now();
+                    if due > now {
+                        std::thread::sleep(due - now);
+                    }
                 }
             }
             bus.send(&e.frame).context("sending a frame")?;

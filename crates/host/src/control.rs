@@ -150,7 +150,10 @@ impl fmt::Display for Request {
         }
         match self {
             Request::Magnet {
-                index, mm, velocity, ..
+                index,
+                mm,
+                velocity,
+                ..
             } => {
                 match mm {
                     Some(mm) => write!(f, "magnet {index} to {mm} mm")?,
@@ -211,7 +214,8 @@ impl Request {
                 if let Some(mm) = mm {
                     if !canpos_sim::motion::in_range(*mm) {
                         return Err(format!(
-                            "magnet position {mm} mm is not a finite number within ±{:e} mm",
+                            "magnet position {} mm is not a finite number within ±{:e} mm",
+                            show_num(*mm),
                             canpos_sim::motion::MAX_MAGNITUDE
                         ));
                     }
@@ -219,7 +223,8 @@ impl Request {
                 if let Some(v) = velocity {
                     if !(canpos_sim::motion::in_range(*v) && *v > 0.0) {
                         return Err(format!(
-                            "velocity {v} mm/s must be > 0 and at most {:e}",
+                            "velocity {} mm/s must be > 0 and at most {:e}",
+                            show_num(*v),
                             canpos_sim::motion::MAX_MAGNITUDE
                         ));
                     }
@@ -245,10 +250,12 @@ impl Request {
                 match fault {
                     Fault::OverTemperature => check_celsius(*v),
                     Fault::SupplyVoltage if v.abs() > MAX_SUPPLY_V => Err(format!(
-                        "supply voltage {v} V is out of range (±{MAX_SUPPLY_V} V)"
+                        "supply voltage {} V is out of range (±{MAX_SUPPLY_V} V)",
+                        show_num(*v)
                     )),
                     Fault::ExtraMagnet if !canpos_sim::motion::in_range(*v) => Err(format!(
-                        "extra magnet position {v} mm is beyond ±{:e} mm",
+                        "extra magnet position {} mm is beyond ±{:e} mm",
+                        show_num(*v),
                         canpos_sim::motion::MAX_MAGNITUDE
                     )),
                     Fault::SupplyVoltage | Fault::ExtraMagnet => Ok(()),
@@ -263,12 +270,24 @@ impl Request {
     }
 }
 
+/// A number for a message: plain when moderate, in exponent form when huge or tiny (`1e300`,
+/// not three hundred digits).
+pub fn show_num(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && a.is_finite() && !(1e-3..1e9).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 fn check_celsius(t: f64) -> Result<(), String> {
     if t.is_finite() && (MIN_CELSIUS..=MAX_CELSIUS).contains(&t) {
         Ok(())
     } else {
         Err(format!(
-            "temperature {t} °C is out of range ({MIN_CELSIUS} … {MAX_CELSIUS} °C)"
+            "temperature {} °C is out of range ({MIN_CELSIUS} … {MAX_CELSIUS} °C)",
+            show_num(t)
         ))
     }
 }

@@ -1195,12 +1195,12 @@ mod tests {
         let h = rt.spawn().unwrap();
         let c = h.control();
         // 17 magnets (more than the four channels, more than the runtime tracks).
-        let spec = vec!["static:999"; 17].join(";");
+        let spec = ["static:999"; 17].join(";");
         let a = c.request(Request::Motion { sensor: None, spec });
         assert_eq!(a["ok"], false, "{a}");
         assert!(a["error"].as_str().unwrap().contains("17 profiles"), "{a}");
         // Five on four channels: refused too.
-        let spec = vec!["static:999"; 5].join(";");
+        let spec = ["static:999"; 5].join(";");
         assert_eq!(
             c.request(Request::Motion { sensor: None, spec })["ok"],
             false
