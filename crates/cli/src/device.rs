@@ -441,7 +441,12 @@ pub fn warn_if_exposed(addr: SocketAddr, what: &str) {
 
 /// Opens the bus (or hosts it), reporting what happened.
 fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
-    let (t, hub) = canpos_host::open_or_host(url)?;
+    let (t, hub) = canpos_host::open_or_host(url).map_err(|e| match e {
+        canpos_host::Error::BadUrl { .. } => {
+            anyhow::Error::new(crate::master::Usage(e.to_string()))
+        }
+        e => anyhow::Error::new(e),
+    })?;
     if let Some(h) = &hub {
         warn_if_exposed(h.local_addr(), "the bus");
         eprintln!(
@@ -536,13 +541,14 @@ pub fn run(a: RunArgs) -> Result<i32> {
         nmt: a.nmt,
     };
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
+    // A value the model cannot take is a bad command line (exit 2), like clap's own errors.
     let mut built = build_setup(&opts, &state_dir).map_err(|e| {
-        anyhow!(
+        anyhow::Error::new(crate::master::Usage(format!(
             "{}{e}",
             e.field
                 .map(|f| format!("--{}: ", f.replace('_', "-")))
                 .unwrap_or_default()
-        )
+        )))
     })?;
     for w in &built.warnings {
         tracing::warn!("--{}: {}", w.field.replace('_', "-"), w.message);

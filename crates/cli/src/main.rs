@@ -1,7 +1,9 @@
 //! `canpos`: run simulated CANopen position sensors, serve a virtual bus, and act as the
 //! commissioning master. `canpos` without arguments runs the demo.
 //!
-//! Exit codes: 0 success, 1 failure (the message says why), 2 bad command line.
+//! Exit codes (README "Exit codes"): 0 success, 1 runtime error (the message says why), 2 bad
+//! command line, 3 the device refused (SDO abort, LSS error status) or nothing was found, 4 no
+//! answer within the timeout.
 
 mod bench;
 mod device;
@@ -94,7 +96,7 @@ fn main() -> ExitCode {
     if let Some(p) = cli.rt_priority {
         // Before any thread starts: they inherit the policy.
         if let Err(e) = canpos_host::realtime::enter(p) {
-            eprintln!("canpos: --rt-priority: {e}");
+            eprintln!("error: --rt-priority: {e}");
             return ExitCode::from(1);
         }
         tracing::info!(priority = p, "running under SCHED_FIFO, memory locked");
@@ -132,8 +134,30 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::from(1)
+            eprintln!("error: {}", render(&e));
+            let usage = e.chain().any(|c| c.is::<master::Usage>());
+            ExitCode::from(if usage {
+                master::EXIT_USAGE
+            } else {
+                master::EXIT_ERROR
+            } as u8)
         }
     }
+}
+
+/// The error and its causes on one line, each said once: a cause whose text a message above
+/// it already contains (`cannot connect to X: refused` over `refused`) is left out.
+fn render(e: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if text.is_empty() || out.contains(&text) {
+            continue;
+        }
+        if !out.is_empty() {
+            out.push_str(": ");
+        }
+        out.push_str(&text);
+    }
+    out
 }

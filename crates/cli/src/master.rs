@@ -1,9 +1,11 @@
 //! The commissioning-master side of `canpos`: NMT, SDO, LSS, scan, monitor, EDS export and
 //! candump record / replay, against any bus URL.
 //!
-//! Exit codes of every command: 0 success, 1 the device refused (SDO abort, LSS error status)
-//! or nothing was found, 2 no answer within the timeout. Errors before anything was sent (bad
-//! arguments, bus not reachable) are returned as `Err` for the caller to report.
+//! Exit codes of every command (the same for the whole binary, see `main.rs`): 0 success,
+//! [`EXIT_REFUSED`] the device refused (SDO abort, LSS error status) or nothing was found,
+//! [`EXIT_TIMEOUT`] no answer within the timeout. Errors before anything was sent are returned
+//! as `Err` for the caller to report: [`Usage`] for bad arguments, anything else (bus not
+//! reachable) as a runtime error.
 //!
 //! The protocol pieces ([`SdoClient`], [`LssMaster`], [`decode`]) are independent of the
 //! command line so that other commands (benchmarks, tests) can reuse them.
@@ -29,10 +31,32 @@ pub use sdo::{SdoClient, SdoError, ValueType};
 
 /// Exit code: success.
 pub const EXIT_OK: i32 = 0;
-/// Exit code: the device refused (abort, error status) or nothing was found.
-pub const EXIT_REFUSED: i32 = 1;
+/// Exit code: a runtime error (bus unreachable, file unreadable, bad scenario, …).
+pub const EXIT_ERROR: i32 = 1;
+/// Exit code: a bad command line (clap's own code for usage errors).
+pub const EXIT_USAGE: i32 = 2;
+/// Exit code: the device refused (SDO abort, LSS error status) or nothing was found.
+pub const EXIT_REFUSED: i32 = 3;
 /// Exit code: no answer in time.
-pub const EXIT_TIMEOUT: i32 = 2;
+pub const EXIT_TIMEOUT: i32 = 4;
+
+/// A bad argument found after clap parsed the command line (node-id, index, value): reported
+/// with [`EXIT_USAGE`], like clap's own errors.
+#[derive(Debug)]
+pub struct Usage(pub String);
+
+impl std::fmt::Display for Usage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Usage {}
+
+/// `Err(Usage(…))` as an `anyhow::Error`.
+macro_rules! usage {
+    ($($t:tt)*) => { anyhow::Error::new(Usage(format!($($t)*))) };
+}
 
 /// The bus option every master command takes.
 #[derive(Args, Debug, Clone)]
@@ -43,8 +67,13 @@ pub struct BusArg {
 }
 
 fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
-    transport::open(url).with_context(|| {
-        format!("cannot open the bus {url} (is `canpos bus serve` or `canpos run` running?)")
+    transport::open(url).map_err(|e| match e {
+        // A malformed URL is the user's typo: no hint about hubs.
+        transport::Error::BadUrl { .. } => usage!("{e}"),
+        transport::Error::Connect { .. } => anyhow::Error::new(e).context(format!(
+            "cannot open the bus {url} (is `canpos bus serve`, `canpos run` or a scenario running?)"
+        )),
+        e => anyhow::Error::new(e).context(format!("cannot open the bus {url}")),
     })
 }
 
@@ -54,9 +83,9 @@ fn ms(v: u64) -> Duration {
 
 /// Parses a node-id: decimal or 0x-hex, within `min..=127`.
 fn parse_node(s: &str, min: u8) -> Result<u8> {
-    let v = sdo::parse_u64(s).ok_or_else(|| anyhow!("node-id `{s}` is not a number"))?;
+    let v = sdo::parse_u64(s).ok_or_else(|| usage!("node-id `{s}` is not a number"))?;
     if v < min as u64 || v > 127 {
-        bail!("node-id {v} out of range {min}..=127");
+        return Err(usage!("node-id {v} out of range {min}..=127"));
     }
     Ok(v as u8)
 }
@@ -68,14 +97,14 @@ fn parse_index(s: &str) -> Result<u16> {
         .or_else(|| s.strip_prefix("0X"))
         .unwrap_or(s);
     u16::from_str_radix(h, 16)
-        .map_err(|_| anyhow!("index `{s}` is not a 16-bit hex number (e.g. 0x1018 or 1018)"))
+        .map_err(|_| usage!("index `{s}` is not a 16-bit hex number (e.g. 0x1018 or 1018)"))
 }
 
 /// Parses a sub-index: decimal, or hex with `0x`.
 fn parse_sub(s: &str) -> Result<u8> {
     sdo::parse_u64(s)
         .and_then(|v| u8::try_from(v).ok())
-        .ok_or_else(|| anyhow!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
+        .ok_or_else(|| usage!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
 }
 
 fn parse_u32_arg(s: &str) -> Result<u32, String> {
@@ -198,12 +227,13 @@ pub enum SdoCmd {
 }
 
 fn sdo_failure(e: SdoError) -> Result<i32> {
-    eprintln!("{e}");
-    match e {
-        SdoError::Abort(_) | SdoError::Protocol(_) => Ok(EXIT_REFUSED),
-        SdoError::Timeout => Ok(EXIT_TIMEOUT),
-        SdoError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
-    }
+    let code = match e {
+        SdoError::Abort(_) | SdoError::Protocol(_) => EXIT_REFUSED,
+        SdoError::Timeout => EXIT_TIMEOUT,
+        SdoError::Io(e) => return Err(anyhow::Error::new(e).context("CAN transport failed")),
+    };
+    eprintln!("error: {e}");
+    Ok(code)
 }
 
 /// Reads or writes one object.
@@ -234,7 +264,7 @@ pub fn sdo(a: SdoArgs) -> Result<i32> {
                             Ok(EXIT_OK)
                         }
                         Err(m) => {
-                            eprintln!("{m}; raw: {}", sdo::hex_string(&d));
+                            eprintln!("error: {m}; raw: {}", sdo::hex_string(&d));
                             Ok(EXIT_REFUSED)
                         }
                     },
@@ -254,7 +284,7 @@ pub fn sdo(a: SdoArgs) -> Result<i32> {
                 parse_index(&index)?,
                 parse_sub(&sub)?,
             );
-            let data = ty.encode(&value).map_err(|m| anyhow!(m))?;
+            let data = ty.encode(&value).map_err(|m| usage!("{m}"))?;
             let mut bus = open_bus(&a.bus.bus)?;
             let mut c = SdoClient::new(&mut *bus, node, ms(a.timeout));
             match c.download(index, sub, &data) {
@@ -367,7 +397,7 @@ pub enum LssCmd {
 fn lss_failure(e: LssError) -> Result<i32> {
     match e {
         LssError::Timeout => {
-            eprintln!("{e}");
+            eprintln!("error: {e}");
             Ok(EXIT_TIMEOUT)
         }
         LssError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
@@ -382,7 +412,7 @@ fn lss_status(cs: u8, what: &str, r: Result<LssStatus, LssError>) -> Result<i32>
         }
         Ok(s) => {
             eprintln!(
-                "{what}: error status {} ({}), manufacturer code {}",
+                "error: {what}: error status {} ({}), manufacturer code {}",
                 s.code,
                 lss::status_meaning(cs, s.code),
                 s.spec
@@ -398,9 +428,11 @@ pub fn lss(a: LssArgs) -> Result<i32> {
     // Validate before touching the bus.
     let node_id = match &a.cmd {
         LssCmd::SetNodeId { id } => {
-            let v = sdo::parse_u64(id).ok_or_else(|| anyhow!("node-id `{id}` is not a number"))?;
+            let v = sdo::parse_u64(id).ok_or_else(|| usage!("node-id `{id}` is not a number"))?;
             if !(1..=127).contains(&v) && v != 255 {
-                bail!("node-id {v} out of range (1..=127, or 255 for unconfigured)");
+                return Err(usage!(
+                    "node-id {v} out of range (1..=127, or 255 for unconfigured)"
+                ));
             }
             v as u8
         }
@@ -408,9 +440,7 @@ pub fn lss(a: LssArgs) -> Result<i32> {
     };
     let bit_index = match &a.cmd {
         LssCmd::SetBitrate { kbps } => lss::bit_timing_index(*kbps).ok_or_else(|| {
-            anyhow!(
-                "{kbps} kbit/s is not in CiA 305 table 0 (1000, 800, 500, 250, 125, 50, 20, 10)"
-            )
+            usage!("{kbps} kbit/s is not in CiA 305 table 0 (1000, 800, 500, 250, 125, 50, 20, 10)")
         })?,
         _ => 0,
     };
@@ -450,7 +480,7 @@ pub fn lss(a: LssArgs) -> Result<i32> {
                     Ok(EXIT_OK)
                 }
                 Err(LssError::Timeout) => {
-                    eprintln!("no node with {addr} answered");
+                    eprintln!("error: no node with {addr} answered");
                     Ok(EXIT_TIMEOUT)
                 }
                 Err(e) => lss_failure(e),
@@ -523,7 +553,9 @@ pub fn lss(a: LssArgs) -> Result<i32> {
                 Ok(EXIT_REFUSED)
             }
             Err(LssError::Timeout) => {
-                eprintln!("fastscan lost the node during confirmation; try a longer --timeout");
+                eprintln!(
+                    "error: fastscan lost the node during confirmation; try a longer --timeout"
+                );
                 Ok(EXIT_TIMEOUT)
             }
             Err(e) => lss_failure(e),
