@@ -546,12 +546,12 @@ pub fn run(a: RunArgs) -> Result<i32> {
         anyhow::Error::new(crate::master::Usage(format!(
             "{}{e}",
             e.field
-                .map(|f| format!("--{}: ", f.replace('_', "-")))
+                .map(|f| format!("{}: ", flag_of(f)))
                 .unwrap_or_default()
         )))
     })?;
     for w in &built.warnings {
-        tracing::warn!("--{}: {}", w.field.replace('_', "-"), w.message);
+        tracing::warn!("{}: {}", flag_of(w.field), w.message);
     }
     open_storage(&mut built.setup)?;
     let (transport, _hub) = open_bus(&a.bus)?;
@@ -566,6 +566,14 @@ pub fn run(a: RunArgs) -> Result<i32> {
     start_nodes(&handle, &[built.nmt])?;
     let _ctl = start_control(listener, &handle)?;
     supervise(handle, &stop)
+}
+
+/// The `canpos run` option of a [`SensorOpts`] field.
+fn flag_of(field: &str) -> String {
+    match field {
+        "magnets" => "--magnet".into(),
+        f => format!("--{}", f.replace('_', "-")),
+    }
 }
 
 /// Gives each sensor its start-up NMT command (`nmt = "operational"`).

@@ -24,15 +24,15 @@ use clap::{Parser, Subcommand};
 #[command(name = "canpos", version, propagate_version = true)]
 struct Cli {
     /// More log output on stderr (-v debug, -vv trace); RUST_LOG overrides.
-    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    #[arg(short, long, global = true, help_heading = "Global options", action = clap::ArgAction::Count)]
     verbose: u8,
     /// Less log output (warnings and errors only).
-    #[arg(short, long, global = true)]
+    #[arg(short, long, global = true, help_heading = "Global options")]
     quiet: bool,
     /// Run under SCHED_FIFO at this priority (2-99; helper threads one lower) with all memory
     /// locked, so that other load on the machine cannot make the sensors miss periods (needs
     /// root or CAP_SYS_NICE).
-    #[arg(long, global = true, value_name = "N", value_parser = clap::value_parser!(u8).range(2..=99))]
+    #[arg(long, global = true, help_heading = "Global options", value_name = "N", value_parser = clap::value_parser!(u8).range(2..=99))]
     rt_priority: Option<u8>,
     #[command(subcommand)]
     cmd: Option<Cmd>,
