@@ -458,8 +458,31 @@ fn scale(a: ScaleArgs) -> Result<i32> {
         "cpu_percent": 100.0 * cpu / wall,
         "rss_kib": rss,
     });
+    // The bench's own expectation: every period produced, none skipped.
+    let frames_per_s = (f1 - f0) as f64 / wall;
+    let missed = missed1 - missed0;
+    let mut failures = Vec::new();
+    if missed > 0 {
+        failures.push(format!("{missed} event-timer periods missed"));
+    }
+    if frames_per_s < 0.99 * expected {
+        failures.push(format!(
+            "{frames_per_s:.0} frames/s, under 99 % of the expected {expected:.0}"
+        ));
+    }
+    let mut line = line;
+    line["verdict"] = json!(if failures.is_empty() { "pass" } else { "fail" });
+    line["failures"] = json!(failures);
     println!("{line}");
-    Ok(0)
+    if failures.is_empty() {
+        Ok(0)
+    } else {
+        eprintln!(
+            "error: bench scale missed its expectation: {}",
+            failures.join("; ")
+        );
+        Ok(crate::master::EXIT_REFUSED)
+    }
 }
 
 // ---------------------------------------------------------------------------------- sdo-rtt
