@@ -324,7 +324,10 @@ fn control_connections_are_limited() {
         if a["ok"] == true {
             break;
         }
-        assert!(std::time::Instant::now() < end, "no room after a close: {a}");
+        assert!(
+            std::time::Instant::now() < end,
+            "no room after a close: {a}"
+        );
         std::thread::sleep(Duration::from_millis(10));
     }
 }
