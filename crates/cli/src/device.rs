@@ -656,6 +656,12 @@ pub enum CtlAction {
         #[arg(allow_negative_numbers = true)]
         celsius: f64,
     },
+    /// Hand the sensor an NMT command as if its master had sent it (nothing goes on the bus).
+    Nmt {
+        /// start, stop, preop, reset or reset-comm.
+        #[arg(value_parser = ["start", "stop", "preop", "reset", "reset-comm"])]
+        command: String,
+    },
     /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors).
     State,
 }
@@ -692,6 +698,7 @@ pub fn ctl(a: CtlArgs) -> Result<i32> {
         },
         CtlAction::PowerCycle => Request::PowerCycle { sensor },
         CtlAction::Ambient { celsius } => Request::Ambient { sensor, celsius },
+        CtlAction::Nmt { command } => Request::Nmt { sensor, command },
         CtlAction::State => Request::State { sensor },
     };
     let pretty = matches!(req, Request::State { .. });
