@@ -5,12 +5,7 @@
 //! command line, 3 the device refused (SDO abort, LSS error status) or nothing was found, 4 no
 //! answer within the timeout.
 
-mod bench;
-mod device;
-mod limits;
-mod master;
-mod scenario;
-mod soak;
+use canpos_cli::{bench, device, master, soak};
 
 use std::process::ExitCode;
 
