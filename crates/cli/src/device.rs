@@ -55,12 +55,30 @@ pub struct ServeArgs {
     /// Address to listen on (loopback by default; other addresses only when given here).
     #[arg(long, value_name = "ADDR", default_value = DEFAULT_LISTEN)]
     pub listen: String,
+    /// Most clients connected at once; one more is refused with `< error too many clients >`.
+    #[arg(long, value_name = "N", default_value_t = 1024,
+          value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub max_clients: u32,
+    /// Seconds a client has from connecting to raw mode.
+    #[arg(long, value_name = "S", default_value_t = 10.0,
+          value_parser = crate::limits::parse_positive_seconds)]
+    pub handshake_timeout: f64,
+    /// Close a raw-mode client that sends nothing for this many seconds (default: never;
+    /// listen-only clients are normal).
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
+    pub idle_timeout: Option<f64>,
 }
 
 /// Runs `canpos bus serve`.
 pub fn bus_serve(args: ServeArgs) -> Result<i32> {
     let stop = stop_signal()?;
-    let hub = Hub::bind(args.listen.as_str())
+    let config = canpos_host::socketcand::HubConfig {
+        max_clients: args.max_clients as usize,
+        handshake_timeout: Duration::from_secs_f64(args.handshake_timeout),
+        idle_timeout: args.idle_timeout.map(Duration::from_secs_f64),
+        ..Default::default()
+    };
+    let hub = Hub::bind_with(args.listen.as_str(), config)
         .with_context(|| format!("cannot listen on {}", args.listen))?;
     let addr = hub.local_addr();
     warn_if_exposed(addr, "the bus");

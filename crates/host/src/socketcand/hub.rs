@@ -4,6 +4,12 @@
 //! Threads: one accept loop, and per TCP client one reader thread (parse, forward) and one
 //! writer thread fed by a bounded queue. Forwarding only ever `try_send`s into queues, so a
 //! client that reads slowly or not at all loses frames (counted) and never stalls the others.
+//!
+//! Limits: at most [`HubConfig::max_clients`] connections at once (so at most twice that many
+//! client threads, whatever connects); one more is told `< error too many clients >` and closed
+//! by the accept loop itself. A client must finish the handshake (`open`, `rawmode`) within
+//! [`HubConfig::handshake_timeout`], and a raw-mode client that sends nothing for
+//! [`HubConfig::idle_timeout`] (off by default: listen-only clients are normal) is closed.
 
 use std::collections::HashMap;
 use std::io::{self, Read, Write};
@@ -40,6 +46,12 @@ pub struct HubConfig {
     /// `SO_SNDBUF` for client sockets (`None`: kernel autotuning). A fixed, modest buffer makes a
     /// stuck client start losing frames after a bounded backlog instead of megabytes.
     pub send_buffer: Option<usize>,
+    /// Most TCP clients connected at once; further connections are refused.
+    pub max_clients: usize,
+    /// Time from accept to raw mode; a client slower than that is closed.
+    pub handshake_timeout: Duration,
+    /// Longest silence of a raw-mode client before it is closed (`None`: no limit).
+    pub idle_timeout: Option<Duration>,
 }
 
 impl Default for HubConfig {
@@ -48,6 +60,9 @@ impl Default for HubConfig {
             queue_len: 4096,
             hold_back: Duration::from_millis(20),
             send_buffer: Some(256 * 1024),
+            max_clients: 1024,
+            handshake_timeout: Duration::from_secs(10),
+            idle_timeout: None,
         }
     }
 }
@@ -67,6 +82,8 @@ pub struct HubStats {
     pub dropped: u64,
     /// Frames that a TCP client could not be given (remote frames with DLC > 0).
     pub unencodable: u64,
+    /// Connections refused because [`HubConfig::max_clients`] were connected.
+    pub refused: u64,
 }
 
 struct Shared {
@@ -82,6 +99,9 @@ struct Shared {
     /// Drops of all channels, past and present.
     dropped: Arc<AtomicU64>,
     unencodable: AtomicU64,
+    /// Connections being served (accepted, thread not yet ended).
+    active: std::sync::atomic::AtomicUsize,
+    refused: AtomicU64,
 }
 
 impl Shared {
@@ -108,6 +128,7 @@ impl Shared {
             frames_in: self.frames_in.load(Ordering::Relaxed),
             dropped: self.dropped.load(Ordering::Relaxed),
             unencodable: self.unencodable.load(Ordering::Relaxed),
+            refused: self.refused.load(Ordering::Relaxed),
         }
     }
 
@@ -157,6 +178,7 @@ impl Hub {
     /// Binds with explicit tuning.
     pub fn bind_with(addr: impl ToSocketAddrs, mut config: HubConfig) -> io::Result<Hub> {
         config.queue_len = config.queue_len.max(1);
+        config.max_clients = config.max_clients.max(1);
         let listener = TcpListener::bind(addr)?;
         let local_addr = listener.local_addr()?;
         Ok(Hub {
@@ -172,6 +194,8 @@ impl Hub {
                 frames_in: AtomicU64::new(0),
                 dropped: Arc::new(AtomicU64::new(0)),
                 unencodable: AtomicU64::new(0),
+                active: std::sync::atomic::AtomicUsize::new(0),
+                refused: AtomicU64::new(0),
             }),
         })
     }
@@ -295,12 +319,28 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) -> io::Result<()> {
             return Ok(());
         }
         match accepted {
-            Ok((stream, peer)) => {
+            Ok((mut stream, peer)) => {
                 shared.accepted.fetch_add(1, Ordering::Relaxed);
+                if shared.active.fetch_add(1, Ordering::SeqCst) >= shared.config.max_clients {
+                    shared.active.fetch_sub(1, Ordering::SeqCst);
+                    let refused = shared.refused.fetch_add(1, Ordering::Relaxed);
+                    // Without a thread: the refusal must not cost what the limit protects.
+                    let _ = stream.set_nonblocking(true);
+                    let _ = stream.write_all(b"< error too many clients >");
+                    if refused.is_power_of_two() {
+                        tracing::warn!(%peer, max = shared.config.max_clients, refused = refused + 1,
+                            "socketcand client refused: too many clients");
+                    }
+                    continue;
+                }
+                let active = Active(shared.clone());
                 let shared = shared.clone();
                 let spawned = thread::Builder::new()
                     .name(format!("socketcand {peer}"))
-                    .spawn(move || serve_client(stream, peer, shared));
+                    .spawn(move || {
+                        let _active = active;
+                        serve_client(stream, peer, shared)
+                    });
                 if let Err(e) = spawned {
                     tracing::warn!(%peer, "cannot start client thread: {e}");
                 }
@@ -320,6 +360,15 @@ fn tune(stream: &TcpStream, config: &HubConfig) {
     let _ = stream.set_quickack(true);
     if let Some(n) = config.send_buffer {
         let _ = socket2::SockRef::from(stream).set_send_buffer_size(n);
+    }
+}
+
+/// Counts a connection as served until its thread ends (or was never started).
+struct Active(Arc<Shared>);
+
+impl Drop for Active {
+    fn drop(&mut self) {
+        self.0.active.fetch_sub(1, Ordering::SeqCst);
     }
 }
 
@@ -391,11 +440,30 @@ fn serve_client(mut stream: TcpStream, peer: SocketAddr, shared: Arc<Shared>) {
     let mut state = State::Opening;
     let mut buf = [0u8; 4096];
     let mut elements = Vec::new();
+    // The whole handshake has one deadline (not one per read: a byte every few seconds must
+    // not keep a connection half-open for ever).
+    let handshake_end = Instant::now() + shared.config.handshake_timeout;
     loop {
+        if !matches!(state, State::Raw { .. }) {
+            let left = handshake_end.saturating_duration_since(Instant::now());
+            if left.is_zero() || stream.set_read_timeout(Some(left)).is_err() {
+                tracing::debug!(%peer, "handshake timeout");
+                break;
+            }
+        }
         let n = match stream.read(&mut buf) {
             Ok(0) => break,
             Ok(n) => n,
             Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                ) =>
+            {
+                tracing::debug!(%peer, "client timed out");
+                break;
+            }
             Err(_) => break,
         };
         // Linux clears QUICKACK after use; re-arm so our ACKs never wait ~40 ms.
@@ -462,7 +530,8 @@ fn handle_element(
             }
             tracing::debug!(%peer, channel = %ch, "client in raw mode");
             *state = State::Raw { bus, id, queue: tx };
-            true
+            // From now on only the idle limit applies (none by default).
+            stream.set_read_timeout(shared.config.idle_timeout).is_ok()
         }
         (el, _) => {
             // Unknown or out-of-order commands are ignored: python-can raises on `< error >`
