@@ -85,9 +85,27 @@ fn init_logging(verbose: u8, quiet: bool) {
         .init();
 }
 
+/// Raises the soft limit of open files to the hard one: a hub serves up to `--max-clients`
+/// connections, more than the usual soft limit of 1024 descriptors (Go and systemd services
+/// do the same). Failing to raise it only leaves the old limit.
+fn raise_open_file_limit() {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit / setrlimit read and write the struct we own.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) == 0 && lim.rlim_cur < lim.rlim_max {
+            lim.rlim_cur = lim.rlim_max;
+            let _ = libc::setrlimit(libc::RLIMIT_NOFILE, &lim);
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging(cli.verbose, cli.quiet);
+    raise_open_file_limit();
     if let Some(p) = cli.rt_priority {
         // Before any thread starts: they inherit the policy.
         if let Err(e) = canpos_host::realtime::enter(p) {
