@@ -327,7 +327,8 @@ fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) -> io::Result<()> {
                     // Without a thread: the refusal must not cost what the limit protects.
                     let _ = stream.set_nonblocking(true);
                     let _ = stream.write_all(b"< error too many clients >");
-                    if refused.is_power_of_two() {
+                    // The 1st, 2nd, 4th, 8th … refusal: a flood must not flood the log too.
+                    if (refused + 1).is_power_of_two() {
                         tracing::warn!(%peer, max = shared.config.max_clients, refused = refused + 1,
                             "socketcand client refused: too many clients");
                     }
