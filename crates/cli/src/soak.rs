@@ -16,7 +16,8 @@
 //! - **dropped**: deliveries the bus dropped because the observer's queue was full (the
 //!   observer would then under-count, so the drift check is only meaningful when this is 0).
 //!
-//! Exit code 0 when every check passed, 1 otherwise; the final line says which failed.
+//! Exit code 0 when every check passed, 3 otherwise (as `bench scale`); the final line says
+//! which failed.
 
 use std::collections::HashMap;
 use std::io::Write as _;
@@ -244,7 +245,12 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         m.insert("failures".into(), json!(failures));
     }
     println!("{last}");
-    Ok(if failures.is_empty() { 0 } else { 1 })
+    // A missed expectation is the bench's "refused" (3), distinct from a runtime error (1).
+    Ok(if failures.is_empty() {
+        0
+    } else {
+        crate::master::EXIT_REFUSED
+    })
 }
 
 /// One JSON summary line.
