@@ -510,8 +510,7 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn sdo_rtt(a: RttArgs) -> Result<i32> {
-    let mut bus = canpos_host::transport::open(&a.bus)
-        .with_context(|| format!("cannot open {} (is the hub running?)", a.bus))?;
+    let mut bus = crate::master::open_bus(&a.bus)?;
     let mut c = SdoClient::new(&mut *bus, a.node, Duration::from_secs(1));
     // Expected answer: whatever 0x1000 holds, the same every time.
     let want = c.upload(0x1000, 0).context("first SDO upload of 0x1000")?;

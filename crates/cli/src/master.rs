@@ -66,7 +66,9 @@ pub struct BusArg {
     pub bus: String,
 }
 
-fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
+/// Opens a master command's bus: a malformed URL is a usage error, a refused connection gets
+/// the hint to start a hub or sensor.
+pub fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
     transport::open(url).map_err(|e| match e {
         // A malformed URL is the user's typo: no hint about hubs.
         transport::Error::BadUrl { .. } => usage!("{e}"),
