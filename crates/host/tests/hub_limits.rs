@@ -1,5 +1,5 @@
-//! The hub's limits (issue 13): a cap on connections refused cleanly by the accept loop, a
-//! handshake deadline, and the optional idle limit of raw-mode clients.
+//! The hub's limits (issue 13): a cap on connections, refused cleanly, a handshake deadline,
+//! and the optional idle limit of raw-mode clients.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
