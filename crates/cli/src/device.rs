@@ -55,8 +55,9 @@ pub struct ServeArgs {
     /// Address to listen on (loopback by default; other addresses only when given here).
     #[arg(long, value_name = "ADDR", default_value = DEFAULT_LISTEN)]
     pub listen: String,
-    /// Most clients connected at once; one more is refused with `< error too many clients >`.
-    #[arg(long, value_name = "N", default_value_t = 1024,
+    /// Most clients connected at once (kept below the open-file limit); one more is refused
+    /// with `< error too many clients >`.
+    #[arg(long, value_name = "N", default_value_t = 10_000,
           value_parser = clap::value_parser!(u32).range(1..=100_000))]
     pub max_clients: u32,
     /// Seconds a client has from connecting to raw mode.

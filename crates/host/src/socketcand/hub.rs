@@ -72,7 +72,9 @@ pub struct HubConfig {
     /// `SO_SNDBUF` for client sockets (`None`: kernel autotuning). A fixed, modest buffer makes a
     /// stuck client start losing frames after a bounded backlog instead of megabytes.
     pub send_buffer: Option<usize>,
-    /// Most TCP clients connected at once; further connections are refused.
+    /// Most TCP clients connected at once; further connections are refused. Also kept below the
+    /// process's limit of open files (less 64 for everything else), so that the hub refuses
+    /// cleanly instead of failing to accept.
     pub max_clients: usize,
     /// Time from accept to raw mode; a client slower than that is closed.
     pub handshake_timeout: Duration,
@@ -86,7 +88,7 @@ impl Default for HubConfig {
             queue_len: 4096,
             hold_back: Duration::from_millis(20),
             send_buffer: Some(256 * 1024),
-            max_clients: 1024,
+            max_clients: 10_000,
             handshake_timeout: Duration::from_secs(10),
             idle_timeout: None,
         }
@@ -167,6 +169,21 @@ impl Shared {
     }
 }
 
+/// Descriptors the hub may use for clients: the soft limit of open files less 64.
+fn open_file_budget() -> usize {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes the struct we own.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
+        return usize::MAX;
+    }
+    usize::try_from(lim.rlim_cur)
+        .unwrap_or(usize::MAX)
+        .saturating_sub(64)
+}
+
 /// A bound, not yet running hub.
 pub struct Hub {
     listener: TcpListener,
@@ -183,7 +200,7 @@ impl Hub {
     /// Binds with explicit tuning.
     pub fn bind_with(addr: impl ToSocketAddrs, mut config: HubConfig) -> io::Result<Hub> {
         config.queue_len = config.queue_len.max(1);
-        config.max_clients = config.max_clients.max(1);
+        config.max_clients = config.max_clients.min(open_file_budget()).max(1);
         let listener = TcpListener::bind(addr)?;
         listener.set_nonblocking(true)?;
         let local_addr = listener.local_addr()?;
@@ -429,6 +446,9 @@ struct EventLoop {
     next_token: usize,
     /// No client deadline comes before this (it may be early: idle deadlines move on).
     earliest: Option<Instant>,
+    /// Accepting failed (e.g. out of descriptors) with connections left in the backlog: the
+    /// listener is edge-triggered and will not report them again, so retry on a timer.
+    accept_retry: bool,
 }
 
 impl EventLoop {
@@ -444,6 +464,7 @@ impl EventLoop {
             conns: HashMap::new(),
             next_token: 0,
             earliest: None,
+            accept_retry: false,
         })
     }
 
@@ -459,9 +480,13 @@ impl EventLoop {
             if self.shared.shutdown.load(Ordering::SeqCst) {
                 break;
             }
-            let timeout = self
+            let mut timeout = self
                 .earliest
                 .map(|d| d.max(next_scan).saturating_duration_since(Instant::now()));
+            if self.accept_retry {
+                let retry = Duration::from_millis(10);
+                timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
+            }
             if let Err(e) = self.poll.poll(&mut events, timeout) {
                 if e.kind() == io::ErrorKind::Interrupted {
                     continue;
@@ -470,6 +495,9 @@ impl EventLoop {
             }
             let now = Instant::now();
             let mut touched = Vec::new();
+            if std::mem::take(&mut self.accept_retry) {
+                self.accept(now);
+            }
             for ev in events.iter() {
                 match ev.token() {
                     LISTENER => self.accept(now),
@@ -561,6 +589,7 @@ impl EventLoop {
                 Err(e) => {
                     // E.g. out of file descriptors: leave the rest in the backlog for now.
                     tracing::warn!("accept failed: {e}");
+                    self.accept_retry = true;
                     return;
                 }
             };
