@@ -36,6 +36,8 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
 pub const OUT_LIMIT: usize = 64 * 1024;
 
 const LISTENER: Token = Token(usize::MAX - 1);
+/// Connections accepted per turn of the event loop.
+const ACCEPT_SLICE: usize = 64;
 const WAKER: Token = Token(usize::MAX - 2);
 
 /// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
@@ -449,6 +451,8 @@ struct EventLoop {
     /// Accepting failed (e.g. out of descriptors) with connections left in the backlog: the
     /// listener is edge-triggered and will not report them again, so retry on a timer.
     accept_retry: bool,
+    /// An accept slice ended before the backlog did.
+    accept_more: bool,
 }
 
 impl EventLoop {
@@ -465,6 +469,7 @@ impl EventLoop {
             next_token: 0,
             earliest: None,
             accept_retry: false,
+            accept_more: false,
         })
     }
 
@@ -483,8 +488,12 @@ impl EventLoop {
             let mut timeout = self
                 .earliest
                 .map(|d| d.max(next_scan).saturating_duration_since(Instant::now()));
-            if self.accept_retry {
-                let retry = Duration::from_millis(10);
+            if self.accept_retry || self.accept_more {
+                let retry = if self.accept_more {
+                    Duration::ZERO
+                } else {
+                    Duration::from_millis(10)
+                };
                 timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
             }
             if let Err(e) = self.poll.poll(&mut events, timeout) {
@@ -495,7 +504,8 @@ impl EventLoop {
             }
             let now = Instant::now();
             let mut touched = Vec::new();
-            if std::mem::take(&mut self.accept_retry) {
+            let again = std::mem::take(&mut self.accept_more);
+            if std::mem::take(&mut self.accept_retry) || again {
                 self.accept(now);
             }
             for ev in events.iter() {
@@ -581,7 +591,9 @@ impl EventLoop {
     }
 
     fn accept(&mut self, now: Instant) {
-        loop {
+        // A burst of connections is taken in slices, between which the clients that have
+        // traffic are served: a flood of connects must not stall the bus.
+        for _ in 0..ACCEPT_SLICE {
             let (mut stream, peer) = match self.listener.accept() {
                 Ok(x) => x,
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
@@ -645,6 +657,8 @@ impl EventLoop {
                 .push(token);
             let _ = self.shared.waker.wake();
         }
+        // The slice ended with connections maybe left: come back at once.
+        self.accept_more = true;
     }
 
     fn read(&mut self, t: usize, now: Instant) {
