@@ -171,6 +171,23 @@ impl Shared {
     }
 }
 
+/// Turns on TCP_QUICKACK: Linux clears it after use, so it is re-armed after every read, and
+/// the hub's ACKs never wait the ~40 ms of delayed ACK.
+fn quickack(stream: &TcpStream) {
+    use std::os::fd::AsRawFd;
+    let on: libc::c_int = 1;
+    // SAFETY: setsockopt reads one c_int from a pointer we own, on a socket we own.
+    unsafe {
+        libc::setsockopt(
+            stream.as_raw_fd(),
+            libc::IPPROTO_TCP,
+            libc::TCP_QUICKACK,
+            (&on as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+}
+
 /// Descriptors the hub may use for clients: the soft limit of open files less 64.
 fn open_file_budget() -> usize {
     let mut lim = libc::rlimit {
@@ -617,6 +634,7 @@ impl EventLoop {
                 continue;
             }
             let _ = stream.set_nodelay(true);
+            quickack(&stream);
             if let Some(n) = self.shared.config.send_buffer {
                 let _ = socket2::SockRef::from(&stream).set_send_buffer_size(n);
             }
@@ -675,6 +693,7 @@ impl EventLoop {
                     break;
                 }
                 Ok(n) => {
+                    quickack(&c.stream);
                     c.last_rx = now;
                     c.decoder
                         .feed(&buf[..n], |body| elements.push(Element::parse(body)));
