@@ -120,3 +120,28 @@ fn an_idle_limit_closes_silent_raw_clients() {
     let mut s = raw(hub.local_addr());
     assert_eq!(until_closed(&mut s), b"");
 }
+
+#[test]
+fn a_burst_larger_than_one_turn_is_forwarded_whole() {
+    // 4000 frames in one write: more than the event loop reads per turn (64 KiB), and more
+    // than a client's output holds at once. Readiness is edge-triggered, so the hub must come
+    // back to both sockets by itself.
+    const N: usize = 4000;
+    let hub = Hub::bind("127.0.0.1:0").unwrap().spawn().unwrap();
+    let mut rx = raw(hub.local_addr());
+    let mut tx = raw(hub.local_addr());
+    let burst: Vec<u8> = (0..N).flat_map(|_| *b"< send 123 1 aa >").collect();
+    assert!(burst.len() > 64 * 1024);
+    tx.write_all(&burst).unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 65536];
+    let end = Instant::now() + WAIT;
+    while got.windows(7).filter(|w| w == b"< frame").count() < N {
+        assert!(Instant::now() < end, "frames lost or stalled");
+        let n = rx.read(&mut buf).unwrap();
+        assert!(n > 0, "hub closed the receiver");
+        got.extend_from_slice(&buf[..n]);
+    }
+    assert_eq!(hub.stats().frames_in, N as u64);
+    assert_eq!(hub.stats().dropped, 0);
+}

@@ -470,6 +470,10 @@ struct EventLoop {
     accept_retry: bool,
     /// An accept slice ended before the backlog did.
     accept_more: bool,
+    /// Clients to serve again next turn without waiting for an event: their socket had more to
+    /// read than one turn takes, or their queue more than the output took while the socket
+    /// still had room. Readiness is edge-triggered: no new event would come for either.
+    again: Vec<usize>,
 }
 
 impl EventLoop {
@@ -487,6 +491,7 @@ impl EventLoop {
             earliest: None,
             accept_retry: false,
             accept_more: false,
+            again: Vec::new(),
         })
     }
 
@@ -505,8 +510,8 @@ impl EventLoop {
             let mut timeout = self
                 .earliest
                 .map(|d| d.max(next_scan).saturating_duration_since(Instant::now()));
-            if self.accept_retry || self.accept_more {
-                let retry = if self.accept_more {
+            if self.accept_retry || self.accept_more || !self.again.is_empty() {
+                let retry = if self.accept_more || !self.again.is_empty() {
                     Duration::ZERO
                 } else {
                     Duration::from_millis(10)
@@ -524,6 +529,10 @@ impl EventLoop {
             let again = std::mem::take(&mut self.accept_more);
             if std::mem::take(&mut self.accept_retry) || again {
                 self.accept(now);
+            }
+            for t in std::mem::take(&mut self.again) {
+                self.read(t, now);
+                touched.push(t);
             }
             for ev in events.iter() {
                 match ev.token() {
@@ -685,11 +694,14 @@ impl EventLoop {
         };
         let mut buf = [0u8; 4096];
         let mut elements = Vec::new();
-        // At most 64 KiB per turn, so one fast sender cannot starve the others.
+        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
+        // turn.
+        let mut drained = false;
         for _ in 0..16 {
             match c.stream.read(&mut buf) {
                 Ok(0) => {
                     c.closed = true;
+                    drained = true;
                     break;
                 }
                 Ok(n) => {
@@ -698,13 +710,20 @@ impl EventLoop {
                     c.decoder
                         .feed(&buf[..n], |body| elements.push(Element::parse(body)));
                 }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    drained = true;
+                    break;
+                }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(_) => {
                     c.closed = true;
+                    drained = true;
                     break;
                 }
             }
+        }
+        if !drained {
+            self.again.push(t);
         }
         let was_raw = matches!(c.state, State::Raw { .. });
         for el in elements {
@@ -749,6 +768,10 @@ impl EventLoop {
         }
         // Queue not drained (output full): come back when the socket takes more.
         let backlog = matches!(&c.state, State::Raw { rx, hold_until: None, .. } if !rx.is_empty());
+        if backlog && c.pending() == 0 {
+            // The socket took all there was and has room: no WRITABLE edge will come.
+            self.again.push(t);
+        }
         let want = c.pending() > 0 || backlog;
         if want != c.writable {
             let interest = if want {
