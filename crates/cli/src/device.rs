@@ -450,13 +450,8 @@ pub struct RunArgs {
     pub nmt: Option<String>,
 }
 
-/// Warns when a bus or control address is reachable from other machines: neither the hub
-/// nor the control interface has authentication. One text for every place that binds.
-pub fn warn_if_exposed(addr: SocketAddr, what: &str) {
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "{what} is reachable from the network (no authentication); bind to 127.0.0.1 unless that is intended");
-    }
-}
+/// See [`canpos_host::warn_if_exposed`].
+pub use canpos_host::warn_if_exposed;
 
 /// Opens the bus (or hosts it), reporting what happened.
 fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {

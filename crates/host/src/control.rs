@@ -406,9 +406,7 @@ pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<Cont
 /// the runtime is up).
 pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<ControlServer> {
     let addr = listener.local_addr()?;
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "control interface reachable from the network (no authentication)");
-    }
+    crate::warn_if_exposed(addr, "the control interface");
     let open = Arc::new(AtomicUsize::new(0));
     let thread = std::thread::Builder::new()
         .name("canpos-control".into())
