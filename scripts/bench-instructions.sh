@@ -16,7 +16,7 @@ count() { # model op iterations [extra args…]
     grep -E '^(summary|totals):' "$tmp/cg.out" | head -1 | awk '{print $2}'
 }
 for model in th e-series tmi; do
-    for op in sdo-upload sdo-download tpdo lss-inquire; do
+    for op in sdo-upload sdo-download tpdo lss-inquire sdo-upload-alternating sync-tpdo idle foreign-pdo; do
         a=$(count "$model" "$op" "$N")
         b=$(count "$model" "$op" $((2 * N)))
         echo "model=$model op=$op instructions_per_op=$(( (b - a) / N ))"

@@ -112,12 +112,19 @@ def network(transport, bus_url):
 
 @pytest.fixture
 def sensors(bus_url, tmp_path):
-    """Starts canpos sensors on the hub: ``sensors(model="th", node_id=127, ...)``."""
+    """Starts canpos sensors on the hub: ``sensors(model="th", node_id=127, ...)``; ``model=None``
+    leaves the model to ``extra`` (e.g. ``--order-code``)."""
     procs = []
 
-    def start(model="th", node_id=None, serial=None, state_dir=None, extra=()):
-        args = ["run", "--model", model, "--bus", bus_url, "--ideal", "--magnet", "250",
-                "--state-dir", str(state_dir or tmp_path / "state")]
+    def start(model="th", node_id=None, serial=None, state_dir=None, extra=(), ideal=True,
+              magnet=250):
+        args = ["run", "--bus", bus_url, "--state-dir", str(state_dir or tmp_path / "state")]
+        if model is not None:
+            args += ["--model", model]
+        if ideal:
+            args += ["--ideal"]
+        if magnet is not None:
+            args += ["--magnet", str(magnet)]
         if node_id is not None:
             args += ["--node-id", str(node_id)]
         if serial is not None:
@@ -162,3 +169,12 @@ def add_node(network, node_id, model="th"):
 def export_eds(model, path):
     subprocess.run([BIN, "eds", "--model", model, "--output", str(path)], check=True)
     return path
+
+
+def ctl(port, req):
+    """One request on canpos's JSON-lines control interface."""
+    import json
+
+    with socket.create_connection(("127.0.0.1", port), timeout=2) as s:
+        s.sendall((json.dumps(req) + "\n").encode())
+        return json.loads(s.makefile().readline())

@@ -1,5 +1,6 @@
 """python-canopen (an independently written CANopen master) against canpos, over socketcand and
 over Linux SocketCAN (vcan0; see conftest.py)."""
+import math
 import struct
 import subprocess
 import time
@@ -9,7 +10,7 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import BIN, VCAN, add_node, export_eds, wait_bootup
+from conftest import BIN, VCAN, add_node, ctl, export_eds, free_port, wait_bootup
 
 
 def u32(node, index, sub):
@@ -294,3 +295,187 @@ def test_error_frames_do_not_disturb_the_node(network, sensors, transport):
     while not any(e[:2] == b"\x20\x81" for e in emcys) and time.monotonic() < end:
         time.sleep(0.01)
     assert any(e[:2] == b"\x20\x81" for e in emcys), emcys
+
+
+def test_tpdo_never_reports_a_change_before_its_pulse_returned(network, sensors):
+    """Issue 15: on a 7620 mm TH (4 ms cycle) a position change reaches a TPDO no earlier than
+    the strain pulse's time of flight from the magnet plus processing, and in fact only after the
+    output delay (the cycle boundary after the pulse returned)."""
+    port = free_port()
+    wait_bootup(network, 127, lambda: sensors(
+        None, magnet=1000,
+        extra=["--order-code", "THM7620MC011DNNC304111", "--control", f"127.0.0.1:{port}"]))
+    node = add_node(network, 127)
+    node.sdo.download(0x1800, 5, struct.pack("<H", 1))  # TPDO1 event timer 1 ms
+    step_nm = u32(node, 0x6005, 1)
+    frames = []
+    network.subscribe(0x1FF, lambda c, d, t: frames.append(
+        (time.monotonic(), struct.unpack_from("<i", bytes(d))[0])))
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.2)
+    assert frames
+    assert ctl(port, {"cmd": "state"})["timing"]["cycle_us"] == 4000
+    for i, target in enumerate([7600.0, 1000.0] * 5):
+        want = round(target * 1e6 / step_nm)
+        # Taken before the request: the runtime moves the magnet later, never earlier.
+        t_change = time.monotonic()
+        assert ctl(port, {"cmd": "magnet", "index": 0, "mm": target})["ok"]
+        first = None
+        end = time.monotonic() + 2
+        while first is None and time.monotonic() < end:
+            first = next((t for t, p in list(frames) if t >= t_change and p == want), None)
+            time.sleep(0.002)
+        assert first is not None, target
+        timing = ctl(port, {"cmd": "state"})["timing"]
+        tof_us = (target + 51.0) / 2.8  # TH null zone 51 mm, 2800 m/s
+        ready_us = tof_us + 50.0  # processing
+        delay_us = math.ceil(ready_us / 4000) * 4000  # published at a 4 ms cycle boundary
+        assert abs(timing["time_of_flight_us"] - tof_us) < 0.01, timing
+        assert abs(timing["ready_after_us"] - ready_us) < 0.01, timing
+        assert timing["output_delay_us"] == delay_us, timing
+        lag = first - t_change
+        # The physics: not before the pulse returned. The model: not before the boundary after
+        # that (a sensor publishing at once showed 1.4…3.8 ms here).
+        assert lag >= ready_us / 1e6, (target, lag, timing)
+        assert lag >= delay_us / 1e6, (target, lag, timing)
+        # ... and not much later: output delay + one cycle + event timer, with slack for the host.
+        assert lag < (timing["output_delay_us"] + timing["cycle_us"]) / 1e6 + 0.1, (target, lag)
+        time.sleep(0.02 + 0.0013 * i)  # vary the phase against the 4 ms cycle
+
+
+def test_ambient_step_lags_position_and_0x2901(network, sensors):
+    """Issue 15: an ambient step shows over CAN as a lagged 0x2901 (electronics, first-order lag)
+    and a lagged position drift (temperature coefficient × waveguide temperature); leaving the
+    operating range raises EMCY 0x4200 by itself, after the lag."""
+    port = free_port()
+    scale = 0.005  # τ_electronics = 600 s × scale = 3 s, τ_waveguide = 6 s
+    tau_e, tau_w = 600 * scale, 1200 * scale
+    x_mm = 900.0
+    wait_bootup(network, 127, lambda: sensors(
+        "th", ideal=False, magnet=x_mm,
+        extra=["--seed", "2", "--thermal-time-scale", str(scale),
+               "--control", f"127.0.0.1:{port}"]))
+    node = add_node(network, 127)
+    node.sdo.download(0x1800, 5, struct.pack("<H", 1))
+    step_mm = u32(node, 0x6005, 1) / 1e6
+    frames = []
+    network.subscribe(0x1FF, lambda c, d, t: frames.append(
+        (time.monotonic(), struct.unpack_from("<i", bytes(d))[0] * step_mm)))
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(1.0)
+
+    def mean_pos_um(t0, t1):
+        v = [p for t, p in list(frames) if t0 <= t < t1]
+        assert len(v) > 50, (t0, t1, len(v))
+        return sum(v) / len(v) * 1000.0
+
+    def t2901():
+        return struct.unpack("<b", node.sdo.upload(0x2901, 1))[0]
+
+    st = ctl(port, {"cmd": "state"})
+    tc = st["unit_tempco_ppm_per_k"]
+    assert abs(tc) > 5, "seed 2 is meant to have a clear temperature coefficient"
+    lo, hi = st["temperature_limits_c"]
+    assert (lo, hi) == (-40.0, 85.0)
+    t_before = time.monotonic()
+    p0 = mean_pos_um(t_before - 0.2, t_before)
+    te0, tw0 = st["electronics_temperature_c"], st["waveguide_temperature_c"]
+    r0 = t2901()
+    assert abs(r0 - te0) <= 1
+
+    amb = 70.0  # inside the operating range: electronics settle at 80 °C, below the 85 °C limit
+    t_step = time.monotonic()
+    assert ctl(port, {"cmd": "ambient", "celsius": amb})["ok"]
+    te = lambda t: amb + 10 - (amb + 10 - te0) * math.exp(-t / tau_e)
+    tw = lambda t: amb + 3 - (amb + 3 - tw0) * math.exp(-t / tau_w)
+    drift = lambda t: x_mm * 1000.0 * tc * 1e-6 * (tw(t) - tw0)  # µm
+    final = drift(math.inf)
+    reads = []
+    while time.monotonic() < t_step + 1.2 * tau_w:
+        t0 = time.monotonic()
+        r = t2901()
+        # The read happened somewhere during the SDO round trip: stamp it in the middle.
+        reads.append(((t0 + time.monotonic()) / 2 - t_step, r))
+        time.sleep(0.1)
+
+    # 0x2901: no jump, then the electronics' first-order lag.
+    t_first, r_first = reads[0]
+    assert t_first < 0.3 and r_first - r0 <= 0.2 * (amb + 10 - te0), reads[:3]
+    for t, r in reads:
+        # Rounding to whole °C plus a few ms of round trip at up to 17 K/s.
+        assert abs(r - te(t)) <= 2.5, (t, r, te(t))
+    assert all(b >= a - 1 for (_, a), (_, b) in zip(reads, reads[1:])), reads
+    assert reads[-1][1] - r0 >= 0.6 * (amb + 10 - te0), reads[-1]
+
+    # Position: drifts with the waveguide's (slower) lag, in the direction of the tempco.
+    assert abs(final) > 300, final
+    early = mean_pos_um(t_step, t_step + 0.2) - p0
+    assert abs(early) <= 0.1 * abs(final) + 5, (early, final)
+    for t in (1.0, 3.0, 6.0):
+        got = mean_pos_um(t_step + t - 0.1, t_step + t + 0.1) - p0
+        assert abs(got - drift(t)) <= 0.1 * abs(final) + 6, (t, got, drift(t), final)
+    late = mean_pos_um(t_step + 1.2 * tau_w - 0.3, t_step + 1.2 * tau_w - 0.1) - p0
+    assert 0.5 < late / final < 0.9, (late, final)
+
+    # 95 °C ambient: the electronics pass 85 °C after the lag, and the unit says so itself.
+    n = len(node.emcy.log)
+    t_hot = time.monotonic()
+    assert ctl(port, {"cmd": "ambient", "celsius": 95.0})["ok"]
+    time.sleep(0.1)
+    assert not [e for e in node.emcy.log[n:] if e.code == 0x4200]
+    end = time.monotonic() + 10
+    hot = None
+    while hot is None and time.monotonic() < end:
+        hot = next((e for e in node.emcy.log[n:] if e.code == 0x4200), None)
+        time.sleep(0.01)
+    assert hot is not None and hot.register & 0x08, node.emcy.log[n:]
+    assert time.monotonic() - t_hot > 0.2
+    assert t2901() >= 85  # just past the limit (0x2901 is rounded to whole °C)
+    assert node.sdo.upload(0x1001, 0)[0] & 0x08
+    n = len(node.emcy.log)
+    assert ctl(port, {"cmd": "ambient", "celsius": 20.0})["ok"]
+    end = time.monotonic() + 10
+    while not [e for e in node.emcy.log[n:] if e.code == 0] and time.monotonic() < end:
+        time.sleep(0.01)
+    assert [e for e in node.emcy.log[n:] if e.code == 0], node.emcy.log[n:]
+
+
+def test_lss_fastscan_and_selection_by_python_canopen(network, sensors, tmp_path):
+    """CiA 305 with python-canopen's LSS master (written independently of canpos's): an
+    unconfigured TH waits in LSS waiting (no answer until selected), fastscan finds it beside a
+    configured E-Series, it boots up with the node-id given; a selective switch makes only the
+    selected node answer."""
+    wait_bootup(network, 10, lambda: sensors("e-series", node_id=10, serial=2,
+                                              state_dir=tmp_path / "e"))
+    sensors("th", node_id=255, serial=4242, state_dir=tmp_path / "th")
+    e = add_node(network, 10)
+    e_addr = [u32(e, 0x1018, s) for s in (1, 2, 3, 4)]
+    lss = network.lss
+    lss.RESPONSE_TIMEOUT = 0.2
+    # Both wait: an inquiry gets no answer (wait for the TH process to be up first).
+    time.sleep(1.0)
+    with pytest.raises(canopen.lss.LssError):
+        lss.inquire_node_id()
+    found, addr = lss.fast_scan()
+    assert found, "fastscan found no unconfigured node"
+    assert addr == [0x40, 0x43333034, 0x00010005, 4242]
+    # The slave found is in configuration: it alone answers.
+    answers = []
+    network.subscribe(0x7E4, lambda c, d, t: answers.append(bytes(d)))
+    assert lss.inquire_node_id() == 0xFF
+    assert len(answers) == 1
+    lss.configure_node_id(20)
+    booted = []
+    network.subscribe(0x714, lambda c, d, t: booted.append(bytes(d)))
+    lss.send_switch_state_global(lss.WAITING_STATE)
+    end = time.monotonic() + 3
+    while not booted and time.monotonic() < end:
+        time.sleep(0.01)
+    assert booted and booted[0] == b"\x00", "no boot-up as node 20"
+    # Selective switch on the E-Series: one answer to the inquiry, the E-Series'.
+    answers.clear()
+    lss.send_switch_state_selective(*e_addr)
+    assert lss.inquire_node_id() == 10
+    time.sleep(0.1)
+    assert len([a for a in answers if a[0] == 0x5E]) == 1, answers
+    lss.send_switch_state_global(lss.WAITING_STATE)

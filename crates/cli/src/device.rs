@@ -124,6 +124,8 @@ pub struct SensorOpts {
     /// NMT state to put the node in right after its boot-up (`pre-operational`, the default
     /// as on a real unit, `operational` or `stopped`).
     pub nmt: Option<String>,
+    /// Factor on the thermal time constants (electronics, waveguide); default 1.
+    pub thermal_time_scale: Option<f64>,
 }
 
 /// A problem with one option of a sensor: the option (its scenario key), and what is wrong.
@@ -251,6 +253,18 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
             .map_err(field_err("model"))?,
         };
     cfg.cycle_us = spec.cycle_time_us;
+    let mut spec = spec;
+    if let Some(k) = o.thermal_time_scale {
+        // Bounded too: a huge factor would make the thermal model's arithmetic overflow.
+        if !(k.is_finite() && k > 0.0 && k <= 1e6) {
+            return Err(field_err("thermal_time_scale")(anyhow!(
+                "thermal time scale {} must be a positive number, at most 1e6",
+                control::show_num(k)
+            )));
+        }
+        spec.thermal_time_constant_s *= k;
+        spec.waveguide_time_constant_s *= k;
+    }
     if let Some(id) = o.node_id {
         if !(1..=127).contains(&id) && id != 255 {
             return Err(field_err("node_id")(anyhow!(
@@ -441,6 +455,10 @@ pub struct RunArgs {
     /// Seed of the unit's errors and noise (default: the serial number).
     #[arg(long, value_name = "N")]
     pub seed: Option<u64>,
+    /// Multiply the thermal time constants (electronics 600 s, waveguide 1200 s) by K, e.g.
+    /// 0.01 to watch an ambient step settle in seconds (see docs/MEASUREMENT.md).
+    #[arg(long, value_name = "K")]
+    pub thermal_time_scale: Option<f64>,
     /// Serve the JSON-lines control interface on ADDR (e.g. 127.0.0.1:29600).
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
@@ -553,6 +571,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
         ideal: a.ideal,
         seed: a.seed,
         nmt: a.nmt,
+        thermal_time_scale: a.thermal_time_scale,
     };
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     // A value the model cannot take is a bad command line (exit 2), like clap's own errors.
@@ -1008,6 +1027,31 @@ mod tests {
         assert_eq!(parse_node_id("255"), Ok(255));
         assert!(parse_node_id("0").is_err());
         assert!(parse_node_id("128").is_err());
+    }
+
+    #[test]
+    fn thermal_time_scale_scales_both_time_constants() {
+        let dir = tempfile::tempdir().unwrap();
+        let plain = build_setup(&SensorOpts::default(), dir.path())
+            .unwrap()
+            .setup
+            .spec;
+        let o = SensorOpts {
+            thermal_time_scale: Some(0.01),
+            ..SensorOpts::default()
+        };
+        let fast = build_setup(&o, dir.path()).unwrap().setup.spec;
+        assert!((fast.thermal_time_constant_s - plain.thermal_time_constant_s * 0.01).abs() < 1e-9);
+        assert!(
+            (fast.waveguide_time_constant_s - plain.waveguide_time_constant_s * 0.01).abs() < 1e-9
+        );
+        for bad in [0.0, -1.0, f64::NAN, 1e300] {
+            let o = SensorOpts {
+                thermal_time_scale: Some(bad),
+                ..SensorOpts::default()
+            };
+            assert!(build_setup(&o, dir.path()).is_err(), "{bad}");
+        }
     }
 
     #[test]

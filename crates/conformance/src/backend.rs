@@ -8,7 +8,7 @@ use std::time::Duration as StdDuration;
 use canpos_core::encoder::{Fault, Sample};
 use canpos_core::models::Model;
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use canpos_host::runtime::{Runtime, RuntimeHandle, SensorSetup};
 use canpos_host::socketcand::{Client, Hub, HubHandle};
 use canpos_host::Transport;
@@ -37,7 +37,7 @@ pub trait Backend {
 /// A `Node` with RAM storage on a virtual clock: time only moves when the harness waits, and
 /// then jumps from one node deadline to the next, so a 10 s window costs microseconds.
 pub struct VirtualDut {
-    node: Node<RamStorage>,
+    node: SensorNode<RamStorage>,
     now: u64,
     rx: VecDeque<(u64, Frame)>,
 }
@@ -57,7 +57,7 @@ impl VirtualDut {
     }
 
     /// The node itself (white-box checks next to the black-box cases).
-    pub fn node(&mut self) -> &mut Node<RamStorage> {
+    pub fn node(&mut self) -> &mut SensorNode<RamStorage> {
         &mut self.node
     }
 

@@ -12,11 +12,11 @@ use std::hint::black_box;
 use canpos_core::encoder::Sample;
 use canpos_core::models::{self, Model};
 use canpos_core::storage::NoStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use criterion::{criterion_group, criterion_main, Criterion};
 
 /// A node of `model` with `channels` channels after power-on, in pre-operational.
-fn booted(model: &'static Model, channels: u8) -> Node<NoStorage> {
+fn booted(model: &'static Model, channels: u8) -> SensorNode<NoStorage> {
     let cfg = model.configure(model.default_config.with_channels(channels));
     let mut n = Node::new(model, cfg, NoStorage);
     n.power_on(Instant(0));
@@ -26,11 +26,11 @@ fn booted(model: &'static Model, channels: u8) -> Node<NoStorage> {
 
 /// Timers if due, then one frame out (`Node::poll`, what the host runtime calls).
 #[inline(always)]
-fn step_out(n: &mut Node<NoStorage>, now: Instant) -> Option<Frame> {
+fn step_out(n: &mut SensorNode<NoStorage>, now: Instant) -> Option<Frame> {
     n.poll(now)
 }
 
-fn sdo(n: &mut Node<NoStorage>, id: u16, req: [u8; 8], now: Instant) -> [u8; 8] {
+fn sdo(n: &mut SensorNode<NoStorage>, id: u16, req: [u8; 8], now: Instant) -> [u8; 8] {
     n.handle_frame(&Frame::std8(0x600 + id, req), now);
     let r = step_out(n, now).expect("SDO answer");
     *r.raw()

@@ -78,6 +78,8 @@ pub struct Emcy {
     /// Bumped whenever the error register or the history may have changed, so the device
     /// mirrors them into 0x1001 / 0x1003 only then (not on every frame).
     generation: u32,
+    /// See [`Emcy::set_reset_on_register_change`].
+    on_register_change: bool,
 }
 
 impl core::default::Default for Emcy {
@@ -93,6 +95,7 @@ impl core::default::Default for Emcy {
             next_allowed: Instant::ZERO,
             lost: 0,
             generation: 0,
+            on_register_change: false,
         }
     }
 }
@@ -161,12 +164,28 @@ impl Emcy {
         else {
             return;
         };
+        let before = self.register();
         self.active.copy_within(i + 1..self.n_active, i);
         self.n_active -= 1;
         self.generation = self.generation.wrapping_add(1);
-        if self.n_active == 0 {
-            self.queue(code::NO_ERROR, 0, [0; 5]);
+        let after = self.register();
+        if self.n_active == 0 || (self.on_register_change && after != before) {
+            self.queue(code::NO_ERROR, after, [0; 5]);
         }
+    }
+
+    /// Sends 0x0000 also when an error clears while others stay, if the error register changed
+    /// (the model's rule, [`crate::models::Features::emcy_on_register_change`]).
+    pub fn set_reset_on_register_change(&mut self, on: bool) {
+        self.on_register_change = on;
+    }
+
+    /// Queues an "error reset" EMCY (0x0000) with the current error register: after a
+    /// one-shot event such as "recovered from bus-off" on models whose EMCYs go along with
+    /// every change of the error state.
+    pub fn reset_message(&mut self) {
+        let r = self.register();
+        self.queue(code::NO_ERROR, r, [0; 5]);
     }
 
     /// Sends the power-on EMCY "without reasonable data" (D14).
@@ -227,6 +246,16 @@ impl Emcy {
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
         (self.n_pending > 0).then_some(self.next_allowed)
+    }
+
+    /// [`Emcy::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        if self.n_pending > 0 {
+            self.next_allowed.0
+        } else {
+            u64::MAX
+        }
     }
 
     /// Takes the next EMCY payload whose inhibit time has passed.

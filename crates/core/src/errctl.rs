@@ -15,6 +15,8 @@ pub struct ErrCtl {
     guard_deadline: Option<Instant>,
     /// A life-guarding event happened and no guard request has come since.
     pub life_guard_lost: bool,
+    /// CAN-ID on which guard requests are answered (0x100E; pre-defined 0x700 + node-id).
+    guarding_id: u16,
 }
 
 /// What a timer expiry produced.
@@ -56,6 +58,17 @@ impl ErrCtl {
         }
     }
 
+    /// Sets the CAN-ID of the guarding protocol (0x100E).
+    pub fn set_guarding_id(&mut self, id: u16) {
+        self.guarding_id = id;
+    }
+
+    /// The CAN-ID on which guard requests are answered.
+    #[inline]
+    pub fn guarding_id(&self) -> u16 {
+        self.guarding_id
+    }
+
     /// Clears the toggle and guarding state (reset communication).
     pub fn reset(&mut self) {
         *self = ErrCtl::default();
@@ -75,10 +88,14 @@ impl ErrCtl {
     /// The next deadline of this service.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        match (self.next_heartbeat, self.guard_deadline) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        (self.due_us() != u64::MAX).then_some(Instant(self.due_us()))
+    }
+
+    /// [`ErrCtl::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        let us = |t: Option<Instant>| t.map_or(u64::MAX, |t| t.0);
+        us(self.next_heartbeat).min(us(self.guard_deadline))
     }
 
     /// Handles expired timers; call until it returns `None`.

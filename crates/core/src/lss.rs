@@ -24,8 +24,7 @@
 //! 32-bit values are little-endian in bytes 1…4, the switch delay is 16 bit LE in bytes 1…2 and
 //! covers two periods (before and after the switch), the bit-timing table is the CiA table 0.
 
-use crate::node::{Device, UNCONFIGURED};
-use crate::storage::Storage;
+use crate::node::UNCONFIGURED;
 use crate::wire::{Duration, Instant};
 
 /// LSS command specifiers (byte 0 of every LSS frame).
@@ -146,17 +145,79 @@ impl Sequence {
 }
 
 /// An "activate bit timing" in progress. CiA 305: the slave stops sending and receiving, waits
-/// the switch delay, switches its bit rate, waits the delay again, then goes on at the new rate.
+/// the switch delay, switches its bit rate, waits the delay again, then goes on at the new rate
+/// (the node stays silent until [`Request::ActivateBitRate`]'s `silent_until`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct BitSwitch {
     /// End of the first delay: the new bit rate becomes active.
     switch_at: Instant,
-    /// End of the second delay: the node talks again.
-    resume_at: Instant,
     /// The bit rate to switch to (kbit/s).
     kbps: u16,
-    /// The first period is over (the bit rate has been switched).
-    switched: bool,
+}
+
+/// What the LSS slave needs to know of the node. Asked per frame, and the LSS address only by
+/// the services that compare it (an inquiry of the node-id needs no dictionary search).
+pub trait LssNode {
+    /// The LSS address: 0x1018 sub 1…4 (vendor-id, product code, revision, serial).
+    fn address(&self) -> [u32; 4];
+    /// Active node-id ([`UNCONFIGURED`] = none).
+    fn node_id(&self) -> u8;
+    /// Node-id and bit rate (kbit/s) that the next reset activates.
+    fn pending(&self) -> (u8, u16);
+    /// The model answers fastscan (DS 305 V2).
+    fn fastscan(&self) -> bool;
+    /// CiA 305 table-0 bit-timing indices the model accepts (D9).
+    fn bit_timing(&self) -> &'static [u8];
+
+    /// A node takes part in fastscan / answers "identify non-configured" only while it has
+    /// neither an active nor a pending node-id: one that already got a pending id will enter
+    /// NMT with it.
+    fn unconfigured(&self) -> bool {
+        self.node_id() == UNCONFIGURED && self.pending().0 == UNCONFIGURED
+    }
+}
+
+/// A change of node state an LSS request asks for. The slave changes only its own state; the
+/// node carries these out and hands the outcome to [`confirm`] for the answer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Request {
+    /// Configure node-id: the id the next reset communication activates.
+    ConfigureNodeId(u8),
+    /// Configure bit timing: the bit rate (kbit/s, 0 = automatic) the next reset activates.
+    ConfigureBitRate(u16),
+    /// Activate bit timing: silent (deaf and mute) until `silent_until`; the new bit rate
+    /// comes from [`LssSlave::handle_timeout`] halfway.
+    ActivateBitRate {
+        /// End of both switch delays.
+        silent_until: Instant,
+    },
+    /// Store configuration: keep the pending node-id and bit rate.
+    StoreConfiguration,
+}
+
+/// What one LSS frame produced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Output {
+    /// No answer (CiA 305 slaves stay silent on what is not for them).
+    Silent,
+    /// This answer on 0x7E4.
+    Answer([u8; 8]),
+    /// A request for the node; its outcome gives the answer ([`confirm`]).
+    Do(Request),
+}
+
+/// The answer to a [`Request`] the node carried out (`ok`) or could not.
+pub fn confirm(r: Request, ok: bool) -> Option<[u8; 8]> {
+    match r {
+        // Only values the slave accepted become requests.
+        Request::ConfigureNodeId(_) => Some(answer(cs::CONFIGURE_NODE_ID, OK)),
+        Request::ConfigureBitRate(_) => Some(answer(cs::CONFIGURE_BIT_TIMING, OK)),
+        Request::ActivateBitRate { .. } => None,
+        Request::StoreConfiguration => Some(answer(
+            cs::STORE_CONFIGURATION,
+            if ok { OK } else { STORAGE_ERROR },
+        )),
+    }
 }
 
 /// LSS slave state (waiting / configuration) beside the NMT state machine.
@@ -177,22 +238,20 @@ impl LssSlave {
         self.configuration
     }
 
-    /// Enters configuration state (a node without a valid node-id lives there).
+    /// Enters configuration state (TMI R7: a node without a valid node-id goes there by
+    /// itself).
     pub fn force_configuration(&mut self) {
         self.configuration = true;
     }
 
-    /// Handles one frame on 0x7E5; returns the response payload for 0x7E4, if any.
-    pub fn handle<S: Storage>(
-        &mut self,
-        data: &[u8],
-        now: Instant,
-        dev: &mut Device<S>,
-    ) -> Option<[u8; 8]> {
+    /// Handles one frame on 0x7E5.
+    pub fn handle(&mut self, data: &[u8], now: Instant, node: &impl LssNode) -> Output {
         // CiA 305 frames are always 8 bytes; anything else is not LSS and gets no answer.
-        let d: &[u8; 8] = data.try_into().ok()?;
+        let Ok(d) = <&[u8; 8]>::try_from(data) else {
+            return Output::Silent;
+        };
         let value = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
-        let addr = dev.lss_address();
+        let answer_if = |a: Option<[u8; 8]>| a.map_or(Output::Silent, Output::Answer);
         match d[0] {
             cs::SWITCH_GLOBAL => {
                 match d[1] {
@@ -204,84 +263,75 @@ impl LssSlave {
                     1 => self.configuration = true,
                     _ => {}
                 }
-                None
+                Output::Silent
             }
             // Selection only makes sense for slaves still waiting (CiA 305 state table);
             // a slave already in configuration ignores it, as CANopenNode does.
             c @ cs::SWITCH_SEL_VENDOR..=cs::SWITCH_SEL_SERIAL if !self.configuration => {
                 let part = c - cs::SWITCH_SEL_VENDOR;
-                let ok = self.selective.advance(part, value == addr[part as usize]);
+                let ok = self
+                    .selective
+                    .advance(part, value == node.address()[part as usize]);
                 if ok && part == 3 {
                     let all = self.selective.matched;
                     self.selective = Sequence::default();
                     if all {
                         self.configuration = true;
-                        return Some(answer(cs::SWITCH_SEL_RESPONSE, 0));
+                        return Output::Answer(answer(cs::SWITCH_SEL_RESPONSE, 0));
                     }
                 }
-                None
+                Output::Silent
             }
-            c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => self.identify(c, value, &addr),
-            cs::IDENTIFY_NON_CONFIGURED => {
-                unconfigured(dev).then(|| answer(cs::IDENTIFY_NON_CONFIGURED_SLAVE, 0))
+            c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => {
+                answer_if(self.identify(c, value, &node.address()))
             }
-            cs::FASTSCAN => self.fastscan(d, value, &addr, dev),
-            _ if !self.configuration => None,
+            cs::IDENTIFY_NON_CONFIGURED => answer_if(
+                node.unconfigured()
+                    .then(|| answer(cs::IDENTIFY_NON_CONFIGURED_SLAVE, 0)),
+            ),
+            cs::FASTSCAN => answer_if(self.fastscan(d, value, node)),
+            _ if !self.configuration => Output::Silent,
             // From here on: services of the configuration state only.
             cs::CONFIGURE_NODE_ID => {
                 let id = d[1];
                 if (1..=127).contains(&id) || id == UNCONFIGURED {
                     // Takes effect at the next reset communication (or, for a node that has
                     // none yet, when it is switched back to waiting: node.rs `after_lss`).
-                    dev.set_pending_node_id(id);
-                    Some(answer(cs::CONFIGURE_NODE_ID, OK))
+                    Output::Do(Request::ConfigureNodeId(id))
                 } else {
-                    Some(answer(cs::CONFIGURE_NODE_ID, REFUSED))
+                    Output::Answer(answer(cs::CONFIGURE_NODE_ID, REFUSED))
                 }
             }
             cs::CONFIGURE_BIT_TIMING => {
                 let (table, index) = (d[1], d[2]);
-                let supported = dev.model().features.lss_bit_timing.contains(&index);
+                let supported = node.bit_timing().contains(&index);
                 match bit_timing_kbps(index) {
                     Some(kbps) if table == 0 && supported => {
-                        dev.set_pending_bitrate(kbps);
-                        Some(answer(cs::CONFIGURE_BIT_TIMING, OK))
+                        Output::Do(Request::ConfigureBitRate(kbps))
                     }
-                    _ => Some(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
+                    _ => Output::Answer(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
                 }
             }
             cs::ACTIVATE_BIT_TIMING => {
                 let delay = Duration::from_millis(u16::from_le_bytes([d[1], d[2]]) as u64);
-                let kbps = dev.pending().1;
                 let switch_at = now + delay;
-                let resume_at = switch_at + delay;
                 self.switch = Some(BitSwitch {
                     switch_at,
-                    resume_at,
-                    kbps,
-                    switched: false,
+                    kbps: node.pending().1,
                 });
-                // Deaf and mute for both periods; Device checks this on every frame.
-                dev.silent_until = Some(resume_at);
-                dev.update_talk();
-                self.handle_timeout(now, dev);
-                None
+                Output::Do(Request::ActivateBitRate {
+                    silent_until: switch_at + delay,
+                })
             }
-            cs::STORE_CONFIGURATION => {
-                let status = match dev.store_lss() {
-                    Ok(()) => OK,
-                    Err(_) => STORAGE_ERROR,
-                };
-                Some(answer(cs::STORE_CONFIGURATION, status))
-            }
+            cs::STORE_CONFIGURATION => Output::Do(Request::StoreConfiguration),
             c @ cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL => {
-                let v = addr[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
-                Some([c, v[0], v[1], v[2], v[3], 0, 0, 0])
+                let v = node.address()[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
+                Output::Answer([c, v[0], v[1], v[2], v[3], 0, 0, 0])
             }
             // The manuals' example answers `5E 7F` for a node running as 127: the active
             // node-id, not a pending one (0xFF while the node has none).
-            cs::INQUIRE_NODE_ID => Some(answer(cs::INQUIRE_NODE_ID, dev.node_id)),
-            _ => None,
+            cs::INQUIRE_NODE_ID => Output::Answer(answer(cs::INQUIRE_NODE_ID, node.node_id())),
+            _ => Output::Silent,
         }
     }
 
@@ -315,16 +365,11 @@ impl LssSlave {
     /// Fastscan (CiA 305 V2): byte 5 `bitChecked`, byte 6 `lssSub`, byte 7 `lssNext`. Only
     /// non-configured slaves in waiting state take part, so that configured nodes and a slave
     /// already found (now in configuration) stay out of the next scan.
-    fn fastscan<S: Storage>(
-        &mut self,
-        d: &[u8; 8],
-        id_number: u32,
-        addr: &[u32; 4],
-        dev: &Device<S>,
-    ) -> Option<[u8; 8]> {
-        if !dev.model().features.lss_fastscan || self.configuration || !unconfigured(dev) {
+    fn fastscan(&mut self, d: &[u8; 8], id_number: u32, node: &impl LssNode) -> Option<[u8; 8]> {
+        if !node.fastscan() || self.configuration || !node.unconfigured() {
             return None;
         }
+        let addr = &node.address();
         let (bit_checked, sub, next) = (d[5], d[6], d[7]);
         if bit_checked == FASTSCAN_CONFIRM {
             // Reset: every participant answers and starts again with the vendor-id.
@@ -351,36 +396,30 @@ impl LssSlave {
     /// Deadline of a pending bit-rate switch.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.switch
-            .map(|s| if s.switched { s.resume_at } else { s.switch_at })
+        self.switch.map(|s| s.switch_at)
     }
 
-    /// Advances a pending bit-rate switch.
-    pub fn handle_timeout<S: Storage>(&mut self, now: Instant, dev: &mut Device<S>) {
-        let Some(s) = self.switch.as_mut() else {
-            return;
-        };
-        if !s.switched && now >= s.switch_at {
-            dev.activate_bitrate(s.kbps);
-            s.switched = true;
+    /// [`LssSlave::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        self.switch.map_or(u64::MAX, |s| s.switch_at.0)
+    }
+
+    /// Advances a pending bit-rate switch: the bit rate to make active now, once the first
+    /// switch delay is over.
+    pub fn handle_timeout(&mut self, now: Instant) -> Option<u16> {
+        let s = self.switch?;
+        if now < s.switch_at {
+            return None;
         }
-        if s.switched && now >= s.resume_at {
-            dev.silent_until = None;
-            dev.update_talk();
-            self.switch = None;
-        }
+        self.switch = None;
+        Some(s.kbps)
     }
 }
 
 /// An LSS answer frame: specifier, status / byte 1, zeros.
 const fn answer(c: u8, status: u8) -> [u8; 8] {
     [c, status, 0, 0, 0, 0, 0, 0]
-}
-
-/// A node takes part in fastscan / answers "identify non-configured" only while it has neither
-/// an active nor a pending node-id: one that already got a pending id will enter NMT with it.
-fn unconfigured<S: Storage>(dev: &Device<S>) -> bool {
-    dev.node_id == UNCONFIGURED && dev.pending().0 == UNCONFIGURED
 }
 
 #[cfg(test)]

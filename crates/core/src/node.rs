@@ -4,16 +4,18 @@
 //! `poll_timeout`, `update_sample`. [`Device`] holds the state the services share; the SDO
 //! server and the LSS slave sit beside it so they can borrow it mutably while they run.
 
+use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
-use crate::encoder::{AppCtx, Encoder, Sample};
+use crate::encoder::Encoder;
 use crate::errctl::{ErrCtl, ErrCtlEvent};
-use crate::lss::LssSlave;
+use crate::lss::{self, LssSlave};
 use crate::models::{DeviceConfig, Model};
 use crate::nmt::{NmtCommand, NmtState};
-use crate::od::{le_u32, Abort, DataType, Dictionary, Group, Param, ParamSource};
+use crate::od::{le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource};
 use crate::pdo::{self, Tpdos};
 use crate::sdo::{ObjectAccess, SdoServer};
-use crate::storage::{self, Storage, StorageError, IMAGE_MAX};
+use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
+use crate::timers::{Timer, TimerTable, NEVER};
 use crate::txq::TxQueue;
 use crate::wire::{cob, Duration, Frame, Instant};
 
@@ -27,15 +29,9 @@ pub const SIG_LOAD: u32 = 0x6461_6F6C;
 pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
 /// "kill" as the TMI manual prints it (D23).
 pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
-/// [`Device::store`] selector for the values the device stores by itself ([`Group::Auto`]).
-const STORE_AUTO: u8 = 0xFE;
-/// Storage record key of TMI object 0x2000 (node-id).
-const KEY_TMI_NODE_ID: u32 = 0x2000 << 8;
-/// Storage record key of TMI object 0x2001 (bit rate, kbit/s, 0xFFFF = autobaud).
-const KEY_TMI_BITRATE: u32 = 0x2001 << 8;
-
-/// TMI 0x2001 value → bit rate in kbit/s (0 = autobaud, D16).
-fn tmi_kbps(raw: u32) -> u16 {
+/// The bit rate in kbit/s (0 = autobaud) that an object copy of it holds (TMI 0x2001: kbit/s,
+/// 0xFFFF = autobaud, D16).
+fn kbps_of_object(raw: u32) -> u16 {
     if raw == 0xFFFF {
         0
     } else {
@@ -43,9 +39,42 @@ fn tmi_kbps(raw: u32) -> u16 {
     }
 }
 
+/// [`kbps_of_object`] the other way round.
+fn object_of_kbps(kbps: u16) -> u32 {
+    if kbps == 0 {
+        0xFFFF
+    } else {
+        kbps as u32
+    }
+}
+
 /// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
 fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
+}
+
+/// A stored value of `e` as it applies under node-id `node` (D15): a COB-ID whose CAN-ID was the
+/// pre-defined one (`base + node-id`) for the node-id it was saved under moves to this node's,
+/// keeping its other bits; any other value stays as stored. Images without the saved node-id
+/// (written before it was recorded) keep the earlier rule: a CAN-ID in the pre-defined range
+/// of another node-id follows.
+fn follow_node_id(e: &Entry, v: u32, saved: Option<u8>, node: u8) -> u32 {
+    let Default::NodeId(base) = e.default else {
+        return v;
+    };
+    // The default's flag bits (e.g. "not valid") are no part of the CAN-ID.
+    let base = base & 0x7FF;
+    let id = v & 0x7FF;
+    let ours = base + node as u32;
+    let follows = match saved {
+        Some(old) => id == base + old as u32,
+        None => id > base && id <= base + 0x7F,
+    };
+    if follows && node != UNCONFIGURED && id != ours {
+        (v & !0x7FF) | ours
+    } else {
+        v
+    }
 }
 
 /// Minimum time a store takes before the SDO answer (D7).
@@ -63,7 +92,7 @@ pub struct Stats {
 }
 
 /// The state all services share: dictionary, NMT state, identity, queues, storage.
-pub struct Device<S: Storage> {
+pub struct Device<A: Application, S: Storage> {
     pub(crate) model: &'static Model,
     pub(crate) cfg: DeviceConfig,
     pub(crate) od: Dictionary,
@@ -82,8 +111,8 @@ pub struct Device<S: Storage> {
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
     /// The node may send from this instant (µs) on: `silent_until`, or never while the bus
-    /// runs another bit rate. Derived from the three fields above by `update_talk`, which
-    /// every change of them calls: sending is checked per frame, so one comparison.
+    /// runs another bit rate. Derived from the three fields above by the node's epilogue:
+    /// sending is checked per frame, so one comparison.
     talk_from: u64,
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
@@ -95,7 +124,7 @@ pub struct Device<S: Storage> {
     pub(crate) emcy: Emcy,
     pub(crate) errctl: ErrCtl,
     pub(crate) pdo: Tpdos,
-    pub(crate) encoder: Encoder,
+    pub(crate) app: A,
     pub(crate) storage: S,
     pub(crate) now: Instant,
     /// A store completed: the SDO answer waits until this instant (D7).
@@ -160,24 +189,23 @@ impl Dictionary {
 }
 
 /// A CANopen position sensor node.
-pub struct Node<S: Storage> {
+pub struct Node<A: Application, S: Storage> {
     sdo: SdoServer,
     held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
-    dev: Device<S>,
-    /// [`Node::poll_timeout`] in µs (`u64::MAX`: none), recomputed at the end of every method
-    /// that can change a deadline: hosts ask after every frame, and a cached answer is free.
+    dev: Device<A, S>,
+    /// The services' deadlines, written by [`Node::epilogue`] only.
+    timers: TimerTable,
+    /// [`Node::poll_timeout`] in µs ([`NEVER`]: none), from the epilogue: hosts ask after
+    /// every frame, and an answer kept is free.
     deadline: u64,
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs.
     other_due: u64,
-    /// `u64::MAX` while powered with a node-id and out of initialisation, else 0. Set where
-    /// those change: `reset` and `power_off`.
-    timer_gate: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
-    /// `other_due & timer_gate`, kept by `update_fast_due`. (EMCY needs no term of its own:
-    /// every entry point flushes what it raised, and an EMCY held back by its inhibit time
-    /// has its deadline in `other_due`.)
+    /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
+    /// 0. (EMCY needs no term of its own: the epilogue flushes what was raised, and an EMCY
+    /// held back by its inhibit time has its deadline in `other_due`.)
     fast_due: u64,
 }
 
@@ -192,18 +220,27 @@ impl ParamSource for Params<'_> {
     }
 }
 
-impl<S: Storage> Node<S> {
-    /// A node of `model` with unit configuration `cfg`, powered off. Call [`Node::power_on`].
+impl<S: Storage> Node<Encoder, S> {
+    /// A sensor of `model` (the CiA 406 application) with unit configuration `cfg`, powered
+    /// off. Call [`Node::power_on`].
     pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
-        let od = Dictionary::new(model.entries);
+        Node::with_app(model, cfg, Encoder::default(), storage)
+    }
+}
+
+impl<A: Application, S: Storage> Node<A, S> {
+    /// A node of the device `model` describes, running application `app`, powered off. Call
+    /// [`Node::power_on`].
+    pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
+        let od = Dictionary::new(model.entries, model.keys);
         let hot = HotSlots::new(&od);
         Node {
             sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
             held_sdo: None,
             lss: LssSlave::default(),
-            deadline: u64::MAX,
-            other_due: u64::MAX,
-            timer_gate: 0,
+            timers: TimerTable::default(),
+            deadline: NEVER,
+            other_due: NEVER,
             fast_due: 0,
             dev: Device {
                 model,
@@ -225,7 +262,7 @@ impl<S: Storage> Node<S> {
                 emcy: Emcy::default(),
                 errctl: ErrCtl::default(),
                 pdo: Tpdos::default(),
-                encoder: Encoder::default(),
+                app,
                 storage,
                 now: Instant::ZERO,
                 sdo_hold_until: None,
@@ -248,115 +285,84 @@ impl<S: Storage> Node<S> {
         self.lss = LssSlave::default();
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
-        self.dev.update_talk();
         self.dev.emcy = Emcy::default();
-        self.dev.encoder = Encoder::default();
+        let on_change = self.dev.model.features.emcy_on_register_change;
+        self.dev.emcy.set_reset_on_register_change(on_change);
+        self.dev.app.power_on();
         self.dev.stored_lss = (None, None);
         self.dev.stats.storage_corrupt = false;
         // Stored LSS values override the factory configuration.
-        let mut buf = [0u8; IMAGE_MAX];
-        let corrupt = match self.dev.storage.load(&mut buf) {
-            Ok(n) => match storage::parse_image(&buf[..n], self.dev.model.features.tag) {
-                Ok(recs) => {
-                    let mut obj = (None, None);
-                    for (k, v) in recs {
-                        match k {
-                            // A checksummed image can still hold an impossible node-id (a
-                            // hand-edited or foreign file; found by fuzzing): ignore it rather
-                            // than talk on COB-IDs of node 0 or 200.
-                            storage::KEY_LSS_NODE_ID => {
-                                self.dev.stored_lss.0 = stored_node_id(v).or(self.dev.stored_lss.0)
-                            }
-                            storage::KEY_LSS_BITRATE => self.dev.stored_lss.1 = Some(v as u16),
-                            KEY_TMI_NODE_ID => obj.0 = stored_node_id(v).or(obj.0),
-                            KEY_TMI_BITRATE => obj.1 = Some(tmi_kbps(v)),
-                            _ => {}
-                        }
-                    }
-                    // TMI (R17, R19): node-id / bit rate written to 0x2000 / 0x2001 and saved
-                    // with "save" apply at power-up too; LSS "store configuration" keeps both
-                    // copies equal, so the object copy is the newer one.
-                    if self.dev.model.features.tmi_emcy {
-                        self.dev.stored_lss.0 = obj.0.or(self.dev.stored_lss.0);
-                        self.dev.stored_lss.1 = obj.1.or(self.dev.stored_lss.1);
-                    }
-                    false
-                }
-                Err(_) => true,
-            },
-            Err(StorageError::Empty) => false,
-            Err(_) => true,
-        };
+        let (lss, corrupt) = self.dev.stored_lss_config();
+        self.dev.stored_lss = lss;
         self.dev.stats.storage_corrupt = corrupt;
         // Unstored LSS changes (even ones a reset activated) are gone after a power cycle.
         let (factory_id, factory_kbps) = self.dev.factory_lss;
         self.dev.pending_node_id = self.dev.stored_lss.0.unwrap_or(factory_id);
         self.dev.pending_bitrate = self.dev.stored_lss.1.unwrap_or(factory_kbps);
         self.dev.bitrate = self.dev.pending_bitrate;
-        self.dev.update_talk();
         self.reset(true, now);
         if corrupt {
             self.dev.report_corrupt_storage();
         }
-        self.refresh_deadline();
+        self.epilogue();
     }
 
-    /// Recomputes the cached deadlines (see `deadline`, `other_due`).
-    fn refresh_deadline(&mut self) {
-        let d = &self.dev;
+    /// [`Node::epilogue`] out of line: every entry point but the per-frame one.
+    #[inline(never)]
+    fn epilogue(&mut self) {
+        self.epilogue_inline();
+    }
+
+    /// The end of every `&mut` entry point: what was raised goes out as EMCY, the talk gate
+    /// follows the bit rates, and the timer table and the deadlines derived from it are
+    /// written again from the services' own `poll_timeout`s. Nothing else keeps them. Inline
+    /// in [`Node::handle_frame`], where a request's answer waits for it.
+    #[inline(always)]
+    fn epilogue_inline(&mut self) {
+        let d = &mut self.dev;
         if !d.powered {
-            self.deadline = u64::MAX;
-            self.other_due = u64::MAX;
-            self.update_fast_due();
+            self.timers.clear();
+            self.deadline = NEVER;
+            self.other_due = NEVER;
+            self.fast_due = 0;
             return;
         }
-        let mut t = u64::MAX;
-        let mut take = |c: Option<Instant>| {
-            if let Some(c) = c {
-                t = t.min(c.0);
-            }
+        d.flush_emcy();
+        d.update_talk();
+        let t = &mut self.timers;
+        let mut other = NEVER;
+        let mut set = |timer, us: u64| {
+            t.set_us(timer, us);
+            other = other.min(us);
         };
-        take(self.held_sdo.map(|(t, _)| t));
-        take(self.sdo.poll_timeout());
-        take(self.lss.poll_timeout());
-        take(d.errctl.poll_timeout());
-        if d.nmt != NmtState::Stopped {
-            take(d.emcy.poll_timeout());
-        }
-        self.other_due = t;
-        self.deadline = t.min(d.pdo.due_us());
-        self.update_fast_due();
-    }
-
-    /// Recomputes `fast_due` from `other_due` and `timer_gate`; every method that changes
-    /// one of them ends here (the fast path itself changes neither).
-    #[inline(always)]
-    fn update_fast_due(&mut self) {
-        self.fast_due = self.other_due & self.timer_gate;
+        let us = |t: Option<Instant>| t.map_or(NEVER, |t| t.0);
+        set(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
+        set(Timer::SdoTransfer, self.sdo.due_us());
+        set(Timer::LssSwitch, self.lss.due_us());
+        set(Timer::Silence, us(d.silent_until));
+        set(Timer::ErrorControl, d.errctl.due_us());
+        // A stopped node keeps its EMCYs until it leaves Stopped.
+        let stopped = d.nmt == NmtState::Stopped;
+        set(Timer::Emcy, if stopped { NEVER } else { d.emcy.due_us() });
+        debug_assert_eq!(other, self.timers.next());
+        self.other_due = other;
+        // The TPDOs keep their own schedule (the hot path reads it directly).
+        self.deadline = other.min(d.pdo.due_us());
+        // A node without a node-id stays in initialisation (`reset`), so one test says both.
+        debug_assert!(d.node_id != UNCONFIGURED || d.nmt == NmtState::Initialising);
+        let runs = d.nmt != NmtState::Initialising;
+        self.fast_due = if runs { self.other_due } else { 0 };
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
     pub fn power_off(&mut self) {
         self.dev.powered = false;
-        self.timer_gate = 0;
         self.dev.tx.clear();
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// NMT reset node (`application == true`) or reset communication.
     fn reset(&mut self, application: bool, now: Instant) {
-        self.reset_inner(application, now);
-        // Node-id and NMT state (initialising or not) change nowhere else.
-        let d = &self.dev;
-        self.timer_gate = if d.node_id != UNCONFIGURED && d.nmt != NmtState::Initialising {
-            u64::MAX
-        } else {
-            0
-        };
-        self.update_fast_due();
-    }
-
-    fn reset_inner(&mut self, application: bool, now: Instant) {
         let d = &mut self.dev;
         d.now = now;
         self.sdo.reset();
@@ -364,29 +370,30 @@ impl<S: Storage> Node<S> {
         d.sdo_hold_until = None;
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
-        d.update_talk();
         d.cfg.node_id = d.node_id;
         d.cfg.bitrate_kbps = d.bitrate;
         d.load_values(application);
         d.emcy.reset();
         d.errctl.reset();
         if application {
-            d.encoder.reset();
+            d.app.reset();
         }
         d.apply_comm_config(now);
         d.pdo.set_active(false, now);
         if d.node_id == UNCONFIGURED {
-            // CiA 305: no node-id, no NMT: wait in LSS for one.
+            // CiA 305: no node-id, no NMT: wait in LSS for one, in LSS waiting for a master to
+            // select (DS 305 V2), or in configuration by itself (TMI R7).
             d.nmt = NmtState::Initialising;
-            self.lss.force_configuration();
+            if d.model.features.lss_unconfigured_configures {
+                self.lss.force_configuration();
+            }
             return;
         }
         d.nmt = NmtState::PreOperational;
         d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
-        if !d.model.features.tmi_emcy {
+        if d.model.features.power_on_emcy {
             d.emcy.power_on();
         }
-        d.flush_emcy();
     }
 
     /// Handles one received frame at `now`.
@@ -396,7 +403,7 @@ impl<S: Storage> Node<S> {
             return;
         }
         if self.handle_frame_inner(f, now) {
-            self.refresh_deadline();
+            self.epilogue_inline();
         }
     }
 
@@ -419,7 +426,19 @@ impl<S: Storage> Node<S> {
         }
         let d = &mut self.dev;
         if id == cob::LSS_RX {
-            if let Some(r) = self.lss.handle(f.data(), now, d) {
+            let reply = match self.lss.handle(f.data(), now, &*d) {
+                lss::Output::Silent => None,
+                lss::Output::Answer(a) => Some(a),
+                lss::Output::Do(r) => {
+                    let ok = d.lss_request(r);
+                    if let Some(kbps) = self.lss.handle_timeout(now) {
+                        // A switch delay of 0: the new bit rate is active at once.
+                        d.activate_bitrate(kbps);
+                    }
+                    lss::confirm(r, ok)
+                }
+            };
+            if let Some(r) = reply {
                 d.tx.push(Frame::std8(cob::LSS_TX, r));
             }
             self.after_lss(now);
@@ -452,19 +471,14 @@ impl<S: Storage> Node<S> {
                 while let Some(s) = self.sdo.poll_transmit() {
                     d.tx.push(Frame::std8(cob::SDO_TX + node, s));
                 }
-                d.flush_emcy();
             }
             return true;
         }
-        if id == cob::ERRCTL + node {
+        if id == d.errctl.guarding_id() {
             // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
             if d.model.features.node_guarding && (f.is_remote() || f.dlc() == 0) {
                 let b = d.errctl.guard_request(d.nmt, now);
-                d.tx.push(Frame::std_len(
-                    cob::ERRCTL + node,
-                    [b, 0, 0, 0, 0, 0, 0, 0],
-                    1,
-                ));
+                d.tx.push(Frame::std_len(id, [b, 0, 0, 0, 0, 0, 0, 0], 1));
                 d.update_pdo_activity(now);
             }
             return true;
@@ -476,15 +490,12 @@ impl<S: Storage> Node<S> {
         if sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote() {
             if f.dlc() <= 1 {
                 let Device { pdo, od, tx, .. } = d;
-                pdo.on_sync(od, now, &mut |fr| {
-                    tx.push(fr);
-                });
-            } else if !d.model.features.tmi_emcy {
+                pdo.on_sync(od, now, tx);
+            } else if d.model.features.sync_length_emcy {
                 // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
                 // The TMI's own EMCY table has no such code, so it ignores the frame.
                 d.emcy.event(emcy::code::SYNC_LENGTH, [0; 5]);
-                d.flush_emcy();
             }
             return true;
         }
@@ -501,10 +512,8 @@ impl<S: Storage> Node<S> {
         let d = &mut self.dev;
         match c {
             NmtCommand::Start => {
-                if d.encoder.lockout() {
-                    // TMI lock-out: stays pre-operational and repeats the EMCY (§3.12).
-                    d.encoder.repeat_lockout_emcy(&mut d.emcy);
-                    d.flush_emcy();
+                if d.app.refuses_start(&mut d.emcy) {
+                    // E.g. the TMI lock-out: stays pre-operational, the EMCY repeats (§1.14).
                     return;
                 }
                 d.nmt = NmtState::Operational;
@@ -532,21 +541,21 @@ impl<S: Storage> Node<S> {
         }
     }
 
-    /// Feeds one measurement cycle's sample to the CiA 406 application.
-    pub fn update_sample(&mut self, s: &Sample, now: Instant) {
+    /// Feeds one process cycle's sample (a measurement) to the application.
+    pub fn update_sample(&mut self, s: &A::Sample, now: Instant) {
         if !self.dev.powered {
             return;
         }
         self.dev.now = now;
         let d = &mut self.dev;
         let forced_preop = {
-            let (encoder, mut cx) = d.app(now);
-            encoder.cycle(s, &mut cx)
+            let (app, mut cx) = d.app_ctx(now);
+            app.cycle(s, &mut cx)
         };
-        if d.encoder.take_auto_dirty() {
+        if d.app.take_auto_dirty() {
             // Values the device keeps by itself (TH 0x2901 life extremes, D19). A failing
             // medium only loses this update; the next change tries again.
-            let _ = d.store(STORE_AUTO);
+            let _ = d.store(Scope::Auto);
         }
         if forced_preop && d.nmt == NmtState::Operational {
             d.nmt = NmtState::PreOperational;
@@ -554,7 +563,7 @@ impl<S: Storage> Node<S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Handles every deadline that has passed at `now`.
@@ -578,25 +587,41 @@ impl<S: Storage> Node<S> {
     #[inline(never)]
     fn handle_timeout_slow(&mut self, now: Instant) {
         self.handle_timeout_full(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     fn handle_timeout_full(&mut self, now: Instant) {
-        if let Some((t, r)) = self.held_sdo {
-            if now >= t {
-                self.held_sdo = None;
-                // A node stopped during the store time no longer serves SDO.
-                if self.dev.nmt.sdo_allowed() {
-                    let id = cob::SDO_TX + self.dev.node_id as u16;
-                    self.dev.tx.push(Frame::std8(id, r));
-                }
+        // The table says which services have a deadline that passed (the epilogue of the
+        // entry point before wrote it); the others have nothing to do.
+        let due = |t| self.timers.due(t, now.0);
+        let (held, transfer, switch, silence) = (
+            due(Timer::HeldSdo),
+            due(Timer::SdoTransfer),
+            due(Timer::LssSwitch),
+            due(Timer::Silence),
+        );
+        if let Some((_, r)) = self.held_sdo.take_if(|_| held) {
+            // A node stopped during the store time no longer serves SDO.
+            if self.dev.nmt.sdo_allowed() {
+                let id = cob::SDO_TX + self.dev.node_id as u16;
+                self.dev.tx.push(Frame::std8(id, r));
             }
         }
-        if let Some(r) = self.sdo.handle_timeout(now) {
-            let id = cob::SDO_TX + self.dev.node_id as u16;
-            self.dev.tx.push(Frame::std8(id, r));
+        if transfer {
+            if let Some(r) = self.sdo.handle_timeout(now) {
+                let id = cob::SDO_TX + self.dev.node_id as u16;
+                self.dev.tx.push(Frame::std8(id, r));
+            }
         }
-        self.lss.handle_timeout(now, &mut self.dev);
+        if switch {
+            if let Some(kbps) = self.lss.handle_timeout(now) {
+                self.dev.activate_bitrate(kbps);
+            }
+        }
+        if silence {
+            // The bit-rate switch is over: the node talks again.
+            self.dev.silent_until = None;
+        }
         self.after_lss(now);
         let d = &mut self.dev;
         if d.node_id == UNCONFIGURED || d.nmt == NmtState::Initialising {
@@ -619,7 +644,6 @@ impl<S: Storage> Node<S> {
             }
         }
         d.run_pdos(now);
-        d.flush_emcy();
     }
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
@@ -639,6 +663,7 @@ impl<S: Storage> Node<S> {
             d.emcy.poll_timeout(),
             d.nmt
         );
+        // The epilogue for the one schedule that can have changed.
         self.deadline = self.other_due.min(d.pdo.due_us());
     }
 
@@ -689,7 +714,7 @@ impl<S: Storage> Node<S> {
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
     pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
         self.dev.bus_bitrate = kbps;
-        self.dev.update_talk();
+        self.epilogue();
     }
 
     /// The SDO server (read-only view: counters, transfer in progress).
@@ -698,7 +723,7 @@ impl<S: Storage> Node<S> {
     }
 
     /// The device state (read-only view for hosts and tests).
-    pub fn device(&self) -> &Device<S> {
+    pub fn device(&self) -> &Device<A, S> {
         &self.dev
     }
 
@@ -707,24 +732,23 @@ impl<S: Storage> Node<S> {
         &mut self.dev.storage
     }
 
-    /// Mutable access to the CiA 406 application (fault injection, presets from a control
-    /// interface).
-    pub fn encoder_mut(&mut self) -> &mut Encoder {
-        &mut self.dev.encoder
+    /// Mutable access to the application (fault injection, presets from a control interface).
+    pub fn app_mut(&mut self) -> &mut A {
+        &mut self.dev.app
     }
 
     /// Injects (`active`) or removes a fault the CiA 406 application reports the way the
     /// model's manual says (EMCY code and bytes, error register, alarms, TMI 0x1002 bits and
     /// lock-out).
-    pub fn inject_fault(&mut self, fault: crate::encoder::Fault, active: bool) {
+    pub fn inject_fault(&mut self, fault: A::Fault, active: bool) {
         if !self.dev.powered {
             return;
         }
         let d = &mut self.dev;
         let now = d.now;
         let forced_preop = {
-            let (encoder, mut cx) = d.app(now);
-            encoder.inject(fault, active, &mut cx)
+            let (app, mut cx) = d.app_ctx(now);
+            app.inject(fault, active, &mut cx)
         };
         if forced_preop && d.nmt == NmtState::Operational {
             d.nmt = NmtState::PreOperational;
@@ -732,7 +756,7 @@ impl<S: Storage> Node<S> {
         }
         d.flush_emcy();
         d.run_pdos(now);
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Raises (or with `active == false` clears) a device error from outside the CANopen
@@ -745,8 +769,7 @@ impl<S: Storage> Node<S> {
         } else {
             d.emcy.clear(code);
         }
-        d.flush_emcy();
-        self.refresh_deadline();
+        self.epilogue();
     }
 
     /// Reads an object as an SDO client would see it, bypassing the bus (hosts, tests).
@@ -757,7 +780,7 @@ impl<S: Storage> Node<S> {
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// The product model.
     pub fn model(&self) -> &'static Model {
         self.model
@@ -794,9 +817,9 @@ impl<S: Storage> Device<S> {
     pub fn tpdos(&self) -> &Tpdos {
         &self.pdo
     }
-    /// The CiA 406 application.
-    pub fn encoder(&self) -> &Encoder {
-        &self.encoder
+    /// The application.
+    pub fn app(&self) -> &A {
+        &self.app
     }
     /// The LSS address (0x1018/1…4).
     pub fn lss_address(&self) -> [u32; 4] {
@@ -819,7 +842,7 @@ impl<S: Storage> Device<S> {
             return true;
         }
         let node = self.node_id as u16;
-        if id == cob::NMT || id == cob::SDO_RX + node || id == cob::ERRCTL + node {
+        if id == cob::NMT || id == cob::SDO_RX + node || id == self.errctl.guarding_id() {
             return false;
         }
         if !self.nmt.sdo_allowed() {
@@ -858,7 +881,6 @@ impl<S: Storage> Device<S> {
                 self.autobaud_frames += 1;
                 if self.autobaud_frames >= 4 {
                     self.bitrate = bus;
-                    self.update_talk();
                     self.cfg.bitrate_kbps = bus;
                 }
                 false
@@ -888,19 +910,48 @@ impl<S: Storage> Device<S> {
         }
     }
 
-    /// Recomputes `talk_from` after a change of `bitrate`, `bus_bitrate` or `silent_until`.
+    /// Recomputes `talk_from` from `bitrate`, `bus_bitrate` and `silent_until` (the node's
+    /// epilogue).
     pub(crate) fn update_talk(&mut self) {
         self.talk_from = self.talk_from_now();
     }
 
-    /// Sets the pending node-id (LSS configure node-id, TMI 0x2000).
-    pub(crate) fn set_pending_node_id(&mut self, id: u8) {
-        self.pending_node_id = id;
+    /// Carries out what an LSS request asks; returns whether it succeeded.
+    fn lss_request(&mut self, r: lss::Request) -> bool {
+        match r {
+            lss::Request::ConfigureNodeId(id) => self.set_pending_node_id(id),
+            lss::Request::ConfigureBitRate(kbps) => self.set_pending_bitrate(kbps),
+            lss::Request::ActivateBitRate { silent_until } => {
+                // Deaf and mute for both switch delays; checked on every frame.
+                self.silent_until = Some(silent_until);
+            }
+            lss::Request::StoreConfiguration => return self.store_lss().is_ok(),
+        }
+        true
     }
 
-    /// Sets the pending bit rate (LSS configure bit timing, TMI 0x2001).
-    pub(crate) fn set_pending_bitrate(&mut self, kbps: u16) {
+    /// Sets the pending node-id (LSS configure node-id) and the objects that copy it (TMI
+    /// 0x2000), so that every copy says the same.
+    fn set_pending_node_id(&mut self, id: u8) {
+        self.pending_node_id = id;
+        if id != UNCONFIGURED {
+            self.set_hooked(Hook::PendingNodeId, id as u32);
+        }
+    }
+
+    /// Sets the pending bit rate (LSS configure bit timing) and its object copies (TMI 0x2001).
+    fn set_pending_bitrate(&mut self, kbps: u16) {
         self.pending_bitrate = kbps;
+        self.set_hooked(Hook::PendingBitRate, object_of_kbps(kbps));
+    }
+
+    /// Sets every entry with `hook` (rare paths only: it scans the table).
+    fn set_hooked(&mut self, hook: Hook, raw: u32) {
+        for slot in 0..self.od.entries().len() {
+            if self.od.entry(slot).hook == hook {
+                self.od.set(slot, raw);
+            }
+        }
     }
 
     /// Makes `kbps` the active bit rate now (LSS activate bit timing).
@@ -908,61 +959,85 @@ impl<S: Storage> Device<S> {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
         self.autobaud_frames = 0;
-        self.update_talk();
     }
 
-    /// Reloads values: communication objects always, application objects on reset node.
-    /// Defaults first, then whatever the stored image holds for those ranges (D6).
+    /// Reloads values: the entries a reset communication covers always, every other one on
+    /// reset node. Defaults first, then whatever the stored image holds for them (D6); stored
+    /// COB-IDs that were pre-defined for the node-id they were saved under follow the active
+    /// one (D15).
     fn load_values(&mut self, application: bool) {
         let p = Params {
             model: self.model,
             cfg: &self.cfg,
         };
         let node = self.node_id;
-        self.od.load_defaults(0x1000, 0x1FFF, &p, node);
-        if application {
-            self.od.load_defaults(0x2000, 0xFFFF, &p, node);
+        let reloads = |e: &Entry| application || e.reset_by_comm();
+        for (slot, e) in self.od.entries().iter().enumerate() {
+            if reloads(e) {
+                self.od.set(slot, crate::od::resolve_default(e, &p, node));
+            }
         }
         let mut buf = [0u8; IMAGE_MAX];
-        let Ok(n) = self.storage.load(&mut buf) else {
+        let Ok(recs) = storage::load_image(&mut self.storage, self.model.features.tag, &mut buf)
+        else {
             return;
         };
-        let Ok(recs) = storage::parse_image(&buf[..n], self.model.features.tag) else {
-            return;
-        };
+        let saved_node = recs
+            .clone()
+            .find(|&(k, _)| k == storage::KEY_SAVED_NODE_ID)
+            .and_then(|(_, v)| stored_node_id(v));
         for (k, v) in recs {
-            let index = (k >> 8) as u16;
-            if k > 0x00FF_FFFF || (!application && index >= 0x2000) {
+            if !storage::is_object_key(k) {
                 continue;
             }
-            if let Ok(slot) = self.od.find(index, k as u8) {
-                if self.od.entry(slot).group != Group::Volatile {
-                    self.od.set(slot, v);
-                }
-            }
-        }
-        // D15: stored TPDO COB-IDs that were the default for another node-id follow this one.
-        for n in 0..self.model.features.tpdos as usize {
-            if let Ok(slot) = self.od.find(pdo::comm_index(n), 1) {
-                let v = self.od.get(slot);
-                let base = 0x180 + 0x100 * n as u32;
-                let id = v & 0x7FF;
-                if id > base && id <= base + 0x7F && id != base + node as u32 {
-                    self.od.set(slot, (v & !0x7FF) | (base + node as u32));
-                }
-            }
-        }
-        if let Some(v) = self.od.hot(self.hot.emcy_cob) {
-            let slot = self.hot.emcy_cob as usize;
-            let id = v & 0x7FF;
-            if id > 0x80 && id <= 0xFF && id != 0x80 + node as u32 {
-                self.od.set(slot, (v & !0x7FF) | (0x80 + node as u32));
+            let Ok(slot) = self.od.find((k >> 8) as u16, k as u8) else {
+                continue;
+            };
+            let e = self.od.entry(slot);
+            if e.group != crate::od::Group::Volatile && reloads(e) {
+                self.od.set(slot, follow_node_id(e, v, saved_node, node));
             }
         }
     }
 
-    /// The encoder and the context it runs in (disjoint borrows of the device).
-    fn app(&mut self, now: Instant) -> (&mut Encoder, AppCtx<'_>) {
+    /// The node-id and bit rate stored by LSS or in their object copies (TMI 0x2000 / 0x2001,
+    /// R17, R19: written there and saved with "save", they apply at power-up too; LSS "store
+    /// configuration" keeps both copies equal, so an object copy is the newer one), and
+    /// whether the image failed its check.
+    fn stored_lss_config(&mut self) -> ((Option<u8>, Option<u16>), bool) {
+        let mut buf = [0u8; IMAGE_MAX];
+        let recs = match storage::load_image(&mut self.storage, self.model.features.tag, &mut buf) {
+            Ok(recs) => recs,
+            Err(StorageError::Empty) => return ((None, None), false),
+            Err(_) => return ((None, None), true),
+        };
+        let (mut lss, mut obj) = ((None, None), (None, None));
+        for (k, v) in recs {
+            match k {
+                // A checksummed image can still hold an impossible node-id (a hand-edited or
+                // foreign file; found by fuzzing): ignore it rather than talk on COB-IDs of
+                // node 0 or 200.
+                storage::KEY_LSS_NODE_ID => lss.0 = stored_node_id(v).or(lss.0),
+                storage::KEY_LSS_BITRATE => lss.1 = Some(v as u16),
+                _ if storage::is_object_key(k) => {
+                    match self
+                        .od
+                        .find((k >> 8) as u16, k as u8)
+                        .map(|s| self.od.entry(s).hook)
+                    {
+                        Ok(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
+                        Ok(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
+                        _ => {}
+                    }
+                }
+                _ => {}
+            }
+        }
+        ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
+    }
+
+    /// The application and the context it runs in (disjoint borrows of the device).
+    fn app_ctx(&mut self, now: Instant) -> (&mut A, AppCtx<'_>) {
         let cx = AppCtx {
             od: &mut self.od,
             emcy: &mut self.emcy,
@@ -973,7 +1048,20 @@ impl<S: Storage> Device<S> {
             bitrate_kbps: self.bitrate,
             now,
         };
-        (&mut self.encoder, cx)
+        (&mut self.app, cx)
+    }
+
+    /// Hands guard time, life time factor and the guarding COB-ID (0x100E where the model has
+    /// it, else the pre-defined 0x700 + node-id) to the error-control service.
+    fn apply_guarding(&mut self, now: Instant) {
+        let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
+        let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
+        self.errctl.set_guarding(gt, lf, now);
+        let id = self
+            .od
+            .value(0x100E, 0)
+            .map_or(cob::ERRCTL + self.node_id as u16, |v| (v & 0x7FF) as u16);
+        self.errctl.set_guarding_id(id);
     }
 
     /// Pushes the cached service configuration from the dictionary after a reload.
@@ -982,9 +1070,7 @@ impl<S: Storage> Device<S> {
             .configure_all(self.model.features.tpdos as usize, &self.od);
         let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
         self.errctl.set_heartbeat(hb, now);
-        let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
-        let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
-        self.errctl.set_guarding(gt, lf, now);
+        self.apply_guarding(now);
         self.emcy
             .set_inhibit(self.od.value(0x1015, 0).unwrap_or(0) as u16);
         self.sync_error_register();
@@ -1052,125 +1138,105 @@ impl<S: Storage> Device<S> {
     }
 
     fn report_corrupt_storage(&mut self) {
-        self.encoder.storage_corrupt(&mut self.emcy, self.model);
-        if !self.encoder.handles_storage_corrupt(self.model) {
+        let now = self.now;
+        let (app, mut cx) = self.app_ctx(now);
+        if !app.storage_corrupt(&mut cx) {
             self.emcy.raise(emcy::code::DATA_SET, 0, [0; 5]);
         }
         self.flush_emcy();
     }
 
-    /// Writes the stored image: `groups` selects what "save" covers (0x1010 sub 1 all, 2 comm,
-    /// 3 application); the rest keeps what was stored before.
-    pub(crate) fn store(&mut self, sub: u8) -> Result<(), Abort> {
-        let mut old = [0u8; IMAGE_MAX];
-        let old_len = self.storage.load(&mut old).unwrap_or(0);
-        let mut buf = [0u8; IMAGE_MAX];
-        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
-        let covers = |index: u16, group: Group| match sub {
-            STORE_AUTO => group == Group::Auto,
-            2 => group == Group::Comm || (group != Group::Volatile && index < 0x2000),
-            3 => index >= 0x2000 && group != Group::Volatile,
-            _ => group != Group::Volatile,
+    /// "save" (0x1010) of `scope`, or the automatic store of the values the device keeps by
+    /// itself: the covered entries' current values replace what was stored for them; the
+    /// rest of the image stays. The active node-id goes with it (D15).
+    pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
+        let od = &self.od;
+        let covered = |k: u32| {
+            k == storage::KEY_SAVED_NODE_ID
+                || storage::is_object_key(k)
+                    && od
+                        .find((k >> 8) as u16, k as u8)
+                        .is_ok_and(|s| scope.covers(od.entry(s)))
         };
-        for (slot, e) in self.od.entries().iter().enumerate() {
-            if covers(e.index, e.group) {
-                w.push(e.key(), self.od.get(slot));
-            }
-        }
-        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
-            for (k, v) in recs {
-                let keep = k > 0x00FF_FFFF
-                    || self.od.find((k >> 8) as u16, k as u8).is_ok_and(|s| {
-                        let e = self.od.entry(s);
-                        !covers(e.index, e.group)
-                    });
-                if keep {
-                    w.push(k, v);
-                }
-            }
-        }
-        let n = w.finish();
-        self.storage.save(&buf[..n]).map_err(|_| Abort::CannotStore)
+        let values = od
+            .entries()
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| scope.covers(e))
+            .map(|(slot, e)| (e.key(), od.get(slot)));
+        let node =
+            (scope != Scope::Auto).then_some((storage::KEY_SAVED_NODE_ID, self.node_id as u32));
+        storage::update_image(
+            &mut self.storage,
+            self.model.features.tag,
+            covered,
+            values.chain(node),
+        )
+        .map_err(|_| Abort::CannotStore)
     }
 
-    /// "load" / "kill": forgets the stored parameters of the selected groups (the LSS
-    /// configuration stays); defaults apply at the next reset (D7).
-    pub(crate) fn forget(&mut self, sub: u8) -> Result<(), Abort> {
-        let mut old = [0u8; IMAGE_MAX];
-        let old_len = match self.storage.load(&mut old) {
-            Ok(n) => n,
-            Err(StorageError::Empty) => return Ok(()),
-            Err(StorageError::Corrupt) => 0,
-            Err(StorageError::Io) => return Err(Abort::CannotStore),
+    /// "load" (0x1011) of `scope`: forgets what was stored for it (the LSS configuration and
+    /// records of entries outside the scope stay, records this model has no entry for go);
+    /// defaults apply at the next reset (D7).
+    pub(crate) fn forget(&mut self, scope: Scope) -> Result<(), Abort> {
+        let od = &self.od;
+        let forgotten = |k: u32| {
+            storage::is_object_key(k)
+                && od
+                    .find((k >> 8) as u16, k as u8)
+                    .map_or(true, |s| scope.covers(od.entry(s)))
         };
-        let mut buf = [0u8; IMAGE_MAX];
-        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
-        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
-            for (k, v) in recs {
-                let index = (k >> 8) as u16;
-                let keep = match sub {
-                    2 => k > 0x00FF_FFFF || index >= 0x2000,
-                    3 => k > 0x00FF_FFFF || index < 0x2000,
-                    _ => k > 0x00FF_FFFF,
-                };
-                if keep {
-                    w.push(k, v);
-                }
-            }
+        match storage::update_image(
+            &mut self.storage,
+            self.model.features.tag,
+            forgotten,
+            core::iter::empty(),
+        ) {
+            Ok(()) => Ok(()),
+            Err(_) => Err(Abort::CannotStore),
         }
-        let n = w.finish();
-        self.storage.save(&buf[..n]).map_err(|_| Abort::CannotStore)
     }
 
-    /// LSS "store configuration": keeps the pending node-id and bit rate.
+    /// LSS "store configuration": keeps the pending node-id and bit rate, in the LSS records
+    /// and in the objects that hold copies of them (TMI 0x2000 / 0x2001), so that every copy
+    /// says the same after the next power-on.
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
-        let mut old = [0u8; IMAGE_MAX];
-        let old_len = self.storage.load(&mut old).unwrap_or(0);
-        let mut buf = [0u8; IMAGE_MAX];
-        let mut w = storage::ImageWriter::new(&mut buf, self.model.features.tag);
-        w.push(storage::KEY_LSS_NODE_ID, self.pending_node_id as u32);
-        w.push(storage::KEY_LSS_BITRATE, self.pending_bitrate as u32);
-        let tmi = self.model.features.tmi_emcy;
-        if tmi {
-            w.push(KEY_TMI_NODE_ID, self.pending_node_id as u32);
-            let kbps = if self.pending_bitrate == 0 {
-                0xFFFF
-            } else {
-                self.pending_bitrate as u32
-            };
-            w.push(KEY_TMI_BITRATE, kbps);
-        }
-        if let Ok(recs) = storage::parse_image(&old[..old_len], self.model.features.tag) {
-            for (k, v) in recs {
-                let replaced = k == storage::KEY_LSS_NODE_ID
-                    || k == storage::KEY_LSS_BITRATE
-                    || (tmi && (k == KEY_TMI_NODE_ID || k == KEY_TMI_BITRATE));
-                if !replaced {
-                    w.push(k, v);
-                }
-            }
-        }
-        let n = w.finish();
-        self.storage.save(&buf[..n])?;
-        self.stored_lss = (Some(self.pending_node_id), Some(self.pending_bitrate));
+        let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
+        let od = &self.od;
+        let copies = od.entries().iter().filter_map(move |e| match e.hook {
+            Hook::PendingNodeId => Some((e.key(), id as u32)),
+            Hook::PendingBitRate => Some((e.key(), object_of_kbps(kbps))),
+            _ => None,
+        });
+        let lss = [
+            (storage::KEY_LSS_NODE_ID, id as u32),
+            (storage::KEY_LSS_BITRATE, kbps as u32),
+        ];
+        let replaced = |k: u32| {
+            k == storage::KEY_LSS_NODE_ID
+                || k == storage::KEY_LSS_BITRATE
+                || storage::is_object_key(k)
+                    && od.find((k >> 8) as u16, k as u8).is_ok_and(|s| {
+                        matches!(od.entry(s).hook, Hook::PendingNodeId | Hook::PendingBitRate)
+                    })
+        };
+        storage::update_image(
+            &mut self.storage,
+            self.model.features.tag,
+            replaced,
+            lss.into_iter().chain(copies),
+        )?;
+        self.stored_lss = (Some(id), Some(kbps));
         Ok(())
     }
 
-    /// 0x1003 sub-indices beyond the number of recorded errors hold no data (CiA 301; the
-    /// conformance tool's EMCY-03 expects the read of 1003:01 to abort when the history is
-    /// empty).
-    fn history_has(&self, index: u16, sub: u8) -> Result<(), Abort> {
-        if index == 0x1003 && sub as usize > self.emcy.history_len() {
-            return Err(Abort::NoData);
-        }
-        Ok(())
-    }
-
-    /// Service-level rules for a write that passed the table's checks.
+    /// The rule of an entry's hook for a write of `raw` over `cur` that passed the table's
+    /// checks.
     #[inline]
-    fn validate(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
-        match index {
-            0x1005 => {
+    fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
+        match e.hook {
+            Hook::None => Ok(()),
+            Hook::SyncCobId => {
                 // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
                 // the CiA 301 restricted CAN-IDs (conformance OTH-10).
                 if raw & 0x6000_0000 != 0 || pdo::restricted_id(raw & 0x7FF) {
@@ -1178,7 +1244,7 @@ impl<S: Storage> Device<S> {
                 }
                 Ok(())
             }
-            0x1014 => {
+            Hook::EmcyCobId => {
                 if raw & 0x2000_0000 != 0 {
                     return Err(Abort::InvalidValue);
                 }
@@ -1186,104 +1252,90 @@ impl<S: Storage> Device<S> {
                 if raw & 0x8000_0000 == 0 && pdo::restricted_id(raw & 0x7FF) {
                     return Err(Abort::InvalidValue);
                 }
-                let cur = self.od.hot(self.hot.emcy_cob).unwrap_or(0);
                 if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
                     return Err(Abort::InvalidValue);
                 }
                 Ok(())
             }
-            0x1800..=0x1BFF | 0x2000..=0x9FFF => self.validate_service(index, sub, raw),
-            _ => Ok(()),
+            Hook::GuardingCobId => {
+                // Guarding answers on the COB-ID's 11-bit CAN-ID; 29-bit ids and restricted
+                // CAN-IDs other than the pre-defined 0x700 + node-id are refused.
+                let id = raw & 0x7FF;
+                if raw & 0x6000_0000 != 0
+                    || (pdo::restricted_id(id) && id != 0x700 + self.node_id as u32)
+                {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            _ => self.validate_service(e, raw),
         }
     }
 
     /// [`Device::validate`] for the PDO parameters and the application's objects.
     #[inline(never)]
-    fn validate_service(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
-        match index {
-            0x1800..=0x1BFF => {
-                let tmi = self.model.features.tmi_emcy;
-                self.pdo.validate(&self.od, index, sub, raw, tmi)
+    fn validate_service(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
+        match e.hook {
+            Hook::TpdoComm | Hook::TpdoMap => {
+                let strict = self.model.features.event_timer_above_inhibit;
+                self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
-            0x2000..=0x9FFF => {
-                let cx = crate::encoder::AppView {
+            Hook::App(h) => {
+                let cx = AppView {
                     od: &self.od,
                     model: self.model,
                     cfg: &self.cfg,
                 };
-                self.encoder.validate(index, sub, raw, &cx)
+                self.app.validate(h, e.sub, raw, &cx)
             }
             _ => Ok(()),
         }
     }
 
-    /// Side effects once a write has landed.
+    /// The side effects of an entry's hook once a write has landed.
     #[inline]
-    fn written(&mut self, index: u16, sub: u8, raw: u32) {
-        // Most communication objects have none: no call for them.
-        if matches!(
-            index,
-            0x1003 | 0x100C | 0x100D | 0x1015 | 0x1017 | 0x1800..=0x1803 | 0x1A00..=0x1A03
-        ) || index >= 0x2000
-        {
-            self.written_slow(index, sub, raw);
+    fn written(&mut self, e: &Entry, raw: u32) {
+        // Most objects have none: no call for them.
+        if e.hook.acts_when_written() {
+            self.written_slow(e, raw);
         }
     }
 
     #[inline(never)]
-    fn written_slow(&mut self, index: u16, sub: u8, raw: u32) {
+    fn written_slow(&mut self, e: &Entry, raw: u32) {
         let now = self.now;
-        match index {
-            0x1003 => {
+        match e.hook {
+            Hook::ErrorHistory => {
                 self.emcy.clear_history();
                 self.sync_error_register();
             }
-            0x100C | 0x100D => {
-                let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
-                let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
-                self.errctl.set_guarding(gt, lf, now);
-            }
-            0x1015 => self.emcy.set_inhibit(raw as u16),
-            0x1017 => self.errctl.set_heartbeat(raw as u16, now),
-            0x1800..=0x1803 | 0x1A00..=0x1A03 => {
-                let n = (index & 0x3) as usize;
-                self.pdo.configure(n, &self.od);
-                if index == 0x1800 && sub == 5 {
-                    // D12: 0x6200 and TPDO1's event timer are one value.
-                    self.od.set_value(0x6200, 0, raw);
-                }
-                let on = self.pdo.active();
-                if on {
-                    self.pdo.set_active(false, now);
-                    self.pdo.set_active(true, now);
+            Hook::Guarding | Hook::GuardingCobId => self.apply_guarding(now),
+            Hook::EmcyInhibit => self.emcy.set_inhibit(raw as u16),
+            Hook::Heartbeat => self.errctl.set_heartbeat(raw as u16, now),
+            Hook::TpdoComm | Hook::TpdoMap => {
+                let n = (e.index & 0x1FF) as usize;
+                self.pdo.reconfigure(n, &self.od, now);
+                if e.hook == Hook::TpdoComm {
+                    let (app, mut cx) = self.app_ctx(now);
+                    app.tpdo_comm_written(n, e.sub, raw, &mut cx);
                 }
             }
-            0x6200 => {
-                self.od.set_value(0x1800, 5, raw);
-                self.pdo.configure(0, &self.od);
-                if self.pdo.active() {
-                    self.pdo.set_active(false, now);
-                    self.pdo.set_active(true, now);
-                }
+            Hook::PendingNodeId => self.pending_node_id = raw as u8,
+            Hook::PendingBitRate => self.pending_bitrate = kbps_of_object(raw),
+            Hook::App(h) => {
+                let (app, mut cx) = self.app_ctx(now);
+                app.written(h, e.sub, raw, &mut cx);
             }
-            0x2000 if self.model.features.tmi_emcy => self.pending_node_id = raw as u8,
-            0x2001 if self.model.features.tmi_emcy => {
-                self.pending_bitrate = tmi_kbps(raw);
-            }
-            _ => {
-                if index >= 0x2000 {
-                    let (encoder, mut cx) = self.app(now);
-                    encoder.written(index, sub, raw, &mut cx);
-                }
-            }
+            _ => {}
         }
     }
 
     // Out of line: its image buffers would give every write a 4 KiB stack frame.
     #[inline(never)]
-    fn storage_command(&mut self, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
+    fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         let f = self.model.features;
-        if index == 0x1010 {
+        let scope = Scope::of_sub(e.sub);
+        if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
             if raw != SIG_SAVE && !kill {
                 return Err(Abort::CannotStore);
@@ -1292,22 +1344,23 @@ impl<S: Storage> Device<S> {
                 return Err(Abort::WrongState);
             }
             if kill {
-                self.forget(sub)?;
+                self.forget(scope)?;
             } else {
-                self.store(sub)?;
+                self.store(scope)?;
             }
         } else {
             if raw != SIG_LOAD {
                 return Err(Abort::CannotStore);
             }
-            self.forget(sub)?;
+            self.forget(scope)?;
         }
+        // D7: the answer leaves no earlier than the store time after the request arrived.
         self.sdo_hold_until = Some(self.now + STORE_TIME);
         Ok(())
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// [`Dictionary::find`] with a one-entry memo (the table never changes, so a found slot
     /// stays right).
     #[inline]
@@ -1322,24 +1375,55 @@ impl<S: Storage> Device<S> {
     }
 }
 
-impl<S: Storage> ObjectAccess for Device<S> {
-    fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
-        let slot = self.find(index, sub)?;
-        if !self.od.entry(slot).access.readable() {
+impl<A: Application, S: Storage> Device<A, S> {
+    /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
+    /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
+    /// expects the read of 1003:01 to abort when the history is empty).
+    #[inline]
+    fn readable(&self, slot: usize) -> Result<(), Abort> {
+        let e = self.od.entry(slot);
+        if !e.access.readable() {
             return Err(Abort::WriteOnly);
         }
-        self.history_has(index, sub)?;
+        if e.hook == Hook::ErrorHistory && e.sub as usize > self.emcy.history_len() {
+            return Err(Abort::NoData);
+        }
+        Ok(())
+    }
+}
+
+impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
+    fn address(&self) -> [u32; 4] {
+        self.lss_address()
+    }
+    fn node_id(&self) -> u8 {
+        self.node_id
+    }
+    fn pending(&self) -> (u8, u16) {
+        (self.pending_node_id, self.pending_bitrate)
+    }
+    fn fastscan(&self) -> bool {
+        self.model.features.lss_fastscan
+    }
+    fn bit_timing(&self) -> &'static [u8] {
+        self.model.features.lss_bit_timing
+    }
+}
+
+impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
+    fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let slot = self.find(index, sub)?;
+        self.readable(slot)?;
         Ok(self.od.size_of(slot))
     }
 
     fn read(&mut self, index: u16, sub: u8, offset: usize, buf: &mut [u8]) -> Result<usize, Abort> {
         let slot = self.find(index, sub)?;
-        if !self.od.entry(slot).access.readable() {
-            return Err(Abort::WriteOnly);
+        self.readable(slot)?;
+        // Values the application derives from others are current when read.
+        if let Hook::App(h) = self.od.entry(slot).hook {
+            self.app.refresh(h, &mut self.od, self.nmt);
         }
-        self.history_has(index, sub)?;
-        // Values derived from others (0x6500, 0x6509, TMI 0x1002) are current when read.
-        self.encoder.refresh(index, &mut self.od, self.nmt);
         Ok(self.od.read_at(slot, offset, buf))
     }
 
@@ -1357,7 +1441,7 @@ impl<S: Storage> ObjectAccess for Device<S> {
         if !self.od.entry(slot).access.writable() {
             return Err(Abort::ReadOnly);
         }
-        self.write_slot(slot, index, sub, data.len(), le_u32(data))
+        self.write_slot(slot, data.len(), le_u32(data))
     }
 
     #[inline]
@@ -1381,22 +1465,15 @@ impl<S: Storage> ObjectAccess for Device<S> {
         .min(4);
         // `le_u32` of the first `len` bytes.
         let raw = u32::from_le_bytes(*data) & (u64::from(u32::MAX) >> (32 - 8 * len as u32)) as u32;
-        self.write_slot(slot, index, sub, len, raw)
+        self.write_slot(slot, len, raw)
     }
 }
 
-impl<S: Storage> Device<S> {
+impl<A: Application, S: Storage> Device<A, S> {
     /// The checks and side effects of a write of `len` bytes (`raw`, little-endian) to a
     /// writable object.
     #[inline]
-    fn write_slot(
-        &mut self,
-        slot: usize,
-        index: u16,
-        sub: u8,
-        len: usize,
-        raw: u32,
-    ) -> Result<(), Abort> {
+    fn write_slot(&mut self, slot: usize, len: usize, raw: u32) -> Result<(), Abort> {
         let e = self.od.entry(slot);
         let Some(size) = e.ty.size() else {
             return Err(Abort::UnsupportedAccess);
@@ -1407,8 +1484,8 @@ impl<S: Storage> Device<S> {
         if len < size {
             return Err(Abort::LengthTooLow);
         }
-        if matches!(index, 0x1010 | 0x1011) {
-            return self.storage_command(index, sub, raw);
+        if matches!(e.hook, Hook::StoreParameters | Hook::RestoreDefaults) {
+            return self.storage_command(e, raw);
         }
         if e.ty == DataType::Boolean && raw > 1 {
             return Err(Abort::InvalidValue);
@@ -1422,9 +1499,9 @@ impl<S: Storage> Device<S> {
                 Abort::InvalidValue
             });
         }
-        self.validate(index, sub, raw)?;
+        self.validate(e, self.od.get(slot), raw)?;
         self.od.set(slot, raw);
-        self.written(index, sub, raw);
+        self.written(e, raw);
         Ok(())
     }
 }

@@ -3,6 +3,7 @@
 //! SPEC §5 for dynamic mapping.
 
 use crate::od::{Abort, Dictionary};
+use crate::txq::TxQueue;
 use crate::wire::{Duration, Frame, Instant};
 
 /// Most TPDOs any model has.
@@ -148,6 +149,9 @@ pub struct Tpdos {
     active: bool,
     /// Bit n: TPDO n is valid and asynchronous (254 / 255): the only ones with timers.
     timer_mask: u8,
+    /// Bit n: TPDO n is valid and synchronous (0…240): the only ones a SYNC concerns. Both
+    /// masks are derived in `refresh`, which every configuration change ends in.
+    sync_mask: u8,
     /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
     /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk.
     single: u8,
@@ -164,6 +168,7 @@ impl Default for Tpdos {
             count: 0,
             active: false,
             timer_mask: 0,
+            sync_mask: 0,
             single: NO_SINGLE,
             due: NEVER,
         }
@@ -213,15 +218,20 @@ impl Tpdos {
         self.refresh();
     }
 
-    /// Recomputes `timer_mask` and `due` after a change of configuration.
+    /// Recomputes `timer_mask`, `sync_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
-        let mut mask = 0u8;
+        let (mut mask, mut sync) = (0u8, 0u8);
         for (n, p) in self.pdos[..self.count].iter().enumerate() {
-            if p.valid() && p.asynchronous() {
-                mask |= 1 << n;
+            if p.valid() {
+                if p.asynchronous() {
+                    mask |= 1 << n;
+                } else {
+                    sync |= 1 << n;
+                }
             }
         }
         self.timer_mask = mask;
+        self.sync_mask = sync;
         self.single = if mask.is_power_of_two() {
             mask.trailing_zeros() as u8
         } else {
@@ -247,6 +257,17 @@ impl Tpdos {
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
+    /// [`Tpdos::configure`] after a parameter of TPDO `n` changed: a running PDO restarts its
+    /// timers from `now` with the new values.
+    pub fn reconfigure(&mut self, n: usize, od: &Dictionary, now: Instant) {
+        self.configure(n, od);
+        if self.active() {
+            self.set_active(false, now);
+            self.set_active(true, now);
+        }
+    }
+
+    /// Reads TPDO `n`'s parameters from the dictionary.
     pub fn configure(&mut self, n: usize, od: &Dictionary) {
         let Some(p) = self.pdos.get_mut(n) else {
             return;
@@ -423,14 +444,16 @@ impl Tpdos {
     }
 
     /// A SYNC arrived: produces synchronous TPDOs into `out`.
-    pub fn on_sync(&mut self, od: &Dictionary, now: Instant, out: &mut dyn FnMut(Frame)) {
+    pub(crate) fn on_sync(&mut self, od: &Dictionary, now: Instant, out: &mut TxQueue) {
         if !self.active {
             return;
         }
-        for p in &mut self.pdos[..self.count] {
-            if !p.valid() || p.asynchronous() {
-                continue;
-            }
+        let mut mask = self.sync_mask;
+        while mask != 0 {
+            let n = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            // `sync_mask` has bits below `count` ≤ MAX_TPDOS only.
+            let p = &mut self.pdos[n & (MAX_TPDOS - 1)];
             let send = if p.ttype == 0 {
                 core::mem::take(&mut p.changed)
             } else {
@@ -443,11 +466,11 @@ impl Tpdos {
                 }
             };
             if send {
-                out(build(p, od));
+                out.push(build(p, od));
                 p.inhibit_until = now + p.inhibit;
             }
         }
-        self.refresh_due();
+        // Synchronous TPDOs have no timer of their own: the schedule is unchanged.
     }
 
     /// A remote request for CAN-ID `id`: answers a TPDO that allows RTR.

@@ -11,6 +11,8 @@
 //!
 //! A torn or corrupt image fails its CRC and is never loaded.
 
+use crate::od::{Entry, Group};
+
 /// Largest image any model produces (header + records + CRC).
 pub const IMAGE_MAX: usize = 8 + 8 * 240 + 4;
 
@@ -21,6 +23,55 @@ const VERSION: u8 = 1;
 pub const KEY_LSS_NODE_ID: u32 = 0xFF00_0001;
 /// Record key of the LSS-configured bit rate (kbit/s).
 pub const KEY_LSS_BITRATE: u32 = 0xFF00_0002;
+
+/// Record key of the node-id that was active when the parameters were saved, so that a later
+/// power-on under another node-id re-derives exactly the COB-IDs that were the pre-defined
+/// ones for it (D15).
+pub const KEY_SAVED_NODE_ID: u32 = 0xFF00_0003;
+
+/// Whether a record key names an object (`index << 8 | sub`) rather than an LSS or
+/// bookkeeping value.
+pub const fn is_object_key(key: u32) -> bool {
+    key <= 0x00FF_FFFF
+}
+
+/// What a store or a restore covers: the CiA 301 0x1010 / 0x1011 sub-indices, or the values
+/// the device keeps by itself. Membership comes from each entry's [`Group`] in the model's
+/// table, so no index list decides it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scope {
+    /// Sub 1: every parameter.
+    All,
+    /// Sub 2: the communication parameters.
+    Comm,
+    /// Sub 3: the application parameters.
+    App,
+    /// The values the device stores whenever they change ([`Group::Auto`]); "save" and
+    /// "load" leave them alone, they are records of the unit, not parameters.
+    Auto,
+}
+
+impl Scope {
+    /// The scope of 0x1010 / 0x1011 sub-index `sub` (sub 1 and any other: all).
+    pub const fn of_sub(sub: u8) -> Scope {
+        match sub {
+            2 => Scope::Comm,
+            3 => Scope::App,
+            _ => Scope::All,
+        }
+    }
+
+    /// Whether `e`'s value belongs to this scope.
+    pub const fn covers(self, e: &Entry) -> bool {
+        matches!(
+            (self, e.group),
+            (Scope::All, Group::Comm | Group::App)
+                | (Scope::Comm, Group::Comm)
+                | (Scope::App, Group::App)
+                | (Scope::Auto, Group::Auto)
+        )
+    }
+}
 
 /// Why the storage medium could not do what was asked.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -168,7 +219,7 @@ impl<'a> ImageWriter<'a> {
 pub fn parse_image(
     image: &[u8],
     model_tag: u8,
-) -> Result<impl Iterator<Item = (u32, u32)> + '_, StorageError> {
+) -> Result<impl Iterator<Item = (u32, u32)> + Clone + '_, StorageError> {
     if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
         return Err(StorageError::Corrupt);
     }
@@ -192,6 +243,47 @@ pub fn parse_image(
             u32::from_le_bytes([r[4], r[5], r[6], r[7]]),
         )
     }))
+}
+
+/// Loads the stored image into `buf` and checks it: its records, or why there are none.
+pub fn load_image<'a, S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    buf: &'a mut [u8; IMAGE_MAX],
+) -> Result<impl Iterator<Item = (u32, u32)> + Clone + 'a, StorageError> {
+    let n = st.load(buf)?;
+    parse_image(&buf[..n], model_tag)
+}
+
+/// The one way the stored image changes: the records `put` yields are written, the stored
+/// records for which `replaced` holds are dropped, and every other stored record stays.
+/// `replaced` must hold for every key `put` writes, so that no key is stored twice. A stored
+/// image that fails its check counts as empty (it could not be loaded anyway).
+pub fn update_image<S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    replaced: impl Fn(u32) -> bool,
+    put: impl Iterator<Item = (u32, u32)>,
+) -> Result<(), StorageError> {
+    let mut old = [0u8; IMAGE_MAX];
+    let old_len = st.load(&mut old).unwrap_or(0);
+    let mut buf = [0u8; IMAGE_MAX];
+    let mut w = ImageWriter::new(&mut buf, model_tag);
+    for (k, v) in put {
+        debug_assert!(replaced(k), "record {k:#x} would be stored twice");
+        if !w.push(k, v) {
+            return Err(StorageError::Io);
+        }
+    }
+    if let Ok(recs) = parse_image(&old[..old_len], model_tag) {
+        for (k, v) in recs.filter(|&(k, _)| !replaced(k)) {
+            if !w.push(k, v) {
+                return Err(StorageError::Io);
+            }
+        }
+    }
+    let n = w.finish();
+    st.save(&buf[..n])
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.

@@ -53,10 +53,6 @@ impl TxQueue {
         self.len -= 1;
         Some(f)
     }
-    /// Frames waiting.
-    pub fn len(&self) -> usize {
-        self.len
-    }
     /// Whether nothing waits.
     pub fn is_empty(&self) -> bool {
         self.len == 0

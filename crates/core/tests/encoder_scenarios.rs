@@ -314,7 +314,14 @@ fn supply_voltage_fault_matches_manual_example_3() {
     r.node.inject_fault(Fault::CanBusOff, true);
     assert!(r.take().is_empty());
     r.node.inject_fault(Fault::CanBusOff, false);
-    assert_eq!(emcys(&r.take()), vec![hex("40 81 00 00 00 00 00 00")]);
+    // Recovered, then the error reset the TH's EMCYs go along with.
+    assert_eq!(
+        emcys(&r.take()),
+        vec![
+            hex("40 81 00 00 00 00 00 00"),
+            hex("00 00 00 00 00 00 00 00")
+        ]
+    );
     r.node.inject_fault(Fault::CanOverrun, true);
     assert_eq!(emcys(&r.take()), vec![hex("10 81 11 00 00 00 00 00")]);
     r.node.inject_fault(Fault::OverTemperature, true);
@@ -439,4 +446,29 @@ fn th_temperature_record_and_life_extremes_persist() {
         ],
         [22, 22, 22, 30, 20]
     );
+}
+
+/// An EMCY goes out once per event: an injected sensor (transducer) error sends 0x5000 once,
+/// however many cycles it lasts (its lost pulses are that error, not a new one), and once
+/// more 0x0000 when it clears.
+#[test]
+fn injected_sensor_error_sends_its_emcy_once() {
+    for name in ["th", "e-series", "tmi"] {
+        let mut r = booted(name);
+        cycle(&mut r, &[Some(100_000_000)]);
+        r.node.inject_fault(Fault::Transducer, true);
+        let mut f = r.take();
+        for _ in 0..5 {
+            f.extend(cycle(&mut r, &[Some(100_000_000)]));
+        }
+        let e = emcys(&f);
+        assert_eq!(e.len(), 1, "{name}: {e:02X?}");
+        assert_eq!(&e[0][..2], &[0x00, 0x50], "{name}");
+        r.node.inject_fault(Fault::Transducer, false);
+        let mut f = r.take();
+        f.extend(cycle(&mut r, &[Some(100_000_000)]));
+        let e = emcys(&f);
+        assert_eq!(e.len(), 1, "{name}: {e:02X?}");
+        assert_eq!(&e[0][..3], &[0, 0, 0], "{name}: cleared");
+    }
 }

@@ -6,7 +6,7 @@ mod common;
 use canpos_core::models::th::TH;
 use canpos_core::models::{self, DeviceConfig, Features, Model};
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use common::{hex, Rig};
 
 const LSS_RX: u16 = 0x7E5;
@@ -21,6 +21,7 @@ fn variant(name: &'static str, features: Features) -> &'static Model {
         product: TH.product,
         vendor: TH.vendor,
         entries: TH.entries,
+        keys: TH.keys,
         features,
         param: TH.param,
         derive: TH.derive,
@@ -615,7 +616,7 @@ fn store_configuration_storage_failure_is_status_2() {
 /// A shared virtual CAN bus: every frame reaches every other node; all answers to one request
 /// are returned together (on CAN, identical LSS answers merge into one "some answer").
 struct Bus {
-    nodes: Vec<Node<RamStorage>>,
+    nodes: Vec<SensorNode<RamStorage>>,
     now: Instant,
 }
 

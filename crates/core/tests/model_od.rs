@@ -87,6 +87,8 @@ fn other_value(e: &Entry, cur: u32) -> u32 {
     match (e.index, e.sub) {
         (0x1003, 0) => 0,
         (0x1005, _) => 0x81,
+        // Guarding moves to a CAN-ID no service reserves.
+        (0x100E, _) => 0x300,
         // Toggle "not valid" (allowed while valid, SPEC §5) keeping the CAN-ID.
         (0x1014, _) | (0x1800..=0x1803, 1) => cur ^ 0x8000_0000,
         (0x6000, _) => cur ^ 1,
@@ -377,7 +379,8 @@ fn default_tpdo_is_byte_exact() {
     assert_eq!(f.len(), 1);
     assert_eq!(f[0].1.data(), &[0x87, 0x60, 0x00, 0x00, 0xC8, 0x00, 0x00]);
 
-    // E-Series: 12355 steps of 10 µm, 100 × 1 mm/s; work-area high limit 1000 → bit 1.
+    // E-Series: 123.555 mm = 12355.5 steps of 10 µm → 12356 (to nearest, halves up), 100 × 1
+    // mm/s; work-area high limit 1000 → bit 1.
     let e = models::by_name("e-series").unwrap();
     let mut r = Rig::new(e);
     r.take();
@@ -393,14 +396,14 @@ fn default_tpdo_is_byte_exact() {
         .filter(|(_, f)| f.std_id() == Some(0x1FF))
         .collect();
     assert_eq!(f.len(), 1);
-    assert_eq!(f[0].1.data(), &[0x43, 0x30, 0x00, 0x00, 0x64, 0x00, 0x02]);
+    assert_eq!(f[0].1.data(), &[0x44, 0x30, 0x00, 0x00, 0x64, 0x00, 0x02]);
 }
 
 #[test]
 fn per_node_state_fits_4_kib() {
     use canpos_core::encoder::Encoder;
     use canpos_core::storage::NoStorage;
-    let node = std::mem::size_of::<canpos_core::Node<NoStorage>>();
+    let node = std::mem::size_of::<canpos_core::SensorNode<NoStorage>>();
     assert!(node <= 4096, "Node is {node} bytes");
     assert!(std::mem::size_of::<Encoder>() <= 512);
     for m in models::all() {

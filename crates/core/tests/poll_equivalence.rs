@@ -16,7 +16,7 @@
 use canpos_core::encoder::Sample;
 use canpos_core::models;
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use proptest::prelude::*;
 
 #[derive(Clone, Debug)]
@@ -62,8 +62,8 @@ fn stim() -> impl Strategy<Value = Stim> {
 
 /// Node A: the separate calls. Node B: `poll`.
 struct Pair {
-    a: Node<RamStorage>,
-    b: Node<RamStorage>,
+    a: SensorNode<RamStorage>,
+    b: SensorNode<RamStorage>,
     now: Instant,
     id: u16,
 }
@@ -192,7 +192,14 @@ proptest! {
 }
 
 /// SDO expedited download; whether the node accepted it.
-fn sdo_write(n: &mut Node<RamStorage>, id: u16, index: u16, sub: u8, v: u32, now: Instant) -> bool {
+fn sdo_write(
+    n: &mut SensorNode<RamStorage>,
+    id: u16,
+    index: u16,
+    sub: u8,
+    v: u32,
+    now: Instant,
+) -> bool {
     let [i0, i1] = index.to_le_bytes();
     let [v0, v1, v2, v3] = v.to_le_bytes();
     // The objects' sizes: mapping counts and transmission type 1 byte, times 2, the rest 4.

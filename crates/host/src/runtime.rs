@@ -6,9 +6,12 @@
 //! One thread per bus. Each turn of its loop:
 //!
 //! 1. drains received frames and hands each to every node;
-//! 2. runs every measurement cycle that is due (motion → [`Sensor::measure`] →
+//! 2. runs every measurement cycle that is due (motion → [`Sensor::cycle`] →
 //!    [`Node::update_sample`]); cycles are scheduled as `start + k × cycle`, never as
-//!    "now + cycle", so they do not drift;
+//!    "now + cycle", so they do not drift. The sensor publishes each measurement at the first
+//!    cycle boundary after its pulse returned (one cycle later on every TH / E-Series stroke),
+//!    and its temperature leaving the limits raises the core's over-temperature condition
+//!    (EMCY 0x4200) by itself;
 //! 3. polls every node ([`Node::poll`]: the timers that are due — TPDO event timers,
 //!    heartbeat, SDO timeout, EMCY inhibit — then the frames it has to send) and routes what
 //!    they send: to the transport **and** to the other nodes of this runtime (they share the
@@ -36,7 +39,7 @@ use std::time::Duration;
 
 use canpos_core::models::{DeviceConfig, Model};
 use canpos_core::nmt::NmtState;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 use canpos_sim::motion::{LiveHandle, LiveMotion, Motion, MotionSpec};
 use canpos_sim::{Faults, Sensor, SensorSpec};
 use crossbeam_channel::{Receiver, Select, Sender};
@@ -96,7 +99,7 @@ pub fn default_state_dir() -> PathBuf {
 /// One simulated sensor inside the runtime.
 struct SimDevice {
     name: String,
-    node: Node<FileStorage>,
+    node: SensorNode<FileStorage>,
     sensor: Sensor,
     motion: LiveMotion,
     live: LiveHandle,
@@ -110,6 +113,8 @@ struct SimDevice {
     bus_off: bool,
     last_true: Vec<Option<f64>>,
     frames_sent: u64,
+    /// The temperature condition as last told to the core.
+    temp_alarm: bool,
 }
 
 impl SimDevice {
@@ -130,6 +135,7 @@ impl SimDevice {
             bus_off: false,
             last_true: Vec::new(),
             frames_sent: 0,
+            temp_alarm: false,
         }
     }
 
@@ -153,11 +159,26 @@ impl SimDevice {
                     *p = None;
                 }
             }
-            let sample = self.sensor.measure(t_s, &self.last_true);
-            self.node.update_sample(&sample, at);
+            // Nothing is published before the first measurement's pulse has returned.
+            if let Some(sample) = self.sensor.cycle(t_s, &self.last_true) {
+                self.node.update_sample(&sample, at);
+            }
+            self.sync_temperature();
             self.next_cycle = Instant(at.0 + self.cycle_us);
         }
         missed
+    }
+
+    /// Tells the core about the temperature condition when it changes: the sensor's own
+    /// temperature outside its limits, or the injected over-temperature fault.
+    fn sync_temperature(&mut self) {
+        let want =
+            self.sensor.temperature_out_of_range() || self.faults.contains(&Fault::OverTemperature);
+        if want != self.temp_alarm {
+            self.temp_alarm = want;
+            self.node
+                .inject_fault(canpos_core::encoder::Fault::OverTemperature, want);
+        }
     }
 
     fn deadline(&self) -> Instant {
@@ -435,6 +456,8 @@ impl Runtime {
     fn power_on(&mut self, i: usize, now: Instant) {
         let d = &mut self.devices[i];
         d.node.power_on(now);
+        // The core starts without fault conditions; the next cycle raises it again if needed.
+        d.temp_alarm = false;
         d.next_cycle = now;
         self.powered[i] = true;
         tracing::info!(sensor = %d.name, node_id = d.node.device().node_id(),
@@ -504,10 +527,14 @@ impl Runtime {
     }
 
     /// One turn: frames in, cycles, timers, frames out.
-    fn turn(&mut self, now: Instant) -> io::Result<()> {
+    fn turn(&mut self, mut now: Instant) -> io::Result<()> {
         let mut received = false;
         while let Some(rx) = self.transport.try_recv()? {
             received = true;
+            // Each frame at the time it is handled, not the time the turn began: a request that
+            // waited behind others (or behind a slow store) would otherwise be answered early
+            // by its own clock (the D7 store time counts from the request).
+            now = self.now().max(now);
             self.deliver(&rx.frame, None, now);
             self.route(now);
         }
@@ -891,7 +918,6 @@ impl Runtime {
         match fault {
             Fault::SensorError => d.node.inject_fault(Core::Transducer, on),
             Fault::SupplyVoltage => d.node.inject_fault(Core::SupplyVoltage, on),
-            Fault::OverTemperature => d.node.inject_fault(Core::OverTemperature, on),
             Fault::ErrorPassive => d.node.inject_fault(Core::CanErrorPassive, on),
             Fault::CanOverrun => d.node.inject_fault(Core::CanOverrun, on),
             // While bus-off the runtime keeps the node off the bus; clearing it is the
@@ -921,6 +947,9 @@ impl Runtime {
         d.faults.retain(|f| *f != fault);
         if on {
             d.faults.push(fault);
+        }
+        if fault == Fault::OverTemperature && self.powered[i] {
+            d.sync_temperature();
         }
         Ok(())
     }
@@ -969,6 +998,16 @@ impl Runtime {
             );
         }
         let err_reg = d.node.read_object(0x1001, 0).ok();
+        // Output timing of the last published measurement (issue 15).
+        let spec = d.sensor.spec();
+        let timing = json!({
+            "cycle_us": spec.cycle_time_us,
+            "processing_us": spec.processing_us,
+            "max_output_delay_us": spec.max_output_delay_us(),
+            "time_of_flight_us": d.sensor.last_published().map(|(t, _)| t.time_of_flight_us),
+            "ready_after_us": d.sensor.last_published().map(|(t, _)| t.ready_after_us),
+            "output_delay_us": d.sensor.last_published().map(|(t, _)| t.output_delay_us),
+        });
         let alarms = d.node.read_object(0x6503, 0).ok();
         json!({
             "ok": true,
@@ -990,6 +1029,14 @@ impl Runtime {
             "error_register": err_reg,
             "alarms": alarms,
             "temperature_c": d.sensor.internal_temperature_c(),
+            "ambient_c": d.sensor.ambient_temperature_c(),
+            "electronics_temperature_c": d.sensor.electronics_temperature_c(),
+            "waveguide_temperature_c": d.sensor.waveguide_temperature_c(),
+            "temperature_limits_c": d.sensor.temperature_limits_c(),
+            "temperature_alarm": d.temp_alarm,
+            "unit_tempco_ppm_per_k": d.sensor.unit_errors().tempco_ppm_per_k,
+            "ideal": d.sensor.is_ideal(),
+            "timing": timing,
             "supply_v": d.sensor.supply_voltage_v(),
             "faults": names,
             "storage_corrupt_at_boot": storage_corrupt,
@@ -1122,8 +1169,16 @@ mod tests {
         let r = recv_id(&mut master, 0x585, Duration::from_secs(2)).expect("SDO answer");
         assert_eq!(r.data()[0], 0x43, "{r:?}");
         assert_eq!(&r.data()[4..8], &0x0008_0196u32.to_le_bytes());
-        // Node 6's heartbeat consumer is not involved; check the state request instead.
-        let st = h.control().request(Request::State { sensor: Some(1) });
+        // Node 6's heartbeat consumer is not involved; check the state request instead. The
+        // first measurement is published one cycle after power-on (its pulse must return).
+        let end = std::time::Instant::now() + Duration::from_secs(2);
+        let st = loop {
+            let st = h.control().request(Request::State { sensor: Some(1) });
+            if !st["timing"]["output_delay_us"].is_null() || std::time::Instant::now() > end {
+                break st;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        };
         assert_eq!(st["ok"], true, "{st}");
         assert_eq!(st["node_id"], 6);
         assert_eq!(st["nmt"], "pre-operational");
@@ -1256,6 +1311,50 @@ mod tests {
             (st["temperature_c"].as_f64().unwrap() - 20.0).abs() < 30.0,
             "{st}"
         );
+        h.stop().unwrap();
+    }
+
+    #[test]
+    fn ambient_out_of_range_raises_over_temperature_by_itself() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        let mut s = th_setup(dir.path(), 8, 5);
+        // Fast thermal lags so that the test takes milliseconds, not minutes.
+        s.spec.thermal_time_constant_s = 0.05;
+        s.spec.waveguide_time_constant_s = 0.1;
+        rt.add(s);
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x708, Duration::from_secs(2)).expect("boot-up");
+        std::thread::sleep(Duration::from_millis(50));
+        while let Ok(Some(_)) = master.try_recv() {}
+        let c = h.control();
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(st["temperature_alarm"], false, "{st}");
+        // Output timing: 1000 mm TH, one 1 ms cycle; time of flight from 250 mm + 51 mm.
+        assert_eq!(st["timing"]["output_delay_us"], 1000, "{st}");
+        let tof = st["timing"]["time_of_flight_us"].as_f64().unwrap();
+        assert!((tof - 301.0 / 2.8).abs() < 1e-6, "{st}");
+        // 90 °C is outside −40…+75 °C: the electronics pass 85 °C after the lag.
+        let a = c.request(Request::Ambient {
+            sensor: None,
+            celsius: 90.0,
+        });
+        assert_eq!(a["ok"], true, "{a}");
+        let f = recv_id(&mut master, 0x88, Duration::from_secs(2)).expect("EMCY 0x4200");
+        assert_eq!(&f.data()[..3], &[0x00, 0x42, 0x09], "{f:?}");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(st["temperature_alarm"], true, "{st}");
+        assert!(st["temperature_c"].as_f64().unwrap() > 85.0, "{st}");
+        assert_eq!(st["faults"].as_array().unwrap().len(), 0, "{st}");
+        // Back in range: the condition clears by itself.
+        c.request(Request::Ambient {
+            sensor: None,
+            celsius: 20.0,
+        });
+        let f = recv_id(&mut master, 0x88, Duration::from_secs(2)).expect("EMCY clear");
+        assert_eq!(&f.data()[..3], &[0, 0, 0], "{f:?}");
         h.stop().unwrap();
     }
 

@@ -7,8 +7,12 @@
 //! * [`motion`]: where the magnets truly are — static, sine, triangle, trapezoid ramp, steps,
 //!   CSV trajectories, live set-points — and the textual spec parser used by the CLI.
 //! * [`Sensor`]: one unit; per measurement cycle it turns true positions into a
-//!   [`canpos_core::encoder::Sample`] (channels ordered from the head, missing magnets,
-//!   seeded error budget, internal temperature), with [`Faults`] injection.
+//!   [`canpos_core::encoder::Sample`] (channels ordered from the head, missing magnets, soft
+//!   stroke edges, seeded error budget, electronics temperature), with [`Faults`] injection;
+//!   [`Sensor::cycle`] publishes each measurement after the strain pulse's time of flight
+//!   (the next cycle boundary), and electronics and waveguide follow the ambient temperature
+//!   with first-order lags. Every term, its source and how to turn it off:
+//!   `docs/MEASUREMENT.md`.
 //!
 //! Everything is deterministic: randomness comes from a per-sensor seed (ChaCha8), there is no
 //! global state.
@@ -36,8 +40,8 @@ mod spec;
 
 pub use error::{Error, Result};
 pub use order_code::{parse_order_code, OrderCode};
-pub use sensor::{Faults, Sensor, UnitErrors, DEFAULT_AMBIENT_C};
+pub use sensor::{CycleTiming, Faults, Sensor, UnitErrors, DEFAULT_AMBIENT_C};
 pub use spec::{
-    ErrorBound, Model, SensorSpec, SupplyRange, Variant, REFERENCE_TEMPERATURE_C,
+    ErrorBound, Model, NoiseSpec, SensorSpec, SupplyRange, Variant, REFERENCE_TEMPERATURE_C,
     WAVEGUIDE_SPEED_MM_PER_US,
 };

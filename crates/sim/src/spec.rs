@@ -15,10 +15,14 @@
 //! | supply | +24 VDC −15/+20 % (§8) | +24 VDC −15/+20 % (§8) | 24 VDC ± 20 % (§6) |
 //! | operating temperature | −40…+75 °C (§8) | −40…+75 °C (§8) | not stated; canpos: −40…+85 °C |
 //! | null / dead zone | in drawing Fig. 18 only (numbers lost in the text); canpos: 51 / 63.5 mm | in drawing Fig. 14 only; canpos: 25 / 66 mm (EP, EL), 30 / 63.5 mm (EH) | in drawing only; canpos: 30 / 60 mm |
-//! | self-heating | not stated; canpos: +10 K, τ = 600 s (90 mA × 24 V) | not stated; canpos: +6 K, τ = 600 s (40…60 mA) | not stated; canpos: +10 K, τ = 600 s (≤ 100 mA) |
+//! | self-heating (electronics) | not stated; canpos: +10 K, τ = 600 s (90 mA × 24 V) | not stated; canpos: +6 K, τ = 600 s (40…60 mA) | not stated; canpos: +10 K, τ = 600 s (≤ 100 mA) |
+//! | waveguide temperature | not stated; canpos: +3 K, τ = 1200 s | not stated; canpos: +2 K, τ = 1200 s | not stated; canpos: +3 K, τ = 1200 s |
+//! | soft stroke edge | "can be exceeded" (§4.3), no distance; canpos: 10 mm each end | "can be exceeded" (§4.5), no distance; canpos: 5 mm each end | not stated; canpos: 2 mm each end |
+//! | processing after the last pulse | not stated; canpos: 50 µs | not stated; canpos: 50 µs | not stated; canpos: 50 µs |
+//! | noise | repeatability "typical" (§8); canpos: [`NoiseSpec::DEFAULT`] | canpos: [`NoiseSpec::DEFAULT`] | canpos: [`NoiseSpec::DEFAULT`] |
 //!
 //! Values marked "canpos" are choices where the manual is silent; they are plausible for the
-//! product class and are documented on the constants below.
+//! product class and are documented on the constants below and in `docs/MEASUREMENT.md`.
 
 use core::fmt;
 use core::str::FromStr;
@@ -172,6 +176,50 @@ impl SupplyRange {
     }
 }
 
+/// Shape of the repeatability noise, relative to the datasheet repeatability bound `b`
+/// ([`SensorSpec::repeatability_bound_um`]).
+///
+/// Per sample and channel the noise is `drift + white`, clipped to `±b`:
+///
+/// * `white`: Gaussian, σ = `white_sigma_fraction × b`, independent per sample and channel
+///   (flat spectrum up to the Nyquist frequency of the cycle); with probability
+///   `outlier_probability` per sample it is replaced by an outlier of magnitude uniform in
+///   `[b / 2, b]` and random sign (a disturbed return pulse), so the bound is a rare extreme;
+/// * `drift`: one Ornstein–Uhlenbeck process shared by all channels (electronics timing drift),
+///   stationary σ = `drift_sigma_fraction × b`, correlation time `drift_time_constant_s`
+///   (Lorentzian spectrum, corner `1 / (2π τ)`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseSpec {
+    /// σ of the white component as a fraction of the repeatability bound.
+    pub white_sigma_fraction: f64,
+    /// Probability per sample and channel of an outlier in `[b / 2, b]`.
+    pub outlier_probability: f64,
+    /// Stationary σ of the drift component as a fraction of the repeatability bound.
+    pub drift_sigma_fraction: f64,
+    /// Correlation time of the drift component, s.
+    pub drift_time_constant_s: f64,
+}
+
+impl NoiseSpec {
+    /// canpos default (no manual gives a spectrum): white σ = b / 8, outliers 1 in 10⁴ samples,
+    /// drift σ = b / 10 with τ = 10 s. Total σ ≈ 0.16 b: the spread is well inside the bound,
+    /// which only outliers approach.
+    pub const DEFAULT: NoiseSpec = NoiseSpec {
+        white_sigma_fraction: 0.125,
+        outlier_probability: 1e-4,
+        drift_sigma_fraction: 0.1,
+        drift_time_constant_s: 10.0,
+    };
+
+    /// No noise at all.
+    pub const OFF: NoiseSpec = NoiseSpec {
+        white_sigma_fraction: 0.0,
+        outlier_probability: 0.0,
+        drift_sigma_fraction: 0.0,
+        drift_time_constant_s: 10.0,
+    };
+}
+
 /// Everything the measurement model needs to know about one sensor unit type.
 ///
 /// Positions are measured from the sensor's zero point (start of the active stroke). The sensor
@@ -208,9 +256,27 @@ pub struct SensorSpec {
     pub operating_temperature_c: (f64, f64),
     /// Steady-state self-heating of the electronics above ambient, K.
     pub self_heating_k: f64,
-    /// Thermal time constant of the self-heating (first-order lag), s.
+    /// Thermal time constant of the electronics (first-order lag toward ambient + self-heating),
+    /// s.
     pub thermal_time_constant_s: f64,
+    /// Steady-state rise of the waveguide above ambient (heat from the electronics and the
+    /// current pulses), K.
+    pub waveguide_heating_k: f64,
+    /// Thermal time constant of the waveguide (first-order lag toward ambient + its rise), s.
+    pub waveguide_time_constant_s: f64,
+    /// How far before the zero point a magnet is still measured (soft stroke edge), mm.
+    pub soft_edge_start_mm: f64,
+    /// How far past the end of the active stroke a magnet is still measured, mm.
+    pub soft_edge_end_mm: f64,
+    /// Time the electronics need after the last return pulse before the value is ready, µs.
+    pub processing_us: f64,
+    /// Shape of the repeatability noise.
+    pub noise: NoiseSpec,
 }
+
+/// Evaluation time after the last return pulse, µs (no manual states it; short enough that
+/// every TH / E-Series stroke fits its cycle time).
+const PROCESSING_US: f64 = 50.0;
 
 /// TH: +24 VDC −15 / +20 % (000 §8).
 const SUPPLY_TEMPOSONICS: SupplyRange = SupplyRange {
@@ -285,6 +351,13 @@ impl SensorSpec {
             operating_temperature_c: (-40.0, 75.0),
             self_heating_k: 10.0,
             thermal_time_constant_s: 600.0,
+            waveguide_heating_k: 3.0,
+            waveguide_time_constant_s: 1200.0,
+            // 000 §4.3: "the active stroke length can be exceeded" (no distance given).
+            soft_edge_start_mm: 10.0,
+            soft_edge_end_mm: 10.0,
+            processing_us: PROCESSING_US,
+            noise: NoiseSpec::DEFAULT,
         })
     }
 
@@ -325,6 +398,13 @@ impl SensorSpec {
             operating_temperature_c: (-40.0, 75.0),
             self_heating_k: 6.0,
             thermal_time_constant_s: 600.0,
+            waveguide_heating_k: 2.0,
+            waveguide_time_constant_s: 1200.0,
+            // 001 §4.5: "the active stroke length can be exceeded" (no distance given).
+            soft_edge_start_mm: 5.0,
+            soft_edge_end_mm: 5.0,
+            processing_us: PROCESSING_US,
+            noise: NoiseSpec::DEFAULT,
         })
     }
 
@@ -356,6 +436,13 @@ impl SensorSpec {
             operating_temperature_c: (-40.0, 85.0),
             self_heating_k: 10.0,
             thermal_time_constant_s: 600.0,
+            waveguide_heating_k: 3.0,
+            waveguide_time_constant_s: 1200.0,
+            // The manual says nothing about exceeding the defined electrical range.
+            soft_edge_start_mm: 2.0,
+            soft_edge_end_mm: 2.0,
+            processing_us: PROCESSING_US,
+            noise: NoiseSpec::DEFAULT,
         })
     }
 
@@ -388,6 +475,14 @@ impl SensorSpec {
         pos_mm >= 0.0 && pos_mm <= self.stroke_mm
     }
 
+    /// Whether a magnet at `pos_mm` gives a usable pulse: the active stroke widened by the soft
+    /// edges ([`SensorSpec::soft_edge_start_mm`], [`SensorSpec::soft_edge_end_mm`]). Outside
+    /// the active stroke but inside this range the position is reported (work-area bit 0 set by
+    /// the encoder); beyond it the magnet is missing.
+    pub fn measurable(&self, pos_mm: f64) -> bool {
+        pos_mm >= -self.soft_edge_start_mm && pos_mm <= self.stroke_mm + self.soft_edge_end_mm
+    }
+
     /// Whether a magnet at `pos_mm` lies on the rod at all (active stroke, null or dead zone).
     /// A magnet off the rod has no effect on the waveguide.
     pub fn on_rod(&self, pos_mm: f64) -> bool {
@@ -404,8 +499,32 @@ impl SensorSpec {
         self.head_distance_mm(pos_mm) / WAVEGUIDE_SPEED_MM_PER_US
     }
 
+    /// Time from the start of a measurement until its value is ready, µs: the pulse's time of
+    /// flight from `farthest_mm` (the farthest magnet the electronics wait for; `None`: no
+    /// magnet, the whole rod is waited for) plus [`SensorSpec::processing_us`].
+    pub fn ready_after_us(&self, farthest_mm: Option<f64>) -> f64 {
+        let rod_end = self.stroke_mm + self.dead_zone_mm;
+        let x = farthest_mm.map_or(rod_end, |x| x.clamp(-self.null_zone_mm, rod_end));
+        self.pulse_delay_us(x) + self.processing_us
+    }
+
+    /// Output delay, µs: a value ready [`SensorSpec::ready_after_us`] after the start of its
+    /// cycle is published at the first cycle boundary at or after that moment (a whole number
+    /// of cycles, at least one).
+    pub fn output_delay_us(&self, farthest_mm: Option<f64>) -> u64 {
+        let cycle = u64::from(self.cycle_time_us.max(1));
+        let ready = self.ready_after_us(farthest_mm).max(0.0).ceil() as u64;
+        ready.div_ceil(cycle).max(1) * cycle
+    }
+
+    /// Output delay with a magnet at the far end of the rod (the largest possible), µs.
+    pub fn max_output_delay_us(&self) -> u64 {
+        self.output_delay_us(None)
+    }
+
     /// Worst-case deviation in µm of a reported position at `pos_mm` with the waveguide at
-    /// `temperature_c`: linearity + repeatability + half the hysteresis + tempco term.
+    /// `temperature_c` ([`crate::Sensor::waveguide_temperature_c`]): linearity + repeatability
+    /// + half the hysteresis + tempco term.
     pub fn max_error_um(&self, pos_mm: f64, temperature_c: f64) -> f64 {
         self.linearity_bound_um()
             + self.repeatability_bound_um()
@@ -467,6 +586,48 @@ mod tests {
         assert!(SensorSpec::e_series(Variant::Ep, 500.0, 3).is_err());
         assert!(SensorSpec::e_series(Variant::Th, 500.0, 1).is_err());
         assert!(SensorSpec::tmi(500.0, 3).is_err());
+    }
+
+    #[test]
+    fn output_delay_by_stroke() {
+        // Time of flight from the rod end plus 50 µs fits one cycle on every TH / E-Series.
+        for (spec, cycle) in [
+            (SensorSpec::th(25.0, 1).unwrap(), 1000u32),
+            (SensorSpec::th(2400.0, 1).unwrap(), 1000),
+            (SensorSpec::th(4800.0, 1).unwrap(), 2000),
+            (SensorSpec::th(7620.0, 1).unwrap(), 4000),
+            (SensorSpec::e_series(Variant::Ep, 2540.0, 1).unwrap(), 1000),
+            (SensorSpec::e_series(Variant::Eh, 2540.0, 1).unwrap(), 1000),
+            (SensorSpec::tmi(2000.0, 1).unwrap(), 1000),
+        ] {
+            let far = spec.ready_after_us(None);
+            assert!(far < f64::from(cycle), "{:?} {far}", spec.variant);
+            assert_eq!(spec.max_output_delay_us(), u64::from(cycle));
+        }
+        let th = SensorSpec::th(7620.0, 1).unwrap();
+        // 7620 mm + 51 mm null zone at 2.8 mm/µs ≈ 2740 µs.
+        assert!((th.ready_after_us(Some(7620.0)) - (7671.0 / 2.8 + 50.0)).abs() < 1e-9);
+        assert!((th.ready_after_us(Some(0.0)) - (51.0 / 2.8 + 50.0)).abs() < 1e-9);
+        // A long TMI at SPEC's 1 ms cycle: the far end takes longer than one cycle.
+        let tmi = SensorSpec::tmi(4500.0, 1).unwrap();
+        assert_eq!(tmi.output_delay_us(Some(100.0)), 1000);
+        assert!(tmi.ready_after_us(Some(4500.0)) > 1000.0);
+        assert_eq!(tmi.output_delay_us(Some(4500.0)), 2000);
+    }
+
+    #[test]
+    fn soft_edge() {
+        let th = SensorSpec::th(1000.0, 1).unwrap();
+        assert!(th.measurable(-10.0) && th.measurable(1010.0));
+        assert!(!th.measurable(-10.01) && !th.measurable(1010.01));
+        let e = SensorSpec::e_series(Variant::El, 500.0, 1).unwrap();
+        assert!(e.measurable(505.0) && !e.measurable(505.1) && !e.measurable(-5.1));
+        let t = SensorSpec::tmi(500.0, 1).unwrap();
+        assert!(t.measurable(-2.0) && !t.measurable(502.1));
+        // The soft edges end well inside the null and dead zones.
+        for s in [th, e, t] {
+            assert!(s.soft_edge_start_mm < s.null_zone_mm && s.soft_edge_end_mm < s.dead_zone_mm);
+        }
     }
 
     #[test]

@@ -9,7 +9,7 @@
 //! Per channel n (sub-index n):
 //!
 //! ```text
-//! steps    = floor(measured_nm / 0x6005/1)            (measured from the start of the range)
+//! steps    = round(measured_nm / 0x6005/1)            (to nearest, halves up; from the range start)
 //! steps'   = max_steps − steps   if 0x6000 bit 0 (counts decrease away from the head)
 //! position = steps' + offset_n                       (offset from the last preset, 0x650C/n)
 //! velocity = Δnm / Δt in 0x6005/2 units (0.01 mm/s), rounded, sign flipped with bit 0
@@ -19,41 +19,35 @@ mod sample;
 
 pub use sample::{Sample, MAX_CHANNELS};
 
+use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
-use crate::models::{DeviceConfig, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
-use crate::pdo::Tpdos;
-use crate::wire::Instant;
 
-/// What the application may touch while it runs a cycle or reacts to a write.
-pub struct AppCtx<'a> {
-    /// The dictionary (live values are written here).
-    pub od: &'a mut Dictionary,
-    /// EMCY producer.
-    pub emcy: &'a mut Emcy,
-    /// TPDOs (told about changed mapped values).
-    pub pdo: &'a mut Tpdos,
-    /// The product model.
-    pub model: &'static Model,
-    /// The unit configuration (stroke, cycle time, channel count).
-    pub cfg: &'a DeviceConfig,
-    /// The NMT state (TMI 0x1002 bits 1–0).
-    pub nmt: NmtState,
-    /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
-    pub bitrate_kbps: u16,
-    /// Current time.
-    pub now: Instant,
-}
-
-/// Read-only view for write validation.
-pub struct AppView<'a> {
-    /// The dictionary.
-    pub od: &'a Dictionary,
-    /// The product model.
-    pub model: &'static Model,
-    /// The unit configuration.
-    pub cfg: &'a DeviceConfig,
+/// The CiA 406 object rules, as [`crate::od::Hook::App`] numbers in the model tables: each
+/// object names the rule that governs it, so no index list is repeated here.
+pub mod hook {
+    /// 0x6000 operating parameters: only the code-sequence bit (D2); positions follow it.
+    pub const CODE_SEQUENCE: u8 = 1;
+    /// 0x6005/1 position measuring step (writable on TMI, R31): whole µm, not below the
+    /// variant's minimum; positions follow it.
+    pub const MEASURING_STEP: u8 = 2;
+    /// 0x6010/n preset: the current position reads the written value (SPEC §10).
+    pub const PRESET: u8 = 3;
+    /// 0x6301/n cam enable, 0x6302/n cam polarity: one bit per cam, four cams.
+    pub const CAM_SWITCH: u8 = 4;
+    /// 0x631x / 0x632x / 0x633x cam limits and hysteresis: the cam states follow.
+    pub const CAM_LIMIT: u8 = 5;
+    /// 0x6401/n, 0x6402/n work-area limits: the work-area state follows.
+    pub const WORK_AREA_LIMIT: u8 = 6;
+    /// 0x6200 cyclic timer: one value with TPDO1's event timer (D12).
+    pub const CYCLIC_TIMER: u8 = 7;
+    /// 0x6500 operating status: reads the active 0x6000 (D2).
+    pub const OPERATING_STATUS: u8 = 8;
+    /// 0x6509 offset value: reads the offset of channel 1's preset (0x650C/1).
+    pub const OFFSET: u8 = 9;
+    /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
+    pub const MANUFACTURER_STATUS: u8 = 10;
 }
 
 /// TMI system-data errors (§1.14, 0x5000 with sub-codes). All but
@@ -136,6 +130,14 @@ pub enum Fault {
     OverTemperature,
     /// CAN controller error passive: EMCY 0x8120, register 0x11 (TMI 0x1002 bit 5).
     CanErrorPassive,
+    /// A communication error of no more specific kind: EMCY 0x8100 "Communication (generic)",
+    /// register 0x11 (TH Table 5, E-Series EMCY table). The TMI's table has no such code: it
+    /// reports nothing.
+    Communication,
+    /// One PDO not processed because of its length: a one-shot EMCY 0x8210 (TH Table 5,
+    /// E-Series EMCY table; the sensors have no RPDO, so only the injected event raises it).
+    /// Not in the TMI's table: nothing. `active == false` does nothing.
+    PdoLength,
     /// CAN bus-off: while active the host keeps the node off the bus (TMI 0x1002 bits 4, 3);
     /// clearing it is the recovery, EMCY 0x8140.
     CanBusOff,
@@ -160,6 +162,7 @@ const F_OVERRUN: u16 = 1 << 5;
 const F_BUFFER: u16 = 1 << 6;
 const F_EVENT_TIMER: u16 = 1 << 7;
 const F_MISSING: u16 = 1 << 8;
+const F_COMMUNICATION: u16 = 1 << 9;
 /// `raised` bit for the shared 0x5000 code.
 const R_HARDWARE: u16 = 1 << 15;
 
@@ -175,8 +178,6 @@ struct Channel {
     /// Cam window state before polarity, for hysteresis (TMI); `None` before the first
     /// evaluation.
     inside: [Option<bool>; 4],
-    /// Preset offset where the model has no 0x650C to keep it.
-    offset: i64,
 }
 
 /// The CiA 406 application state (per-channel history the dictionary does not hold).
@@ -212,98 +213,6 @@ pub struct Encoder {
 }
 
 impl Encoder {
-    /// Forgets runtime state (reset node). What only a power cycle clears stays: the TMI
-    /// lock-out, the storage-corruption flag, the temperature extremes since start-up, and the
-    /// injected fault conditions (the hardware is still faulty after a reset).
-    pub fn reset(&mut self) {
-        let keep = Encoder {
-            faults: self.faults & !F_MISSING & !F_EVENT_TIMER,
-            sysdata: self.sysdata,
-            lockout: self.lockout,
-            storage_corrupt: self.storage_corrupt,
-            warnings: self.warnings,
-            temp_run: self.temp_run,
-            temp_life: self.temp_life,
-            temp_life_loaded: self.temp_life_loaded,
-            ..Encoder::default()
-        };
-        *self = keep;
-    }
-
-    /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
-    /// to pre-operational.
-    pub fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
-        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
-        self.receiving = true;
-        // TMI sensor error: "the current process values stay in the object directory; the cam
-        // and work area states stay unchanged" (§1.14).
-        let frozen = tmi && self.faults & F_TRANSDUCER != 0;
-        // TH / E-Series: a transducer error leaves no usable position on any channel.
-        let blind = !tmi && self.faults & F_TRANSDUCER != 0;
-        let mut missing = false;
-        if !frozen {
-            for ch in 0..n {
-                let nm = if blind { None } else { s.positions_nm[ch] };
-                self.measure(ch, nm, cx);
-                missing |= self.ch[ch].missing;
-            }
-            set_flag(&mut self.faults, F_MISSING, missing);
-        }
-        self.temperature(s.temperature_c, cx);
-        if tmi {
-            let short = event_timer_insufficient(cx);
-            set_flag(&mut self.faults, F_EVENT_TIMER, short);
-        }
-        self.sync(cx);
-        core::mem::take(&mut self.force_preop)
-    }
-
-    /// Injects (`active`) or removes a fault condition. Returns true when the model's
-    /// reaction forces the node back to pre-operational.
-    pub fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
-        match f {
-            Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
-            Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
-            Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
-            Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
-            Fault::CanBusOff => {
-                let was = self.faults & F_BUS_OFF != 0;
-                set_flag(&mut self.faults, F_BUS_OFF, active);
-                if was && !active {
-                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0).
-                    cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
-                }
-            }
-            Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
-            Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
-            Fault::Warning(bits) => {
-                let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
-                if active {
-                    self.warnings |= bits & supported;
-                } else {
-                    self.warnings &= !bits;
-                }
-            }
-            Fault::SystemData(e) if tmi => {
-                let was = self.sysdata & e.bit() != 0;
-                set_flag(&mut self.sysdata, e.bit(), active);
-                if active && !was {
-                    if e.locks_out() {
-                        // Lock-out L: pre-operational until a power cycle; the EMCY repeats
-                        // on every refused start.
-                        self.lockout = Some(e.mfr());
-                    }
-                    self.force_preop = true;
-                }
-            }
-            Fault::SystemData(_) => set_flag(&mut self.faults, F_TRANSDUCER, active),
-        }
-        self.sync(cx);
-        core::mem::take(&mut self.force_preop)
-    }
-
     /// Whether a fault condition is active (hosts, tests).
     pub fn fault_active(&self, f: Fault) -> bool {
         match f {
@@ -311,6 +220,8 @@ impl Encoder {
             Fault::SupplyVoltage => self.faults & F_VOLTAGE != 0,
             Fault::OverTemperature => self.faults & F_TEMPERATURE != 0,
             Fault::CanErrorPassive => self.faults & F_PASSIVE != 0,
+            Fault::Communication => self.faults & F_COMMUNICATION != 0,
+            Fault::PdoLength => false,
             Fault::CanBusOff => self.faults & F_BUS_OFF != 0,
             Fault::CanOverrun => self.faults & F_OVERRUN != 0,
             Fault::CanBufferOverflow => self.faults & F_BUFFER != 0,
@@ -319,52 +230,14 @@ impl Encoder {
         }
     }
 
-    /// Whether channel `ch` (0-based) had no usable position in the last cycle.
-    pub fn missing(&self, ch: usize) -> bool {
-        self.ch.get(ch).is_some_and(|c| c.missing)
-    }
-
     /// TMI lock-out active (Operational refused until a power cycle).
     pub fn lockout(&self) -> bool {
         self.lockout.is_some()
     }
 
-    /// Repeats the lock-out EMCY on a refused start.
-    pub fn repeat_lockout_emcy(&self, emcy: &mut Emcy) {
-        if let Some(mfr) = self.lockout {
-            emcy.event(emcy::code::HARDWARE, mfr);
-        }
-    }
-
-    /// The stored data failed to load (called once at power-on, after the reset).
-    pub fn storage_corrupt(&mut self, _emcy: &mut Emcy, _model: &Model) {
-        self.storage_corrupt = true;
-    }
-
-    /// Whether the model reports corrupt storage itself (TMI 0x1002 bit 14) instead of the
-    /// generic EMCY 0x6300.
-    pub fn handles_storage_corrupt(&self, model: &Model) -> bool {
-        model.features.tmi_emcy
-    }
-
-    /// Values derived from other objects, brought up to date just before an SDO read of
-    /// `index` (they must be right even when no measurement cycle ran since the change):
-    /// 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002 carries the NMT state.
-    pub fn refresh(&self, index: u16, od: &mut Dictionary, nmt: NmtState) {
-        match index {
-            0x6500 => {
-                let v = od.value(0x6000, 0).unwrap_or(0);
-                od.set_value(0x6500, 0, v);
-            }
-            0x6509 => {
-                let v = od.value(0x650C, 1).unwrap_or(0);
-                od.set_value(0x6509, 0, v);
-            }
-            0x1002 => {
-                od.set_value(0x1002, 0, self.status(nmt));
-            }
-            _ => {}
-        }
+    /// Whether channel `ch` (0-based) had no usable position in the last cycle.
+    pub fn missing(&self, ch: usize) -> bool {
+        self.ch.get(ch).is_some_and(|c| c.missing)
     }
 
     /// TMI 0x1002 (§1.15): bits 16…3 from the conditions, bits 1–0 the NMT state.
@@ -402,61 +275,6 @@ impl Encoder {
             v |= (1 << 4) | (1 << 3);
         }
         v
-    }
-
-    /// Whether values of the automatically stored group changed since the last call (the node
-    /// then persists them; TH 0x2901 operating-life extremes, D19).
-    pub fn take_auto_dirty(&mut self) -> bool {
-        core::mem::take(&mut self.auto_dirty)
-    }
-
-    /// Application rules for a write to 0x2000–0x9FFF.
-    pub fn validate(&self, index: u16, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
-        match (index, sub) {
-            // D2: only the code-sequence bit.
-            (0x6000, 0) if raw & !1 != 0 => Err(Abort::InvalidValue),
-            // R31: whole µm, not below the variant's minimum step.
-            (0x6005, 1) if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
-            (0x6005, 1) if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
-            // Four cams per channel: bits 4…7 name no cam.
-            (0x6301 | 0x6302, 1..) if raw > 0x0F => Err(Abort::InvalidValue),
-            _ => Ok(()),
-        }
-    }
-
-    /// Side effects of a write to 0x2000–0x9FFF.
-    pub fn written(&mut self, index: u16, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
-        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
-        match index {
-            0x6010 if sub >= 1 => {
-                let ch = sub as usize - 1;
-                if ch < MAX_CHANNELS {
-                    self.preset(ch, raw, cx);
-                    self.publish(ch, cx);
-                }
-            }
-            0x6000 => {
-                cx.od.set_value(0x6500, 0, raw);
-                for ch in 0..n {
-                    self.publish(ch, cx);
-                }
-            }
-            0x6005 if sub == 1 => {
-                // Offsets stay in position units (the manual says nothing about rescaling a
-                // preset when the step changes): write the preset again after changing it.
-                for ch in 0..n {
-                    self.publish(ch, cx);
-                }
-            }
-            0x6301..=0x6333 | 0x6401 | 0x6402 if sub >= 1 => {
-                let ch = sub as usize - 1;
-                if ch < n {
-                    self.publish(ch, cx);
-                }
-            }
-            _ => {}
-        }
-        self.sync(cx);
     }
 
     /// One channel's measurement: position, velocity, then the states derived from them.
@@ -498,7 +316,7 @@ impl Encoder {
             return;
         };
         let sub = ch as u8 + 1;
-        let pos = self.base_steps(nm, cx) + self.offset(ch, cx.od);
+        let pos = self.base_steps(nm, cx) + self.offset(ch, cx);
         let pos = pos.clamp(i32::MIN as i64, i32::MAX as i64);
         set_live(cx, 0x6020, sub, pos as i32 as u32, false);
         self.cams(ch, pos, cx);
@@ -512,7 +330,8 @@ impl Encoder {
             .value(0x6005, 1)
             .unwrap_or(cx.cfg.position_step_nm)
             .max(1) as i64;
-        let steps = nm.div_euclid(step);
+        // Round to nearest: truncating would bias every reading by −step / 2 (issue 15).
+        let steps = (nm + step / 2).div_euclid(step);
         if cx.od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
             // Code sequence: counts decrease away from the head, from the end of the range.
             let max = cx.cfg.stroke_mm as i64 * 1_000_000 / step;
@@ -522,16 +341,25 @@ impl Encoder {
         }
     }
 
-    fn offset(&self, ch: usize, od: &Dictionary) -> i64 {
-        match od.value(0x650C, ch as u8 + 1) {
-            Some(v) => v as i32 as i64,
-            None => self.ch[ch].offset,
-        }
+    /// The offset added to channel `ch`'s steps: the one the last preset produced (0x650C/n),
+    /// or on a model whose preset is a zero-point shift the preset itself (TMI, see
+    /// [`crate::models::Features::preset_zero_shift`]).
+    fn offset(&self, ch: usize, cx: &AppCtx<'_>) -> i64 {
+        let sub = ch as u8 + 1;
+        let index = if cx.model.features.preset_zero_shift {
+            0x6010
+        } else {
+            0x650C
+        };
+        cx.od.value(index, sub).unwrap_or(0) as i32 as i64
     }
 
     /// Writing a preset makes the current position read it (SPEC §10); E-Series clears the
-    /// preset with 0xFFFFFFFF.
+    /// preset with 0xFFFFFFFF. On a zero-shift model the preset is the offset itself.
     fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
+        if cx.model.features.preset_zero_shift {
+            return;
+        }
         let sub = ch as u8 + 1;
         let offset = if cx.model.features.preset_clear && raw == 0xFFFF_FFFF {
             cx.od.set_value(0x6010, sub, 0);
@@ -541,7 +369,6 @@ impl Encoder {
             let base = self.ch[ch].nm.map_or(0, |nm| self.base_steps(nm, cx));
             (raw as i32 as i64 - base).clamp(i32::MIN as i64, i32::MAX as i64)
         };
-        self.ch[ch].offset = offset;
         cx.od.set_value(0x650C, sub, offset as i32 as u32);
         if ch == 0 {
             cx.od.set_value(0x6509, 0, offset as i32 as u32);
@@ -592,8 +419,15 @@ impl Encoder {
         let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
         let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
         let end = cx.cfg.stroke_mm as i64 * 1_000_000;
-        let out = if cx.model.features.tmi_emcy {
-            nm <= 0 || nm >= end
+        let out = if cx.model.features.preset_zero_shift {
+            // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length" (the
+            // length in position steps).
+            let step = cx
+                .od
+                .value(0x6005, 1)
+                .unwrap_or(cx.cfg.position_step_nm)
+                .max(1) as i64;
+            pos <= self.offset(ch, cx) || pos >= end / step
         } else {
             nm < 0 || nm > end
         };
@@ -650,7 +484,7 @@ impl Encoder {
         // 0x5000: missing magnet, transducer error and (TMI) system-data errors share the
         // code; each new reason is announced, the code clears when none is left (D13).
         let mfr_sensor = if tmi { [1, 1, 0, 0, 0] } else { [0; 5] };
-        let mut reasons = (self.faults & (F_MISSING | F_TRANSDUCER)) as u32;
+        let mut reasons = (self.faults & (F_MISSING | sensor_error_faults(tmi))) as u32;
         if tmi {
             reasons |= (self.sysdata as u32) << 16;
         }
@@ -672,7 +506,7 @@ impl Encoder {
         self.hw_seen = reasons;
 
         let comm = emcy::reg::COMMUNICATION;
-        let conditions: [(u16, u16, u8, [u8; 5]); 6] = [
+        let conditions: [(u16, u16, u8, [u8; 5]); 7] = [
             (
                 F_VOLTAGE,
                 emcy::code::MAIN_VOLTAGE,
@@ -686,11 +520,16 @@ impl Encoder {
                 [0; 5],
             ),
             (F_PASSIVE, emcy::code::ERROR_PASSIVE, comm, [0; 5]),
+            (F_COMMUNICATION, emcy::code::COMMUNICATION, comm, [0; 5]),
             (F_OVERRUN, emcy::code::CAN_OVERRUN, comm, [1, 0, 0, 0, 0]),
             (F_BUFFER, emcy::code::CAN_OVERRUN, comm, [2, 0, 0, 0, 0]),
             (F_EVENT_TIMER, emcy::code::SOFTWARE, 0, [1, 0, 0, 0, 0]),
         ];
         for (flag, code, reg, mfr) in conditions {
+            if tmi && flag & TMI_NO_CODE != 0 {
+                // Not in the TMI's EMCY table (see `sensor_error_faults`).
+                continue;
+            }
             let mfr = if tmi { mfr } else { [0; 5] };
             let want = self.faults & flag != 0;
             let have = self.raised & flag != 0;
@@ -713,6 +552,240 @@ impl Encoder {
                 }
             }
         }
+    }
+}
+
+impl Application for Encoder {
+    type Sample = Sample;
+    type Fault = Fault;
+
+    fn power_on(&mut self) {
+        *self = Encoder::default();
+    }
+
+    /// Forgets runtime state (reset node). What only a power cycle clears stays: the TMI
+    /// lock-out, the storage-corruption flag, the temperature extremes since start-up, and the
+    /// injected fault conditions (the hardware is still faulty after a reset).
+    fn reset(&mut self) {
+        let keep = Encoder {
+            faults: self.faults & !F_MISSING & !F_EVENT_TIMER,
+            sysdata: self.sysdata,
+            lockout: self.lockout,
+            storage_corrupt: self.storage_corrupt,
+            warnings: self.warnings,
+            temp_run: self.temp_run,
+            temp_life: self.temp_life,
+            temp_life_loaded: self.temp_life_loaded,
+            ..Encoder::default()
+        };
+        *self = keep;
+    }
+
+    /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
+    /// to pre-operational.
+    fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
+        let tmi = cx.model.features.tmi_emcy;
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        self.receiving = true;
+        // TMI sensor error: "the current process values stay in the object directory; the cam
+        // and work area states stay unchanged" (§1.14).
+        let frozen = tmi && self.faults & sensor_error_faults(tmi) != 0;
+        // TH / E-Series: a transducer error leaves no usable position on any channel.
+        let blind = !tmi && self.faults & F_TRANSDUCER != 0;
+        let mut missing = false;
+        if !frozen {
+            for ch in 0..n {
+                let nm = if blind { None } else { s.positions_nm[ch] };
+                self.measure(ch, nm, cx);
+                missing |= self.ch[ch].missing;
+            }
+            // A blind transducer's lost pulses are that error, not a second event: its EMCY
+            // goes out once (0x5000 is announced per event).
+            set_flag(&mut self.faults, F_MISSING, missing && !blind);
+        }
+        self.temperature(s.temperature_c, cx);
+        if tmi {
+            let short = event_timer_insufficient(cx);
+            set_flag(&mut self.faults, F_EVENT_TIMER, short);
+        }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// Injects (`active`) or removes a fault condition. Returns true when the model's
+    /// reaction forces the node back to pre-operational.
+    fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
+        let tmi = cx.model.features.tmi_emcy;
+        match f {
+            Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
+            Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
+            Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
+            Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
+            Fault::Communication => set_flag(&mut self.faults, F_COMMUNICATION, active),
+            Fault::PdoLength => {
+                if active && !tmi {
+                    cx.emcy.event(emcy::code::PDO_LENGTH, [0; 5]);
+                }
+            }
+            Fault::CanBusOff => {
+                let was = self.faults & F_BUS_OFF != 0;
+                set_flag(&mut self.faults, F_BUS_OFF, active);
+                if was && !active {
+                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0); on the
+                    // models whose EMCYs follow every change of the error state, the error
+                    // reset follows (TMI: its table has 0x0000 only for the sensor error).
+                    cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
+                    if cx.model.features.emcy_on_register_change {
+                        cx.emcy.reset_message();
+                    }
+                }
+            }
+            Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
+            Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
+            Fault::Warning(bits) => {
+                let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
+                if active {
+                    self.warnings |= bits & supported;
+                } else {
+                    self.warnings &= !bits;
+                }
+            }
+            Fault::SystemData(e) if tmi => {
+                let was = self.sysdata & e.bit() != 0;
+                set_flag(&mut self.sysdata, e.bit(), active);
+                if active && !was {
+                    if e.locks_out() {
+                        // Lock-out L: pre-operational until a power cycle; the EMCY repeats
+                        // on every refused start.
+                        self.lockout = Some(e.mfr());
+                    }
+                    self.force_preop = true;
+                }
+            }
+            Fault::SystemData(_) => set_flag(&mut self.faults, F_TRANSDUCER, active),
+        }
+        self.sync(cx);
+        core::mem::take(&mut self.force_preop)
+    }
+
+    /// The rule of application hook `h` for a write of `raw` to `sub`.
+    fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+        match h {
+            // D2: only the code-sequence bit.
+            hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
+            // R31: whole µm, not below the variant's minimum step.
+            hook::MEASURING_STEP if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
+            hook::MEASURING_STEP if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
+            // Four cams per channel: bits 4…7 name no cam.
+            hook::CAM_SWITCH if sub >= 1 && raw > 0x0F => Err(Abort::InvalidValue),
+            _ => Ok(()),
+        }
+    }
+
+    /// The side effects of application hook `h` once `raw` was written to `sub`.
+    fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
+        match h {
+            hook::PRESET => {
+                let ch = (sub as usize).wrapping_sub(1);
+                if ch < MAX_CHANNELS {
+                    self.preset(ch, raw, cx);
+                    self.publish(ch, cx);
+                }
+            }
+            hook::CODE_SEQUENCE => {
+                cx.od.set_value(0x6500, 0, raw);
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            hook::MEASURING_STEP => {
+                // Offsets stay in position units (the manual says nothing about rescaling a
+                // preset when the step changes): write the preset again after changing it.
+                for ch in 0..n {
+                    self.publish(ch, cx);
+                }
+            }
+            hook::CYCLIC_TIMER => {
+                // D12: one value with TPDO1's event timer.
+                cx.od.set_value(0x1800, 5, raw);
+                cx.pdo.reconfigure(0, cx.od, cx.now);
+            }
+            hook::CAM_SWITCH | hook::CAM_LIMIT | hook::WORK_AREA_LIMIT => {
+                let ch = (sub as usize).wrapping_sub(1);
+                if ch < n {
+                    self.publish(ch, cx);
+                }
+            }
+            _ => {}
+        }
+        self.sync(cx);
+    }
+
+    /// A communication parameter `sub` of TPDO `n` changed: 0x6200 is one value with TPDO1's
+    /// event timer (D12).
+    fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+        if n == 0 && sub == 5 {
+            cx.od.set_value(0x6200, 0, raw);
+        }
+    }
+
+    /// Values derived from other objects, brought up to date just before an SDO read of an
+    /// object with application hook `h` (they must be right even when no measurement cycle ran
+    /// since the change): 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002
+    /// carries the NMT state.
+    fn refresh(&self, h: u8, od: &mut Dictionary, nmt: NmtState) {
+        match h {
+            hook::OPERATING_STATUS => {
+                let v = od.value(0x6000, 0).unwrap_or(0);
+                od.set_value(0x6500, 0, v);
+            }
+            hook::OFFSET => {
+                let v = od.value(0x650C, 1).unwrap_or(0);
+                od.set_value(0x6509, 0, v);
+            }
+            hook::MANUFACTURER_STATUS => {
+                od.set_value(0x1002, 0, self.status(nmt));
+            }
+            _ => {}
+        }
+    }
+
+    /// Whether values of the automatically stored group changed since the last call (the node
+    /// then persists them; TH 0x2901 operating-life extremes, D19).
+    fn take_auto_dirty(&mut self) -> bool {
+        core::mem::take(&mut self.auto_dirty)
+    }
+
+    /// The TMI lock-out (§1.14): the start is refused and the lock-out EMCY repeats.
+    fn refuses_start(&self, emcy: &mut Emcy) -> bool {
+        if let Some(mfr) = self.lockout {
+            emcy.event(emcy::code::HARDWARE, mfr);
+            return true;
+        }
+        false
+    }
+
+    /// The TMI reports corrupt storage itself (0x1002 bit 14); the others leave it to the
+    /// generic EMCY 0x6300.
+    fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
+        self.storage_corrupt = true;
+        cx.model.features.tmi_emcy
+    }
+}
+
+/// Conditions the TMI's EMCY table (002 §1.14) has no code for. Supply voltage and temperature
+/// reach its electronics as an internal error of the sensing element: the TMI reports them as
+/// its "Sensor Error" (0x5000 1/1/0, with that error's reaction); a generic communication fault
+/// it does not report at all (DECISIONS.md).
+const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION;
+
+/// The conditions that make the model's sensor error (0x5000).
+const fn sensor_error_faults(tmi: bool) -> u16 {
+    if tmi {
+        F_TRANSDUCER | F_VOLTAGE | F_TEMPERATURE
+    } else {
+        F_TRANSDUCER
     }
 }
 

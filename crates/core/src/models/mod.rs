@@ -40,11 +40,33 @@ pub struct Features {
     pub kill_signature: bool,
     /// E-Series: writing 0xFFFFFFFF to a preset clears it.
     pub preset_clear: bool,
+    /// The preset (0x6010/n) is the position value at the start of the measuring range, added
+    /// to every measurement, rather than the value the current position takes when it is
+    /// written (TMI: it has no 0x650C offset object, and its work-area bit 0 is set at
+    /// "Position <= Preset Value", 002 §1.11.2, which only this reading makes the start of the
+    /// range; DECISIONS.md).
+    pub preset_zero_shift: bool,
     /// TMI-style EMCY table and reactions (0x9080 / 0x9090 on cam / work-area changes, 0x5000
     /// with sub-codes, lock-out).
     pub tmi_emcy: bool,
     /// Cams are windows [low, high] with hysteresis (TMI, CiA 406) instead of thresholds.
     pub window_cams: bool,
+    /// The power-on EMCY (0x0000) follows every boot-up (D14; TH and E-Series, whose manuals
+    /// say "Power-on / reset"; the TMI manual has none).
+    pub power_on_emcy: bool,
+    /// A SYNC with more than one data byte raises EMCY 0x8240 "unexpected SYNC data length"
+    /// (CiA 301; the TMI's EMCY table has no such code, so it ignores the frame).
+    pub sync_length_emcy: bool,
+    /// An EMCY 0x0000 goes along with every change of the error register when an error
+    /// clears, not only when the last one does (TH / E-Series: "Emergency objects go along
+    /// with changes of the internal error status register"; TMI: 0x0000 is "Sensor Error
+    /// resetted", sent once no error is left). Also the 0x0000 after "recovered from bus-off".
+    pub emcy_on_register_change: bool,
+    /// A TPDO's event timer must stay above its inhibit time (TMI R27).
+    pub event_timer_above_inhibit: bool,
+    /// A node without a valid node-id enters LSS configuration by itself (TMI, DSP 305 V1.1
+    /// R7); DS 305 V2 nodes wait in LSS waiting for a master to select them.
+    pub lss_unconfigured_configures: bool,
 }
 
 /// The unit-specific configuration (what the order code and label say).
@@ -120,6 +142,9 @@ pub struct Model {
     pub vendor: &'static str,
     /// The object dictionary, sorted by index and sub-index.
     pub entries: &'static [Entry],
+    /// `entries[i].key()` for every entry, in the same order (`table::keys`): the dictionary
+    /// searches these, a dense array, rather than the entries.
+    pub keys: &'static [u32],
     /// Behaviour switches.
     pub features: Features,
     /// Resolves [`Param`] defaults for a unit.
@@ -189,6 +214,7 @@ macro_rules! entry {
             default: $def,
             range: $crate::od::Range::$range $( ( $($r)* ) )?,
             group: $crate::od::Group::$grp,
+            hook: $crate::od::Hook::None,
         }
     };
 }
@@ -235,7 +261,7 @@ pub(crate) use tpdo_map_names;
 
 /// Compile-time table assembly.
 pub(crate) mod table {
-    use crate::od::{Access, DataType, Default, Entry, Group, Range};
+    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range};
 
     const BLANK: Entry = Entry {
         index: 0,
@@ -247,6 +273,7 @@ pub(crate) mod table {
         default: Default::Const(0),
         range: Range::Any,
         group: Group::Volatile,
+        hook: Hook::None,
     };
 
     /// A per-channel array: sub 0 (UNSIGNED8 const, number of channels) and `N - 1` channel
@@ -273,6 +300,7 @@ pub(crate) mod table {
             default: Default::Const(N as u32 - 1),
             range: Range::Any,
             group: Group::Volatile,
+            hook: Hook::None,
         };
         let mut i = 1;
         while i < N {
@@ -286,6 +314,7 @@ pub(crate) mod table {
                 default,
                 range,
                 group,
+                hook: Hook::None,
             };
             i += 1;
         }
@@ -333,6 +362,7 @@ pub(crate) mod table {
             default: Default::Const(highest),
             range: Range::Any,
             group: Group::Volatile,
+            hook: Hook::None,
         };
         out[1] = Entry {
             index,
@@ -344,6 +374,7 @@ pub(crate) mod table {
             default: c.cob,
             range: Range::Any,
             group: c.group,
+            hook: Hook::TpdoComm,
         };
         out[2] = Entry {
             index,
@@ -355,6 +386,7 @@ pub(crate) mod table {
             default: Default::Const(c.ttype),
             range: c.ttype_range,
             group: c.group,
+            hook: Hook::TpdoComm,
         };
         let mut n = 3;
         if c.inhibit {
@@ -368,6 +400,7 @@ pub(crate) mod table {
                 default: Default::Const(0),
                 range: Range::Any,
                 group: c.group,
+                hook: Hook::TpdoComm,
             };
             n += 1;
         }
@@ -382,6 +415,7 @@ pub(crate) mod table {
                 default: Default::Const(ms),
                 range: Range::Any,
                 group: c.group,
+                hook: Hook::TpdoComm,
             };
             n += 1;
         }
@@ -415,7 +449,32 @@ pub(crate) mod table {
                 default: Default::Const(if i == 0 { count } else { maps[i - 1] }),
                 range: Range::Any,
                 group,
+                hook: Hook::TpdoMap,
             };
+            i += 1;
+        }
+        out
+    }
+
+    /// `entries` with `hook` on every sub-index but 0 (a per-channel array whose channel
+    /// entries one service rule covers).
+    pub const fn hooked<const N: usize>(mut entries: [Entry; N], hook: Hook) -> [Entry; N] {
+        let mut i = 0;
+        while i < N {
+            if entries[i].sub != 0 {
+                entries[i].hook = hook;
+            }
+            i += 1;
+        }
+        entries
+    }
+
+    /// The search keys of a table ([`Entry::key`] of each entry, in order).
+    pub const fn keys<const N: usize>(t: &[Entry; N]) -> [u32; N] {
+        let mut out = [0u32; N];
+        let mut i = 0;
+        while i < N {
+            out[i] = t[i].key();
             i += 1;
         }
         out

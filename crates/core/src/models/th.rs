@@ -10,6 +10,7 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
     Access::{Ro, Rw},
@@ -17,7 +18,7 @@ use crate::od::{
     Default::*,
     Entry,
     Group::*,
-    Param,
+    Hook, Param,
     Range::*,
 };
 
@@ -26,32 +27,32 @@ const COMM: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
     // Mappable so eight copies fill a TPDO (conformance PDO-25 / PDO-30).
     entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
-    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile),
-    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live),
-    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live),
-    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live),
-    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live),
-    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live),
-    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live),
-    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live),
-    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live),
-    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm),
+    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("C304")),
     entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str("1.00")),
     entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str("1.01")),
     // Tracks the active node-id (Table 15 default 0x7F = the default node-id).
     entry!(0x100B, 0, "Node-ID", Unsigned32, Ro, Param(Param::NodeId)),
-    entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm),
-    entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm),
-    entry!(0x100E, 0, "COB-ID guarding protocol", Unsigned32, Rw, NodeId(0x700), Any, Comm),
+    entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
+    entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
+    entry!(0x100E, 0, "COB-ID guarding protocol", Unsigned32, Rw, NodeId(0x700), Any, Comm).with_hook(Hook::GuardingCobId),
     entry!(0x100F, 0, "Number of SDOs supported", Unsigned32, Const, Const(1)),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(1)),
-    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
     entry!(0x1011, 0, "Restore default parameters: highest sub-index", Unsigned8, Const, Const(1)),
-    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Comm),
-    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Comm),
-    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
+    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Comm).with_hook(Hook::EmcyCobId),
+    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::EmcyInhibit),
+    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
     entry!(0x1018, 0, "Identity object: number of entries", Unsigned8, Const, Const(4)),
     entry!(0x1018, 1, "Vendor-ID", Unsigned32, Const, Const(0x0000_0040)),
     entry!(0x1018, 2, "Product code", Unsigned32, Const, Const(PRODUCT_CODE)),
@@ -109,24 +110,24 @@ const MFR: &[Entry] = &[
     entry!(0x2901, 4, "Max. temperature over operational life", Integer8, Ro, Live, Any, Auto),
     entry!(0x2901, 5, "Min. temperature over operational life", Integer8, Ro, Live, Any, Auto),
     // D2: only bit 0 (code sequence); the encoder refuses other bits with 0x06090030.
-    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App),
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App).with_hook(Hook::App(hook::CODE_SEQUENCE)),
     // D20: stored, no effect (scaling is fixed).
     entry!(0x6002, 0, "Total measuring range", Unsigned32, Rw, Const(0), Any, App),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::App(hook::MEASURING_STEP)),
     entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(Param::VelocityStep)),
 ];
 
 #[rustfmt::skip]
 const STATUS: &[Entry] = &[
     // D12: one value with 0x1800/5 (node.rs keeps them equal).
-    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App),
+    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App).with_hook(Hook::App(hook::CYCLIC_TIMER)),
 ];
 
 #[rustfmt::skip]
 const DIAG: &[Entry] = &[
     // D2: reads the active 0x6000.
-    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live),
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::App(hook::OPERATING_STATUS)),
     entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
     // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
@@ -154,20 +155,20 @@ const PARTS: &[&[Entry]] = &[
     &table::tpdo_map::<9>(0x1A02, tpdo_map_names!(3), 0, map(3), Comm),
     &table::tpdo_map::<9>(0x1A03, tpdo_map_names!(4), 0, map(4), Comm),
     MFR,
-    &channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::PRESET)),
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, Any, Volatile),
     STATUS,
     &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, Any, Volatile),
-    &channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App),
+    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
     &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, Any, Volatile),
-    &channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), Any, App),
-    &channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), Any, App),
+    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
     DIAG,
     // The offsets the presets produced (CiA 406), stored with "save" so a preset survives a
     // power cycle; "load" returns them to 0.
@@ -176,6 +177,7 @@ const PARTS: &[&[Entry]] = &[
 
 const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");
 
 /// The TH's object dictionary.
@@ -210,6 +212,7 @@ pub static TH: Model = Model {
     product: "Temposonics TH CANbus",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
+    keys: &KEYS,
     features: Features {
         tag: 1,
         tpdos: 4,
@@ -223,8 +226,14 @@ pub static TH: Model = Model {
         store_preop_only: false,
         kill_signature: false,
         preset_clear: false,
+        preset_zero_shift: false,
         tmi_emcy: false,
         window_cams: false,
+        power_on_emcy: true,
+        sync_length_emcy: true,
+        emcy_on_register_change: true,
+        event_timer_above_inhibit: false,
+        lss_unconfigured_configures: false,
     },
     param,
     derive,

@@ -16,6 +16,7 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
     Access::{Ro, Rw},
@@ -23,7 +24,7 @@ use crate::od::{
     Default::*,
     Entry,
     Group::*,
-    Param,
+    Hook, Param,
     Range::*,
 };
 
@@ -38,30 +39,30 @@ const COMM: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
     entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
     // §1.15: status bits, NMT state in bits 1–0.
-    entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live),
-    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile),
-    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live),
-    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live),
-    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live),
-    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live),
-    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live),
-    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live),
-    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live),
-    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live),
-    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile),
+    entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live).with_hook(Hook::App(hook::MANUFACTURER_STATUS)),
+    entry!(0x1003, 0, "Pre-defined error field: number of errors", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 1, "Standard error field 1", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 2, "Standard error field 2", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 3, "Standard error field 3", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 4, "Standard error field 4", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 5, "Standard error field 5", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 6, "Standard error field 6", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 7, "Standard error field 7", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 8, "Standard error field 8", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile).with_hook(Hook::SyncCobId),
     // SPEC §1: the manual names no device; "TMI".
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("TMI")),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(3)),
-    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1010, 2, "Store communication parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1010, 3, "Store application parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1010, 2, "Store communication parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1010, 3, "Store application parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
     entry!(0x1011, 0, "Restore default parameters: highest sub-index", Unsigned8, Const, Const(3)),
-    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1011, 2, "Restore communication default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1011, 3, "Restore application default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
-    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Volatile),
-    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Volatile),
-    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
+    entry!(0x1011, 2, "Restore communication default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
+    entry!(0x1011, 3, "Restore application default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
+    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Volatile).with_hook(Hook::EmcyCobId),
+    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::EmcyInhibit),
+    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
     entry!(0x1018, 0, "Identity object: number of entries", Unsigned8, Const, Const(4)),
     entry!(0x1018, 1, "Vendor-ID", Unsigned32, Const, Const(0x0000_0182)),
     entry!(0x1018, 2, "Product code", Unsigned32, Ro, Param(Param::ProductCode)),
@@ -121,19 +122,19 @@ const CH: usize = 3;
 #[rustfmt::skip]
 const MFR: &[Entry] = &[
     // D16; "save" stores them, effective after reset communication / power-up.
-    entry!(0x2000, 0, "Node-ID", Unsigned8, Rw, Param(Param::NodeId), MinMax(1, 127), App),
-    entry!(0x2001, 0, "CAN bit rate", Unsigned16, Rw, Param(Param::BitRateKbps), OneOf(BITRATES_2001), App),
+    entry!(0x2000, 0, "Node-ID", Unsigned8, Rw, Param(Param::NodeId), MinMax(1, 127), App).with_hook(Hook::PendingNodeId),
+    entry!(0x2001, 0, "CAN bit rate", Unsigned16, Rw, Param(Param::BitRateKbps), OneOf(BITRATES_2001), App).with_hook(Hook::PendingBitRate),
     // D2.
-    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, Volatile),
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::App(hook::CODE_SEQUENCE)),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
     // R31: 1 µm steps up to 100 µm, not below the variant's minimum (checked by the encoder).
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(Param::PositionStepNm), MinMax(1000, 100_000), App),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(Param::PositionStepNm), MinMax(1000, 100_000), App).with_hook(Hook::App(hook::MEASURING_STEP)),
     entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Rw, Param(Param::VelocityStep), OneOf(&[20, 50, 100, 250]), App),
 ];
 
 #[rustfmt::skip]
 const DIAG: &[Entry] = &[
-    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live),
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::App(hook::OPERATING_STATUS)),
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
     entry!(0x6504, 0, "Supported alarms", Unsigned16, Const, Const(0x0001)),
     entry!(0x6505, 0, "Warnings", Unsigned16, Ro, Live),
@@ -149,33 +150,34 @@ const PARTS: &[&[Entry]] = &[
     &table::tpdo_map::<6>(0x1A00, tpdo_map_names!(1), 4, map(1), Comm),
     &table::tpdo_map::<6>(0x1A01, tpdo_map_names!(2), 4, map(2), Comm),
     MFR,
-    &channels::<CH>(0x6010, chnames!("Preset value"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
+    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::PRESET)),
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2), Integer32, Ro, true, Live, Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2), Integer16, Ro, true, Live, Any, Volatile),
     &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2), Unsigned8, Ro, true, Live, Any, Volatile),
     // Not in the §1.16 storage list.
-    &channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2), Unsigned8, Rw, false, Const(0), Any, Volatile),
-    &channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2), Unsigned8, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6320, chnames!("Cam1 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6321, chnames!("Cam2 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6322, chnames!("Cam3 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6323, chnames!("Cam4 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App),
-    &channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App),
+    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2), Unsigned8, Rw, false, Const(0), Any, Volatile), Hook::App(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2), Unsigned8, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6320, chnames!("Cam1 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6321, chnames!("Cam2 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6322, chnames!("Cam3 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6323, chnames!("Cam4 high limit"; 1, 2), Integer32, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), Any, App), Hook::App(hook::CAM_LIMIT)),
     &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2), Unsigned8, Ro, true, Live, Any, Volatile),
-    &channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2), Integer32, Rw, false, Param(Param::MinPosition), Any, App),
-    &channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2), Integer32, Rw, false, Param(Param::MaxPosition), Any, App),
+    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2), Integer32, Rw, false, Param(Param::MinPosition), Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2), Integer32, Rw, false, Param(Param::MaxPosition), Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
     DIAG,
 ];
 
 const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TMI table unsorted or too large");
 
 /// The TMI's object dictionary.
@@ -231,6 +233,7 @@ pub static TMI: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES,
+    keys: &KEYS,
     features: Features {
         tag: 3,
         tpdos: 2,
@@ -244,8 +247,14 @@ pub static TMI: Model = Model {
         store_preop_only: true,
         kill_signature: true,
         preset_clear: false,
+        preset_zero_shift: true,
         tmi_emcy: true,
         window_cams: true,
+        power_on_emcy: false,
+        sync_length_emcy: false,
+        emcy_on_register_change: false,
+        event_timer_above_inhibit: true,
+        lss_unconfigured_configures: true,
     },
     param,
     derive,

@@ -8,7 +8,7 @@
 
 mod types;
 
-pub use types::{Abort, Access, DataType, Default, Entry, Group, Param, Range};
+pub use types::{Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
 
 /// Most entries a model's table may have (the value array is sized for it). 256, so that a
 /// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
@@ -24,20 +24,28 @@ pub trait ParamSource {
 #[derive(Clone)]
 pub struct Dictionary {
     entries: &'static [Entry],
+    /// `entries[i].key()`, searched by [`Dictionary::find`].
+    keys: &'static [u32],
     values: [u32; MAX_ENTRIES],
 }
 
 impl Dictionary {
-    /// A dictionary for `entries` (sorted by index, sub-index; at most [`MAX_ENTRIES`]) with all
-    /// values zero; call [`Dictionary::load_defaults`] next.
-    pub fn new(entries: &'static [Entry]) -> Self {
+    /// A dictionary for `entries` (sorted by index, sub-index; at most [`MAX_ENTRIES`]) and
+    /// their `keys` (each entry's [`Entry::key`], in the same order) with all values zero; call
+    /// [`Dictionary::load_defaults`] next.
+    pub fn new(entries: &'static [Entry], keys: &'static [u32]) -> Self {
         debug_assert!(entries.len() <= MAX_ENTRIES);
         debug_assert!(
             entries.windows(2).all(|w| w[0].key() < w[1].key()),
             "table not sorted"
         );
+        assert!(
+            keys.len() == entries.len() && keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
+            "keys do not match the table"
+        );
         Dictionary {
             entries,
+            keys,
             values: [0; MAX_ENTRIES],
         }
     }
@@ -52,7 +60,7 @@ impl Dictionary {
     #[inline]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
         let key = (index as u32) << 8 | sub as u32;
-        match self.entries.binary_search_by_key(&key, Entry::key) {
+        match self.keys.binary_search(&key) {
             Ok(slot) => Ok(slot),
             Err(pos) => {
                 let has_index = self.entries.get(pos).is_some_and(|e| e.index == index)

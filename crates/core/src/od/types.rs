@@ -133,6 +133,48 @@ pub enum Group {
     Auto,
 }
 
+/// What an access to an entry sets in motion beyond reading or storing its value: the rule of the
+/// service that owns the object, declared once in the model's table (CANopenNode registers such
+/// per-object extensions at run time; here they are data). [`Hook::None`] entries are plain
+/// values: the table's type, access and range checks are all there is to them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Hook {
+    /// A plain value.
+    None,
+    /// 0x1003 error history: a read beyond the recorded errors has no data; writing sub 0
+    /// clears the history (EMCY service).
+    ErrorHistory,
+    /// 0x1005 COB-ID SYNC: consumer only, 11-bit, not a restricted CAN-ID (SYNC consumer).
+    SyncCobId,
+    /// 0x100C guard time / 0x100D life time factor (error control).
+    Guarding,
+    /// 0x100E COB-ID of the guarding protocol: where guarding requests are answered.
+    GuardingCobId,
+    /// 0x1010 store parameters: the signature starts a store of the sub's scope.
+    StoreParameters,
+    /// 0x1011 restore default parameters: the signature forgets the sub's scope.
+    RestoreDefaults,
+    /// 0x1014 COB-ID EMCY (EMCY producer).
+    EmcyCobId,
+    /// 0x1015 EMCY inhibit time.
+    EmcyInhibit,
+    /// 0x1017 producer heartbeat time.
+    Heartbeat,
+    /// A TPDO communication parameter (0x1800…, PDO service).
+    TpdoComm,
+    /// A TPDO mapping parameter (0x1A00…, PDO service).
+    TpdoMap,
+    /// An object copy of the node-id that the next reset communication activates (TMI
+    /// 0x2000): one value with LSS "configure node-id".
+    PendingNodeId,
+    /// An object copy of the bit rate (kbit/s, 0xFFFF autobaud) that the next reset activates
+    /// (TMI 0x2001): one value with LSS "configure bit timing".
+    PendingBitRate,
+    /// An object of the application, which validates it, reacts to writes and refreshes it
+    /// before reads; the number is the application's own (e.g. `encoder::hook`).
+    App(u8),
+}
+
 /// Values that depend on the unit's configuration rather than on the model alone.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Param {
@@ -210,9 +252,39 @@ pub struct Entry {
     pub range: Range,
     /// Storage group.
     pub group: Group,
+    /// The owning service's rule for this object.
+    pub hook: Hook,
+}
+
+impl Hook {
+    /// Whether a write sets something in motion once the value has landed (the other hooks
+    /// only check a write, or act instead of storing it).
+    #[inline]
+    pub const fn acts_when_written(self) -> bool {
+        !matches!(
+            self,
+            Hook::None
+                | Hook::SyncCobId
+                | Hook::EmcyCobId
+                | Hook::StoreParameters
+                | Hook::RestoreDefaults
+        )
+    }
 }
 
 impl Entry {
+    /// The entry with `hook` (table construction).
+    pub const fn with_hook(mut self, hook: Hook) -> Entry {
+        self.hook = hook;
+        self
+    }
+
+    /// Whether a reset communication reloads the entry: the communication profile area
+    /// (0x1000–0x1FFF, CiA 301); everything else is reloaded by reset node only (D6).
+    pub const fn reset_by_comm(&self) -> bool {
+        self.index >= 0x1000 && self.index <= 0x1FFF
+    }
+
     /// The `index << 8 | sub` key the table is sorted by.
     pub const fn key(&self) -> u32 {
         (self.index as u32) << 8 | self.sub as u32

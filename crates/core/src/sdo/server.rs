@@ -700,10 +700,15 @@ impl SdoServer {
     /// The deadline of a transfer in progress.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        if self.state == State::Idle {
-            None
-        } else {
-            self.deadline
+        (self.due_us() != u64::MAX).then_some(Instant(self.due_us()))
+    }
+
+    /// [`SdoServer::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    #[inline]
+    pub fn due_us(&self) -> u64 {
+        match self.deadline {
+            Some(t) if self.state != State::Idle => t.0,
+            _ => u64::MAX,
         }
     }
 

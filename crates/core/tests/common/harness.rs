@@ -32,7 +32,7 @@ use canpos_core::models::{self, Model};
 use canpos_core::nmt::NmtState;
 use canpos_core::sdo::TransferKind;
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 
 const UNCONFIGURED: u8 = 0xFF;
 
@@ -59,7 +59,7 @@ impl Input<'_> {
 
 /// The node under test and what the checker knows about it.
 pub struct Checker {
-    pub node: Node<RamStorage>,
+    pub node: SensorNode<RamStorage>,
     pub model: &'static Model,
     pub now: Instant,
     powered: bool,

@@ -3,11 +3,11 @@
 
 use canpos_core::models::Model;
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant, Node, SensorNode};
 
 /// A node with RAM storage on a virtual clock.
 pub struct Rig {
-    pub node: Node<RamStorage>,
+    pub node: SensorNode<RamStorage>,
     pub now: Instant,
 }
 

@@ -1,0 +1,116 @@
+//! The application a node runs: what the CiA 301 / 305 stack hands on for the objects and
+//! events it does not own itself.
+//!
+//! The stack (NMT, SDO, PDO, EMCY, error control, storage, LSS) knows nothing of encoders or
+//! products. An object in the model's table whose hook is [`crate::od::Hook::App`] belongs to
+//! the application: the stack asks it to [`Application::validate`] a write, tells it what was
+//! [`Application::written`], lets it [`Application::refresh`] a derived value before a read,
+//! and runs its [`Application::cycle`] with each process sample. CiA 406
+//! ([`crate::encoder::Encoder`]) is the sensors' application; [`Plain`] is a CiA 301 device with
+//! no application of its own (every object a plain value).
+
+use crate::emcy::Emcy;
+use crate::models::{DeviceConfig, Model};
+use crate::nmt::NmtState;
+use crate::od::{Abort, Dictionary};
+use crate::pdo::Tpdos;
+use crate::wire::Instant;
+
+/// What the application may touch while it runs a cycle or reacts to a write.
+pub struct AppCtx<'a> {
+    /// The dictionary (live values are written here).
+    pub od: &'a mut Dictionary,
+    /// EMCY producer.
+    pub emcy: &'a mut Emcy,
+    /// TPDOs (told about changed mapped values).
+    pub pdo: &'a mut Tpdos,
+    /// The product model.
+    pub model: &'static Model,
+    /// The unit configuration (stroke, cycle time, channel count).
+    pub cfg: &'a DeviceConfig,
+    /// The NMT state (TMI 0x1002 bits 1–0).
+    pub nmt: NmtState,
+    /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
+    pub bitrate_kbps: u16,
+    /// Current time.
+    pub now: Instant,
+}
+
+/// Read-only view for write validation.
+pub struct AppView<'a> {
+    /// The dictionary.
+    pub od: &'a Dictionary,
+    /// The product model.
+    pub model: &'static Model,
+    /// The unit configuration.
+    pub cfg: &'a DeviceConfig,
+}
+
+/// The application side of a node. Every method has the default "nothing to do", so an
+/// application implements only what it owns.
+pub trait Application {
+    /// One process cycle's input (a measurement).
+    type Sample;
+    /// A fault the application reports the way its device's manual says.
+    type Fault: Copy;
+
+    /// Power-on: back to the state of a device that was just switched on.
+    fn power_on(&mut self) {}
+
+    /// NMT reset node: forgets runtime state (what only a power cycle clears stays).
+    fn reset(&mut self) {}
+
+    /// Runs one process cycle. Returns true when the device's reaction forces the node back to
+    /// pre-operational.
+    fn cycle(&mut self, _s: &Self::Sample, _cx: &mut AppCtx<'_>) -> bool {
+        false
+    }
+
+    /// Injects (`active`) or removes a fault. Returns true when the device's reaction forces
+    /// the node back to pre-operational.
+    fn inject(&mut self, _f: Self::Fault, _active: bool, _cx: &mut AppCtx<'_>) -> bool {
+        false
+    }
+
+    /// The rule of application hook `h` for a write of `raw` to sub-index `sub`.
+    fn validate(&self, _h: u8, _sub: u8, _raw: u32, _cx: &AppView<'_>) -> Result<(), Abort> {
+        Ok(())
+    }
+
+    /// The side effects of application hook `h` once `raw` was written to `sub`.
+    fn written(&mut self, _h: u8, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+
+    /// Communication parameter `sub` of TPDO `n` changed (an application may keep an object
+    /// of its own in step, such as CiA 406's cyclic timer 0x6200).
+    fn tpdo_comm_written(&mut self, _n: usize, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+
+    /// Brings a value the application derives (hook `h`) up to date before it is read.
+    fn refresh(&self, _h: u8, _od: &mut Dictionary, _nmt: NmtState) {}
+
+    /// Whether values of the automatically stored group changed since the last call (the node
+    /// then persists them).
+    fn take_auto_dirty(&mut self) -> bool {
+        false
+    }
+
+    /// Whether the application refuses an NMT start now (it raises its own EMCY if so).
+    fn refuses_start(&self, _emcy: &mut Emcy) -> bool {
+        false
+    }
+
+    /// The stored data failed its check at power-on. Returns true when the application reports
+    /// that itself; otherwise the node raises the generic EMCY 0x6300.
+    fn storage_corrupt(&mut self, _cx: &mut AppCtx<'_>) -> bool {
+        false
+    }
+}
+
+/// A CiA 301 device with no application of its own: every object is a plain value (a device
+/// served from an EDS file).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Plain;
+
+impl Application for Plain {
+    type Sample = ();
+    type Fault = core::convert::Infallible;
+}
