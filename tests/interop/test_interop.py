@@ -479,3 +479,17 @@ def test_lss_fastscan_and_selection_by_python_canopen(network, sensors, tmp_path
     time.sleep(0.1)
     assert len([a for a in answers if a[0] == 0x5E]) == 1, answers
     lss.send_switch_state_global(lss.WAITING_STATE)
+
+
+def test_first_save_answers_after_the_store_time(network, sensors, tmp_path):
+    """D7: the answer to "save" leaves at least 20 ms after the request, also the first one
+    after start (the sensor stamps each frame when it handles it). A lower bound only: a
+    loaded machine can only make it later."""
+    for k in range(3):
+        proc = wait_bootup(network, 127, lambda: sensors("th", state_dir=tmp_path / f"s{k}"))
+        node = add_node(network, 127)
+        t0 = time.monotonic()
+        node.sdo.download(0x1010, 1, b"save")
+        assert time.monotonic() - t0 >= 0.020
+        network.nodes.pop(127, None)
+        proc.stop()

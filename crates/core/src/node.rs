@@ -1268,7 +1268,9 @@ impl<A: Application, S: Storage> Device<A, S> {
                 }
                 Ok(())
             }
-            _ => self.validate_service(e, raw),
+            Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) => self.validate_service(e, raw),
+            // The others check nothing beyond the table (or act instead of storing).
+            _ => Ok(()),
         }
     }
 

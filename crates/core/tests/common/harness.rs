@@ -9,8 +9,9 @@
 //!
 //! Invariants checked after every operation ([`Checker::run`] returns the first violation):
 //!
-//! - **own COB-IDs only**: 0x580 + id, 0x700 + id, the EMCY COB-ID (0x1014), the valid TPDO
-//!   COB-IDs (0x180x/1) and 0x7E4 — for the node-id before *or* after the step, since LSS (and
+//! - **own COB-IDs only**: 0x580 + id, 0x700 + id, the guarding COB-ID (0x100E), the EMCY
+//!   COB-ID (0x1014), the valid TPDO COB-IDs (0x180x/1) and 0x7E4 — for the node-id before
+//!   *or* after the step, since LSS (and
 //!   a reset activating a pending node-id) legally change it; no extended frames; nothing while
 //!   powered off or without a node-id except LSS.
 //! - **DLC ≤ 8** and data length = DLC.
@@ -150,6 +151,10 @@ impl Checker {
             if v & 0x8000_0000 == 0 {
                 ids.push((v & 0x7FF) as u16);
             }
+        }
+        // Guarding answers on the COB-ID of 0x100E where the model has it (TH).
+        if let Ok(v) = self.node.read_object(0x100E, 0) {
+            ids.push((v & 0x7FF) as u16);
         }
         for n in 0..u16::from(self.model.features.tpdos) {
             if let Ok(v) = self.node.read_object(0x1800 + n, 1) {
