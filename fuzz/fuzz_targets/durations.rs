@@ -22,12 +22,18 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         .into_iter()
         .flatten()
     {
-        assert!(v.is_finite() && (0.0..=MAX_SECONDS).contains(&v), "{s:?} → {v}");
+        assert!(
+            v.is_finite() && (0.0..=MAX_SECONDS).contains(&v),
+            "{s:?} → {v}"
+        );
         assert!(deadline(now, v).is_some(), "{s:?} → {v} has no deadline");
     }
     if let Ok(speed) = parse_speed(s) {
         let (lo, hi) = SPEED_RANGE;
-        assert!(speed == 0.0 || (lo..=hi).contains(&speed), "{s:?} → {speed}");
+        assert!(
+            speed == 0.0 || (lo..=hi).contains(&speed),
+            "{s:?} → {speed}"
+        );
         if speed > 0.0 {
             // The longest and a short log span at this speed: refused, or a real deadline.
             for span in [MAX_SECONDS, 1.0, 1e-6] {

@@ -74,13 +74,18 @@ fn scenario_file(s: &str) {
                 assert!(d.is_finite() && d > 0.0 && d <= canpos_cli::limits::MAX_SECONDS);
             }
             for e in &checked.scenario.events {
-                assert!(e.at.is_finite() && (0.0..=canpos_cli::limits::MAX_SECONDS).contains(&e.at));
+                assert!(
+                    e.at.is_finite() && (0.0..=canpos_cli::limits::MAX_SECONDS).contains(&e.at)
+                );
                 assert_eq!(e.request.validate(), Ok(()));
             }
         }
         Err(e) => {
             let m = format!("{e:#}");
-            assert!(m.starts_with("fuzz.toml"), "error without the file name: {m}");
+            assert!(
+                m.starts_with("fuzz.toml"),
+                "error without the file name: {m}"
+            );
         }
     }
 }
