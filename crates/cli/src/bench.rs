@@ -369,10 +369,10 @@ struct ScaleArgs {
     #[arg(long, default_value_t = 1)]
     event_ms: u16,
     /// Length of the measured window in seconds (after the warm-up).
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, default_value_t = 10.0, value_parser = crate::limits::parse_positive_seconds)]
     seconds: f64,
     /// Seconds of production before the window starts.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = crate::limits::parse_seconds)]
     warmup: f64,
     /// The bus.
     #[arg(long, value_enum, default_value = "mem")]
@@ -471,7 +471,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
             magnets: vec![250.0],
             ..Default::default()
         };
-        rt.add(build_setup(&opts, &dir.0)?);
+        rt.add(build_setup(&opts, &dir.0)?.setup);
     }
     let handle = rt.spawn()?;
     wait_boot(&mut *master, nodes as usize, Duration::from_secs(10))?;
@@ -560,8 +560,31 @@ fn scale(a: ScaleArgs) -> Result<i32> {
         "cpu_percent": 100.0 * cpu / wall,
         "rss_kib": rss,
     });
+    // The bench's own expectation: every period produced, none skipped.
+    let frames_per_s = (f1 - f0) as f64 / wall;
+    let missed = missed1 - missed0;
+    let mut failures = Vec::new();
+    if missed > 0 {
+        failures.push(format!("{missed} event-timer periods missed"));
+    }
+    if frames_per_s < 0.99 * expected {
+        failures.push(format!(
+            "{frames_per_s:.0} frames/s, under 99 % of the expected {expected:.0}"
+        ));
+    }
+    let mut line = line;
+    line["verdict"] = json!(if failures.is_empty() { "pass" } else { "fail" });
+    line["failures"] = json!(failures);
     println!("{line}");
-    Ok(0)
+    if failures.is_empty() {
+        Ok(0)
+    } else {
+        eprintln!(
+            "error: bench scale missed its expectation: {}",
+            failures.join("; ")
+        );
+        Ok(crate::master::EXIT_REFUSED)
+    }
 }
 
 // ---------------------------------------------------------------------------------- sdo-rtt
@@ -589,8 +612,7 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn sdo_rtt(a: RttArgs) -> Result<i32> {
-    let mut bus = canpos_host::transport::open(&a.bus)
-        .with_context(|| format!("cannot open {} (is the hub running?)", a.bus))?;
+    let mut bus = crate::master::open_bus(&a.bus)?;
     let mut c = SdoClient::new(&mut *bus, a.node, Duration::from_secs(1));
     // Expected answer: whatever 0x1000 holds, the same every time.
     let want = c.upload(0x1000, 0).context("first SDO upload of 0x1000")?;

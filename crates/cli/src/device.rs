@@ -55,17 +55,34 @@ pub struct ServeArgs {
     /// Address to listen on (loopback by default; other addresses only when given here).
     #[arg(long, value_name = "ADDR", default_value = DEFAULT_LISTEN)]
     pub listen: String,
+    /// Most clients connected at once (kept below the open-file limit); one more is refused
+    /// with `< error too many clients >`.
+    #[arg(long, value_name = "N", default_value_t = 10_000,
+          value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub max_clients: u32,
+    /// Seconds a client has from connecting to raw mode.
+    #[arg(long, value_name = "S", default_value_t = 10.0,
+          value_parser = crate::limits::parse_positive_seconds)]
+    pub handshake_timeout: f64,
+    /// Close a raw-mode client that sends nothing for this many seconds (default: never;
+    /// listen-only clients are normal).
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
+    pub idle_timeout: Option<f64>,
 }
 
 /// Runs `canpos bus serve`.
 pub fn bus_serve(args: ServeArgs) -> Result<i32> {
     let stop = stop_signal()?;
-    let hub = Hub::bind(args.listen.as_str())
+    let config = canpos_host::socketcand::HubConfig {
+        max_clients: args.max_clients as usize,
+        handshake_timeout: Duration::from_secs_f64(args.handshake_timeout),
+        idle_timeout: args.idle_timeout.map(Duration::from_secs_f64),
+        ..Default::default()
+    };
+    let hub = Hub::bind_with(args.listen.as_str(), config)
         .with_context(|| format!("cannot listen on {}", args.listen))?;
     let addr = hub.local_addr();
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "the bus is reachable from the network");
-    }
+    warn_if_exposed(addr, "the bus");
     let handle = hub.spawn().context("cannot start the hub")?;
     println!("canpos bus: socketcand hub listening on {addr} (any channel name, e.g. can0)");
     let _ = std::io::stdout().flush();
@@ -104,8 +121,76 @@ pub struct SensorOpts {
     pub ideal: bool,
     /// Noise / unit error seed (default: the serial number).
     pub seed: Option<u64>,
+    /// NMT state to put the node in right after its boot-up (`pre-operational`, the default
+    /// as on a real unit, `operational` or `stopped`).
+    pub nmt: Option<String>,
     /// Factor on the thermal time constants (electronics, waveguide); default 1.
     pub thermal_time_scale: Option<f64>,
+}
+
+/// A problem with one option of a sensor: the option (its scenario key), and what is wrong.
+#[derive(Debug)]
+pub struct SetupError {
+    /// The scenario key / option concerned, when one is.
+    pub field: Option<&'static str>,
+    /// What is wrong.
+    pub error: anyhow::Error,
+}
+
+impl std::fmt::Display for SetupError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:#}", self.error)
+    }
+}
+
+impl std::error::Error for SetupError {}
+
+fn field_err(field: &'static str) -> impl FnOnce(anyhow::Error) -> SetupError {
+    move |error| SetupError {
+        field: Some(field),
+        error,
+    }
+}
+
+/// Something the sensor accepts, as a real unit would, but that is likely a mistake.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SetupWarning {
+    /// The scenario key / option concerned.
+    pub field: &'static str,
+    /// What to know.
+    pub message: String,
+}
+
+/// A sensor ready to add to a runtime, and what its options gave reason to warn about.
+pub struct Built {
+    /// The runtime's description of the sensor.
+    pub setup: SensorSetup,
+    /// Warnings (the caller prints them with the right location).
+    pub warnings: Vec<SetupWarning>,
+    /// The NMT command to give the node after its boot-up, if any (`start`, `stop`).
+    pub nmt: Option<&'static str>,
+}
+
+/// The NMT state names `nmt` takes and the command that reaches each from pre-operational.
+pub const NMT_STATES: [(&str, Option<&str>); 3] = [
+    ("pre-operational", None),
+    ("operational", Some("start")),
+    ("stopped", Some("stop")),
+];
+
+/// Parses an `nmt` state name ([`NMT_STATES`]) into the command that reaches it.
+pub fn parse_nmt_state(s: &str) -> Result<Option<&'static str>, String> {
+    NMT_STATES
+        .iter()
+        .find(|(n, _)| n.eq_ignore_ascii_case(s.trim()))
+        .map(|(_, c)| *c)
+        .ok_or_else(|| {
+            let names: Vec<_> = NMT_STATES.iter().map(|(n, _)| *n).collect();
+            format!(
+                "unknown NMT state `{s}`; expected one of: {}",
+                names.join(", ")
+            )
+        })
 }
 
 fn sim_model(name: &str) -> Option<canpos_sim::Model> {
@@ -130,12 +215,18 @@ fn core_model(name: &str) -> Result<&'static models::Model> {
     })
 }
 
-/// Builds the runtime's description of a sensor from the options.
-pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
+/// Builds the runtime's description of a sensor from the options, checking every value
+/// against the model. The state file is not opened yet (see [`open_storage`]).
+pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError> {
+    let mut warnings = Vec::new();
     let (model, mut cfg, spec): (&'static models::Model, DeviceConfig, SensorSpec) =
         match (&o.model, &o.order_code) {
-            (Some(_), Some(_)) => bail!("give either a model or an order code, not both"),
-            (_, Some(code)) => {
+            (Some(_), Some(_)) => {
+                return Err(field_err("order_code")(anyhow!(
+                    "give either a model or an order code, not both"
+                )))
+            }
+            (_, Some(code)) => (|| {
                 let oc =
                     parse_order_code(code).with_context(|| format!("bad order code `{code}`"))?;
                 let model = core_model(oc.model_name())?;
@@ -146,9 +237,10 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
                 cfg.channels = oc.magnets as u8;
                 cfg.bitrate_kbps = oc.bit_rate_kbit as u16;
                 cfg.cycle_us = spec.cycle_time_us;
-                (model, cfg, spec)
-            }
-            (m, None) => {
+                Ok((model, cfg, spec))
+            })()
+            .map_err(field_err("order_code"))?,
+            (m, None) => (|| {
                 let name = m.as_deref().unwrap_or("th");
                 let model = core_model(name)?;
                 let cfg = model.default_config;
@@ -156,37 +248,93 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
                     sim_model(name).ok_or_else(|| anyhow!("no measurement model for `{name}`"))?;
                 let spec =
                     SensorSpec::for_model(sm, f64::from(cfg.stroke_mm), cfg.channels as usize)?;
-                (model, cfg, spec)
-            }
+                Ok((model, cfg, spec))
+            })()
+            .map_err(field_err("model"))?,
         };
     cfg.cycle_us = spec.cycle_time_us;
     let mut spec = spec;
     if let Some(k) = o.thermal_time_scale {
-        if !(k.is_finite() && k > 0.0) {
-            bail!("thermal time scale {k} must be a positive number");
+        // Bounded too: a huge factor would make the thermal model's arithmetic overflow.
+        if !(k.is_finite() && k > 0.0 && k <= 1e6) {
+            return Err(field_err("thermal_time_scale")(anyhow!(
+                "thermal time scale {} must be a positive number, at most 1e6",
+                control::show_num(k)
+            )));
         }
         spec.thermal_time_constant_s *= k;
         spec.waveguide_time_constant_s *= k;
     }
     if let Some(id) = o.node_id {
         if !(1..=127).contains(&id) && id != 255 {
-            bail!("node-id {id} is out of range (1…127, or 255 = unconfigured)");
+            return Err(field_err("node_id")(anyhow!(
+                "node-id {id} is out of range (1…127, or 255 = unconfigured)"
+            )));
         }
         cfg.node_id = id;
     }
     if let Some(s) = o.serial {
         cfg.serial = s;
     }
+    let nmt = match &o.nmt {
+        Some(n) => parse_nmt_state(n).map_err(|e| field_err("nmt")(anyhow!(e)))?,
+        None => None,
+    };
+    let channels = usize::from(cfg.channels.max(1));
+    let too_many = |n: usize| {
+        anyhow!(
+            "{n} magnets for a {} with {channels} position channel(s); give at most {channels} \
+             (more channels come with the order code's magnet option; an additional magnet on \
+             the rod is the extra-magnet fault)",
+            model.name
+        )
+    };
     let motion: Box<dyn canpos_sim::motion::Motion> = match (&o.motion, o.magnets.is_empty()) {
-        (Some(_), false) => bail!("give either --magnet positions or --motion, not both"),
-        (Some(m), true) => MotionSpec::parse(m)
-            .with_context(|| format!("bad motion spec `{m}`"))?
-            .build()?,
+        (Some(_), false) => {
+            return Err(field_err("motion")(anyhow!(
+                "give either magnet positions or a motion, not both"
+            )))
+        }
+        (Some(m), true) => {
+            let motion = MotionSpec::parse(m)
+                .with_context(|| format!("bad motion spec `{m}`"))
+                .and_then(|s| Ok(s.build()?))
+                .map_err(field_err("motion"))?;
+            if motion.magnets() > channels {
+                return Err(field_err("motion")(too_many(motion.magnets())));
+            }
+            motion
+        }
         (None, false) => {
+            if o.magnets.len() > channels {
+                return Err(field_err("magnets")(too_many(o.magnets.len())));
+            }
             for &mm in &o.magnets {
-                if !mm.is_finite() {
-                    bail!("magnet position {mm} is not a number");
+                if !canpos_sim::motion::in_range(mm) {
+                    return Err(field_err("magnets")(anyhow!(
+                        "magnet position {} mm is not a finite number within ±{:e} mm",
+                        control::show_num(mm),
+                        canpos_sim::motion::MAX_MAGNITUDE
+                    )));
                 }
+                if !(0.0..=spec.stroke_mm).contains(&mm) {
+                    warnings.push(SetupWarning {
+                        field: "magnets",
+                        message: format!(
+                            "magnet at {mm} mm is outside the stroke (0…{} mm); the sensor reports it as a real one would (out of range)",
+                            spec.stroke_mm
+                        ),
+                    });
+                }
+            }
+            if o.magnets.len() < channels {
+                warnings.push(SetupWarning {
+                    field: "magnets",
+                    message: format!(
+                        "{} magnet(s) for {channels} channels: the channels without a magnet report a missing magnet (EMCY 0x5000), as a real unit does",
+                        o.magnets.len()
+                    ),
+                });
             }
             Box::new(Profiles(
                 o.magnets
@@ -208,16 +356,27 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<SensorSetup> {
         }
     };
     let path = runtime::state_file(state_dir, model.name, cfg.serial);
-    Ok(SensorSetup {
-        name: format!("{}-{}", model.name, cfg.serial),
-        model,
-        cfg,
-        spec,
-        seed: o.seed.unwrap_or(u64::from(cfg.serial)),
-        ideal: o.ideal,
-        motion,
-        storage: FileStorage::new(path),
+    Ok(Built {
+        setup: SensorSetup {
+            name: format!("{}-{}", model.name, cfg.serial),
+            model,
+            cfg,
+            spec,
+            seed: o.seed.unwrap_or(u64::from(cfg.serial)),
+            ideal: o.ideal,
+            motion,
+            storage: FileStorage::new(path),
+        },
+        warnings,
+        nmt,
     })
+}
+
+/// Opens the sensor's state file for use: locked against other processes, regular files only,
+/// stale temporaries removed, the directory checked for writing (see [`FileStorage::open`]).
+pub fn open_storage(setup: &mut SensorSetup) -> Result<()> {
+    setup.storage = FileStorage::open(setup.storage.path())?;
+    Ok(())
 }
 
 /// `--node-id`: 1…127 or 255.
@@ -311,6 +470,10 @@ pub struct RunArgs {
     /// apply (--node-id / --bus-bitrate win).
     #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS, conflicts_with = "eds")]
     pub dcf: Option<PathBuf>,
+    /// NMT state right after the boot-up: operational or stopped (default pre-operational, as
+    /// a real unit waits for its master).
+    #[arg(long, value_name = "STATE", value_parser = |s: &str| parse_nmt_state(s).map(|_| s.to_string()))]
+    pub nmt: Option<String>,
 }
 
 /// The sensor options that mean nothing to a device served from an EDS / DCF file.
@@ -325,10 +488,20 @@ const EDS_CONFLICTS: [&str; 8] = [
     "control",
 ];
 
+
+/// See [`canpos_host::warn_if_exposed`].
+pub use canpos_host::warn_if_exposed;
+
 /// Opens the bus (or hosts it), reporting what happened.
 pub(crate) fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
-    let (t, hub) = canpos_host::open_or_host(url)?;
+    let (t, hub) = canpos_host::open_or_host(url).map_err(|e| match e {
+        canpos_host::Error::BadUrl { .. } => {
+            anyhow::Error::new(crate::master::Usage(e.to_string()))
+        }
+        e => anyhow::Error::new(e),
+    })?;
     if let Some(h) = &hub {
+        warn_if_exposed(h.local_addr(), "the bus");
         eprintln!(
             "canpos: nothing listened at {url}; started an embedded socketcand hub on {}",
             h.local_addr()
@@ -377,6 +550,35 @@ fn start_control(
     Ok(Some(srv))
 }
 
+/// Prints what each sensor of a started runtime really is, from its state: the active node-id
+/// (a stored LSS node-id wins over the configured one) and bit rate.
+fn banner(handle: &RuntimeHandle, count: usize, place: &str) -> Result<Vec<u8>> {
+    let mut ids = Vec::new();
+    for i in 0..count {
+        let st = handle.control().request(Request::State { sensor: Some(i) });
+        if st["ok"] != true {
+            bail!(
+                "sensor {i} did not report its state: {}",
+                st["error"].as_str().unwrap_or("no answer")
+            );
+        }
+        let id = st["node_id"].as_u64().unwrap_or(255) as u8;
+        let id_text = if id == 255 {
+            "no node-id (255, LSS unconfigured)".to_string()
+        } else {
+            format!("node-id {id}")
+        };
+        eprintln!(
+            "canpos: sensor {i}: {} ({id_text}, {} kbit/s) on {place}; state file {}",
+            st["name"].as_str().unwrap_or("?"),
+            st["bitrate_kbps"],
+            st["storage"].as_str().unwrap_or("?"),
+        );
+        ids.push(id);
+    }
+    Ok(ids)
+}
+
 /// Runs `canpos run`.
 pub fn run(a: RunArgs) -> Result<i32> {
     if a.eds.is_some() || a.dcf.is_some() {
@@ -392,27 +594,63 @@ pub fn run(a: RunArgs) -> Result<i32> {
         motion: a.motion,
         ideal: a.ideal,
         seed: a.seed,
+        nmt: a.nmt,
         thermal_time_scale: a.thermal_time_scale,
     };
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
-    let setup = build_setup(&opts, &state_dir)?;
+    // A value the model cannot take is a bad command line (exit 2), like clap's own errors.
+    let mut built = build_setup(&opts, &state_dir).map_err(|e| {
+        anyhow::Error::new(crate::master::Usage(format!(
+            "{}{e}",
+            e.field
+                .map(|f| format!("{}: ", flag_of(f)))
+                .unwrap_or_default()
+        )))
+    })?;
+    for w in &built.warnings {
+        tracing::warn!("{}: {}", flag_of(w.field), w.message);
+    }
+    open_storage(&mut built.setup)?;
     let (transport, _hub) = open_bus(&a.bus)?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, a.bus_bitrate);
-    let name = setup.name.clone();
-    let node_id = setup.cfg.node_id;
-    let path = setup.storage.path().to_path_buf();
-    rt.add(setup);
+    rt.add(built.setup);
     let listener = bind_control(a.control.as_deref())?;
     // Boot-up right away (≤ 50 ms after start); everything else comes after.
     rt.power_on_all();
     let handle = rt.spawn()?;
-    eprintln!(
-        "canpos: {name} (node-id {node_id}) on {desc}; state file {}",
-        path.display()
-    );
+    banner(&handle, 1, &desc)?;
+    start_nodes(&handle, &[built.nmt])?;
     let _ctl = start_control(listener, &handle)?;
     supervise(handle, &stop)
+}
+
+/// The `canpos run` option of a [`SensorOpts`] field.
+fn flag_of(field: &str) -> String {
+    match field {
+        "magnets" => "--magnet".into(),
+        f => format!("--{}", f.replace('_', "-")),
+    }
+}
+
+/// Gives each sensor its start-up NMT command (`nmt = "operational"`).
+fn start_nodes(handle: &RuntimeHandle, nmt: &[Option<&'static str>]) -> Result<()> {
+    for (i, cmd) in nmt.iter().enumerate() {
+        if let Some(cmd) = cmd {
+            let r = handle.control().request(Request::Nmt {
+                sensor: Some(i),
+                command: (*cmd).to_string(),
+            });
+            if r["ok"] != true {
+                bail!(
+                    "sensor {i}: NMT {cmd} at start: {}",
+                    r["error"].as_str().unwrap_or("refused")
+                );
+            }
+            tracing::info!(sensor = i, command = cmd, "NMT at start");
+        }
+    }
+    Ok(())
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -475,6 +713,12 @@ pub enum CtlAction {
         #[arg(allow_negative_numbers = true)]
         celsius: f64,
     },
+    /// Hand the sensor an NMT command as if its master had sent it (nothing goes on the bus).
+    Nmt {
+        /// start, stop, preop, reset or reset-comm.
+        #[arg(value_parser = ["start", "stop", "preop", "reset", "reset-comm"])]
+        command: String,
+    },
     /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors).
     State,
 }
@@ -511,6 +755,7 @@ pub fn ctl(a: CtlArgs) -> Result<i32> {
         },
         CtlAction::PowerCycle => Request::PowerCycle { sensor },
         CtlAction::Ambient { celsius } => Request::Ambient { sensor, celsius },
+        CtlAction::Nmt { command } => Request::Nmt { sensor, command },
         CtlAction::State => Request::State { sensor },
     };
     let pretty = matches!(req, Request::State { .. });
@@ -551,116 +796,89 @@ pub struct ScenarioArgs {
     pub control: Option<String>,
 }
 
-/// A scenario file.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Scenario {
-    /// Bus URL (default: the default socketcand URL).
-    pub bus: Option<String>,
-    /// Bus bit rate, kbit/s.
-    pub bus_bitrate: Option<u32>,
-    /// State directory.
-    pub state_dir: Option<PathBuf>,
-    /// Control interface address.
-    pub control: Option<String>,
-    /// Stop after this many seconds (default: run until Ctrl-C).
-    pub duration: Option<f64>,
-    /// The sensors.
-    #[serde(default, rename = "sensor")]
-    pub sensors: Vec<SensorOpts>,
-    /// Timed events: control requests at a time.
-    #[serde(default, rename = "event")]
-    pub events: Vec<Event>,
-}
-
-/// A timed event: a control request sent `at` seconds after the start.
-#[derive(Debug, Deserialize)]
-pub struct Event {
-    /// Seconds after the start.
-    pub at: f64,
-    /// The request (same fields as the control interface).
-    #[serde(flatten)]
-    pub request: Request,
-}
-
-/// Reads and checks a scenario file.
-pub fn load_scenario(path: &Path) -> Result<Scenario> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let sc: Scenario =
-        toml::from_str(&text).with_context(|| format!("bad scenario file {}", path.display()))?;
-    if sc.sensors.is_empty() {
-        bail!("{}: no [[sensor]] defined", path.display());
-    }
-    for (i, e) in sc.events.iter().enumerate() {
-        if !(e.at.is_finite() && e.at >= 0.0) {
-            bail!("{}: event {i}: `at` must be ≥ 0 s", path.display());
-        }
-    }
-    if let Some(d) = sc.duration {
-        if !(d.is_finite() && d > 0.0) {
-            bail!("{}: duration must be > 0 s", path.display());
-        }
-    }
-    Ok(sc)
-}
-
 /// Runs `canpos scenario`.
 pub fn scenario(a: ScenarioArgs) -> Result<i32> {
     let stop = stop_signal()?;
-    let mut sc = load_scenario(&a.file)?;
-    let state_dir = a
-        .state_dir
-        .or(sc.state_dir.take())
-        .unwrap_or_else(runtime::default_state_dir);
+    let (checked, built) = crate::scenario::load(&a.file, a.state_dir.clone())?;
+    for w in &checked.warnings {
+        tracing::warn!("{w}");
+    }
+    let mut sc = checked.scenario;
     let mut setups = Vec::new();
-    for (i, s) in sc.sensors.iter().enumerate() {
-        setups.push(build_setup(s, &state_dir).with_context(|| format!("sensor {i}"))?);
+    let mut nmt = Vec::new();
+    for (i, mut b) in built.into_iter().enumerate() {
+        open_storage(&mut b.setup).with_context(|| format!("sensor {i}"))?;
+        nmt.push(b.nmt);
+        setups.push(b.setup);
     }
     let url = a
         .bus
         .or(sc.bus.take())
         .unwrap_or_else(|| canpos_host::DEFAULT_URL.to_string());
     let (transport, _hub) = open_bus(&url)?;
-    let mut rt = Runtime::new(transport, sc.bus_bitrate);
+    let desc = transport.describe();
+    let mut rt = Runtime::new(transport, checked.bus_bitrate);
+    let count = setups.len();
     for s in setups {
-        eprintln!(
-            "canpos: sensor {}: {} node-id {}",
-            rt.len(),
-            s.name,
-            s.cfg.node_id
-        );
         rt.add(s);
     }
     let listener = bind_control(a.control.or(sc.control.take()).as_deref())?;
     rt.power_on_all();
     let handle = rt.spawn()?;
+    let ids = banner(&handle, count, &desc)?;
+    // The file's node-ids are distinct (checked); stored LSS node-ids may still collide.
+    for (i, id) in ids.iter().enumerate() {
+        if let Some(j) = ids[..i].iter().position(|x| x == id && *x != 255) {
+            tracing::warn!(
+                "sensors {j} and {i} are both on node-id {id} (a stored LSS node-id); their answers will collide"
+            );
+        }
+    }
+    start_nodes(&handle, &nmt)?;
     let _ctl = start_control(listener, &handle)?;
     // Timed events on their own thread, on absolute times from the start.
     let ctl = handle.control();
     let mut events = std::mem::take(&mut sc.events);
     events.sort_by(|a, b| a.at.total_cmp(&b.at));
     let t0 = std::time::Instant::now();
-    std::thread::spawn(move || {
-        for e in events {
-            runtime::sleep_until(t0 + Duration::from_secs_f64(e.at));
-            let answer = ctl.request(e.request.clone());
-            if answer["ok"] == true {
-                tracing::info!(at = e.at, request = ?e.request, "event");
-            } else {
-                tracing::error!(at = e.at, request = ?e.request, answer = %answer, "event refused");
+    std::thread::Builder::new()
+        .name("canpos-events".into())
+        .spawn(move || {
+            for e in events {
+                // `at` is checked (≤ limits::MAX_SECONDS) when the file is loaded.
+                let Some(when) = crate::limits::deadline(t0, e.at) else {
+                    break;
+                };
+                runtime::sleep_until(when);
+                let answer = ctl.request(e.request.clone());
+                if answer["ok"] == true {
+                    tracing::info!("event at {} s: {}", e.at, e.request);
+                } else {
+                    tracing::error!(
+                        "event at {} s refused: {}: {}",
+                        e.at,
+                        e.request,
+                        answer["error"].as_str().unwrap_or("no reason given")
+                    );
+                }
             }
-        }
-    });
+        })
+        .context("cannot start the event thread")?;
     if let Some(d) = sc.duration {
-        let end = t0 + Duration::from_secs_f64(d);
-        loop {
-            if stop.recv_deadline(end).is_ok() || std::time::Instant::now() >= end {
-                break;
+        if let Some(end) = crate::limits::deadline(t0, d) {
+            loop {
+                if stop.recv_deadline(end).is_ok() || std::time::Instant::now() >= end {
+                    break;
+                }
+                if handle.is_finished() {
+                    break;
+                }
             }
+            return match handle.stop() {
+                Ok(_) => Ok(0),
+                Err(e) => Err(anyhow!("the bus connection ended: {e}")),
+            };
         }
-        handle.stop()?;
-        return Ok(0);
     }
     supervise(handle, &stop)
 }
@@ -682,7 +900,7 @@ pub struct DemoArgs {
     )]
     pub motion: String,
     /// Stop after this many seconds (default: until Ctrl-C).
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
     pub duration: Option<f64>,
 }
 
@@ -718,6 +936,7 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
             .context("cannot start the hub")?,
     };
     let addr: SocketAddr = hub.local_addr();
+    warn_if_exposed(addr, "the bus");
     let node_port = hub.attach("can0");
     let mut mon = hub.attach("can0");
     let hub = hub.spawn()?;
@@ -727,7 +946,9 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
         ideal: false,
         ..SensorOpts::default()
     };
-    let setup = build_setup(&opts, &state_dir)?;
+    let mut built = build_setup(&opts, &state_dir)?;
+    open_storage(&mut built.setup)?;
+    let setup = built.setup;
     let node = setup.cfg.node_id;
     let mut rt = Runtime::new(Box::new(node_port), None);
     rt.add(setup);
@@ -837,17 +1058,18 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let plain = build_setup(&SensorOpts::default(), dir.path())
             .unwrap()
+            .setup
             .spec;
         let o = SensorOpts {
             thermal_time_scale: Some(0.01),
             ..SensorOpts::default()
         };
-        let fast = build_setup(&o, dir.path()).unwrap().spec;
+        let fast = build_setup(&o, dir.path()).unwrap().setup.spec;
         assert!((fast.thermal_time_constant_s - plain.thermal_time_constant_s * 0.01).abs() < 1e-9);
         assert!(
             (fast.waveguide_time_constant_s - plain.waveguide_time_constant_s * 0.01).abs() < 1e-9
         );
-        for bad in [0.0, -1.0, f64::NAN] {
+        for bad in [0.0, -1.0, f64::NAN, 1e300] {
             let o = SensorOpts {
                 thermal_time_scale: Some(bad),
                 ..SensorOpts::default()
@@ -859,12 +1081,11 @@ mod tests {
     #[test]
     fn example_scenario_parses() {
         let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/scenario.toml");
-        let sc = load_scenario(&p).unwrap();
-        assert!(sc.sensors.len() >= 2);
-        assert!(!sc.events.is_empty());
         let dir = tempfile::tempdir().unwrap();
-        for s in &sc.sensors {
-            build_setup(s, dir.path()).unwrap();
-        }
+        let (checked, built) = crate::scenario::load(&p, Some(dir.path().into())).unwrap();
+        assert!(checked.scenario.sensors.len() >= 2);
+        assert!(!checked.scenario.events.is_empty());
+        assert_eq!(built.len(), checked.scenario.sensors.len());
+        assert_eq!(checked.warnings, Vec::<String>::new());
     }
 }

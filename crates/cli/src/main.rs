@@ -1,13 +1,11 @@
 //! `canpos`: run simulated CANopen position sensors, serve a virtual bus, and act as the
 //! commissioning master. `canpos` without arguments runs the demo.
 //!
-//! Exit codes: 0 success, 1 failure (the message says why), 2 bad command line.
+//! Exit codes (README "Exit codes"): 0 success, 1 runtime error (the message says why), 2 bad
+//! command line, 3 the device refused (SDO abort, LSS error status) or nothing was found, 4 no
+//! answer within the timeout.
 
-mod bench;
-mod device;
-mod eds_run;
-mod master;
-mod soak;
+use canpos_cli::{bench, device, master, soak};
 
 use std::process::ExitCode;
 
@@ -21,15 +19,15 @@ use clap::{Parser, Subcommand};
 #[command(name = "canpos", version, propagate_version = true)]
 struct Cli {
     /// More log output on stderr (-v debug, -vv trace); RUST_LOG overrides.
-    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    #[arg(short, long, global = true, help_heading = "Global options", action = clap::ArgAction::Count)]
     verbose: u8,
     /// Less log output (warnings and errors only).
-    #[arg(short, long, global = true)]
+    #[arg(short, long, global = true, help_heading = "Global options")]
     quiet: bool,
     /// Run under SCHED_FIFO at this priority (2-99; helper threads one lower) with all memory
     /// locked, so that other load on the machine cannot make the sensors miss periods (needs
     /// root or CAP_SYS_NICE).
-    #[arg(long, global = true, value_name = "N", value_parser = clap::value_parser!(u8).range(2..=99))]
+    #[arg(long, global = true, help_heading = "Global options", value_name = "N", value_parser = clap::value_parser!(u8).range(2..=99))]
     rt_priority: Option<u8>,
     #[command(subcommand)]
     cmd: Option<Cmd>,
@@ -87,13 +85,31 @@ fn init_logging(verbose: u8, quiet: bool) {
         .init();
 }
 
+/// Raises the soft limit of open files to the hard one: a hub serves up to `--max-clients`
+/// connections, more than the usual soft limit of 1024 descriptors (Go and systemd services
+/// do the same). Failing to raise it only leaves the old limit.
+fn raise_open_file_limit() {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit / setrlimit read and write the struct we own.
+    unsafe {
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) == 0 && lim.rlim_cur < lim.rlim_max {
+            lim.rlim_cur = lim.rlim_max;
+            let _ = libc::setrlimit(libc::RLIMIT_NOFILE, &lim);
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     init_logging(cli.verbose, cli.quiet);
+    raise_open_file_limit();
     if let Some(p) = cli.rt_priority {
         // Before any thread starts: they inherit the policy.
         if let Err(e) = canpos_host::realtime::enter(p) {
-            eprintln!("canpos: --rt-priority: {e}");
+            eprintln!("error: --rt-priority: {e}");
             return ExitCode::from(1);
         }
         tracing::info!(priority = p, "running under SCHED_FIFO, memory locked");
@@ -131,8 +147,30 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::from(1)
+            eprintln!("error: {}", render(&e));
+            let usage = e.chain().any(|c| c.is::<master::Usage>());
+            ExitCode::from(if usage {
+                master::EXIT_USAGE
+            } else {
+                master::EXIT_ERROR
+            } as u8)
         }
     }
+}
+
+/// The error and its causes on one line, each said once: a cause whose text a message above
+/// it already contains (`cannot connect to X: refused` over `refused`) is left out.
+fn render(e: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if text.is_empty() || out.contains(&text) {
+            continue;
+        }
+        if !out.is_empty() {
+            out.push_str(": ");
+        }
+        out.push_str(&text);
+    }
+    out
 }

@@ -1,9 +1,11 @@
 //! The commissioning-master side of `canpos`: NMT, SDO, LSS, scan, monitor, EDS export and
 //! candump record / replay, against any bus URL.
 //!
-//! Exit codes of every command: 0 success, 1 the device refused (SDO abort, LSS error status)
-//! or nothing was found, 2 no answer within the timeout. Errors before anything was sent (bad
-//! arguments, bus not reachable) are returned as `Err` for the caller to report.
+//! Exit codes of every command (the same for the whole binary, see `main.rs`): 0 success,
+//! [`EXIT_REFUSED`] the device refused (SDO abort, LSS error status) or nothing was found,
+//! [`EXIT_TIMEOUT`] no answer within the timeout. Errors before anything was sent are returned
+//! as `Err` for the caller to report: [`Usage`] for bad arguments, anything else (bus not
+//! reachable) as a runtime error.
 //!
 //! The protocol pieces ([`SdoClient`], [`LssMaster`], [`decode`]) are independent of the
 //! command line so that other commands (benchmarks, tests) can reuse them.
@@ -29,10 +31,32 @@ pub use sdo::{SdoClient, SdoError, ValueType};
 
 /// Exit code: success.
 pub const EXIT_OK: i32 = 0;
-/// Exit code: the device refused (abort, error status) or nothing was found.
-pub const EXIT_REFUSED: i32 = 1;
+/// Exit code: a runtime error (bus unreachable, file unreadable, bad scenario, …).
+pub const EXIT_ERROR: i32 = 1;
+/// Exit code: a bad command line (clap's own code for usage errors).
+pub const EXIT_USAGE: i32 = 2;
+/// Exit code: the device refused (SDO abort, LSS error status) or nothing was found.
+pub const EXIT_REFUSED: i32 = 3;
 /// Exit code: no answer in time.
-pub const EXIT_TIMEOUT: i32 = 2;
+pub const EXIT_TIMEOUT: i32 = 4;
+
+/// A bad argument found after clap parsed the command line (node-id, index, value): reported
+/// with [`EXIT_USAGE`], like clap's own errors.
+#[derive(Debug)]
+pub struct Usage(pub String);
+
+impl std::fmt::Display for Usage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Usage {}
+
+/// `Err(Usage(…))` as an `anyhow::Error`.
+macro_rules! usage {
+    ($($t:tt)*) => { anyhow::Error::new(Usage(format!($($t)*))) };
+}
 
 /// The bus option every master command takes.
 #[derive(Args, Debug, Clone)]
@@ -42,9 +66,16 @@ pub struct BusArg {
     pub bus: String,
 }
 
-fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
-    transport::open(url).with_context(|| {
-        format!("cannot open the bus {url} (is `canpos bus serve` or `canpos run` running?)")
+/// Opens a master command's bus: a malformed URL is a usage error, a refused connection gets
+/// the hint to start a hub or sensor.
+pub fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
+    transport::open(url).map_err(|e| match e {
+        // A malformed URL is the user's typo: no hint about hubs.
+        transport::Error::BadUrl { .. } => usage!("{e}"),
+        transport::Error::Connect { .. } => anyhow::Error::new(e).context(format!(
+            "cannot open the bus {url} (is `canpos bus serve`, `canpos run` or a scenario running?)"
+        )),
+        e => anyhow::Error::new(e).context(format!("cannot open the bus {url}")),
     })
 }
 
@@ -54,9 +85,9 @@ fn ms(v: u64) -> Duration {
 
 /// Parses a node-id: decimal or 0x-hex, within `min..=127`.
 fn parse_node(s: &str, min: u8) -> Result<u8> {
-    let v = sdo::parse_u64(s).ok_or_else(|| anyhow!("node-id `{s}` is not a number"))?;
+    let v = sdo::parse_u64(s).ok_or_else(|| usage!("node-id `{s}` is not a number"))?;
     if v < min as u64 || v > 127 {
-        bail!("node-id {v} out of range {min}..=127");
+        return Err(usage!("node-id {v} out of range {min}..=127"));
     }
     Ok(v as u8)
 }
@@ -68,14 +99,14 @@ fn parse_index(s: &str) -> Result<u16> {
         .or_else(|| s.strip_prefix("0X"))
         .unwrap_or(s);
     u16::from_str_radix(h, 16)
-        .map_err(|_| anyhow!("index `{s}` is not a 16-bit hex number (e.g. 0x1018 or 1018)"))
+        .map_err(|_| usage!("index `{s}` is not a 16-bit hex number (e.g. 0x1018 or 1018)"))
 }
 
 /// Parses a sub-index: decimal, or hex with `0x`.
 fn parse_sub(s: &str) -> Result<u8> {
     sdo::parse_u64(s)
         .and_then(|v| u8::try_from(v).ok())
-        .ok_or_else(|| anyhow!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
+        .ok_or_else(|| usage!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
 }
 
 fn parse_u32_arg(s: &str) -> Result<u32, String> {
@@ -198,12 +229,13 @@ pub enum SdoCmd {
 }
 
 fn sdo_failure(e: SdoError) -> Result<i32> {
-    eprintln!("{e}");
-    match e {
-        SdoError::Abort(_) | SdoError::Protocol(_) => Ok(EXIT_REFUSED),
-        SdoError::Timeout => Ok(EXIT_TIMEOUT),
-        SdoError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
-    }
+    let code = match e {
+        SdoError::Abort(_) | SdoError::Protocol(_) => EXIT_REFUSED,
+        SdoError::Timeout => EXIT_TIMEOUT,
+        SdoError::Io(e) => return Err(anyhow::Error::new(e).context("CAN transport failed")),
+    };
+    eprintln!("error: {e}");
+    Ok(code)
 }
 
 /// Reads or writes one object.
@@ -234,7 +266,7 @@ pub fn sdo(a: SdoArgs) -> Result<i32> {
                             Ok(EXIT_OK)
                         }
                         Err(m) => {
-                            eprintln!("{m}; raw: {}", sdo::hex_string(&d));
+                            eprintln!("error: {m}; raw: {}", sdo::hex_string(&d));
                             Ok(EXIT_REFUSED)
                         }
                     },
@@ -254,7 +286,7 @@ pub fn sdo(a: SdoArgs) -> Result<i32> {
                 parse_index(&index)?,
                 parse_sub(&sub)?,
             );
-            let data = ty.encode(&value).map_err(|m| anyhow!(m))?;
+            let data = ty.encode(&value).map_err(|m| usage!("{m}"))?;
             let mut bus = open_bus(&a.bus.bus)?;
             let mut c = SdoClient::new(&mut *bus, node, ms(a.timeout));
             match c.download(index, sub, &data) {
@@ -367,7 +399,7 @@ pub enum LssCmd {
 fn lss_failure(e: LssError) -> Result<i32> {
     match e {
         LssError::Timeout => {
-            eprintln!("{e}");
+            eprintln!("error: {e}");
             Ok(EXIT_TIMEOUT)
         }
         LssError::Io(e) => Err(anyhow::Error::new(e).context("CAN transport failed")),
@@ -382,7 +414,7 @@ fn lss_status(cs: u8, what: &str, r: Result<LssStatus, LssError>) -> Result<i32>
         }
         Ok(s) => {
             eprintln!(
-                "{what}: error status {} ({}), manufacturer code {}",
+                "error: {what}: error status {} ({}), manufacturer code {}",
                 s.code,
                 lss::status_meaning(cs, s.code),
                 s.spec
@@ -398,9 +430,11 @@ pub fn lss(a: LssArgs) -> Result<i32> {
     // Validate before touching the bus.
     let node_id = match &a.cmd {
         LssCmd::SetNodeId { id } => {
-            let v = sdo::parse_u64(id).ok_or_else(|| anyhow!("node-id `{id}` is not a number"))?;
+            let v = sdo::parse_u64(id).ok_or_else(|| usage!("node-id `{id}` is not a number"))?;
             if !(1..=127).contains(&v) && v != 255 {
-                bail!("node-id {v} out of range (1..=127, or 255 for unconfigured)");
+                return Err(usage!(
+                    "node-id {v} out of range (1..=127, or 255 for unconfigured)"
+                ));
             }
             v as u8
         }
@@ -408,9 +442,7 @@ pub fn lss(a: LssArgs) -> Result<i32> {
     };
     let bit_index = match &a.cmd {
         LssCmd::SetBitrate { kbps } => lss::bit_timing_index(*kbps).ok_or_else(|| {
-            anyhow!(
-                "{kbps} kbit/s is not in CiA 305 table 0 (1000, 800, 500, 250, 125, 50, 20, 10)"
-            )
+            usage!("{kbps} kbit/s is not in CiA 305 table 0 (1000, 800, 500, 250, 125, 50, 20, 10)")
         })?,
         _ => 0,
     };
@@ -450,7 +482,7 @@ pub fn lss(a: LssArgs) -> Result<i32> {
                     Ok(EXIT_OK)
                 }
                 Err(LssError::Timeout) => {
-                    eprintln!("no node with {addr} answered");
+                    eprintln!("error: no node with {addr} answered");
                     Ok(EXIT_TIMEOUT)
                 }
                 Err(e) => lss_failure(e),
@@ -523,7 +555,9 @@ pub fn lss(a: LssArgs) -> Result<i32> {
                 Ok(EXIT_REFUSED)
             }
             Err(LssError::Timeout) => {
-                eprintln!("fastscan lost the node during confirmation; try a longer --timeout");
+                eprintln!(
+                    "error: fastscan lost the node during confirmation; try a longer --timeout"
+                );
                 Ok(EXIT_TIMEOUT)
             }
             Err(e) => lss_failure(e),
@@ -682,7 +716,7 @@ pub struct MonitorArgs {
     #[arg(long)]
     pub count: Option<u64>,
     /// Stop after this many seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
     /// Also print each frame as a candump -L line.
     #[arg(long)]
@@ -831,15 +865,12 @@ fn elapsed_since(start: SystemTime, t: SystemTime) -> f64 {
 /// Prints decoded traffic until `--count` / `--duration` is reached (or forever).
 pub fn monitor(a: MonitorArgs) -> Result<i32> {
     let only = a.node.as_deref().map(|n| parse_node(n, 1)).transpose()?;
-    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
-        bail!("--duration must be a non-negative number of seconds");
-    }
     let mut bus = open_bus(&a.bus.bus)?;
     let iface = interface_name(&a.bus.bus);
     let start = SystemTime::now();
     let end = a
         .duration
-        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+        .and_then(|d| crate::limits::deadline(Instant::now(), d));
     let mut mon = Monitor::new();
     let mut pending: VecDeque<RxFrame> = VecDeque::new();
     let mut printed = 0u64;
@@ -962,7 +993,7 @@ pub struct RecordArgs {
     #[allow(missing_docs)]
     pub bus: BusArg,
     /// Stop after this many seconds.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
     /// Stop after this many frames.
     #[arg(long)]
@@ -975,9 +1006,6 @@ pub struct RecordArgs {
 /// Records frames until `--duration` / `--count` (or until killed; the file is flushed
 /// whenever the bus is idle, so an interrupted recording keeps what was seen).
 pub fn record(a: RecordArgs) -> Result<i32> {
-    if a.duration.is_some_and(|d| !(d.is_finite() && d >= 0.0)) {
-        bail!("--duration must be a non-negative number of seconds");
-    }
     let out: Box<dyn Write> = if a.file.as_os_str() == "-" {
         Box::new(io::stdout())
     } else {
@@ -993,7 +1021,7 @@ pub fn record(a: RecordArgs) -> Result<i32> {
     let mut bus = open_bus(&a.bus.bus)?;
     let end = a
         .duration
-        .map(|d| Instant::now() + Duration::from_secs_f64(d));
+        .and_then(|d| crate::limits::deadline(Instant::now(), d));
     let mut n = 0u64;
     while a.count.is_none_or(|c| n < c) {
         let r = match end {
@@ -1022,8 +1050,8 @@ pub struct ReplayArgs {
     #[command(flatten)]
     #[allow(missing_docs)]
     pub bus: BusArg,
-    /// Time scale: 2 = twice as fast; 0 = as fast as possible.
-    #[arg(long, default_value_t = 1.0)]
+    /// Time scale: 2 = twice as fast; 0 = as fast as possible (else 0.001 … 1e6).
+    #[arg(long, default_value_t = 1.0, value_parser = crate::limits::parse_speed)]
     pub speed: f64,
     /// Start again at the end of the file (until killed).
     #[arg(long = "loop")]
@@ -1040,9 +1068,8 @@ fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
 
 /// Replays a log; the frames keep their relative spacing, divided by `--speed`.
 pub fn replay(a: ReplayArgs) -> Result<i32> {
-    if !(a.speed.is_finite() && a.speed >= 0.0) {
-        bail!("--speed must be a non-negative number");
-    }
+    // Checked again for callers that build the arguments in code.
+    crate::limits::parse_speed(&a.speed.to_string()).map_err(|e| anyhow!("--speed {e}"))?;
     if a.repeat && a.file.as_os_str() == "-" {
         bail!("--loop needs a file, not standard input");
     }
@@ -1050,21 +1077,42 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
     let entries = LogReader::new(open_log(&a.file)?)
         .collect::<Result<Vec<_>, _>>()
         .with_context(|| format!("reading {}", a.file.display()))?;
-    let mut bus = open_bus(&a.bus.bus)?;
     let Some(first) = entries.first().map(|e| e.timestamp) else {
         eprintln!("{}: no frames", a.file.display());
         return Ok(EXIT_OK);
     };
+    // Each frame's offset from the start, in seconds of replay; all checked before the first
+    // frame goes out, so that a log too long for this speed sends nothing.
+    let offsets: Vec<f64> = entries
+        .iter()
+        .map(|e| {
+            let rel = e.timestamp.duration_since(first).unwrap_or_default();
+            if a.speed > 0.0 {
+                rel.as_secs_f64() / a.speed
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let span = offsets.iter().copied().fold(0.0, f64::max);
+    crate::limits::check_seconds(span, false).map_err(|e| {
+        anyhow!(
+            "{}: at --speed {} the replay would take {e}",
+            a.file.display(),
+            a.speed
+        )
+    })?;
+    let mut bus = open_bus(&a.bus.bus)?;
     let mut sent = 0u64;
     loop {
         let t0 = Instant::now();
-        for e in &entries {
-            if a.speed > 0.0 {
-                let rel = e.timestamp.duration_since(first).unwrap_or_default();
-                let due = t0 + rel.div_f64(a.speed);
-                let now = Instant::now();
-                if due > now {
-                    std::thread::sleep(due - now);
+        for (e, &off) in entries.iter().zip(&offsets) {
+            if off > 0.0 {
+                if let Some(due) = crate::limits::deadline(t0, off) {
+                    let now = Instant::now();
+                    if due > now {
+                        std::thread::sleep(due - now);
+                    }
                 }
             }
             bus.send(&e.frame).context("sending a frame")?;

@@ -16,7 +16,8 @@
 //! - **dropped**: deliveries the bus dropped because the observer's queue was full (the
 //!   observer would then under-count, so the drift check is only meaningful when this is 0).
 //!
-//! Exit code 0 when every check passed, 1 otherwise; the final line says which failed.
+//! Exit code 0 when every check passed, 3 otherwise (as `bench scale`); the final line says
+//! which failed.
 
 use std::collections::HashMap;
 use std::io::Write as _;
@@ -24,7 +25,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context as _, Result};
+use anyhow::{anyhow, bail, Context as _, Result};
 use canpos_core::Frame;
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
@@ -84,6 +85,10 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     if !(a.minutes.is_finite() && a.minutes > 0.0) {
         bail!("--minutes must be > 0");
     }
+    crate::limits::check_seconds(a.minutes * 60.0, true).map_err(|e| anyhow!("--minutes: {e}"))?;
+    for (name, v) in [("--report-s", a.report_s), ("--warmup-s", a.warmup_s)] {
+        crate::limits::check_seconds(v, false).map_err(|e| anyhow!("{name}: {e}"))?;
+    }
     let n = usize::from(a.nodes);
     let period = Duration::from_millis(u64::from(a.event_ms));
     let run_for = Duration::from_secs_f64(a.minutes * 60.0);
@@ -110,7 +115,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
             },
             &state_dir,
         )?;
-        rt.add(setup);
+        rt.add(setup.setup);
     }
     // Power on here rather than at the start of the runtime thread: building 127 setups takes
     // ~100 ms, and powering on resets each node's measurement schedule to now, so the build
@@ -240,7 +245,12 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
         m.insert("failures".into(), json!(failures));
     }
     println!("{last}");
-    Ok(if failures.is_empty() { 0 } else { 1 })
+    // A missed expectation is the bench's "refused" (3), distinct from a runtime error (1).
+    Ok(if failures.is_empty() {
+        0
+    } else {
+        crate::master::EXIT_REFUSED
+    })
 }
 
 /// One JSON summary line.

@@ -16,7 +16,7 @@ fn stderr(o: &Output) -> String {
 }
 
 #[test]
-fn sdo_read_without_answer_exits_2() {
+fn sdo_read_without_answer_exits_4() {
     let o = canpos(&[
         "sdo",
         "read",
@@ -28,19 +28,20 @@ fn sdo_read_without_answer_exits_2() {
         "--timeout",
         "50",
     ]);
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
-    assert!(stderr(&o).contains("SDO timeout"), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(4), "{}", stderr(&o));
+    assert!(stderr(&o).contains("error: SDO timeout"), "{}", stderr(&o));
 }
 
 #[test]
 fn sdo_bad_arguments_fail_before_sending() {
+    // Bad values are usage errors (2), as clap's own are.
     let o = canpos(&["sdo", "read", "5", "xyz", "1", "--bus", "mem://t"]);
-    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
     assert!(stderr(&o).contains("index"), "{}", stderr(&o));
     let o = canpos(&[
         "sdo", "write", "5", "1017", "0", "70000", "--type", "u16", "--bus", "mem://t",
     ]);
-    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
 }
 
 #[test]
@@ -51,7 +52,7 @@ fn nmt_sends_and_succeeds() {
 }
 
 #[test]
-fn lss_inquire_without_answer_exits_2() {
+fn lss_inquire_without_answer_exits_4() {
     let o = canpos(&[
         "lss",
         "inquire",
@@ -61,7 +62,7 @@ fn lss_inquire_without_answer_exits_2() {
         "--timeout",
         "30",
     ]);
-    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert_eq!(o.status.code(), Some(4), "{}", stderr(&o));
 }
 
 #[test]
@@ -70,6 +71,12 @@ fn unreachable_bus_is_an_error() {
     let o = canpos(&["nmt", "start", "--bus", "socketcand://127.0.0.1:1/can0"]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     assert!(stderr(&o).contains("cannot open the bus"), "{}", stderr(&o));
+    // The cause once, with its hint; a typo in the URL gets no hint about hubs.
+    assert_eq!(stderr(&o).matches("refused").count(), 1, "{}", stderr(&o));
+    let o = canpos(&["nmt", "start", "--bus", "socketcand://127.0.0.1:99999/can0"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+    assert!(stderr(&o).contains("bad port"), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("running?"), "{}", stderr(&o));
 }
 
 #[test]

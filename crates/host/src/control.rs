@@ -12,9 +12,11 @@
 //! ```
 
 use std::fmt;
-use std::io::{self, BufRead, BufReader, Read, Write};
+use std::io::{self, BufRead, BufReader, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::str::FromStr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -23,8 +25,22 @@ use serde_json::{json, Value};
 
 use crate::runtime::ControlHandle;
 
-/// Longest request line accepted (a request is a few dozen bytes).
+/// Longest request line accepted (a request is a few dozen bytes). A longer line is answered
+/// with one error and skipped up to its newline: no part of it is ever run as a request.
 pub const MAX_LINE: usize = 64 * 1024;
+
+/// Most control connections served at once; one more is answered with an error and closed.
+/// Clients are test harnesses (a handful); the cap keeps a runaway client from using up
+/// threads.
+pub const MAX_CONNECTIONS: usize = 32;
+
+/// Lowest temperature accepted anywhere (absolute zero), °C.
+pub const MIN_CELSIUS: f64 = -273.15;
+/// Highest temperature accepted, °C (far above any sensor's rating, so over-temperature tests
+/// fit; beyond it a value is a typo).
+pub const MAX_CELSIUS: f64 = 1000.0;
+/// Supply voltages accepted by the `supply-voltage` fault, V (either polarity).
+pub const MAX_SUPPLY_V: f64 = 1000.0;
 
 /// A control request. `sensor` selects the sensor of a multi-sensor runtime (0-based, default
 /// 0).
@@ -94,6 +110,186 @@ pub enum Request {
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
     /// so a measurement covers a chosen window, not the start-up.
     ResetLateness,
+    /// Hands the sensor an NMT command as if a master had sent it, without putting a frame on
+    /// the bus (a scenario's `nmt = "operational"`, or a timed NMT event).
+    Nmt {
+        /// Sensor index.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+        /// `start`, `stop`, `preop`, `reset` or `reset-comm`.
+        command: String,
+    },
+}
+
+/// The NMT commands of [`Request::Nmt`] and their command specifiers (CiA 301).
+pub const NMT_COMMANDS: [(&str, u8); 5] = [
+    ("start", 0x01),
+    ("stop", 0x02),
+    ("preop", 0x80),
+    ("reset", 0x81),
+    ("reset-comm", 0x82),
+];
+
+/// The command specifier of an NMT command name ([`NMT_COMMANDS`]).
+pub fn nmt_command(name: &str) -> Result<u8, String> {
+    NMT_COMMANDS
+        .iter()
+        .find(|(n, _)| n.eq_ignore_ascii_case(name.trim()))
+        .map(|(_, cs)| *cs)
+        .ok_or_else(|| {
+            let known: Vec<_> = NMT_COMMANDS.iter().map(|(n, _)| *n).collect();
+            format!("unknown NMT command `{name}`; known: {}", known.join(", "))
+        })
+}
+
+/// Readable one-line form for logs, e.g. `sensor 1: fault missing-magnet on (channel 0)`.
+impl fmt::Display for Request {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if let Some(s) = self.sensor() {
+            write!(f, "sensor {s}: ")?;
+        }
+        match self {
+            Request::Magnet {
+                index,
+                mm,
+                velocity,
+                ..
+            } => {
+                match mm {
+                    Some(mm) => write!(f, "magnet {index} to {mm} mm")?,
+                    None => write!(f, "magnet {index} off the rod")?,
+                }
+                if let Some(v) = velocity {
+                    write!(f, " at {v} mm/s")?;
+                }
+                Ok(())
+            }
+            Request::Motion { spec, .. } => write!(f, "motion {spec}"),
+            Request::Fault {
+                name,
+                on,
+                value,
+                channel,
+                ..
+            } => {
+                write!(f, "fault {name} {}", if *on { "on" } else { "off" })?;
+                if let Some(v) = value {
+                    write!(f, " value {v}")?;
+                }
+                if let Some(c) = channel {
+                    write!(f, " channel {c}")?;
+                }
+                Ok(())
+            }
+            Request::PowerCycle { .. } => f.write_str("power-cycle"),
+            Request::Ambient { celsius, .. } => write!(f, "ambient {celsius} °C"),
+            Request::State { .. } => f.write_str("state"),
+            Request::ResetLateness => f.write_str("reset-lateness"),
+            Request::Nmt { command, .. } => write!(f, "nmt {command}"),
+        }
+    }
+}
+
+impl Request {
+    /// The sensor it addresses (`None` = sensor 0, or none for [`Request::ResetLateness`]).
+    pub fn sensor(&self) -> Option<usize> {
+        match self {
+            Request::Magnet { sensor, .. }
+            | Request::Motion { sensor, .. }
+            | Request::Fault { sensor, .. }
+            | Request::PowerCycle { sensor }
+            | Request::Ambient { sensor, .. }
+            | Request::State { sensor }
+            | Request::Nmt { sensor, .. } => *sensor,
+            Request::ResetLateness => None,
+        }
+    }
+
+    /// Checks the values that need no device to judge: numbers finite and physically
+    /// possible, fault names known, motion specs well-formed. The runtime checks the rest
+    /// (sensor, magnet and channel indices) before it changes anything.
+    pub fn validate(&self) -> Result<(), String> {
+        match self {
+            Request::Magnet { mm, velocity, .. } => {
+                if let Some(mm) = mm {
+                    if !canpos_sim::motion::in_range(*mm) {
+                        return Err(format!(
+                            "magnet position {} mm is not a finite number within ±{:e} mm",
+                            show_num(*mm),
+                            canpos_sim::motion::MAX_MAGNITUDE
+                        ));
+                    }
+                }
+                if let Some(v) = velocity {
+                    if !(canpos_sim::motion::in_range(*v) && *v > 0.0) {
+                        return Err(format!(
+                            "velocity {} mm/s must be > 0 and at most {:e}",
+                            show_num(*v),
+                            canpos_sim::motion::MAX_MAGNITUDE
+                        ));
+                    }
+                }
+                Ok(())
+            }
+            Request::Motion { spec, .. } => {
+                match canpos_sim::motion::MotionSpec::parse(spec).map_err(|e| e.to_string())? {
+                    canpos_sim::motion::MotionSpec::Profiles(_) => Ok(()),
+                    canpos_sim::motion::MotionSpec::Csv(_) => Err(
+                        "a CSV trajectory can only be given at start (--motion csv:FILE)".into(),
+                    ),
+                }
+            }
+            Request::Fault {
+                name, value, on, ..
+            } => {
+                let fault: Fault = name.parse()?;
+                let Some(v) = value else { return Ok(()) };
+                if !v.is_finite() {
+                    return Err(format!("fault value {v} is not a finite number"));
+                }
+                match fault {
+                    Fault::OverTemperature => check_celsius(*v),
+                    Fault::SupplyVoltage if v.abs() > MAX_SUPPLY_V => Err(format!(
+                        "supply voltage {} V is out of range (±{MAX_SUPPLY_V} V)",
+                        show_num(*v)
+                    )),
+                    Fault::ExtraMagnet if !canpos_sim::motion::in_range(*v) => Err(format!(
+                        "extra magnet position {} mm is beyond ±{:e} mm",
+                        show_num(*v),
+                        canpos_sim::motion::MAX_MAGNITUDE
+                    )),
+                    Fault::SupplyVoltage | Fault::ExtraMagnet => Ok(()),
+                    _ if *on => Err(format!("fault `{fault}` takes no value")),
+                    _ => Ok(()),
+                }
+            }
+            Request::Ambient { celsius, .. } => check_celsius(*celsius),
+            Request::Nmt { command, .. } => nmt_command(command).map(|_| ()),
+            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness => Ok(()),
+        }
+    }
+}
+
+/// A number for a message: plain when moderate, in exponent form when huge or tiny (`1e300`,
+/// not three hundred digits).
+pub fn show_num(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && a.is_finite() && !(1e-3..1e9).contains(&a) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+fn check_celsius(t: f64) -> Result<(), String> {
+    if t.is_finite() && (MIN_CELSIUS..=MAX_CELSIUS).contains(&t) {
+        Ok(())
+    } else {
+        Err(format!(
+            "temperature {} °C is out of range ({MIN_CELSIUS} … {MAX_CELSIUS} °C)",
+            show_num(t)
+        ))
+    }
 }
 
 /// The faults the control interface can inject (SPEC §11).
@@ -181,7 +377,7 @@ impl FromStr for Fault {
 /// Parses one request line into a request, or the error answer to send back.
 pub fn parse_request(line: &str) -> Result<Request, Value> {
     serde_json::from_str::<Request>(line).map_err(|e| {
-        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, state)")})
+        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, nmt, state)")})
     })
 }
 
@@ -210,22 +406,37 @@ pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<Cont
 /// the runtime is up).
 pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<ControlServer> {
     let addr = listener.local_addr()?;
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "control interface reachable from the network (no authentication)");
-    }
+    crate::warn_if_exposed(addr, "the control interface");
+    let open = Arc::new(AtomicUsize::new(0));
     let thread = std::thread::Builder::new()
         .name("canpos-control".into())
         .spawn(move || {
             for conn in listener.incoming() {
-                let Ok(stream) = conn else { continue };
+                let Ok(mut stream) = conn else { continue };
+                if open.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
+                    open.fetch_sub(1, Ordering::SeqCst);
+                    let _ = stream.write_all(
+                        format!(
+                            "{}\n",
+                            json!({"ok": false, "error": format!("too many control connections (at most {MAX_CONNECTIONS})")})
+                        )
+                        .as_bytes(),
+                    );
+                    continue;
+                }
                 let h = handle.clone();
-                let _ = std::thread::Builder::new()
+                let count = Arc::clone(&open);
+                let spawned = std::thread::Builder::new()
                     .name("canpos-control-conn".into())
                     .spawn(move || {
                         if let Err(e) = serve_conn(stream, h) {
                             tracing::debug!(error = %e, "control connection ended");
                         }
+                        count.fetch_sub(1, Ordering::SeqCst);
                     });
+                if spawned.is_err() {
+                    open.fetch_sub(1, Ordering::SeqCst);
+                }
             }
         })?;
     Ok(ControlServer {
@@ -234,24 +445,91 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
     })
 }
 
+/// One line read by [`read_line_limited`].
+#[derive(Debug, PartialEq, Eq)]
+pub enum Line {
+    /// A complete line (without its newline; the last line may lack one).
+    Text(Vec<u8>),
+    /// A line longer than the limit; it was read up to and including its newline and dropped.
+    TooLong,
+    /// End of the stream.
+    Eof,
+}
+
+/// Reads one line of at most `limit` bytes. A longer line is consumed up to its newline (or
+/// the end of the stream) without keeping more than `limit` bytes, and reported as
+/// [`Line::TooLong`]: the caller answers it once and no tail of it becomes a request.
+pub fn read_line_limited(r: &mut impl BufRead, limit: usize) -> io::Result<Line> {
+    let mut line = Vec::new();
+    let mut too_long = false;
+    loop {
+        let buf = match r.fill_buf() {
+            Ok(b) => b,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if buf.is_empty() {
+            return Ok(match (too_long, line.is_empty()) {
+                (true, _) => Line::TooLong,
+                (false, true) => Line::Eof,
+                (false, false) => Line::Text(line),
+            });
+        }
+        let (chunk, done) = match buf.iter().position(|&b| b == b'\n') {
+            Some(i) => (&buf[..i], Some(i + 1)),
+            None => (buf, None),
+        };
+        if !too_long {
+            if line.len() + chunk.len() > limit {
+                too_long = true;
+                line = Vec::new();
+            } else {
+                line.extend_from_slice(chunk);
+            }
+        }
+        let used = done.unwrap_or(buf.len());
+        r.consume(used);
+        if done.is_some() {
+            return Ok(if too_long {
+                Line::TooLong
+            } else {
+                Line::Text(line)
+            });
+        }
+    }
+}
+
+/// Answers one request line: parsed here, checked and applied by the runtime.
+pub fn answer_line(line: &str, handle: &ControlHandle) -> Value {
+    match parse_request(line) {
+        Ok(req) => handle.request(req),
+        Err(e) => e,
+    }
+}
+
 fn serve_conn(stream: TcpStream, handle: ControlHandle) -> io::Result<()> {
     stream.set_nodelay(true)?;
     let mut out = stream.try_clone()?;
     let mut reader = BufReader::new(stream);
-    let mut line = String::new();
     loop {
-        line.clear();
-        let n = (&mut reader).take(MAX_LINE as u64).read_line(&mut line)?;
-        if n == 0 {
-            return Ok(());
-        }
-        let text = line.trim();
-        if text.is_empty() {
-            continue;
-        }
-        let answer = match parse_request(text) {
-            Ok(req) => handle.request(req),
-            Err(e) => e,
+        let answer = match read_line_limited(&mut reader, MAX_LINE)? {
+            Line::Eof => return Ok(()),
+            Line::TooLong => json!({
+                "ok": false,
+                "error": format!("request line longer than {MAX_LINE} bytes; discarded up to its newline")
+            }),
+            Line::Text(bytes) => {
+                let Ok(text) = std::str::from_utf8(&bytes) else {
+                    let e = json!({"ok": false, "error": "request line is not UTF-8"});
+                    out.write_all(format!("{e}\n").as_bytes())?;
+                    continue;
+                };
+                let text = text.trim();
+                if text.is_empty() {
+                    continue;
+                }
+                answer_line(text, &handle)
+            }
         };
         let mut s = answer.to_string();
         s.push('\n');
@@ -315,6 +593,63 @@ mod tests {
         let e = parse_request(r#"{"cmd":"fly"}"#).unwrap_err();
         assert_eq!(e["ok"], false);
         assert!(e["error"].as_str().unwrap().contains("fly"), "{e}");
+    }
+
+    #[test]
+    fn over_long_line_is_dropped_whole() {
+        let mut input = vec![b'x'; 100];
+        input.extend_from_slice(b"{\"cmd\":\"power-cycle\"}\n{\"cmd\":\"state\"}\n");
+        // A tiny buffer so that the long line arrives in many pieces.
+        let mut r = BufReader::with_capacity(7, &input[..]);
+        assert_eq!(read_line_limited(&mut r, 64).unwrap(), Line::TooLong);
+        assert_eq!(
+            read_line_limited(&mut r, 64).unwrap(),
+            Line::Text(b"{\"cmd\":\"state\"}".to_vec())
+        );
+        assert_eq!(read_line_limited(&mut r, 64).unwrap(), Line::Eof);
+        // Exactly the limit is fine; a last line without newline counts.
+        let mut r = BufReader::with_capacity(3, &b"abcd\nabcde"[..]);
+        assert_eq!(
+            read_line_limited(&mut r, 4).unwrap(),
+            Line::Text(b"abcd".to_vec())
+        );
+        assert_eq!(read_line_limited(&mut r, 4).unwrap(), Line::TooLong);
+        assert_eq!(read_line_limited(&mut r, 4).unwrap(), Line::Eof);
+    }
+
+    #[test]
+    fn absurd_values_are_refused() {
+        let bad = [
+            r#"{"cmd":"magnet","index":0,"mm":1e300}"#,
+            r#"{"cmd":"magnet","index":0,"mm":-1e300}"#,
+            r#"{"cmd":"magnet","index":0,"mm":10,"velocity":-1}"#,
+            r#"{"cmd":"ambient","celsius":-300}"#,
+            r#"{"cmd":"ambient","celsius":1e300}"#,
+            r#"{"cmd":"fault","name":"over-temperature","on":true,"value":-300}"#,
+            r#"{"cmd":"fault","name":"supply-voltage","on":true,"value":1e300}"#,
+            r#"{"cmd":"fault","name":"extra-magnet","on":true,"value":1e300}"#,
+            r#"{"cmd":"fault","name":"bus-off","on":true,"value":3}"#,
+            r#"{"cmd":"fault","name":"nonsense","on":true}"#,
+            r#"{"cmd":"motion","spec":"static:1e300"}"#,
+            r#"{"cmd":"motion","spec":"sine:center=1,amp=1,period=1e-300"}"#,
+            r#"{"cmd":"motion","spec":"csv:x.csv"}"#,
+        ];
+        for line in bad {
+            let req = parse_request(line).unwrap();
+            assert!(req.validate().is_err(), "{line} accepted");
+        }
+        let good = [
+            r#"{"cmd":"magnet","index":0,"mm":-20,"velocity":100}"#,
+            r#"{"cmd":"ambient","celsius":-40}"#,
+            r#"{"cmd":"fault","name":"over-temperature","on":true,"value":120}"#,
+            r#"{"cmd":"fault","name":"supply-voltage","on":true,"value":9}"#,
+            r#"{"cmd":"fault","name":"bus-off","on":false}"#,
+            r#"{"cmd":"motion","spec":"sine:center=500,amp=200,period=4"}"#,
+        ];
+        for line in good {
+            let req = parse_request(line).unwrap();
+            assert_eq!(req.validate(), Ok(()), "{line}");
+        }
     }
 
     #[test]

@@ -12,10 +12,20 @@
 //!   starts on defaults and reports it.
 //! - nothing here ever deletes the good image on an error: a failed save removes only its own
 //!   temporary file.
+//! - only a regular file is ever read: the image is opened non-blocking and checked with
+//!   `fstat`, so a FIFO or device in its place is reported instead of hanging the boot.
+//!
+//! [`FileStorage::open`] (what the command line uses) also takes a lock: an exclusive `flock`
+//! on `<image>.lock`, held as long as any clone of the storage lives, so that a second process
+//! on the same state file gets a clear error instead of silently sharing it. Holding the lock, it
+//! removes the `<image>.tmp.<pid>` files that killed processes left behind, and it checks that
+//! the directory is writable before the sensor boots.
 
-use std::fs::{self, File, OpenOptions};
+use std::fs::{self, File, OpenOptions, TryLockError};
 use std::io::{self, Read, Write};
+use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
 
@@ -24,15 +34,162 @@ use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
 pub struct FileStorage {
     path: PathBuf,
     saves: u64,
+    /// The lock file, held open (and locked) while any clone lives; `None` for [`FileStorage::new`].
+    lock: Option<Arc<File>>,
+}
+
+/// Why [`FileStorage::open`] refused a state file.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    /// Another process holds the state file's lock.
+    #[error("state file {} is in use by another process{}; give each sensor its own --serial (or --state-dir)", path.display(), holder.map(|p| format!(" (pid {p})")).unwrap_or_default())]
+    InUse {
+        /// The image path.
+        path: PathBuf,
+        /// The pid written in the lock file by its holder, when readable.
+        holder: Option<u32>,
+    },
+    /// Something other than a regular file is at the image path.
+    #[error("state file {} is not a regular file ({kind}); remove it or choose another --state-dir", path.display())]
+    NotRegular {
+        /// The image path.
+        path: PathBuf,
+        /// What it is (FIFO, directory, …).
+        kind: &'static str,
+    },
+    /// The state directory cannot be created or written.
+    #[error("state directory {} is not writable: {source}", dir.display())]
+    Unwritable {
+        /// The directory.
+        dir: PathBuf,
+        /// The operating system's error.
+        source: io::Error,
+    },
+}
+
+fn kind_name(ft: fs::FileType) -> &'static str {
+    if ft.is_dir() {
+        "a directory"
+    } else if ft.is_fifo() {
+        "a FIFO"
+    } else if ft.is_socket() {
+        "a socket"
+    } else if ft.is_char_device() {
+        "a character device"
+    } else if ft.is_block_device() {
+        "a block device"
+    } else {
+        "not a regular file"
+    }
 }
 
 impl FileStorage {
-    /// Storage at `path`. The file need not exist; its directory is created at the first save.
+    /// Storage at `path`, without a lock (tests, benchmarks, throw-away directories). The file
+    /// need not exist; its directory is created at the first save.
     pub fn new(path: impl Into<PathBuf>) -> Self {
         FileStorage {
             path: path.into(),
             saves: 0,
+            lock: None,
         }
+    }
+
+    /// Storage at `path` for a running sensor: creates the directory (reporting it when not
+    /// writable), refuses anything but a regular file at `path`, locks `<path>.lock` against
+    /// other processes and removes stale temporary files of earlier, killed processes.
+    pub fn open(path: impl Into<PathBuf>) -> Result<Self, OpenError> {
+        let mut s = FileStorage::new(path);
+        let dir = s.dir();
+        let unwritable = |source| OpenError::Unwritable {
+            dir: dir.clone(),
+            source,
+        };
+        fs::create_dir_all(&dir).map_err(unwritable)?;
+        if let Ok(m) = fs::metadata(&s.path) {
+            if !m.file_type().is_file() {
+                return Err(OpenError::NotRegular {
+                    path: s.path.clone(),
+                    kind: kind_name(m.file_type()),
+                });
+            }
+        }
+        let lock_path = s.sibling(".lock");
+        let mut lock = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(&lock_path)
+            .map_err(unwritable)?;
+        match lock.try_lock() {
+            Ok(()) => {}
+            Err(TryLockError::WouldBlock) => {
+                let holder = fs::read_to_string(&lock_path)
+                    .ok()
+                    .and_then(|t| t.trim().parse().ok());
+                return Err(OpenError::InUse {
+                    path: s.path.clone(),
+                    holder,
+                });
+            }
+            Err(TryLockError::Error(e)) => return Err(unwritable(e)),
+        }
+        // For the "in use" message of a second process; the lock is what counts.
+        let _ = lock.set_len(0);
+        let _ = writeln!(lock, "{}", std::process::id());
+        // Probe that the directory takes new files (a read-only directory would only show at
+        // the first store, long after the boot).
+        let probe = s.temp_path();
+        File::create(&probe).map_err(unwritable)?;
+        let _ = fs::remove_file(&probe);
+        s.remove_stale_temps();
+        s.lock = Some(Arc::new(lock));
+        Ok(s)
+    }
+
+    /// `<image><suffix>` in the image's directory.
+    fn sibling(&self, suffix: &str) -> PathBuf {
+        let mut name = self
+            .path
+            .file_name()
+            .map(|n| n.to_os_string())
+            .unwrap_or_default();
+        name.push(suffix);
+        self.path.with_file_name(name)
+    }
+
+    /// Removes `<image>.tmp.*` left by killed processes. Only called with the lock held: no
+    /// other process is writing this image, so every such file is stale.
+    fn remove_stale_temps(&self) {
+        let Some(prefix) = self.sibling(".tmp.").file_name().map(|n| n.to_os_string()) else {
+            return;
+        };
+        let Ok(entries) = fs::read_dir(self.dir()) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name();
+            let is_temp = name
+                .as_encoded_bytes()
+                .strip_prefix(prefix.as_encoded_bytes())
+                .is_some_and(|pid| !pid.is_empty() && pid.iter().all(u8::is_ascii_digit));
+            if is_temp && e.file_type().is_ok_and(|t| t.is_file()) {
+                match fs::remove_file(e.path()) {
+                    Ok(()) => {
+                        tracing::info!(file = %e.path().display(), "removed a stale temporary state file")
+                    }
+                    Err(err) => {
+                        tracing::warn!(file = %e.path().display(), error = %err, "cannot remove a stale temporary state file")
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether this storage holds its state file's lock ([`FileStorage::open`]).
+    pub fn is_locked(&self) -> bool {
+        self.lock.is_some()
     }
 
     /// The image file's path.
@@ -48,13 +205,7 @@ impl FileStorage {
     /// The temporary file a save writes before renaming. Per process, so two processes
     /// pointed at the same state directory by mistake never write into each other's temp file.
     fn temp_path(&self) -> PathBuf {
-        let mut name = self
-            .path
-            .file_name()
-            .map(|n| n.to_os_string())
-            .unwrap_or_default();
-        name.push(format!(".tmp.{}", std::process::id()));
-        self.path.with_file_name(name)
+        self.sibling(&format!(".tmp.{}", std::process::id()))
     }
 
     fn dir(&self) -> PathBuf {
@@ -114,7 +265,12 @@ fn sync_dir(dir: &Path) -> io::Result<()> {
 
 impl Storage for FileStorage {
     fn load(&mut self, buf: &mut [u8]) -> Result<usize, StorageError> {
-        let mut f = match File::open(&self.path) {
+        // Non-blocking: opening a FIFO for reading would otherwise wait for a writer for ever.
+        let mut f = match OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(&self.path)
+        {
             Ok(f) => f,
             Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(StorageError::Empty),
             Err(e) => {
@@ -123,6 +279,19 @@ impl Storage for FileStorage {
                 return Err(StorageError::Corrupt);
             }
         };
+        match f.metadata() {
+            Ok(m) if m.file_type().is_file() => {}
+            Ok(m) => {
+                tracing::warn!(path = %self.path.display(), kind = kind_name(m.file_type()),
+                    "the stored image is not a regular file; starting on defaults");
+                return Err(StorageError::Corrupt);
+            }
+            Err(e) => {
+                tracing::warn!(path = %self.path.display(), error = %e,
+                    "cannot stat the stored image; starting on defaults");
+                return Err(StorageError::Corrupt);
+            }
+        }
         // Read one byte more than any image can be, to tell "too long" from "fits".
         let mut bytes = Vec::with_capacity(IMAGE_MAX + 1);
         if let Err(e) = Read::by_ref(&mut f)
@@ -234,6 +403,72 @@ mod tests {
         s.save(&img).unwrap();
         s.corrupt().unwrap();
         assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
+    }
+
+    #[test]
+    fn fifo_is_refused_not_waited_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        // Without a lock: load returns at once (no writer would ever come).
+        let mut s = FileStorage::new(&path);
+        assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(e.to_string().contains("a FIFO"), "{e}");
+    }
+
+    #[test]
+    fn lock_refuses_a_second_user_until_released() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        let a = FileStorage::open(&path).unwrap();
+        assert!(a.is_locked());
+        let clone = a.clone();
+        drop(a);
+        // flock conflicts between open file descriptions, also within one process.
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(
+            matches!(e, OpenError::InUse { holder: Some(p), .. } if p == std::process::id()),
+            "{e}"
+        );
+        assert!(e.to_string().contains("--serial"), "{e}");
+        drop(clone);
+        FileStorage::open(&path).unwrap();
+    }
+
+    #[test]
+    fn stale_temporary_files_are_removed_at_open() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        fs::write(dir.path().join("th-1.bin.tmp.99999"), b"half").unwrap();
+        fs::write(dir.path().join("th-1.bin.tmp.12"), b"half").unwrap();
+        // Not ours: another unit's temp file, and a name that only looks similar.
+        fs::write(dir.path().join("th-2.bin.tmp.99999"), b"other").unwrap();
+        fs::write(dir.path().join("th-1.bin.tmp.notes"), b"keep").unwrap();
+        let _s = FileStorage::open(&path).unwrap();
+        let mut names: Vec<_> = fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        assert_eq!(
+            names,
+            ["th-1.bin.lock", "th-1.bin.tmp.notes", "th-2.bin.tmp.99999"]
+        );
+    }
+
+    #[test]
+    fn unwritable_directory_is_reported_at_open() {
+        let dir = tempfile::tempdir().unwrap();
+        // A file where the directory should be: nothing can be created below it, whatever
+        // the user's privileges (root ignores permission bits).
+        let blocker = dir.path().join("not-a-dir");
+        fs::write(&blocker, b"").unwrap();
+        let e = FileStorage::open(blocker.join("th-1.bin")).unwrap_err();
+        assert!(matches!(e, OpenError::Unwritable { .. }), "{e}");
+        assert!(e.to_string().contains("not writable"), "{e}");
     }
 
     #[test]

@@ -32,3 +32,12 @@ pub use mem::{MemBus, MemPort};
 pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
 pub use transport::{open, open_or_host, BusUrl, Error, RxFrame, Transport, DEFAULT_URL};
+
+/// Warns when `addr` is reachable from other machines: neither the socketcand hub nor the
+/// control interface has authentication. One text for every place that binds (`what` names
+/// it, e.g. "the bus").
+pub fn warn_if_exposed(addr: std::net::SocketAddr, what: &str) {
+    if !addr.ip().is_loopback() {
+        tracing::warn!(%addr, "{what} is reachable from the network (no authentication); bind to 127.0.0.1 unless that is intended");
+    }
+}

@@ -12,7 +12,7 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
-use crate::socketcand::hub::Out;
+use crate::socketcand::hub::Wake;
 use crate::transport::{RxFrame, Transport};
 
 /// Default receive queue length of a port, in frames (about 0.5 s of a saturated 1 Mbit/s bus).
@@ -22,8 +22,8 @@ pub const DEFAULT_QUEUE_LEN: usize = 4096;
 pub(crate) enum Sink {
     /// An in-process port.
     Local(Sender<RxFrame>),
-    /// A socketcand TCP client's writer thread.
-    Remote(Sender<Out>),
+    /// A socketcand TCP client of the hub: its queue, and how to tell the hub's I/O thread.
+    Remote(Sender<RxFrame>, Arc<Wake>),
 }
 
 struct Member {
@@ -89,8 +89,14 @@ impl BusCore {
         for m in members.iter().filter(|m| m.id != from) {
             let full = match &m.sink {
                 Sink::Local(tx) => matches!(tx.try_send(rx), Err(TrySendError::Full(_))),
-                Sink::Remote(tx) => {
-                    matches!(tx.try_send(Out::Frame(rx)), Err(TrySendError::Full(_)))
+                // Unbounded underneath, capped here: memory grows with the backlog, not with
+                // the number of clients (a bounded channel allocates its capacity up front).
+                Sink::Remote(tx, wake) if tx.len() >= wake.cap => true,
+                Sink::Remote(tx, wake) => {
+                    if tx.send(rx).is_ok() {
+                        wake.notify();
+                    }
+                    false
                 }
             };
             // A disconnected sink belongs to a member that is leaving; not a drop.

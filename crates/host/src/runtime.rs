@@ -153,6 +153,13 @@ impl SimDevice {
             let at = self.next_cycle;
             let t_s = at.micros().saturating_sub(self.t0.micros()) as f64 / 1e6;
             self.last_true = self.motion.positions_mm(t_s);
+            // Motion values are validated where they are parsed; a non-finite position here
+            // would still be a bug, and the measurement must not see it.
+            for p in &mut self.last_true {
+                if p.is_some_and(|v| !v.is_finite()) {
+                    *p = None;
+                }
+            }
             // Nothing is published before the first measurement's pulse has returned.
             if let Some(sample) = self.sensor.cycle(t_s, &self.last_true) {
                 self.node.update_sample(&sample, at);
@@ -724,7 +731,25 @@ impl Runtime {
         }
     }
 
+    /// Position channels of sensor `i` (magnets it can measure).
+    fn channels(&self, i: usize) -> usize {
+        usize::from(self.devices[i].node.device().config().channels.max(1))
+    }
+
+    fn check_magnet_index(&self, i: usize, index: usize) -> Result<(), String> {
+        let channels = self.channels(i);
+        if index >= channels {
+            return Err(format!(
+                "magnet {index} does not exist: sensor {i} has {channels} magnet channel(s), numbered 0…{} (an additional magnet is the extra-magnet fault)",
+                channels - 1
+            ));
+        }
+        Ok(())
+    }
+
     fn try_request(&mut self, req: Request, now: Instant) -> Result<Value, String> {
+        // Values first, then indices, then the change: a refused request changes nothing.
+        req.validate()?;
         match req {
             Request::Magnet {
                 sensor,
@@ -733,6 +758,7 @@ impl Runtime {
                 velocity,
             } => {
                 let i = self.sensor_index(sensor)?;
+                self.check_magnet_index(i, index)?;
                 let live = &self.devices[i].live;
                 match mm {
                     Some(mm) => live.set_point(index, mm, velocity),
@@ -749,6 +775,19 @@ impl Runtime {
                         "a CSV trajectory can only be given at start (--motion csv:FILE)".into(),
                     );
                 };
+                // Everything is checked before the first magnet moves: a refused request
+                // changes nothing.
+                let channels = self.channels(i);
+                if profiles.len() > channels {
+                    return Err(format!(
+                        "{} profiles for {} magnet channel(s) of sensor {i}; give at most {channels} (an additional magnet is the extra-magnet fault)",
+                        profiles.len(),
+                        channels
+                    ));
+                }
+                for p in &profiles {
+                    p.validate().map_err(|e| e.to_string())?;
+                }
                 let live = &self.devices[i].live;
                 for (k, p) in profiles.into_iter().enumerate() {
                     live.start_profile(k, p).map_err(|e| e.to_string())?;
@@ -790,6 +829,24 @@ impl Runtime {
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
             }
+            Request::Nmt { sensor, command } => {
+                let i = self.sensor_index(sensor)?;
+                let cs = crate::control::nmt_command(&command)?;
+                if !self.powered[i] {
+                    return Err(format!("sensor {i} is powered off"));
+                }
+                let node_id = self.devices[i].node.device().node_id();
+                if !(1..=127).contains(&node_id) {
+                    return Err(format!(
+                        "sensor {i} has no node-id yet (LSS unconfigured); it cannot take NMT commands"
+                    ));
+                }
+                // Addressed to this node only and handed to it alone: the other nodes and the
+                // bus see nothing.
+                let f = Frame::new(0x000, &[cs, node_id]).map_err(|e| format!("{e:?}"))?;
+                self.devices[i].node.handle_frame(&f, now);
+                Ok(json!({"ok": true}))
+            }
         }
     }
 
@@ -810,6 +867,24 @@ impl Runtime {
         let mut faults: Faults = d.sensor.faults().clone();
         let spec = d.sensor.spec().clone();
         let ch = channel.unwrap_or(0);
+        let channels = usize::from(d.node.device().config().channels.max(1));
+        if matches!(fault, Fault::MissingMagnet | Fault::MagnetsTooClose) {
+            let last = if fault == Fault::MagnetsTooClose {
+                channels.saturating_sub(2)
+            } else {
+                channels - 1
+            };
+            if ch > last || (fault == Fault::MagnetsTooClose && channels < 2) {
+                return Err(format!(
+                    "channel {ch} out of range: this sensor has {channels} channel(s){}",
+                    if fault == Fault::MagnetsTooClose {
+                        " and magnets-too-close needs channel and channel + 1"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+        }
         match fault {
             Fault::MissingMagnet => {
                 let slot = faults
@@ -1168,6 +1243,99 @@ mod tests {
         let late = h.stop().unwrap();
         eprintln!("TPDOs in 1 s: {n}; {late}");
         assert!((700..=1300).contains(&n), "{n} TPDOs in 1 s");
+    }
+
+    /// Polls the state of sensor 0 until `pred` holds (bounded; the runtime answers between
+    /// its measurement cycles).
+    fn state_when(c: &ControlHandle, pred: impl Fn(&Value) -> bool) -> Value {
+        let end = std::time::Instant::now() + Duration::from_secs(5);
+        loop {
+            let st = c.request(Request::State { sensor: None });
+            if pred(&st) || std::time::Instant::now() > end {
+                return st;
+            }
+        }
+    }
+
+    #[test]
+    fn refused_requests_change_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        let mut s = th_setup(dir.path(), 9, 5);
+        s.cfg.channels = 4;
+        s.spec = SensorSpec::th(1000.0, 4).unwrap();
+        s.motion = Box::new(Profiles(
+            [100.0, 300.0, 500.0, 700.0]
+                .map(|pos_mm| Profile::Static { pos_mm })
+                .to_vec(),
+        ));
+        rt.add(s);
+        let h = rt.spawn().unwrap();
+        let c = h.control();
+        // 17 magnets (more than the four channels, more than the runtime tracks).
+        let spec = ["static:999"; 17].join(";");
+        let a = c.request(Request::Motion { sensor: None, spec });
+        assert_eq!(a["ok"], false, "{a}");
+        assert!(a["error"].as_str().unwrap().contains("17 profiles"), "{a}");
+        // Five on four channels: refused too.
+        let spec = ["static:999"; 5].join(";");
+        assert_eq!(
+            c.request(Request::Motion { sensor: None, spec })["ok"],
+            false
+        );
+        for bad in [
+            Request::Magnet {
+                sensor: None,
+                index: 4,
+                mm: Some(1.0),
+                velocity: None,
+            },
+            Request::Magnet {
+                sensor: None,
+                index: 0,
+                mm: Some(1e300),
+                velocity: None,
+            },
+            Request::Ambient {
+                sensor: None,
+                celsius: -300.0,
+            },
+            Request::Fault {
+                sensor: None,
+                name: "missing-magnet".into(),
+                on: true,
+                value: None,
+                channel: Some(4),
+            },
+            Request::Fault {
+                sensor: None,
+                name: "magnets-too-close".into(),
+                on: true,
+                value: None,
+                channel: Some(3),
+            },
+        ] {
+            let a = c.request(bad.clone());
+            assert_eq!(a["ok"], false, "{bad:?} → {a}");
+        }
+        // A request accepted after the refused ones: once it shows, the refused ones would
+        // have shown too.
+        let a = c.request(Request::Magnet {
+            sensor: None,
+            index: 0,
+            mm: Some(123.0),
+            velocity: None,
+        });
+        assert_eq!(a["ok"], true, "{a}");
+        let st = state_when(&c, |st| st["true_mm"][0] == 123.0);
+        assert_eq!(st["true_mm"], json!([123.0, 300.0, 500.0, 700.0]), "{st}");
+        assert_eq!(st["faults"], json!([]), "{st}");
+        assert!(
+            (st["temperature_c"].as_f64().unwrap() - 20.0).abs() < 30.0,
+            "{st}"
+        );
+        h.stop().unwrap();
     }
 
     #[test]

@@ -1,20 +1,29 @@
 //! A socketcand server acting as a hub: each channel name is an isolated virtual bus shared by
 //! all clients that opened it (TCP clients and in-process [`MemPort`]s).
 //!
-//! Threads: one accept loop, and per TCP client one reader thread (parse, forward) and one
-//! writer thread fed by a bounded queue. Forwarding only ever `try_send`s into queues, so a
-//! client that reads slowly or not at all loses frames (counted) and never stalls the others.
+//! One thread serves every TCP client, event-driven (`mio`: epoll): it accepts, reads and parses,
+//! forwards, and writes. Each raw-mode client has a bounded queue that the channel's senders
+//! (other clients, in-process [`MemPort`]s on any thread) only ever `try_send` into, waking the
+//! I/O thread; a client that reads slowly or not at all loses frames (counted) and never stalls
+//! the others. Its socket is written without blocking, with at most [`OUT_LIMIT`] bytes waiting.
+//!
+//! Limits: at most [`HubConfig::max_clients`] connections at once; one more is told
+//! `< error too many clients >` and closed. Threads do not grow with clients at all. A client
+//! must finish the handshake (`open`, `rawmode`) within [`HubConfig::handshake_timeout`], and a
+//! raw-mode client that sends nothing for [`HubConfig::idle_timeout`] (off by default:
+//! listen-only clients are normal) is closed.
 
 use std::collections::HashMap;
 use std::io::{self, Read, Write};
-use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
-use std::os::linux::net::TcpStreamExt;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::net::{SocketAddr, TcpListener, ToSocketAddrs};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::Receiver;
+use crossbeam_channel::{Receiver, TryRecvError};
+use mio::net::{TcpListener as MioListener, TcpStream};
+use mio::{Events, Interest, Poll, Token, Waker};
 
 use super::codec::{self, Decoder, Element};
 use crate::mem::{BusCore, MemBus, MemPort, Sink};
@@ -23,10 +32,35 @@ use crate::transport::RxFrame;
 /// The default listen address: loopback only.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
 
-/// What a TCP client's writer thread sends.
-pub(crate) enum Out {
-    Frame(RxFrame),
-    Echo,
+/// Bytes that may wait for a client's socket before its queue is left to fill (and drop).
+pub const OUT_LIMIT: usize = 64 * 1024;
+
+const LISTENER: Token = Token(usize::MAX - 1);
+/// Connections accepted per turn of the event loop.
+const ACCEPT_SLICE: usize = 64;
+const WAKER: Token = Token(usize::MAX - 2);
+
+/// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
+pub(crate) struct Wake {
+    /// Frames the client's queue may hold; more are dropped (and counted).
+    pub(crate) cap: usize,
+    token: usize,
+    /// Set while the token is in the ready list, so a burst wakes the thread once.
+    pending: AtomicBool,
+    ready: Arc<Mutex<Vec<usize>>>,
+    waker: Arc<Waker>,
+}
+
+impl Wake {
+    pub(crate) fn notify(&self) {
+        if !self.pending.swap(true, Ordering::AcqRel) {
+            self.ready
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(self.token);
+            let _ = self.waker.wake();
+        }
+    }
 }
 
 /// Hub tuning.
@@ -40,6 +74,14 @@ pub struct HubConfig {
     /// `SO_SNDBUF` for client sockets (`None`: kernel autotuning). A fixed, modest buffer makes a
     /// stuck client start losing frames after a bounded backlog instead of megabytes.
     pub send_buffer: Option<usize>,
+    /// Most TCP clients connected at once; further connections are refused. Also kept below the
+    /// process's limit of open files (less 64 for everything else), so that the hub refuses
+    /// cleanly instead of failing to accept.
+    pub max_clients: usize,
+    /// Time from accept to raw mode; a client slower than that is closed.
+    pub handshake_timeout: Duration,
+    /// Longest silence of a raw-mode client before it is closed (`None`: no limit).
+    pub idle_timeout: Option<Duration>,
 }
 
 impl Default for HubConfig {
@@ -48,6 +90,9 @@ impl Default for HubConfig {
             queue_len: 4096,
             hold_back: Duration::from_millis(20),
             send_buffer: Some(256 * 1024),
+            max_clients: 10_000,
+            handshake_timeout: Duration::from_secs(10),
+            idle_timeout: None,
         }
     }
 }
@@ -67,21 +112,24 @@ pub struct HubStats {
     pub dropped: u64,
     /// Frames that a TCP client could not be given (remote frames with DLC > 0).
     pub unencodable: u64,
+    /// Connections refused because [`HubConfig::max_clients`] were connected.
+    pub refused: u64,
 }
 
 struct Shared {
     config: HubConfig,
     local_addr: SocketAddr,
     channels: Mutex<HashMap<String, Weak<BusCore>>>,
-    /// Clones of every client socket, to cut them at shutdown.
-    clients: Mutex<HashMap<u64, TcpStream>>,
-    next_client: AtomicU64,
     shutdown: AtomicBool,
+    waker: Arc<Waker>,
+    ready: Arc<Mutex<Vec<usize>>>,
+    clients: AtomicUsize,
     accepted: AtomicU64,
     frames_in: AtomicU64,
     /// Drops of all channels, past and present.
     dropped: Arc<AtomicU64>,
     unencodable: AtomicU64,
+    refused: AtomicU64,
 }
 
 impl Shared {
@@ -102,12 +150,13 @@ impl Shared {
         let live: Vec<Arc<BusCore>> = map.values().filter_map(Weak::upgrade).collect();
         drop(map);
         HubStats {
-            clients: self.clients.lock().unwrap_or_else(|e| e.into_inner()).len(),
+            clients: self.clients.load(Ordering::Relaxed),
             accepted: self.accepted.load(Ordering::Relaxed),
             channels: live.iter().filter(|c| c.member_count() > 0).count(),
             frames_in: self.frames_in.load(Ordering::Relaxed),
             dropped: self.dropped.load(Ordering::Relaxed),
             unencodable: self.unencodable.load(Ordering::Relaxed),
+            refused: self.refused.load(Ordering::Relaxed),
         }
     }
 
@@ -115,36 +164,49 @@ impl Shared {
         MemBus::from_core(self.channel(channel), self.config.queue_len).attach()
     }
 
-    fn shutdown(&self, listener: &TcpListener) {
-        if self.shutdown.swap(true, Ordering::SeqCst) {
-            return;
-        }
-        // shutdown(2) on a listening socket wakes a blocked accept on Linux; the self-connect
-        // is a fallback in case it does not.
-        let _ = socket2::SockRef::from(listener).shutdown(Shutdown::Both);
-        let mut wake = self.local_addr;
-        if wake.ip().is_unspecified() {
-            wake.set_ip(if wake.is_ipv4() {
-                std::net::Ipv4Addr::LOCALHOST.into()
-            } else {
-                std::net::Ipv6Addr::LOCALHOST.into()
-            });
-        }
-        let _ = TcpStream::connect_timeout(&wake, Duration::from_millis(100));
-        for s in self
-            .clients
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .values()
-        {
-            let _ = s.shutdown(Shutdown::Both);
+    fn shutdown(&self) {
+        if !self.shutdown.swap(true, Ordering::SeqCst) {
+            let _ = self.waker.wake();
         }
     }
 }
 
+/// Turns on TCP_QUICKACK: Linux clears it after use, so it is re-armed after every read, and
+/// the hub's ACKs never wait the ~40 ms of delayed ACK.
+fn quickack(stream: &TcpStream) {
+    use std::os::fd::AsRawFd;
+    let on: libc::c_int = 1;
+    // SAFETY: setsockopt reads one c_int from a pointer we own, on a socket we own.
+    unsafe {
+        libc::setsockopt(
+            stream.as_raw_fd(),
+            libc::IPPROTO_TCP,
+            libc::TCP_QUICKACK,
+            (&on as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+}
+
+/// Descriptors the hub may use for clients: the soft limit of open files less 64.
+fn open_file_budget() -> usize {
+    let mut lim = libc::rlimit {
+        rlim_cur: 0,
+        rlim_max: 0,
+    };
+    // SAFETY: getrlimit writes the struct we own.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut lim) } != 0 {
+        return usize::MAX;
+    }
+    usize::try_from(lim.rlim_cur)
+        .unwrap_or(usize::MAX)
+        .saturating_sub(64)
+}
+
 /// A bound, not yet running hub.
 pub struct Hub {
-    listener: Arc<TcpListener>,
+    listener: TcpListener,
+    poll: Poll,
     shared: Arc<Shared>,
 }
 
@@ -157,21 +219,28 @@ impl Hub {
     /// Binds with explicit tuning.
     pub fn bind_with(addr: impl ToSocketAddrs, mut config: HubConfig) -> io::Result<Hub> {
         config.queue_len = config.queue_len.max(1);
+        config.max_clients = config.max_clients.min(open_file_budget()).max(1);
         let listener = TcpListener::bind(addr)?;
+        listener.set_nonblocking(true)?;
         let local_addr = listener.local_addr()?;
+        let poll = Poll::new()?;
+        let waker = Arc::new(Waker::new(poll.registry(), WAKER)?);
         Ok(Hub {
-            listener: Arc::new(listener),
+            listener,
+            poll,
             shared: Arc::new(Shared {
                 config,
                 local_addr,
                 channels: Mutex::new(HashMap::new()),
-                clients: Mutex::new(HashMap::new()),
-                next_client: AtomicU64::new(1),
                 shutdown: AtomicBool::new(false),
+                waker,
+                ready: Arc::new(Mutex::new(Vec::new())),
+                clients: AtomicUsize::new(0),
                 accepted: AtomicU64::new(0),
                 frames_in: AtomicU64::new(0),
                 dropped: Arc::new(AtomicU64::new(0)),
                 unencodable: AtomicU64::new(0),
+                refused: AtomicU64::new(0),
             }),
         })
     }
@@ -195,23 +264,22 @@ impl Hub {
     /// A handle that stops [`Hub::run`] from another thread.
     pub fn shutdown_handle(&self) -> ShutdownHandle {
         ShutdownHandle {
-            listener: self.listener.clone(),
             shared: self.shared.clone(),
         }
     }
 
     /// Serves clients on the calling thread until shut down.
     pub fn run(self) -> io::Result<()> {
-        accept_loop(&self.listener, &self.shared)
+        EventLoop::new(self)?.run()
     }
 
     /// Serves clients on a background thread.
     pub fn spawn(self) -> io::Result<HubHandle> {
         let shutdown = self.shutdown_handle();
-        let (listener, shared) = (self.listener, self.shared);
+        let ev = EventLoop::new(self)?;
         let join = thread::Builder::new()
             .name("socketcand-hub".into())
-            .spawn(move || accept_loop(&listener, &shared))?;
+            .spawn(move || ev.run())?;
         Ok(HubHandle {
             shutdown,
             join: Some(join),
@@ -222,14 +290,13 @@ impl Hub {
 /// Stops a hub: closes the listener and every client connection. Cheap to clone.
 #[derive(Clone)]
 pub struct ShutdownHandle {
-    listener: Arc<TcpListener>,
     shared: Arc<Shared>,
 }
 
 impl ShutdownHandle {
     /// Stops the hub; idempotent. In-process ports stay usable among themselves.
     pub fn shutdown(&self) {
-        self.shared.shutdown(&self.listener);
+        self.shared.shutdown();
     }
 }
 
@@ -260,12 +327,12 @@ impl HubHandle {
         self.shutdown.clone()
     }
 
-    /// Whether the accept loop is still running.
+    /// Whether the I/O thread is still running.
     pub fn is_running(&self) -> bool {
         self.join.as_ref().is_some_and(|j| !j.is_finished())
     }
 
-    /// Stops the hub and waits for the accept loop to end.
+    /// Stops the hub and waits for the I/O thread to end.
     pub fn shutdown(mut self) -> io::Result<()> {
         self.stop()
     }
@@ -275,7 +342,7 @@ impl HubHandle {
         match self.join.take() {
             Some(j) => j
                 .join()
-                .unwrap_or_else(|_| Err(io::Error::other("hub accept thread panicked"))),
+                .unwrap_or_else(|_| Err(io::Error::other("hub I/O thread panicked"))),
             None => Ok(()),
         }
     }
@@ -287,187 +354,505 @@ impl Drop for HubHandle {
     }
 }
 
-fn accept_loop(listener: &TcpListener, shared: &Arc<Shared>) -> io::Result<()> {
-    tracing::info!(addr = %shared.local_addr, "socketcand hub listening");
-    loop {
-        let accepted = listener.accept();
-        if shared.shutdown.load(Ordering::SeqCst) {
-            return Ok(());
-        }
-        match accepted {
-            Ok((stream, peer)) => {
-                shared.accepted.fetch_add(1, Ordering::Relaxed);
-                let shared = shared.clone();
-                let spawned = thread::Builder::new()
-                    .name(format!("socketcand {peer}"))
-                    .spawn(move || serve_client(stream, peer, shared));
-                if let Err(e) = spawned {
-                    tracing::warn!(%peer, "cannot start client thread: {e}");
-                }
-            }
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-            Err(e) => {
-                // E.g. out of file descriptors: back off instead of spinning or dying.
-                tracing::warn!("accept failed: {e}");
-                thread::sleep(Duration::from_millis(10));
-            }
-        }
-    }
-}
-
-fn tune(stream: &TcpStream, config: &HubConfig) {
-    let _ = stream.set_nodelay(true);
-    let _ = stream.set_quickack(true);
-    if let Some(n) = config.send_buffer {
-        let _ = socket2::SockRef::from(stream).set_send_buffer_size(n);
-    }
-}
-
-/// Removes the client from the hub's registry (and its bus) when its reader ends, however it
-/// ends.
-struct ClientGuard {
-    shared: Arc<Shared>,
-    client: u64,
-    member: Option<(Arc<BusCore>, u64, Arc<AtomicU64>)>,
-}
-
-impl Drop for ClientGuard {
-    fn drop(&mut self) {
-        if let Some((bus, id, _)) = self.member.take() {
-            bus.leave(id);
-        }
-        let removed = self
-            .shared
-            .clients
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(&self.client);
-        if let Some(s) = removed {
-            let _ = s.shutdown(Shutdown::Both);
-        }
-    }
-}
-
 enum State {
     Opening,
     Opened(String),
     Raw {
         bus: Arc<BusCore>,
         id: u64,
-        queue: crossbeam_channel::Sender<Out>,
+        rx: Receiver<RxFrame>,
+        wake: Arc<Wake>,
+        dropped: Arc<AtomicU64>,
+        /// Frames are held back until then after the rawmode `< ok >` (`None`: over).
+        hold_until: Option<Instant>,
     },
 }
 
-fn serve_client(mut stream: TcpStream, peer: SocketAddr, shared: Arc<Shared>) {
-    tune(&stream, &shared.config);
-    let client = shared.next_client.fetch_add(1, Ordering::Relaxed);
-    match stream.try_clone() {
-        Ok(s) => {
-            shared
-                .clients
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(client, s);
+/// One TCP client.
+struct Conn {
+    stream: TcpStream,
+    peer: SocketAddr,
+    state: State,
+    decoder: Decoder,
+    /// Bytes not yet written, from `out_pos` on.
+    out: Vec<u8>,
+    out_pos: usize,
+    /// Whether WRITABLE interest is registered (only while bytes wait).
+    writable: bool,
+    handshake_end: Instant,
+    last_rx: Instant,
+    closed: bool,
+}
+
+impl Conn {
+    fn pending(&self) -> usize {
+        self.out.len() - self.out_pos
+    }
+
+    /// Writes what waits, without blocking.
+    fn flush(&mut self) {
+        while self.out_pos < self.out.len() {
+            match self.stream.write(&self.out[self.out_pos..]) {
+                Ok(0) => {
+                    self.closed = true;
+                    return;
+                }
+                Ok(n) => self.out_pos += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(_) => {
+                    self.closed = true;
+                    return;
+                }
+            }
         }
-        Err(e) => {
-            tracing::warn!(%peer, "cannot clone client socket: {e}");
+        if self.out_pos == self.out.len() {
+            self.out.clear();
+            self.out_pos = 0;
+        } else if self.out_pos > OUT_LIMIT {
+            self.out.drain(..self.out_pos);
+            self.out_pos = 0;
+        }
+    }
+
+    /// Moves queued frames into the output, as long as the output has room.
+    fn fill(&mut self, now: Instant, shared: &Shared) {
+        let State::Raw {
+            rx,
+            wake,
+            hold_until,
+            ..
+        } = &mut self.state
+        else {
             return;
-        }
-    }
-    let mut guard = ClientGuard {
-        shared: shared.clone(),
-        client,
-        member: None,
-    };
-    // A shutdown between accept and registration would miss this socket.
-    if shared.shutdown.load(Ordering::SeqCst) {
-        return;
-    }
-    tracing::debug!(%peer, "client connected");
-    if stream.write_all(codec::HI).is_err() {
-        return;
-    }
-    let mut decoder = Decoder::new();
-    let mut state = State::Opening;
-    let mut buf = [0u8; 4096];
-    let mut elements = Vec::new();
-    loop {
-        let n = match stream.read(&mut buf) {
-            Ok(0) => break,
-            Ok(n) => n,
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-            Err(_) => break,
         };
-        // Linux clears QUICKACK after use; re-arm so our ACKs never wait ~40 ms.
-        let _ = stream.set_quickack(true);
-        elements.clear();
-        decoder.feed(&buf[..n], |body| elements.push(Element::parse(body)));
-        for el in elements.drain(..) {
-            if !handle_element(el, &mut stream, &mut state, &shared, &mut guard, peer) {
-                return;
+        match *hold_until {
+            Some(t) if now < t => return,
+            Some(_) => *hold_until = None,
+            None => {}
+        }
+        // Cleared before draining: a frame sent meanwhile wakes the loop again.
+        wake.pending.store(false, Ordering::Release);
+        while self.out.len() - self.out_pos < OUT_LIMIT {
+            match rx.try_recv() {
+                Ok(f) => {
+                    if !codec::write_frame(&mut self.out, &f.frame, f.timestamp) {
+                        shared.unencodable.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+                Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
             }
         }
     }
-    tracing::debug!(%peer, dropped = guard.member.as_ref().map(|m| m.2.load(Ordering::Relaxed)), "client disconnected");
+
+    fn leave(&mut self) {
+        if let State::Raw {
+            bus, id, dropped, ..
+        } = &self.state
+        {
+            bus.leave(*id);
+            tracing::debug!(peer = %self.peer, dropped = dropped.load(Ordering::Relaxed), "client disconnected");
+        }
+        self.state = State::Opening;
+    }
+}
+
+struct EventLoop {
+    listener: MioListener,
+    poll: Poll,
+    shared: Arc<Shared>,
+    conns: HashMap<usize, Conn>,
+    next_token: usize,
+    /// No client deadline comes before this (it may be early: idle deadlines move on).
+    earliest: Option<Instant>,
+    /// Accepting failed (e.g. out of descriptors) with connections left in the backlog: the
+    /// listener is edge-triggered and will not report them again, so retry on a timer.
+    accept_retry: bool,
+    /// An accept slice ended before the backlog did.
+    accept_more: bool,
+    /// Clients to serve again next turn without waiting for an event: their socket had more to
+    /// read than one turn takes, or their queue more than the output took while the socket
+    /// still had room. Readiness is edge-triggered: no new event would come for either.
+    again: Vec<usize>,
+}
+
+impl EventLoop {
+    fn new(hub: Hub) -> io::Result<EventLoop> {
+        let mut listener = MioListener::from_std(hub.listener);
+        hub.poll
+            .registry()
+            .register(&mut listener, LISTENER, Interest::READABLE)?;
+        Ok(EventLoop {
+            listener,
+            poll: hub.poll,
+            shared: hub.shared,
+            conns: HashMap::new(),
+            next_token: 0,
+            earliest: None,
+            accept_retry: false,
+            accept_more: false,
+            again: Vec::new(),
+        })
+    }
+
+    fn run(mut self) -> io::Result<()> {
+        tracing::info!(addr = %self.shared.local_addr, "socketcand hub listening");
+        let mut events = Events::with_capacity(1024);
+        // The deadlines (handshake, hold-back, idle) are scanned over all clients only when the
+        // earliest is due, and at most every SCAN_EVERY: a turn costs the clients that had
+        // events, not all of them.
+        const SCAN_EVERY: Duration = Duration::from_millis(2);
+        let mut next_scan = Instant::now();
+        loop {
+            if self.shared.shutdown.load(Ordering::SeqCst) {
+                break;
+            }
+            let mut timeout = self
+                .earliest
+                .map(|d| d.max(next_scan).saturating_duration_since(Instant::now()));
+            if self.accept_retry || self.accept_more || !self.again.is_empty() {
+                let retry = if self.accept_more || !self.again.is_empty() {
+                    Duration::ZERO
+                } else {
+                    Duration::from_millis(10)
+                };
+                timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
+            }
+            if let Err(e) = self.poll.poll(&mut events, timeout) {
+                if e.kind() == io::ErrorKind::Interrupted {
+                    continue;
+                }
+                return Err(e);
+            }
+            let now = Instant::now();
+            let mut touched = Vec::new();
+            let again = std::mem::take(&mut self.accept_more);
+            if std::mem::take(&mut self.accept_retry) || again {
+                self.accept(now);
+            }
+            for t in std::mem::take(&mut self.again) {
+                self.read(t, now);
+                touched.push(t);
+            }
+            for ev in events.iter() {
+                match ev.token() {
+                    LISTENER => self.accept(now),
+                    WAKER => {
+                        let ready = std::mem::take(
+                            &mut *self.shared.ready.lock().unwrap_or_else(|e| e.into_inner()),
+                        );
+                        touched.extend(ready);
+                    }
+                    Token(t) => {
+                        if ev.is_readable() || ev.is_read_closed() || ev.is_error() {
+                            self.read(t, now);
+                        }
+                        touched.push(t);
+                    }
+                }
+            }
+            let now = Instant::now();
+            if now >= next_scan && self.earliest.is_some_and(|d| now >= d) {
+                self.timers(now, &mut touched);
+                self.earliest = self.next_deadline();
+                next_scan = now + SCAN_EVERY;
+            }
+            touched.sort_unstable();
+            touched.dedup();
+            for t in touched {
+                self.service(t, now);
+            }
+        }
+        // Dropping the connections closes them; members leave their channels.
+        for (_, mut c) in self.conns.drain() {
+            c.leave();
+        }
+        self.shared.clients.store(0, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// The earliest handshake, idle or hold-back deadline.
+    fn next_deadline(&self) -> Option<Instant> {
+        let idle = self.shared.config.idle_timeout;
+        self.conns
+            .values()
+            .filter_map(|c| match &c.state {
+                State::Raw { hold_until, .. } => {
+                    let idle = idle.map(|d| c.last_rx + d);
+                    match (*hold_until, idle) {
+                        (Some(h), Some(i)) => Some(h.min(i)),
+                        (h, i) => h.or(i),
+                    }
+                }
+                _ => Some(c.handshake_end),
+            })
+            .min()
+    }
+
+    /// Closes timed-out clients; marks those whose hold-back ended.
+    fn timers(&mut self, now: Instant, touched: &mut Vec<usize>) {
+        let idle = self.shared.config.idle_timeout;
+        for (t, c) in &mut self.conns {
+            match &c.state {
+                State::Raw { hold_until, .. } => {
+                    if idle.is_some_and(|d| now >= c.last_rx + d) {
+                        tracing::debug!(peer = %c.peer, "idle client closed");
+                        c.closed = true;
+                    }
+                    if hold_until.is_some_and(|h| now >= h) {
+                        touched.push(*t);
+                    }
+                }
+                _ if now >= c.handshake_end => {
+                    tracing::debug!(peer = %c.peer, "handshake timeout");
+                    c.closed = true;
+                    touched.push(*t);
+                }
+                _ => {}
+            }
+            if c.closed {
+                touched.push(*t);
+            }
+        }
+    }
+
+    fn accept(&mut self, now: Instant) {
+        // A burst of connections is taken in slices, between which the clients that have
+        // traffic are served: a flood of connects must not stall the bus.
+        for _ in 0..ACCEPT_SLICE {
+            let (mut stream, peer) = match self.listener.accept() {
+                Ok(x) => x,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+                Err(e) => {
+                    // E.g. out of file descriptors: leave the rest in the backlog for now.
+                    tracing::warn!("accept failed: {e}");
+                    self.accept_retry = true;
+                    return;
+                }
+            };
+            self.shared.accepted.fetch_add(1, Ordering::Relaxed);
+            if self.conns.len() >= self.shared.config.max_clients {
+                let refused = self.shared.refused.fetch_add(1, Ordering::Relaxed);
+                let _ = stream.write(b"< error too many clients >");
+                // The 1st, 2nd, 4th, 8th … refusal: a flood must not flood the log too.
+                if (refused + 1).is_power_of_two() {
+                    tracing::warn!(%peer, max = self.shared.config.max_clients, refused = refused + 1,
+                        "socketcand client refused: too many clients");
+                }
+                continue;
+            }
+            let _ = stream.set_nodelay(true);
+            quickack(&stream);
+            if let Some(n) = self.shared.config.send_buffer {
+                let _ = socket2::SockRef::from(&stream).set_send_buffer_size(n);
+            }
+            let token = self.next_token;
+            self.next_token = (self.next_token + 1) % (usize::MAX - 16);
+            if let Err(e) =
+                self.poll
+                    .registry()
+                    .register(&mut stream, Token(token), Interest::READABLE)
+            {
+                tracing::warn!(%peer, "cannot watch client socket: {e}");
+                continue;
+            }
+            tracing::debug!(%peer, "client connected");
+            let mut c = Conn {
+                stream,
+                peer,
+                state: State::Opening,
+                decoder: Decoder::new(),
+                out: codec::HI.to_vec(),
+                out_pos: 0,
+                writable: false,
+                handshake_end: now + self.shared.config.handshake_timeout,
+                last_rx: now,
+                closed: false,
+            };
+            c.flush();
+            self.note_deadline(c.handshake_end);
+            self.conns.insert(token, c);
+            self.shared
+                .clients
+                .store(self.conns.len(), Ordering::Relaxed);
+            // Serviced on the next turn (interest, closing).
+            self.shared
+                .ready
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(token);
+            let _ = self.shared.waker.wake();
+        }
+        // The slice ended with connections maybe left: come back at once.
+        self.accept_more = true;
+    }
+
+    fn read(&mut self, t: usize, now: Instant) {
+        let Some(c) = self.conns.get_mut(&t) else {
+            return;
+        };
+        let mut buf = [0u8; 4096];
+        let mut elements = Vec::new();
+        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
+        // turn.
+        let mut drained = false;
+        for _ in 0..16 {
+            match c.stream.read(&mut buf) {
+                Ok(0) => {
+                    c.closed = true;
+                    drained = true;
+                    break;
+                }
+                Ok(n) => {
+                    quickack(&c.stream);
+                    c.last_rx = now;
+                    c.decoder
+                        .feed(&buf[..n], |body| elements.push(Element::parse(body)));
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    drained = true;
+                    break;
+                }
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(_) => {
+                    c.closed = true;
+                    drained = true;
+                    break;
+                }
+            }
+        }
+        if !drained {
+            self.again.push(t);
+        }
+        let was_raw = matches!(c.state, State::Raw { .. });
+        for el in elements {
+            if !handle_element(el, c, &self.shared, t, now) {
+                c.closed = true;
+                break;
+            }
+        }
+        // Raw mode began: its hold-back and idle deadlines.
+        if let (false, State::Raw { hold_until, .. }) = (was_raw, &c.state) {
+            let mut due = *hold_until;
+            if let Some(d) = self.shared.config.idle_timeout {
+                due = Some(due.map_or(now + d, |h| h.min(now + d)));
+            }
+            if let Some(d) = due {
+                self.note_deadline(d);
+            }
+        }
+    }
+
+    fn note_deadline(&mut self, d: Instant) {
+        self.earliest = Some(self.earliest.map_or(d, |e| e.min(d)));
+    }
+
+    /// Output, interest and closing of one client.
+    fn service(&mut self, t: usize, now: Instant) {
+        let Some(c) = self.conns.get_mut(&t) else {
+            return;
+        };
+        if !c.closed {
+            c.fill(now, &self.shared);
+            c.flush();
+        }
+        if c.closed {
+            let mut c = self.conns.remove(&t).expect("present");
+            c.leave();
+            let _ = self.poll.registry().deregister(&mut c.stream);
+            self.shared
+                .clients
+                .store(self.conns.len(), Ordering::Relaxed);
+            return;
+        }
+        // Queue not drained (output full): come back when the socket takes more.
+        let backlog = matches!(&c.state, State::Raw { rx, hold_until: None, .. } if !rx.is_empty());
+        if backlog && c.pending() == 0 {
+            // The socket took all there was and has room: no WRITABLE edge will come.
+            self.again.push(t);
+        }
+        let want = c.pending() > 0 || backlog;
+        if want != c.writable {
+            let interest = if want {
+                Interest::READABLE | Interest::WRITABLE
+            } else {
+                Interest::READABLE
+            };
+            if self
+                .poll
+                .registry()
+                .reregister(&mut c.stream, Token(t), interest)
+                .is_ok()
+            {
+                c.writable = want;
+            }
+        }
+    }
 }
 
 /// Returns false when the connection should be closed.
 fn handle_element(
     el: Element,
-    stream: &mut TcpStream,
-    state: &mut State,
+    c: &mut Conn,
     shared: &Arc<Shared>,
-    guard: &mut ClientGuard,
-    peer: SocketAddr,
+    token: usize,
+    now: Instant,
 ) -> bool {
-    match (el, &*state) {
+    match (el, &c.state) {
         (Element::Send(frame), State::Raw { bus, id, .. }) => {
             shared.frames_in.fetch_add(1, Ordering::Relaxed);
             bus.broadcast(*id, RxFrame::now(frame));
             true
         }
-        (Element::Echo, State::Raw { queue, .. }) => {
-            // Through the queue so the reply is never interleaved with a frame being written.
-            let _ = queue.try_send(Out::Echo);
+        (Element::Echo, State::Raw { .. }) => {
+            // Frames queued before the echo go out before it.
+            c.fill(now, shared);
+            c.out.extend_from_slice(codec::ECHO);
             true
         }
-        (Element::Echo, _) => stream.write_all(codec::ECHO).is_ok(),
+        (Element::Echo, _) => {
+            c.out.extend_from_slice(codec::ECHO);
+            true
+        }
         (Element::Open(ch), State::Opening) => {
             if !valid_channel(&ch) {
-                tracing::debug!(%peer, "refusing channel name {ch:?}");
+                tracing::debug!(peer = %c.peer, "refusing channel name {ch:?}");
                 return false;
             }
-            *state = State::Opened(ch);
-            stream.write_all(codec::OK).is_ok()
+            c.state = State::Opened(ch);
+            c.out.extend_from_slice(codec::OK);
+            true
         }
         (Element::RawMode, State::Opened(ch)) => {
             let bus = shared.channel(ch);
-            let (tx, rx) = crossbeam_channel::bounded(shared.config.queue_len);
-            let Ok(writer_stream) = stream.try_clone() else {
-                return false;
+            let (tx, rx) = crossbeam_channel::unbounded();
+            let wake = Arc::new(Wake {
+                cap: shared.config.queue_len,
+                token,
+                pending: AtomicBool::new(false),
+                ready: shared.ready.clone(),
+                waker: shared.waker.clone(),
+            });
+            // The `< ok >` goes out before any frame: frames wait in the queue until the hold-back
+            // ends.
+            c.out.extend_from_slice(codec::OK);
+            let (id, dropped) = bus.join(Sink::Remote(tx, wake.clone()));
+            tracing::debug!(peer = %c.peer, channel = %ch, "client in raw mode");
+            c.state = State::Raw {
+                bus,
+                id,
+                rx,
+                wake,
+                dropped,
+                hold_until: Some(now + shared.config.hold_back),
             };
-            // The `< ok >` goes out before the member joins, so no frame can precede it.
-            if stream.write_all(codec::OK).is_err() {
-                return false;
-            }
-            let hold_until = Instant::now() + shared.config.hold_back;
-            let (id, dropped) = bus.join(Sink::Remote(tx.clone()));
-            guard.member = Some((bus.clone(), id, dropped));
-            let sh = shared.clone();
-            let spawned = thread::Builder::new()
-                .name(format!("socketcand {peer} tx"))
-                .spawn(move || writer(writer_stream, rx, hold_until, &sh));
-            if spawned.is_err() {
-                return false;
-            }
-            tracing::debug!(%peer, channel = %ch, "client in raw mode");
-            *state = State::Raw { bus, id, queue: tx };
             true
         }
         (el, _) => {
             // Unknown or out-of-order commands are ignored: python-can raises on `< error >`
             // in raw mode, and a misbehaving client must not take the hub down.
-            tracing::trace!(%peer, "ignored element {el:?}");
+            tracing::trace!(peer = %c.peer, "ignored element {el:?}");
             true
         }
     }
@@ -475,44 +860,4 @@ fn handle_element(
 
 fn valid_channel(ch: &str) -> bool {
     !ch.is_empty() && ch.len() <= 64 && ch.bytes().all(|b| b.is_ascii_graphic())
-}
-
-fn writer(mut stream: TcpStream, rx: Receiver<Out>, hold_until: Instant, shared: &Shared) {
-    let mut buf = Vec::with_capacity(4096);
-    let mut first = true;
-    while let Ok(item) = rx.recv() {
-        if first {
-            first = false;
-            let now = Instant::now();
-            if now < hold_until {
-                thread::sleep(hold_until - now);
-            }
-        }
-        buf.clear();
-        push(&mut buf, item, shared);
-        // Batch whatever else is queued into one write: fewer syscalls under load, and no
-        // added latency because we never wait for more.
-        while buf.len() < 32 * 1024 {
-            match rx.try_recv() {
-                Ok(item) => push(&mut buf, item, shared),
-                Err(_) => break,
-            }
-        }
-        if !buf.is_empty() && stream.write_all(&buf).is_err() {
-            break;
-        }
-    }
-    // Make the reader notice too, if it is the writer that failed.
-    let _ = stream.shutdown(Shutdown::Both);
-}
-
-fn push(buf: &mut Vec<u8>, item: Out, shared: &Shared) {
-    match item {
-        Out::Frame(rx) => {
-            if !codec::write_frame(buf, &rx.frame, rx.timestamp) {
-                shared.unencodable.fetch_add(1, Ordering::Relaxed);
-            }
-        }
-        Out::Echo => buf.extend_from_slice(codec::ECHO),
-    }
 }

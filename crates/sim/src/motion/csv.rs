@@ -2,8 +2,11 @@
 
 use std::path::Path;
 
-use super::Motion;
+use super::{in_range, Motion, MAX_MAGNITUDE};
 use crate::error::{Error, Result};
+
+/// Largest trajectory file read (256 MiB: hours of a kilohertz recording).
+pub const MAX_FILE_BYTES: u64 = 256 << 20;
 
 /// A recorded trajectory for one or more magnets.
 ///
@@ -33,10 +36,22 @@ impl CsvTrajectory {
     /// Reads and parses a CSV file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io {
+        let io = |message: String| Error::Io {
             path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
+            message,
+        };
+        // Only a regular file of sane size: a FIFO or /dev/zero would block or never end.
+        let meta = std::fs::metadata(path).map_err(|e| io(e.to_string()))?;
+        if !meta.is_file() {
+            return Err(io("not a regular file".into()));
+        }
+        if meta.len() > MAX_FILE_BYTES {
+            return Err(io(format!(
+                "{} bytes; a trajectory file may have at most {MAX_FILE_BYTES}",
+                meta.len()
+            )));
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| io(e.to_string()))?;
         Self::parse(&text, &path.display().to_string())
     }
 
@@ -89,10 +104,13 @@ impl CsvTrajectory {
             let t: f64 = fields[0]
                 .parse()
                 .map_err(|_| err(line_no, format!("time \"{}\" is not a number", fields[0])))?;
-            if !t.is_finite() {
+            if !in_range(t) {
                 return Err(err(
                     line_no,
-                    format!("time \"{}\" is not finite", fields[0]),
+                    format!(
+                        "time \"{}\" is not finite or beyond ±{MAX_MAGNITUDE:e} s",
+                        fields[0]
+                    ),
                 ));
             }
             if let Some(&prev) = times.last() {
@@ -115,10 +133,13 @@ impl CsvTrajectory {
                         format!("position {} \"{f}\" is not a number", col + 1),
                     )
                 })?;
-                if !v.is_finite() {
+                if !in_range(v) {
                     return Err(err(
                         line_no,
-                        format!("position {} \"{f}\" is not finite", col + 1),
+                        format!(
+                            "position {} \"{f}\" is not finite or beyond ±{MAX_MAGNITUDE:e} mm",
+                            col + 1
+                        ),
                     ));
                 }
                 row.push(Some(v));
@@ -253,5 +274,12 @@ mod tests {
         let e = CsvTrajectory::load("/nonexistent/canpos/traj.csv").unwrap_err();
         assert!(matches!(e, Error::Io { .. }));
         assert!(e.to_string().contains("/nonexistent/canpos/traj.csv"));
+    }
+
+    #[test]
+    fn devices_are_refused_not_read() {
+        // /dev/zero never ends; a character device is no trajectory file.
+        let e = CsvTrajectory::load("/dev/zero").unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
     }
 }

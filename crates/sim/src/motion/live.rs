@@ -2,7 +2,7 @@
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use super::{Motion, Profile};
+use super::{in_range, Motion, Profile, MAX_MAGNITUDE};
 use crate::error::{Error, Result};
 
 /// Highest number of magnets a [`LiveMotion`] tracks (channels plus room for extra magnets).
@@ -116,15 +116,15 @@ impl LiveHandle {
         max_velocity_mm_s: Option<f64>,
     ) -> Result<()> {
         check_magnet(magnet)?;
-        if !pos_mm.is_finite() {
+        if !in_range(pos_mm) {
             return Err(Error::Request(format!(
-                "set-point {pos_mm} mm is not finite"
+                "set-point {pos_mm} mm is not finite or beyond ±{MAX_MAGNITUDE:e} mm"
             )));
         }
         if let Some(v) = max_velocity_mm_s {
-            if !(v.is_finite() && v > 0.0) {
+            if !(in_range(v) && v > 0.0) {
                 return Err(Error::Request(format!(
-                    "velocity limit {v} mm/s must be > 0"
+                    "velocity limit {v} mm/s must be > 0 and at most {MAX_MAGNITUDE:e}"
                 )));
             }
         }

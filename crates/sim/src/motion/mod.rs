@@ -39,6 +39,20 @@ pub use self::live::{LiveHandle, LiveMotion, MAX_LIVE_MAGNETS};
 pub use self::profile::{Profile, Ramp};
 use crate::error::{Error, Result};
 
+/// Largest magnitude of any number in a motion (positions mm, times and periods s, velocities
+/// mm/s, accelerations mm/s²). Far beyond any real rod or move, and small enough that the
+/// arithmetic of a profile can never overflow to infinity or NaN.
+pub const MAX_MAGNITUDE: f64 = 1.0e9;
+
+/// Shortest period of a sine or triangle, s. Shorter ones make `t / period` overflow (NaN
+/// positions), and no magnet on a rod oscillates at more than a kilohertz anyway.
+pub const MIN_PERIOD_S: f64 = 1.0e-3;
+
+/// Whether `v` is finite and within ±[`MAX_MAGNITUDE`].
+pub fn in_range(v: f64) -> bool {
+    v.is_finite() && v.abs() <= MAX_MAGNITUDE
+}
+
 /// A source of true magnet positions.
 pub trait Motion: Send {
     /// True position of `magnet` (0-based, in the source's own numbering) at time `t_s`, in mm
@@ -178,7 +192,11 @@ fn spec_err(spec: &str, reason: impl Into<String>) -> Error {
 fn num(spec: &str, what: &str, text: &str) -> Result<f64> {
     let text = text.trim();
     match text.parse::<f64>() {
-        Ok(v) if v.is_finite() => Ok(v),
+        Ok(v) if in_range(v) => Ok(v),
+        Ok(v) if v.is_finite() => Err(spec_err(
+            spec,
+            format!("{what}: {text} is out of range (±{MAX_MAGNITUDE:e})"),
+        )),
         _ => Err(spec_err(
             spec,
             format!("{what}: \"{text}\" is not a finite number"),
@@ -439,7 +457,8 @@ mod tests {
         assert!(reason("static:abc").contains("not a finite number"));
         assert!(reason("static:inf").contains("not a finite number"));
         assert!(reason("sine:center=1,amp=2").contains("missing parameter \"period\""));
-        assert!(reason("sine:center=1,amp=2,period=0").contains("period must be > 0"));
+        assert!(reason("sine:center=1,amp=2,period=0").contains("period must be ≥ 0.001 s"));
+        assert!(reason("static:1e300").contains("out of range"));
         assert!(
             reason("sine:center=1,amp=2,period=1,freq=3").contains("unknown parameter \"freq\"")
         );

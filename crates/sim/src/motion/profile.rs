@@ -2,6 +2,7 @@
 
 use core::f64::consts::TAU;
 
+use super::{in_range, MAX_MAGNITUDE, MIN_PERIOD_S};
 use crate::error::{Error, Result};
 
 /// A trapezoidal back-and-forth ramp: dwell at `from`, move to `to` with limited velocity and
@@ -31,8 +32,15 @@ impl Ramp {
                 reason: r.into(),
             })
         };
-        if !(self.from_mm.is_finite() && self.to_mm.is_finite()) {
-            return bad("from and to must be finite");
+        let all = [
+            self.from_mm,
+            self.to_mm,
+            self.max_velocity_mm_s,
+            self.acceleration_mm_s2,
+            self.dwell_s,
+        ];
+        if !all.iter().all(|v| in_range(*v)) {
+            return bad("values must be finite and within ±1e9");
         }
         if !(self.max_velocity_mm_s.is_finite() && self.max_velocity_mm_s > 0.0) {
             return bad("v (max velocity) must be > 0");
@@ -164,14 +172,17 @@ impl Profile {
                 reason: r,
             })
         };
-        let finite = |vals: &[f64]| vals.iter().all(|v| v.is_finite());
+        // Finite and bounded, so that evaluating the profile never overflows.
+        let finite = |vals: &[f64]| vals.iter().all(|v| in_range(*v));
         match self {
             Profile::Absent => Ok(()),
             Profile::Static { pos_mm } => {
                 if finite(&[*pos_mm]) {
                     Ok(())
                 } else {
-                    bad("position must be finite".into())
+                    bad(format!(
+                        "position must be finite and within ±{MAX_MAGNITUDE:e} mm"
+                    ))
                 }
             }
             Profile::Sine {
@@ -181,9 +192,11 @@ impl Profile {
                 phase_deg,
             } => {
                 if !finite(&[*center_mm, *amplitude_mm, *period_s, *phase_deg]) {
-                    bad("values must be finite".into())
-                } else if *period_s <= 0.0 {
-                    bad("period must be > 0".into())
+                    bad(format!(
+                        "values must be finite and within ±{MAX_MAGNITUDE:e}"
+                    ))
+                } else if *period_s < MIN_PERIOD_S {
+                    bad(format!("period must be ≥ {MIN_PERIOD_S} s"))
                 } else {
                     Ok(())
                 }
@@ -194,9 +207,11 @@ impl Profile {
                 period_s,
             } => {
                 if !finite(&[*min_mm, *max_mm, *period_s]) {
-                    bad("values must be finite".into())
-                } else if *period_s <= 0.0 {
-                    bad("period must be > 0".into())
+                    bad(format!(
+                        "values must be finite and within ±{MAX_MAGNITUDE:e}"
+                    ))
+                } else if *period_s < MIN_PERIOD_S {
+                    bad(format!("period must be ≥ {MIN_PERIOD_S} s"))
                 } else {
                     Ok(())
                 }
@@ -208,7 +223,10 @@ impl Profile {
                 }
                 for (i, (t, p)) in steps.iter().enumerate() {
                     if !finite(&[*t, *p]) {
-                        return bad(format!("step {} is not finite", i + 1));
+                        return bad(format!(
+                            "step {} is not finite or beyond ±{MAX_MAGNITUDE:e}",
+                            i + 1
+                        ));
                     }
                     if i > 0 && *t <= steps[i - 1].0 {
                         return bad(format!(
@@ -348,6 +366,31 @@ mod tests {
         .validate()
         .is_err());
         assert!(Profile::Static { pos_mm: f64::NAN }.validate().is_err());
+        // Huge but finite values and tiny periods would overflow to NaN when evaluated.
+        assert!(Profile::Static { pos_mm: 1e300 }.validate().is_err());
+        assert!(Profile::Static { pos_mm: -1e300 }.validate().is_err());
+        assert!(Profile::Sine {
+            center_mm: 0.0,
+            amplitude_mm: 1.0,
+            period_s: 1e-300,
+            phase_deg: 0.0
+        }
+        .validate()
+        .is_err());
+        assert!(Profile::Ramp(Ramp {
+            from_mm: -1e308,
+            to_mm: 1e308,
+            ..ramp(1.0, 1.0, 0.0, true)
+        })
+        .validate()
+        .is_err());
+        assert!("static:1e300".parse::<Profile>().is_err());
+        assert!("sine:center=1,amp=1e300,period=1"
+            .parse::<Profile>()
+            .is_err());
+        assert!("triangle:min=0,max=1,period=1e-9"
+            .parse::<Profile>()
+            .is_err());
         assert!(Profile::Ramp(ramp(0.0, 1.0, 0.0, true)).validate().is_err());
         assert!(Profile::Ramp(ramp(1.0, -1.0, 0.0, true))
             .validate()

@@ -1,0 +1,10 @@
+//! The `canpos` command line as a library: the binary (`main.rs`) is a thin shell over these
+//! modules, so that fuzz targets and tests reach the same parsers and checks the user does.
+
+pub mod bench;
+pub mod device;
+pub mod eds_run;
+pub mod limits;
+pub mod master;
+pub mod scenario;
+pub mod soak;
