@@ -480,3 +480,34 @@ def test_first_save_answers_after_the_store_time(network, sensors, tmp_path):
         assert time.monotonic() - t0 >= 0.020
         network.nodes.pop(127, None)
         proc.stop()
+
+
+def test_tmi_lockout_through_the_control_interface(network, sensors, tmp_path):
+    """TMI 002 §1.14: a system-data error (here the wrong vendor-id) sends EMCY 0x5000 1/3/1,
+    forces pre-operational, and every NMT start is refused with the EMCY repeated, until a
+    power cycle."""
+    port = free_port()
+    wait_bootup(network, 127, lambda: sensors("tmi", extra=["--control", f"127.0.0.1:{port}"]))
+    node = add_node(network, 127)
+    seen = []
+    network.subscribe(0xFF, lambda c, d, t: seen.append(bytes(d)))
+    network.nmt.send_command(0x01)
+    time.sleep(0.1)
+    assert ctl(port, {"cmd": "fault", "name": "wrong-vendor-id", "on": True})["ok"]
+    time.sleep(0.2)
+    assert b"\x00\x50\x81\x01\x03\x01\x00\x00" in seen, seen
+    status = struct.unpack("<I", node.sdo.upload(0x1002, 0))[0]
+    assert status & 0b11 == 0b01, f"pre-operational: {status:#x}"
+    assert status & (1 << 12), f"0x1002 bit 12: {status:#x}"
+    seen.clear()
+    network.nmt.send_command(0x01)
+    time.sleep(0.2)
+    assert b"\x00\x50\x81\x01\x03\x01\x00\x00" in seen, "repeated on the refused start"
+    assert struct.unpack("<I", node.sdo.upload(0x1002, 0))[0] & 0b11 == 0b01
+    # A power cycle ends the lock-out (the fault cleared first: the hardware is fine again).
+    assert ctl(port, {"cmd": "fault", "name": "wrong-vendor-id", "on": False})["ok"]
+    assert ctl(port, {"cmd": "power-cycle"})["ok"]
+    time.sleep(0.3)
+    network.nmt.send_command(0x01)
+    time.sleep(0.2)
+    assert struct.unpack("<I", node.sdo.upload(0x1002, 0))[0] & 0b11 == 0b10, "operational"

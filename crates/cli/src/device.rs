@@ -488,7 +488,6 @@ const EDS_CONFLICTS: [&str; 8] = [
     "control",
 ];
 
-
 /// See [`canpos_host::warn_if_exposed`].
 pub use canpos_host::warn_if_exposed;
 

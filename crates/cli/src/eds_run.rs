@@ -39,12 +39,19 @@ pub fn run(a: RunArgs) -> Result<i32> {
         FileStorage::new(&state),
     );
     rt.power_on()?;
+    // The active node-id: a stored LSS node-id wins over the file's and the command line's.
+    let id = rt.node().device().node_id();
+    let id_text = if id == canpos_core::UNCONFIGURED {
+        "no node-id (255, LSS unconfigured)".to_string()
+    } else {
+        format!("node-id {id}")
+    };
     let handle = rt.spawn()?;
+    // The same banner as a sensor's, so tools that wait for "canpos: sensor 0:" work alike.
     eprintln!(
-        "canpos: {} `{}` (node-id {}, {} entries) on {desc}; state file {}",
+        "canpos: sensor 0: {} `{}` ({id_text}, {} entries) on {desc}; state file {}",
         if kind == FileKind::Dcf { "DCF" } else { "EDS" },
         path.display(),
-        dev.cfg.node_id,
         dev.model.entries.len(),
         state.display()
     );

@@ -317,13 +317,36 @@ pub enum Fault {
     BusOff,
     /// CAN overrun → EMCY 0x8110, register 0x11.
     CanOverrun,
+    /// A communication error of no more specific kind → EMCY 0x8100, register 0x11 (TH,
+    /// E-Series; the TMI's table has no such code).
+    Communication,
+    /// One PDO not processed because of its length (`on` only, a one-shot event) → EMCY 0x8210
+    /// (TH, E-Series; not in the TMI's table).
+    PdoLength,
+    /// TMI system-data errors (002 §1.14, 0x5000 with sub-codes). All but
+    /// `unexpected-system-data` lock the sensor out of operational until a power cycle (the
+    /// start is refused with a repeated EMCY; 0x1002 bits 8–14). On TH / E-Series they report
+    /// as a sensor error.
+    WrongMapping,
+    /// See [`Fault::WrongMapping`]: wrong vendor-id (0x5000 1/3/1).
+    WrongVendorId,
+    /// See [`Fault::WrongMapping`]: wrong scale (0x5000 1/3/2).
+    WrongScale,
+    /// See [`Fault::WrongMapping`]: wrong resolution (0x5000 1/4/0).
+    WrongResolution,
+    /// See [`Fault::WrongMapping`]: unexpected system data (0x5000 1/5/0, pre-operational once).
+    UnexpectedSystemData,
+    /// See [`Fault::WrongMapping`]: no system data (0x5000 1/6/0).
+    NoSystemData,
+    /// See [`Fault::WrongMapping`]: invalid serial number in EEPROM (0x5000 2/1/0).
+    InvalidSerial,
     /// `on` powers the sensor off, `off` powers it on again.
     PowerCycle,
 }
 
 impl Fault {
     /// Every fault.
-    pub const ALL: [Fault; 11] = [
+    pub const ALL: [Fault; 20] = [
         Fault::MissingMagnet,
         Fault::ExtraMagnet,
         Fault::MagnetsTooClose,
@@ -334,6 +357,15 @@ impl Fault {
         Fault::ErrorPassive,
         Fault::BusOff,
         Fault::CanOverrun,
+        Fault::Communication,
+        Fault::PdoLength,
+        Fault::WrongMapping,
+        Fault::WrongVendorId,
+        Fault::WrongScale,
+        Fault::WrongResolution,
+        Fault::UnexpectedSystemData,
+        Fault::NoSystemData,
+        Fault::InvalidSerial,
         Fault::PowerCycle,
     ];
 
@@ -350,6 +382,15 @@ impl Fault {
             Fault::ErrorPassive => "error-passive",
             Fault::BusOff => "bus-off",
             Fault::CanOverrun => "can-overrun",
+            Fault::Communication => "communication",
+            Fault::PdoLength => "pdo-length",
+            Fault::WrongMapping => "wrong-mapping",
+            Fault::WrongVendorId => "wrong-vendor-id",
+            Fault::WrongScale => "wrong-scale",
+            Fault::WrongResolution => "wrong-resolution",
+            Fault::UnexpectedSystemData => "unexpected-system-data",
+            Fault::NoSystemData => "no-system-data",
+            Fault::InvalidSerial => "invalid-serial",
             Fault::PowerCycle => "power-cycle",
         }
     }

@@ -917,6 +917,27 @@ impl Runtime {
             Fault::SupplyVoltage => d.node.inject_fault(Core::SupplyVoltage, on),
             Fault::ErrorPassive => d.node.inject_fault(Core::CanErrorPassive, on),
             Fault::CanOverrun => d.node.inject_fault(Core::CanOverrun, on),
+            Fault::Communication => d.node.inject_fault(Core::Communication, on),
+            Fault::PdoLength => d.node.inject_fault(Core::PdoLength, on),
+            Fault::WrongMapping
+            | Fault::WrongVendorId
+            | Fault::WrongScale
+            | Fault::WrongResolution
+            | Fault::UnexpectedSystemData
+            | Fault::NoSystemData
+            | Fault::InvalidSerial => {
+                use canpos_core::encoder::SystemDataError as E;
+                let e = match fault {
+                    Fault::WrongMapping => E::WrongMapping,
+                    Fault::WrongVendorId => E::WrongVendorId,
+                    Fault::WrongScale => E::WrongScale,
+                    Fault::WrongResolution => E::WrongResolution,
+                    Fault::UnexpectedSystemData => E::Unexpected,
+                    Fault::NoSystemData => E::NoSystemData,
+                    _ => E::InvalidSerial,
+                };
+                d.node.inject_fault(Core::SystemData(e), on);
+            }
             // While bus-off the runtime keeps the node off the bus; clearing it is the
             // recovery the core reports (0x8140).
             Fault::BusOff if on || d.bus_off => {
