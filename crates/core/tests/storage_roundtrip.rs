@@ -178,6 +178,50 @@ fn round_trip(m: &'static Model) -> usize {
     n
 }
 
+/// The generated reset scopes (D6): per stored rw object, a saved value, then an unsaved one;
+/// reset communication brings the saved value back for communication objects only, reset node
+/// for every object. Objects whose second valid value equals the first are counted apart.
+fn scope_round_trip(m: &'static Model) -> (usize, usize) {
+    let (mut checked, mut same) = (0, 0);
+    for e in stored_rw(m) {
+        let mut r = fresh(m);
+        let v = write_other(&mut r, e);
+        save(&mut r);
+        let w = write_other(&mut r, e);
+        if w == v {
+            same += 1;
+            continue;
+        }
+        let what = format!("{} {:04X}:{}", m.name, e.index, e.sub);
+        let id = node_id(&r);
+        r.send(0x000, &[0x82, id]);
+        r.take();
+        let want = if e.reset_by_comm() { v } else { w };
+        assert_eq!(
+            read(&mut r, e.index, e.sub),
+            want,
+            "{what} after reset communication"
+        );
+        let id = node_id(&r);
+        r.send(0x000, &[0x81, id]);
+        r.take();
+        assert_eq!(read(&mut r, e.index, e.sub), v, "{what} after reset node");
+        checked += 1;
+    }
+    (checked, same)
+}
+
+#[test]
+fn every_stored_object_reloads_in_its_reset_scope() {
+    for name in ["th", "e-series", "tmi"] {
+        let (checked, same) = scope_round_trip(model(name));
+        assert!(
+            checked > 30,
+            "{name}: {checked} checked, {same} without a second value"
+        );
+    }
+}
+
 #[test]
 fn th_every_stored_object_survives_a_power_cycle() {
     assert!(round_trip(model("th")) > 40);
