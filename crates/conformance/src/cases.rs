@@ -1,4 +1,4 @@
-//! The catalogue of `/work/shared/CONFORMANCE.md` as code: one function per case ID. Each runs
+//! The catalogue of `docs/CONFORMANCE_CATALOGUE.md` as code: one function per case ID. Each runs
 //! against a [`Harness`] and either passes (assertions), or returns [`Outcome::Na`] with the
 //! catalogue's reason for this model.
 //!

@@ -1,5 +1,5 @@
-//! canpos-conformance: the CiA conformance-test-tool catalogue (`CONFORMANCE.md` of the
-//! project's shared notes) as an automated suite.
+//! canpos-conformance: the CiA conformance-test-tool catalogue
+//! (`docs/CONFORMANCE_CATALOGUE.md`) as an automated suite.
 //!
 //! * [`harness`]: the tool's master side (raw frames, NMT master, SYNC producer, guarding,
 //!   capture, SDO client with expedited / segmented / block transfers and forged frames,

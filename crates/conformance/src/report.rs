@@ -69,7 +69,7 @@ pub fn render(results: &[(&'static str, Vec<Verdict>)]) -> String {
          Regenerate with\n\n```\nCANPOS_WRITE_CONFORMANCE=1 cargo test -p canpos-conformance --test doc\n```\n\n\
          A normal `cargo test` fails when this file differs from what the suite produces.\n\n\
          The cases are those of the CiA conformance test tool catalogue (CTT 3.0.3.10 as run on \
-         CANopenNode, re-described in the project's `CONFORMANCE.md`). Each runs for every model on \
+         CANopenNode, re-described in `CONFORMANCE_CATALOGUE.md` beside this file). Each runs for every model on \
          a virtual clock (`tests/cases.rs`, one test per ID); HB-02, PDO-05 and SYNC-03 also run in \
          real time over socketcand with ±10 % tolerance (`tests/realtime.rs`).\n"
     );

@@ -1,6 +1,6 @@
 //! Per-product sensor specifications (technical data of the three manuals).
 //!
-//! Sources (files in `/work/shared/seeds/`, see its README):
+//! Sources (the manuals: 000 TH, 001 E-Series, 002 TMI; docs/OD.md §0 names them):
 //!
 //! | value | TH (000) | E-Series (001) | TMI (002) |
 //! | --- | --- | --- | --- |

@@ -1,6 +1,6 @@
 //! socketcand ASCII elements: incremental stream decoder, element parser and formatters.
 //!
-//! The wire format (see `TRANSPORT.md`) is a stream of `< ... >` elements with no separators.
+//! The wire format (see `docs/TRANSPORT.md`) is a stream of `< ... >` elements with no separators.
 //! TCP may split an element over reads or put several in one, and a broken peer may send
 //! anything, so the decoder is a byte-level state machine with a bounded buffer: bytes outside
 //! elements are skipped, an over-long element is dropped, and a `<` inside an element restarts.

@@ -1,6 +1,6 @@
 //! The socketcand TCP protocol (raw mode): codec, hub server and client transport.
 //!
-//! See `TRANSPORT.md` for what python-can expects on the wire.
+//! See `docs/TRANSPORT.md` for what python-can expects on the wire.
 
 pub mod client;
 pub mod codec;
