@@ -18,7 +18,7 @@ secs=${FUZZ_SECONDS:-45}
 # Executions that take about 20 s per target on the 2-core development machine (control_requests
 # and durations from loaded smoke runs after the merge of main: about 220 and 23,000-90,000
 # executions/s).
-declare -A default_runs=([node_frames]=22000 [socketcand_stream]=200000 [state_file]=36000
+declare -A default_runs=([node_frames]=16000 [socketcand_stream]=200000 [state_file]=36000
   [text_parsers]=130000 [control_requests]=6000 [durations]=450000)
 seed=${FUZZ_SEED:-1}
 targets=${FUZZ_TARGETS:-"node_frames socketcand_stream state_file text_parsers control_requests durations"}
