@@ -673,7 +673,7 @@ impl Builder<'_> {
             kill_signature: false,
             preset_clear: false,
             preset_zero_shift: false,
-            tmi_emcy: false,
+            tmi_error_reactions: false,
             window_cams: false,
             power_on_emcy: false,
             sync_length_emcy: true,

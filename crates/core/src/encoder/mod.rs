@@ -280,7 +280,7 @@ impl Encoder {
     /// One channel's measurement: position, velocity, then the states derived from them.
     fn measure(&mut self, ch: usize, nm: Option<i64>, cx: &mut AppCtx<'_>) {
         let sub = ch as u8 + 1;
-        let tmi = cx.model.features.tmi_emcy;
+        let tmi = cx.model.features.tmi_error_reactions;
         let c = &mut self.ch[ch];
         match nm {
             Some(nm) => {
@@ -406,7 +406,7 @@ impl Encoder {
                 state |= bit;
             }
         }
-        if set_live(cx, 0x6300, sub, state, true) && cx.model.features.tmi_emcy {
+        if set_live(cx, 0x6300, sub, state, true) && cx.model.features.tmi_error_reactions {
             cx.emcy
                 .event(emcy::code::TMI_CAM, [sub, state as u8, 0, 0, 0]);
         }
@@ -432,7 +432,7 @@ impl Encoder {
             nm < 0 || nm > end
         };
         let state = ((pos < low) as u32) << 2 | ((pos > high) as u32) << 1 | out as u32;
-        if set_live(cx, 0x6400, sub, state, true) && cx.model.features.tmi_emcy {
+        if set_live(cx, 0x6400, sub, state, true) && cx.model.features.tmi_error_reactions {
             cx.emcy
                 .event(emcy::code::TMI_WORK_AREA, [sub, 0, state as u8, 0, 0]);
         }
@@ -471,7 +471,7 @@ impl Encoder {
 
     /// Brings alarms, warnings and EMCYs in line with the conditions.
     fn sync(&mut self, cx: &mut AppCtx<'_>) {
-        let tmi = cx.model.features.tmi_emcy;
+        let tmi = cx.model.features.tmi_error_reactions;
         let position_error = self.faults & (F_MISSING | F_TRANSDUCER) != 0;
         cx.od.set_value(0x6503, 0, position_error as u32);
         cx.od.set_value(0x6505, 0, self.warnings as u32);
@@ -584,7 +584,7 @@ impl Application for Encoder {
     /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
     /// to pre-operational.
     fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
+        let tmi = cx.model.features.tmi_error_reactions;
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
         self.receiving = true;
         // TMI sensor error: "the current process values stay in the object directory; the cam
@@ -615,7 +615,7 @@ impl Application for Encoder {
     /// Injects (`active`) or removes a fault condition. Returns true when the model's
     /// reaction forces the node back to pre-operational.
     fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_emcy;
+        let tmi = cx.model.features.tmi_error_reactions;
         match f {
             Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
             Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
@@ -770,7 +770,7 @@ impl Application for Encoder {
     /// generic EMCY 0x6300.
     fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
         self.storage_corrupt = true;
-        cx.model.features.tmi_emcy
+        cx.model.features.tmi_error_reactions
     }
 }
 

@@ -46,9 +46,11 @@ pub struct Features {
     /// "Position <= Preset Value", 002 §1.11.2, which only this reading makes the start of the
     /// range; DECISIONS.md).
     pub preset_zero_shift: bool,
-    /// TMI-style EMCY table and reactions (0x9080 / 0x9090 on cam / work-area changes, 0x5000
-    /// with sub-codes, lock-out).
-    pub tmi_emcy: bool,
+    /// The TMI's EMCY table and error reactions (002 §1.13 / §1.14): manufacturer bytes per
+    /// code, EMCY 0x9080 / 0x9090 on cam / work-area changes, the system-data errors with their
+    /// lock-out, process values frozen on a sensor error, 0x1002 status, corrupt storage in
+    /// 0x1002 instead of EMCY 0x6300, and the conditions its table has no code for.
+    pub tmi_error_reactions: bool,
     /// Cams are windows [low, high] with hysteresis (TMI, CiA 406) instead of thresholds.
     pub window_cams: bool,
     /// The power-on EMCY (0x0000) follows every boot-up (D14; TH and E-Series, whose manuals

@@ -224,7 +224,7 @@ pub static TH: Model = Model {
         kill_signature: false,
         preset_clear: false,
         preset_zero_shift: false,
-        tmi_emcy: false,
+        tmi_error_reactions: false,
         window_cams: false,
         power_on_emcy: true,
         sync_length_emcy: true,

@@ -245,7 +245,7 @@ pub static TMI: Model = Model {
         kill_signature: true,
         preset_clear: false,
         preset_zero_shift: true,
-        tmi_emcy: true,
+        tmi_error_reactions: true,
         window_cams: true,
         power_on_emcy: false,
         sync_length_emcy: false,
