@@ -8,7 +8,7 @@ import time
 import can
 import canopen
 import pytest
-from canopen.sdo.exceptions import SdoAbortedError
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from conftest import (BIN, VCAN, add_node, check_defaults, ctl, export_eds, free_port,
                       guard_for_half_a_second, wait_bootup)
@@ -357,7 +357,14 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
         return sum(v) / len(v) * 1000.0
 
     def t2901():
-        return struct.unpack("<b", node.sdo.upload(0x2901, 1))[0]
+        # A sample of the temperature: a read lost beside 1000 TPDOs/s (the master's socket
+        # overflows first, in the slow UML guest) is taken again, it does not change the curve.
+        for attempt in range(3):
+            try:
+                return struct.unpack("<b", node.sdo.upload(0x2901, 1))[0]
+            except SdoCommunicationError:
+                if attempt == 2:
+                    raise
 
     st = ctl(port, {"cmd": "state"})
     tc = st["unit_tempco_ppm_per_k"]
