@@ -99,12 +99,28 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
             );
         }
         let id = u16::from(id);
+        // The EMCY COB-ID in force: its default 0x080 + node-id, or any CAN-ID a master may
+        // configure (CiA 301: not a restricted one), and a stored one is loaded as such. An
+        // unconfigured node has none (it sends nothing until LSS gives it a node-id). Valid:
+        // bit 31 clear; 11-bit: bit 29 clear (the other bits do not select the CAN-ID).
+        let emcy = node
+            .read_object(0x1014, 0)
+            .ok()
+            .filter(|v| v & 0xA000_0000 == 0 && id != 0xFF)
+            .map(|v| (v & 0x7FF) as u16);
+        if let Some(e) = emcy {
+            assert!(
+                !canpos_core::pdo::restricted_id(u32::from(e)),
+                "{}: EMCY on the restricted CAN-ID {e:03X}",
+                model.name
+            );
+        }
         while let Some(f) = node.poll_transmit() {
             let cob = f.std_id().expect("extended frame at boot");
             assert!(f.dlc() <= 8);
             assert!(
-                cob == 0x700 + id || cob == 0x080 + id || (0x081..=0x0FF).contains(&cob),
-                "{}: boot frame on {cob:03X} for node-id {id}",
+                cob == 0x700 + id || Some(cob) == emcy,
+                "{}: boot frame on {cob:03X} for node-id {id} (EMCY COB-ID {emcy:03X?})",
                 model.name
             );
         }

@@ -79,14 +79,10 @@ class Proc:
 
 
 @pytest.fixture
-def hub(tmp_path):
-    port = free_port()
-    p = Proc(["bus", "serve", "--listen", f"127.0.0.1:{port}"], tmp_path / "hub.log")
-    try:
-        wait_port(port)
-        yield port
-    finally:
-        p.stop()
+def hub(canpos_bus):
+    """The port of the hub every socketcand test runs on: the ``canpos_bus`` fixture of the
+    canpos Python package (python/, installed into the suite's venv by scripts/test.sh)."""
+    return canpos_bus.port
 
 
 @pytest.fixture

@@ -392,9 +392,11 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
         reads.append(((t0 + time.monotonic()) / 2 - t_step, r))
         time.sleep(0.1)
 
-    # 0x2901: no jump, then the electronics' first-order lag.
+    # 0x2901: no jump, then the electronics' first-order lag. The first read comes well inside
+    # the lag (a read lost in the slow guest is retried, so not necessarily at once); the curve
+    # check below then rules out a jump, which would be ~55 K off at that time.
     t_first, r_first = reads[0]
-    assert t_first < 0.3 and r_first - r0 <= 0.2 * (amb + 10 - te0), reads[:3]
+    assert t_first < tau_e / 2 and r_first - r0 <= 0.5 * (amb + 10 - te0), reads[:3]
     for t, r in reads:
         # Rounding to whole °C plus a few ms of round trip at up to 17 K/s.
         assert abs(r - te(t)) <= 2.5, (t, r, te(t))

@@ -48,6 +48,9 @@ enum BenchCmd {
     Boot(BootArgs),
     /// Bytes of per-node state of the core (`size_of` of the node and its parts).
     Size,
+    /// Paced buses kept full in one process: CPU per bus and delivery lateness against the
+    /// bus timeline; prints one JSON line.
+    Buses(BusesArgs),
 }
 
 /// Runs `canpos bench …`.
@@ -58,7 +61,103 @@ pub fn bench(a: BenchArgs) -> Result<i32> {
         BenchCmd::SdoRtt(a) => sdo_rtt(a),
         BenchCmd::Boot(a) => boot(a),
         BenchCmd::Size => size(),
+        BenchCmd::Buses(a) => buses(a),
     }
+}
+
+// ------------------------------------------------------------------------------------ buses
+
+#[derive(Debug, Args)]
+struct BusesArgs {
+    /// Number of buses (each its own timeline and driver thread).
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=256))]
+    buses: u16,
+    /// Bit rate of every bus, kbit/s (a CiA 301 rate).
+    #[arg(long, default_value_t = 1000, value_parser = crate::device::parse_bitrate)]
+    bitrate: u32,
+    /// Length of the measured window in seconds (after 1 s of warm-up).
+    #[arg(long, default_value_t = 5.0, value_parser = crate::limits::parse_positive_seconds)]
+    seconds: f64,
+}
+
+/// Two transmit-only producers per bus offer about 1.25 times what the bus carries (8-byte
+/// frames, queues kept full); one listener per bus drains it. Producers and listeners run on this thread;
+/// every bus's driver on its own.
+fn buses(a: BusesArgs) -> Result<i32> {
+    use canpos_host::bus::Pacing;
+    let n = usize::from(a.buses);
+    let buses: Vec<MemBus> = (0..n)
+        .map(|_| MemBus::with_pacing(Pacing::Paced(a.bitrate)))
+        .collect();
+    let mut producers: Vec<[canpos_host::MemPort; 2]> = buses
+        .iter()
+        .map(|b| [b.attach_transmitter(), b.attach_transmitter()])
+        .collect();
+    let mut listeners: Vec<canpos_host::MemPort> = buses.iter().map(|b| b.attach()).collect();
+    // 8-byte frames of 111…135 bits: a bus carries about bitrate / 125 of them per ms.
+    let per_ms = (a.bitrate as usize).div_ceil(125) * 5 / 4;
+    let mut seq = 0u32;
+    let mut received = 0u64;
+    let mut run = |until: StdInstant, received: &mut u64| {
+        let mut next = StdInstant::now();
+        while next < until {
+            next += Duration::from_millis(1);
+            canpos_host::runtime::sleep_until(next);
+            for (k, pair) in producers.iter_mut().enumerate() {
+                for i in 0..per_ms {
+                    seq = seq.wrapping_add(1);
+                    let id = 0x181 + (k % 64) as u16 + (i % 2) as u16 * 0x100;
+                    let f = Frame::new(id, &[seq as u8, (seq >> 8) as u8, 0x55, 0xAA, 1, 2, 3, 4])
+                        .expect("valid frame");
+                    let _ = pair[i % 2].send(&f);
+                }
+            }
+            for l in &mut listeners {
+                while let Ok(Some(_)) = l.try_recv() {
+                    *received += 1;
+                }
+            }
+        }
+    };
+    run(StdInstant::now() + Duration::from_secs(1), &mut received);
+    let lat0: Vec<_> = buses.iter().filter_map(|b| b.lateness()).collect();
+    let frames0: u64 = buses
+        .iter()
+        .filter_map(|b| b.stats())
+        .map(|s| s.frames)
+        .sum();
+    let (c0, t0) = (cpu_time(), StdInstant::now());
+    received = 0;
+    run(t0 + Duration::from_secs_f64(a.seconds), &mut received);
+    let (cpu, wall) = (cpu_time() - c0, t0.elapsed());
+    let stats: Vec<_> = buses.iter().filter_map(|b| b.stats()).collect();
+    let frames: u64 = stats.iter().map(|s| s.frames).sum::<u64>() - frames0;
+    let loads: Vec<f64> = stats.iter().map(|s| s.load * 100.0).collect();
+    // Lateness within the window: the histograms' difference.
+    let mut late = canpos_host::mem::LatenessHistogram::default();
+    for (b, before) in buses.iter().zip(&lat0) {
+        if let Some(h) = b.lateness() {
+            late.merge_difference(&h, before);
+        }
+    }
+    let line = json!({
+        "buses": n,
+        "bitrate_kbps": a.bitrate,
+        "seconds": wall.as_secs_f64(),
+        "frames_per_s_per_bus": frames as f64 / wall.as_secs_f64() / n as f64,
+        "load_pct_min": loads.iter().cloned().fold(f64::INFINITY, f64::min),
+        "load_pct_mean": loads.iter().sum::<f64>() / n as f64,
+        "cpu_pct_total": cpu.as_secs_f64() / wall.as_secs_f64() * 100.0,
+        "cpu_pct_per_bus": cpu.as_secs_f64() / wall.as_secs_f64() * 100.0 / n as f64,
+        "lateness_us_p50": late.quantile_us(0.5),
+        "lateness_us_p99": late.quantile_us(0.99),
+        "lateness_us_max": late.quantile_us(1.0),
+        "delivered": received,
+        "tx_lost": stats.iter().map(|s| s.tx_lost).sum::<u64>(),
+        "rx_dropped": stats.iter().map(|s| s.rx_dropped).sum::<u64>(),
+    });
+    println!("{line}");
+    Ok(0)
 }
 
 // ------------------------------------------------------------------------------------- core
@@ -381,6 +480,11 @@ struct ScaleArgs {
     /// frame counter is used either way).
     #[arg(long)]
     observe: bool,
+    /// The bus delivers every frame at once, without bit time or limit: what measures the
+    /// runtime's own scale (127 × 1 ms is 16 times what a 1 Mbit/s bus carries). Without it
+    /// the bus is paced at 1000 kbit/s (docs/BUS.md).
+    #[arg(long)]
+    instant_bus: bool,
 }
 
 /// CPU time (user + system) of this process, from getrusage.
@@ -445,12 +549,17 @@ fn scale(a: ScaleArgs) -> Result<i32> {
     let dir = TempDir::new("scale")?;
     let nodes = a.nodes;
     // The bus: the runtime's port, a master port for the set-up, and a frame counter.
-    let mem = MemBus::new().with_queue_len(65536);
+    let pacing = crate::device::pacing(None, a.instant_bus);
+    let mem = MemBus::with_pacing(pacing).with_queue_len(65536);
     let mut hub = None;
     let (runtime_port, mut master): (Box<dyn Transport>, Box<dyn Transport>) = match a.bus {
         ScaleBus::Mem => (Box::new(mem.attach()), Box::new(mem.attach())),
         ScaleBus::Socketcand => {
-            let h = canpos_host::Hub::bind("127.0.0.1:0")?.spawn()?;
+            let config = canpos_host::socketcand::HubConfig {
+                pacing,
+                ..Default::default()
+            };
+            let h = canpos_host::Hub::bind_with("127.0.0.1:0", config)?.spawn()?;
             let url = format!("socketcand://{}/can0", h.local_addr());
             let rt = canpos_host::transport::open(&url)?;
             let m = canpos_host::transport::open(&url)?;

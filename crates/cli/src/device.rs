@@ -8,10 +8,11 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Context as _, Result};
 use canpos_core::models::{self, DeviceConfig};
 use canpos_core::Frame;
+use canpos_host::bus::Pacing;
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::{self, Receiver};
 use canpos_host::runtime::{self, Runtime, RuntimeHandle, SensorSetup};
-use canpos_host::{FileStorage, Hub, Transport};
+use canpos_host::{FileStorage, Hub, HubPolicy, Transport};
 use canpos_sim::motion::{MotionSpec, Profile, Profiles};
 use canpos_sim::{parse_order_code, SensorSpec};
 use clap::{Args, Subcommand};
@@ -47,6 +48,61 @@ pub enum BusCmd {
     /// Every channel name is its own isolated bus shared by all connected clients. Prints the
     /// address it listens on and runs until Ctrl-C / SIGTERM.
     Serve(ServeArgs),
+    /// Join two buses into one: every frame of one is sent on the other, remote frames
+    /// included, e.g. `canpos bus bridge socketcan://vcan0 socketcand://127.0.0.1:29536/can0`.
+    ///
+    /// Both buses must be there: a URL where nothing is gets an error (exit 1). Runs until
+    /// Ctrl-C / SIGTERM or until one side goes away (exit 1).
+    Bridge(BridgeArgs),
+}
+
+/// Options of `canpos bus bridge`.
+#[derive(Debug, Args)]
+pub struct BridgeArgs {
+    /// The first bus (socketcan://IFACE, socketcand://HOST:PORT/CHANNEL or mem://NAME).
+    pub a: String,
+    /// The second bus.
+    pub b: String,
+}
+
+/// Runs `canpos bus bridge`.
+pub fn bus_bridge(args: BridgeArgs) -> Result<i32> {
+    let stop_rx = stop_signal()?;
+    if args.a == args.b {
+        return Err(anyhow::Error::new(crate::master::Usage(format!(
+            "both sides are `{}`: a bus bridged to itself would repeat every frame",
+            args.a
+        ))));
+    }
+    let open = |url: &str| {
+        canpos_host::open(url).map_err(|e| match e {
+            canpos_host::Error::BadUrl { .. } => {
+                anyhow::Error::new(crate::master::Usage(e.to_string()))
+            }
+            e => anyhow::Error::new(e).context(format!("cannot bridge to `{url}`")),
+        })
+    };
+    let mut a = open(&args.a)?;
+    let mut b = open(&args.b)?;
+    eprintln!("canpos: bridging {} <-> {}", a.describe(), b.describe());
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let s2 = stop.clone();
+    std::thread::spawn(move || {
+        if stop_rx.recv().is_ok() {
+            s2.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+    });
+    let r = canpos_host::bridge::run(&mut *a, &mut *b, &stop);
+    match r {
+        Ok(st) => {
+            eprintln!(
+                "canpos: bridge stopped: {} frames forwarded {} -> {}, {} back, {} not forwardable",
+                st.a_to_b, args.a, args.b, st.b_to_a, st.unsendable
+            );
+            Ok(0)
+        }
+        Err(e) => Err(anyhow!("the bridge ended: {e}")),
+    }
 }
 
 /// Options of `canpos bus serve`.
@@ -60,14 +116,39 @@ pub struct ServeArgs {
     #[arg(long, value_name = "N", default_value_t = 10_000,
           value_parser = clap::value_parser!(u32).range(1..=100_000))]
     pub max_clients: u32,
-    /// Seconds a client has from connecting to raw mode.
+    /// Seconds a client has from connecting to opening a channel (`< open … >`).
     #[arg(long, value_name = "S", default_value_t = 10.0,
           value_parser = crate::limits::parse_positive_seconds)]
     pub handshake_timeout: f64,
-    /// Close a raw-mode client that sends nothing for this many seconds (default: never;
+    /// Close a client on a channel that sends nothing for this many seconds (default: never;
     /// listen-only clients are normal).
     #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
     pub idle_timeout: Option<f64>,
+    /// Give bus errors (`< error … >`) to every raw and BCM client, as socketcand does when
+    /// started with an error mask (default: only to clients that ask with `< errors on >`).
+    #[arg(long)]
+    pub error_frames: bool,
+    /// Bit rate of every channel in kbit/s (or bit/s; a CiA 301 rate): frames take their time
+    /// on the wire, one at a time (default 1000, see docs/BUS.md).
+    #[arg(long, value_name = "KBPS", value_parser = parse_bitrate, conflicts_with = "instant")]
+    pub bitrate: Option<u32>,
+    /// Deliver every frame at once, with no bit time and no limit (benchmarks; not a
+    /// physical bus).
+    #[arg(long)]
+    pub instant: bool,
+    /// Log each channel's load and frame rate every this many seconds (0: never).
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    pub stats_interval: f64,
+}
+
+/// The pacing of a bus this process creates: `--bus-bitrate` (default 1000 kbit/s), or
+/// instant when asked.
+pub(crate) fn pacing(bitrate: Option<u32>, instant: bool) -> Pacing {
+    if instant {
+        Pacing::Instant
+    } else {
+        Pacing::Paced(bitrate.unwrap_or(canpos_host::bus::DEFAULT_BITRATE_KBPS))
+    }
 }
 
 /// Runs `canpos bus serve`.
@@ -77,6 +158,8 @@ pub fn bus_serve(args: ServeArgs) -> Result<i32> {
         max_clients: args.max_clients as usize,
         handshake_timeout: Duration::from_secs_f64(args.handshake_timeout),
         idle_timeout: args.idle_timeout.map(Duration::from_secs_f64),
+        error_frames: args.error_frames,
+        pacing: pacing(args.bitrate, args.instant),
         ..Default::default()
     };
     let hub = Hub::bind_with(args.listen.as_str(), config)
@@ -84,11 +167,37 @@ pub fn bus_serve(args: ServeArgs) -> Result<i32> {
     let addr = hub.local_addr();
     warn_if_exposed(addr, "the bus");
     let handle = hub.spawn().context("cannot start the hub")?;
-    println!("canpos bus: socketcand hub listening on {addr} (any channel name, e.g. can0)");
+    let rate = match pacing(args.bitrate, args.instant) {
+        Pacing::Paced(k) => format!("{k} kbit/s"),
+        Pacing::Instant => "instant, unpaced".into(),
+    };
+    println!(
+        "canpos bus: socketcand hub listening on {addr} (any channel name, e.g. can0; {rate})"
+    );
     let _ = std::io::stdout().flush();
+    let every = (args.stats_interval.is_finite() && args.stats_interval > 0.0)
+        .then(|| Duration::from_secs_f64(args.stats_interval.min(86_400.0)));
+    let mut next_log = every.map(|e| std::time::Instant::now() + e);
     while handle.is_running() {
         if stop.recv_timeout(Duration::from_millis(200)).is_ok() {
             break;
+        }
+        if let (Some(t), Some(e)) = (next_log, every) {
+            if std::time::Instant::now() >= t {
+                for (channel, s) in handle.channel_stats() {
+                    tracing::info!(
+                        %channel,
+                        load_pct = format!("{:.1}", s.load * 100.0),
+                        frames_per_s = format!("{:.0}", s.frames_per_s),
+                        frames = s.frames,
+                        error_frames = s.error_frames,
+                        tx_lost = s.tx_lost,
+                        rx_dropped = s.rx_dropped,
+                        "bus load"
+                    );
+                }
+                next_log = Some(t + e);
+            }
         }
     }
     tracing::info!(stats = ?handle.stats(), "hub stopping");
@@ -126,6 +235,14 @@ pub struct SensorOpts {
     pub nmt: Option<String>,
     /// Factor on the thermal time constants (electronics, waveguide); default 1.
     pub thermal_time_scale: Option<f64>,
+    /// Delay before every SDO response, ms (default 0: the manuals state none).
+    pub sdo_delay_ms: Option<f64>,
+    /// Random extra delay of SDO responses, up to this many ms (default 0).
+    pub sdo_jitter_ms: Option<f64>,
+    /// Power-on to boot-up, ms (default 0).
+    pub boot_delay_ms: Option<f64>,
+    /// NMT reset (node or communication) to boot-up, ms (default 0).
+    pub reset_boot_delay_ms: Option<f64>,
 }
 
 /// A problem with one option of a sensor: the option (its scenario key), and what is wrong.
@@ -169,6 +286,8 @@ pub struct Built {
     pub warnings: Vec<SetupWarning>,
     /// The NMT command to give the node after its boot-up, if any (`start`, `stop`).
     pub nmt: Option<&'static str>,
+    /// The device's own timing (SDO response delay, boot delays).
+    pub timing: canpos_host::timing::DeviceTiming,
 }
 
 /// The NMT state names `nmt` takes and the command that reaches each from pre-operational.
@@ -215,6 +334,28 @@ fn core_model(name: &str) -> Result<&'static models::Model> {
     })
 }
 
+/// The unit an order code names: its model, the model's configuration with the code's stroke,
+/// resolution, channels and bit rate, its measurement spec and the decoded code.
+pub fn order_code_unit(
+    code: &str,
+) -> Result<(
+    &'static models::Model,
+    DeviceConfig,
+    SensorSpec,
+    canpos_sim::OrderCode,
+)> {
+    let oc = parse_order_code(code).with_context(|| format!("bad order code `{code}`"))?;
+    let model = core_model(oc.model_name())?;
+    let spec = oc.sensor_spec()?;
+    let mut cfg = model.default_config;
+    cfg.stroke_mm = oc.stroke_mm.round() as u32;
+    cfg.position_step_nm = oc.resolution_nm();
+    cfg.channels = oc.magnets as u8;
+    cfg.bitrate_kbps = oc.bit_rate_kbit as u16;
+    cfg.cycle_us = spec.cycle_time_us;
+    Ok((model, cfg, spec, oc))
+}
+
 /// Builds the runtime's description of a sensor from the options, checking every value
 /// against the model. The state file is not opened yet (see [`open_storage`]).
 pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError> {
@@ -226,20 +367,9 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
                     "give either a model or an order code, not both"
                 )))
             }
-            (_, Some(code)) => (|| {
-                let oc =
-                    parse_order_code(code).with_context(|| format!("bad order code `{code}`"))?;
-                let model = core_model(oc.model_name())?;
-                let spec = oc.sensor_spec()?;
-                let mut cfg = model.default_config;
-                cfg.stroke_mm = oc.stroke_mm.round() as u32;
-                cfg.position_step_nm = oc.resolution_nm();
-                cfg.channels = oc.magnets as u8;
-                cfg.bitrate_kbps = oc.bit_rate_kbit as u16;
-                cfg.cycle_us = spec.cycle_time_us;
-                Ok((model, cfg, spec))
-            })()
-            .map_err(field_err("order_code"))?,
+            (_, Some(code)) => order_code_unit(code)
+                .map(|(model, cfg, spec, _)| (model, cfg, spec))
+                .map_err(field_err("order_code"))?,
             (m, None) => (|| {
                 let name = m.as_deref().unwrap_or("th");
                 let model = core_model(name)?;
@@ -254,6 +384,22 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
         };
     cfg.cycle_us = spec.cycle_time_us;
     let mut spec = spec;
+    let mut timing = canpos_host::timing::DeviceTiming::default();
+    for (field, v, slot) in [
+        ("sdo_delay_ms", o.sdo_delay_ms, &mut timing.sdo_delay),
+        ("sdo_jitter_ms", o.sdo_jitter_ms, &mut timing.sdo_jitter),
+        ("boot_delay_ms", o.boot_delay_ms, &mut timing.boot_delay),
+        (
+            "reset_boot_delay_ms",
+            o.reset_boot_delay_ms,
+            &mut timing.reset_boot_delay,
+        ),
+    ] {
+        if let Some(v) = v {
+            *slot =
+                canpos_host::timing::millis(field, v).map_err(|e| field_err(field)(anyhow!(e)))?;
+        }
+    }
     if let Some(k) = o.thermal_time_scale {
         // Bounded too: a huge factor would make the thermal model's arithmetic overflow.
         if !(k.is_finite() && k > 0.0 && k <= 1e6) {
@@ -369,6 +515,7 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
         },
         warnings,
         nmt,
+        timing,
     })
 }
 
@@ -436,9 +583,20 @@ pub struct RunArgs {
     /// where nothing listens starts an embedded hub there.
     #[arg(long, value_name = "URL", default_value = canpos_host::DEFAULT_URL)]
     pub bus: String,
-    /// Bit rate of the bus in kbit/s (or bit/s); a node set to another rate falls silent.
+    /// For a socketcand:// URL: `auto` starts an embedded hub (with a loud warning) when
+    /// nothing listens at start-up; `always` starts one (an error if the address is taken);
+    /// `never` waits for the server. Once connected, a lost server is waited for and
+    /// reconnected to, never replaced.
+    #[arg(long, value_name = "WHEN", default_value = "auto")]
+    pub hub: HubPolicy,
+    /// Bit rate of the bus in kbit/s (or bit/s); a node set to another rate falls silent. A
+    /// `mem://` bus or an embedded hub this command starts runs at this rate (default 1000).
     #[arg(long, value_name = "KBPS", value_parser = parse_bitrate)]
     pub bus_bitrate: Option<u32>,
+    /// A `mem://` bus or embedded hub this command starts delivers every frame at once, with
+    /// no bit time and no limit (benchmarks; not a physical bus).
+    #[arg(long)]
+    pub instant_bus: bool,
     /// Directory of the state files (MODEL-SERIAL.bin). Default: $CANPOS_STATE_DIR,
     /// $XDG_STATE_HOME/canpos, ~/.local/state/canpos or ./canpos-state.
     #[arg(long, value_name = "DIR")]
@@ -466,18 +624,37 @@ pub struct RunArgs {
     /// docs/EDS_DEVICE.md).
     #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS)]
     pub eds: Option<PathBuf>,
-    /// Like --eds, with a DCF: its ParameterValues and `[DeviceComissioning]` NodeID / Baudrate
-    /// apply (--node-id / --bus-bitrate win).
-    #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS, conflicts_with = "eds")]
+    /// Start from a DCF. A canpos model's DCF (`canpos dcf`; its ProductName and VendorNumber
+    /// are a model's) starts that sensor with its order code, node-id, bit rate and values;
+    /// any other DCF serves a plain CiA 301 device like --eds (docs/FILES.md). --node-id /
+    /// --bus-bitrate win over the file.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["model", "order_code", "eds"])]
     pub dcf: Option<PathBuf>,
     /// NMT state right after the boot-up: operational or stopped (default pre-operational, as
     /// a real unit waits for its master).
     #[arg(long, value_name = "STATE", value_parser = |s: &str| parse_nmt_state(s).map(|_| s.to_string()))]
     pub nmt: Option<String>,
+    /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<String>,
+    /// Delay every SDO response by MS milliseconds (default 0; the manuals state no response
+    /// time). For testing a master's SDO timeout.
+    #[arg(long, value_name = "MS", help_heading = "Device timing")]
+    pub sdo_delay: Option<f64>,
+    /// Up to MS more per SDO response, at random (reproducible per serial / seed).
+    #[arg(long, value_name = "MS", help_heading = "Device timing")]
+    pub sdo_jitter: Option<f64>,
+    /// Boot-up MS milliseconds after power-on (default 0; the device is not on the bus until
+    /// then).
+    #[arg(long, value_name = "MS", help_heading = "Device timing")]
+    pub boot_delay: Option<f64>,
+    /// Boot-up MS milliseconds after an NMT reset (default 0; deaf and silent until then).
+    #[arg(long, value_name = "MS", help_heading = "Device timing")]
+    pub reset_boot_delay: Option<f64>,
 }
 
 /// The sensor options that mean nothing to a device served from an EDS / DCF file.
-const EDS_CONFLICTS: [&str; 8] = [
+const EDS_CONFLICTS: [&str; 9] = [
     "model",
     "order_code",
     "magnets",
@@ -486,25 +663,55 @@ const EDS_CONFLICTS: [&str; 8] = [
     "seed",
     "thermal_time_scale",
     "control",
+    // The EDS device runs without one; `canpos dashboard --eds NODE=FILE` shows it.
+    "web",
 ];
 
 /// See [`canpos_host::warn_if_exposed`].
 pub use canpos_host::warn_if_exposed;
 
-/// Opens the bus (or hosts it), reporting what happened.
-pub(crate) fn open_bus(url: &str) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
-    let (t, hub) = canpos_host::open_or_host(url).map_err(|e| match e {
-        canpos_host::Error::BadUrl { .. } => {
-            anyhow::Error::new(crate::master::Usage(e.to_string()))
+/// Opens a device's bus (or hosts it, as `policy` allows), reporting what happened. With
+/// [`HubPolicy::Never`] it waits for the server, with back-off, until Ctrl-C (`stop`).
+pub(crate) fn open_bus(
+    url: &str,
+    policy: HubPolicy,
+    stop: &Receiver<()>,
+    pacing: Pacing,
+) -> Result<(Box<dyn Transport>, Option<canpos_host::HubHandle>)> {
+    let mut backoff = canpos_host::socketcand::reconnect::Backoff::default();
+    let (t, hub) = loop {
+        match canpos_host::transport::open_device_bus_with(url, policy, pacing) {
+            Ok(x) => break x,
+            Err(e @ canpos_host::Error::BadUrl { .. }) => {
+                return Err(anyhow::Error::new(crate::master::Usage(e.to_string())))
+            }
+            Err(e) if policy == HubPolicy::Never && e.is_connection_refused() => {
+                let wait = backoff.next_wait();
+                eprintln!("canpos: no socketcand server listens at {url} yet (--hub never); retrying in {wait:?}");
+                if stop.recv_timeout(wait).is_ok() {
+                    bail!("stopped while waiting for the socketcand server at {url}");
+                }
+            }
+            Err(e) => return Err(anyhow::Error::new(e)),
         }
-        e => anyhow::Error::new(e),
-    })?;
+    };
     if let Some(h) = &hub {
         warn_if_exposed(h.local_addr(), "the bus");
-        eprintln!(
-            "canpos: nothing listened at {url}; started an embedded socketcand hub on {}",
-            h.local_addr()
-        );
+        if policy == HubPolicy::Auto {
+            // Loud: a socketcand daemon meant to serve this address cannot bind it now.
+            eprintln!(
+                "canpos: WARNING: nothing listened at {url}, so this process started an EMBEDDED \
+                 socketcand hub on {addr}.\n\
+                 canpos:   Other tools can join it there; it ends with this process. A socketcand \
+                 daemon or `canpos bus serve` started later cannot bind {addr}.\n\
+                 canpos:   Meant a server that is still starting? Use --hub never (wait for it); \
+                 --hub always asks for the embedded hub and silences this warning.",
+                addr = h.local_addr()
+            );
+            tracing::warn!(addr = %h.local_addr(), "started an embedded socketcand hub");
+        } else {
+            eprintln!("canpos: embedded socketcand hub on {}", h.local_addr());
+        }
     }
     Ok((t, hub))
 }
@@ -549,6 +756,19 @@ fn start_control(
     Ok(Some(srv))
 }
 
+/// `--web ADDR`: the dashboard on a connection of its own to the runtime's bus.
+fn start_web(
+    web: Option<&str>,
+    url: &str,
+    handle: &RuntimeHandle,
+    sensors: usize,
+) -> Result<Option<crate::dashboard::Dashboard>> {
+    let Some(web) = web else { return Ok(None) };
+    let bus =
+        canpos_host::open(url).with_context(|| format!("dashboard: cannot connect to {url}"))?;
+    crate::dashboard::start_for_runtime(web, bus, handle, sensors).map(Some)
+}
+
 /// Prints what each sensor of a started runtime really is, from its state: the active node-id
 /// (a stored LSS node-id wins over the configured one) and bit rate.
 fn banner(handle: &RuntimeHandle, count: usize, place: &str) -> Result<Vec<u8>> {
@@ -580,21 +800,48 @@ fn banner(handle: &RuntimeHandle, count: usize, place: &str) -> Result<Vec<u8>> 
 
 /// Runs `canpos run`.
 pub fn run(a: RunArgs) -> Result<i32> {
-    if a.eds.is_some() || a.dcf.is_some() {
+    let model_dcf = match &a.dcf {
+        Some(p) => crate::dcf::read_model_dcf(p)?,
+        None => None,
+    };
+    if a.eds.is_some() || (a.dcf.is_some() && model_dcf.is_none()) {
+        // A plain device: the sensor options mean nothing to it.
+        let given = [
+            ("--magnet", !a.magnets.is_empty()),
+            ("--motion", a.motion.is_some()),
+            ("--ideal", a.ideal),
+            ("--seed", a.seed.is_some()),
+            ("--thermal-time-scale", a.thermal_time_scale.is_some()),
+            ("--control", a.control.is_some()),
+        ];
+        if let Some((flag, _)) = given.iter().find(|(_, g)| *g) {
+            return Err(anyhow::Error::new(crate::master::Usage(format!(
+                "{flag} is for sensors; the file is no canpos model's DCF (docs/FILES.md), it serves a plain device"
+            ))));
+        }
         return crate::eds_run::run(a);
     }
     let stop = stop_signal()?;
+    let (model, order_code) = match &model_dcf {
+        Some(d) if d.order_code.is_empty() => (Some(d.model.name.to_string()), None),
+        Some(d) => (None, Some(d.order_code.clone())),
+        None => (a.model, a.order_code),
+    };
     let opts = SensorOpts {
-        model: a.model,
-        order_code: a.order_code,
-        node_id: a.node_id,
-        serial: a.serial,
+        model,
+        order_code,
+        node_id: a.node_id.or(model_dcf.as_ref().and_then(|d| d.node_id)),
+        serial: a.serial.or(model_dcf.as_ref().and_then(|d| d.serial)),
         magnets: a.magnets,
         motion: a.motion,
         ideal: a.ideal,
         seed: a.seed,
         nmt: a.nmt,
         thermal_time_scale: a.thermal_time_scale,
+        sdo_delay_ms: a.sdo_delay,
+        sdo_jitter_ms: a.sdo_jitter,
+        boot_delay_ms: a.boot_delay,
+        reset_boot_delay_ms: a.reset_boot_delay,
     };
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     // A value the model cannot take is a bad command line (exit 2), like clap's own errors.
@@ -609,11 +856,25 @@ pub fn run(a: RunArgs) -> Result<i32> {
     for w in &built.warnings {
         tracing::warn!("{}: {}", flag_of(w.field), w.message);
     }
+    if let Some(d) = &model_dcf {
+        if let Some(b) = d.bitrate_kbps {
+            built.setup.cfg.bitrate_kbps = b;
+        }
+        let path = a.dcf.as_deref().unwrap_or(Path::new("?"));
+        let state = built.setup.storage.path().to_path_buf();
+        for (i, s, line, why) in crate::dcf::apply_to_state(d, built.setup.cfg, &state)? {
+            tracing::warn!(
+                "{}:{line}: 0x{i:04X}/{s} not applied ({why}); it keeps its previous value",
+                path.display()
+            );
+        }
+    }
     open_storage(&mut built.setup)?;
-    let (transport, _hub) = open_bus(&a.bus)?;
+    let (transport, _hub) = open_bus(&a.bus, a.hub, &stop, pacing(a.bus_bitrate, a.instant_bus))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, a.bus_bitrate);
-    rt.add(built.setup);
+    let i = rt.add(built.setup);
+    rt.set_timing(i, built.timing).map_err(|e| anyhow!(e))?;
     let listener = bind_control(a.control.as_deref())?;
     // Boot-up right away (≤ 50 ms after start); everything else comes after.
     rt.power_on_all();
@@ -621,6 +882,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     banner(&handle, 1, &desc)?;
     start_nodes(&handle, &[built.nmt])?;
     let _ctl = start_control(listener, &handle)?;
+    let _web = start_web(a.web.as_deref(), &a.bus, &handle, 1)?;
     supervise(handle, &stop)
 }
 
@@ -628,7 +890,8 @@ pub fn run(a: RunArgs) -> Result<i32> {
 fn flag_of(field: &str) -> String {
     match field {
         "magnets" => "--magnet".into(),
-        f => format!("--{}", f.replace('_', "-")),
+        // The timing keys of a scenario carry their unit; the flags say it in their help.
+        f => format!("--{}", f.trim_end_matches("_ms").replace('_', "-")),
     }
 }
 
@@ -720,6 +983,14 @@ pub enum CtlAction {
     },
     /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors).
     State,
+    /// Disturb the bus (paced virtual buses, docs/BUS.md): `corrupt PER_MILLION` (0 stops),
+    /// `stuck-dominant MS`, `transceiver on|off` (this sensor's).
+    BusFault {
+        /// corrupt, stuck-dominant or transceiver.
+        kind: String,
+        /// Frames per million (corrupt), milliseconds (stuck-dominant), on / off (transceiver).
+        value: String,
+    },
 }
 
 /// Runs `canpos ctl`.
@@ -756,6 +1027,24 @@ pub fn ctl(a: CtlArgs) -> Result<i32> {
         CtlAction::Ambient { celsius } => Request::Ambient { sensor, celsius },
         CtlAction::Nmt { command } => Request::Nmt { sensor, command },
         CtlAction::State => Request::State { sensor },
+        CtlAction::BusFault { kind, value } => {
+            let (value, on) = match value.as_str() {
+                "on" => (None, Some(true)),
+                "off" => (None, Some(false)),
+                v => (
+                    Some(v.parse::<f64>().map_err(|_| {
+                        crate::master::Usage(format!("bus-fault value `{v}` is not a number"))
+                    })?),
+                    None,
+                ),
+            };
+            Request::BusFault {
+                sensor,
+                kind,
+                value,
+                on,
+            }
+        }
     };
     let pretty = matches!(req, Request::State { .. });
     let answer = control::call(a.control.as_str(), &req, Duration::from_secs(10))
@@ -793,6 +1082,12 @@ pub struct ScenarioArgs {
     /// Override the file's control address.
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
+    /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<String>,
+    /// Embedded hub for a socketcand:// bus: auto, always or never (see `canpos run --help`).
+    #[arg(long, value_name = "WHEN", default_value = "auto")]
+    pub hub: HubPolicy,
 }
 
 /// Runs `canpos scenario`.
@@ -808,18 +1103,19 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
     for (i, mut b) in built.into_iter().enumerate() {
         open_storage(&mut b.setup).with_context(|| format!("sensor {i}"))?;
         nmt.push(b.nmt);
-        setups.push(b.setup);
+        setups.push((b.setup, b.timing));
     }
     let url = a
         .bus
         .or(sc.bus.take())
         .unwrap_or_else(|| canpos_host::DEFAULT_URL.to_string());
-    let (transport, _hub) = open_bus(&url)?;
+    let (transport, _hub) = open_bus(&url, a.hub, &stop, pacing(checked.bus_bitrate, false))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, checked.bus_bitrate);
     let count = setups.len();
-    for s in setups {
-        rt.add(s);
+    for (s, timing) in setups {
+        let i = rt.add(s);
+        rt.set_timing(i, timing).map_err(|e| anyhow!(e))?;
     }
     let listener = bind_control(a.control.or(sc.control.take()).as_deref())?;
     rt.power_on_all();
@@ -835,6 +1131,7 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
     }
     start_nodes(&handle, &nmt)?;
     let _ctl = start_control(listener, &handle)?;
+    let _web = start_web(a.web.as_deref(), &url, &handle, count)?;
     // Timed events on their own thread, on absolute times from the start.
     let ctl = handle.control();
     let mut events = std::mem::take(&mut sc.events);
@@ -901,6 +1198,9 @@ pub struct DemoArgs {
     /// Stop after this many seconds (default: until Ctrl-C).
     #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
     pub duration: Option<f64>,
+    /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<String>,
 }
 
 fn sdo_upload(port: &mut dyn Transport, node: u8, index: u16, sub: u8) -> Result<u32> {
@@ -938,6 +1238,7 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     warn_if_exposed(addr, "the bus");
     let node_port = hub.attach("can0");
     let mut mon = hub.attach("can0");
+    let web_port = a.web.as_ref().map(|_| hub.attach("can0"));
     let hub = hub.spawn()?;
     let state_dir = std::env::temp_dir().join(format!("canpos-demo-{}", std::process::id()));
     let opts = SensorOpts {
@@ -963,6 +1264,19 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
         addr.ip(),
         addr.port()
     );
+    let _web = match (&a.web, web_port) {
+        (Some(w), Some(port)) => {
+            let d = crate::dashboard::start(
+                Box::new(port),
+                w,
+                crate::dashboard::Controls::Local(handle.control(), 1),
+                30.0,
+            )?;
+            println!("  dashboard: {}", d.url());
+            Some(d)
+        }
+        _ => None,
+    };
     println!("  Ctrl-C to stop.");
     let result = demo_view(&mut mon, node, &handle, &stop, a.duration);
     println!();

@@ -29,7 +29,12 @@ pub fn run(a: RunArgs) -> Result<i32> {
     }
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     let state = dev.state_file(&state_dir);
-    let (transport, _hub) = open_bus(&a.bus)?;
+    let (transport, _hub) = open_bus(
+        &a.bus,
+        a.hub,
+        &stop,
+        crate::device::pacing(a.bus_bitrate, a.instant_bus),
+    )?;
     let desc = transport.describe();
     let mut rt = PlainRuntime::new(
         transport,

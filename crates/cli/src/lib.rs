@@ -2,6 +2,9 @@
 //! modules, so that fuzz targets and tests reach the same parsers and checks the user does.
 
 pub mod bench;
+pub mod capture;
+pub mod dashboard;
+pub mod dcf;
 pub mod device;
 pub mod eds_run;
 pub mod limits;

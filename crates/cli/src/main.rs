@@ -5,7 +5,7 @@
 //! command line, 3 the device refused (SDO abort, LSS error status) or nothing was found, 4 no
 //! answer within the timeout.
 
-use canpos_cli::{bench, device, master, soak};
+use canpos_cli::{bench, dashboard, dcf, device, master, soak};
 
 use std::process::ExitCode;
 
@@ -39,7 +39,7 @@ enum Cmd {
     #[command(subcommand)]
     Bus(device::BusCmd),
     /// Run one simulated sensor on a bus.
-    Run(device::RunArgs),
+    Run(Box<device::RunArgs>),
     /// Run several sensors on one bus with motion profiles and timed faults (TOML file).
     Scenario(device::ScenarioArgs),
     /// Drive a running sensor through its control interface.
@@ -48,19 +48,25 @@ enum Cmd {
     Demo(device::DemoArgs),
     /// Send an NMT command (start, stop, preop, reset, reset-comm).
     Nmt(master::NmtArgs),
+    /// Node guarding: remote frames on 0x700 + id, the answers' NMT state and toggle bit.
+    Guard(master::GuardArgs),
     /// Read or write an object by SDO.
     Sdo(master::SdoArgs),
     /// Layer setting services: switch, set node-id / bit rate, store, inquire, fastscan.
     Lss(master::LssArgs),
     /// Find the nodes on a bus.
     Scan(master::ScanArgs),
+    /// Serve the web dashboard of a bus: nodes, live plots, errors, sensor control, SDO.
+    Dashboard(dashboard::DashboardArgs),
     /// Show the bus traffic decoded (positions in mm, velocities in mm/s, EMCYs, heartbeats).
     Monitor(master::MonitorArgs),
     /// Write a model's EDS (CiA 306) file.
     Eds(master::EdsArgs),
-    /// Record the bus to a candump -L log.
+    /// Write a configured unit's DCF, read from the running node over SDO.
+    Dcf(dcf::DcfArgs),
+    /// Record the bus to pcapng, pcap, a candump -L log or Vector ASC.
     Record(master::RecordArgs),
-    /// Replay a candump -L log onto a bus.
+    /// Replay a candump -L log or Vector ASC file onto a bus.
     Replay(master::ReplayArgs),
     /// Performance instruments: core ops/s, scale, SDO round trip, boot time.
     Bench(bench::BenchArgs),
@@ -120,16 +126,20 @@ fn main() -> ExitCode {
             ..Default::default()
         }),
         Some(Cmd::Bus(device::BusCmd::Serve(a))) => device::bus_serve(a),
-        Some(Cmd::Run(a)) => device::run(a),
+        Some(Cmd::Bus(device::BusCmd::Bridge(a))) => device::bus_bridge(a),
+        Some(Cmd::Run(a)) => device::run(*a),
         Some(Cmd::Scenario(a)) => device::scenario(a),
         Some(Cmd::Ctl(a)) => device::ctl(a),
         Some(Cmd::Demo(a)) => device::demo(a),
         Some(Cmd::Nmt(a)) => master::nmt(a),
         Some(Cmd::Sdo(a)) => master::sdo(a),
+        Some(Cmd::Guard(a)) => master::guard(a),
         Some(Cmd::Lss(a)) => master::lss(a),
         Some(Cmd::Scan(a)) => master::scan(a),
+        Some(Cmd::Dashboard(a)) => dashboard::dashboard(a),
         Some(Cmd::Monitor(a)) => master::monitor(a),
         Some(Cmd::Eds(a)) => master::eds(a),
+        Some(Cmd::Dcf(a)) => dcf::dcf(a),
         Some(Cmd::Record(a)) => master::record(a),
         Some(Cmd::Replay(a)) => master::replay(a),
         Some(Cmd::Bench(a)) => bench::bench(a),

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use anyhow::{anyhow, bail, Context, Result};
 use canpos_core::Frame;
-use canpos_host::candump::{format_line, LogReader, LogWriter};
+use canpos_host::candump::{format_line, LogReader};
 use canpos_host::transport::{self, BusUrl, RxFrame, Transport, DEFAULT_URL};
 use clap::{Args, Subcommand, ValueEnum};
 
@@ -84,7 +84,7 @@ fn ms(v: u64) -> Duration {
 }
 
 /// Parses a node-id: decimal or 0x-hex, within `min..=127`.
-fn parse_node(s: &str, min: u8) -> Result<u8> {
+pub(crate) fn parse_node(s: &str, min: u8) -> Result<u8> {
     let v = sdo::parse_u64(s).ok_or_else(|| usage!("node-id `{s}` is not a number"))?;
     if v < min as u64 || v > 127 {
         return Err(usage!("node-id {v} out of range {min}..=127"));
@@ -93,7 +93,7 @@ fn parse_node(s: &str, min: u8) -> Result<u8> {
 }
 
 /// Parses an object index: hex, with or without `0x` (`0x1018` and `1018` are the same).
-fn parse_index(s: &str) -> Result<u16> {
+pub(crate) fn parse_index(s: &str) -> Result<u16> {
     let h = s
         .strip_prefix("0x")
         .or_else(|| s.strip_prefix("0X"))
@@ -103,7 +103,7 @@ fn parse_index(s: &str) -> Result<u16> {
 }
 
 /// Parses a sub-index: decimal, or hex with `0x`.
-fn parse_sub(s: &str) -> Result<u8> {
+pub(crate) fn parse_sub(s: &str) -> Result<u8> {
     sdo::parse_u64(s)
         .and_then(|v| u8::try_from(v).ok())
         .ok_or_else(|| usage!("sub-index `{s}` is not 0..=255 (decimal, or hex with 0x)"))
@@ -177,6 +177,79 @@ pub fn nmt(a: NmtArgs) -> Result<i32> {
         "NMT {} sent to {target}",
         decode::nmt_command_name(a.command.byte())
     );
+    Ok(EXIT_OK)
+}
+
+/// `canpos guard`: node guarding with remote frames.
+#[derive(Args, Debug, Clone)]
+pub struct GuardArgs {
+    /// Node-id (1…127).
+    #[arg(long)]
+    pub node: String,
+    /// Guarding requests to send.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub count: u32,
+    /// Time between requests and the wait for each answer, ms.
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..=60_000))]
+    pub interval: u32,
+    #[command(flatten)]
+    #[allow(missing_docs)]
+    pub bus: BusArg,
+}
+
+/// Guards a node as a master does (CiA 301 node guarding): a remote frame on 0x700 + id with
+/// DLC 1 per request, and the answer's NMT state and toggle bit. Over socketcand the remote
+/// frame is a true RTR where the server carries them (canpos's hub, docs/SOCKETCAND.md) and a
+/// zero-length data frame elsewhere. Exit 4 when a request gets no answer, 1 when the toggle
+/// does not alternate.
+pub fn guard(a: GuardArgs) -> Result<i32> {
+    let node = parse_node(&a.node, 1)?;
+    let mut bus = open_bus(&a.bus.bus)?;
+    let cob = 0x700 + u16::from(node);
+    let wait = Duration::from_millis(a.interval.into());
+    let request = Frame::remote(cob.into(), false, 1).expect("a valid remote frame");
+    let zero = Frame::remote(cob.into(), false, 0).expect("a valid remote frame");
+    let mut last_toggle = None;
+    for i in 0..a.count {
+        let start = Instant::now();
+        // DLC 1 (the answer's length) where the transport carries it; DLC 0 where it cannot.
+        if let Err(e) = bus.send(&request) {
+            if e.kind() != std::io::ErrorKind::InvalidInput {
+                return Err(e).context("sending the guarding request");
+            }
+            bus.send(&zero).context("sending the guarding request")?;
+        }
+        let end = start + wait;
+        let answer = loop {
+            match bus.recv_deadline(end)? {
+                Some(rx) if rx.frame.std_id() == Some(cob) && !rx.frame.is_remote() => {
+                    if let [b] = rx.frame.data() {
+                        break Some(*b);
+                    }
+                }
+                Some(_) => {}
+                None => break None,
+            }
+        };
+        let Some(b) = answer else {
+            println!("request {}: no answer from node {node}", i + 1);
+            return Ok(EXIT_TIMEOUT);
+        };
+        let toggle = b >> 7;
+        println!(
+            "request {}: node {node} {} (toggle {toggle})",
+            i + 1,
+            decode::nmt_state_name(b & 0x7F)
+        );
+        if last_toggle == Some(toggle) {
+            println!("the toggle bit did not alternate");
+            return Ok(EXIT_ERROR);
+        }
+        last_toggle = Some(toggle);
+        if i + 1 < a.count {
+            std::thread::sleep(wait.saturating_sub(start.elapsed()));
+        }
+    }
     Ok(EXIT_OK)
 }
 
@@ -727,6 +800,44 @@ pub struct MonitorArgs {
     /// SDO timeout for the configuration reads, in ms.
     #[arg(long, default_value_t = 200, value_name = "MS")]
     pub timeout: u64,
+    /// Bit rate of the bus in kbit/s, for the bus load in the header (default 1000, the rate
+    /// of a virtual bus nobody set).
+    #[arg(long, value_name = "KBPS", value_parser = crate::device::parse_bitrate)]
+    pub bitrate: Option<u32>,
+}
+
+/// Bus load from the frames a listener sees: their bits on the wire (stuff bits included) over
+/// the last second of their timestamps.
+struct LoadMeter {
+    bit_ns: u64,
+    window: VecDeque<(SystemTime, u64)>,
+    bits: u64,
+}
+
+impl LoadMeter {
+    fn new(kbps: u32) -> Self {
+        LoadMeter {
+            bit_ns: 1_000_000 / u64::from(kbps.max(1)),
+            window: VecDeque::new(),
+            bits: 0,
+        }
+    }
+
+    /// Adds a frame; returns (load %, frames/s) over the second before it.
+    fn add(&mut self, t: SystemTime, f: &Frame) -> (f64, usize) {
+        let bits = u64::from(canpos_host::bus::bits::frame_length(f).total);
+        self.window.push_back((t, bits));
+        self.bits += bits;
+        while let Some(&(t0, b)) = self.window.front() {
+            if t.duration_since(t0).unwrap_or_default() < Duration::from_secs(1) {
+                break;
+            }
+            self.window.pop_front();
+            self.bits -= b;
+        }
+        let pct = (self.bits * self.bit_ns) as f64 / 1e9 * 100.0;
+        (pct.min(100.0), self.window.len())
+    }
 }
 
 /// The state of a running monitor: what is known about each node.
@@ -876,6 +987,14 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
     let mut printed = 0u64;
     let out = io::stdout();
     let mut out = out.lock();
+    let kbps = a.bitrate.unwrap_or(canpos_host::bus::DEFAULT_BITRATE_KBPS);
+    let mut load = LoadMeter::new(kbps);
+    let mut next_header = Instant::now();
+    writeln!(
+        out,
+        "# {}: bus load at {kbps} kbit/s every second (frames seen, stuff bits included)",
+        a.bus.bus
+    )?;
     loop {
         if a.count.is_some_and(|c| printed >= c) {
             break;
@@ -894,6 +1013,11 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
             }
         };
         let f = rx.frame;
+        let (pct, fps) = load.add(rx.timestamp, &f);
+        if Instant::now() >= next_header {
+            writeln!(out, "# bus load {pct:.1} %, {fps} frames/s")?;
+            next_header = Instant::now() + Duration::from_secs(1);
+        }
         // A boot-up means the node's configuration may have been reset: read it again.
         if !f.is_extended() && (0x701..=0x77F).contains(&f.id()) && f.data() == [0] {
             mon.forget((f.id() & 0x7F) as u8);
@@ -931,43 +1055,87 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
 
 // ---------------------------------------------------------------------------------------- EDS
 
-/// `canpos eds`: write a model's EDS (CiA 306) file.
+/// `canpos eds`: write a model's EDS (CiA 306) file, or that of the unit an order code names.
 #[derive(Args, Debug, Clone)]
 pub struct EdsArgs {
     /// Model name: th, e-series, tmi.
-    #[arg(long)]
-    pub model: String,
+    #[arg(
+        long,
+        required_unless_present = "order_code",
+        conflicts_with = "order_code"
+    )]
+    pub model: Option<String>,
+    /// Order code of a unit (e.g. EP00600MD341C304241Z02): its model with the defaults of its
+    /// stroke, resolution, channels and bit rate, and the code as `OrderCode`.
+    #[arg(long, value_name = "CODE")]
+    pub order_code: Option<String>,
     /// Output file (default: standard output).
     #[arg(long, short = 'o')]
     pub output: Option<PathBuf>,
 }
 
-/// Exports a model's EDS file.
-pub fn eds(a: EdsArgs) -> Result<i32> {
-    let names: Vec<&str> = canpos_core::models::all().iter().map(|m| m.name).collect();
-    let Some(model) = canpos_core::models::by_name(&a.model) else {
-        bail!("unknown model `{}` (known: {})", a.model, names.join(", "));
-    };
-    let file_name = a
-        .output
-        .as_ref()
+/// The file name an export writes into `FileName`: the output's, else `default`.
+fn export_file_name(output: Option<&PathBuf>, default: String) -> String {
+    output
         .and_then(|p| p.file_name())
         .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| format!("canpos-{}.eds", model.name));
-    let info = canpos_core::eds::EdsInfo {
-        file_name: &file_name,
-        ..Default::default()
-    };
-    let mut text = String::new();
-    canpos_core::eds::write_eds(&mut text, model, &model.default_config, &info)
-        .map_err(|_| anyhow::anyhow!("formatting the EDS failed"))?;
-    match &a.output {
-        Some(p) => std::fs::write(p, text).with_context(|| format!("writing {}", p.display()))?,
+        .unwrap_or(default)
+}
+
+/// Writes `text` to `output`, or to standard output.
+fn write_export(output: Option<&PathBuf>, text: &str) -> Result<()> {
+    match output {
+        Some(p) => std::fs::write(p, text).with_context(|| format!("writing {}", p.display())),
         None => {
             use std::io::Write as _;
             std::io::stdout().write_all(text.as_bytes())?;
+            Ok(())
         }
     }
+}
+
+/// The model (and unit configuration, and order code) an export is for.
+pub(crate) fn export_unit(
+    model: Option<&str>,
+    order_code: Option<&str>,
+) -> Result<(
+    &'static canpos_core::models::Model,
+    canpos_core::models::DeviceConfig,
+    String,
+)> {
+    if let Some(code) = order_code {
+        let (m, cfg, _, oc) = crate::device::order_code_unit(code).map_err(|e| usage!("{e:#}"))?;
+        return Ok((m, cfg, oc.normalized));
+    }
+    let name = model.unwrap_or("th");
+    let names: Vec<&str> = canpos_core::models::all().iter().map(|m| m.name).collect();
+    let Some(m) = canpos_core::models::by_name(name) else {
+        bail!("unknown model `{name}` (known: {})", names.join(", "));
+    };
+    Ok((m, m.default_config, String::new()))
+}
+
+/// Exports a model's EDS file: creation and modification date and time are the export's (UTC).
+pub fn eds(a: EdsArgs) -> Result<i32> {
+    let (model, cfg, order_code) = export_unit(a.model.as_deref(), a.order_code.as_deref())?;
+    let default_name = if order_code.is_empty() {
+        format!("canpos-{}.eds", model.name)
+    } else {
+        format!("{order_code}.eds")
+    };
+    let file_name = export_file_name(a.output.as_ref(), default_name);
+    let (date, time) = crate::capture::eds_date_time(SystemTime::now());
+    let info = canpos_core::eds::EdsInfo {
+        file_name: &file_name,
+        date: &date,
+        time: &time,
+        order_code: &order_code,
+        ..Default::default()
+    };
+    let mut text = String::new();
+    canpos_core::eds::write_eds(&mut text, model, &cfg, &info)
+        .map_err(|_| anyhow::anyhow!("formatting the EDS failed"))?;
+    write_export(a.output.as_ref(), &text)?;
     Ok(0)
 }
 
@@ -984,28 +1152,65 @@ fn interface_name(url: &str) -> String {
     }
 }
 
-/// `canpos record`: write bus traffic to a candump `-L` log.
+/// `canpos record`: write bus traffic to pcapng, pcap, a candump `-L` log or Vector ASC.
 #[derive(Args, Debug, Clone)]
 pub struct RecordArgs {
-    /// Log file (`-` = standard output).
+    /// Output file (`-` = standard output, with `--format`).
     pub file: PathBuf,
     #[command(flatten)]
     #[allow(missing_docs)]
     pub bus: BusArg,
+    /// File format (default: from the extension: .pcapng, .pcap, .log, .asc).
+    #[arg(long, value_enum)]
+    pub format: Option<crate::capture::Format>,
     /// Stop after this many seconds.
     #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
     /// Stop after this many frames.
     #[arg(long)]
     pub count: Option<u64>,
-    /// Interface name written in the log (default: the bus channel / interface name).
+    /// Interface name written in the file (default: the bus channel / interface name).
     #[arg(long)]
     pub interface: Option<String>,
 }
 
-/// Records frames until `--duration` / `--count` (or until killed; the file is flushed
-/// whenever the bus is idle, so an interrupted recording keeps what was seen).
+/// The format of `file`: `--format`, else its extension; a candump log for `-` without one
+/// (what `canpos record -` always wrote).
+fn record_format(
+    file: &std::path::Path,
+    format: Option<crate::capture::Format>,
+) -> Result<crate::capture::Format> {
+    use crate::capture::Format;
+    if let Some(f) = format {
+        return Ok(f);
+    }
+    if file.as_os_str() == "-" {
+        return Ok(Format::Candump);
+    }
+    Format::from_path(file).ok_or_else(|| {
+        usage!(
+            "{}: cannot tell the format from the extension (.pcapng, .pcap, .log, .asc); give --format",
+            file.display()
+        )
+    })
+}
+
+/// Records frames until `--duration` / `--count` (or until killed; every frame is flushed as
+/// it is written, so an interrupted recording keeps what was seen and a pipe is a live view).
+///
+/// Timestamps are the transport's receive stamps. The file's stamps never go backwards: a frame
+/// stamped earlier than the one before it (two sources of stamps, a clock step) is written
+/// with the previous stamp, and the number of such frames is reported at the end.
 pub fn record(a: RecordArgs) -> Result<i32> {
+    use canpos_host::candump::Record;
+    let format = record_format(&a.file, a.format)?;
+    let iface = a
+        .interface
+        .clone()
+        .unwrap_or_else(|| interface_name(&a.bus.bus));
+    // The bus first: an unreachable bus leaves no empty file, and a file that exists is being
+    // recorded into (tests wait for it).
+    let bus = open_bus(&a.bus.bus)?;
     let out: Box<dyn Write> = if a.file.as_os_str() == "-" {
         Box::new(io::stdout())
     } else {
@@ -1013,49 +1218,105 @@ pub fn record(a: RecordArgs) -> Result<i32> {
             File::create(&a.file).with_context(|| format!("cannot create {}", a.file.display()))?,
         )
     };
-    let iface = a
-        .interface
-        .clone()
-        .unwrap_or_else(|| interface_name(&a.bus.bus));
-    let mut w = LogWriter::new(BufWriter::new(out), &iface);
-    let mut bus = open_bus(&a.bus.bus)?;
+    let mut w = crate::capture::CaptureWriter::new(BufWriter::new(out), format, &iface)?;
     let end = a
         .duration
         .and_then(|d| crate::limits::deadline(Instant::now(), d));
     let mut n = 0u64;
+    let mut errors = 0u64;
+    let mut held = 0u64;
+    let mut last = SystemTime::UNIX_EPOCH;
+    // Error frames come on a queue of their own where the transport delivers them (a canpos
+    // hub, SocketCAN); a transport without them gives a queue that never delivers.
+    let error_rx = bus.error_frames().unwrap_or_else(crossbeam_channel::never);
     while a.count.is_none_or(|c| n < c) {
-        let r = match end {
-            Some(e) => bus.recv_deadline(e)?,
-            None => bus.recv_timeout(None)?,
+        let (stamp, record) = {
+            let frames = bus.receiver();
+            let mut sel = crossbeam_channel::Select::new();
+            let fi = sel.recv(frames);
+            let ei = sel.recv(&error_rx);
+            let op = match end {
+                Some(e) => match sel.select_deadline(e) {
+                    Ok(op) => op,
+                    Err(_) => break,
+                },
+                None => sel.select(),
+            };
+            if op.index() == fi {
+                match op.recv(frames) {
+                    Ok(rx) => (rx.timestamp, Record::Frame(rx.frame)),
+                    Err(_) => return Err(anyhow::Error::new(bus.dead_error())),
+                }
+            } else if op.index() == ei {
+                match op.recv(&error_rx) {
+                    Ok(e) => {
+                        errors += 1;
+                        let ef = canpos_host::candump::ErrorFrame::new(
+                            e.class,
+                            e.data.unwrap_or([0; 8]),
+                        );
+                        (e.timestamp, Record::Error(ef))
+                    }
+                    // The transport dropped its error queue: frames go on.
+                    Err(_) => continue,
+                }
+            } else {
+                unreachable!("two operations were selected on")
+            }
         };
-        let Some(rx) = r else { break };
-        w.write(rx.timestamp, &rx.frame)?;
+        let t = if stamp < last {
+            held += 1;
+            last
+        } else {
+            stamp
+        };
+        last = t;
+        w.write(t, &record)?;
         n += 1;
-        if bus.receiver().is_empty() {
-            w.flush()?;
-        }
     }
-    w.flush()?;
+    w.finish()?;
+    if held > 0 {
+        eprintln!("{held} frames came with a stamp older than the frame before; written with that frame's stamp");
+    }
     if a.file.as_os_str() != "-" {
-        eprintln!("recorded {n} frames to {}", a.file.display());
+        eprintln!(
+            "recorded {n} frames ({errors} of them error frames) to {}",
+            a.file.display()
+        );
     }
     Ok(EXIT_OK)
 }
 
-/// `canpos replay`: send the frames of a candump `-L` log with their original timing.
+/// What `canpos replay` does with a malformed line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum OnMalformed {
+    /// Report it with its line number and send nothing (the whole log is read first).
+    Stop,
+    /// Report it with its line number, skip it and play the rest.
+    Skip,
+}
+
+/// `canpos replay`: send the frames of a candump `-L` log or Vector ASC file with their
+/// original timing.
 #[derive(Args, Debug, Clone)]
 pub struct ReplayArgs {
-    /// Log file (`-` = standard input).
+    /// Log file (`-` = standard input): candump -L (can-utils, python-can), or ASC (.asc).
     pub file: PathBuf,
     #[command(flatten)]
     #[allow(missing_docs)]
     pub bus: BusArg,
+    /// Input format (default: ASC for .asc, else candump).
+    #[arg(long, value_enum)]
+    pub format: Option<crate::capture::Format>,
     /// Time scale: 2 = twice as fast; 0 = as fast as possible (else 0.001 … 1e6).
     #[arg(long, default_value_t = 1.0, value_parser = crate::limits::parse_speed)]
     pub speed: f64,
     /// Start again at the end of the file (until killed).
     #[arg(long = "loop")]
     pub repeat: bool,
+    /// A malformed line: stop (nothing is sent) or skip it and play the rest.
+    #[arg(long, value_enum, default_value = "stop", value_name = "ACTION")]
+    pub on_malformed: OnMalformed,
 }
 
 fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
@@ -1066,33 +1327,102 @@ fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
     Ok(Box::new(BufReader::new(f)))
 }
 
-/// Replays a log; the frames keep their relative spacing, divided by `--speed`.
+/// A log read for replay: the records with their time in seconds from the log's start, and
+/// the malformed lines (line number, why).
+struct ReadLog {
+    records: Vec<(f64, canpos_host::candump::Record)>,
+    malformed: Vec<(usize, String)>,
+}
+
+fn read_log(input: Box<dyn BufRead>, format: crate::capture::Format) -> Result<ReadLog> {
+    use crate::capture::{parse_asc_line, AscLine, Format};
+    use canpos_host::candump::LogError;
+    let mut log = ReadLog {
+        records: Vec::new(),
+        malformed: Vec::new(),
+    };
+    match format {
+        Format::Asc => {
+            // Bytes per line: one that is not UTF-8 is malformed, not the end of the log.
+            for (i, line) in input.split(b'\n').enumerate() {
+                let line = line?;
+                let Ok(line) = std::str::from_utf8(&line) else {
+                    log.malformed.push((i + 1, "not UTF-8 text".into()));
+                    continue;
+                };
+                match parse_asc_line(line) {
+                    Ok(AscLine::NoFrame) => {}
+                    Ok(AscLine::Record(t, r)) => log.records.push((t, r)),
+                    Err(why) => log.malformed.push((i + 1, why)),
+                }
+            }
+        }
+        Format::Candump => {
+            let mut first = None;
+            for e in LogReader::new(input) {
+                match e {
+                    Ok(e) => {
+                        let t0 = *first.get_or_insert(e.timestamp);
+                        // A stamp before the first one plays at the start.
+                        let rel = e.timestamp.duration_since(t0).unwrap_or_default();
+                        log.records.push((rel.as_secs_f64(), e.record));
+                    }
+                    Err(LogError::Parse { line, error }) => {
+                        log.malformed.push((line, error.to_string()))
+                    }
+                    Err(e @ LogError::Io(_)) => return Err(e.into()),
+                }
+            }
+        }
+        Format::Pcapng | Format::Pcap => {
+            return Err(usage!(
+                "replay reads candump -L logs and ASC files, not pcap / pcapng"
+            ))
+        }
+    }
+    Ok(log)
+}
+
+/// Replays a log; the frames keep their relative spacing, divided by `--speed`. Lines that
+/// cannot go on this bus (error frames, CAN FD frames, remote frames with a DLC on a
+/// transport without them) are skipped and counted; the counts are reported at the end.
 pub fn replay(a: ReplayArgs) -> Result<i32> {
+    use canpos_host::candump::Record;
     // Checked again for callers that build the arguments in code.
     crate::limits::parse_speed(&a.speed.to_string()).map_err(|e| anyhow!("--speed {e}"))?;
     if a.repeat && a.file.as_os_str() == "-" {
         bail!("--loop needs a file, not standard input");
     }
-    // Parse everything first so a malformed log fails before anything goes on the bus.
-    let entries = LogReader::new(open_log(&a.file)?)
-        .collect::<Result<Vec<_>, _>>()
-        .with_context(|| format!("reading {}", a.file.display()))?;
-    let Some(first) = entries.first().map(|e| e.timestamp) else {
+    let format = match a.format {
+        Some(f) => f,
+        None => match crate::capture::Format::from_path(&a.file) {
+            Some(crate::capture::Format::Asc) => crate::capture::Format::Asc,
+            _ => crate::capture::Format::Candump,
+        },
+    };
+    // Read everything first so a malformed log (with --on-malformed stop) fails before
+    // anything goes on the bus.
+    let log = read_log(open_log(&a.file)?, format)?;
+    for (line, why) in &log.malformed {
+        eprintln!("{}:{line}: {why}", a.file.display());
+    }
+    if !log.malformed.is_empty() && a.on_malformed == OnMalformed::Stop {
+        bail!(
+            "{}: {} malformed line(s), nothing sent (--on-malformed skip plays the rest)",
+            a.file.display(),
+            log.malformed.len()
+        );
+    }
+    if log.records.is_empty() {
         eprintln!("{}: no frames", a.file.display());
         return Ok(EXIT_OK);
-    };
+    }
     // Each frame's offset from the start, in seconds of replay; all checked before the first
     // frame goes out, so that a log too long for this speed sends nothing.
-    let offsets: Vec<f64> = entries
+    let offsets: Vec<f64> = log
+        .records
         .iter()
-        .map(|e| {
-            let rel = e.timestamp.duration_since(first).unwrap_or_default();
-            if a.speed > 0.0 {
-                rel.as_secs_f64() / a.speed
-            } else {
-                0.0
-            }
-        })
+        .map(|(t, _)| if a.speed > 0.0 { t / a.speed } else { 0.0 })
         .collect();
     let span = offsets.iter().copied().fold(0.0, f64::max);
     crate::limits::check_seconds(span, false).map_err(|e| {
@@ -1103,10 +1433,22 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
         )
     })?;
     let mut bus = open_bus(&a.bus.bus)?;
-    let mut sent = 0u64;
+    let (mut sent, mut errors, mut fd, mut refused) = (0u64, 0u64, 0u64, 0u64);
     loop {
         let t0 = Instant::now();
-        for (e, &off) in entries.iter().zip(&offsets) {
+        let sent_before = sent;
+        for ((_, r), &off) in log.records.iter().zip(&offsets) {
+            let f = match r {
+                Record::Frame(f) => f,
+                Record::Error(_) => {
+                    errors += 1;
+                    continue;
+                }
+                Record::Fd(_) => {
+                    fd += 1;
+                    continue;
+                }
+            };
             if off > 0.0 {
                 if let Some(due) = crate::limits::deadline(t0, off) {
                     let now = Instant::now();
@@ -1115,14 +1457,30 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
                     }
                 }
             }
-            bus.send(&e.frame).context("sending a frame")?;
-            sent += 1;
+            match bus.send(f) {
+                Ok(()) => sent += 1,
+                // The transport cannot carry this frame (socketcand: a remote frame with DLC).
+                Err(e) if e.kind() == io::ErrorKind::InvalidInput => refused += 1,
+                Err(e) => return Err(anyhow::Error::new(e).context("sending a frame")),
+            }
         }
         if !a.repeat {
             break;
         }
+        if sent == sent_before {
+            // Nothing in the log could go on this bus: repeating would spin without end.
+            eprintln!("--repeat: no frame of the log can be sent on this bus; stopping");
+            break;
+        }
     }
     eprintln!("replayed {sent} frames");
+    let skipped = errors + fd + refused + log.malformed.len() as u64;
+    if skipped > 0 {
+        eprintln!(
+            "skipped {skipped} lines: {errors} error frames, {fd} CAN FD frames, {refused} frames this bus cannot carry (remote frames with a DLC), {} malformed",
+            log.malformed.len()
+        );
+    }
     Ok(EXIT_OK)
 }
 

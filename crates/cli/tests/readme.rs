@@ -26,8 +26,8 @@ const SKIPPED_ROWS: [&str; 4] = [
 ];
 
 /// Commands that take `--bus`; those without one get the test's hub.
-const BUS_COMMANDS: [&str; 9] = [
-    "run", "scenario", "nmt", "sdo", "scan", "monitor", "record", "replay", "lss",
+const BUS_COMMANDS: [&str; 10] = [
+    "run", "scenario", "nmt", "sdo", "scan", "monitor", "record", "replay", "lss", "dcf",
 ];
 
 /// The `canpos …` examples of the command table, in order.

@@ -83,6 +83,67 @@ fn replay_refuses_a_log_too_long_for_its_speed_before_sending() {
 }
 
 #[test]
+fn replay_reports_a_line_that_is_not_text_and_plays_the_rest_with_skip() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, bad_line, good, bad) in [
+        (
+            "l.log",
+            2,
+            &b"(0.000000) can0 181#01\n"[..],
+            &b"(0.000100) can0 181#\xff\xfe\n"[..],
+        ),
+        (
+            "l.asc",
+            3,
+            &b"base hex timestamps absolute\n0.000000 1 181 Rx d 1 01\n"[..],
+            &b"0.000100 1 181 Rx d 1 \xe9\n"[..],
+        ),
+    ] {
+        let p = dir.path().join(name);
+        std::fs::write(&p, [good, bad].concat()).unwrap();
+        let p = p.to_str().unwrap();
+        let o = run_in(dir.path(), &["replay", p, "--bus", "mem://r"], SHORT);
+        assert_fails(&o, 1, "malformed");
+        let want = format!(":{bad_line}: not UTF-8 text");
+        assert!(text(&o).contains(&want), "{name}: {}", text(&o));
+        let o = run_in(
+            dir.path(),
+            &["replay", p, "--bus", "mem://r", "--on-malformed", "skip"],
+            SHORT,
+        );
+        assert!(o.status.success(), "{name}: {}", text(&o));
+        assert!(
+            text(&o).contains("replayed 1 frames"),
+            "{name}: {}",
+            text(&o)
+        );
+    }
+}
+
+#[test]
+fn replay_loop_of_a_log_with_nothing_to_send_stops() {
+    let dir = tempfile::tempdir().unwrap();
+    // Only error frames and a CAN FD frame: nothing a classic bus carries.
+    let log = write(
+        dir.path(),
+        "l.log",
+        "(0.000000) can0 20000080#0000000000000000\n(0.000001) can0 123##1DEADBEEF\n",
+    );
+    let o = run_in(
+        dir.path(),
+        &["replay", &log, "--bus", "mem://r", "--loop"],
+        SHORT,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("no frame of the log can be sent"),
+        "{}",
+        text(&o)
+    );
+    assert!(text(&o).contains("replayed 0 frames"), "{}", text(&o));
+}
+
+#[test]
 fn nan_or_huge_motion_and_magnets_are_refused() {
     for args in [
         &["--motion", "sine:center=1,amp=1,period=1e-300"][..],
@@ -507,4 +568,36 @@ fn help_groups_the_global_options_apart() {
     let global = t.find("Global options:").expect("a Global options section");
     assert!(t[global..].contains("--rt-priority"), "{t}");
     assert!(!t[..global].contains("--rt-priority"), "{t}");
+}
+
+#[test]
+fn bit_rates_outside_cia_301_are_usage_errors() {
+    let o = canpos(&[
+        "bus",
+        "serve",
+        "--listen",
+        "127.0.0.1:0",
+        "--bitrate",
+        "123",
+    ]);
+    assert_fails(&o, 2, "not a CAN bit rate");
+    let o = canpos(&["run", "--bus", "mem://r", "--bus-bitrate", "300"]);
+    assert_fails(&o, 2, "not a CAN bit rate");
+    let o = canpos(&["monitor", "--bus", "mem://r", "--bitrate", "0"]);
+    assert_fails(&o, 2, "not a CAN bit rate");
+    let o = canpos(&["bus", "serve", "--bitrate", "125", "--instant"]);
+    assert_fails(&o, 2, "cannot be used with");
+}
+
+#[test]
+fn bus_faults_out_of_range_are_refused() {
+    let o = canpos(&[
+        "ctl",
+        "--control",
+        "127.0.0.1:1",
+        "bus-fault",
+        "corrupt",
+        "abc",
+    ]);
+    assert_fails(&o, 2, "not a number");
 }

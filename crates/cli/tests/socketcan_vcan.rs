@@ -132,3 +132,118 @@ fn sensor_on_vcan_answers_sdo_nmt_lss_and_pdos() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(!text.contains("1FF#"), "{text}");
 }
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn spawn(args: &[&str], log: &std::path::Path) -> Sensor {
+    Sensor(
+        Command::new(env!("CARGO_BIN_EXE_canpos"))
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(log).unwrap())
+            .spawn()
+            .unwrap(),
+    )
+}
+
+/// A SocketCAN master on vcan0 guards a canpos sensor that sits on a socketcand hub, across
+/// `canpos bus bridge`: true remote frames go over (the hub's RTR extension), answers and SDO
+/// traffic come back.
+#[test]
+fn bridge_carries_true_rtr_guarding_and_sdo_both_ways() {
+    use canpos_core::Frame;
+    use canpos_host::transport::Transport;
+    if std::env::var("CANPOS_VCAN").as_deref() != Ok("1") {
+        eprintln!("skipped: needs vcan0 (CANPOS_VCAN=1; run under scripts/uml/run-in-uml.sh)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let listen = format!("127.0.0.1:{port}");
+    let url = format!("socketcand://{listen}/can0");
+    let _hub = spawn(
+        &["bus", "serve", "--listen", &listen],
+        &dir.path().join("hub.log"),
+    );
+    let state = dir.path().join("state");
+    let _sensor = spawn(
+        &[
+            "run",
+            "--model",
+            "th",
+            "--bus",
+            &url,
+            "--hub",
+            "never",
+            "--ideal",
+            "--magnet",
+            "250",
+            "--state-dir",
+            state.to_str().unwrap(),
+        ],
+        &dir.path().join("run.log"),
+    );
+    // The bridge needs the hub: retried until it listens.
+    let end = Instant::now() + Duration::from_secs(10);
+    let bridge_log = dir.path().join("bridge.log");
+    let mut bridge = loop {
+        let mut b = spawn(&["bus", "bridge", BUS, &url], &bridge_log);
+        std::thread::sleep(Duration::from_millis(300));
+        if b.0.try_wait().unwrap().is_none() {
+            break b;
+        }
+        assert!(
+            Instant::now() < end,
+            "bridge did not start: {}",
+            std::fs::read_to_string(&bridge_log).unwrap_or_default()
+        );
+    };
+    let mut master = canpos_host::socketcan::SocketCanTransport::open("vcan0").unwrap();
+    let recv = |m: &mut canpos_host::socketcan::SocketCanTransport, id: u16, within: Duration| {
+        let end = Instant::now() + within;
+        while let Ok(Some(rx)) = m.recv_deadline(end) {
+            if rx.frame.std_id() == Some(id) {
+                return Some(rx.frame);
+            }
+        }
+        None
+    };
+    // SDO across the bridge (vcan0 → hub → sensor → hub → vcan0), retried until all is up.
+    let end = Instant::now() + Duration::from_secs(15);
+    let sdo = Frame::new(0x67F, &[0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap();
+    let answer = loop {
+        master.send(&sdo).unwrap();
+        if let Some(f) = recv(&mut master, 0x5FF, Duration::from_millis(300)) {
+            break f;
+        }
+        assert!(Instant::now() < end, "no SDO answer across the bridge");
+    };
+    assert_eq!(&answer.data()[4..8], &0x0008_0196u32.to_le_bytes());
+    // Node guarding with true RTR frames (DLC 1, as a SocketCAN master sends them).
+    let mut toggles = Vec::new();
+    for _ in 0..4 {
+        master
+            .send(&Frame::remote(0x77F, false, 1).unwrap())
+            .unwrap();
+        let a = recv(&mut master, 0x77F, Duration::from_secs(2)).expect("guarding answer");
+        assert!(!a.is_remote(), "{a:?}");
+        assert_eq!(a.data().len(), 1);
+        assert_eq!(a.data()[0] & 0x7F, 0x7F, "pre-operational: {a:?}");
+        toggles.push(a.data()[0] >> 7);
+    }
+    assert!(toggles.windows(2).all(|w| w[0] != w[1]), "{toggles:?}");
+    // Ctrl-C ends the bridge cleanly with its counts.
+    unsafe {
+        libc::kill(bridge.0.id() as i32, libc::SIGINT);
+    }
+    let status = bridge.0.wait().unwrap();
+    let log = std::fs::read_to_string(&bridge_log).unwrap_or_default();
+    assert!(status.success(), "{status}: {log}");
+    assert!(log.contains("frames forwarded"), "{log}");
+}

@@ -12,6 +12,11 @@
 //!   RECORD (0x9) otherwise and for the identity and PDO parameter records.
 //! * `LowLimit` / `HighLimit` only where the table declares a range.
 //! * No keys outside CiA 306 (the conformance checker warns about them).
+//! * Unsigned values in hex as wide as their type (`0x00000000` for an unused mapping entry,
+//!   `0x05` for an UNSIGNED8), signed values in decimal.
+//!
+//! [`write_dcf`] writes the same file with each object's current value (`ParameterValue`) and
+//! `[DeviceComissioning]` (CiA 306 §4.6; the section name is spelt so in the standard).
 
 use core::fmt::{self, Write};
 
@@ -29,6 +34,36 @@ pub struct EdsInfo<'a> {
     pub time: &'a str,
     /// `CreatedBy` / `ModifiedBy`.
     pub created_by: &'a str,
+    /// `OrderCode`: the unit's order code where one is known, else empty.
+    pub order_code: &'a str,
+}
+
+/// A value read from a configured unit, for [`write_dcf`].
+#[derive(Clone, Copy, Debug)]
+pub enum DcfValue<'a> {
+    /// A numeric object's raw value (as the dictionary stores it: sign-extended for signed).
+    Number(u32),
+    /// A string or domain object's bytes.
+    Bytes(&'a [u8]),
+}
+
+/// `[DeviceComissioning]` of a DCF.
+#[derive(Clone, Copy, Debug)]
+pub struct Commissioning<'a> {
+    /// `NodeID` (1…127).
+    pub node_id: u8,
+    /// `NodeName`.
+    pub node_name: &'a str,
+    /// `Baudrate` in kbit/s.
+    pub bitrate_kbps: u16,
+    /// `NetNumber`.
+    pub net_number: u32,
+    /// `NetworkName`.
+    pub network_name: &'a str,
+    /// `LSS_SerialNumber` (0x1018/4).
+    pub lss_serial: u32,
+    /// `LastEDS` in `[FileInfo]`: the EDS the DCF was made from.
+    pub last_eds: &'a str,
 }
 
 impl core::default::Default for EdsInfo<'_> {
@@ -38,6 +73,7 @@ impl core::default::Default for EdsInfo<'_> {
             date: "01-01-2025",
             time: "12:00PM",
             created_by: "canpos",
+            order_code: "",
         }
     }
 }
@@ -60,6 +96,33 @@ pub fn write_eds(
     cfg: &DeviceConfig,
     info: &EdsInfo<'_>,
 ) -> fmt::Result {
+    write_file(w, model, cfg, info, None)
+}
+
+/// The current values of a unit for [`write_dcf`]: `None` for an object that could not be read
+/// (write-only, or refused), which then gets no `ParameterValue`.
+pub type ValueSource<'a> = &'a dyn Fn(u16, u8) -> Option<DcfValue<'a>>;
+
+/// Writes the DCF of a configured unit: the EDS of `model` for `cfg`, with `[DeviceComissioning]`
+/// and each object's current value from `values` as `ParameterValue`.
+pub fn write_dcf(
+    w: &mut dyn Write,
+    model: &'static Model,
+    cfg: &DeviceConfig,
+    info: &EdsInfo<'_>,
+    commissioning: &Commissioning<'_>,
+    values: ValueSource<'_>,
+) -> fmt::Result {
+    write_file(w, model, cfg, info, Some((commissioning, values)))
+}
+
+fn write_file(
+    w: &mut dyn Write,
+    model: &'static Model,
+    cfg: &DeviceConfig,
+    info: &EdsInfo<'_>,
+    dcf: Option<(&Commissioning<'_>, ValueSource<'_>)>,
+) -> fmt::Result {
     let unit = Unit { model, cfg };
     let value = |index: u16, sub: u8| -> u32 {
         model
@@ -81,6 +144,9 @@ pub fn write_eds(
     writeln!(w, "ModificationTime={}", info.time)?;
     writeln!(w, "ModificationDate={}", info.date)?;
     writeln!(w, "ModifiedBy={}", info.created_by)?;
+    if let Some((c, _)) = dcf {
+        writeln!(w, "LastEDS={}", c.last_eds)?;
+    }
     writeln!(w)?;
 
     let f = &model.features;
@@ -90,7 +156,7 @@ pub fn write_eds(
     writeln!(w, "ProductName={}", model.product)?;
     writeln!(w, "ProductNumber=0x{:08X}", value(0x1018, 2))?;
     writeln!(w, "RevisionNumber=0x{:08X}", value(0x1018, 3))?;
-    writeln!(w, "OrderCode={}", model.name)?;
+    writeln!(w, "OrderCode={}", info.order_code)?;
     for rate in [10u16, 20, 50, 125, 250, 500, 800, 1000] {
         writeln!(w, "BaudRate_{}={}", rate, f.bitrates.contains(&rate) as u8)?;
     }
@@ -103,6 +169,18 @@ pub fn write_eds(
     writeln!(w, "NrOfTXPDO={}", f.tpdos)?;
     writeln!(w, "LSS_Supported=1")?;
     writeln!(w)?;
+
+    if let Some((c, _)) = dcf {
+        writeln!(w, "[DeviceComissioning]")?;
+        writeln!(w, "NodeID=0x{:02X}", c.node_id)?;
+        writeln!(w, "NodeName={}", c.node_name)?;
+        writeln!(w, "Baudrate={}", c.bitrate_kbps)?;
+        writeln!(w, "NetNumber={}", c.net_number)?;
+        writeln!(w, "NetworkName={}", c.network_name)?;
+        writeln!(w, "CANopenManager=0")?;
+        writeln!(w, "LSS_SerialNumber=0x{:08X}", c.lss_serial)?;
+        writeln!(w)?;
+    }
 
     // The mapping checks accept only objects in the table: no dummy entries.
     writeln!(w, "[DummyUsage]")?;
@@ -121,8 +199,9 @@ pub fn write_eds(
         manufacturer(i)
     })?;
 
+    let values = dcf.map(|(_, v)| v);
     for obj in objects(model.entries) {
-        write_object(w, obj, &unit, cfg)?;
+        write_object(w, obj, &unit, cfg, values)?;
     }
     Ok(())
 }
@@ -160,11 +239,12 @@ fn write_object(
     obj: &'static [Entry],
     unit: &Unit<'_>,
     cfg: &DeviceConfig,
+    values: Option<ValueSource<'_>>,
 ) -> fmt::Result {
     let first = &obj[0];
     if obj.len() == 1 && first.sub == 0 {
         writeln!(w, "[{:04X}]", first.index)?;
-        return write_var(w, first, first.name, unit, cfg);
+        return write_var(w, first, first.name, unit, cfg, values);
     }
     let index = first.index;
     let record = matches!(index, 0x1018 | 0x1800..=0x1BFF)
@@ -179,7 +259,7 @@ fn write_object(
     writeln!(w)?;
     for e in obj {
         writeln!(w, "[{:04X}sub{:X}]", e.index, e.sub)?;
-        write_var(w, e, e.name, unit, cfg)?;
+        write_var(w, e, e.name, unit, cfg, values)?;
     }
     Ok(())
 }
@@ -195,6 +275,7 @@ fn write_var(
     name: &str,
     unit: &Unit<'_>,
     cfg: &DeviceConfig,
+    values: Option<ValueSource<'_>>,
 ) -> fmt::Result {
     writeln!(w, "ParameterName={name}")?;
     writeln!(w, "ObjectType=0x7")?;
@@ -216,7 +297,11 @@ fn write_var(
     match e.default {
         Default::Live => {}
         Default::Str(s) => writeln!(w, "DefaultValue={s}")?,
-        Default::NodeId(base) => writeln!(w, "DefaultValue=$NODEID+0x{base:X}")?,
+        Default::NodeId(base) => {
+            write!(w, "DefaultValue=$NODEID+")?;
+            write_number(w, e.ty, base as i64)?;
+            writeln!(w)?;
+        }
         Default::Const(v) => {
             write!(w, "DefaultValue=")?;
             write_number(w, e.ty, e.ty.to_i64(v))?;
@@ -235,12 +320,39 @@ fn write_var(
             if v1.wrapping_sub(v0) == 1 && p != Param::BitRateKbps {
                 // "$NODEID+0x0" rather than a bare "$NODEID": python-canopen only resolves
                 // the "+" form.
-                writeln!(w, "DefaultValue=$NODEID+0x{v0:X}")?;
+                write!(w, "DefaultValue=$NODEID+")?;
+                write_number(w, e.ty, v0 as i64)?;
+                writeln!(w)?;
             } else {
                 write!(w, "DefaultValue=")?;
                 write_number(w, e.ty, e.ty.to_i64(unit.param(p)))?;
                 writeln!(w)?;
             }
+        }
+    }
+    match values.and_then(|v| v(e.index, e.sub)) {
+        None => {}
+        Some(DcfValue::Number(raw)) => {
+            write!(w, "ParameterValue=")?;
+            write_number(w, e.ty, e.ty.to_i64(raw))?;
+            writeln!(w)?;
+        }
+        Some(DcfValue::Bytes(b)) => {
+            write!(w, "ParameterValue=")?;
+            match e.ty {
+                // A string is written as its text; bytes outside printable ASCII cannot be.
+                DataType::VisibleString if b.iter().all(|c| (0x20..0x7F).contains(c)) => {
+                    for &c in b {
+                        w.write_char(c as char)?;
+                    }
+                }
+                _ => {
+                    for c in b {
+                        write!(w, "{c:02X}")?;
+                    }
+                }
+            }
+            writeln!(w)?;
         }
     }
     writeln!(w, "PDOMapping={}", e.pdo as u8)?;
@@ -261,11 +373,13 @@ fn limits(e: &Entry) -> Option<(i64, i64)> {
     }
 }
 
-/// Unsigned values in hex (what tools show for COB-IDs and codes), signed in decimal.
+/// Unsigned values in hex as wide as the type (what tools show for COB-IDs and codes; eds-utils
+/// wants mapping entries as `0x00000000`), signed in decimal.
 fn write_number(w: &mut dyn Write, ty: DataType, v: i64) -> fmt::Result {
     if ty.is_signed() {
         write!(w, "{v}")
     } else {
-        write!(w, "0x{:X}", v as u64 & 0xFFFF_FFFF)
+        let digits = 2 * ty.size().unwrap_or(4);
+        write!(w, "0x{:0digits$X}", v as u64 & 0xFFFF_FFFF)
     }
 }

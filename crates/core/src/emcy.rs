@@ -292,6 +292,100 @@ mod tests {
         assert_eq!(e.history(1), Some(0x5000));
     }
 
+    /// CiA 301 §7.2.7: an EMCY is sent once per error event. More distinct errors than the
+    /// active list holds are still sent and recorded; the list keeps the first eight.
+    #[test]
+    fn more_distinct_errors_than_the_active_list_holds_are_still_sent() {
+        let mut e = Emcy::default();
+        for k in 0..ACTIVE_LEN as u16 + 1 {
+            e.raise(0xFF00 + k, reg::MANUFACTURER, [0; 5]);
+            let f = e.poll(Instant(0)).expect("each error sends its EMCY");
+            assert_eq!(u16::from_le_bytes([f[0], f[1]]), 0xFF00 + k);
+        }
+        assert_eq!(e.history(1), Some(0xFF08));
+        assert_eq!(e.history_len(), HISTORY_LEN);
+        assert!(e.is_active(0xFF07) && !e.is_active(0xFF08));
+        for k in 0..ACTIVE_LEN as u16 {
+            e.clear(0xFF00 + k);
+        }
+        assert_eq!(e.register(), 0);
+        assert_eq!(e.poll(Instant(0)), Some([0; 8]), "no error left: 0x0000");
+    }
+
+    /// CiA 301 §7.5.2.2 (0x1001): bit 0, generic error, is set whenever any error is active,
+    /// whether or not the error's own bits name it; the register is the union of the errors'.
+    #[test]
+    fn the_register_is_the_union_with_the_generic_bit() {
+        let mut e = Emcy::default();
+        e.raise(0x3100, reg::GENERIC | 0x04, [0; 5]);
+        assert_eq!(e.register(), 0x05);
+        e.raise(0x4200, 0x08, [0; 5]);
+        assert_eq!(e.register(), 0x0D);
+        e.clear(0x3100);
+        assert_eq!(e.register(), 0x09);
+    }
+
+    /// CiA 301 §7.5.2.5 (0x1003): an entry holds the error code in bits 0–15 and the first two
+    /// manufacturer bytes (EMCY bytes 3–4) in bits 16–31, as the frame has them.
+    #[test]
+    fn a_history_entry_holds_the_code_and_the_first_manufacturer_bytes() {
+        let mut e = Emcy::default();
+        e.raise(0x5000, reg::MANUFACTURER, [0x34, 0x12, 0x56, 0, 0]);
+        assert_eq!(e.history(1), Some(0x1234_5000));
+    }
+
+    /// The pending queue is bounded: an EMCY that does not fit is counted as lost, the queued
+    /// ones go out in order.
+    #[test]
+    fn a_full_pending_queue_counts_the_lost_emcy() {
+        let mut e = Emcy::default();
+        for k in 0..PENDING_LEN as u16 + 1 {
+            e.event(0x1000 + k, [0; 5]);
+        }
+        assert_eq!(e.lost, 1);
+        for k in 0..PENDING_LEN as u16 {
+            assert_eq!(e.poll(Instant(0)).map(|f| f[0]), Some(k as u8));
+        }
+        assert_eq!(e.poll(Instant(0)), None);
+    }
+
+    /// An error that clears and comes back is a new event: a second EMCY.
+    #[test]
+    fn an_error_that_clears_and_returns_sends_again() {
+        let mut e = Emcy::default();
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        e.clear(code::HARDWARE);
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        let sent: [Option<[u8; 8]>; 4] = core::array::from_fn(|_| e.poll(Instant(0)));
+        assert_eq!(sent[0].map(|f| f[1]), Some(0x50));
+        assert_eq!(sent[1], Some([0; 8]));
+        assert_eq!(sent[2].map(|f| (f[1], f[2])), Some((0x50, 0x81)));
+        assert_eq!(sent[3], None);
+        assert_eq!((e.history(1), e.history(2)), (Some(0x5000), Some(0x5000)));
+    }
+
+    /// Reset forgets active errors and queued EMCYs; the history stays until cleared.
+    #[test]
+    fn reset_forgets_active_and_pending_keeps_history() {
+        let mut e = Emcy::default();
+        e.set_inhibit(100);
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        assert!(e.poll(Instant(0)).is_some());
+        e.event(0x1234, [0; 5]);
+        e.reset();
+        assert_eq!((e.register(), e.poll_timeout()), (0, None));
+        assert_eq!(e.poll(Instant(0)), None);
+        e.event(0x1234, [0; 5]);
+        assert_eq!(
+            e.poll_timeout(),
+            Some(Instant(0)),
+            "inhibit restarts with the reset"
+        );
+        assert_eq!(e.history(2), Some(0x1234));
+        e.clear_history();
+        assert_eq!((e.history_len(), e.history(1)), (0, None));
+    }
+
     #[test]
     fn inhibit_spaces_emcys() {
         let mut e = Emcy::default();

@@ -85,13 +85,7 @@ impl ErrCtl {
         b
     }
 
-    /// The next deadline of this service.
-    #[inline]
-    pub fn poll_timeout(&self) -> Option<Instant> {
-        (self.due_us() != u64::MAX).then_some(Instant(self.due_us()))
-    }
-
-    /// [`ErrCtl::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
+    /// The next deadline of this service in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
         let us = |t: Option<Instant>| t.map_or(u64::MAX, |t| t.0);

@@ -437,6 +437,50 @@ mod tests {
         assert_eq!(bit_timing_kbps(0xFF), None);
     }
 
+    /// A node with node-id 5 and 250 kbit/s pending.
+    struct Unit;
+
+    impl LssNode for Unit {
+        fn address(&self) -> [u32; 4] {
+            [1, 2, 3, 4]
+        }
+        fn node_id(&self) -> u8 {
+            5
+        }
+        fn pending(&self) -> (u8, u16) {
+            (5, 250)
+        }
+        fn fastscan(&self) -> bool {
+            true
+        }
+        fn bit_timing(&self) -> &'static [u8] {
+            &[3]
+        }
+    }
+
+    #[test]
+    fn activate_bit_timing_is_due_after_the_first_switch_delay() {
+        // CiA 305: the new bit rate becomes active one switch delay after the request (and
+        // the node stays silent one more); the slave's deadline says when.
+        let mut s = LssSlave::default();
+        assert_eq!((s.poll_timeout(), s.due_us()), (None, u64::MAX));
+        let t0 = Instant::from_micros(1_000);
+        s.handle(&[cs::SWITCH_GLOBAL, 1, 0, 0, 0, 0, 0, 0], t0, &Unit);
+        let out = s.handle(&[cs::ACTIVATE_BIT_TIMING, 10, 0, 0, 0, 0, 0, 0], t0, &Unit);
+        assert_eq!(
+            out,
+            Output::Do(Request::ActivateBitRate {
+                silent_until: Instant::from_micros(21_000)
+            })
+        );
+        let due = Instant::from_micros(11_000);
+        assert_eq!((s.poll_timeout(), s.due_us()), (Some(due), 11_000));
+        assert_eq!(s.handle_timeout(Instant::from_micros(10_999)), None);
+        assert_eq!(s.poll_timeout(), Some(due), "still pending");
+        assert_eq!(s.handle_timeout(due), Some(250));
+        assert_eq!((s.poll_timeout(), s.due_us()), (None, u64::MAX));
+    }
+
     #[test]
     fn sequence_restarts_and_rejects_out_of_order() {
         let mut s = Sequence::default();

@@ -27,10 +27,6 @@ impl NmtState {
     pub const fn sdo_allowed(self) -> bool {
         matches!(self, NmtState::PreOperational | NmtState::Operational)
     }
-    /// PDOs are produced.
-    pub const fn pdo_allowed(self) -> bool {
-        matches!(self, NmtState::Operational)
-    }
 }
 
 /// NMT node-control commands (COB-ID 0x000, 2 bytes: command, node-id or 0 for all).

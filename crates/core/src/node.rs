@@ -223,6 +223,7 @@ impl ParamSource for Params<'_> {
 impl<S: Storage> Node<Encoder, S> {
     /// A sensor of `model` (the CiA 406 application) with unit configuration `cfg`, powered
     /// off. Call [`Node::power_on`].
+    #[inline(always)] // lets firmware build the node in its static, not in a stack temporary
     pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
         Node::with_app(model, cfg, Encoder::default(), storage)
     }
@@ -231,6 +232,7 @@ impl<S: Storage> Node<Encoder, S> {
 impl<A: Application, S: Storage> Node<A, S> {
     /// A node of the device `model` describes, running application `app`, powered off. Call
     /// [`Node::power_on`].
+    #[inline(always)] // as `new`
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
         let od = Dictionary::new(model.entries, model.keys);
         let hot = HotSlots::new(&od);
@@ -341,9 +343,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         set(Timer::LssSwitch, self.lss.due_us());
         set(Timer::Silence, us(d.silent_until));
         set(Timer::ErrorControl, d.errctl.due_us());
-        // A stopped node keeps its EMCYs until it leaves Stopped.
-        let stopped = d.nmt == NmtState::Stopped;
-        set(Timer::Emcy, if stopped { NEVER } else { d.emcy.due_us() });
+        // Armed exactly when `flush_emcy` sends (else a deadline would stay due with nothing
+        // to serve it, and a host would spin).
+        let serves = d.emcy_served();
+        set(Timer::Emcy, if serves { d.emcy.due_us() } else { NEVER });
         debug_assert_eq!(other, self.timers.next());
         self.other_due = other;
         // The TPDOs keep their own schedule (the hot path reads it directly).
@@ -474,7 +477,11 @@ impl<A: Application, S: Storage> Node<A, S> {
             }
             return true;
         }
-        if id == d.errctl.guarding_id() {
+        let sync_id = d.od.hot(d.hot.sync).unwrap_or(0x80);
+        let sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote();
+        // A SYNC is never taken for a guard request (the write rules keep the two CAN-IDs
+        // apart; this keeps it so whatever else changes).
+        if id == d.errctl.guarding_id() && !sync {
             // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
             if d.model.features.node_guarding && (f.is_remote() || f.dlc() == 0) {
                 let b = d.errctl.guard_request(d.nmt, now);
@@ -486,8 +493,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         if !d.nmt.sdo_allowed() {
             return true;
         }
-        let sync_id = d.od.hot(d.hot.sync).unwrap_or(0x80);
-        if sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !f.is_remote() {
+        if sync {
             if f.dlc() <= 1 {
                 let Device { pdo, od, tx, .. } = d;
                 pdo.on_sync(od, now, tx);
@@ -499,12 +505,12 @@ impl<A: Application, S: Storage> Node<A, S> {
             }
             return true;
         }
-        if f.is_remote() && d.model.features.tpdo_rtr {
-            let Device { pdo, od, tx, .. } = d;
-            pdo.on_rtr(id, od, now, &mut |fr| {
-                tx.push(fr);
-            });
-        }
+        // What is left `ignores` let through as a remote request on a model with RTR-triggered
+        // TPDOs.
+        let Device { pdo, od, tx, .. } = d;
+        pdo.on_rtr(id, od, now, &mut |fr| {
+            tx.push(fr);
+        });
         true
     }
 
@@ -624,7 +630,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         self.after_lss(now);
         let d = &mut self.dev;
-        if d.node_id == UNCONFIGURED || d.nmt == NmtState::Initialising {
+        // (A node without a node-id is initialising: one test says both.)
+        if d.nmt == NmtState::Initialising {
             return;
         }
         while let Some(ev) = d.errctl.handle_timeout(now, d.nmt) {
@@ -657,7 +664,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         // (A stopped node keeps its EMCYs until it leaves Stopped.)
         debug_assert!(
             !d.emcy.has_pending()
-                || d.nmt == NmtState::Stopped
+                || !d.emcy_served()
                 || d.emcy.poll_timeout().is_some_and(|t| now < t),
             "EMCY due: {:?} at {now:?}, nmt {:?}",
             d.emcy.poll_timeout(),
@@ -761,7 +768,11 @@ impl<A: Application, S: Storage> Node<A, S> {
 
     /// Raises (or with `active == false` clears) a device error from outside the CANopen
     /// services: supply voltage, temperature, CAN controller states (fault injection, or the
-    /// real hardware's monitors on an MCU).
+    /// real hardware's monitors on an MCU). What is raised here stays until it is cleared
+    /// here, also a code the application raises for reasons of its own (the sensor's 0x5000):
+    /// the application clears only what it raised. Both share the code's one active entry, so
+    /// clearing it here while the application still has a reason ends it until the
+    /// application's next cycle raises it again.
     pub fn set_error(&mut self, code: u16, reg_bits: u8, mfr: [u8; 5], active: bool) {
         let d = &mut self.dev;
         if active {
@@ -965,6 +976,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// reset node. Defaults first, then whatever the stored image holds for them (D6); stored
     /// COB-IDs that were pre-defined for the node-id they were saved under follow the active
     /// one (D15).
+    #[inline(never)] // as `stored_lss_config`: the caller's frame stays small
     fn load_values(&mut self, application: bool) {
         let p = Params {
             model: self.model,
@@ -995,15 +1007,37 @@ impl<A: Application, S: Storage> Device<A, S> {
             };
             let e = self.od.entry(slot);
             if e.group != crate::od::Group::Volatile && reloads(e) {
-                self.od.set(slot, follow_node_id(e, v, saved_node, node));
+                let v = follow_node_id(e, v, saved_node, node);
+                // A checksummed image can still hold what no write would have been let in (a
+                // hand-edited or foreign file; found by fuzzing): that object keeps its default.
+                // The rule is a write's, less what relates the value to the one it replaces.
+                if e.accepts(v) && self.value_allowed(e, v).is_ok() {
+                    self.od.set(slot, v);
+                }
             }
         }
+        // The write rule that relates guarding to SYNC (`validate`), once both are loaded:
+        // guarding on SYNC's CAN-ID keeps its default (0x700 + node-id, which SYNC cannot have).
+        if let Ok(g) = self.od.find(0x100E, 0) {
+            if self.od.get(g) & 0x7FF == self.sync_can_id() {
+                let e = self.od.entry(g);
+                self.od.set(g, crate::od::resolve_default(e, &p, node));
+            }
+        }
+    }
+
+    /// The CAN-ID of the SYNC COB-ID (0x1005), whatever its bit 31.
+    fn sync_can_id(&self) -> u32 {
+        self.od.hot(self.hot.sync).unwrap_or(0x80) & 0x7FF
     }
 
     /// The node-id and bit rate stored by LSS or in their object copies (TMI 0x2000 / 0x2001,
     /// R17, R19: written there and saved with "save", they apply at power-up too; LSS "store
     /// configuration" keeps both copies equal, so an object copy is the newer one), and
     /// whether the image failed its check.
+    // Out of line: its image buffer is then gone before `power_on` calls `reset`, which loads
+    // the image again (two buffers on the stack at once are too many for firmware).
+    #[inline(never)]
     fn stored_lss_config(&mut self) -> ((Option<u8>, Option<u16>), bool) {
         let mut buf = [0u8; IMAGE_MAX];
         let recs = match storage::load_image(&mut self.storage, self.model.features.tag, &mut buf) {
@@ -1099,14 +1133,21 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
     }
 
+    /// Whether EMCYs go out now: in pre-operational and operational only. A stopped node keeps
+    /// them until it leaves Stopped, one without a node-id (initialising) until it has one.
+    /// The one rule for both sending and the EMCY deadline.
+    #[inline]
+    fn emcy_served(&self) -> bool {
+        self.nmt.sdo_allowed()
+    }
+
     fn flush_emcy_slow(&mut self) {
         // Nothing else writes 0x1001 / 0x1003 between resets, so an unchanged EMCY state needs
         // no mirroring (this runs after every frame).
         if self.emcy.generation() != self.emcy_synced {
             self.sync_error_register();
         }
-        if !self.emcy.has_pending() || self.nmt == NmtState::Stopped || self.node_id == UNCONFIGURED
-        {
+        if !self.emcy.has_pending() || !self.emcy_served() {
             return;
         }
         let cobid = self
@@ -1230,12 +1271,14 @@ impl<A: Application, S: Storage> Device<A, S> {
         Ok(())
     }
 
-    /// The rule of an entry's hook for a write of `raw` over `cur` that passed the table's
-    /// checks.
+    /// The rule of an entry's hook for a value of its own, on this node-id, whatever the object
+    /// holds now: an SDO write must pass it, and a value from the state file that fails it is
+    /// not loaded. For COB-IDs of services this node produces or answers on it keeps them off
+    /// 29-bit and CiA 301 restricted CAN-IDs (else a write or a state file could make the node
+    /// talk on the NMT or SYNC identifier).
     #[inline]
-    fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
+    fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
         match e.hook {
-            Hook::None => Ok(()),
             Hook::SyncCobId => {
                 // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
                 // the CiA 301 restricted CAN-IDs (conformance OTH-10).
@@ -1252,14 +1295,12 @@ impl<A: Application, S: Storage> Device<A, S> {
                 if raw & 0x8000_0000 == 0 && pdo::restricted_id(raw & 0x7FF) {
                     return Err(Abort::InvalidValue);
                 }
-                if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
-                    return Err(Abort::InvalidValue);
-                }
                 Ok(())
             }
             Hook::GuardingCobId => {
-                // Guarding answers on the COB-ID's 11-bit CAN-ID; 29-bit ids and restricted
-                // CAN-IDs other than the pre-defined 0x700 + node-id are refused.
+                // Guarding answers on the COB-ID's 11-bit CAN-ID (it has no "not valid" bit);
+                // 29-bit ids and restricted CAN-IDs other than the pre-defined 0x700 + node-id
+                // are refused.
                 let id = raw & 0x7FF;
                 if raw & 0x6000_0000 != 0
                     || (pdo::restricted_id(id) && id != 0x700 + self.node_id as u32)
@@ -1268,9 +1309,46 @@ impl<A: Application, S: Storage> Device<A, S> {
                 }
                 Ok(())
             }
-            Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) => self.validate_service(e, raw),
-            // The others check nothing beyond the table (or act instead of storing).
+            Hook::TpdoComm | Hook::TpdoMap => Tpdos::check_value(&self.od, e.index, e.sub, raw),
+            // The others check nothing beyond the table.
             _ => Ok(()),
+        }
+    }
+
+    /// The rule of an entry's hook for an SDO write of `raw` over `cur` that passed the
+    /// table's checks: [`Device::value_allowed`] and what relates the new value to the current
+    /// one (a state file's values are loaded without the latter).
+    #[inline]
+    fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
+        match e.hook {
+            Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) => self.validate_service(e, raw),
+            Hook::EmcyCobId => {
+                self.value_allowed(e, raw)?;
+                // The CAN-ID of a valid EMCY may not change (CiA 301 7.5.2.17).
+                if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            // Guarding and SYNC may not share a CAN-ID: a zero-length data frame counts as a
+            // guard request (D22), so every SYNC would be answered as one.
+            Hook::SyncCobId => {
+                self.value_allowed(e, raw)?;
+                if raw & 0x7FF == u32::from(self.errctl.guarding_id()) {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            Hook::GuardingCobId => {
+                self.value_allowed(e, raw)?;
+                if raw & 0x7FF == self.sync_can_id() {
+                    return Err(Abort::InvalidValue);
+                }
+                Ok(())
+            }
+            // The others (`Hook::None` among them) check nothing beyond their own value (or
+            // act instead of storing).
+            _ => self.value_allowed(e, raw),
         }
     }
 

@@ -200,9 +200,9 @@ static RESTRICTED: [u64; 32] = {
     let mut t = [0u64; 32];
     let mut id = 0u32;
     while id < 0x800 {
-        if restricted_by_range(id) {
-            t[(id >> 6) as usize] |= 1 << (id & 63);
-        }
+        // Every CAN-ID indexes the table, without a branch: a loop bound past 0x7FF then fails
+        // to compile (index 32 is out of bounds) instead of adding an iteration that does nothing.
+        t[(id >> 6) as usize] |= (restricted_by_range(id) as u64) << (id & 63);
         id += 1;
     }
     t
@@ -314,7 +314,41 @@ impl Tpdos {
         self.refresh();
     }
 
-    /// Validates a write to a TPDO parameter (`index` in 0x1800.. or 0x1A00..) before it lands.
+    /// The rule of one TPDO parameter value on its own (`index` in 0x1800.. or 0x1A00..),
+    /// whatever the PDO holds now: what an SDO write must pass and what a state file may load.
+    /// Independent of the PDO count configured (a state file is loaded before it is).
+    pub fn check_value(od: &Dictionary, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
+        if index < map_index(0) {
+            match sub {
+                // 29-bit CAN-IDs are not supported; a valid PDO may not use a restricted one.
+                1 if raw & COB_EXTENDED != 0
+                    || (raw & COB_INVALID == 0 && restricted_id(raw & 0x7FF)) =>
+                {
+                    return Err(Abort::InvalidValue)
+                }
+                // D10: 241–253 are reserved.
+                2 if (241..=253).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
+                _ => {}
+            }
+            return Ok(());
+        }
+        if sub == 0 {
+            let n_entries = od
+                .entries()
+                .iter()
+                .filter(|e| e.index == index && e.sub > 0)
+                .count();
+            if raw as usize > n_entries {
+                return Err(Abort::MappingLength);
+            }
+        } else if raw != 0 {
+            check_mappable(od, raw)?;
+        }
+        Ok(())
+    }
+
+    /// Validates an SDO write to a TPDO parameter (`index` in 0x1800.. or 0x1A00..) before it
+    /// lands: [`Tpdos::check_value`] and the rules that relate it to what the PDO holds now.
     pub fn validate(
         &self,
         od: &Dictionary,
@@ -324,24 +358,17 @@ impl Tpdos {
         event_gt_inhibit: bool,
     ) -> Result<(), Abort> {
         if (0x1800..0x1800 + self.count as u16).contains(&index) {
-            let cur = od.value(index, 1).unwrap_or(COB_INVALID);
+            Self::check_value(od, index, sub, raw)?;
             match sub {
                 1 => {
-                    if raw & COB_EXTENDED != 0 {
-                        return Err(Abort::InvalidValue);
-                    }
+                    let cur = od.value(index, 1).unwrap_or(COB_INVALID);
                     let valid_now = cur & COB_INVALID == 0;
                     let valid_new = raw & COB_INVALID == 0;
                     // Changing the CAN-ID of a valid PDO is refused; toggling bits 31 / 30 is not.
                     if valid_now && valid_new && (cur & 0x7FF) != (raw & 0x7FF) {
                         return Err(Abort::InvalidValue);
                     }
-                    if valid_new && restricted_id(raw & 0x7FF) {
-                        return Err(Abort::InvalidValue);
-                    }
                 }
-                // D10: 241–253 are reserved.
-                2 if (241..=253).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
                 3 | 5 if event_gt_inhibit => {
                     // TMI R27: the event timer must stay above the inhibit time (0 excepted).
                     let (inh, ev) = if sub == 3 {
@@ -358,18 +385,10 @@ impl Tpdos {
             return Ok(());
         }
         if (0x1A00..0x1A00 + self.count as u16).contains(&index) {
-            let n_entries = od
-                .entries()
-                .iter()
-                .filter(|e| e.index == index && e.sub > 0)
-                .count();
             if sub == 0 {
-                let n = raw as usize;
-                if n > n_entries {
-                    return Err(Abort::MappingLength);
-                }
+                Self::check_value(od, index, sub, raw)?;
                 let mut bits = 0u32;
-                for k in 1..=n {
+                for k in 1..=raw as usize {
                     let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
                     if e == 0 {
                         // An empty entry cannot be counted in.
@@ -386,9 +405,7 @@ impl Tpdos {
                 if od.value(index, 0).unwrap_or(0) != 0 {
                     return Err(Abort::UnsupportedAccess);
                 }
-                if raw != 0 {
-                    check_mappable(od, raw)?;
-                }
+                Self::check_value(od, index, sub, raw)?;
             }
         }
         Ok(())

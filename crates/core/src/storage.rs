@@ -14,7 +14,31 @@
 use crate::od::{Entry, Group};
 
 /// Largest image any model produces (header + records + CRC).
-pub const IMAGE_MAX: usize = 8 + 8 * 240 + 4;
+pub const IMAGE_MAX: usize = 8 + 8 * RECORDS_MAX + 4;
+
+/// Most records an image holds: 240 on a host (any device an EDS may describe), else the
+/// stored entries of the largest model built in (at least 32, for a firmware's own small
+/// dictionary) plus the three LSS / node-id records.
+#[cfg(feature = "host-buffers")]
+const RECORDS_MAX: usize = 240;
+#[cfg(not(feature = "host-buffers"))]
+const RECORDS_MAX: usize = firmware_records_max();
+
+/// [`RECORDS_MAX`] of a firmware build (without `host-buffers`). Nothing the default build
+/// compiles reaches it, so the mutation run leaves it out (docs/MUTANTS.md).
+#[cfg(not(feature = "host-buffers"))]
+const fn firmware_records_max() -> usize {
+    let (th, e, tmi) = (
+        crate::models::th_stored(),
+        crate::models::e_series_stored(),
+        crate::models::tmi_stored(),
+    );
+    let models = if th > e { th } else { e };
+    let models = if models > tmi { models } else { tmi };
+    // The three LSS / node-id records come on top.
+    let least = if models > 32 { models } else { 32 };
+    least + 3
+}
 
 const MAGIC: &[u8; 4] = b"CPOS";
 const VERSION: u8 = 1;
@@ -246,6 +270,7 @@ pub fn parse_image(
 }
 
 /// Loads the stored image into `buf` and checks it: its records, or why there are none.
+#[inline(never)]
 pub fn load_image<'a, S: Storage>(
     st: &mut S,
     model_tag: u8,
@@ -259,15 +284,39 @@ pub fn load_image<'a, S: Storage>(
 /// records for which `replaced` holds are dropped, and every other stored record stays.
 /// `replaced` must hold for every key `put` writes, so that no key is stored twice. A stored
 /// image that fails its check counts as empty (it could not be loaded anyway).
+///
+/// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
+/// of stack, which matters on a microcontroller): the kept records are compacted to the front,
+/// moved up behind the space for the new ones, and the new ones written first, so the image
+/// has the new records first and the kept ones after them, in their stored order. Never
+/// inlined, so the buffer is on the stack only while an update runs.
+#[inline(never)]
 pub fn update_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
     replaced: impl Fn(u32) -> bool,
-    put: impl Iterator<Item = (u32, u32)>,
+    put: impl Iterator<Item = (u32, u32)> + Clone,
 ) -> Result<(), StorageError> {
-    let mut old = [0u8; IMAGE_MAX];
-    let old_len = st.load(&mut old).unwrap_or(0);
     let mut buf = [0u8; IMAGE_MAX];
+    let old_len = st.load(&mut buf).unwrap_or(0);
+    let mut kept = 0;
+    if parse_image(&buf[..old_len], model_tag).is_ok() {
+        // Records only move towards the front here, so copying in place is safe.
+        let mut at = 8;
+        while at + 8 + 4 <= old_len {
+            let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
+            if !replaced(key) {
+                buf.copy_within(at..at + 8, 8 + 8 * kept);
+                kept += 1;
+            }
+            at += 8;
+        }
+    }
+    let new = put.clone().count();
+    if 8 + 8 * (new + kept) + 4 > buf.len() {
+        return Err(StorageError::Io);
+    }
+    buf.copy_within(8..8 + 8 * kept, 8 + 8 * new);
     let mut w = ImageWriter::new(&mut buf, model_tag);
     for (k, v) in put {
         debug_assert!(replaced(k), "record {k:#x} would be stored twice");
@@ -275,13 +324,8 @@ pub fn update_image<S: Storage>(
             return Err(StorageError::Io);
         }
     }
-    if let Ok(recs) = parse_image(&old[..old_len], model_tag) {
-        for (k, v) in recs.filter(|&(k, _)| !replaced(k)) {
-            if !w.push(k, v) {
-                return Err(StorageError::Io);
-            }
-        }
-    }
+    w.len += 8 * kept;
+    w.count += kept as u16;
     let n = w.finish();
     st.save(&buf[..n])
 }
@@ -330,5 +374,122 @@ mod tests {
             assert!(parse_image(&b[..n], 3).is_err(), "flip at {i} not detected");
         }
         assert!(parse_image(&buf[..n - 1], 3).is_err(), "torn");
+    }
+
+    /// An image whose CRC is right but whose header names another format (magic), another
+    /// layout (version) or another model (tag) is not this unit's image.
+    #[test]
+    fn a_sealed_image_of_another_format_version_or_model_is_refused() {
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, 3);
+        assert!(w.push(0x0010_1700, 100));
+        let n = w.finish();
+        let reseal = |at: usize, v: u8| {
+            let mut b = buf;
+            b[at] = v;
+            let crc = crc32(&b[..n - 4]).to_le_bytes();
+            b[n - 4..n].copy_from_slice(&crc);
+            b
+        };
+        assert!(parse_image(&reseal(0, b'X')[..n], 3).is_err(), "magic");
+        assert!(
+            parse_image(&reseal(4, VERSION + 1)[..n], 3).is_err(),
+            "version"
+        );
+        assert!(parse_image(&reseal(5, 2)[..n], 3).is_err(), "model tag");
+        assert!(
+            parse_image(&reseal(5, 3)[..n], 3).is_ok(),
+            "resealing alone changes nothing"
+        );
+        // A count that claims more records than the image holds.
+        assert!(parse_image(&reseal(6, 2)[..n], 3).is_err(), "count");
+        assert!(
+            parse_image(&buf[..11], 3).is_err(),
+            "shorter than a header and a CRC"
+        );
+    }
+
+    /// The writer takes records while the image, with its CRC, still fits the buffer: exactly
+    /// (IMAGE_MAX − 12) / 8 of them, and the sealed image is then exactly IMAGE_MAX long.
+    #[test]
+    fn the_image_writer_fills_the_buffer_exactly() {
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, 1);
+        let fit = (IMAGE_MAX - 12) / 8;
+        // The buffer is sized for the most records a dictionary stores, neither fewer nor more.
+        assert_eq!(fit, RECORDS_MAX);
+        for k in 0..fit as u32 {
+            assert!(w.push(k, k), "record {k} fits");
+        }
+        assert!(!w.push(0xFFFF, 0), "one more does not");
+        assert_eq!(w.finish(), IMAGE_MAX);
+        assert_eq!(parse_image(&buf, 1).unwrap().count(), fit);
+    }
+
+    /// `update_image` keeps the stored records it is not told to replace, and refuses (storing
+    /// nothing) when the result would not fit.
+    #[test]
+    fn update_image_keeps_unreplaced_records_and_refuses_an_overflow() {
+        let mut st = RamStorage::default();
+        update_image(&mut st, 1, |_| true, [(1, 10), (2, 20)].into_iter()).unwrap();
+        update_image(&mut st, 1, |k| k == 2, [(2, 21)].into_iter()).unwrap();
+        let mut b = [0u8; IMAGE_MAX];
+        let recs = load_image(&mut st, 1, &mut b).unwrap();
+        assert_eq!(recs.clone().count(), 2);
+        assert!(recs.clone().any(|r| r == (1, 10)) && recs.clone().any(|r| r == (2, 21)));
+        let fit = (IMAGE_MAX - 12) / 8;
+        let many = (100..100 + fit as u32).map(|k| (k, k));
+        assert_eq!(
+            update_image(&mut st, 1, |k| k >= 100, many),
+            Err(StorageError::Io),
+            "two kept + all that fit is too many"
+        );
+        let mut b = [0u8; IMAGE_MAX];
+        assert_eq!(
+            load_image(&mut st, 1, &mut b).unwrap().count(),
+            2,
+            "unchanged"
+        );
+    }
+
+    #[test]
+    fn update_in_place_puts_new_records_first_then_the_kept_ones_in_order() {
+        let mut st = RamStorage::default();
+        let old = [(1, 10), (2, 20), (3, 30), (4, 40), (5, 50)];
+        update_image(&mut st, 7, |_| true, old.into_iter()).unwrap();
+        // Replace 2 and 4, add 9 and 8; 1, 3, 5 stay behind the new ones.
+        let put = [(9, 90), (2, 21), (8, 80), (4, 41)];
+        update_image(&mut st, 7, |k| matches!(k, 2 | 4 | 8 | 9), put.into_iter()).unwrap();
+        let mut buf = [0u8; IMAGE_MAX];
+        let got: [(u32, u32); 7] = {
+            let mut it = load_image(&mut st, 7, &mut buf).unwrap();
+            core::array::from_fn(|_| it.next().unwrap())
+        };
+        assert_eq!(
+            got,
+            [
+                (9, 90),
+                (2, 21),
+                (8, 80),
+                (4, 41),
+                (1, 10),
+                (3, 30),
+                (5, 50)
+            ]
+        );
+        // Dropping records only (the kept ones move towards the front).
+        update_image(&mut st, 7, |k| k == 9 || k == 1, core::iter::empty()).unwrap();
+        let mut it = load_image(&mut st, 7, &mut buf).unwrap();
+        let keys: [u32; 5] = core::array::from_fn(|_| it.next().unwrap().0);
+        assert_eq!(keys, [2, 8, 4, 3, 5]);
+        assert!(it.next().is_none());
+        // An update that does not fit is refused and leaves the stored image as it was.
+        let before = st.saves;
+        let many = (0..RECORDS_MAX as u32).map(|k| (0x100 + k, k));
+        assert_eq!(
+            update_image(&mut st, 7, |k| k >= 0x100, many),
+            Err(StorageError::Io)
+        );
+        assert_eq!(st.saves, before);
     }
 }

@@ -2,8 +2,13 @@
 
 use crate::wire::Frame;
 
-/// Capacity of the transmit queue.
-pub const TXQ_LEN: usize = 64;
+/// Capacity of the transmit queue (firmware builds without `host-buffers`: 16, since the main
+/// loop hands every frame to the controller as soon as it is queued).
+pub const TXQ_LEN: usize = if cfg!(feature = "host-buffers") {
+    64
+} else {
+    16
+};
 /// Ring index mask (the capacity is a power of two: masks instead of `%` and bounds checks).
 const MASK: usize = TXQ_LEN - 1;
 const _: () = assert!(TXQ_LEN.is_power_of_two());
@@ -60,5 +65,70 @@ impl TxQueue {
     /// Drops everything waiting.
     pub fn clear(&mut self) {
         self.len = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(n: usize) -> Frame {
+        Frame::std_len(0x100 + (n % 0x400) as u16, [n as u8; 8], 1)
+    }
+
+    /// A FIFO of exactly `TXQ_LEN` frames: all kept in order; one more is dropped and counted
+    /// (the controller's overrun), and the queue still holds the first `TXQ_LEN`.
+    #[test]
+    fn holds_txq_len_frames_in_order_and_counts_the_overrun() {
+        let mut q = TxQueue::default();
+        assert!(q.is_empty());
+        for n in 0..TXQ_LEN {
+            assert!(q.push(frame(n)), "frame {n} fits");
+        }
+        assert!(!q.is_empty());
+        assert!(!q.push(frame(TXQ_LEN)), "full");
+        assert_eq!(q.overruns, 1);
+        for n in 0..TXQ_LEN {
+            assert_eq!(q.pop(), Some(frame(n)), "frame {n}");
+        }
+        assert_eq!(q.pop(), None);
+        assert!(q.is_empty());
+    }
+
+    /// Order is kept across the ring's wrap-around, at every fill level.
+    #[test]
+    fn order_survives_wrap_around() {
+        let mut q = TxQueue::default();
+        let (mut pushed, mut popped) = (0, 0);
+        for fill in 1..=TXQ_LEN {
+            for _ in 0..3 * TXQ_LEN {
+                while pushed - popped < fill {
+                    assert!(q.push(frame(pushed)));
+                    pushed += 1;
+                }
+                assert_eq!(q.pop(), Some(frame(popped)));
+                popped += 1;
+            }
+        }
+        while let Some(f) = q.pop() {
+            assert_eq!(f, frame(popped));
+            popped += 1;
+        }
+        assert_eq!(popped, pushed);
+        assert_eq!(q.overruns, 0);
+    }
+
+    /// `clear` drops everything waiting; the queue then works as new.
+    #[test]
+    fn clear_empties_the_queue() {
+        let mut q = TxQueue::default();
+        for n in 0..5 {
+            q.push(frame(n));
+        }
+        q.clear();
+        assert!(q.is_empty());
+        assert_eq!(q.pop(), None);
+        q.push(frame(7));
+        assert_eq!(q.pop(), Some(frame(7)));
     }
 }

@@ -3,11 +3,87 @@
 //! Frames: `123#DEADBEEF` (3-digit standard id, upper-case data), `12345678#..` (8-digit
 //! extended id), `080#` (no data), `705#R` / `705#R1` (remote frame, with DLC when > 0). This is
 //! what can-utils' `candump -L` writes and `canplayer` and python-can's `can.LogReader` read.
+//!
+//! Lines that hold something other than a classical frame are read as such ([`Record`]), so that
+//! a player can skip them and play the rest: error frames (`20000004#0004000000000000`, an
+//! 8-digit id with `CAN_ERR_FLAG` 0x20000000 and the SocketCAN error class below it) and CAN FD
+//! frames (`123##1DEADBEEF`: `##`, one hex digit of FD flags, up to 64 data bytes).
 
 use std::io::{self, BufRead, Write};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use canpos_core::Frame;
+
+/// SocketCAN's `CAN_EFF_FLAG`: the id is 29 bits.
+pub const CAN_EFF_FLAG: u32 = 0x8000_0000;
+/// SocketCAN's `CAN_RTR_FLAG`: a remote frame.
+pub const CAN_RTR_FLAG: u32 = 0x4000_0000;
+/// SocketCAN's `CAN_ERR_FLAG`: an error frame; the bits below it are the error class.
+pub const CAN_ERR_FLAG: u32 = 0x2000_0000;
+/// SocketCAN's `CAN_ERR_MASK`: the error class bits of an error frame's id.
+pub const CAN_ERR_MASK: u32 = 0x1FFF_FFFF;
+
+/// An error frame as SocketCAN reports it (`linux/can/error.h`): the error class (e.g.
+/// `CAN_ERR_PROT` 0x8, `CAN_ERR_BUSOFF` 0x40) in the id below [`CAN_ERR_FLAG`], details in the
+/// 8 data bytes (`data[2]` protocol error type, `data[3]` location, `data[6..8]` counters).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ErrorFrame {
+    /// The error class bits (masked with [`CAN_ERR_MASK`]).
+    pub class: u32,
+    /// The error details (`CAN_ERR_DLC` = 8 bytes).
+    pub data: [u8; 8],
+}
+
+impl ErrorFrame {
+    /// An error frame of `class` (masked to [`CAN_ERR_MASK`]) with `data`.
+    pub fn new(class: u32, data: [u8; 8]) -> Self {
+        ErrorFrame {
+            class: class & CAN_ERR_MASK,
+            data,
+        }
+    }
+
+    /// The SocketCAN `can_id`: [`CAN_ERR_FLAG`] | class.
+    pub fn can_id(&self) -> u32 {
+        CAN_ERR_FLAG | self.class
+    }
+}
+
+/// A CAN FD frame as a log holds it (canpos plays only classical CAN; kept to be counted).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FdFrame {
+    /// The identifier (11 or 29 bits).
+    pub id: u32,
+    /// A 29-bit identifier.
+    pub extended: bool,
+    /// The FD flags (`CANFD_BRS` 0x1, `CANFD_ESI` 0x2).
+    pub flags: u8,
+    /// Data length (0…64).
+    pub len: u8,
+    /// Data (the first `len` bytes).
+    pub data: [u8; 64],
+}
+
+/// What one log line holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Record {
+    /// A classical data or remote frame.
+    Frame(Frame),
+    /// An error frame.
+    Error(ErrorFrame),
+    /// A CAN FD frame.
+    Fd(FdFrame),
+}
+
+impl Record {
+    /// The classical frame, if this is one.
+    pub fn frame(&self) -> Option<&Frame> {
+        match self {
+            Record::Frame(f) => Some(f),
+            _ => None,
+        }
+    }
+}
 
 /// One log line.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -16,8 +92,8 @@ pub struct LogEntry {
     pub timestamp: SystemTime,
     /// Interface name, e.g. `can0`.
     pub interface: String,
-    /// The frame.
-    pub frame: Frame,
+    /// What the line holds.
+    pub record: Record,
 }
 
 /// Why a line could not be parsed.
@@ -32,12 +108,12 @@ pub enum ParseError {
     /// Missing or malformed `ID#DATA`.
     #[error("bad frame `{0}`: expected ID#DATA, e.g. 123#DEADBEEF, 080#, 705#R")]
     Frame(String),
-    /// CAN FD (`ID##FLAGS DATA`) is not supported.
-    #[error("CAN FD frames are not supported")]
-    Fd,
     /// Unexpected text after the frame.
     #[error("unexpected text after the frame")]
     Trailing,
+    /// Bytes that are not UTF-8 text (a binary file, another encoding).
+    #[error("not UTF-8 text")]
+    NotText,
 }
 
 /// A parse error with the line it happened on (1-based), or an I/O error.
@@ -58,10 +134,37 @@ pub enum LogError {
 
 /// Formats one line (without newline).
 pub fn format_line(timestamp: SystemTime, interface: &str, frame: &Frame) -> String {
+    format_record_line(timestamp, interface, &Record::Frame(*frame))
+}
+
+/// Formats one line of any record (without newline): error frames as can-utils writes them
+/// (`20000004#0004000000000000`), FD frames as `123##1DEADBEEF`.
+pub fn format_record_line(timestamp: SystemTime, interface: &str, record: &Record) -> String {
     let mut s = String::with_capacity(48);
     let t = timestamp.duration_since(UNIX_EPOCH).unwrap_or_default();
     use std::fmt::Write as _;
     let _ = write!(s, "({}.{:06}) {interface} ", t.as_secs(), t.subsec_micros());
+    let frame = match record {
+        Record::Frame(f) => f,
+        Record::Error(e) => {
+            let _ = write!(s, "{:08X}#", e.can_id());
+            for b in e.data {
+                let _ = write!(s, "{b:02X}");
+            }
+            return s;
+        }
+        Record::Fd(f) => {
+            let _ = if f.extended {
+                write!(s, "{:08X}##{:X}", f.id, f.flags & 0xF)
+            } else {
+                write!(s, "{:03X}##{:X}", f.id, f.flags & 0xF)
+            };
+            for b in &f.data[..f.len as usize] {
+                let _ = write!(s, "{b:02X}");
+            }
+            return s;
+        }
+    };
     let _ = if frame.is_extended() {
         write!(s, "{:08X}#", frame.id())
     } else {
@@ -95,38 +198,77 @@ fn hex(s: &str) -> Option<u32> {
     u32::from_str_radix(s, 16).ok()
 }
 
-/// Parses the `ID#DATA` part.
+/// Hex data bytes, `.` allowed between them (can-utils allows it for readability).
+fn hex_bytes(s: &str, out: &mut [u8]) -> Option<usize> {
+    let digits: Vec<u8> = s.bytes().filter(|&b| b != b'.').collect();
+    if !digits.len().is_multiple_of(2) || digits.len() > 2 * out.len() {
+        return None;
+    }
+    for (i, pair) in digits.chunks(2).enumerate() {
+        out[i] = hex(std::str::from_utf8(pair).ok()?)? as u8;
+    }
+    Some(digits.len() / 2)
+}
+
+/// Parses the `ID#DATA` part of a classical frame (error and FD frames are errors here; see
+/// [`parse_record`]).
 pub fn parse_frame(tok: &str) -> Result<Frame, ParseError> {
+    match parse_record(tok)? {
+        Record::Frame(f) => Ok(f),
+        _ => Err(ParseError::Frame(tok.chars().take(40).collect())),
+    }
+}
+
+/// Parses the `ID#DATA` part: a classical frame, an error frame or a CAN FD frame.
+pub fn parse_record(tok: &str) -> Result<Record, ParseError> {
     let bad = || ParseError::Frame(tok.chars().take(40).collect());
     let (id_s, rest) = tok.split_once('#').ok_or_else(bad)?;
-    if rest.starts_with('#') {
-        return Err(ParseError::Fd);
-    }
     let extended = match id_s.len() {
         3 => false,
         8 => true,
         _ => return Err(bad()),
     };
     let id = hex(id_s).ok_or_else(bad)?;
+    if let Some(fd) = rest.strip_prefix('#') {
+        // `##F` then data; can-utils' CAN XL (`###`) is not read.
+        let mut chars = fd.chars();
+        let flags = chars.next().and_then(|c| c.to_digit(16)).ok_or_else(bad)? as u8;
+        let mut data = [0u8; 64];
+        let len = hex_bytes(chars.as_str(), &mut data).ok_or_else(bad)?;
+        if id > if extended { 0x1FFF_FFFF } else { 0x7FF } {
+            return Err(bad());
+        }
+        return Ok(Record::Fd(FdFrame {
+            id,
+            extended,
+            flags,
+            len: len as u8,
+            data,
+        }));
+    }
+    if extended && id & CAN_ERR_FLAG != 0 {
+        if id & !(CAN_ERR_FLAG | CAN_ERR_MASK) != 0 {
+            return Err(bad());
+        }
+        let mut data = [0u8; 8];
+        hex_bytes(rest, &mut data).ok_or_else(bad)?;
+        return Ok(Record::Error(ErrorFrame::new(id, data)));
+    }
     if let Some(r) = rest.strip_prefix(['R', 'r']) {
         let dlc = match r {
             "" => 0,
             d if d.len() == 1 => hex(d).filter(|&d| d <= 8).ok_or_else(bad)? as u8,
             _ => return Err(bad()),
         };
-        return Frame::remote(id, extended, dlc).map_err(|_| bad());
-    }
-    // can-utils allows `.` between bytes for readability.
-    let digits: Vec<u8> = rest.bytes().filter(|&b| b != b'.').collect();
-    if !digits.len().is_multiple_of(2) || digits.len() > 16 {
-        return Err(bad());
+        return Frame::remote(id, extended, dlc)
+            .map(Record::Frame)
+            .map_err(|_| bad());
     }
     let mut data = [0u8; 8];
-    for (i, pair) in digits.chunks(2).enumerate() {
-        let s = std::str::from_utf8(pair).map_err(|_| bad())?;
-        data[i] = hex(s).ok_or_else(bad)? as u8;
-    }
-    Frame::with_id(id, extended, &data[..digits.len() / 2]).map_err(|_| bad())
+    let len = hex_bytes(rest, &mut data).ok_or_else(bad)?;
+    Frame::with_id(id, extended, &data[..len])
+        .map(Record::Frame)
+        .map_err(|_| bad())
 }
 
 /// Parses one line.
@@ -134,7 +276,7 @@ pub fn parse_line(line: &str) -> Result<LogEntry, ParseError> {
     let mut tok = line.split_ascii_whitespace();
     let timestamp = parse_timestamp(tok.next().ok_or(ParseError::Timestamp)?)?;
     let interface = tok.next().ok_or(ParseError::Interface)?.to_string();
-    let frame = parse_frame(tok.next().ok_or_else(|| ParseError::Frame(String::new()))?)?;
+    let record = parse_record(tok.next().ok_or_else(|| ParseError::Frame(String::new()))?)?;
     // candump -L of newer can-utils may append ` T` / ` R` (tx/rx direction); accept that.
     match (tok.next(), tok.next()) {
         (None, _) | (Some("T" | "R"), None) => {}
@@ -143,7 +285,7 @@ pub fn parse_line(line: &str) -> Result<LogEntry, ParseError> {
     Ok(LogEntry {
         timestamp,
         interface,
-        frame,
+        record,
     })
 }
 
@@ -169,9 +311,16 @@ impl<W: Write> LogWriter<W> {
         self.out.write_all(b"\n")
     }
 
+    /// Writes any record (error frames included).
+    pub fn write_record(&mut self, timestamp: SystemTime, record: &Record) -> io::Result<()> {
+        let line = format_record_line(timestamp, &self.interface, record);
+        self.out.write_all(line.as_bytes())?;
+        self.out.write_all(b"\n")
+    }
+
     /// Writes an entry with its own interface name.
     pub fn write_entry(&mut self, e: &LogEntry) -> io::Result<()> {
-        let line = format_line(e.timestamp, &e.interface, &e.frame);
+        let line = format_record_line(e.timestamp, &e.interface, &e.record);
         self.out.write_all(line.as_bytes())?;
         self.out.write_all(b"\n")
     }
@@ -191,7 +340,7 @@ impl<W: Write> LogWriter<W> {
 pub struct LogReader<R: BufRead> {
     input: R,
     line_no: usize,
-    line: String,
+    line: Vec<u8>,
 }
 
 impl<R: BufRead> LogReader<R> {
@@ -200,7 +349,7 @@ impl<R: BufRead> LogReader<R> {
         LogReader {
             input,
             line_no: 0,
-            line: String::new(),
+            line: Vec::new(),
         }
     }
 
@@ -216,17 +365,20 @@ impl<R: BufRead> Iterator for LogReader<R> {
     fn next(&mut self) -> Option<Self::Item> {
         loop {
             self.line.clear();
-            match self.input.read_line(&mut self.line) {
+            // Bytes, not `read_line`: a line that is not UTF-8 is one malformed line (with its
+            // number), not an I/O error that ends the log.
+            match self.input.read_until(b'\n', &mut self.line) {
                 Ok(0) => return None,
                 Ok(_) => {}
                 Err(e) => return Some(Err(LogError::Io(e))),
             }
             self.line_no += 1;
-            let l = self.line.trim();
-            if l.is_empty() {
-                continue;
-            }
-            return Some(parse_line(l).map_err(|error| LogError::Parse {
+            let parsed = match std::str::from_utf8(&self.line) {
+                Ok(l) if l.trim().is_empty() => continue,
+                Ok(l) => parse_line(l.trim()),
+                Err(_) => Err(ParseError::NotText),
+            };
+            return Some(parsed.map_err(|error| LogError::Parse {
                 line: self.line_no,
                 error,
             }));
@@ -281,7 +433,7 @@ mod tests {
                 LogEntry {
                     timestamp: ts,
                     interface: "can0".into(),
-                    frame: f
+                    record: Record::Frame(f)
                 }
             );
         }
@@ -297,10 +449,57 @@ mod tests {
             parse_line("(1.5) vcan0 123# T").unwrap().timestamp,
             t(1, 500_000)
         );
-        assert_eq!(parse_frame("123##1DEAD"), Err(ParseError::Fd));
+        assert_eq!(
+            parse_frame("123##1DEAD"),
+            Err(ParseError::Frame("123##1DEAD".into()))
+        );
         // python-can's CanutilsLogWriter appends the direction.
         let e = parse_line("(1.500000) can0 705#R R").unwrap();
-        assert_eq!(e.frame, Frame::remote(0x705, false, 0).unwrap());
+        assert_eq!(
+            e.record,
+            Record::Frame(Frame::remote(0x705, false, 0).unwrap())
+        );
+    }
+
+    #[test]
+    fn error_and_fd_frames() {
+        let ts = t(1700000000, 5);
+        // can-utils: a bus error (CAN_ERR_PROT 0x8 | CAN_ERR_BUSERROR 0x80) with a form error.
+        let e = parse_line("(1700000000.000005) can0 20000088#0000020000000000").unwrap();
+        let want = ErrorFrame::new(0x88, [0, 0, 2, 0, 0, 0, 0, 0]);
+        assert_eq!(e.record, Record::Error(want));
+        assert_eq!(want.can_id(), 0x2000_0088);
+        assert_eq!(
+            format_record_line(ts, "can0", &e.record),
+            "(1700000000.000005) can0 20000088#0000020000000000"
+        );
+        let fd = parse_line("(1.0) can0 123##3DEADBEEF00112233AABB").unwrap();
+        let Record::Fd(f) = fd.record else {
+            panic!("{fd:?}")
+        };
+        assert_eq!((f.id, f.extended, f.flags, f.len), (0x123, false, 3, 10));
+        assert_eq!(&f.data[..4], &[0xDE, 0xAD, 0xBE, 0xEF]);
+        assert_eq!(
+            format_record_line(ts, "can0", &fd.record),
+            "(1700000000.000005) can0 123##3DEADBEEF00112233AABB"
+        );
+        let long = format!("(1.0) can0 12345678##0{}", "AB".repeat(64));
+        assert!(
+            matches!(parse_line(&long).unwrap().record, Record::Fd(f) if f.len == 64 && f.extended)
+        );
+        for bad in [
+            "(1.0) can0 123##",
+            "(1.0) can0 123##G00",
+            "(1.0) can0 800##0",
+            format!("(1.0) can0 123##0{}", "AB".repeat(65)).as_str(),
+            "(1.0) can0 60000000#00",
+            "(1.0) can0 20000088#000000000000000000",
+        ] {
+            assert!(
+                matches!(parse_line(bad), Err(ParseError::Frame(_))),
+                "{bad}"
+            );
+        }
     }
 
     #[test]
@@ -332,8 +531,8 @@ mod tests {
         let log = "(1.000000) can0 123#01\n\n(2.000000) can0 nonsense\n(3.000000) can0 080#\n";
         let mut r = LogReader::new(log.as_bytes());
         assert_eq!(
-            r.next().unwrap().unwrap().frame,
-            Frame::new(0x123, &[1]).unwrap()
+            r.next().unwrap().unwrap().record,
+            Record::Frame(Frame::new(0x123, &[1]).unwrap())
         );
         let e = r.next().unwrap().unwrap_err();
         assert_eq!(
@@ -341,8 +540,8 @@ mod tests {
             "line 3: bad frame `nonsense`: expected ID#DATA, e.g. 123#DEADBEEF, 080#, 705#R"
         );
         assert_eq!(
-            r.next().unwrap().unwrap().frame,
-            Frame::new(0x80, &[]).unwrap()
+            r.next().unwrap().unwrap().record,
+            Record::Frame(Frame::new(0x80, &[]).unwrap())
         );
         assert!(r.next().is_none());
         assert_eq!(r.line_number(), 4);
@@ -377,7 +576,7 @@ mod tests {
             let got: Vec<LogEntry> = LogReader::new(&bytes[..]).collect::<Result<_, _>>().unwrap();
             prop_assert_eq!(got.len(), frames.len());
             for (e, (f, s, us)) in got.iter().zip(&frames) {
-                prop_assert_eq!(&e.frame, f);
+                prop_assert_eq!(e.record, Record::Frame(*f));
                 prop_assert_eq!(e.timestamp, t(*s, *us));
                 prop_assert_eq!(&e.interface, "vcan0");
             }

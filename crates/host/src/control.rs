@@ -107,6 +107,22 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         sensor: Option<usize>,
     },
+    /// Disturbs the bus (paced virtual buses; docs/BUS.md): `corrupt` with `value` corrupted
+    /// frames per million (0 stops), `stuck-dominant` with `value` ms from now, `transceiver`
+    /// of `sensor` with `on`. Out of range: an error, and nothing changes.
+    BusFault {
+        /// Sensor index (whose bus; whose transceiver).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+        /// `corrupt`, `stuck-dominant` or `transceiver`.
+        kind: String,
+        /// The parameter of `corrupt` and `stuck-dominant`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        value: Option<f64>,
+        /// Failed (`true`) or working again, for `transceiver`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        on: Option<bool>,
+    },
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
     /// so a measurement covers a chosen window, not the start-up.
     ResetLateness,
@@ -118,6 +134,25 @@ pub enum Request {
         sensor: Option<usize>,
         /// `start`, `stop`, `preop`, `reset` or `reset-comm`.
         command: String,
+    },
+    /// Sets the device's own timing ([`crate::timing::DeviceTiming`]); the values not given
+    /// stay. Answers the timing now in force.
+    Timing {
+        /// Sensor index.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+        /// Delay before every SDO response, ms.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sdo_delay_ms: Option<f64>,
+        /// Random extra delay of SDO responses, up to this many ms.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sdo_jitter_ms: Option<f64>,
+        /// Power-on to boot-up, ms.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        boot_delay_ms: Option<f64>,
+        /// NMT reset to boot-up, ms.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        reset_boot_delay_ms: Option<f64>,
     },
 }
 
@@ -186,6 +221,38 @@ impl fmt::Display for Request {
             Request::State { .. } => f.write_str("state"),
             Request::ResetLateness => f.write_str("reset-lateness"),
             Request::Nmt { command, .. } => write!(f, "nmt {command}"),
+            Request::Timing {
+                sdo_delay_ms,
+                sdo_jitter_ms,
+                boot_delay_ms,
+                reset_boot_delay_ms,
+                ..
+            } => {
+                f.write_str("timing")?;
+                for (k, v) in [
+                    ("sdo_delay_ms", sdo_delay_ms),
+                    ("sdo_jitter_ms", sdo_jitter_ms),
+                    ("boot_delay_ms", boot_delay_ms),
+                    ("reset_boot_delay_ms", reset_boot_delay_ms),
+                ] {
+                    if let Some(v) = v {
+                        write!(f, " {k}={v}")?;
+                    }
+                }
+                Ok(())
+            }
+            Request::BusFault {
+                kind, value, on, ..
+            } => {
+                write!(f, "bus-fault {kind}")?;
+                if let Some(v) = value {
+                    write!(f, " {v}")?;
+                }
+                if let Some(on) = on {
+                    write!(f, " {}", if *on { "on" } else { "off" })?;
+                }
+                Ok(())
+            }
         }
     }
 }
@@ -200,7 +267,9 @@ impl Request {
             | Request::PowerCycle { sensor }
             | Request::Ambient { sensor, .. }
             | Request::State { sensor }
-            | Request::Nmt { sensor, .. } => *sensor,
+            | Request::Nmt { sensor, .. }
+            | Request::Timing { sensor, .. }
+            | Request::BusFault { sensor, .. } => *sensor,
             Request::ResetLateness => None,
         }
     }
@@ -243,6 +312,9 @@ impl Request {
                 name, value, on, ..
             } => {
                 let fault: Fault = name.parse()?;
+                if fault == Fault::Stall && *on && value.is_none() {
+                    return Err("stall needs its duration: value = seconds".into());
+                }
                 let Some(v) = value else { return Ok(()) };
                 if !v.is_finite() {
                     return Err(format!("fault value {v} is not a finite number"));
@@ -259,14 +331,87 @@ impl Request {
                         canpos_sim::motion::MAX_MAGNITUDE
                     )),
                     Fault::SupplyVoltage | Fault::ExtraMagnet => Ok(()),
+                    Fault::Stall => crate::timing::millis("stall", v * 1e3).and_then(|d| {
+                        if d.is_zero() {
+                            Err("stall needs a duration > 0 s".into())
+                        } else {
+                            Ok(())
+                        }
+                    }),
                     _ if *on => Err(format!("fault `{fault}` takes no value")),
                     _ => Ok(()),
                 }
             }
             Request::Ambient { celsius, .. } => check_celsius(*celsius),
+            Request::Timing {
+                sdo_delay_ms,
+                sdo_jitter_ms,
+                boot_delay_ms,
+                reset_boot_delay_ms,
+                ..
+            } => {
+                for (what, v) in [
+                    ("sdo_delay_ms", sdo_delay_ms),
+                    ("sdo_jitter_ms", sdo_jitter_ms),
+                    ("boot_delay_ms", boot_delay_ms),
+                    ("reset_boot_delay_ms", reset_boot_delay_ms),
+                ] {
+                    if let Some(v) = v {
+                        crate::timing::millis(what, *v)?;
+                    }
+                }
+                Ok(())
+            }
             Request::Nmt { command, .. } => nmt_command(command).map(|_| ()),
+            Request::BusFault {
+                kind, value, on, ..
+            } => bus_disturbance(kind, *value, *on).map(|_| ()),
             Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness => Ok(()),
         }
+    }
+}
+
+/// The disturbance a [`Request::BusFault`] asks for, with its parameters checked.
+pub fn bus_disturbance(
+    kind: &str,
+    value: Option<f64>,
+    on: Option<bool>,
+) -> Result<crate::transport::Disturbance, String> {
+    use crate::transport::Disturbance;
+    match kind {
+        "corrupt" => {
+            let v = value.ok_or(
+                "bus fault `corrupt` needs a value: corrupted frames per million (0 … 1000000)",
+            )?;
+            if !(0.0..=1_000_000.0).contains(&v) || v.fract() != 0.0 {
+                return Err(format!(
+                    "corrupted frames per million must be a whole number 0 … 1000000, not {}",
+                    show_num(v)
+                ));
+            }
+            Ok(Disturbance::CorruptedFrames {
+                per_million: v as u32,
+            })
+        }
+        "stuck-dominant" => {
+            let v = value
+                .ok_or("bus fault `stuck-dominant` needs a value: milliseconds (0.001 … 60000)")?;
+            if !(0.001..=60_000.0).contains(&v) {
+                return Err(format!(
+                    "stuck-dominant interval must be 0.001 … 60000 ms, not {}",
+                    show_num(v)
+                ));
+            }
+            Ok(Disturbance::StuckDominant {
+                duration: std::time::Duration::from_secs_f64(v / 1000.0),
+            })
+        }
+        "transceiver" => Ok(Disturbance::TransceiverFailed(
+            on.ok_or("bus fault `transceiver` needs on (failed) or off (working)")?,
+        )),
+        other => Err(format!(
+            "unknown bus fault `{other}` (corrupt, stuck-dominant, transceiver)"
+        )),
     }
 }
 
@@ -342,11 +487,15 @@ pub enum Fault {
     InvalidSerial,
     /// `on` powers the sensor off, `off` powers it on again.
     PowerCycle,
+    /// The device answers nothing for `value` seconds: it takes no frame from the bus (SDO,
+    /// NMT, guarding, LSS, SYNC), while what its own timers send (heartbeat, event-timer
+    /// TPDOs) goes on. `off` ends it early.
+    Stall,
 }
 
 impl Fault {
     /// Every fault.
-    pub const ALL: [Fault; 20] = [
+    pub const ALL: [Fault; 21] = [
         Fault::MissingMagnet,
         Fault::ExtraMagnet,
         Fault::MagnetsTooClose,
@@ -367,6 +516,7 @@ impl Fault {
         Fault::NoSystemData,
         Fault::InvalidSerial,
         Fault::PowerCycle,
+        Fault::Stall,
     ];
 
     /// The name used on the wire and the command line.
@@ -392,6 +542,7 @@ impl Fault {
             Fault::NoSystemData => "no-system-data",
             Fault::InvalidSerial => "invalid-serial",
             Fault::PowerCycle => "power-cycle",
+            Fault::Stall => "stall",
         }
     }
 }
@@ -603,6 +754,55 @@ pub fn call(addr: impl ToSocketAddrs, req: &Request, timeout: Duration) -> io::R
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bus_faults_are_checked_before_anything_changes() {
+        use crate::transport::Disturbance;
+        assert_eq!(
+            bus_disturbance("corrupt", Some(500.0), None),
+            Ok(Disturbance::CorruptedFrames { per_million: 500 })
+        );
+        for (kind, value, on) in [
+            ("corrupt", Some(1_000_001.0), None),
+            ("corrupt", Some(-1.0), None),
+            ("corrupt", Some(0.5), None),
+            ("corrupt", Some(f64::NAN), None),
+            ("corrupt", None, None),
+            ("stuck-dominant", Some(0.0), None),
+            ("stuck-dominant", Some(60_001.0), None),
+            ("stuck-dominant", Some(f64::INFINITY), None),
+            ("transceiver", None, None),
+            ("lightning", Some(1.0), None),
+        ] {
+            let r = Request::BusFault {
+                sensor: None,
+                kind: kind.into(),
+                value,
+                on,
+            };
+            assert!(r.validate().is_err(), "{kind} {value:?}");
+        }
+        // On the runtime's bus: a paced bus refuses nothing valid, and a refusal changes nothing.
+        let bus = crate::mem::MemBus::new();
+        let port = bus.attach();
+        assert!(crate::transport::Transport::disturb(
+            &port,
+            Disturbance::StuckDominant {
+                duration: std::time::Duration::from_millis(1000)
+            }
+        )
+        .is_ok());
+        assert!(
+            crate::transport::Transport::disturb(
+                &port,
+                Disturbance::StuckDominant {
+                    duration: std::time::Duration::from_millis(1000)
+                }
+            )
+            .is_err(),
+            "one interval at a time"
+        );
+    }
 
     #[test]
     fn parses_documented_requests() {

@@ -2,6 +2,7 @@
 //!
 //! - [`transport`]: the [`Transport`] trait the runtime drives nodes through, bus URLs, [`open`].
 //! - [`socketcand`]: the socketcand TCP protocol: codec, a hub server, a client transport.
+//! - [`bus`]: the physical bus model (bit timing, arbitration, load, error confinement).
 //! - [`mem`]: an in-process bus.
 //! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
 //! - [`candump`]: candump `-L` log lines.
@@ -12,6 +13,8 @@
 //! - [`control`]: the JSON-lines control interface.
 #![deny(missing_docs)]
 
+pub mod bridge;
+pub mod bus;
 pub mod candump;
 pub mod control;
 pub mod eds_device;
@@ -24,6 +27,7 @@ pub mod runtime;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
 pub mod socketcand;
+pub mod timing;
 pub mod transport;
 
 pub use crossbeam_channel;
@@ -31,7 +35,9 @@ pub use file_storage::FileStorage;
 pub use mem::{MemBus, MemPort};
 pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
-pub use transport::{open, open_or_host, BusUrl, Error, RxFrame, Transport, DEFAULT_URL};
+pub use transport::{
+    open, open_device_bus, open_or_host, BusUrl, Error, HubPolicy, RxFrame, Transport, DEFAULT_URL,
+};
 
 /// Warns when `addr` is reachable from other machines: neither the socketcand hub nor the
 /// control interface has authentication. One text for every place that binds (`what` names

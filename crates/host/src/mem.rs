@@ -1,5 +1,11 @@
 //! In-process CAN bus: any number of [`MemPort`]s, each frame broadcast to all other ports.
 //!
+//! A bus is paced by default ([`Pacing`]): every frame goes through the bus [`Timeline`]
+//! (crate::bus): it waits for the bus, wins or loses arbitration, takes its bit time, and
+//! reaches the other ports at its end-of-frame time, stamped with it. One driver thread per
+//! bus delivers frames at those times. [`Pacing::Instant`] keeps the old behaviour (every
+//! frame delivered at once, without limit) for benchmarks.
+//!
 //! Each port has a bounded receive queue; a port whose owner does not read loses frames (counted
 //! by [`MemPort::dropped`]) instead of slowing the sender or the other ports. The socketcand hub
 //! uses the same bus for each of its channels, so in-process hub participants are `MemPort`s too.
@@ -7,13 +13,15 @@
 use std::collections::HashMap;
 use std::io;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, RwLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
+use std::time::{Duration, Instant, SystemTime};
 
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
+use crate::bus::{BusEvent, MemberId, MemberStats, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};
 use crate::socketcand::hub::Wake;
-use crate::transport::{RxFrame, Transport};
+use crate::transport::{BusState, BusStats, Disturbance, RxFrame, Transport};
 
 /// Default receive queue length of a port, in frames (about 0.5 s of a saturated 1 Mbit/s bus).
 pub const DEFAULT_QUEUE_LEN: usize = 4096;
@@ -24,69 +32,266 @@ pub(crate) enum Sink {
     Local(Sender<RxFrame>),
     /// A socketcand TCP client of the hub: its queue, and how to tell the hub's I/O thread.
     Remote(Sender<RxFrame>, Arc<Wake>),
+    /// A transmit-only controller (see [`Transport::controller`]).
+    None,
 }
 
 struct Member {
     id: u64,
+    /// Ports of one group do not receive each other's frames (one process's nodes, which
+    /// route among themselves).
+    group: u64,
     sink: Sink,
     dropped: Arc<AtomicU64>,
+    /// Its controller on the timeline (paced buses).
+    ctl: Option<MemberId>,
+}
+
+/// Delivery lateness of a paced bus against its timeline: 1 µs buckets up to 10 ms.
+#[derive(Clone, Debug)]
+pub struct LatenessHistogram {
+    buckets: Vec<u64>,
+    count: u64,
+}
+
+impl Default for LatenessHistogram {
+    fn default() -> Self {
+        LatenessHistogram {
+            buckets: vec![0; 10_001],
+            count: 0,
+        }
+    }
+}
+
+impl LatenessHistogram {
+    fn record(&mut self, late: Nanos) {
+        let us = ((late / 1000) as usize).min(self.buckets.len() - 1);
+        self.buckets[us] += 1;
+        self.count += 1;
+    }
+
+    /// Frames recorded.
+    pub fn count(&self) -> u64 {
+        self.count
+    }
+
+    /// Adds what `now` recorded since `before` (an earlier copy of the same histogram).
+    pub fn merge_difference(&mut self, now: &LatenessHistogram, before: &LatenessHistogram) {
+        for (i, b) in self.buckets.iter_mut().enumerate() {
+            let d = now.buckets[i].saturating_sub(before.buckets[i]);
+            *b += d;
+            self.count += d;
+        }
+    }
+
+    /// The `q` quantile (0…1) in µs (10000 means "10 ms or more").
+    pub fn quantile_us(&self, q: f64) -> u64 {
+        let want = ((self.count as f64) * q).ceil().max(1.0) as u64;
+        let mut seen = 0;
+        for (us, &n) in self.buckets.iter().enumerate() {
+            seen += n;
+            if seen >= want {
+                return us as u64;
+            }
+        }
+        0
+    }
+}
+
+struct PaceState {
+    timeline: Timeline,
+    events: Vec<BusEvent>,
+    lateness: LatenessHistogram,
+}
+
+/// The timeline of a paced bus and the clock it runs on.
+struct Pacer {
+    state: Mutex<PaceState>,
+    epoch: Instant,
+    epoch_wall: SystemTime,
+    kick: Sender<()>,
+}
+
+impl Pacer {
+    fn now(&self) -> Nanos {
+        self.epoch.elapsed().as_nanos() as Nanos
+    }
 }
 
 /// The shared state of one virtual bus.
 pub(crate) struct BusCore {
     members: RwLock<Vec<Member>>,
     next_id: AtomicU64,
-    /// kbit/s; 0 = not modelled.
+    /// kbit/s; 0 = not declared (nodes of any rate talk).
     bitrate: AtomicU32,
     frames: AtomicU64,
     /// Shared with the hub when the bus is a hub channel, so totals survive the channel.
     dropped: Arc<AtomicU64>,
+    /// Frames lost in transmit queues (full or bus-off), all members.
+    tx_lost: AtomicU64,
+    pacer: Option<Pacer>,
+    /// Listeners of error frames (a bridge, a recorder); each a bounded queue.
+    error_listeners: Mutex<Vec<Sender<crate::bus::ErrorFrame>>>,
+    /// Called with every error frame on the driver thread (a hub channel: its TCP clients).
+    error_hook: Mutex<Option<ErrorHook>>,
+}
+
+/// See [`BusCore::set_error_hook`].
+pub(crate) type ErrorHook = Box<dyn Fn(&crate::bus::ErrorFrame) + Send>;
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl BusCore {
-    pub(crate) fn new() -> Self {
-        Self::with_drop_counter(Arc::new(AtomicU64::new(0)))
+    /// Has `hook` called with each error frame of this bus, on its driver thread (it must not
+    /// block): how a hub channel gives them to its TCP clients.
+    pub(crate) fn set_error_hook(&self, hook: ErrorHook) {
+        *lock(&self.error_hook) = Some(hook);
     }
 
-    /// A bus whose drops are counted in `dropped` (shared with other buses).
-    pub(crate) fn with_drop_counter(dropped: Arc<AtomicU64>) -> Self {
-        BusCore {
+    /// A bus whose drops are counted in `dropped` (shared with other buses), with its driver
+    /// thread when paced.
+    pub(crate) fn create(pacing: Pacing, dropped: Arc<AtomicU64>) -> Arc<BusCore> {
+        let (kick, kicked) = crossbeam_channel::bounded(1);
+        let pacer = match pacing {
+            Pacing::Instant => None,
+            Pacing::Paced(kbps) => Some(Pacer {
+                state: Mutex::new(PaceState {
+                    // Checked by whoever took the rate from a user; a bad one here is a bug.
+                    timeline: Timeline::new(kbps).unwrap_or_else(|_| {
+                        Timeline::new(crate::bus::DEFAULT_BITRATE_KBPS).expect("1000 is CiA 301")
+                    }),
+                    events: Vec::new(),
+                    lateness: LatenessHistogram::default(),
+                }),
+                epoch: Instant::now(),
+                epoch_wall: SystemTime::now(),
+                kick,
+            }),
+        };
+        let paced = pacer.is_some();
+        let core = Arc::new(BusCore {
             members: RwLock::new(Vec::new()),
             next_id: AtomicU64::new(1),
             bitrate: AtomicU32::new(0),
             frames: AtomicU64::new(0),
             dropped,
+            tx_lost: AtomicU64::new(0),
+            pacer,
+            error_listeners: Mutex::new(Vec::new()),
+            error_hook: Mutex::new(None),
+        });
+        if paced {
+            let weak = Arc::downgrade(&core);
+            if let Err(e) = std::thread::Builder::new()
+                .name("canpos-bus".into())
+                .spawn(move || drive(weak, kicked))
+            {
+                tracing::error!("cannot start the bus driver thread: {e}");
+            }
         }
+        core
     }
 
-    /// Adds a member; returns its id and its drop counter.
+    /// Adds a member (a group of its own); returns its id and its drop counter.
     pub(crate) fn join(&self, sink: Sink) -> (u64, Arc<AtomicU64>) {
+        self.join_group(sink, None)
+    }
+
+    fn join_group(&self, sink: Sink, group: Option<u64>) -> (u64, Arc<AtomicU64>) {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let group = group.unwrap_or(id);
         let dropped = Arc::new(AtomicU64::new(0));
+        // A hub's TCP client stands for a host's SocketCAN interface (FIFO); an in-process
+        // port or controller for a sensor's CAN peripheral (by priority).
+        let order = match sink {
+            Sink::Remote(..) => crate::bus::TxOrder::Fifo,
+            Sink::Local(_) | Sink::None => crate::bus::TxOrder::Priority,
+        };
+        let ctl = self
+            .pacer
+            .as_ref()
+            .map(|p| lock(&p.state).timeline.join_with(DEFAULT_TX_DEPTH, order));
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
         m.push(Member {
             id,
+            group,
             sink,
             dropped: dropped.clone(),
+            ctl,
         });
         (id, dropped)
     }
 
     pub(crate) fn leave(&self, id: u64) {
+        // The timeline first, without the members' lock: delivery takes the timeline's lock,
+        // then the members'.
+        if let (Some(p), Some(ctl)) = (&self.pacer, self.ctl_of(id)) {
+            lock(&p.state).timeline.leave(ctl);
+        }
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
         m.retain(|m| m.id != id);
     }
 
     pub(crate) fn member_count(&self) -> usize {
-        self.members.read().unwrap_or_else(|e| e.into_inner()).len()
+        self.members
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .filter(|m| !matches!(m.sink, Sink::None))
+            .count()
     }
 
-    /// Delivers `rx` to every member but `from`. Never blocks: a full queue drops the frame for
-    /// that member only.
+    fn ctl_of(&self, id: u64) -> Option<MemberId> {
+        self.members
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .find(|m| m.id == id)
+            .and_then(|m| m.ctl)
+    }
+
+    /// Puts `frame` from member `from` on the bus: paced, into its controller's transmit queue
+    /// (losses counted there); instant, to everyone at once.
+    pub(crate) fn transmit(&self, from: u64, frame: Frame) {
+        let Some(p) = &self.pacer else {
+            self.broadcast(from, RxFrame::now(frame));
+            return;
+        };
+        let Some(ctl) = self.ctl_of(from) else {
+            return;
+        };
+        let now = p.now();
+        // The bus runs up to now before the frame joins its queue: the queue is as full as
+        // the timeline says, however late the driver thread is.
+        let mut st = lock(&p.state);
+        self.pump(p, &mut st, now);
+        let r = st.timeline.submit(ctl, frame, now);
+        drop(st);
+        match r {
+            Ok(crate::bus::timeline::Accepted::Queued) => {}
+            Ok(crate::bus::timeline::Accepted::Evicted(_)) | Err(_) => {
+                self.tx_lost.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        let _ = p.kick.try_send(());
+    }
+
+    /// Delivers `rx` to every member but `from` (and its group). Never blocks: a full queue
+    /// drops the frame for that member only.
     pub(crate) fn broadcast(&self, from: u64, rx: RxFrame) {
-        self.frames.fetch_add(1, Ordering::Relaxed);
         let members = self.members.read().unwrap_or_else(|e| e.into_inner());
-        for m in members.iter().filter(|m| m.id != from) {
+        let group = members
+            .iter()
+            .find(|m| m.id == from)
+            .map_or(from, |m| m.group);
+        self.deliver(&members, &[group], rx);
+    }
+
+    fn deliver(&self, members: &[Member], groups: &[u64], rx: RxFrame) {
+        self.frames.fetch_add(1, Ordering::Relaxed);
+        for m in members.iter().filter(|m| !groups.contains(&m.group)) {
             let full = match &m.sink {
                 Sink::Local(tx) => matches!(tx.try_send(rx), Err(TrySendError::Full(_))),
                 // Unbounded underneath, capped here: memory grows with the backlog, not with
@@ -98,11 +303,67 @@ impl BusCore {
                     }
                     false
                 }
+                Sink::None => false,
             };
             // A disconnected sink belongs to a member that is leaving; not a drop.
             if full {
                 m.dropped.fetch_add(1, Ordering::Relaxed);
                 self.dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// Runs the timeline up to `now` and delivers what it produced, under the timeline's lock
+    /// (so deliveries from any thread go out in timeline order).
+    fn pump(&self, p: &Pacer, st: &mut PaceState, now: Nanos) {
+        let mut events = std::mem::take(&mut st.events);
+        st.timeline.advance(now, &mut events);
+        for e in &events {
+            if let BusEvent::Frame { end, .. } = e {
+                st.lateness.record(now.saturating_sub(*end));
+            }
+        }
+        self.dispatch(p, &mut events);
+        st.events = events;
+    }
+
+    /// Hands what the timeline produced to the members.
+    fn dispatch(&self, p: &Pacer, events: &mut Vec<BusEvent>) {
+        if events.is_empty() {
+            return;
+        }
+        let members = self.members.read().unwrap_or_else(|e| e.into_inner());
+        for ev in events.drain(..) {
+            if let BusEvent::Error(e) = &ev {
+                let ef = crate::bus::ErrorFrame {
+                    timestamp: p.epoch_wall + Duration::from_nanos(e.at),
+                    kind: e.kind,
+                    id: e.id,
+                };
+                // A listener that does not keep up loses error frames; one that left is removed.
+                lock(&self.error_listeners)
+                    .retain(|tx| !matches!(tx.try_send(ef), Err(TrySendError::Disconnected(_))));
+                if let Some(hook) = lock(&self.error_hook).as_ref() {
+                    hook(&ef);
+                }
+            }
+            if let BusEvent::Frame {
+                from,
+                co_senders,
+                frame,
+                end,
+                ..
+            } = ev
+            {
+                let group_of =
+                    |c: MemberId| members.iter().find(|m| m.ctl == Some(c)).map(|m| m.group);
+                let mut groups: Vec<u64> = group_of(from).into_iter().collect();
+                groups.extend(co_senders.into_iter().filter_map(group_of));
+                let rx = RxFrame {
+                    frame,
+                    timestamp: p.epoch_wall + Duration::from_nanos(end),
+                };
+                self.deliver(&members, &groups, rx);
             }
         }
     }
@@ -121,6 +382,88 @@ impl BusCore {
             b => Some(b),
         }
     }
+
+    /// Load and counters of the bus, and of member `id`'s controller.
+    pub(crate) fn stats(&self, id: Option<u64>) -> Option<BusStats> {
+        let p = self.pacer.as_ref()?;
+        let ctl = id.and_then(|id| self.ctl_of(id));
+        let now = p.now();
+        let mut st = lock(&p.state);
+        self.pump(p, &mut st, now);
+        let (load, fps) = st.timeline.load(now);
+        Some(BusStats {
+            bitrate_kbps: st.timeline.bitrate_kbps(),
+            load,
+            frames_per_s: fps,
+            frames: st.timeline.frames(),
+            error_frames: st.timeline.error_frames(),
+            tx_lost: self.tx_lost.load(Ordering::Relaxed),
+            rx_dropped: self.dropped(),
+            controller: ctl.and_then(|c| st.timeline.stats(c)),
+        })
+    }
+
+    /// Delivery lateness against the timeline so far (paced buses).
+    pub(crate) fn lateness(&self) -> Option<LatenessHistogram> {
+        self.pacer.as_ref().map(|p| lock(&p.state).lateness.clone())
+    }
+
+    pub(crate) fn disturb(&self, id: Option<u64>, d: Disturbance) -> Result<(), String> {
+        let Some(p) = &self.pacer else {
+            return Err("the bus is unpaced (instant): it has no physical layer to disturb".into());
+        };
+        let now = p.now();
+        let mut st = lock(&p.state);
+        let r = match d {
+            Disturbance::CorruptedFrames { per_million } => {
+                st.timeline.set_corruption(per_million).map_err(|e| e.0)
+            }
+            Disturbance::StuckDominant { duration } => {
+                let ns = u64::try_from(duration.as_nanos()).unwrap_or(u64::MAX);
+                st.timeline.stuck_dominant(now, ns).map_err(|e| e.0)
+            }
+            Disturbance::TransceiverFailed(on) => {
+                let ctl = id
+                    .and_then(|id| self.ctl_of(id))
+                    .ok_or("no controller on this bus")?;
+                st.timeline.set_transceiver_failed(ctl, on, now);
+                Ok(())
+            }
+        };
+        drop(st);
+        let _ = p.kick.try_send(());
+        r
+    }
+}
+
+/// The driver of a paced bus: runs the timeline at its own pace and delivers what it produced;
+/// ends with the bus.
+fn drive(core: Weak<BusCore>, kicked: Receiver<()>) {
+    crate::runtime::set_timer_slack_1ns();
+    // Frames are due at their bit times: the driver runs at the runtime's priority
+    // (`--rt-priority`), where one was asked for.
+    if let Err(e) = crate::realtime::runtime_thread() {
+        tracing::debug!(error = %e, "bus driver keeps the process's priority");
+    }
+    loop {
+        let Some(c) = core.upgrade() else { return };
+        let Some(p) = &c.pacer else { return };
+        let now = p.now();
+        let next = {
+            let mut st = lock(&p.state);
+            c.pump(p, &mut st, now);
+            st.timeline.next_event()
+        };
+        let deadline = next.map(|t| p.epoch + Duration::from_nanos(t));
+        drop(c);
+        let r = match deadline {
+            Some(d) => kicked.recv_deadline(d).map_err(|e| e.is_disconnected()),
+            None => kicked.recv().map_err(|_| true),
+        };
+        if r == Err(true) {
+            return;
+        }
+    }
 }
 
 /// An in-process CAN bus. Cloning gives another handle to the same bus.
@@ -137,26 +480,44 @@ impl Default for MemBus {
 }
 
 impl MemBus {
-    /// A new, empty bus with no bit rate (every node talks).
+    /// A new, empty bus paced at the default bit rate
+    /// ([`DEFAULT_BITRATE_KBPS`](crate::bus::DEFAULT_BITRATE_KBPS)); no bit rate is declared to
+    /// the nodes (every node talks).
     pub fn new() -> Self {
+        Self::with_pacing(Pacing::default())
+    }
+
+    /// A new bus with explicit pacing; a paced bus declares its bit rate to the nodes only
+    /// through [`MemBus::set_bitrate`].
+    pub fn with_pacing(pacing: Pacing) -> Self {
         MemBus {
-            core: Arc::new(BusCore::new()),
+            core: BusCore::create(pacing, Arc::new(AtomicU64::new(0))),
             queue_len: DEFAULT_QUEUE_LEN,
         }
+    }
+
+    /// Today's instant bus: every frame delivered at once, no bit time, no limit (benchmarks).
+    pub fn instant() -> Self {
+        Self::with_pacing(Pacing::Instant)
     }
 
     pub(crate) fn from_core(core: Arc<BusCore>, queue_len: usize) -> Self {
         MemBus { core, queue_len }
     }
 
-    /// The process-wide bus called `name` (what `mem://NAME` opens), created on first use.
-    pub fn named(name: &str) -> MemBus {
+    /// The process-wide bus called `name` (what `mem://NAME` opens), created on first use with
+    /// `pacing` (ignored when it exists already).
+    pub fn named_with(name: &str, pacing: Pacing) -> MemBus {
         static REGISTRY: OnceLock<Mutex<HashMap<String, MemBus>>> = OnceLock::new();
-        let mut reg = REGISTRY
-            .get_or_init(Default::default)
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
-        reg.entry(name.to_string()).or_default().clone()
+        let mut reg = lock(REGISTRY.get_or_init(Default::default));
+        reg.entry(name.to_string())
+            .or_insert_with(|| MemBus::with_pacing(pacing))
+            .clone()
+    }
+
+    /// The process-wide bus called `name`, paced at the default rate when new.
+    pub fn named(name: &str) -> MemBus {
+        Self::named_with(name, Pacing::default())
     }
 
     /// Sets the receive queue length of ports attached from now on through this handle.
@@ -165,14 +526,16 @@ impl MemBus {
         self
     }
 
-    /// Sets the bus bit rate in kbit/s (`None`: not modelled). Ports see the change at once.
+    /// Declares the bus bit rate to the nodes in kbit/s (`None`: not declared; nodes of any
+    /// rate talk). Ports see the change at once. The pacing rate is the bus's own, set when it
+    /// was created.
     pub fn set_bitrate(&self, kbit: Option<u32>) {
         self.core
             .bitrate
             .store(kbit.unwrap_or(0), Ordering::Relaxed);
     }
 
-    /// The bus bit rate in kbit/s, if set.
+    /// The bus bit rate in kbit/s, if declared.
     pub fn bitrate(&self) -> Option<u32> {
         self.core.bitrate()
     }
@@ -186,6 +549,21 @@ impl MemBus {
             id,
             rx,
             dropped,
+            _keep: None,
+        }
+    }
+
+    /// Connects a transmit-only port: it receives nothing (no receive queue to fill), e.g. a
+    /// load generator.
+    pub fn attach_transmitter(&self) -> MemPort {
+        let (tx, rx) = crossbeam_channel::bounded(1);
+        let (id, dropped) = self.core.join_group(Sink::None, None);
+        MemPort {
+            core: self.core.clone(),
+            id,
+            rx,
+            dropped,
+            _keep: Some(tx),
         }
     }
 
@@ -194,7 +572,7 @@ impl MemBus {
         self.core.member_count()
     }
 
-    /// Frames sent on the bus so far.
+    /// Frames delivered on the bus so far.
     pub fn frames(&self) -> u64 {
         self.core.frames()
     }
@@ -202,6 +580,30 @@ impl MemBus {
     /// Deliveries dropped so far because some port's queue was full.
     pub fn dropped(&self) -> u64 {
         self.core.dropped()
+    }
+
+    /// Load and counters (paced buses).
+    pub fn stats(&self) -> Option<BusStats> {
+        self.core.stats(None)
+    }
+
+    /// Lateness of deliveries against the bus timeline so far (paced buses).
+    pub fn lateness(&self) -> Option<LatenessHistogram> {
+        self.core.lateness()
+    }
+
+    /// Error frames on this bus from now on, in timeline order (a queue of 1024; a listener
+    /// that falls behind loses the excess). An instant bus has none.
+    pub fn error_frames(&self) -> Receiver<crate::bus::ErrorFrame> {
+        let (tx, rx) = crossbeam_channel::bounded(1024);
+        lock(&self.core.error_listeners).push(tx);
+        rx
+    }
+
+    /// Applies a bus-level disturbance (not [`Disturbance::TransceiverFailed`]: that is a
+    /// port's, see [`Transport::disturb`]).
+    pub fn disturb(&self, d: Disturbance) -> Result<(), String> {
+        self.core.disturb(None, d)
     }
 }
 
@@ -211,6 +613,8 @@ pub struct MemPort {
     id: u64,
     rx: Receiver<RxFrame>,
     dropped: Arc<AtomicU64>,
+    /// A transmit-only controller keeps its (never used) queue's sender here.
+    _keep: Option<Sender<RxFrame>>,
 }
 
 impl MemPort {
@@ -219,9 +623,32 @@ impl MemPort {
         self.dropped.load(Ordering::Relaxed)
     }
 
-    /// Sends a frame with an explicit timestamp (e.g. replaying a log or simulated time).
+    /// Sends a frame with an explicit timestamp at once, past the timeline (e.g. replaying a
+    /// log or simulated time).
     pub fn send_at(&self, rx: RxFrame) {
         self.core.broadcast(self.id, rx);
+    }
+
+    /// Another CAN controller on this bus in this port's group: it only transmits (its frames
+    /// do not reach this port), with its own transmit queue and error counters.
+    pub fn sibling_controller(&self) -> MemPort {
+        let (tx, rx) = crossbeam_channel::bounded(1);
+        let group = self
+            .core
+            .members
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .find(|m| m.id == self.id)
+            .map_or(self.id, |m| m.group);
+        let (id, dropped) = self.core.join_group(Sink::None, Some(group));
+        MemPort {
+            core: self.core.clone(),
+            id,
+            rx,
+            dropped,
+            _keep: Some(tx),
+        }
     }
 }
 
@@ -233,7 +660,7 @@ impl Drop for MemPort {
 
 impl Transport for MemPort {
     fn send(&mut self, frame: &Frame) -> io::Result<()> {
-        self.core.broadcast(self.id, RxFrame::now(*frame));
+        self.core.transmit(self.id, *frame);
         Ok(())
     }
 
@@ -247,6 +674,28 @@ impl Transport for MemPort {
 
     fn dropped(&self) -> u64 {
         MemPort::dropped(self)
+    }
+
+    fn bus_state(&self) -> BusState {
+        self.core
+            .stats(Some(self.id))
+            .and_then(|s| s.controller)
+            .map_or(BusState::ErrorActive, |c: MemberStats| c.state)
+    }
+
+    fn bus_stats(&self) -> Option<BusStats> {
+        self.core.stats(Some(self.id))
+    }
+
+    fn controller(&self) -> Option<Box<dyn Transport>> {
+        self.core
+            .pacer
+            .is_some()
+            .then(|| Box::new(self.sibling_controller()) as Box<dyn Transport>)
+    }
+
+    fn disturb(&self, d: Disturbance) -> Result<(), String> {
+        self.core.disturb(Some(self.id), d)
     }
 
     fn describe(&self) -> String {
@@ -265,7 +714,8 @@ mod tests {
 
     #[test]
     fn broadcasts_to_others_only() {
-        let bus = MemBus::new();
+        // About who receives what, not about time: the instant bus.
+        let bus = MemBus::instant();
         let mut a = bus.attach();
         let mut b = bus.attach();
         let mut c = bus.attach();
@@ -283,7 +733,7 @@ mod tests {
 
     #[test]
     fn full_queue_drops_for_that_port_only() {
-        let bus = MemBus::new().with_queue_len(4);
+        let bus = MemBus::instant().with_queue_len(4);
         let mut tx = bus.attach();
         let slow = bus.attach();
         let mut fast = bus.attach();
@@ -331,5 +781,117 @@ mod tests {
         let deadline = std::time::Instant::now() + Duration::from_secs(1);
         let i = sel.ready_deadline(deadline).unwrap();
         assert_eq!(ports[i].receiver().try_recv().unwrap().frame, f(7));
+    }
+
+    #[test]
+    fn paced_bus_delivers_one_frame_at_a_time_at_end_of_frame() {
+        // 125 kbit/s: an 8-byte frame is 111…135 bits, 888…1080 µs.
+        let bus = MemBus::with_pacing(Pacing::Paced(125));
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        let mut rx = bus.attach();
+        for i in 0..10u8 {
+            a.send(&Frame::new(0x181, &[i; 8]).unwrap()).unwrap();
+            b.send(&Frame::new(0x182, &[i; 8]).unwrap()).unwrap();
+        }
+        let mut got = Vec::new();
+        while got.len() < 20 {
+            let f = rx
+                .recv_timeout(Some(Duration::from_secs(5)))
+                .unwrap()
+                .unwrap();
+            got.push(f);
+        }
+        for w in got.windows(2) {
+            let gap = w[1].timestamp.duration_since(w[0].timestamp).unwrap();
+            // Never closer than the later frame's own time on the wire.
+            let bits = crate::bus::bits::frame_length(&w[1].frame).total;
+            assert!(gap >= Duration::from_micros(u64::from(bits) * 8), "{gap:?}");
+        }
+        // Lowest identifier first at every arbitration: once both queue, 0x181 goes first.
+        assert_eq!(got[0].frame.id(), 0x181);
+        let s = bus.stats().unwrap();
+        assert_eq!(s.frames, 20);
+        assert!(s.load > 0.0);
+        assert_eq!(a.bus_stats().unwrap().controller.unwrap().sent, 10);
+    }
+
+    #[test]
+    fn sibling_controllers_arbitrate_and_do_not_echo_to_their_group() {
+        // A long frame holds the bus (125 bits at 125 kbit/s: 1 ms) while both queue.
+        let bus = MemBus::with_pacing(Pacing::Paced(125));
+        let mut main = bus.attach();
+        let mut other = bus.attach();
+        let mut c1 = main.controller().unwrap();
+        let mut c2 = main.controller().unwrap();
+        other.send(&Frame::new(0x100, &[0; 8]).unwrap()).unwrap();
+        c1.send(&Frame::new(0x185, &[1]).unwrap()).unwrap();
+        c2.send(&Frame::new(0x185, &[2]).unwrap()).unwrap();
+        // Same identifier, different data, in one arbitration: a collision, retried.
+        let f = other
+            .recv_timeout(Some(Duration::from_secs(5)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(f.frame.id(), 0x185);
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(
+            main.try_recv().unwrap().map(|f| f.frame.id()),
+            Some(0x100),
+            "only the other port's frame reaches the group"
+        );
+        assert_eq!(
+            main.try_recv().unwrap(),
+            None,
+            "the group's own frames do not come back"
+        );
+        let s1 = c1.bus_stats().unwrap().controller.unwrap();
+        assert!(s1.collisions >= 1, "{s1:?}");
+        assert_eq!(bus.port_count(), 2);
+    }
+
+    #[test]
+    fn listeners_see_error_frames() {
+        let bus = MemBus::new();
+        let errors = bus.error_frames();
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        bus.disturb(Disturbance::CorruptedFrames {
+            per_million: 1_000_000,
+        })
+        .unwrap();
+        a.send(&Frame::new(0x181, &[1]).unwrap()).unwrap();
+        let e = errors.recv_timeout(Duration::from_secs(5)).unwrap();
+        assert_eq!(e.kind, crate::bus::BusErrorKind::Corrupted);
+        assert_eq!(e.id, Some(0x181));
+        assert_eq!(e.to_socketcan().0 & 0x2000_0000, 0x2000_0000);
+        bus.disturb(Disturbance::CorruptedFrames { per_million: 0 })
+            .unwrap();
+        // The retransmission gets through.
+        let f = b
+            .recv_timeout(Some(Duration::from_secs(5)))
+            .unwrap()
+            .unwrap();
+        assert_eq!(f.frame.id(), 0x181);
+        assert!(a.bus_stats().unwrap().controller.unwrap().tx_errors >= 1);
+    }
+
+    #[test]
+    fn disturbances_out_of_range_change_nothing() {
+        let bus = MemBus::new();
+        let p = bus.attach();
+        assert!(bus
+            .disturb(Disturbance::CorruptedFrames {
+                per_million: 2_000_000
+            })
+            .is_err());
+        assert!(p
+            .disturb(Disturbance::StuckDominant {
+                duration: Duration::from_secs(61)
+            })
+            .is_err());
+        assert!(MemBus::instant()
+            .disturb(Disturbance::CorruptedFrames { per_million: 1 })
+            .is_err());
+        assert_eq!(bus.stats().unwrap().error_frames, 0);
     }
 }

@@ -47,10 +47,14 @@ use serde_json::{json, Value};
 
 use crate::control::{Fault, Request};
 use crate::file_storage::FileStorage;
-use crate::transport::{BusState, Transport};
+use crate::timing::{DeviceTiming, Jitter};
+use crate::transport::{BusState, BusStats, Disturbance, Transport};
 
 /// How long the CAN overrun EMCY (0x8110) stays active after the transport last lost a frame.
 pub const OVERRUN_HOLD: Duration = Duration::from_secs(1);
+
+/// How often the runtime looks at its sensors' own controllers (paced in-process buses), µs.
+const CONTROLLER_POLL_US: u64 = 5_000;
 
 /// How long before a deadline the channel wait ends and the precise absolute sleep takes over.
 /// A frame arriving in this window waits at most this long.
@@ -111,10 +115,34 @@ struct SimDevice {
     faults: Vec<Fault>,
     /// Bus-off: the CAN controller neither sends nor receives.
     bus_off: bool,
+    /// Frames the node produced while in (injected) bus-off: never sent, counted here.
+    lost_bus_off: u64,
     last_true: Vec<Option<f64>>,
     frames_sent: u64,
     /// The temperature condition as last told to the core.
     temp_alarm: bool,
+    /// SDO response delay, boot delays ([`DeviceTiming`]).
+    timing: DeviceTiming,
+    jitter: Jitter,
+    /// SDO responses waiting out their delay, with when each is due (in order).
+    held: std::collections::VecDeque<(Instant, Frame)>,
+    /// Powered, booting: the node starts (and sends its boot-up) then.
+    power_on_at: Option<Instant>,
+    /// Rebooting after an NMT reset: deaf and silent until then, then this boot-up.
+    rebooting: Option<(Instant, Frame)>,
+    /// The boot-up the node sends next comes from power-on (whose delay has passed).
+    power_on_bootup: bool,
+    /// `stall` fault: the node takes no frames until then.
+    stall_until: Option<Instant>,
+    /// Its own CAN controller on a paced bus (transmit queue, error counters); `None`: the
+    /// runtime's transport is the controller of all its sensors.
+    port: Option<Box<dyn Transport>>,
+    /// The controller's counters as last seen.
+    seen: Option<crate::bus::MemberStats>,
+    /// While its transmit queue overflows: when the overflow reaction ends.
+    overflow_until: Option<Instant>,
+    /// No further collision report before then.
+    collision_quiet_until: Option<Instant>,
 }
 
 impl SimDevice {
@@ -133,10 +161,90 @@ impl SimDevice {
             t0: now,
             faults: Vec::new(),
             bus_off: false,
+            lost_bus_off: 0,
             last_true: Vec::new(),
             frames_sent: 0,
             temp_alarm: false,
+            timing: DeviceTiming::default(),
+            jitter: Jitter::new(s.seed),
+            held: std::collections::VecDeque::new(),
+            power_on_at: None,
+            rebooting: None,
+            power_on_bootup: false,
+            stall_until: None,
+            port: None,
+            seen: None,
+            overflow_until: None,
+            collision_quiet_until: None,
         }
+    }
+
+    /// Whether the node takes frames from the bus now (not rebooting, not stalled).
+    fn listening(&self, now: Instant) -> bool {
+        !self.bus_off && self.rebooting.is_none() && self.stall_until.is_none_or(|t| t <= now)
+    }
+
+    /// Applies the device timing to a frame the node wants to send: an SDO response waits
+    /// for its delay, a boot-up after an NMT reset for the reset boot delay (the node is
+    /// silent meanwhile). Returns the frame if it goes out now.
+    fn hold(&mut self, f: Frame, now: Instant) -> Option<Frame> {
+        let id = u16::from(self.node.device().node_id());
+        let std = if f.is_remote() { None } else { f.std_id() };
+        if std == Some(0x700 + id) && f.data() == [0] {
+            if self.power_on_bootup || self.timing.reset_boot_delay.is_zero() {
+                return Some(f);
+            }
+            let due = Instant::from_micros(
+                now.micros() + self.timing.reset_boot_delay.as_micros() as u64,
+            );
+            // Whatever the node had in flight before the reset is gone with it.
+            self.held.clear();
+            self.rebooting = Some((due, f));
+            tracing::debug!(sensor = %self.name, ?due, "rebooting after reset");
+            return None;
+        }
+        if self.rebooting.is_some() {
+            return None;
+        }
+        if self.timing.delays_sdo() && std == Some(0x580 + id) {
+            let wait = self.timing.sdo_delay + self.jitter.up_to(self.timing.sdo_jitter);
+            let mut due = now.micros() + wait.as_micros() as u64;
+            // Responses keep their order whatever the jitter drew.
+            if let Some((last, _)) = self.held.back() {
+                due = due.max(last.micros());
+            }
+            self.held.push_back((Instant::from_micros(due), f));
+            return None;
+        }
+        Some(f)
+    }
+
+    /// Held frames whose time has come, in order.
+    fn release(&mut self, now: Instant, out: &mut Vec<Frame>) {
+        if let Some((due, f)) = self.rebooting {
+            if due <= now {
+                self.rebooting = None;
+                out.push(f);
+            }
+        }
+        while self.held.front().is_some_and(|(due, _)| *due <= now) {
+            if let Some((_, f)) = self.held.pop_front() {
+                out.push(f);
+            }
+        }
+    }
+
+    /// The earliest time a held frame, a reboot or a stall ends.
+    fn timing_deadline(&self) -> Option<Instant> {
+        [
+            self.held.front().map(|(t, _)| *t),
+            self.rebooting.map(|(t, _)| t),
+            self.power_on_at,
+            self.stall_until,
+        ]
+        .into_iter()
+        .flatten()
+        .min()
     }
 
     /// Runs every measurement cycle due at `now` (only called while powered).
@@ -188,6 +296,17 @@ impl SimDevice {
             _ => self.next_cycle,
         }
     }
+}
+
+/// The `timing` part of a control answer, in ms.
+fn timing_json(t: &DeviceTiming) -> Value {
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    json!({
+        "sdo_delay_ms": ms(t.sdo_delay),
+        "sdo_jitter_ms": ms(t.sdo_jitter),
+        "boot_delay_ms": ms(t.boot_delay),
+        "reset_boot_delay_ms": ms(t.reset_boot_delay),
+    })
 }
 
 /// Statistics of timed wake-ups: how late the thread woke after a deadline.
@@ -322,6 +441,8 @@ pub struct Runtime {
     kernel_filter: bool,
     /// The COB-IDs last given to [`Transport::set_rx_filter`].
     filter: Option<Vec<u16>>,
+    /// [`Transport::reconnections`] already acted on.
+    reconnections_seen: u64,
 }
 
 /// A runtime running on its own thread.
@@ -424,6 +545,7 @@ impl Runtime {
             bus_state: BusState::ErrorActive,
             kernel_filter: true,
             filter: None,
+            reconnections_seen: 0,
         }
     }
 
@@ -448,6 +570,8 @@ impl Runtime {
         let now = self.now();
         let mut d = SimDevice::new(setup, now);
         d.node.set_bus_bitrate(self.bus_bitrate);
+        // On a paced in-process bus each sensor has its own controller, as on a real bus.
+        d.port = self.transport.controller();
         self.devices.push(d);
         self.powered.push(false);
         self.devices.len() - 1
@@ -481,8 +605,25 @@ impl Runtime {
         self.started = true;
     }
 
+    /// Powers sensor `i` on: at once, or after its boot delay ([`DeviceTiming::boot_delay`]).
     fn power_on(&mut self, i: usize, now: Instant) {
         let d = &mut self.devices[i];
+        if !d.timing.boot_delay.is_zero() {
+            let at = Instant::from_micros(now.micros() + d.timing.boot_delay.as_micros() as u64);
+            d.power_on_at = Some(at);
+            tracing::info!(sensor = %d.name, delay_ms = d.timing.boot_delay.as_millis() as u64,
+                "powered on, booting");
+            return;
+        }
+        self.power_on_now(i, now);
+    }
+
+    fn power_on_now(&mut self, i: usize, now: Instant) {
+        let d = &mut self.devices[i];
+        d.power_on_at = None;
+        d.held.clear();
+        d.rebooting = None;
+        d.power_on_bootup = true;
         d.node.power_on(now);
         // The core starts without fault conditions; the next cycle raises it again if needed.
         d.temp_alarm = false;
@@ -493,8 +634,23 @@ impl Runtime {
     }
 
     fn power_off(&mut self, i: usize) {
-        self.devices[i].node.power_off();
+        let d = &mut self.devices[i];
+        d.node.power_off();
+        d.power_on_at = None;
+        d.held.clear();
+        d.rebooting = None;
         self.powered[i] = false;
+    }
+
+    /// Sets sensor `i`'s own timing; checked first, so a refused value changes nothing.
+    pub fn set_timing(&mut self, i: usize, timing: DeviceTiming) -> Result<(), String> {
+        timing.check()?;
+        let d = self
+            .devices
+            .get_mut(i)
+            .ok_or_else(|| format!("sensor {i} does not exist"))?;
+        d.timing = timing;
+        Ok(())
     }
 
     /// Runs until stopped through a [`ControlHandle`] or until the transport dies; returns the
@@ -524,7 +680,17 @@ impl Runtime {
                 match self.rx.try_recv() {
                     Ok(Msg::Stop) => return Ok(()),
                     Ok(Msg::Request(req, reply)) => {
-                        let now = self.now();
+                        // What was due before the request happens first: a measurement cycle
+                        // that began before a magnet moved must not see the new position. The
+                        // request is handled at the time that turn reached, never earlier.
+                        let now = match self.turn(self.now()) {
+                            Ok(now) => now,
+                            Err(e) => {
+                                let _ = reply
+                                    .send(json!({"ok": false, "error": format!("transport: {e}")}));
+                                return Err(e);
+                            }
+                        };
                         let answer = self.handle_request(req, now);
                         self.route(now);
                         let _ = reply.send(answer);
@@ -537,8 +703,9 @@ impl Runtime {
         }
     }
 
-    /// One turn: frames in, cycles, timers, frames out.
-    fn turn(&mut self, mut now: Instant) -> io::Result<()> {
+    /// One turn: frames in, cycles, timers, frames out. Returns the time the turn reached (each
+    /// received frame is handled at its own time, so later than `now` when frames came in).
+    fn turn(&mut self, mut now: Instant) -> io::Result<Instant> {
         let mut received = false;
         while let Some(rx) = self.transport.try_recv()? {
             received = true;
@@ -550,6 +717,18 @@ impl Runtime {
             self.route(now);
         }
         self.watch_transport(now, received);
+        for i in 0..self.devices.len() {
+            let d = &mut self.devices[i];
+            if d.power_on_at.is_some_and(|t| t <= now) {
+                self.power_on_now(i, now);
+            }
+            let d = &mut self.devices[i];
+            if d.stall_until.is_some_and(|t| t <= now) {
+                d.stall_until = None;
+                d.faults.retain(|f| *f != Fault::Stall);
+                tracing::info!(sensor = %d.name, "stall over");
+            }
+        }
         // One warning per stall for the whole runtime, not one per sensor.
         let (mut stalled, mut missed_max) = (0usize, 0u64);
         for i in 0..self.devices.len() {
@@ -575,13 +754,13 @@ impl Runtime {
             );
         }
         self.route(now);
-        Ok(())
+        Ok(now)
     }
 
     /// Hands a frame to every node except `from`.
     fn deliver(&mut self, f: &Frame, from: Option<usize>, now: Instant) {
         for (i, d) in self.devices.iter_mut().enumerate() {
-            if Some(i) != from && !d.bus_off {
+            if Some(i) != from && d.listening(now) {
                 d.node.handle_frame(f, now);
             }
         }
@@ -591,16 +770,30 @@ impl Runtime {
     /// other local nodes, until no node has anything left (an answer may trigger another
     /// answer).
     fn route(&mut self, now: Instant) {
+        let mut due = Vec::new();
         for _ in 0..1000 {
             let mut any = false;
             for i in 0..self.devices.len() {
+                due.clear();
+                self.devices[i].release(now, &mut due);
                 while let Some(f) = self.devices[i].node.poll(now) {
                     if self.devices[i].bus_off {
+                        self.devices[i].lost_bus_off += 1;
                         continue;
                     }
+                    if let Some(f) = self.devices[i].hold(f, now) {
+                        due.push(f);
+                    }
+                }
+                self.devices[i].power_on_bootup = false;
+                for f in due.drain(..) {
                     any = true;
                     self.devices[i].frames_sent += 1;
-                    if let Err(e) = self.transport.send(&f) {
+                    let port = match &mut self.devices[i].port {
+                        Some(p) => p,
+                        None => &mut self.transport,
+                    };
+                    if let Err(e) = port.send(&f) {
                         tracing::warn!(error = %e, "send failed");
                     }
                     self.deliver(&f, Some(i), now);
@@ -617,8 +810,17 @@ impl Runtime {
         self.devices
             .iter()
             .zip(&self.powered)
-            .map(|(d, &p)| if p { d.deadline() } else { d.next_cycle })
+            .flat_map(|(d, &p)| {
+                let own = if p { d.deadline() } else { d.next_cycle };
+                [Some(own), d.timing_deadline()]
+            })
+            .flatten()
             .chain(self.overrun_until)
+            .chain(self.devices.iter().filter_map(|d| d.overflow_until))
+            .chain(self.devices.iter().any(|d| d.port.is_some()).then(|| {
+                // Controller counters are looked at every few ms while sensors have their own.
+                Instant::from_micros(self.now().micros() + CONTROLLER_POLL_US)
+            }))
             .min()
     }
 
@@ -654,8 +856,32 @@ impl Runtime {
                 d.node.inject_fault(Core::CanBufferOverflow, false);
             }
         }
+        let reconnections = self.transport.reconnections();
+        if reconnections != self.reconnections_seen {
+            self.reconnections_seen = reconnections;
+            // The bus is back after an outage (the server went away): the nodes boot again as
+            // after a power cycle, and report the outage as their model reports the end of a
+            // bus-off (EMCY 0x8140 on every model).
+            tracing::warn!("bus back after an outage: the nodes boot again");
+            for i in 0..self.devices.len() {
+                if !(self.powered[i] || self.devices[i].power_on_at.is_some()) {
+                    continue;
+                }
+                self.power_off(i);
+                self.devices[i].sensor.power_cycle();
+                self.power_on(i, now);
+                if self.powered[i] {
+                    let n = &mut self.devices[i].node;
+                    n.inject_fault(Core::CanBusOff, true);
+                    n.inject_fault(Core::CanBusOff, false);
+                }
+            }
+            // The outage's bus-off ended with it; the fresh nodes start error-active.
+            self.bus_state = self.transport.bus_state();
+        }
+        self.watch_controllers(now);
         let state = self.transport.bus_state();
-        if state != self.bus_state {
+        if state != self.bus_state && self.devices.iter().all(|d| d.port.is_none()) {
             let old = std::mem::replace(&mut self.bus_state, state);
             tracing::warn!(from = ?old, to = ?state, "CAN controller state");
             for d in &mut self.devices {
@@ -675,6 +901,69 @@ impl Runtime {
         }
         if self.kernel_filter && (received || self.filter.is_none()) {
             self.update_filter();
+        }
+    }
+
+    /// Reacts to what each sensor's own controller reports (paced in-process buses): frames
+    /// lost in its full transmit queue (the model's overflow reaction, held
+    /// [`OVERRUN_HOLD`] after the last loss), collisions with a node sending the same
+    /// identifier (CAN-ID collision), and its error state (error passive, bus-off, recovery).
+    fn watch_controllers(&mut self, now: Instant) {
+        use canpos_core::encoder::Fault as Core;
+        for (i, d) in self.devices.iter_mut().enumerate() {
+            let Some(c) = d
+                .port
+                .as_ref()
+                .and_then(|p| p.bus_stats())
+                .and_then(|s| s.controller)
+            else {
+                continue;
+            };
+            let old = d.seen.unwrap_or_default();
+            if c.lost_overflow > old.lost_overflow {
+                if d.overflow_until.is_none() {
+                    tracing::warn!(
+                        sensor = i,
+                        lost = c.lost_overflow - old.lost_overflow,
+                        "transmit queue overflow: the bus cannot take this sensor's frames"
+                    );
+                    d.node.inject_fault(Core::TransmitOverflow, true);
+                }
+                d.overflow_until = Some(Instant::from_micros(
+                    now.micros() + OVERRUN_HOLD.as_micros() as u64,
+                ));
+            } else if d.overflow_until.is_some_and(|t| t <= now) {
+                d.overflow_until = None;
+                d.node.inject_fault(Core::TransmitOverflow, false);
+            }
+            // One collision EMCY per OVERRUN_HOLD at most: a duplicate node collides at
+            // every frame, and the report must not flood a bus that is already disturbed.
+            if c.collisions > old.collisions && d.collision_quiet_until.is_none_or(|t| t <= now) {
+                tracing::warn!(
+                    sensor = i,
+                    collisions = c.collisions,
+                    "CAN-ID collision: another node sends this sensor's identifiers"
+                );
+                d.node.inject_fault(Core::CobIdCollision, true);
+                d.collision_quiet_until = Some(Instant::from_micros(
+                    now.micros() + OVERRUN_HOLD.as_micros() as u64,
+                ));
+            }
+            if c.state != old.state {
+                tracing::warn!(sensor = i, from = ?old.state, to = ?c.state, tec = c.tec, rec = c.rec,
+                    "CAN controller state");
+                let passive = c.state == BusState::ErrorPassive;
+                if (passive || old.state == BusState::ErrorPassive)
+                    && !d.faults.contains(&Fault::ErrorPassive)
+                {
+                    d.node.inject_fault(Core::CanErrorPassive, passive);
+                }
+                if (c.state == BusState::BusOff || old.state == BusState::BusOff) && !d.bus_off {
+                    d.node
+                        .inject_fault(Core::CanBusOff, c.state == BusState::BusOff);
+                }
+            }
+            d.seen = Some(c);
         }
     }
 
@@ -825,9 +1114,49 @@ impl Runtime {
                 let i = self.sensor_index(sensor)?;
                 Ok(self.state(i))
             }
+            Request::BusFault {
+                sensor,
+                kind,
+                value,
+                on,
+            } => {
+                let d = crate::control::bus_disturbance(&kind, value, on)?;
+                let i = self.sensor_index(sensor)?;
+                let r = match (&self.devices[i].port, d) {
+                    (Some(p), Disturbance::TransceiverFailed(_)) => p.disturb(d),
+                    _ => self.transport.disturb(d),
+                };
+                r?;
+                Ok(json!({"ok": true}))
+            }
             Request::ResetLateness => {
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
+            }
+            Request::Timing {
+                sensor,
+                sdo_delay_ms,
+                sdo_jitter_ms,
+                boot_delay_ms,
+                reset_boot_delay_ms,
+            } => {
+                let i = self.sensor_index(sensor)?;
+                let mut t = self.devices[i].timing;
+                let ms = crate::timing::millis;
+                if let Some(v) = sdo_delay_ms {
+                    t.sdo_delay = ms("sdo_delay_ms", v)?;
+                }
+                if let Some(v) = sdo_jitter_ms {
+                    t.sdo_jitter = ms("sdo_jitter_ms", v)?;
+                }
+                if let Some(v) = boot_delay_ms {
+                    t.boot_delay = ms("boot_delay_ms", v)?;
+                }
+                if let Some(v) = reset_boot_delay_ms {
+                    t.reset_boot_delay = ms("reset_boot_delay_ms", v)?;
+                }
+                self.set_timing(i, t)?;
+                Ok(json!({"ok": true, "timing": timing_json(&t)}))
             }
             Request::Nmt { sensor, command } => {
                 let i = self.sensor_index(sensor)?;
@@ -886,6 +1215,15 @@ impl Runtime {
             }
         }
         match fault {
+            Fault::Stall => {
+                d.stall_until = if on {
+                    // Checked by `Request::validate`: finite, 0 < s ≤ MAX_DELAY.
+                    let us = (value.unwrap_or(0.0) * 1e6) as u64;
+                    Some(Instant::from_micros(now.micros() + us))
+                } else {
+                    None
+                };
+            }
             Fault::MissingMagnet => {
                 let slot = faults
                     .missing_channels
@@ -974,6 +1312,9 @@ impl Runtime {
 
     /// The `state` answer of sensor `i`.
     fn state(&mut self, i: usize) -> Value {
+        // The transport's view (a socketcand server away = bus-off), beside the injected fault.
+        let bus_state = self.transport.bus_state();
+        let reconnections = self.transport.reconnections();
         let powered = self.powered[i];
         let bus = self.bus_bitrate;
         let lateness = self.lateness;
@@ -1016,6 +1357,9 @@ impl Runtime {
             );
         }
         let err_reg = d.node.read_object(0x1001, 0).ok();
+        let mut device_timing = timing_json(&d.timing);
+        device_timing["booting"] = json!(d.power_on_at.is_some() || d.rebooting.is_some());
+        device_timing["sdo_responses_held"] = json!(d.held.len());
         // Output timing of the last published measurement (issue 15).
         let spec = d.sensor.spec();
         let timing = json!({
@@ -1027,13 +1371,20 @@ impl Runtime {
             "output_delay_us": d.sensor.last_published().map(|(t, _)| t.output_delay_us),
         });
         let alarms = d.node.read_object(0x6503, 0).ok();
-        json!({
+        let bus_stats = d
+            .port
+            .as_ref()
+            .and_then(|p| p.bus_stats())
+            .or_else(|| self.transport.bus_stats());
+        let bus_json = bus_json(bus_stats.as_ref());
+        let mut v = json!({
             "ok": true,
             "sensor": i,
             "name": d.name,
             "model": model,
             "serial": serial,
             "powered": powered,
+            "device_timing": device_timing,
             "bus_off": d.bus_off,
             "nmt": nmt,
             "node_id": node_id,
@@ -1060,6 +1411,7 @@ impl Runtime {
             "storage_corrupt_at_boot": storage_corrupt,
             "storage": d.node.storage_mut().path().display().to_string(),
             "frames_sent": d.frames_sent,
+            "bus": bus_json,
             // Event-timer periods the TPDOs skipped because the runtime woke too late.
             "tpdo_missed": (0..4)
                 .filter_map(|n| d.node.device().tpdos().get(n))
@@ -1072,8 +1424,52 @@ impl Runtime {
                 "max": lateness.max_us,
                 "count": lateness.count,
             },
-        })
+        });
+        v["bus_state"] = json!(match bus_state {
+            BusState::ErrorActive => "error-active",
+            BusState::ErrorPassive => "error-passive",
+            BusState::BusOff => "bus-off",
+        });
+        v["bus_reconnections"] = json!(reconnections);
+        // Frames produced in an injected bus-off (never sent).
+        v["frames_lost_bus_off"] = json!(d.lost_bus_off);
+        v
     }
+}
+
+/// The `bus` member of a sensor's state: the bus's load and counters and its own controller's
+/// (`null` on a transport that does not model the bus).
+pub fn bus_json(s: Option<&BusStats>) -> Value {
+    let Some(s) = s else { return Value::Null };
+    let ctl = s.controller.map(|c| {
+        json!({
+            "state": match c.state {
+                BusState::ErrorActive => "error-active",
+                BusState::ErrorPassive => "error-passive",
+                BusState::BusOff => "bus-off",
+            },
+            "tec": c.tec,
+            "rec": c.rec,
+            "sent": c.sent,
+            "queued": c.queued,
+            "lost_overflow": c.lost_overflow,
+            "lost_bus_off": c.lost_bus_off,
+            "tx_errors": c.tx_errors,
+            "collisions": c.collisions,
+            "last_wait_us": c.last_wait / 1000,
+            "max_wait_us": c.max_wait / 1000,
+        })
+    });
+    json!({
+        "bitrate_kbps": s.bitrate_kbps,
+        "load_pct": (s.load * 1000.0).round() / 10.0,
+        "frames_per_s": s.frames_per_s.round(),
+        "frames": s.frames,
+        "error_frames": s.error_frames,
+        "tx_lost": s.tx_lost,
+        "rx_dropped": s.rx_dropped,
+        "controller": ctl,
+    })
 }
 
 /// Waits for a received frame on `frames`, a message on `msgs`, or the absolute `target`: the
@@ -1195,6 +1591,222 @@ mod tests {
             }
         }
         None
+    }
+
+    /// Drives one device by hand on a virtual clock: frames in, its poll through the timing
+    /// hold, released frames out.
+    fn step(d: &mut SimDevice, input: Option<Frame>, at_us: u64) -> Vec<Frame> {
+        let now = Instant::from_micros(at_us);
+        if let Some(f) = input {
+            if d.listening(now) {
+                d.node.handle_frame(&f, now);
+            }
+        }
+        let mut out = Vec::new();
+        d.release(now, &mut out);
+        while let Some(f) = d.node.poll(now) {
+            if let Some(f) = d.hold(f, now) {
+                out.push(f);
+            }
+        }
+        d.power_on_bootup = false;
+        out
+    }
+
+    fn sdo_read_1008() -> Frame {
+        Frame::new(0x605, &[0x40, 0x00, 0x10, 0, 0, 0, 0, 0]).unwrap()
+    }
+
+    #[test]
+    fn sdo_delay_and_jitter_on_a_virtual_clock() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut d = SimDevice::new(th_setup(dir.path(), 5, 1), Instant::from_micros(0));
+        d.timing = DeviceTiming {
+            sdo_delay: Duration::from_millis(5),
+            sdo_jitter: Duration::from_millis(2),
+            ..Default::default()
+        };
+        d.node.power_on(Instant::from_micros(0));
+        d.power_on_bootup = true;
+        let boot = step(&mut d, None, 0);
+        assert!(boot.iter().any(|f| f.std_id() == Some(0x705)), "{boot:?}");
+        let mut delays = Vec::new();
+        let mut t = 1_000;
+        for _ in 0..50 {
+            let start = t;
+            assert!(step(&mut d, Some(sdo_read_1008()), t)
+                .iter()
+                .all(|f| f.std_id() != Some(0x585)));
+            // Step the virtual clock by 100 µs until the answer comes.
+            let answered = loop {
+                t += 100;
+                if step(&mut d, None, t)
+                    .iter()
+                    .any(|f| f.std_id() == Some(0x585))
+                {
+                    break t;
+                }
+                assert!(t - start < 10_000, "no answer within 10 ms");
+            };
+            delays.push(answered - start);
+            t += 1_000;
+        }
+        // 5 ms fixed, up to 2 ms more (100 µs steps: the answer is seen within a step).
+        assert!(
+            delays.iter().all(|&us| (5_000..=7_100).contains(&us)),
+            "{delays:?}"
+        );
+        assert!(
+            delays.iter().any(|&us| us < 5_700) && delays.iter().any(|&us| us > 6_300),
+            "the jitter spreads: {delays:?}"
+        );
+    }
+
+    #[test]
+    fn reset_boot_delay_keeps_the_node_deaf_and_silent() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut d = SimDevice::new(th_setup(dir.path(), 5, 2), Instant::from_micros(0));
+        d.timing.reset_boot_delay = Duration::from_millis(300);
+        d.node.power_on(Instant::from_micros(0));
+        d.power_on_bootup = true;
+        // The power-on boot-up is not delayed by the reset delay.
+        assert!(step(&mut d, None, 0)
+            .iter()
+            .any(|f| f.std_id() == Some(0x705)));
+        // NMT reset node.
+        let out = step(&mut d, Some(Frame::new(0, &[0x81, 5]).unwrap()), 10_000);
+        assert!(out.is_empty(), "{out:?}");
+        // Rebooting: an SDO request is not taken, nothing is sent.
+        assert!(step(&mut d, Some(sdo_read_1008()), 100_000).is_empty());
+        assert!(step(&mut d, None, 309_999).is_empty());
+        let out = step(&mut d, None, 310_000);
+        assert_eq!(out, vec![Frame::new(0x705, &[0]).unwrap()]);
+        // On the bus again: requests are answered.
+        let out = step(&mut d, Some(sdo_read_1008()), 320_000);
+        assert!(out.iter().any(|f| f.std_id() == Some(0x585)), "{out:?}");
+    }
+
+    /// Issue 16: what a node produces in an injected bus-off never reaches the bus, and is
+    /// counted in `state` rather than lost silently.
+    #[test]
+    fn frames_of_a_node_in_bus_off_are_counted_not_sent() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        rt.add(th_setup(dir.path(), 5, 4));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x705, Duration::from_secs(5)).expect("boot-up");
+        master.send(&Frame::new(0, &[0x01, 5]).unwrap()).unwrap();
+        recv_id(&mut master, 0x185, Duration::from_secs(5)).expect("TPDO1 when operational");
+        let c = h.control();
+        let fault = |on: bool| {
+            crate::control::parse_request(&format!(
+                r#"{{"cmd":"fault","name":"bus-off","on":{on}}}"#
+            ))
+            .unwrap()
+        };
+        assert_eq!(c.request(fault(true))["ok"], true);
+        let end = std::time::Instant::now() + Duration::from_secs(5);
+        let lost = loop {
+            let st = c.request(Request::State { sensor: None });
+            let lost = st["frames_lost_bus_off"].as_u64().unwrap();
+            if lost >= 3 {
+                break lost;
+            }
+            assert!(std::time::Instant::now() < end, "nothing counted: {st}");
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        // Whatever reached the master meanwhile was sent before the fault took effect; from
+        // here on nothing comes while the node is off the bus.
+        while master.try_recv().unwrap().is_some() {}
+        assert!(recv_id(&mut master, 0x185, Duration::from_millis(50)).is_none());
+        assert_eq!(c.request(fault(false))["ok"], true);
+        recv_id(&mut master, 0x185, Duration::from_secs(5)).expect("TPDO1 after bus-off");
+        let st = c.request(Request::State { sensor: None });
+        assert!(st["frames_lost_bus_off"].as_u64().unwrap() >= lost, "{st}");
+        h.stop().unwrap();
+    }
+
+    #[test]
+    fn boot_delay_stall_and_timing_requests_through_the_runtime() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        rt.add(th_setup(dir.path(), 5, 3));
+        let bad = DeviceTiming {
+            sdo_delay: Duration::from_secs(601),
+            ..Default::default()
+        };
+        assert!(rt.set_timing(0, bad).unwrap_err().contains("sdo-delay"));
+        rt.set_timing(
+            0,
+            DeviceTiming {
+                boot_delay: Duration::from_millis(200),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let t0 = std::time::Instant::now();
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x705, Duration::from_secs(5)).expect("boot-up");
+        // A lower bound only: the machine may be late, never early.
+        assert!(
+            t0.elapsed() >= Duration::from_millis(200),
+            "{:?}",
+            t0.elapsed()
+        );
+        // Out of range: refused, nothing changes.
+        let c = h.control();
+        for req in [
+            r#"{"cmd":"timing","sdo_delay_ms":-1}"#,
+            r#"{"cmd":"timing","sdo_jitter_ms":1e9}"#,
+            r#"{"cmd":"fault","name":"stall","on":true}"#,
+            r#"{"cmd":"fault","name":"stall","on":true,"value":0}"#,
+            r#"{"cmd":"fault","name":"stall","on":true,"value":1e6}"#,
+        ] {
+            let r = c.request(crate::control::parse_request(req).unwrap());
+            assert_eq!(r["ok"], false, "{req}: {r}");
+        }
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(st["device_timing"]["sdo_delay_ms"], 0.0, "{st}");
+        assert_eq!(st["faults"], json!([]), "{st}");
+        let r = c.request(
+            crate::control::parse_request(r#"{"cmd":"timing","sdo_delay_ms":80}"#).unwrap(),
+        );
+        assert_eq!(r["timing"]["sdo_delay_ms"], 80.0, "{r}");
+        assert_eq!(r["timing"]["boot_delay_ms"], 200.0, "{r}");
+        let sent = std::time::Instant::now();
+        master.send(&sdo_read_1008()).unwrap();
+        recv_id(&mut master, 0x585, Duration::from_secs(5)).expect("SDO answer");
+        assert!(
+            sent.elapsed() >= Duration::from_millis(80),
+            "{:?}",
+            sent.elapsed()
+        );
+        // Stall for 0.3 s: a request in the stall is never answered, one after it is.
+        let r = c.request(
+            crate::control::parse_request(
+                r#"{"cmd":"fault","name":"stall","on":true,"value":0.3}"#,
+            )
+            .unwrap(),
+        );
+        assert_eq!(r["faults"], json!(["stall"]), "{r}");
+        master.send(&sdo_read_1008()).unwrap();
+        assert!(recv_id(&mut master, 0x585, Duration::from_millis(250)).is_none());
+        let end = std::time::Instant::now() + Duration::from_secs(5);
+        loop {
+            let st = c.request(Request::State { sensor: None });
+            if st["faults"] == json!([]) {
+                break;
+            }
+            assert!(std::time::Instant::now() < end, "stall did not end: {st}");
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        master.send(&sdo_read_1008()).unwrap();
+        recv_id(&mut master, 0x585, Duration::from_secs(5)).expect("answer after the stall");
+        h.stop().unwrap();
     }
 
     #[test]

@@ -213,6 +213,8 @@ pub struct SocketCanTransport {
     error: Arc<Mutex<Option<io::Error>>>,
     iface: String,
     counters: Arc<Counters>,
+    /// The bus's error frames ([`Transport::error_frames`]).
+    error_rx: Receiver<crate::socketcand::codec::ErrorFrame>,
     /// Last time a transmit drop was logged (rate limit).
     last_tx_warn: Option<std::time::Instant>,
 }
@@ -285,6 +287,7 @@ impl SocketCanTransport {
         let stop = Arc::new(AtomicBool::new(false));
         let error = Arc::new(Mutex::new(None));
         let counters = Arc::new(Counters::default());
+        let (error_tx, error_rx) = crossbeam_channel::bounded(1024);
         let (s, st, er, c) = (
             socket.clone(),
             stop.clone(),
@@ -295,7 +298,7 @@ impl SocketCanTransport {
         thread::Builder::new()
             .name(format!("socketcan {iface}"))
             .spawn(move || {
-                let e = reader(&s, &st, &tx, &c, &name);
+                let e = reader(&s, &st, &tx, &error_tx, &c, &name);
                 if let Some(e) = &e {
                     tracing::error!(iface = %name, error = %e, "SocketCAN reader stopped");
                 }
@@ -308,6 +311,7 @@ impl SocketCanTransport {
             error,
             iface: iface.to_string(),
             counters,
+            error_rx,
             last_tx_warn: None,
         })
     }
@@ -411,6 +415,7 @@ fn reader(
     socket: &CanSocket,
     stop: &AtomicBool,
     tx: &Sender<RxFrame>,
+    error_tx: &Sender<crate::socketcand::codec::ErrorFrame>,
     c: &Counters,
     iface: &str,
 ) -> Option<io::Error> {
@@ -434,6 +439,12 @@ fn reader(
                 }
                 if r.frame.can_id & CAN_ERR_FLAG != 0 {
                     on_error_frame(&r.frame, c, iface);
+                    // For a recorder; nobody reading it must not stall the frames.
+                    let _ = error_tx.try_send(crate::socketcand::codec::ErrorFrame {
+                        class: r.frame.can_id & CAN_ERR_MASK,
+                        data: Some(r.frame.data),
+                        timestamp: r.timestamp.unwrap_or_else(SystemTime::now),
+                    });
                     continue;
                 }
                 let Some(frame) = from_raw(&r.frame) else {
@@ -592,6 +603,10 @@ impl Transport for SocketCanTransport {
 
     fn bus_state(&self) -> BusState {
         self.counters.state()
+    }
+
+    fn error_frames(&self) -> Option<Receiver<crate::socketcand::codec::ErrorFrame>> {
+        Some(self.error_rx.clone())
     }
 
     fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {

@@ -28,8 +28,9 @@ pub use crossbeam_channel::Receiver;
 
 /// A received frame with the time it was seen on the bus.
 ///
-/// On socketcand the timestamp is the one the server put in the `< frame ... >` element; on the
-/// in-process bus it is the time of the `send`.
+/// On socketcand the timestamp is the one the server put in the `< frame ... >` element; on a
+/// paced in-process bus or hub channel it is the frame's end-of-frame time on the bus timeline
+/// (monotonic per bus); on an instant bus, the time of the `send`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RxFrame {
     /// The frame.
@@ -58,6 +59,44 @@ pub enum BusState {
     ErrorPassive,
     /// The transmit error counter passed 255: the controller is off the bus.
     BusOff,
+}
+
+/// Load and counters of a paced virtual bus, and of one port's controller on it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BusStats {
+    /// The bus's bit rate (its pacing), kbit/s.
+    pub bitrate_kbps: u32,
+    /// Share of the last second the bus was busy (0…1), error frames included.
+    pub load: f64,
+    /// Frames per second over the last second.
+    pub frames_per_s: f64,
+    /// Frames sent successfully since the bus started.
+    pub frames: u64,
+    /// Error frames since the bus started.
+    pub error_frames: u64,
+    /// Frames lost in transmit queues (full, or their controller bus-off), all members.
+    pub tx_lost: u64,
+    /// Deliveries lost because a receiver's queue was full, all members.
+    pub rx_dropped: u64,
+    /// This port's controller (counters, error state, transmit queue and its wait).
+    pub controller: Option<crate::bus::MemberStats>,
+}
+
+/// A disturbance of a paced virtual bus (see docs/BUS.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Disturbance {
+    /// Corrupt this many of every million frames (0 … 1 000 000; 0 stops).
+    CorruptedFrames {
+        /// Frames per million.
+        per_million: u32,
+    },
+    /// Hold the bus dominant from now on for this long (one bit time … 60 s).
+    StuckDominant {
+        /// How long.
+        duration: Duration,
+    },
+    /// This port's transceiver fails (its frames never reach the bus) or works again.
+    TransceiverFailed(bool),
 }
 
 /// A connection to a CAN bus, as seen by one node (or one tool).
@@ -137,6 +176,52 @@ pub trait Transport: Send {
         BusState::ErrorActive
     }
 
+    /// Puts a bus error on the bus for its other listeners, where the transport can (a canpos
+    /// hub that accepted `< errors on >`: docs/SOCKETCAND.md); `Ok(false)` where it cannot.
+    fn send_error_frame(&mut self, e: &crate::socketcand::codec::ErrorFrame) -> io::Result<bool> {
+        let _ = e;
+        Ok(false)
+    }
+
+    /// The bus's error frames as this transport receives them (a canpos hub's `< error … >`
+    /// after `< errors on >`, SocketCAN's `CAN_ERR_FLAG` frames), in arrival order, for a
+    /// recorder: `None` where the transport delivers none. Every call returns the same queue
+    /// (bounded: a listener that falls behind loses the excess).
+    fn error_frames(&self) -> Option<Receiver<crate::socketcand::codec::ErrorFrame>> {
+        None
+    }
+
+    /// How many times the transport lost its bus and got it back (a socketcand server that went
+    /// away and returned); the runtime boots its nodes again after each, as after a power
+    /// cycle. Always 0 for transports that do not reconnect.
+    fn reconnections(&self) -> u64 {
+        0
+    }
+
+    /// Load and counters of the bus and of this port's controller, where the transport models
+    /// the bus (paced in-process buses and hub channels).
+    fn bus_stats(&self) -> Option<BusStats> {
+        None
+    }
+
+    /// Another CAN controller on the same bus for one more node of this process: it only
+    /// transmits (what it sends does not come back through this transport), with its own
+    /// transmit queue and error counters. `None` where the transport is one controller only
+    /// (a TCP connection, a SocketCAN socket).
+    fn controller(&self) -> Option<Box<dyn Transport>> {
+        None
+    }
+
+    /// Disturbs the bus (or, for [`Disturbance::TransceiverFailed`], this port's
+    /// transceiver). Parameters out of range are refused and change nothing.
+    fn disturb(&self, d: Disturbance) -> Result<(), String> {
+        let _ = d;
+        Err(format!(
+            "{} has no physical bus model to disturb",
+            self.describe()
+        ))
+    }
+
     /// Asks the transport to deliver only frames with these standard COB-IDs (plus remote
     /// frames); `Ok(true)` when it did (SocketCAN kernel filters), `Ok(false)` when it does not
     /// filter. Other frames may still arrive.
@@ -179,6 +264,24 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
         (**self).set_rx_filter(std_ids)
+    }
+    fn reconnections(&self) -> u64 {
+        (**self).reconnections()
+    }
+    fn error_frames(&self) -> Option<Receiver<crate::socketcand::codec::ErrorFrame>> {
+        (**self).error_frames()
+    }
+    fn send_error_frame(&mut self, e: &crate::socketcand::codec::ErrorFrame) -> io::Result<bool> {
+        (**self).send_error_frame(e)
+    }
+    fn bus_stats(&self) -> Option<BusStats> {
+        (**self).bus_stats()
+    }
+    fn controller(&self) -> Option<Box<dyn Transport>> {
+        (**self).controller()
+    }
+    fn disturb(&self, d: Disturbance) -> Result<(), String> {
+        (**self).disturb(d)
     }
     fn describe(&self) -> String {
         (**self).describe()
@@ -410,8 +513,16 @@ pub fn open(url: &str) -> Result<Box<dyn Transport>, Error> {
     open_url(&BusUrl::parse(url)?)
 }
 
-/// Opens an already parsed bus URL.
+/// Opens an already parsed bus URL (a new `mem://` bus is paced at the default rate).
 pub fn open_url(url: &BusUrl) -> Result<Box<dyn Transport>, Error> {
+    open_url_with(url, crate::bus::Pacing::default())
+}
+
+/// Opens a parsed bus URL; `pacing` applies to a `mem://` bus created by this call.
+pub fn open_url_with(
+    url: &BusUrl,
+    pacing: crate::bus::Pacing,
+) -> Result<Box<dyn Transport>, Error> {
     match url {
         BusUrl::Socketcand {
             host,
@@ -438,7 +549,9 @@ pub fn open_url(url: &BusUrl) -> Result<Box<dyn Transport>, Error> {
                     source,
                 })
         }
-        BusUrl::Mem { name } => Ok(Box::new(crate::mem::MemBus::named(name).attach())),
+        BusUrl::Mem { name } => Ok(Box::new(
+            crate::mem::MemBus::named_with(name, pacing).attach(),
+        )),
         #[cfg(feature = "socketcan")]
         BusUrl::SocketCan { iface } => crate::socketcan::SocketCanTransport::open(iface)
             .map(|t| Box::new(t) as Box<dyn Transport>)
@@ -451,14 +564,59 @@ pub fn open_url(url: &BusUrl) -> Result<Box<dyn Transport>, Error> {
     }
 }
 
+/// When a device's socketcand URL may start an embedded hub (`canpos run --hub`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum HubPolicy {
+    /// Connect; if nothing listens at start-up, start an embedded hub there (announced loudly
+    /// by the caller). Never after an outage: a server that went away is waited for.
+    #[default]
+    Auto,
+    /// Start an embedded hub; an error if the address is taken.
+    Always,
+    /// Never start a hub: [`open_device_bus`] fails with a refused connection
+    /// ([`Error::is_connection_refused`]) and the caller waits for the server.
+    Never,
+}
+
+impl FromStr for HubPolicy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "auto" => Ok(HubPolicy::Auto),
+            "always" => Ok(HubPolicy::Always),
+            "never" => Ok(HubPolicy::Never),
+            _ => Err(format!("`{s}`: expected auto, always or never")),
+        }
+    }
+}
+
 /// Opens `url`; for a socketcand URL where nothing listens, starts an embedded hub on that
-/// address instead and joins its channel in-process (what `canpos run` does so that a single
-/// command gives python-can something to connect to).
+/// address instead and joins its channel in-process ([`HubPolicy::Auto`]).
+pub fn open_or_host(
+    url: &str,
+) -> Result<(Box<dyn Transport>, Option<crate::socketcand::HubHandle>), Error> {
+    open_device_bus(url, HubPolicy::Auto)
+}
+
+/// Opens a device's bus (what `canpos run` and `scenario` use). A socketcand connection
+/// reconnects when its server goes away ([`crate::socketcand::reconnect`]); whether an embedded
+/// hub is started follows `policy`.
 ///
 /// Returns the hub handle when one was started: keep it alive as long as the bus is needed
 /// (dropping it stops serving TCP clients).
-pub fn open_or_host(
+pub fn open_device_bus(
     url: &str,
+    policy: HubPolicy,
+) -> Result<(Box<dyn Transport>, Option<crate::socketcand::HubHandle>), Error> {
+    open_device_bus_with(url, policy, crate::bus::Pacing::default())
+}
+
+/// [`open_device_bus`] with the pacing of a bus this call creates (a `mem://` bus, or the
+/// embedded hub's channels).
+pub fn open_device_bus_with(
+    url: &str,
+    policy: HubPolicy,
+    pacing: crate::bus::Pacing,
 ) -> Result<(Box<dyn Transport>, Option<crate::socketcand::HubHandle>), Error> {
     let parsed = BusUrl::parse(url)?;
     let BusUrl::Socketcand {
@@ -467,17 +625,59 @@ pub fn open_or_host(
         channel,
     } = &parsed
     else {
-        return open_url(&parsed).map(|t| (t, None));
+        return open_url_with(&parsed, pacing).map(|t| (t, None));
     };
+    let connect = || {
+        crate::socketcand::reconnect::Reconnecting::connect(
+            host,
+            *port,
+            channel,
+            parsed.to_string(),
+        )
+        .map(|c| Box::new(c) as Box<dyn Transport>)
+        .map_err(|source| Error::Connect {
+            url: parsed.to_string(),
+            source,
+        })
+    };
+    let host_here =
+        || -> Result<(Box<dyn Transport>, Option<crate::socketcand::HubHandle>), Error> {
+            let config = crate::socketcand::HubConfig {
+                pacing,
+                ..Default::default()
+            };
+            let hub = crate::socketcand::Hub::bind_with((host.as_str(), *port), config).map_err(
+                |source| Error::Connect {
+                    url: parsed.to_string(),
+                    source,
+                },
+            )?;
+            let port_ = hub.attach(channel);
+            let handle = hub.spawn().map_err(|source| Error::Connect {
+                url: parsed.to_string(),
+                source,
+            })?;
+            Ok((Box::new(port_), Some(handle)))
+        };
+    match policy {
+        HubPolicy::Always => return host_here(),
+        // One attempt: the caller waits and retries (it can be interrupted there).
+        HubPolicy::Never => return connect().map(|t| (t, None)),
+        HubPolicy::Auto => {}
+    }
     // Two attempts: another process may win the race to bind between our connect and bind.
     let mut last = None;
     for _ in 0..2 {
-        match open_url(&parsed) {
+        match connect() {
             Ok(t) => return Ok((t, None)),
             Err(e) if e.is_connection_refused() => last = Some(e),
             Err(e) => return Err(e),
         }
-        match crate::socketcand::Hub::bind((host.as_str(), *port)) {
+        let config = crate::socketcand::HubConfig {
+            pacing,
+            ..Default::default()
+        };
+        match crate::socketcand::Hub::bind_with((host.as_str(), *port), config) {
             Ok(hub) => {
                 let port_ = hub.attach(channel);
                 let handle = hub.spawn().map_err(|source| Error::Connect {

@@ -188,24 +188,22 @@ fn in_process_ports_and_tcp_clients_share_a_channel() {
         c2.recv_timeout(Some(WAIT)).unwrap().unwrap().frame,
         f(0x701, &[5])
     );
-    // RTR with DLC 0 becomes a zero-length data frame; DLC > 0 cannot be carried.
-    c.send(&Frame::remote(0x705, false, 0).unwrap()).unwrap();
-    assert_eq!(
-        port.recv_timeout(Some(WAIT)).unwrap().unwrap().frame,
-        f(0x705, &[])
-    );
-    let e = c
-        .send(&Frame::remote(0x705, false, 1).unwrap())
-        .unwrap_err();
-    assert_eq!(e.kind(), std::io::ErrorKind::InvalidInput);
+    // canpos clients opt into the RTR extension: remote frames keep their RTR bit and DLC.
+    assert!(c.carries_remote_frames() && c2.carries_remote_frames());
+    for dlc in [0, 1, 8] {
+        let r = Frame::remote(0x705, false, dlc).unwrap();
+        c.send(&r).unwrap();
+        assert_eq!(port.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, r);
+        assert_eq!(c2.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, r);
+    }
+    let r = Frame::remote(0x1234567, true, 2).unwrap();
+    port.send(&r).unwrap();
+    assert_eq!(c.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, r);
     // Extended ids survive.
     let x = Frame::with_id(0x1234567, true, &[9]).unwrap();
     c.send(&x).unwrap();
     assert_eq!(port.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, x);
-    assert_eq!(
-        c2.recv_timeout(Some(WAIT)).unwrap().unwrap().frame,
-        f(0x705, &[])
-    );
+    assert_eq!(c2.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, r);
     assert_eq!(c2.recv_timeout(Some(WAIT)).unwrap().unwrap().frame, x);
     // Nothing came back to the sender.
     assert_eq!(
@@ -248,15 +246,30 @@ fn garbage_and_split_elements_are_tolerated() {
         got.push(port.recv_timeout(Some(WAIT)).unwrap().expect("frame").frame);
     }
     assert_eq!(got, vec![f(0x123, &[1]), f(0x124, &[2]), f(0x125, &[])]);
+    // Answered as socketcand does: the unknown command and the two malformed sends.
     s.write_all(b"< echo >").unwrap();
-    expect_read(&mut s, b"< echo >");
+    let mut got = Vec::new();
+    let mut buf = [0u8; 256];
+    while !got.ends_with(b"< echo >") {
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0);
+        got.extend_from_slice(&buf[..n]);
+    }
+    assert_eq!(
+        String::from_utf8_lossy(&got),
+        "< error unknown command >< error syntax error in send command >\
+         < error syntax error in send command >< echo >"
+    );
 }
 
 #[test]
 fn a_client_that_never_reads_does_not_stall_others() {
+    // About the hub's per-client queues under a flood, not bus timing: the instant bus (a
+    // paced one would hold the sender to the bit rate).
     let config = HubConfig {
         queue_len: 64,
         send_buffer: Some(4096),
+        pacing: canpos_host::bus::Pacing::Instant,
         ..HubConfig::default()
     };
     let h = Hub::bind_with("127.0.0.1:0", config)
@@ -419,8 +432,10 @@ fn forwarding_latency_is_low() {
         "client→hub→client one-way median {median:?}, p99 {:?}",
         samples[samples.len() * 99 / 100]
     );
-    // Delayed ACKs or Nagle would show up as tens of milliseconds.
-    assert!(median < Duration::from_millis(2), "median {median:?}");
+    // Not a speed figure (that is `canpos bench`): Nagle's algorithm with delayed ACKs holds a
+    // small segment for the peer's 40 ms ACK timer, so the median would be ≥ 40 ms. A loaded
+    // machine stays well below that (4.7 ms seen beside a mutation run), a lost TCP_NODELAY not.
+    assert!(median < Duration::from_millis(20), "median {median:?}");
 }
 
 proptest! {

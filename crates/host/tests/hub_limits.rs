@@ -87,16 +87,26 @@ fn a_client_that_does_not_finish_the_handshake_is_closed() {
     let addr = hub.local_addr();
     let mut silent = connect(addr);
     assert_eq!(until_closed(&mut silent), b"< hi >");
-    // Half a handshake, a byte at a time, is not enough either.
+    // Half an `open`, a byte at a time, is not enough either.
     let mut slow = connect(addr);
     expect(&mut slow, b"< hi >");
-    slow.write_all(b"< open can0 >").unwrap();
-    expect(&mut slow, b"< ok >");
+    for b in b"< open ca" {
+        slow.write_all(&[*b]).unwrap();
+        std::thread::sleep(Duration::from_millis(10));
+    }
     assert_eq!(until_closed(&mut slow), b"");
+    // After `open` the client is in BCM mode, as with socketcand: a complete handshake, kept
+    // (a BCM client may set up its send jobs and say nothing more).
+    let mut bcm = connect(addr);
+    expect(&mut bcm, b"< hi >");
+    bcm.write_all(b"< open can0 >").unwrap();
+    expect(&mut bcm, b"< ok >");
     // A client that finished the handshake stays past the deadline (no idle limit by default).
     let mut good = raw(addr);
     let mut other = raw(addr);
     std::thread::sleep(Duration::from_millis(300));
+    bcm.write_all(b"< echo >").unwrap();
+    expect(&mut bcm, b"< echo >");
     other.write_all(b"< send 123 1 aa >").unwrap();
     let mut buf = [0u8; 64];
     let n = good.read(&mut buf).unwrap();
@@ -127,7 +137,16 @@ fn a_burst_larger_than_one_turn_is_forwarded_whole() {
     // than a client's output holds at once. Readiness is edge-triggered, so the hub must come
     // back to both sockets by itself.
     const N: usize = 4000;
-    let hub = Hub::bind("127.0.0.1:0").unwrap().spawn().unwrap();
+    // The event loop, not the bus: instant (a paced channel would let the sender's transmit
+    // queue overflow and count the losses instead).
+    let config = HubConfig {
+        pacing: canpos_host::bus::Pacing::Instant,
+        ..HubConfig::default()
+    };
+    let hub = Hub::bind_with("127.0.0.1:0", config)
+        .unwrap()
+        .spawn()
+        .unwrap();
     let mut rx = raw(hub.local_addr());
     let mut tx = raw(hub.local_addr());
     let burst: Vec<u8> = (0..N).flat_map(|_| *b"< send 123 1 aa >").collect();

@@ -1,6 +1,8 @@
 //! Tests of the master tools against a real `canpos_core::Node` (expedited SDO, NMT, scan,
-//! monitor configuration reads) and against small scripted slaves for what must be exercised
-//! independently of the device core (segmented SDO with toggle errors, LSS with fastscan).
+//! monitor configuration reads, LSS fastscan and configuration) and against small scripted
+//! slaves for what must also be exercised independently of the device core (segmented SDO with
+//! toggle errors, LSS with fastscan), so that a misreading shared by the core and the master
+//! does not hide itself.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -412,31 +414,28 @@ struct FakeLss {
     stored: bool,
 }
 
-fn run_fake_lss(
-    bus: &MemBus,
-    addr: [u32; 4],
-    node_id: u8,
-) -> (Runner, Arc<std::sync::Mutex<FakeLss>>) {
-    let st = Arc::new(std::sync::Mutex::new(FakeLss {
-        addr,
-        node_id,
-        config: false,
-        selective: 0,
-        fs_sub: 0,
-        bit_index: None,
-        stored: false,
-    }));
-    let s2 = st.clone();
-    let r = spawn(bus.attach(), move |port, f| {
-        let Some(f) = f else { return };
-        if f.id() != 0x7E5 || f.data().len() != 8 {
-            return;
+impl FakeLss {
+    fn new(addr: [u32; 4], node_id: u8) -> Self {
+        FakeLss {
+            addr,
+            node_id,
+            config: false,
+            selective: 0,
+            fs_sub: 0,
+            bit_index: None,
+            stored: false,
         }
-        let d = f.data();
-        let mut s = s2.lock().unwrap();
+    }
+
+    /// The slave's answer to one master request (an 8-byte frame on 0x7E5), if it gives one.
+    fn answer(&mut self, d: &[u8]) -> Option<[u8; 8]> {
+        if d.len() != 8 {
+            return None;
+        }
+        let s = self;
         let u = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
         let answer = |a: [u8; 8]| Some(a);
-        let out = match d[0] {
+        match d[0] {
             0x04 => {
                 s.config = d[1] == 1;
                 None
@@ -504,13 +503,89 @@ fn run_fake_lss(
                 }
             }
             _ => None,
-        };
-        drop(s);
+        }
+    }
+}
+
+/// A scripted LSS slave on its own thread, answering over `bus`.
+fn run_fake_lss(
+    bus: &MemBus,
+    addr: [u32; 4],
+    node_id: u8,
+) -> (Runner, Arc<std::sync::Mutex<FakeLss>>) {
+    let st = Arc::new(std::sync::Mutex::new(FakeLss::new(addr, node_id)));
+    let s2 = st.clone();
+    let r = spawn(bus.attach(), move |port, f| {
+        let Some(f) = f else { return };
+        if f.id() != 0x7E5 {
+            return;
+        }
+        let out = s2.lock().unwrap().answer(f.data());
         if let Some(a) = out {
             let _ = port.send(&Frame::std8(0x7E4, a));
         }
     });
     (r, st)
+}
+
+/// Slaves that answer inside the master's `send`, so that an algorithm of many short steps
+/// (fastscan) is tested without any wall-clock race: every answer is queued before the master
+/// starts waiting, and a wait with nothing queued returns at once.
+struct SyncBus<T> {
+    units: Vec<T>,
+    tx: crossbeam_channel::Sender<canpos_host::transport::RxFrame>,
+    rx: crossbeam_channel::Receiver<canpos_host::transport::RxFrame>,
+}
+
+/// One unit on a [`SyncBus`]: what it answers to a frame.
+trait Answers {
+    fn answer_frame(&mut self, frame: &Frame, out: &mut Vec<Frame>);
+}
+
+impl<T> SyncBus<T> {
+    fn new(units: Vec<T>) -> Self {
+        let (tx, rx) = crossbeam_channel::unbounded();
+        SyncBus { units, tx, rx }
+    }
+}
+
+impl<T: Answers + Send> Transport for SyncBus<T> {
+    fn send(&mut self, frame: &Frame) -> std::io::Result<()> {
+        let mut out = Vec::new();
+        for u in &mut self.units {
+            u.answer_frame(frame, &mut out);
+        }
+        for f in out {
+            let _ = self.tx.send(canpos_host::transport::RxFrame::now(f));
+        }
+        Ok(())
+    }
+
+    fn recv_deadline(
+        &mut self,
+        _deadline: Instant,
+    ) -> std::io::Result<Option<canpos_host::transport::RxFrame>> {
+        self.try_recv()
+    }
+
+    fn receiver(&self) -> &crossbeam_channel::Receiver<canpos_host::transport::RxFrame> {
+        &self.rx
+    }
+
+    fn describe(&self) -> String {
+        "slaves answering synchronously".into()
+    }
+}
+
+/// A scripted LSS slave answers LSS requests (0x7E5) on 0x7E4.
+impl Answers for FakeLss {
+    fn answer_frame(&mut self, frame: &Frame, out: &mut Vec<Frame>) {
+        if frame.id() == 0x7E5 && !frame.is_remote() && !frame.is_extended() {
+            if let Some(a) = self.answer(frame.data()) {
+                out.push(Frame::std8(0x7E4, a));
+            }
+        }
+    }
 }
 
 #[test]
@@ -595,14 +670,15 @@ fn lss_commands_exit_codes() {
 
 #[test]
 fn lss_fastscan_finds_unconfigured_node() {
-    let bus = MemBus::new();
+    // The fastscan algorithm, not bus timing: the slaves answer synchronously.
     let a = [0x0000_0182, 0x8000_03E8, 0x0002_0003, 0x00AB_CDEF];
     let b = [0x0000_0182, 0x8000_03E8, 0x0002_0003, 0x00AB_CDF0];
-    let (_ra, sa) = run_fake_lss(&bus, a, 0xFF);
-    let (_rb, sb) = run_fake_lss(&bus, b, 0xFF);
-    let (_rc, sc) = run_fake_lss(&bus, [9, 9, 9, 9], 3); // configured: stays out
-    let mut port = bus.attach();
-    let mut m = LssMaster::new(&mut port, Duration::from_millis(20));
+    let mut bus = SyncBus::new(vec![
+        FakeLss::new(a, 0xFF),
+        FakeLss::new(b, 0xFF),
+        FakeLss::new([9, 9, 9, 9], 3), // configured: stays out
+    ]);
+    let mut m = LssMaster::new(&mut bus, Duration::from_millis(20));
     assert!(m.identify_non_configured().unwrap());
     let found = m
         .fastscan(Duration::from_millis(10))
@@ -610,11 +686,89 @@ fn lss_fastscan_finds_unconfigured_node() {
         .expect("a node");
     // Two candidates: fastscan settles on the lower address.
     assert_eq!(found.parts(), a);
-    assert!(sa.lock().unwrap().config);
-    assert!(!sb.lock().unwrap().config && !sc.lock().unwrap().config);
     // The found node can now be configured.
     assert!(m.configure_node_id(20).unwrap().ok());
-    assert_eq!(sa.lock().unwrap().node_id, 20);
+    let s = &bus.units;
+    assert!(s[0].config && !s[1].config && !s[2].config);
+    assert_eq!(s[0].node_id, 20);
+}
+
+/// A real TH node of the core on a [`SyncBus`]: the LSS master against the device it
+/// commissions. Its time is virtual and moves 1 ms per frame sent.
+struct ThUnit {
+    node: canpos_core::SensorNode<RamStorage>,
+    now: canpos_core::Instant,
+}
+
+impl ThUnit {
+    /// TH nodes with these serial numbers and node-ids (0xFF: unconfigured), powered on, their
+    /// boot-ups dropped.
+    fn bus(units: &[(u32, u8)]) -> SyncBus<ThUnit> {
+        let model = canpos_core::models::by_name("th").expect("th model");
+        SyncBus::new(
+            units
+                .iter()
+                .map(|&(serial, node_id)| {
+                    let mut cfg = model.default_config;
+                    cfg.serial = serial;
+                    cfg.node_id = node_id;
+                    let mut node = canpos_core::Node::new(model, cfg, RamStorage::default());
+                    node.power_on(canpos_core::Instant::ZERO);
+                    while node.poll_transmit().is_some() {}
+                    ThUnit {
+                        node,
+                        now: canpos_core::Instant::ZERO,
+                    }
+                })
+                .collect(),
+        )
+    }
+}
+
+impl Answers for ThUnit {
+    fn answer_frame(&mut self, frame: &Frame, out: &mut Vec<Frame>) {
+        self.now = canpos_core::Instant::from_micros(self.now.micros() + 1000);
+        self.node.handle_frame(frame, self.now);
+        self.node.handle_timeout(self.now);
+        while let Some(f) = self.node.poll_transmit() {
+            out.push(f);
+        }
+    }
+}
+
+#[test]
+fn lss_fastscan_and_configure_real_unconfigured_nodes() {
+    let mut bus = ThUnit::bus(&[(0x00AB_CDEF, 0xFF), (0x00AB_CDF0, 0xFF), (9, 3)]);
+    let [vendor, product, revision, _] = bus.units[0].node.device().lss_address();
+    let mut m = LssMaster::new(&mut bus, Duration::from_millis(20));
+    assert!(m.identify_non_configured().unwrap());
+    let found = m
+        .fastscan(Duration::from_millis(10))
+        .unwrap()
+        .expect("a node");
+    // Two unconfigured candidates: fastscan settles on the lower serial number.
+    assert_eq!(found.parts(), [vendor, product, revision, 0x00AB_CDEF]);
+    assert_eq!(m.inquire(Inquire::Serial).unwrap(), 0x00AB_CDEF);
+    assert!(m.configure_node_id(20).unwrap().ok());
+    assert!(m
+        .configure_bit_timing(lss::bit_timing_index(250).unwrap())
+        .unwrap()
+        .ok());
+    assert!(m.store().unwrap().ok());
+    m.switch_global(false).unwrap();
+    // Only the node fastscan found took the new node-id and bit rate.
+    let pending: Vec<_> = bus
+        .units
+        .iter()
+        .map(|u| u.node.device().pending())
+        .collect();
+    assert_eq!(pending[0], (20, 250), "{pending:?}");
+    assert_eq!(pending[1].0, 0xFF, "{pending:?}");
+    assert_eq!(pending[2].0, 3, "{pending:?}");
+    // Back in waiting, the other unconfigured node is still there to be found.
+    let mut m = LssMaster::new(&mut bus, Duration::from_millis(20));
+    let next = m.fastscan(Duration::from_millis(10)).unwrap();
+    assert_eq!(next.map(|a| a.parts()[3]), Some(0x00AB_CDF0));
 }
 
 #[test]
@@ -725,6 +879,57 @@ fn value_types_encode_and_decode() {
 
 // ------------------------------------------------------------------------ record and replay
 
+/// Issue 11: `record` keeps the error frames the bus carries. Through a canpos hub (which the
+/// client asks for `< errors on >`), every frame corrupted on the bus timeline becomes an error
+/// frame in the candump log (`CAN_ERR_FLAG` | protocol violation), and nothing else is written.
+#[test]
+fn record_keeps_the_error_frames_of_a_hub() {
+    let dir = std::env::temp_dir().join(format!("canpos-master-err-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("errors.log");
+    let hub = canpos_host::socketcand::Hub::bind("127.0.0.1:0")
+        .unwrap()
+        .spawn()
+        .unwrap();
+    let mut port = hub.attach("can0");
+    let url = format!("socketcand://{}/can0", hub.local_addr());
+    let f2 = file.clone();
+    let rec = thread::spawn(move || {
+        record(RecordArgs {
+            file: f2,
+            bus: BusArg { bus: url },
+            format: None,
+            duration: Some(5.0),
+            count: Some(2),
+            interface: None,
+        })
+    });
+    // The recorder is connected once its file exists.
+    let end = Instant::now() + Duration::from_secs(5);
+    while !file.exists() {
+        assert!(Instant::now() < end, "the recorder did not start");
+        thread::sleep(Duration::from_millis(5));
+    }
+    thread::sleep(Duration::from_millis(100)); // the raw-mode hold-back
+    port.disturb(canpos_host::transport::Disturbance::CorruptedFrames {
+        per_million: 1_000_000,
+    })
+    .unwrap();
+    port.send(&Frame::new(0x181, &[1, 2]).unwrap()).unwrap();
+    assert_eq!(rec.join().unwrap().unwrap(), EXIT_OK);
+    let text = std::fs::read_to_string(&file).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 2, "{text}");
+    for l in lines {
+        let frame = l.rsplit(' ').next().unwrap();
+        let (id, _) = frame.split_once('#').unwrap();
+        let id = u32::from_str_radix(id, 16).unwrap();
+        assert_eq!(id & 0x2000_0000, 0x2000_0000, "an error frame: {l}");
+        assert_ne!(id & 0x008, 0, "a protocol violation: {l}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn record_then_replay_keeps_frames_and_timing() {
     let dir = std::env::temp_dir().join(format!("canpos-master-{}", std::process::id()));
@@ -739,6 +944,7 @@ fn record_then_replay_keeps_frames_and_timing() {
         record(RecordArgs {
             file: f2,
             bus: BusArg { bus: url },
+            format: None,
             duration: Some(5.0),
             count: Some(3),
             interface: None,
@@ -778,8 +984,10 @@ fn record_then_replay_keeps_frames_and_timing() {
         bus: BusArg {
             bus: format!("mem://{rep_name}"),
         },
+        format: None,
         speed: 2.0,
         repeat: false,
+        on_malformed: OnMalformed::Stop,
     });
     assert_eq!(r.unwrap(), EXIT_OK);
     // At speed 2 the 200 ms recording takes about 100 ms.
@@ -788,8 +996,13 @@ fn record_then_replay_keeps_frames_and_timing() {
         took >= Duration::from_millis(90) && took < Duration::from_millis(400),
         "{took:?}"
     );
+    // The last frame may still be on the wire (the bus is paced): wait for each.
     for f in &frames {
-        let got = listener.try_recv().unwrap().expect("replayed frame").frame;
+        let got = listener
+            .recv_timeout(Some(Duration::from_secs(1)))
+            .unwrap()
+            .expect("replayed frame")
+            .frame;
         assert_eq!(&got, f);
     }
     std::fs::write(dir.join("bad.log"), "(1.0) can0 XYZ\n").unwrap();
@@ -798,20 +1011,215 @@ fn record_then_replay_keeps_frames_and_timing() {
         bus: BusArg {
             bus: format!("mem://{rep_name}"),
         },
+        format: None,
         speed: 1.0,
         repeat: false,
+        on_malformed: OnMalformed::Stop,
     })
     .is_err());
     let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
+fn record_keeps_stamps_in_order() {
+    let dir = tempdir();
+    let file = dir.join("order.pcap");
+    let name = bus_name("order");
+    let bus = MemBus::named(&name);
+    let sender = bus.attach();
+    let (f2, url) = (file.clone(), format!("mem://{name}"));
+    let rec = thread::spawn(move || {
+        record(RecordArgs {
+            file: f2,
+            bus: BusArg { bus: url },
+            format: None,
+            duration: Some(5.0),
+            count: Some(3),
+            interface: None,
+        })
+    });
+    while bus.port_count() < 2 {
+        thread::sleep(Duration::from_millis(1));
+    }
+    let at = |ms: u64| std::time::UNIX_EPOCH + Duration::from_millis(1_700_000_000_000 + ms);
+    for (i, ms) in [10u64, 5, 20].into_iter().enumerate() {
+        sender.send_at(canpos_host::transport::RxFrame {
+            frame: Frame::new(0x180 + i as u16, &[i as u8]).unwrap(),
+            timestamp: at(ms),
+        });
+    }
+    assert_eq!(rec.join().unwrap().unwrap(), EXIT_OK);
+    let b = std::fs::read(&file).unwrap();
+    // pcap records after the 24-byte header: 16-byte record header + 16-byte can_frame.
+    let stamps: Vec<(u32, u32)> = b[24..]
+        .chunks(32)
+        .map(|r| {
+            (
+                u32::from_le_bytes(r[0..4].try_into().unwrap()),
+                u32::from_le_bytes(r[4..8].try_into().unwrap()),
+            )
+        })
+        .collect();
+    // The second frame came stamped 5 ms, before the first's 10 ms: written with 10 ms.
+    assert_eq!(
+        stamps,
+        vec![
+            (1_700_000_000, 10_000_000),
+            (1_700_000_000, 10_000_000),
+            (1_700_000_000, 20_000_000)
+        ]
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn tempdir() -> std::path::PathBuf {
+    static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let dir = std::env::temp_dir().join(format!("canpos-files-{}-{n}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A log with an error frame, an FD frame, a malformed line and RTR lines: with
+/// `--on-malformed skip` the classical frames play (the remote frame with a DLC too, on a
+/// bus that carries it); with `stop` nothing is sent.
+#[test]
+fn replay_skips_what_the_bus_cannot_carry() {
+    let dir = tempdir();
+    let file = dir.join("mixed.log");
+    std::fs::write(
+        &file,
+        "(1.000000) can0 701#00\n\
+         (1.001000) can0 20000088#0000020000000000\n\
+         (1.002000) can0 181##1DEADBEEF00112233AA\n\
+         (1.003000) can0 not-a-frame\n\
+         (1.004000) can0 701#R1\n\
+         (1.005000) can0 181#R\n",
+    )
+    .unwrap();
+    let name = bus_name("mixed");
+    let mut listener = MemBus::named(&name).attach();
+    let args = |on_malformed| ReplayArgs {
+        file: file.clone(),
+        bus: BusArg {
+            bus: format!("mem://{name}"),
+        },
+        format: None,
+        speed: 0.0,
+        repeat: false,
+        on_malformed,
+    };
+    assert!(replay(args(OnMalformed::Stop)).is_err());
+    assert!(listener.try_recv().unwrap().is_none());
+    assert_eq!(replay(args(OnMalformed::Skip)).unwrap(), EXIT_OK);
+    // The bus is paced: the frames arrive one frame time after another.
+    let got: Vec<Frame> = std::iter::from_fn(|| {
+        listener
+            .recv_timeout(Some(Duration::from_millis(500)))
+            .unwrap()
+            .map(|r| r.frame)
+    })
+    .collect();
+    // Replayed at full speed on a paced bus, the two remote frames may wait together while
+    // 701#00 is on the wire (then the lower identifier wins the arbitration) or not: either
+    // order is a real bus's.
+    assert_eq!(got.len(), 3, "{got:?}");
+    assert_eq!(got[0], Frame::new(0x701, &[0]).unwrap());
+    for f in [
+        Frame::remote(0x701, false, 1).unwrap(),
+        Frame::remote(0x181, false, 0).unwrap(),
+    ] {
+        assert!(got[1..].contains(&f), "{f:?} in {got:?}");
+    }
+    // ASC: the same kinds of lines.
+    let asc = dir.join("mixed.asc");
+    std::fs::write(
+        &asc,
+        "date Tue Dec 1 08:01:02.000 pm 2026\nbase hex  timestamps absolute\n\
+         Begin Triggerblock Tue Dec 1 08:01:02.000 pm 2026\n   0.000000 Start of measurement\n\
+            0.001000 1  701             Rx   d 1 05\n\
+            0.002000 1  ErrorFrame\n\
+            0.003000 CANFD   1 Rx 123  1 0 8 8 11 22 33 44 55 66 77 88 0 0 0 0 0 0 0 0\n\
+            0.004000 1  1ABCDEF0x       Rx   d 2 AA BB\n\
+         End TriggerBlock\n",
+    )
+    .unwrap();
+    let mut a = args(OnMalformed::Stop);
+    a.file = asc.clone();
+    assert_eq!(replay(a).unwrap(), EXIT_OK);
+    let got: Vec<Frame> = std::iter::from_fn(|| {
+        listener
+            .recv_timeout(Some(Duration::from_millis(500)))
+            .unwrap()
+            .map(|r| r.frame)
+    })
+    .collect();
+    assert_eq!(
+        got,
+        vec![
+            Frame::new(0x701, &[5]).unwrap(),
+            Frame::with_id(0x1ABC_DEF0, true, &[0xAA, 0xBB]).unwrap(),
+        ]
+    );
+    // A malformed ASC line: stop sends nothing and names the line.
+    let text = std::fs::read_to_string(&asc).unwrap();
+    std::fs::write(&asc, text.replace(" d 2 AA BB", " d 2 AA")).unwrap();
+    let mut a = args(OnMalformed::Stop);
+    a.file = asc;
+    let e = replay(a).unwrap_err().to_string();
+    assert!(e.contains("1 malformed line(s), nothing sent"), "{e}");
+    assert!(listener.try_recv().unwrap().is_none());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn eds_rejects_unknown_model() {
     assert!(eds(EdsArgs {
-        model: "nope".into(),
+        model: Some("nope".into()),
+        order_code: None,
         output: None
     })
     .is_err());
+}
+
+/// The order-code variant's EDS: the unit's defaults (issue 11's example) and its code.
+#[test]
+fn eds_of_an_order_code() {
+    let dir = tempdir();
+    let out = dir.join("ep.eds");
+    assert_eq!(
+        eds(EdsArgs {
+            model: None,
+            order_code: Some("EP00600MD341C304241Z02".into()),
+            output: Some(out.clone()),
+        })
+        .unwrap(),
+        EXIT_OK
+    );
+    let text = std::fs::read_to_string(&out).unwrap();
+    let ini = canpos_host::ini::Ini::parse(&text).unwrap();
+    let get = |sec: &str, key: &str| ini.get(sec, key).unwrap_or_default().to_string();
+    assert_eq!(get("DeviceInfo", "OrderCode"), "EP00600MD341C304241Z02");
+    assert_eq!(get("1000", "DefaultValue"), "0x000A0196");
+    let num = |v: String| match v.strip_prefix("0x") {
+        Some(h) => i64::from_str_radix(h, 16).unwrap(),
+        None => v.parse().unwrap(),
+    };
+    assert_eq!(num(get("650Asub3", "DefaultValue")), 60000);
+    for s in 1..=2 {
+        assert_eq!(num(get(&format!("6402sub{s}"), "DefaultValue")), 60000);
+    }
+    assert_eq!(get("FileInfo", "FileName"), "ep.eds");
+    // Created now: not a fixed date.
+    let (date, _) = crate::capture::eds_date_time(std::time::SystemTime::now());
+    assert_eq!(get("FileInfo", "CreationDate"), date);
+    assert!(eds(EdsArgs {
+        model: None,
+        order_code: Some("EP0BAD".into()),
+        output: Some(out.clone()),
+    })
+    .is_err());
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -894,4 +1302,22 @@ fn sdo_scan_and_lss_timeout_over_socketcand_hub() {
     // The device name needs a segmented upload when longer than 4 characters.
     assert!(code == EXIT_OK || code == EXIT_REFUSED);
     drop(handle);
+}
+
+#[test]
+fn load_meter_counts_bits_over_the_last_second() {
+    // ID 0x000, DLC 0: 53 bits (bus::bits). 1000 of them at 1000 kbit/s within one second:
+    // 53,000 bits = 53 ms of 1 s = 5.3 %.
+    let mut m = super::LoadMeter::new(1000);
+    let t0 = std::time::SystemTime::UNIX_EPOCH + Duration::from_secs(100);
+    let f = Frame::new(0, &[]).unwrap();
+    let mut last = (0.0, 0);
+    for i in 0..1000u64 {
+        last = m.add(t0 + Duration::from_micros(i * 900), &f);
+    }
+    assert_eq!(last.1, 1000);
+    assert!((last.0 - 5.3).abs() < 1e-9, "{last:?}");
+    // A second later the old frames have left the window.
+    let later = m.add(t0 + Duration::from_secs(3), &f);
+    assert_eq!(later.1, 1);
 }

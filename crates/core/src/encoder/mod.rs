@@ -145,6 +145,15 @@ pub enum Fault {
     CanOverrun,
     /// CAN software buffer overflow: EMCY 0x8110 (TMI 0x8110 2/0/0, 0x1002 bit 6).
     CanBufferOverflow,
+    /// The bus cannot take the frames the node produces: its transmit queue overflows and
+    /// frames are lost. TH / E-Series: CAN overrun, EMCY 0x8110 (their EMCY tables). TMI:
+    /// "Insufficient Event Timer Value", EMCY 0x6000 1/0/0 and 0x1002 bit 15, "TPDO1 sending
+    /// will occur partially" (002 §1.14).
+    TransmitOverflow,
+    /// The controller saw a bit error while sending its own identifier (another node sends
+    /// the same COB-ID): TH / E-Series one-shot EMCY 0x8150 "CAN ID collision"; not in the
+    /// TMI's table: nothing. `active == false` does nothing.
+    CobIdCollision,
     /// Warning bits of 0x6505 (only bits the model supports in 0x6506 are set, D3).
     Warning(u16),
     /// TMI system-data error (lock-out, §1.14). On TH / E-Series it reports as a transducer
@@ -163,8 +172,7 @@ const F_BUFFER: u16 = 1 << 6;
 const F_EVENT_TIMER: u16 = 1 << 7;
 const F_MISSING: u16 = 1 << 8;
 const F_COMMUNICATION: u16 = 1 << 9;
-/// `raised` bit for the shared 0x5000 code.
-const R_HARDWARE: u16 = 1 << 15;
+const F_TX_OVERFLOW: u16 = 1 << 10;
 
 /// Per-channel memory.
 #[derive(Clone, Copy, Debug, Default)]
@@ -186,8 +194,13 @@ pub struct Encoder {
     ch: [Channel; MAX_CHANNELS],
     /// Active fault conditions (F_* bits).
     faults: u16,
-    /// EMCY codes this application raised and has not cleared (F_* bits by code).
+    /// EMCY codes this application raised for a condition and has not cleared (F_* bits by
+    /// code).
     raised: u16,
+    /// This application raised 0x5000 for reasons of its own (`hw_seen`) and has not cleared
+    /// it. An MCU's monitors may raise the code too (`Node::set_error`): theirs is theirs to
+    /// clear.
+    hw_raised: bool,
     /// Active TMI system-data errors.
     sysdata: u16,
     /// 0x5000 reasons already announced (a new one while 0x5000 is active sends another EMCY):
@@ -225,6 +238,8 @@ impl Encoder {
             Fault::CanBusOff => self.faults & F_BUS_OFF != 0,
             Fault::CanOverrun => self.faults & F_OVERRUN != 0,
             Fault::CanBufferOverflow => self.faults & F_BUFFER != 0,
+            Fault::TransmitOverflow => self.faults & F_TX_OVERFLOW != 0,
+            Fault::CobIdCollision => false,
             Fault::Warning(bits) => self.warnings & bits != 0,
             Fault::SystemData(e) => self.sysdata & e.bit() != 0,
         }
@@ -285,12 +300,13 @@ impl Encoder {
         match nm {
             Some(nm) => {
                 let v = match c.nm {
-                    // First value after boot (or a gap the device cannot bridge): no velocity.
-                    Some(prev) if c.age > 0 => {
+                    // `age` ≥ 1 whenever `nm` holds a measurement: the velocity spans the gap.
+                    Some(prev) => {
                         let dt_us = c.age as i64 * cx.cfg.cycle_us.max(1) as i64;
                         velocity(nm - prev, dt_us, cx.od)
                     }
-                    _ => 0,
+                    // First value after boot or reset: no velocity.
+                    None => 0,
                 };
                 c.nm = Some(nm);
                 c.age = 1;
@@ -492,21 +508,21 @@ impl Encoder {
         let active = cx.emcy.is_active(emcy::code::HARDWARE);
         if reasons != 0 {
             let mfr = first_mfr(fresh, mfr_sensor);
-            if !active || self.raised & R_HARDWARE == 0 {
+            if !active {
+                // First reason, or still present after a reset communication forgot it.
                 cx.emcy
                     .raise(emcy::code::HARDWARE, emcy::reg::MANUFACTURER, mfr);
-                self.raised |= R_HARDWARE;
+                self.hw_raised = true;
             } else if fresh != 0 {
                 cx.emcy.event(emcy::code::HARDWARE, mfr);
             }
-        } else if self.raised & R_HARDWARE != 0 {
-            self.raised &= !R_HARDWARE;
+        } else if core::mem::take(&mut self.hw_raised) && active {
             cx.emcy.clear(emcy::code::HARDWARE);
         }
         self.hw_seen = reasons;
 
         let comm = emcy::reg::COMMUNICATION;
-        let conditions: [(u16, u16, u8, [u8; 5]); 7] = [
+        let conditions: [(u16, u16, u8, [u8; 5]); 8] = [
             (
                 F_VOLTAGE,
                 emcy::code::MAIN_VOLTAGE,
@@ -523,6 +539,12 @@ impl Encoder {
             (F_COMMUNICATION, emcy::code::COMMUNICATION, comm, [0; 5]),
             (F_OVERRUN, emcy::code::CAN_OVERRUN, comm, [1, 0, 0, 0, 0]),
             (F_BUFFER, emcy::code::CAN_OVERRUN, comm, [2, 0, 0, 0, 0]),
+            (
+                F_TX_OVERFLOW,
+                emcy::code::CAN_OVERRUN,
+                comm,
+                [1, 0, 0, 0, 0],
+            ),
             (F_EVENT_TIMER, emcy::code::SOFTWARE, 0, [1, 0, 0, 0, 0]),
         ];
         for (flag, code, reg, mfr) in conditions {
@@ -606,7 +628,8 @@ impl Application for Encoder {
         self.temperature(s.temperature_c, cx);
         if tmi {
             let short = event_timer_insufficient(cx);
-            set_flag(&mut self.faults, F_EVENT_TIMER, short);
+            let overflow = self.faults & F_TX_OVERFLOW != 0;
+            set_flag(&mut self.faults, F_EVENT_TIMER, short || overflow);
         }
         self.sync(cx);
         core::mem::take(&mut self.force_preop)
@@ -642,6 +665,18 @@ impl Application for Encoder {
             }
             Fault::CanOverrun => set_flag(&mut self.faults, F_OVERRUN, active),
             Fault::CanBufferOverflow => set_flag(&mut self.faults, F_BUFFER, active),
+            Fault::TransmitOverflow => {
+                set_flag(&mut self.faults, F_TX_OVERFLOW, active);
+                if tmi {
+                    let short = event_timer_insufficient(cx);
+                    set_flag(&mut self.faults, F_EVENT_TIMER, short || active);
+                }
+            }
+            Fault::CobIdCollision => {
+                if active && !tmi {
+                    cx.emcy.event(emcy::code::COB_COLLISION, [0; 5]);
+                }
+            }
             Fault::Warning(bits) => {
                 let supported = cx.od.value(0x6506, 0).unwrap_or(0) as u16;
                 if active {
@@ -777,8 +812,8 @@ impl Application for Encoder {
 /// Conditions the TMI's EMCY table (002 §1.14) has no code for. Supply voltage and temperature
 /// reach its electronics as an internal error of the sensing element: the TMI reports them as
 /// its "Sensor Error" (0x5000 1/1/0, with that error's reaction); a generic communication fault
-/// it does not report at all (DECISIONS.md).
-const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION;
+/// it does not report at all (DECISIONS.md). A transmit overflow it reports as its 0x6000 (`F_EVENT_TIMER`), not as 0x8110.
+const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION | F_TX_OVERFLOW;
 
 /// The conditions that make the model's sensor error (0x5000).
 const fn sensor_error_faults(tmi: bool) -> u16 {

@@ -163,7 +163,7 @@ const PARTS: &[&[Entry]] = &[
     &[entry!(0x650E, 0, "Device capability", Unsigned32, Const, Const(0))],
 ];
 
-const N: usize = table::total(PARTS);
+pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "E-Series table unsorted or too large");

@@ -7,10 +7,20 @@
 //! `table::channels`, so that "sub 0 = number of channels, subs 1…n one per channel" is
 //! written once. A compile-time check rejects a table that is not sorted or too large.
 
+// A build without any model (a firmware with its own dictionary) uses none of the table
+// builders.
+#![cfg_attr(
+    not(any(feature = "th", feature = "e-series", feature = "tmi")),
+    allow(dead_code, unused_imports, unused_macros)
+)]
+
 use crate::od::{Entry, Param};
 
+#[cfg(feature = "e-series")]
 pub mod e_series;
+#[cfg(feature = "th")]
 pub mod th;
+#[cfg(feature = "tmi")]
 pub mod tmi;
 
 /// Behaviour switches of a product model that are not properties of single objects.
@@ -180,12 +190,14 @@ impl core::fmt::Debug for Model {
 }
 
 /// All models.
+#[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
 pub fn all() -> [&'static Model; 3] {
     [&th::TH, &e_series::E_SERIES, &tmi::TMI]
 }
 
 /// Looks a model up by its command-line name (`th`, `e-series` — also `e`, `eseries` — or
 /// `tmi`).
+#[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
 pub fn by_name(name: &str) -> Option<&'static Model> {
     if name.eq_ignore_ascii_case("e") || name.eq_ignore_ascii_case("eseries") {
         return Some(&e_series::E_SERIES);
@@ -193,6 +205,56 @@ pub fn by_name(name: &str) -> Option<&'static Model> {
     all()
         .into_iter()
         .find(|m| m.name.eq_ignore_ascii_case(name))
+}
+
+/// Stored entries (group other than volatile) of each model built in, 0 for one left out: what
+/// sizes the storage image of a firmware build.
+#[cfg(not(feature = "host-buffers"))]
+pub(crate) const fn th_stored() -> usize {
+    #[cfg(feature = "th")]
+    return table::stored(th::ENTRIES);
+    #[cfg(not(feature = "th"))]
+    return 0;
+}
+#[cfg(not(feature = "host-buffers"))]
+pub(crate) const fn e_series_stored() -> usize {
+    #[cfg(feature = "e-series")]
+    return table::stored(e_series::ENTRIES);
+    #[cfg(not(feature = "e-series"))]
+    return 0;
+}
+#[cfg(not(feature = "host-buffers"))]
+pub(crate) const fn tmi_stored() -> usize {
+    #[cfg(feature = "tmi")]
+    return table::stored(tmi::ENTRIES);
+    #[cfg(not(feature = "tmi"))]
+    return 0;
+}
+
+/// Entries of the largest table built in (at least 64, for a firmware's own small dictionary
+/// beside or instead of a model): the value array of a firmware build.
+#[cfg(not(feature = "host-buffers"))]
+pub(crate) const fn largest_table() -> usize {
+    const fn max(a: usize, b: usize) -> usize {
+        if a > b {
+            a
+        } else {
+            b
+        }
+    }
+    #[cfg(feature = "th")]
+    let th = th::N;
+    #[cfg(not(feature = "th"))]
+    let th = 0;
+    #[cfg(feature = "e-series")]
+    let e = e_series::N;
+    #[cfg(not(feature = "e-series"))]
+    let e = 0;
+    #[cfg(feature = "tmi")]
+    let tmi = tmi::N;
+    #[cfg(not(feature = "tmi"))]
+    let tmi = 0;
+    max(64, max(th, max(e, tmi)))
 }
 
 /// Builds [`Entry`] values tersely in model tables.
@@ -206,18 +268,17 @@ macro_rules! entry {
         $crate::entry!($i, $s, $name, $ty, $acc, $def, $range $( ( $($r)* ) )?, $grp, false)
     };
     ($i:expr, $s:expr, $name:expr, $ty:ident, $acc:ident, $def:expr, $range:ident $( ( $($r:tt)* ) )?, $grp:ident, $pdo:expr) => {
-        $crate::od::Entry {
-            index: $i,
-            sub: $s,
-            name: $name,
-            ty: $crate::od::DataType::$ty,
-            access: $crate::od::Access::$acc,
-            pdo: $pdo,
-            default: $def,
-            range: $crate::od::Range::$range $( ( $($r)* ) )?,
-            group: $crate::od::Group::$grp,
-            hook: $crate::od::Hook::None,
-        }
+        $crate::od::Entry::build(
+            $i,
+            $s,
+            $name,
+            $crate::od::DataType::$ty,
+            $crate::od::Access::$acc,
+            $pdo,
+            $def,
+            $crate::od::Range::$range $( ( $($r)* ) )?,
+            $crate::od::Group::$grp,
+        )
     };
 }
 
@@ -268,6 +329,7 @@ pub(crate) mod table {
     const BLANK: Entry = Entry {
         index: 0,
         sub: 0,
+        #[cfg(feature = "names")]
         name: "",
         ty: DataType::Unsigned8,
         access: Access::Const,
@@ -291,10 +353,12 @@ pub(crate) mod table {
         range: Range,
         group: Group,
     ) -> [Entry; N] {
+        let _ = &names; // only the `names` feature keeps them
         let mut out = [BLANK; N];
         out[0] = Entry {
             index,
             sub: 0,
+            #[cfg(feature = "names")]
             name: names[0],
             ty: DataType::Unsigned8,
             access: Access::Const,
@@ -309,6 +373,7 @@ pub(crate) mod table {
             out[i] = Entry {
                 index,
                 sub: i as u8,
+                #[cfg(feature = "names")]
                 name: names[i],
                 ty,
                 access,
@@ -346,6 +411,7 @@ pub(crate) mod table {
         names: [&'static str; 5],
         c: TpdoComm,
     ) -> ([Entry; 5], usize) {
+        let _ = &names; // only the `names` feature keeps them
         let mut out = [BLANK; 5];
         let highest = if c.event.is_some() {
             5
@@ -357,6 +423,7 @@ pub(crate) mod table {
         out[0] = Entry {
             index,
             sub: 0,
+            #[cfg(feature = "names")]
             name: names[0],
             ty: DataType::Unsigned8,
             access: Access::Const,
@@ -369,6 +436,7 @@ pub(crate) mod table {
         out[1] = Entry {
             index,
             sub: 1,
+            #[cfg(feature = "names")]
             name: names[1],
             ty: DataType::Unsigned32,
             access: Access::Rw,
@@ -381,6 +449,7 @@ pub(crate) mod table {
         out[2] = Entry {
             index,
             sub: 2,
+            #[cfg(feature = "names")]
             name: names[2],
             ty: DataType::Unsigned8,
             access: Access::Rw,
@@ -395,6 +464,7 @@ pub(crate) mod table {
             out[n] = Entry {
                 index,
                 sub: 3,
+                #[cfg(feature = "names")]
                 name: names[3],
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
@@ -410,6 +480,7 @@ pub(crate) mod table {
             out[n] = Entry {
                 index,
                 sub: 5,
+                #[cfg(feature = "names")]
                 name: names[4],
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
@@ -434,12 +505,14 @@ pub(crate) mod table {
         maps: [u32; 8],
         group: Group,
     ) -> [Entry; N] {
+        let _ = &names; // only the `names` feature keeps them
         let mut out = [BLANK; N];
         let mut i = 0;
         while i < N {
             out[i] = Entry {
                 index,
                 sub: i as u8,
+                #[cfg(feature = "names")]
                 name: names[i],
                 ty: if i == 0 {
                     DataType::Unsigned8
@@ -472,12 +545,14 @@ pub(crate) mod table {
             "Standard error field 7",
             "Standard error field 8",
         ];
+        let _ = &NAMES; // only the `names` feature keeps them
         let mut out = [BLANK; 9];
         let mut i = 0;
         while i < 9 {
             out[i] = Entry {
                 index: 0x1003,
                 sub: i as u8,
+                #[cfg(feature = "names")]
                 name: NAMES[i],
                 ty: if i == 0 {
                     DataType::Unsigned8
@@ -557,6 +632,20 @@ pub(crate) mod table {
         out
     }
 
+    /// Number of entries of `t` that storage keeps (every group but volatile).
+    #[cfg(not(feature = "host-buffers"))]
+    pub const fn stored(t: &[Entry]) -> usize {
+        let mut n = 0;
+        let mut i = 0;
+        while i < t.len() {
+            if !matches!(t[i].group, Group::Volatile) {
+                n += 1;
+            }
+            i += 1;
+        }
+        n
+    }
+
     /// Whether a table is strictly sorted by index and sub-index (the dictionary's binary
     /// search needs it) and fits the dictionary's value array.
     pub const fn valid(t: &[Entry]) -> bool {
@@ -601,5 +690,52 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
         Param::MaxPosition => (cfg.stroke_mm as u64 * 1_000_000 / step).min(i32::MAX as u64) as u32,
         Param::Channels => cfg.channels as u32,
         Param::Model(_) => 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::table;
+    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range, MAX_ENTRIES};
+
+    const fn e(index: u16, sub: u8) -> Entry {
+        Entry {
+            index,
+            sub,
+            #[cfg(feature = "names")]
+            name: "",
+            ty: DataType::Unsigned8,
+            access: Access::Ro,
+            pdo: false,
+            default: Default::Const(0),
+            range: Range::Any,
+            group: Group::Volatile,
+            hook: Hook::None,
+        }
+    }
+
+    #[test]
+    fn a_valid_table_is_strictly_sorted_and_fits_the_value_array() {
+        // The dictionary's binary search needs strictly ascending (index, sub) keys.
+        assert!(table::valid(&[]));
+        assert!(table::valid(&[
+            e(0x1000, 0),
+            e(0x1001, 0),
+            e(0x1001, 1),
+            e(0x2000, 0)
+        ]));
+        assert!(
+            !table::valid(&[e(0x1001, 0), e(0x1000, 0)]),
+            "unsorted index"
+        );
+        assert!(!table::valid(&[e(0x1001, 1), e(0x1001, 0)]), "unsorted sub");
+        assert!(!table::valid(&[e(0x1000, 0), e(0x1000, 0)]), "duplicate");
+        assert!(
+            !table::valid(&[e(0x1000, 0), e(0x1002, 0), e(0x1001, 0)]),
+            "last pair"
+        );
+        let over: [Entry; MAX_ENTRIES + 1] = core::array::from_fn(|i| e(0x2000 + i as u16, 0));
+        assert!(table::valid(&over[..MAX_ENTRIES]), "exactly MAX_ENTRIES");
+        assert!(!table::valid(&over), "one more than MAX_ENTRIES");
     }
 }

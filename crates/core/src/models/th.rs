@@ -172,7 +172,7 @@ const PARTS: &[&[Entry]] = &[
     &channels::<CH>(0x650C, chnames!("Offset value for multi-sensor devices"; 1, 2, 3, 4), Integer32, Ro, false, Const(0), Any, App),
 ];
 
-const N: usize = table::total(PARTS);
+pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");

@@ -172,7 +172,7 @@ const PARTS: &[&[Entry]] = &[
     DIAG,
 ];
 
-const N: usize = table::total(PARTS);
+pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TMI table unsorted or too large");

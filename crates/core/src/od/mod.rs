@@ -12,7 +12,13 @@ pub use types::{Abort, Access, DataType, Default, Entry, Group, Hook, Param, Ran
 
 /// Most entries a model's table may have (the value array is sized for it). 256, so that a
 /// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
+/// Without the `host-buffers` feature (firmware): the largest table built in, trading that
+/// bounds check for RAM (TH: 186 entries, 280 B less).
+#[cfg(feature = "host-buffers")]
 pub const MAX_ENTRIES: usize = 256;
+/// Most entries a model's table may have: the largest table built in (firmware builds).
+#[cfg(not(feature = "host-buffers"))]
+pub const MAX_ENTRIES: usize = crate::models::largest_table();
 
 /// Configuration-dependent values that [`Default::Param`] entries resolve against.
 pub trait ParamSource {
@@ -31,10 +37,14 @@ pub struct Dictionary {
 
 impl Dictionary {
     /// A dictionary for `entries` (sorted by index, sub-index; at most [`MAX_ENTRIES`]) and
-    /// their `keys` (each entry's [`Entry::key`], in the same order) with all values zero; call
-    /// [`Dictionary::load_defaults`] next.
+    /// their `keys` (each entry's [`Entry::key`], in the same order) with all values zero (the
+    /// node loads the defaults at its first reset).
+    #[inline(always)] // as `Node::new`
     pub fn new(entries: &'static [Entry], keys: &'static [u32]) -> Self {
-        debug_assert!(entries.len() <= MAX_ENTRIES);
+        assert!(
+            entries.len() <= MAX_ENTRIES,
+            "table larger than MAX_ENTRIES"
+        );
         debug_assert!(
             entries.windows(2).all(|w| w[0].key() < w[1].key()),
             "table not sorted"
@@ -72,11 +82,6 @@ impl Dictionary {
                 })
             }
         }
-    }
-
-    /// Whether any entry of `index` exists.
-    pub fn has_object(&self, index: u16) -> bool {
-        !matches!(self.find(index, 0), Err(Abort::NoObject))
     }
 
     /// The entry in `slot`.
@@ -122,44 +127,9 @@ impl Dictionary {
         }
     }
 
-    /// The default of `slot` for this unit.
-    pub fn default_of(&self, slot: usize, params: &dyn ParamSource, node_id: u8) -> u32 {
-        resolve_default(&self.entries[slot], params, node_id)
-    }
-
-    /// Loads the defaults of every entry whose index is within `lo..=hi`.
-    pub fn load_defaults(&mut self, lo: u16, hi: u16, params: &dyn ParamSource, node_id: u8) {
-        for (slot, e) in self.entries.iter().enumerate() {
-            if e.index >= lo && e.index <= hi {
-                self.values[slot] = resolve_default(e, params, node_id);
-            }
-        }
-    }
-
-    /// Copies the value of `slot` as it appears on the wire (little-endian, exact type size;
-    /// strings as their bytes) into `buf`, returning the length.
-    pub fn read_bytes(&self, slot: usize, buf: &mut [u8]) -> usize {
-        let e = &self.entries[slot];
-        match e.ty.size() {
-            Some(n) => {
-                let n = n.min(buf.len());
-                buf[..n].copy_from_slice(&self.values[slot].to_le_bytes()[..n]);
-                n
-            }
-            None => match e.default {
-                Default::Str(s) => {
-                    let n = s.len().min(buf.len());
-                    buf[..n].copy_from_slice(&s.as_bytes()[..n]);
-                    n
-                }
-                _ => 0,
-            },
-        }
-    }
-
-    /// Copies the wire bytes of `slot` from byte `offset` on into `buf` (as much as fits);
-    /// returns the bytes copied. Same bytes as [`Dictionary::read_bytes`] into a 64-byte buffer
-    /// (the SDO server's buffer size) and then sliced, without the intermediate copy.
+    /// Copies the wire bytes of `slot` (little-endian, exact type size; strings as their bytes,
+    /// at most 64 of them: the SDO server's buffer size) from byte `offset` on into `buf` (as
+    /// much as fits); returns the bytes copied.
     #[inline]
     pub fn read_at(&self, slot: usize, offset: usize, buf: &mut [u8]) -> usize {
         const CAP: usize = 64;

@@ -238,7 +238,8 @@ pub struct Entry {
     pub index: u16,
     /// Sub-index.
     pub sub: u8,
-    /// Name (EDS `ParameterName`).
+    /// Name (EDS `ParameterName`); not in firmware builds (feature `names`).
+    #[cfg(feature = "names")]
     pub name: &'static str,
     /// Data type.
     pub ty: DataType,
@@ -273,6 +274,38 @@ impl Hook {
 }
 
 impl Entry {
+    /// An entry without a hook: what the `entry!` macro of the model tables expands to, so the
+    /// `names` feature is decided here, in this crate, rather than in the macro's caller.
+    /// Without the feature `name` is dropped.
+    #[doc(hidden)]
+    #[allow(clippy::too_many_arguments)]
+    pub const fn build(
+        index: u16,
+        sub: u8,
+        name: &'static str,
+        ty: DataType,
+        access: Access,
+        pdo: bool,
+        default: Default,
+        range: Range,
+        group: Group,
+    ) -> Entry {
+        let _ = name; // only the `names` feature keeps it
+        Entry {
+            index,
+            sub,
+            #[cfg(feature = "names")]
+            name,
+            ty,
+            access,
+            pdo,
+            default,
+            range,
+            group,
+            hook: Hook::None,
+        }
+    }
+
     /// The entry with `hook` (table construction).
     pub const fn with_hook(mut self, hook: Hook) -> Entry {
         self.hook = hook;

@@ -1,9 +1,16 @@
-//! socketcand client transport: connects, performs the raw-mode handshake, then a reader thread
-//! turns `< frame ... >` elements into [`RxFrame`]s.
+//! socketcand client transport: connects, performs the raw-mode handshake, asks for canpos's
+//! protocol extensions (`< rtr on >`, `< errors on >`; docs/SOCKETCAND.md), then a reader thread
+//! turns `< frame ... >` elements into [`RxFrame`]s and `< error ... >` bus errors into the
+//! [`BusState`] the runtime reacts to.
+//!
+//! Against a server without the extensions (the reference socketcand answers them with
+//! `< error unknown command >`) the client speaks the plain protocol: remote frames with DLC 0
+//! go out as zero-length data frames, as python-can sends them.
 
 use std::io::{self, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
 use std::os::linux::net::TcpStreamExt;
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
@@ -12,11 +19,18 @@ use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
 use super::codec::{self, Decoder, Element};
-use crate::transport::{RxFrame, Transport};
+use crate::transport::{BusState, RxFrame, Transport};
+
+/// How long the client waits for the answer to an extension request before taking it as
+/// unsupported (a server that ignores unknown commands).
+pub const EXTENSION_TIMEOUT: Duration = Duration::from_millis(500);
 
 /// Receive queue length of a client, in frames. When full, the reader stops reading and TCP
 /// flow control pushes back to the server (which drops frames for us instead of stalling).
 pub const CLIENT_QUEUE_LEN: usize = 4096;
+
+/// Depth of the queue of received error frames ([`Transport::error_frames`]).
+const ERROR_QUEUE_LEN: usize = 1024;
 
 /// A connection to a socketcand server in raw mode. Dropping it closes the connection.
 pub struct Client {
@@ -26,6 +40,22 @@ pub struct Client {
     peer: SocketAddr,
     channel: String,
     buf: Vec<u8>,
+    /// The server carries remote frames (`< rtr on >` answered `< ok >`).
+    rtr: bool,
+    /// The server takes and gives bus errors (`< errors on >` answered `< ok >`).
+    errors: bool,
+    /// [`BusState`] as u8, from the server's error frames.
+    state: Arc<AtomicU8>,
+    /// The server's error frames ([`Transport::error_frames`]).
+    error_rx: Receiver<codec::ErrorFrame>,
+}
+
+fn state_to_u8(s: BusState) -> u8 {
+    match s {
+        BusState::ErrorActive => 0,
+        BusState::ErrorPassive => 1,
+        BusState::BusOff => 2,
+    }
 }
 
 fn proto_err(msg: impl Into<String>) -> io::Error {
@@ -96,16 +126,30 @@ impl Client {
             "< ok > to rawmode",
             |e| matches!(e, Element::Ok),
         )?;
+        stream.write_all(b"< rtr on >< errors on >")?;
+        let ext_deadline = deadline.min(Instant::now() + EXTENSION_TIMEOUT);
+        let rtr = extension(&mut stream, &mut decoder, &mut pending, ext_deadline, "rtr")?;
+        let errors = extension(
+            &mut stream,
+            &mut decoder,
+            &mut pending,
+            ext_deadline,
+            "errors",
+        )?;
+        tracing::debug!(%addr, rtr, errors, "socketcand extensions");
         stream.set_read_timeout(None)?;
 
         let (tx, rx) = crossbeam_channel::bounded(CLIENT_QUEUE_LEN);
+        let (error_tx, error_rx) = crossbeam_channel::bounded(ERROR_QUEUE_LEN);
         let error = Arc::new(Mutex::new(None));
+        let state = Arc::new(AtomicU8::new(0));
         let reader_stream = stream.try_clone()?;
         let err = error.clone();
+        let st = state.clone();
         thread::Builder::new()
             .name(format!("socketcand client {addr}"))
             .spawn(move || {
-                let e = reader(reader_stream, decoder, pending, &tx);
+                let e = reader(reader_stream, decoder, pending, &tx, &error_tx, &st);
                 *err.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
             })?;
         Ok(Client {
@@ -115,7 +159,16 @@ impl Client {
             peer: addr,
             channel: channel.to_string(),
             buf: Vec::with_capacity(64),
+            rtr,
+            errors,
+            state,
+            error_rx,
         })
+    }
+
+    /// Whether the server carries remote frames as such (canpos's `< rtr on >` extension).
+    pub fn carries_remote_frames(&self) -> bool {
+        self.rtr
     }
 
     /// The server's address.
@@ -183,12 +236,58 @@ fn expect(
     }
 }
 
+/// Waits for the answer to an extension request: `< ok >` (true), `< error … >` (false: the
+/// server does not have it), or nothing by `deadline` (false). Frames that arrive meanwhile stay
+/// in `pending`, in order.
+fn extension(
+    stream: &mut TcpStream,
+    decoder: &mut Decoder,
+    pending: &mut Vec<Element>,
+    deadline: Instant,
+    what: &str,
+) -> io::Result<bool> {
+    let mut buf = [0u8; 512];
+    loop {
+        if let Some(i) = pending
+            .iter()
+            .position(|e| matches!(e, Element::Ok | Element::Error(_)))
+        {
+            return Ok(matches!(pending.remove(i), Element::Ok));
+        }
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            tracing::debug!("no answer to `< {what} on >`: taken as unsupported");
+            return Ok(false);
+        }
+        stream.set_read_timeout(Some(left))?;
+        match stream.read(&mut buf) {
+            Ok(0) => {
+                return Err(io::Error::new(
+                    io::ErrorKind::UnexpectedEof,
+                    "server closed the connection after the handshake",
+                ))
+            }
+            Ok(n) => decoder.feed(&buf[..n], |b| pending.push(Element::parse(b))),
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::WouldBlock
+                        | io::ErrorKind::TimedOut
+                        | io::ErrorKind::Interrupted
+                ) => {}
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// Runs until the connection ends or the client is dropped; returns why it ended.
 fn reader(
     mut stream: TcpStream,
     mut decoder: Decoder,
     pending: Vec<Element>,
     tx: &Sender<RxFrame>,
+    error_tx: &Sender<codec::ErrorFrame>,
+    state: &AtomicU8,
 ) -> io::Error {
     let mut elements = pending;
     let mut buf = [0u8; 4096];
@@ -201,6 +300,15 @@ fn reader(
                     }
                 }
                 Element::Echo | Element::Ok => {}
+                Element::ErrorFrame(e) => {
+                    tracing::debug!(class = format_args!("{:#05x}", e.class), data = ?e.data, "socketcand bus error");
+                    if let Some(s) = e.bus_state() {
+                        state.store(state_to_u8(s), Ordering::Relaxed);
+                    }
+                    // For a recorder; nobody reading it must not stall the frames.
+                    let _ = error_tx.try_send(e);
+                }
+                Element::Error(text) => tracing::warn!("socketcand server: `< {text} >`"),
                 other => tracing::trace!("socketcand client ignored {other:?}"),
             }
         }
@@ -227,12 +335,29 @@ impl Drop for Client {
     }
 }
 
+impl Client {
+    /// Reports a bus error to the channel's other clients (canpos hub extension, after
+    /// `< errors on >`); `Ok(false)` when the server does not take them.
+    pub fn send_error_frame(&mut self, e: &codec::ErrorFrame) -> io::Result<bool> {
+        if !self.errors {
+            return Ok(false);
+        }
+        self.buf.clear();
+        codec::write_error_frame(&mut self.buf, e);
+        self.stream.write_all(&self.buf)?;
+        Ok(true)
+    }
+}
+
 impl Transport for Client {
-    /// Sends `< send ... >`. A remote frame with DLC 0 goes out as a zero-length data frame;
-    /// one with DLC > 0 cannot be carried by socketcand and is refused (`InvalidInput`).
+    /// Sends `< send ... >`. With a server that carries remote frames, a remote frame goes out
+    /// as `< send ID DLC R >`; otherwise one with DLC 0 goes out as a zero-length data frame and
+    /// one with DLC > 0 is refused (`InvalidInput`).
     fn send(&mut self, frame: &Frame) -> io::Result<()> {
         self.buf.clear();
-        if !codec::write_send(&mut self.buf, frame) {
+        if self.rtr {
+            codec::write_send_rtr(&mut self.buf, frame);
+        } else if !codec::write_send(&mut self.buf, frame) {
             return Err(io::Error::new(
                 io::ErrorKind::InvalidInput,
                 "socketcand cannot carry remote frames with DLC > 0",
@@ -252,6 +377,22 @@ impl Transport for Client {
                 io::ErrorKind::ConnectionAborted,
                 "socketcand connection closed",
             ),
+        }
+    }
+
+    fn send_error_frame(&mut self, e: &codec::ErrorFrame) -> io::Result<bool> {
+        Client::send_error_frame(self, e)
+    }
+
+    fn error_frames(&self) -> Option<Receiver<codec::ErrorFrame>> {
+        Some(self.error_rx.clone())
+    }
+
+    fn bus_state(&self) -> BusState {
+        match self.state.load(Ordering::Relaxed) {
+            1 => BusState::ErrorPassive,
+            2 => BusState::BusOff,
+            _ => BusState::ErrorActive,
         }
     }
 

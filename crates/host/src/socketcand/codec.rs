@@ -10,7 +10,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use canpos_core::Frame;
 
-use crate::transport::RxFrame;
+use crate::transport::{BusState, RxFrame};
 
 /// Longest element body kept, in bytes; the longest legal one (`send` of an extended frame with
 /// 8 bytes) is about 40.
@@ -102,18 +102,174 @@ pub enum Element {
     Ok,
     /// `< echo >`
     Echo,
-    /// `< rawmode >`
-    RawMode,
+    /// `< rawmode >`, `< bcmmode >`, `< controlmode >`, `< isotpmode >`: a mode switch.
+    Mode(Mode),
     /// `< open CHANNEL >`
     Open(String),
-    /// `< send ID DLC B0 .. >` from a client.
+    /// `< send ID DLC B0 .. >` from a client; a remote frame from the extension's
+    /// `< send ID DLC R >` or `< sendrtr ID [DLC] >` (see docs/SOCKETCAND.md).
     Send(Frame),
-    /// `< frame ID SEC.USEC DATA >` from a server.
+    /// `< frame ID SEC.USEC DATA >` from a server (raw mode: `DATA` as one hex string; BCM mode:
+    /// one token per byte), or the extension's `< rtr ID SEC.USEC DLC >`.
     Frame(RxFrame),
-    /// `< error ... >` with its text.
+    /// BCM `< add SEC USEC ID DLC B0 .. >`: send `frame` every `interval`.
+    Add {
+        /// Cycle time (never zero after parsing).
+        interval: Duration,
+        /// The frame to send.
+        frame: Frame,
+    },
+    /// BCM `< update ID DLC B0 .. >`: new content for the job of that identifier.
+    Update(Frame),
+    /// BCM `< delete ID >`.
+    Delete(CanId),
+    /// BCM `< subscribe SEC USEC ID >`: deliver frames of `id`, at most one per `interval`
+    /// (zero: every one).
+    Subscribe {
+        /// Throttle interval.
+        interval: Duration,
+        /// The identifier.
+        id: CanId,
+    },
+    /// BCM `< unsubscribe ID >`.
+    Unsubscribe(CanId),
+    /// BCM `< filter SEC USEC ID DLC M0 .. >`: deliver frames of the identifier whose data under
+    /// the mask (or whose DLC) changed, at most one per `interval`.
+    Filter {
+        /// Throttle interval.
+        interval: Duration,
+        /// Identifier; the data bytes are the mask.
+        mask: Frame,
+    },
+    /// Control mode `< statistics MS >` (0: off).
+    Statistics(u32),
+    /// The extension `< rtr on >` / `< rtr off >`: carry remote frames as such.
+    RtrOption(bool),
+    /// The extension `< errors on >` / `< errors off >`: receive `< error … >` bus error elements.
+    ErrorsOption(bool),
+    /// `< error CLASS SEC.USEC [D0 .. D7] >`: a CAN error frame from a server.
+    ErrorFrame(ErrorFrame),
+    /// `< error TEXT >`: a server's answer to a failed command.
     Error(String),
-    /// Anything else, or a malformed known element (kept for logs).
+    /// A known command whose arguments do not parse; its name.
+    Malformed(&'static str),
+    /// Anything else (kept for logs and for `< error unknown command >`).
     Other(String),
+}
+
+/// A CAN identifier and its format.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct CanId {
+    /// 11 or 29 bits.
+    pub id: u32,
+    /// 29-bit identifier.
+    pub extended: bool,
+}
+
+impl CanId {
+    /// The identifier of a frame.
+    pub fn of(frame: &Frame) -> CanId {
+        CanId {
+            id: frame.id(),
+            extended: frame.is_extended(),
+        }
+    }
+}
+
+/// The socketcand modes (states after `open`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Broadcast manager: `send`, cyclic `add` / `update` / `delete`, `subscribe`, `filter`.
+    Bcm,
+    /// Every frame of the bus, `send`.
+    Raw,
+    /// Statistics.
+    Control,
+    /// ISO-TP (not supported by the canpos hub; answered with an error).
+    Isotp,
+}
+
+impl Mode {
+    /// The command that switches to this mode, without brackets.
+    pub fn command(self) -> &'static str {
+        match self {
+            Mode::Bcm => "bcmmode",
+            Mode::Raw => "rawmode",
+            Mode::Control => "controlmode",
+            Mode::Isotp => "isotpmode",
+        }
+    }
+}
+
+/// Linux CAN error classes (`linux/can/error.h`), as socketcand reports them.
+pub mod err_class {
+    /// Controller problems; data byte 1 says which.
+    pub const CRTL: u32 = 0x0004;
+    /// Bus off.
+    pub const BUSOFF: u32 = 0x0040;
+    /// Controller restarted (back to error active after bus-off).
+    pub const RESTARTED: u32 = 0x0100;
+    /// Data byte 1 of [`CRTL`]: receive error counter reached the passive level.
+    pub const CRTL_RX_PASSIVE: u8 = 0x10;
+    /// Data byte 1 of [`CRTL`]: transmit error counter reached the passive level.
+    pub const CRTL_TX_PASSIVE: u8 = 0x20;
+    /// Data byte 1 of [`CRTL`]: back to error active.
+    pub const CRTL_ACTIVE: u8 = 0x40;
+}
+
+/// A CAN error frame as socketcand carries it: the error class (the identifier of a Linux error
+/// frame) and, where the server gives them, the 8 data bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ErrorFrame {
+    /// Error class bits ([`err_class`]).
+    pub class: u32,
+    /// The error frame's data (`None`: the server sent the class only, as socketcand's raw
+    /// mode does).
+    pub data: Option<[u8; 8]>,
+    /// When the error was seen.
+    pub timestamp: SystemTime,
+}
+
+impl ErrorFrame {
+    /// The error frame a controller reports on entering `state`.
+    pub fn for_state(state: BusState, timestamp: SystemTime) -> ErrorFrame {
+        use err_class::*;
+        let (class, ctrl) = match state {
+            BusState::BusOff => (BUSOFF, 0),
+            BusState::ErrorPassive => (CRTL, CRTL_RX_PASSIVE | CRTL_TX_PASSIVE),
+            BusState::ErrorActive => (CRTL | RESTARTED, CRTL_ACTIVE),
+        };
+        let mut data = [0u8; 8];
+        data[1] = ctrl;
+        ErrorFrame {
+            class,
+            data: Some(data),
+            timestamp,
+        }
+    }
+
+    /// The controller state the frame announces, if any: bus-off, restart / back to active, or
+    /// a passive controller. A controller-problem class without data (socketcand's raw mode
+    /// sends no data) is taken as error passive: that is the state a master must react to, and
+    /// warnings and overflows alone do not reach a client without data.
+    pub fn bus_state(&self) -> Option<BusState> {
+        use err_class::*;
+        if self.class & BUSOFF != 0 {
+            return Some(BusState::BusOff);
+        }
+        if self.class & CRTL != 0 {
+            return match self.data.map(|d| d[1]) {
+                None => Some(BusState::ErrorPassive),
+                Some(c) if c & (CRTL_RX_PASSIVE | CRTL_TX_PASSIVE) != 0 => {
+                    Some(BusState::ErrorPassive)
+                }
+                Some(c) if c & CRTL_ACTIVE != 0 => Some(BusState::ErrorActive),
+                Some(_) if self.class & RESTARTED != 0 => Some(BusState::ErrorActive),
+                Some(_) => None,
+            };
+        }
+        (self.class & RESTARTED != 0).then_some(BusState::ErrorActive)
+    }
 }
 
 impl Element {
@@ -124,18 +280,90 @@ impl Element {
         };
         let mut tok = text.split_ascii_whitespace();
         let other = || Element::Other(text.trim().to_string());
-        match tok.next() {
-            Some("hi") => Element::Hi,
-            Some("ok") => Element::Ok,
-            Some("echo") => Element::Echo,
-            Some("rawmode") => Element::RawMode,
-            Some("open") => match (tok.next(), tok.next()) {
-                (Some(ch), None) => Element::Open(ch.to_string()),
-                _ => other(),
+        let Some(cmd) = tok.next() else {
+            return other();
+        };
+        let tok: Vec<&str> = tok.collect();
+        let malformed = |name: &'static str| Element::Malformed(name);
+        match cmd {
+            "hi" if tok.is_empty() => Element::Hi,
+            "ok" if tok.is_empty() => Element::Ok,
+            "echo" if tok.is_empty() => Element::Echo,
+            "rawmode" if tok.is_empty() => Element::Mode(Mode::Raw),
+            "bcmmode" if tok.is_empty() => Element::Mode(Mode::Bcm),
+            "controlmode" if tok.is_empty() => Element::Mode(Mode::Control),
+            "isotpmode" if tok.is_empty() => Element::Mode(Mode::Isotp),
+            "open" => match tok[..] {
+                [ch] => Element::Open(ch.to_string()),
+                _ => malformed("open"),
             },
-            Some("send") => parse_send(tok).map(Element::Send).unwrap_or_else(other),
-            Some("frame") => parse_frame(tok).map(Element::Frame).unwrap_or_else(other),
-            Some("error") => Element::Error(text.trim().to_string()),
+            "send" => parse_send(&tok)
+                .map(Element::Send)
+                .unwrap_or(malformed("send")),
+            "sendrtr" => parse_sendrtr(&tok)
+                .map(Element::Send)
+                .unwrap_or(malformed("sendrtr")),
+            "frame" => parse_frame(&tok)
+                .map(Element::Frame)
+                .unwrap_or(malformed("frame")),
+            "rtr" => match tok[..] {
+                ["on"] => Element::RtrOption(true),
+                ["off"] => Element::RtrOption(false),
+                _ => parse_rtr(&tok)
+                    .map(Element::Frame)
+                    .unwrap_or(malformed("rtr")),
+            },
+            "errors" => match tok[..] {
+                ["on"] => Element::ErrorsOption(true),
+                ["off"] => Element::ErrorsOption(false),
+                _ => malformed("errors"),
+            },
+            "add" => parse_interval(&tok)
+                .and_then(|iv| Some((iv, parse_send(&tok[2..])?)))
+                .filter(|(iv, f)| !iv.is_zero() && !f.is_remote())
+                .map(|(interval, frame)| Element::Add { interval, frame })
+                .unwrap_or(malformed("add")),
+            "update" => parse_send(&tok)
+                .filter(|f| !f.is_remote())
+                .map(Element::Update)
+                .unwrap_or(malformed("update")),
+            "delete" => match tok[..] {
+                [id] => parse_id(id, false)
+                    .map(|(id, extended)| Element::Delete(CanId { id, extended }))
+                    .unwrap_or(malformed("delete")),
+                _ => malformed("delete"),
+            },
+            "subscribe" => match (parse_interval(&tok), &tok[..]) {
+                (Some(interval), [_, _, id]) => parse_id(id, false)
+                    .map(|(id, extended)| Element::Subscribe {
+                        interval,
+                        id: CanId { id, extended },
+                    })
+                    .unwrap_or(malformed("subscribe")),
+                _ => malformed("subscribe"),
+            },
+            "unsubscribe" => match tok[..] {
+                [id] => parse_id(id, false)
+                    .map(|(id, extended)| Element::Unsubscribe(CanId { id, extended }))
+                    .unwrap_or(malformed("unsubscribe")),
+                _ => malformed("unsubscribe"),
+            },
+            "filter" => parse_interval(&tok)
+                .and_then(|iv| Some((iv, parse_send(&tok[2..])?)))
+                .filter(|(_, f)| !f.is_remote())
+                .map(|(interval, mask)| Element::Filter { interval, mask })
+                .unwrap_or(malformed("filter")),
+            "statistics" => match tok[..] {
+                [ms] if ms.len() <= 10 && ms.bytes().all(|b| b.is_ascii_digit()) => ms
+                    .parse()
+                    .map(Element::Statistics)
+                    .unwrap_or(malformed("statistics")),
+                _ => malformed("statistics"),
+            },
+            "error" => match parse_error_frame(&tok) {
+                Some(e) => Element::ErrorFrame(e),
+                None => Element::Error(text.trim().to_string()),
+            },
             _ => other(),
         }
     }
@@ -157,39 +385,89 @@ fn parse_id(s: &str, three_digits_only_std: bool) -> Option<(u32, bool)> {
     } else {
         s.len() == 8 || v > 0x7FF
     };
+    if v > 0x1FFF_FFFF {
+        return None;
+    }
     Some((v, ext))
 }
 
-fn parse_send<'a>(mut tok: impl Iterator<Item = &'a str>) -> Option<Frame> {
-    let (id, ext) = parse_id(tok.next()?, false)?;
-    let dlc_s = tok.next()?;
-    if dlc_s.len() > 2 {
+/// `SEC USEC` of `add`, `subscribe` and `filter` (decimal, as socketcand's `%llu`).
+fn parse_interval(tok: &[&str]) -> Option<Duration> {
+    let dec = |s: &str| {
+        (!s.is_empty() && s.len() <= 10 && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse::<u64>().ok())
+            .flatten()
+    };
+    let (sec, usec) = (dec(tok.first()?)?, dec(tok.get(1)?)?);
+    Duration::from_secs(sec).checked_add(Duration::from_micros(usec))
+}
+
+fn parse_dlc(s: &str) -> Option<u8> {
+    if s.len() > 2 {
         return None;
     }
-    let dlc = hex_u32(dlc_s)? as usize;
-    if dlc > 8 {
+    let dlc = hex_u32(s)?;
+    (dlc <= 8).then_some(dlc as u8)
+}
+
+/// `ID DLC B0 ..`, or the extension `ID DLC R` (a remote frame requesting DLC bytes).
+fn parse_send(tok: &[&str]) -> Option<Frame> {
+    let (id, ext) = parse_id(tok.first()?, false)?;
+    let dlc = parse_dlc(tok.get(1)?)?;
+    let rest = &tok[2..];
+    if let ["R"] = rest {
+        return Frame::remote(id, ext, dlc).ok();
+    }
+    if rest.len() != dlc as usize {
         return None;
     }
     let mut data = [0u8; 8];
-    let mut n = 0;
-    for t in tok {
-        if n == 8 || t.len() > 2 {
+    for (d, t) in data.iter_mut().zip(rest) {
+        if t.len() > 2 {
             return None;
         }
-        data[n] = hex_u32(t)? as u8;
-        n += 1;
+        *d = hex_u32(t)? as u8;
     }
-    if n != dlc {
-        return None;
-    }
-    Frame::with_id(id, ext, &data[..n]).ok()
+    Frame::with_id(id, ext, &data[..rest.len()]).ok()
 }
 
-fn parse_frame<'a>(mut tok: impl Iterator<Item = &'a str>) -> Option<RxFrame> {
-    let (id, ext) = parse_id(tok.next()?, true)?;
-    let timestamp = parse_timestamp(tok.next()?)?;
-    let hex = tok.next().unwrap_or("");
-    if tok.next().is_some() || !hex.len().is_multiple_of(2) || hex.len() > 16 {
+/// The extension `sendrtr ID [DLC]`.
+fn parse_sendrtr(tok: &[&str]) -> Option<Frame> {
+    let (id, ext) = parse_id(tok.first()?, false)?;
+    let dlc = match tok[1..] {
+        [] => 0,
+        [d] => parse_dlc(d)?,
+        _ => return None,
+    };
+    Frame::remote(id, ext, dlc).ok()
+}
+
+/// The extension `rtr ID SEC.USEC [DLC]` (server → client).
+fn parse_rtr(tok: &[&str]) -> Option<RxFrame> {
+    let (id, ext) = parse_id(tok.first()?, true)?;
+    let timestamp = parse_timestamp(tok.get(1)?)?;
+    let dlc = match tok[2..] {
+        [] => 0,
+        [d] => parse_dlc(d)?,
+        _ => return None,
+    };
+    Some(RxFrame {
+        frame: Frame::remote(id, ext, dlc).ok()?,
+        timestamp,
+    })
+}
+
+/// `ID SEC.USEC DATA` (raw mode: one hex string) or `ID SEC.USEC D0 D1 ..` (BCM mode).
+fn parse_frame(tok: &[&str]) -> Option<RxFrame> {
+    let (id, ext) = parse_id(tok.first()?, true)?;
+    let timestamp = parse_timestamp(tok.get(1)?)?;
+    let hex: String = match &tok[2..] {
+        [] => String::new(),
+        [one] => (*one).to_string(),
+        bytes if bytes.len() <= 8 && bytes.iter().all(|b| b.len() == 2) => bytes.concat(),
+        _ => return None,
+    };
+    if !hex.len().is_multiple_of(2) || hex.len() > 16 {
         return None;
     }
     let mut data = [0u8; 8];
@@ -199,6 +477,31 @@ fn parse_frame<'a>(mut tok: impl Iterator<Item = &'a str>) -> Option<RxFrame> {
     }
     let frame = Frame::with_id(id, ext, &data[..hex.len() / 2]).ok()?;
     Some(RxFrame { frame, timestamp })
+}
+
+/// `CLASS SEC.USEC [D0 .. D7]`; `None` when it is not an error frame (a text error).
+fn parse_error_frame(tok: &[&str]) -> Option<ErrorFrame> {
+    let class = hex_u32(tok.first()?)?;
+    let timestamp = parse_timestamp(tok.get(1)?)?;
+    let data = match &tok[2..] {
+        [] => None,
+        bytes if bytes.len() == 8 => {
+            let mut d = [0u8; 8];
+            for (o, b) in d.iter_mut().zip(bytes.iter()) {
+                if b.len() > 2 {
+                    return None;
+                }
+                *o = hex_u32(b)? as u8;
+            }
+            Some(d)
+        }
+        _ => return None,
+    };
+    Some(ErrorFrame {
+        class: class & 0x1FFF_FFFF,
+        data,
+        timestamp,
+    })
 }
 
 /// Parses `SEC.FRACTION` (fraction of any length up to 9 digits) as a wall-clock time.
@@ -226,7 +529,20 @@ fn since_epoch(ts: SystemTime) -> Duration {
     ts.duration_since(UNIX_EPOCH).unwrap_or_default()
 }
 
-/// Appends `< frame ID SEC.USEC DATA >` (server → client).
+fn write_id(out: &mut Vec<u8>, frame_id: u32, extended: bool) {
+    let _ = if extended {
+        write!(out, "{frame_id:08X} ")
+    } else {
+        write!(out, "{frame_id:03X} ")
+    };
+}
+
+fn write_ts(out: &mut Vec<u8>, timestamp: SystemTime) {
+    let t = since_epoch(timestamp);
+    let _ = write!(out, "{}.{:06} ", t.as_secs(), t.subsec_micros());
+}
+
+/// Appends `< frame ID SEC.USEC DATA >` (server → client, raw mode).
 ///
 /// A remote frame with DLC 0 becomes a zero-length data frame (the protocol has no RTR);
 /// returns `false` and writes nothing for a remote frame with DLC > 0, which cannot be carried.
@@ -234,14 +550,9 @@ pub fn write_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) -> b
     if frame.is_remote() && frame.dlc() > 0 {
         return false;
     }
-    let t = since_epoch(timestamp);
-    // Writing into a Vec cannot fail.
-    let _ = if frame.is_extended() {
-        write!(out, "< frame {:08X} ", frame.id())
-    } else {
-        write!(out, "< frame {:03X} ", frame.id())
-    };
-    let _ = write!(out, "{}.{:06} ", t.as_secs(), t.subsec_micros());
+    out.extend_from_slice(b"< frame ");
+    write_id(out, frame.id(), frame.is_extended());
+    write_ts(out, timestamp);
     for b in frame.data() {
         let _ = write!(out, "{b:02X}");
     }
@@ -250,16 +561,70 @@ pub fn write_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) -> b
     true
 }
 
+/// Appends a raw-mode frame for a client that opted into remote frames (`< rtr on >`): a
+/// remote frame as `< rtr ID SEC.USEC DLC >`, anything else as [`write_frame`].
+pub fn write_frame_rtr(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) {
+    if frame.is_remote() {
+        out.extend_from_slice(b"< rtr ");
+        write_id(out, frame.id(), frame.is_extended());
+        write_ts(out, timestamp);
+        let _ = write!(out, "{} >", frame.dlc());
+    } else {
+        write_frame(out, frame, timestamp);
+    }
+}
+
+/// Appends `< frame ID SEC.USEC D0 D1 .. >`, the BCM mode's form (one token per byte, as
+/// socketcand writes it, with the space before `>`). Remote frames as in [`write_frame`].
+pub fn write_bcm_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) -> bool {
+    if frame.is_remote() && frame.dlc() > 0 {
+        return false;
+    }
+    out.extend_from_slice(b"< frame ");
+    write_id(out, frame.id(), frame.is_extended());
+    write_ts(out, timestamp);
+    for b in frame.data() {
+        let _ = write!(out, "{b:02X} ");
+    }
+    out.extend_from_slice(b" >");
+    true
+}
+
+/// Appends `< error CLASS SEC.USEC D0 .. D7 >` (the data as socketcand's BCM mode writes it;
+/// its raw mode writes the class and time only, which python-can reads the same way).
+pub fn write_error_frame(out: &mut Vec<u8>, e: &ErrorFrame) {
+    let _ = write!(out, "< error {:03X} ", e.class & 0x1FFF_FFFF);
+    write_ts(out, e.timestamp);
+    if let Some(d) = e.data {
+        for b in d {
+            let _ = write!(out, "{b:02X} ");
+        }
+    }
+    out.push(b'>');
+}
+
+/// Appends `< error TEXT >`, the answer to a command that failed.
+pub fn write_error_text(out: &mut Vec<u8>, text: &str) {
+    let _ = write!(out, "< error {text} >");
+}
+
+/// Appends control mode's `< stat RBYTES RPACKETS TBYTES TPACKETS >`.
+pub fn write_stat(out: &mut Vec<u8>, rbytes: u64, rpackets: u64, tbytes: u64, tpackets: u64) {
+    // socketcand prints the kernel's 32-bit counters; they wrap the same way here.
+    let _ = write!(
+        out,
+        "< stat {} {} {} {} >",
+        rbytes as u32, rpackets as u32, tbytes as u32, tpackets as u32
+    );
+}
+
 /// Appends `< send ID DLC B0 .. >` (client → server); same RTR rule as [`write_frame`].
 pub fn write_send(out: &mut Vec<u8>, frame: &Frame) -> bool {
     if frame.is_remote() && frame.dlc() > 0 {
         return false;
     }
-    let _ = if frame.is_extended() {
-        write!(out, "< send {:08X} ", frame.id())
-    } else {
-        write!(out, "< send {:03X} ", frame.id())
-    };
+    out.extend_from_slice(b"< send ");
+    write_id(out, frame.id(), frame.is_extended());
     let _ = write!(out, "{:x} ", frame.data().len());
     for b in frame.data() {
         let _ = write!(out, "{b:x} ");
@@ -270,6 +635,18 @@ pub fn write_send(out: &mut Vec<u8>, frame: &Frame) -> bool {
     }
     out.push(b'>');
     true
+}
+
+/// Appends a send for a server that accepted `< rtr on >`: a remote frame as
+/// `< send ID DLC R >`, anything else as [`write_send`].
+pub fn write_send_rtr(out: &mut Vec<u8>, frame: &Frame) {
+    if frame.is_remote() {
+        out.extend_from_slice(b"< send ");
+        write_id(out, frame.id(), frame.is_extended());
+        let _ = write!(out, "{:x} R >", frame.dlc());
+    } else {
+        write_send(out, frame);
+    }
 }
 
 /// Appends `< open CHANNEL >`.
@@ -346,7 +723,7 @@ mod tests {
             els,
             vec![
                 Element::Open("can0".into()),
-                Element::RawMode,
+                Element::Mode(Mode::Raw),
                 Element::Send(Frame::new(0x601, &[0x40, 0, 0x10, 0, 0, 0, 0, 0]).unwrap()),
                 Element::Send(Frame::new(0x77F, &[]).unwrap()),
                 Element::Echo,
@@ -397,11 +774,182 @@ mod tests {
             b" bogus ",
         ] {
             assert!(
-                matches!(Element::parse(body), Element::Other(_)),
+                matches!(
+                    Element::parse(body),
+                    Element::Other(_) | Element::Malformed(_)
+                ),
                 "{body:?}"
             );
         }
-        assert!(matches!(Element::parse(b" error 123 "), Element::Error(_)));
+        assert_eq!(Element::parse(b" send 1 "), Element::Malformed("send"));
+        assert_eq!(
+            Element::parse(b" error unknown command "),
+            Element::Error("error unknown command".into())
+        );
+    }
+
+    #[test]
+    fn parses_bcm_and_control_commands() {
+        let sync = Frame::new(0x80, &[]).unwrap();
+        assert_eq!(
+            Element::parse(b" add 0 1000 080 0 "),
+            Element::Add {
+                interval: Duration::from_millis(1),
+                frame: sync
+            }
+        );
+        assert_eq!(
+            Element::parse(b" add 1 5 00000123 1 ff "),
+            Element::Add {
+                interval: Duration::new(1, 5000),
+                frame: Frame::with_id(0x123, true, &[0xff]).unwrap()
+            }
+        );
+        assert_eq!(
+            Element::parse(b" update 080 1 5 "),
+            Element::Update(Frame::new(0x80, &[5]).unwrap())
+        );
+        let id = CanId {
+            id: 0x80,
+            extended: false,
+        };
+        assert_eq!(Element::parse(b" delete 080 "), Element::Delete(id));
+        assert_eq!(
+            Element::parse(b" unsubscribe 080 "),
+            Element::Unsubscribe(id)
+        );
+        assert_eq!(
+            Element::parse(b" subscribe 0 0 080 "),
+            Element::Subscribe {
+                interval: Duration::ZERO,
+                id
+            }
+        );
+        assert_eq!(
+            Element::parse(b" filter 0 0 080 2 FF 0 "),
+            Element::Filter {
+                interval: Duration::ZERO,
+                mask: Frame::new(0x80, &[0xff, 0]).unwrap()
+            }
+        );
+        assert_eq!(
+            Element::parse(b" statistics 1000 "),
+            Element::Statistics(1000)
+        );
+        assert_eq!(Element::parse(b" bcmmode "), Element::Mode(Mode::Bcm));
+        assert_eq!(
+            Element::parse(b" controlmode "),
+            Element::Mode(Mode::Control)
+        );
+        for (body, name) in [
+            (&b" add 0 0 080 0 "[..], "add"),
+            (b" add 0 1000 080 1 ", "add"),
+            (b" add x 1000 080 0 ", "add"),
+            (b" add 0 1000 080 0 R ", "add"),
+            (b" update 080 ", "update"),
+            (b" delete ", "delete"),
+            (b" delete 080 1 ", "delete"),
+            (b" subscribe 0 080 ", "subscribe"),
+            (b" filter 0 0 080 1 ", "filter"),
+            (b" statistics -1 ", "statistics"),
+            (b" statistics 99999999999 ", "statistics"),
+            (b" rtr maybe ", "rtr"),
+            (b" errors ", "errors"),
+            (b" sendrtr 705 9 ", "sendrtr"),
+        ] {
+            assert_eq!(Element::parse(body), Element::Malformed(name), "{body:?}");
+        }
+    }
+
+    #[test]
+    fn rtr_extension_round_trips() {
+        let t = ts(7, 1);
+        for dlc in [0u8, 1, 8] {
+            for ext in [false, true] {
+                let f = Frame::remote(0x705, ext, dlc).unwrap();
+                let mut v = Vec::new();
+                write_frame_rtr(&mut v, &f, t);
+                write_send_rtr(&mut v, &f);
+                assert_eq!(
+                    Decoder::new().feed_parse(&v),
+                    vec![
+                        Element::Frame(RxFrame {
+                            frame: f,
+                            timestamp: t
+                        }),
+                        Element::Send(f)
+                    ]
+                );
+            }
+        }
+        let mut v = Vec::new();
+        write_frame_rtr(&mut v, &Frame::remote(0x705, false, 1).unwrap(), t);
+        write_send_rtr(&mut v, &Frame::remote(0x705, false, 0).unwrap());
+        assert_eq!(v, b"< rtr 705 7.000001 1 >< send 705 0 R >");
+        // Data frames are written as without the extension.
+        let mut v = Vec::new();
+        write_frame_rtr(&mut v, &Frame::new(0x181, &[1]).unwrap(), t);
+        assert_eq!(v, b"< frame 181 7.000001 01 >");
+        assert_eq!(
+            Element::parse(b" sendrtr 00000705 "),
+            Element::Send(Frame::remote(0x705, true, 0).unwrap())
+        );
+        assert_eq!(Element::parse(b" rtr on "), Element::RtrOption(true));
+        assert_eq!(
+            Element::parse(b" errors off "),
+            Element::ErrorsOption(false)
+        );
+    }
+
+    #[test]
+    fn bcm_frames_error_frames_and_stats_are_written_as_socketcand_does() {
+        let t = ts(5, 10);
+        let mut v = Vec::new();
+        write_bcm_frame(&mut v, &Frame::new(0x123, &[0xA, 0xFF]).unwrap(), t);
+        assert_eq!(v, b"< frame 123 5.000010 0A FF  >");
+        match Decoder::new().feed_parse(&v)[..] {
+            [Element::Frame(r)] => assert_eq!(r.frame.data(), &[0xA, 0xFF]),
+            ref e => panic!("{e:?}"),
+        }
+        let mut v = Vec::new();
+        write_stat(&mut v, 1, 2, 3, 1 << 32);
+        assert_eq!(v, b"< stat 1 2 3 0 >");
+        let e = ErrorFrame::for_state(BusState::ErrorPassive, t);
+        let mut v = Vec::new();
+        write_error_frame(&mut v, &e);
+        assert_eq!(v, b"< error 004 5.000010 00 30 00 00 00 00 00 00 >");
+        assert_eq!(Decoder::new().feed_parse(&v), vec![Element::ErrorFrame(e)]);
+    }
+
+    #[test]
+    fn error_frames_map_to_bus_states() {
+        let t = ts(1, 0);
+        let parse = |b: &[u8]| match Element::parse(b) {
+            Element::ErrorFrame(e) => e.bus_state(),
+            e => panic!("{e:?}"),
+        };
+        // socketcand's raw mode: the class only.
+        assert_eq!(parse(b" error 040 1.000000 "), Some(BusState::BusOff));
+        assert_eq!(parse(b" error 004 1.000000 "), Some(BusState::ErrorPassive));
+        assert_eq!(parse(b" error 100 1.000000 "), Some(BusState::ErrorActive));
+        assert_eq!(parse(b" error 020 1.000000 "), None);
+        // Its BCM mode and canpos: with the data; byte 1 says which controller state.
+        assert_eq!(
+            parse(b" error 004 1.000000 00 04 00 00 00 00 00 00 "),
+            None,
+            "a warning level is not a state change"
+        );
+        assert_eq!(
+            parse(b" error 004 1.000000 00 10 00 00 00 00 00 00 "),
+            Some(BusState::ErrorPassive)
+        );
+        for s in [
+            BusState::ErrorActive,
+            BusState::ErrorPassive,
+            BusState::BusOff,
+        ] {
+            assert_eq!(ErrorFrame::for_state(s, t).bus_state(), Some(s));
+        }
     }
 
     #[test]

@@ -9,8 +9,8 @@
 //!
 //! Limits: at most [`HubConfig::max_clients`] connections at once; one more is told
 //! `< error too many clients >` and closed. Threads do not grow with clients at all. A client
-//! must finish the handshake (`open`, `rawmode`) within [`HubConfig::handshake_timeout`], and a
-//! raw-mode client that sends nothing for [`HubConfig::idle_timeout`] (off by default:
+//! must open a channel (`open`: then in BCM mode, as with socketcand) within [`HubConfig::handshake_timeout`], and a
+//! client on a channel that sends nothing for [`HubConfig::idle_timeout`] (off by default:
 //! listen-only clients are normal) is closed.
 
 use std::collections::HashMap;
@@ -25,7 +25,8 @@ use crossbeam_channel::{Receiver, TryRecvError};
 use mio::net::{TcpListener as MioListener, TcpStream};
 use mio::{Events, Interest, Poll, Token, Waker};
 
-use super::codec::{self, Decoder, Element};
+use super::codec::{self, Decoder, Element, ErrorFrame};
+use super::session::{Effect, Session};
 use crate::mem::{BusCore, MemBus, MemPort, Sink};
 use crate::transport::RxFrame;
 
@@ -68,8 +69,9 @@ impl Wake {
 pub struct HubConfig {
     /// Frames queued per TCP client before further frames to it are dropped.
     pub queue_len: usize,
-    /// How long frames are held back after the rawmode `< ok >` (python-can reads that reply
-    /// with one `recv` and fails if a frame shares its TCP segment).
+    /// How long frames are held back after the rawmode `< ok >` at most (python-can reads that
+    /// reply with one `recv` and fails if a frame shares it). The hold ends earlier when the
+    /// client sends anything: then it has read its `< ok >`.
     pub hold_back: Duration,
     /// `SO_SNDBUF` for client sockets (`None`: kernel autotuning). A fixed, modest buffer makes a
     /// stuck client start losing frames after a bounded backlog instead of megabytes.
@@ -78,21 +80,33 @@ pub struct HubConfig {
     /// process's limit of open files (less 64 for everything else), so that the hub refuses
     /// cleanly instead of failing to accept.
     pub max_clients: usize,
-    /// Time from accept to raw mode; a client slower than that is closed.
+    /// Time from accept to `open` (the client is then in BCM mode); a client slower than that
+    /// is closed.
     pub handshake_timeout: Duration,
-    /// Longest silence of a raw-mode client before it is closed (`None`: no limit).
+    /// Longest silence of a client on a channel (any mode) before it is closed (`None`: no limit).
     pub idle_timeout: Option<Duration>,
+    /// Give bus errors ([`HubHandle::post_error`]) to every raw and BCM client, as socketcand
+    /// does when started with an error mask (`-e`); off by default: otherwise only clients
+    /// that sent the extension `< errors on >` get them.
+    pub error_frames: bool,
+    /// How each channel delivers frames: paced at a bit rate (default
+    /// [`DEFAULT_BITRATE_KBPS`](crate::bus::DEFAULT_BITRATE_KBPS)) or instant.
+    pub pacing: crate::bus::Pacing,
 }
 
 impl Default for HubConfig {
     fn default() -> Self {
         HubConfig {
             queue_len: 4096,
-            hold_back: Duration::from_millis(20),
+            // Long enough for a python-can process that is descheduled for a while under load
+            // (20 ms were not: one failure in a CI run with a UML guest beside it).
+            hold_back: Duration::from_millis(500),
             send_buffer: Some(256 * 1024),
             max_clients: 10_000,
             handshake_timeout: Duration::from_secs(10),
             idle_timeout: None,
+            error_frames: false,
+            pacing: crate::bus::Pacing::default(),
         }
     }
 }
@@ -130,6 +144,8 @@ struct Shared {
     dropped: Arc<AtomicU64>,
     unencodable: AtomicU64,
     refused: AtomicU64,
+    /// Bus errors waiting for the I/O thread, by channel.
+    errors: Arc<ErrorQueue>,
 }
 
 impl Shared {
@@ -140,7 +156,20 @@ impl Shared {
         }
         // Forget channels nobody uses any more, so many channel names do not accumulate.
         map.retain(|_, w| w.strong_count() > 0);
-        let core = Arc::new(BusCore::with_drop_counter(self.dropped.clone()));
+        let core = BusCore::create(self.config.pacing, self.dropped.clone());
+        // The timeline's error frames go to the channel's TCP clients that take errors.
+        let (errors, waker, channel) = (self.errors.clone(), self.waker.clone(), name.to_string());
+        core.set_error_hook(Box::new(move |ef| {
+            let (class, data) = ef.to_socketcan();
+            let e = ErrorFrame {
+                class: class & !0x2000_0000,
+                data: Some(data),
+                timestamp: ef.timestamp,
+            };
+            if push_error(&errors, (channel.clone(), e, None)) {
+                let _ = waker.wake();
+            }
+        }));
         map.insert(name.to_string(), Arc::downgrade(&core));
         core
     }
@@ -164,11 +193,51 @@ impl Shared {
         MemBus::from_core(self.channel(channel), self.config.queue_len).attach()
     }
 
+    fn post_error(&self, channel: &str, e: ErrorFrame) {
+        self.post_error_from(channel, e, None);
+    }
+
+    /// Queues a bus error for the clients of `channel`, except the connection `from`.
+    fn post_error_from(&self, channel: &str, e: ErrorFrame, from: Option<usize>) {
+        if push_error(&self.errors, (channel.to_string(), e, from)) {
+            let _ = self.waker.wake();
+        }
+    }
+
+    fn channel_stats(&self) -> Vec<(String, crate::transport::BusStats)> {
+        let map = self.channels.lock().unwrap_or_else(|e| e.into_inner());
+        let mut v: Vec<(String, crate::transport::BusStats)> = map
+            .iter()
+            .filter_map(|(name, w)| {
+                let core = w.upgrade()?;
+                (core.member_count() > 0)
+                    .then(|| core.stats(None).map(|s| (name.clone(), s)))
+                    .flatten()
+            })
+            .collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    }
+
     fn shutdown(&self) {
         if !self.shutdown.swap(true, Ordering::SeqCst) {
             let _ = self.waker.wake();
         }
     }
+}
+
+/// Bus errors waiting for the I/O thread: channel, error, and the connection that posted it.
+type ErrorQueue = Mutex<Vec<(String, ErrorFrame, Option<usize>)>>;
+
+/// Queues a bus error; false when the queue is full (a flood of errors with a stuck I/O thread
+/// must not grow without limit: the excess is lost).
+fn push_error(q: &ErrorQueue, e: (String, ErrorFrame, Option<usize>)) -> bool {
+    let mut q = q.lock().unwrap_or_else(|e| e.into_inner());
+    if q.len() >= 1024 {
+        return false;
+    }
+    q.push(e);
+    true
 }
 
 /// Turns on TCP_QUICKACK: Linux clears it after use, so it is re-armed after every read, and
@@ -241,6 +310,7 @@ impl Hub {
                 dropped: Arc::new(AtomicU64::new(0)),
                 unencodable: AtomicU64::new(0),
                 refused: AtomicU64::new(0),
+                errors: Arc::new(Mutex::new(Vec::new())),
             }),
         })
     }
@@ -322,9 +392,20 @@ impl HubHandle {
         self.shutdown.shared.stats()
     }
 
+    /// Load and counters of every channel in use (paced channels), by name.
+    pub fn channel_stats(&self) -> Vec<(String, crate::transport::BusStats)> {
+        self.shutdown.shared.channel_stats()
+    }
+
     /// A handle to stop the hub from elsewhere.
     pub fn shutdown_handle(&self) -> ShutdownHandle {
         self.shutdown.clone()
+    }
+
+    /// Reports a bus error on `channel` to its TCP clients that take error frames (see
+    /// [`HubConfig::error_frames`]) as `< error CLASS SEC.USEC D0 .. D7 >`.
+    pub fn post_error(&self, channel: &str, e: ErrorFrame) {
+        self.shutdown.shared.post_error(channel, e);
     }
 
     /// Whether the I/O thread is still running.
@@ -355,9 +436,11 @@ impl Drop for HubHandle {
 }
 
 enum State {
+    /// Greeted, no channel yet.
     Opening,
-    Opened(String),
+    /// On a channel (BCM, raw or control mode: see the connection's [`Session`]).
     Raw {
+        channel: String,
         bus: Arc<BusCore>,
         id: u64,
         rx: Receiver<RxFrame>,
@@ -373,6 +456,7 @@ struct Conn {
     stream: TcpStream,
     peer: SocketAddr,
     state: State,
+    session: Session,
     decoder: Decoder,
     /// Bytes not yet written, from `out_pos` on.
     out: Vec<u8>,
@@ -436,7 +520,10 @@ impl Conn {
         while self.out.len() - self.out_pos < OUT_LIMIT {
             match rx.try_recv() {
                 Ok(f) => {
-                    if !codec::write_frame(&mut self.out, &f.frame, f.timestamp) {
+                    if !self
+                        .session
+                        .deliver(&f.frame, f.timestamp, now, &mut self.out)
+                    {
                         shared.unencodable.fetch_add(1, Ordering::Relaxed);
                     }
                 }
@@ -470,6 +557,8 @@ struct EventLoop {
     accept_retry: bool,
     /// An accept slice ended before the backlog did.
     accept_more: bool,
+    /// Connections whose session has timed work (BCM send jobs, statistics): when it is due.
+    timed: HashMap<usize, Instant>,
     /// Clients to serve again next turn without waiting for an event: their socket had more to
     /// read than one turn takes, or their queue more than the output took while the socket
     /// still had room. Readiness is edge-triggered: no new event would come for either.
@@ -492,6 +581,7 @@ impl EventLoop {
             accept_retry: false,
             accept_more: false,
             again: Vec::new(),
+            timed: HashMap::new(),
         })
     }
 
@@ -518,6 +608,10 @@ impl EventLoop {
                 };
                 timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
             }
+            if let Some(d) = self.timed.values().min() {
+                let left = d.saturating_duration_since(Instant::now());
+                timeout = Some(timeout.map_or(left, |t| t.min(left)));
+            }
             if let Err(e) = self.poll.poll(&mut events, timeout) {
                 if e.kind() == io::ErrorKind::Interrupted {
                     continue;
@@ -542,6 +636,7 @@ impl EventLoop {
                             &mut *self.shared.ready.lock().unwrap_or_else(|e| e.into_inner()),
                         );
                         touched.extend(ready);
+                        self.post_errors(&mut touched);
                     }
                     Token(t) => {
                         if ev.is_readable() || ev.is_read_closed() || ev.is_error() {
@@ -557,6 +652,7 @@ impl EventLoop {
                 self.earliest = self.next_deadline();
                 next_scan = now + SCAN_EVERY;
             }
+            self.run_timed(now, &mut touched);
             touched.sort_unstable();
             touched.dedup();
             for t in touched {
@@ -662,6 +758,7 @@ impl EventLoop {
                 stream,
                 peer,
                 state: State::Opening,
+                session: Session::new(),
                 decoder: Decoder::new(),
                 out: codec::HI.to_vec(),
                 out_pos: 0,
@@ -725,21 +822,93 @@ impl EventLoop {
         if !drained {
             self.again.push(t);
         }
-        let was_raw = matches!(c.state, State::Raw { .. });
+        let was_joined = matches!(c.state, State::Raw { .. });
+        let was_holding = matches!(
+            c.state,
+            State::Raw {
+                hold_until: Some(_),
+                ..
+            }
+        );
         for el in elements {
             if !handle_element(el, c, &self.shared, t, now) {
                 c.closed = true;
                 break;
             }
         }
-        // Raw mode began: its hold-back and idle deadlines.
-        if let (false, State::Raw { hold_until, .. }) = (was_raw, &c.state) {
-            let mut due = *hold_until;
-            if let Some(d) = self.shared.config.idle_timeout {
-                due = Some(due.map_or(now + d, |h| h.min(now + d)));
+        let mut due = None;
+        if let State::Raw { hold_until, .. } = &c.state {
+            // Raw mode began: its hold-back deadline; a channel was opened: the idle deadline.
+            if !was_holding {
+                due = *hold_until;
             }
-            if let Some(d) = due {
-                self.note_deadline(d);
+            if let (false, Some(d)) = (was_joined, self.shared.config.idle_timeout) {
+                due = Some(due.map_or(now + d, |h: Instant| h.min(now + d)));
+            }
+        }
+        let timed = c.session.next_deadline();
+        if let Some(d) = due {
+            self.note_deadline(d);
+        }
+        self.set_timed(t, timed);
+    }
+
+    /// Records when a connection's session (BCM jobs, statistics) next needs [`Session::poll`].
+    fn set_timed(&mut self, t: usize, due: Option<Instant>) {
+        match due {
+            Some(d) => {
+                self.timed.insert(t, d);
+            }
+            None => {
+                self.timed.remove(&t);
+            }
+        }
+    }
+
+    /// Runs the due BCM send jobs and statistics.
+    fn run_timed(&mut self, now: Instant, touched: &mut Vec<usize>) {
+        let due: Vec<usize> = self
+            .timed
+            .iter()
+            .filter(|(_, d)| **d <= now)
+            .map(|(t, _)| *t)
+            .collect();
+        let mut frames = Vec::new();
+        for t in due {
+            let Some(c) = self.conns.get_mut(&t) else {
+                self.timed.remove(&t);
+                continue;
+            };
+            frames.clear();
+            c.session.poll(now, &mut c.out, &mut frames);
+            if let State::Raw { bus, id, .. } = &c.state {
+                for f in &frames {
+                    bus.transmit(*id, *f);
+                }
+            }
+            let next = c.session.next_deadline();
+            self.set_timed(t, next);
+            touched.push(t);
+        }
+    }
+
+    /// Gives bus errors posted by [`HubHandle::post_error`] to the clients of their channel.
+    fn post_errors(&mut self, touched: &mut Vec<usize>) {
+        let errors =
+            std::mem::take(&mut *self.shared.errors.lock().unwrap_or_else(|e| e.into_inner()));
+        for (channel, e, from) in errors {
+            for (t, c) in &mut self.conns {
+                if Some(*t) == from {
+                    continue;
+                }
+                if matches!(&c.state, State::Raw { channel: ch, .. } if *ch == channel) {
+                    let before = c.out.len();
+                    c.session
+                        .error_frame(&e, self.shared.config.error_frames, &mut c.out);
+                    if c.out.len() != before {
+                        touched.push(*t);
+                    }
+                }
             }
         }
     }
@@ -759,6 +928,7 @@ impl EventLoop {
         }
         if c.closed {
             let mut c = self.conns.remove(&t).expect("present");
+            self.timed.remove(&t);
             c.leave();
             let _ = self.poll.registry().deregister(&mut c.stream);
             self.shared
@@ -799,63 +969,71 @@ fn handle_element(
     token: usize,
     now: Instant,
 ) -> bool {
-    match (el, &c.state) {
-        (Element::Send(frame), State::Raw { bus, id, .. }) => {
-            shared.frames_in.fetch_add(1, Ordering::Relaxed);
-            bus.broadcast(*id, RxFrame::now(frame));
-            true
-        }
-        (Element::Echo, State::Raw { .. }) => {
-            // Frames queued before the echo go out before it.
-            c.fill(now, shared);
-            c.out.extend_from_slice(codec::ECHO);
-            true
-        }
-        (Element::Echo, _) => {
-            c.out.extend_from_slice(codec::ECHO);
-            true
-        }
-        (Element::Open(ch), State::Opening) => {
-            if !valid_channel(&ch) {
-                tracing::debug!(peer = %c.peer, "refusing channel name {ch:?}");
-                return false;
-            }
-            c.state = State::Opened(ch);
-            c.out.extend_from_slice(codec::OK);
-            true
-        }
-        (Element::RawMode, State::Opened(ch)) => {
-            let bus = shared.channel(ch);
-            let (tx, rx) = crossbeam_channel::unbounded();
-            let wake = Arc::new(Wake {
-                cap: shared.config.queue_len,
-                token,
-                pending: AtomicBool::new(false),
-                ready: shared.ready.clone(),
-                waker: shared.waker.clone(),
-            });
-            // The `< ok >` goes out before any frame: frames wait in the queue until the hold-back
-            // ends.
-            c.out.extend_from_slice(codec::OK);
-            let (id, dropped) = bus.join(Sink::Remote(tx, wake.clone()));
-            tracing::debug!(peer = %c.peer, channel = %ch, "client in raw mode");
-            c.state = State::Raw {
-                bus,
-                id,
-                rx,
-                wake,
-                dropped,
-                hold_until: Some(now + shared.config.hold_back),
-            };
-            true
-        }
-        (el, _) => {
-            // Unknown or out-of-order commands are ignored: python-can raises on `< error >`
-            // in raw mode, and a misbehaving client must not take the hub down.
-            tracing::trace!(peer = %c.peer, "ignored element {el:?}");
-            true
+    // A client that speaks after raw mode began has read the `< ok >`: its hold-back ends.
+    if !matches!(el, Element::Mode(_)) {
+        if let State::Raw { hold_until, .. } = &mut c.state {
+            *hold_until = None;
         }
     }
+    // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
+    // over) before its answer.
+    if matches!(el, Element::Echo | Element::Mode(_)) {
+        c.fill(now, shared);
+    }
+    if let Element::Other(text) = &el {
+        tracing::trace!(peer = %c.peer, "unknown command {text:?}");
+    }
+    for effect in c.session.handle(el, now, &mut c.out, valid_channel) {
+        match effect {
+            Effect::Join(ch) => {
+                let bus = shared.channel(&ch);
+                let (tx, rx) = crossbeam_channel::unbounded();
+                let wake = Arc::new(Wake {
+                    cap: shared.config.queue_len,
+                    token,
+                    pending: AtomicBool::new(false),
+                    ready: shared.ready.clone(),
+                    waker: shared.waker.clone(),
+                });
+                let (id, dropped) = bus.join(Sink::Remote(tx, wake.clone()));
+                tracing::debug!(peer = %c.peer, channel = %ch, "client opened a channel");
+                c.state = State::Raw {
+                    channel: ch,
+                    bus,
+                    id,
+                    rx,
+                    wake,
+                    dropped,
+                    hold_until: None,
+                };
+            }
+            Effect::Send(frame) => {
+                if let State::Raw { bus, id, .. } = &c.state {
+                    shared.frames_in.fetch_add(1, Ordering::Relaxed);
+                    bus.transmit(*id, frame);
+                }
+            }
+            Effect::RawStarted => {
+                // The `< ok >` goes out before any frame: frames wait in the queue until the
+                // hold-back ends.
+                if let State::Raw { hold_until, .. } = &mut c.state {
+                    *hold_until = Some(now + shared.config.hold_back);
+                }
+                tracing::debug!(peer = %c.peer, "client in raw mode");
+            }
+            Effect::PostError(e) => {
+                if let State::Raw { channel, .. } = &c.state {
+                    shared.post_error_from(channel, e, Some(token));
+                }
+            }
+            Effect::Close => {
+                tracing::debug!(peer = %c.peer, "refused channel name");
+                c.flush();
+                return false;
+            }
+        }
+    }
+    true
 }
 
 fn valid_channel(ch: &str) -> bool {

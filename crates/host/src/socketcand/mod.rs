@@ -5,6 +5,8 @@
 pub mod client;
 pub mod codec;
 pub mod hub;
+pub mod reconnect;
+pub mod session;
 
 pub use client::Client;
 pub use hub::{Hub, HubConfig, HubHandle, HubStats, ShutdownHandle, DEFAULT_LISTEN};

@@ -1,0 +1,246 @@
+// canpos dashboard page: live data from /api/events (server-sent events), actions through the
+// JSON API. Every failed request shows its error in #message.
+"use strict";
+
+const FAULTS = ["missing-magnet", "extra-magnet", "magnets-too-close", "sensor-error",
+  "supply-voltage", "over-temperature", "storage-corrupt", "error-passive", "bus-off",
+  "can-overrun", "communication", "pdo-length", "wrong-mapping", "wrong-vendor-id",
+  "wrong-scale", "wrong-resolution", "no-system-data", "invalid-serial",
+  "unexpected-system-data", "power-cycle"];
+const NMT = ["start", "stop", "preop", "reset", "reset-comm"];
+
+// State the tests read: plots and their data per node and channel.
+const dash = { plots: {}, data: {}, window: 30, last: null };
+window.canposDash = dash;
+
+const $ = (sel, root = document) => root.querySelector(sel);
+const el = (tag, attrs = {}, ...kids) => {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k === "class") e.className = v; else if (k.startsWith("on")) e[k] = v; else e.setAttribute(k, v);
+  }
+  for (const k of kids) e.append(k);
+  return e;
+};
+
+function show(text, kind = "error") {
+  const m = $("#message");
+  m.textContent = text;
+  m.className = kind;
+  m.hidden = false;
+}
+
+async function api(method, url, body) {
+  const opts = { method, headers: {} };
+  if (body !== undefined) {
+    opts.body = JSON.stringify(body);
+    opts.headers["content-type"] = "application/json";
+  }
+  let r, j;
+  try {
+    r = await fetch(url, opts);
+    j = await r.json();
+  } catch (e) {
+    show(`${method} ${url}: ${e}`);
+    throw e;
+  }
+  if (!r.ok || j.ok === false) {
+    show(`${r.status}: ${j.error || "request failed"}`);
+    throw new Error(j.error);
+  }
+  return j;
+}
+
+function control(node, req) {
+  return api("POST", `/api/nodes/${node}/control`, req).then((j) => {
+    show(`node ${node}: ${req.cmd} done`, "info");
+    return j;
+  });
+}
+
+function nodeRow(n) {
+  let tr = $(`#nodes tr[data-node="${n.node}"]`);
+  if (!tr) {
+    tr = el("tr", { "data-node": n.node });
+    for (const c of ["node", "model", "name", "serial", "nmt", "errreg"]) tr.append(el("td", { class: c }));
+    const rows = [...$("#nodes tbody").children];
+    const after = rows.find((r) => Number(r.dataset.node) > n.node);
+    $("#nodes tbody").insertBefore(tr, after || null);
+  }
+  $(".node", tr).textContent = n.node;
+  $(".model", tr).textContent = n.product ? `${n.product} (${n.model})` : "unknown";
+  $(".name", tr).textContent = n.name ?? "–";
+  $(".serial", tr).textContent = n.serial ?? "–";
+  $(".nmt", tr).textContent = n.nmt;
+  $(".errreg", tr).textContent = n.error_register == null ? "–"
+    : `0x${n.error_register.toString(16).padStart(2, "0").toUpperCase()} (${n.error_register_text})`;
+}
+
+function plot(target, label, unit, stroke) {
+  const opts = {
+    width: 520, height: 200, title: `${label} (${unit})`,
+    scales: { x: { time: false } },
+    axes: [{ label: "s" }, { label: unit }],
+    series: [{ label: "t / s" }, { label: `${label} / ${unit}`, stroke, width: 1.5 }],
+  };
+  return new uPlot(opts, [[], []], target);
+}
+
+function panel(n) {
+  let sec = $(`section.node[data-node="${n.node}"]`);
+  if (sec) return sec;
+  sec = el("section", { class: "node", "data-node": n.node });
+  sec.append(el("h2", {}, `Node ${n.node}`), el("div", { class: "channels" }),
+    el("p", {}, "Alarms: ", el("span", { class: "alarms" }, "–"), " · Error register: ",
+      el("span", { class: "errreg" }, "–")));
+  const ctl = el("div", { class: "controls", hidden: "" });
+  const slider = el("input", { type: "range", min: "0", max: "1000", step: "1", value: "0", class: "magnet" });
+  const out = el("span", { class: "magnet-mm" }, "– mm");
+  let pending = null, busy = false;
+  const send = () => {
+    if (busy || pending === null) return;
+    const mm = pending; pending = null; busy = true;
+    control(n.node, { cmd: "magnet", index: 0, mm }).catch(() => {}).finally(() => { busy = false; send(); });
+  };
+  slider.oninput = () => { out.textContent = `${slider.value} mm`; pending = Number(slider.value); send(); };
+  const spec = el("input", { class: "motion-spec", size: "36", value: "sine:center=500,amp=300,period=4" });
+  const faultSel = el("select", { class: "fault-name" }, ...FAULTS.map((f) => el("option", { value: f }, f)));
+  const nmtSel = el("select", { class: "nmt-command" }, ...NMT.map((c) => el("option", { value: c }, c)));
+  ctl.append(
+    el("label", {}, "Magnet 0: ", slider, " ", out),
+    el("span", {}, spec, el("button", { class: "motion-start", onclick: () => control(n.node, { cmd: "motion", spec: spec.value }).catch(() => {}) }, "Start motion")),
+    el("span", {}, faultSel,
+      el("button", { class: "fault-on", onclick: () => control(n.node, { cmd: "fault", name: faultSel.value, on: true }).catch(() => {}) }, "on"),
+      el("button", { class: "fault-off", onclick: () => control(n.node, { cmd: "fault", name: faultSel.value, on: false }).catch(() => {}) }, "off")),
+    el("button", { class: "power-cycle", onclick: () => control(n.node, { cmd: "power-cycle" }).catch(() => {}) }, "Power-cycle"),
+    el("span", {}, nmtSel, el("button", { class: "nmt-send", onclick: () => control(n.node, { cmd: "nmt", command: nmtSel.value }).catch(() => {}) }, "NMT")),
+    el("span", { class: "faults" }));
+  sec.append(ctl);
+  sec.append(el("h3", {}, "EMCY log"), el("table", { class: "emcy" },
+    el("thead", {}, el("tr", {}, ...["t / s", "code", "meaning", "register", "manufacturer bytes"].map((h) => el("th", {}, h)))),
+    el("tbody")));
+  const odBox = el("div", { class: "od-box" });
+  sec.append(el("h3", {}, "Object dictionary ", el("button", { class: "od-load", onclick: () => loadOd(n.node, odBox) }, "Load")), odBox);
+  $("#panels").append(sec);
+  return sec;
+}
+
+async function loadOd(node, box) {
+  const j = await api("GET", `/api/nodes/${node}/od`).catch(() => null);
+  if (!j) return;
+  const tb = el("tbody");
+  for (const e of j.entries) {
+    const key = `${e.index}/${e.sub}`;
+    const val = el("td", { class: "value" }, "");
+    const input = el("input", { class: "write-value" });
+    const read = async () => {
+      const r = await api("GET", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`).catch(() => null);
+      if (r) val.textContent = `${r.value} [${r.hex}]`;
+    };
+    const write = async () => {
+      const r = await api("PUT", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`, { value: input.value }).catch(() => null);
+      if (r) { show(`node ${node}: wrote ${key}`, "info"); read(); }
+    };
+    const acts = el("td", {});
+    if (e.access !== "wo") acts.append(el("button", { class: "read", onclick: read }, "read"));
+    if (e.access === "rw" || e.access === "wo") acts.append(input, el("button", { class: "write", onclick: write }, "write"));
+    tb.append(el("tr", { "data-key": key }, el("td", {}, e.index), el("td", {}, String(e.sub)),
+      el("td", {}, e.name), el("td", {}, e.type), el("td", {}, e.access), val, acts));
+  }
+  box.replaceChildren(el("table", { class: "od" },
+    el("thead", {}, el("tr", {}, ...["index", "sub", "name", "type", "access", "value", ""].map((h) => el("th", {}, h)))), tb));
+}
+
+function draw(node, i) {
+  const d = dash.data[node][i], p = dash.plots[node][i];
+  p.pos.setData([d.t, d.p]);
+  p.vel.setData([d.t, d.v]);
+}
+
+const seen = new IntersectionObserver((entries) => {
+  for (const e of entries) {
+    const node = Number(e.target.closest("section.node").dataset.node), i = Number(e.target.dataset.ch);
+    const p = dash.plots[node] && dash.plots[node][i];
+    if (!p) continue;
+    p.visible = e.isIntersecting;
+    if (p.visible) draw(node, i);
+  }
+});
+
+function channels(sec, n) {
+  const box = $(".channels", sec);
+  dash.plots[n.node] ??= [];
+  dash.data[n.node] ??= [];
+  n.channels.forEach((c, i) => {
+    let ch = $(`.channel[data-ch="${i}"]`, box);
+    if (!ch) {
+      ch = el("div", { class: "channel", "data-ch": i });
+      const pos = el("div", { class: "plot-pos" }), vel = el("div", { class: "plot-vel" });
+      ch.append(pos, vel, el("div", { class: "states" }, el("h4", {}, `Channel ${i + 1}`),
+        el("div", { class: "pos-now" }), el("div", {}, "Cams: ", el("span", { class: "cams" })),
+        el("div", {}, "Work area: ", el("span", { class: "area" }))));
+      box.append(ch);
+      dash.data[n.node][i] = { t: [], p: [], v: [] };
+      dash.plots[n.node][i] = { pos: plot(pos, "position", "mm", "#1565c0"), vel: plot(vel, "velocity", "mm/s", "#c62828"), visible: true };
+      seen.observe(ch);
+    }
+    const d = dash.data[n.node][i];
+    d.t.push(...c.t); d.p.push(...c.p); d.v.push(...c.v);
+    const tmax = d.t.length ? d.t[d.t.length - 1] : 0;
+    let cut = 0;
+    while (cut < d.t.length && d.t[cut] < tmax - dash.window) cut++;
+    if (cut) { d.t.splice(0, cut); d.p.splice(0, cut); d.v.splice(0, cut); }
+    // Off-screen plots are not redrawn (with many nodes most are): their data still grows.
+    if ((c.t.length || cut) && dash.plots[n.node][i].visible) draw(n.node, i);
+    $(".pos-now", ch).textContent = c.pos == null ? "no position"
+      : `${c.pos.toFixed(3)} mm, ${c.vel == null ? "–" : c.vel.toFixed(2)} mm/s`;
+    $(".cams", ch).textContent = c.cam == null ? "–" : (c.cam_labels.join(", ") || "all cams inactive");
+    $(".area", ch).textContent = c.area == null ? "–" : (c.area_labels.join(", ") || "inside the work area");
+  });
+}
+
+function update(s) {
+  dash.last = s;
+  dash.window = s.window_s;
+  $("#bus").textContent = `bus ${s.bus}`;
+  $("#rate").textContent = `${s.frames_per_s.toFixed(0)} frames/s`;
+  $("#load").textContent = s.bus_load ? `bus load ${JSON.stringify(s.bus_load.value)} (${s.bus_load.key})` : "";
+  if (s.bus_error) show(`bus connection ended: ${s.bus_error}`);
+  for (const n of s.nodes) {
+    nodeRow(n);
+    const sec = panel(n);
+    $("h2", sec).textContent = `Node ${n.node} — ${n.product ?? "unknown model"} · ${n.nmt}`;
+    channels(sec, n);
+    const al = $(".alarms", sec);
+    al.textContent = n.alarms == null ? "–" : (n.alarm_labels.join(", ") || "none");
+    al.className = "alarms " + (n.alarms ? "alarm" : "ok");
+    $(".errreg", sec).textContent = n.error_register == null ? "–"
+      : `0x${n.error_register.toString(16).padStart(2, "0").toUpperCase()} (${n.error_register_text})`;
+    const ctl = $(".controls", sec);
+    ctl.hidden = !n.control;
+    if (n.control) {
+      const bus = [n.control.bus_off ? "bus-off" : null, n.control.bus_state ? `CAN ${JSON.stringify(n.control.bus_state)}` : null].filter(Boolean);
+      $(".faults", ctl).textContent = (bus.length ? `${bus.join(", ")} · ` : "") + `faults on: ${(n.control.faults || []).map((f) => (typeof f === "string" ? f : JSON.stringify(f))).join(", ") || "none"}`;
+      const slider = $(".magnet", ctl);
+      const mm = n.control.true_mm && n.control.true_mm[0];
+      if (mm != null && document.activeElement !== slider && !slider.dataset.set) {
+        slider.value = mm; slider.dataset.set = "1";
+        $(".magnet-mm", ctl).textContent = `${mm} mm`;
+      }
+    }
+    const tb = $(".emcy tbody", sec);
+    tb.replaceChildren(...n.emcy.map((e) => el("tr", { "data-code": e.code },
+      el("td", {}, e.t.toFixed(3)), el("td", {}, e.code), el("td", {}, e.meaning),
+      el("td", {}, `${e.register} (${e.register_text})`), el("td", {}, e.msef))));
+  }
+}
+
+function connect() {
+  const es = new EventSource("/api/events");
+  es.onopen = () => { $("#link").textContent = "live"; };
+  es.onmessage = (ev) => update(JSON.parse(ev.data));
+  es.onerror = () => { $("#link").textContent = "reconnecting…"; };
+}
+
+$("#scan").onclick = () => api("POST", "/api/scan").then(() => show("scan sent", "info")).catch(() => {});
+connect();

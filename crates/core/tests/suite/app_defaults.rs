@@ -1,0 +1,83 @@
+//! The `Application` trait's defaults: "nothing to do". A CiA 301 device whose application
+//! owns nothing (the `Plain` device served from an EDS, or an application that implements only
+//! a part) behaves as the stack alone: NMT start is honoured, a process cycle or a fault never
+//! forces pre-operational, nothing is stored unasked, and corrupt stored data raises the
+//! generic EMCY 0x6300 (CiA 301 §7.2.7.1: 0x63xx data set).
+
+use canpos_core::models::th::TH;
+use canpos_core::nmt::NmtState;
+use canpos_core::storage::RamStorage;
+use canpos_core::Application;
+use canpos_core::{Instant, Node, Plain};
+
+/// An application that implements nothing but has a fault type (Plain's is uninhabited).
+struct Quiet;
+
+impl Application for Quiet {
+    type Sample = ();
+    type Fault = u8;
+}
+
+fn started<A: Application>(app: A) -> Node<A, RamStorage> {
+    let mut n = Node::with_app(&TH, TH.default_config, app, RamStorage::default());
+    n.power_on(Instant::ZERO);
+    while n.poll_transmit().is_some() {}
+    let start = canpos_core::Frame::new(0x000, &[0x01, 0]).unwrap();
+    n.handle_frame(&start, Instant::from_millis(10));
+    n
+}
+
+#[test]
+fn plain_device_starts_and_stays_operational_through_cycles() {
+    let mut n = started(Plain);
+    assert_eq!(n.device().nmt_state(), NmtState::Operational);
+    for k in 1..=5 {
+        n.update_sample(&(), Instant::from_millis(10 + k));
+    }
+    assert_eq!(n.device().nmt_state(), NmtState::Operational);
+}
+
+#[test]
+fn default_cycle_and_fault_never_force_pre_operational() {
+    let mut n = started(Quiet);
+    n.update_sample(&(), Instant::from_millis(11));
+    n.inject_fault(7, true);
+    assert_eq!(n.device().nmt_state(), NmtState::Operational);
+    n.inject_fault(7, false);
+    assert_eq!(n.device().nmt_state(), NmtState::Operational);
+}
+
+#[test]
+fn default_application_stores_nothing_by_itself() {
+    let mut n = started(Quiet);
+    for k in 1..=3 {
+        n.update_sample(&(), Instant::from_millis(10 + k));
+    }
+    assert_eq!(n.storage_mut().saves, 0);
+}
+
+#[test]
+fn corrupt_storage_raises_the_generic_data_set_emcy() {
+    let mut n = Node::with_app(&TH, TH.default_config, Quiet, RamStorage::default());
+    n.power_on(Instant::ZERO);
+    // Store once ("save" 0x1010 sub 1), corrupt the medium, power-cycle.
+    let save = canpos_core::Frame::new(
+        0x600 + n.device().node_id() as u16,
+        &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e'],
+    )
+    .unwrap();
+    n.handle_frame(&save, Instant::from_millis(5));
+    while n.poll_transmit().is_some() {}
+    assert_eq!(n.storage_mut().saves, 1);
+    n.storage_mut().corrupt();
+    n.power_off();
+    n.power_on(Instant::from_millis(100));
+    let emcy_id = 0x080 + n.device().node_id() as u16;
+    let emcy: Vec<_> = core::iter::from_fn(|| n.poll_transmit())
+        .filter(|f| f.std_id() == Some(emcy_id))
+        .collect();
+    assert!(
+        emcy.iter().any(|f| f.data()[..2] == [0x00, 0x63]),
+        "expected EMCY 0x6300, got {emcy:?}"
+    );
+}

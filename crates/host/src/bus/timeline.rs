@@ -1,0 +1,1065 @@
+//! The bus timeline: one CAN bus as a sans-IO state machine (no sockets, no threads, no clock;
+//! the caller passes the time in, in nanoseconds since the bus started).
+//!
+//! Members (CAN controllers) [`submit`](Timeline::submit) frames into their bounded transmit
+//! queues; [`advance`](Timeline::advance) runs the bus up to a given time and reports what
+//! happened on it ([`BusEvent`]): frames at their end-of-frame time, error frames, and error
+//! state changes of the members. [`next_event`](Timeline::next_event) says when to call again.
+//! See docs/BUS.md for the model and the choices behind it.
+
+use std::collections::VecDeque;
+
+use canpos_core::Frame;
+
+use super::bits::{
+    arbitration_key, first_difference, frame_length, stuffed, BUS_OFF_RECOVERY_SEQUENCES,
+    ERROR_FRAME_BITS, INTERMISSION_BITS, RECESSIVE_SEQUENCE_BITS, SUSPEND_BITS,
+};
+use crate::transport::BusState;
+
+/// Time on the bus timeline: nanoseconds since the bus started.
+pub type Nanos = u64;
+
+/// The window over which bus load and frame rate are measured.
+pub const LOAD_WINDOW: Nanos = 1_000_000_000;
+
+/// Default transmit queue depth of a member, in frames (see docs/BUS.md).
+pub const DEFAULT_TX_DEPTH: usize = 64;
+
+/// Longest stuck-dominant interval [`Timeline::stuck_dominant`] accepts.
+pub const MAX_STUCK: Nanos = 60_000_000_000;
+
+/// Bit rates of the CiA 301 bit-timing table, kbit/s (100 kbit/s is listed there as not
+/// recommended for new designs but is still a table entry).
+pub const CIA301_BITRATES: [u32; 9] = [1000, 800, 500, 250, 125, 100, 50, 20, 10];
+
+/// One controller on the bus: an index the timeline gave out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct MemberId(pub u32);
+
+/// What kind of error destroyed a frame (or held the bus).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BusErrorKind {
+    /// Two or more members sent the same identifier with different control or data bits in one
+    /// arbitration: each saw a bit error (a duplicate node-id shows up as this).
+    Collision,
+    /// A frame corrupted on the wire (injected disturbance): the receivers flag a CRC or form
+    /// error.
+    Corrupted,
+    /// The bus was held dominant for `bits` bit times (injected disturbance).
+    StuckDominant {
+        /// Length of the dominant interval in bit times.
+        bits: u64,
+    },
+}
+
+/// An error frame on the bus, as the timeline reports it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BusError {
+    /// End of the error delimiter (stuck dominant: end of the dominant interval).
+    pub at: Nanos,
+    /// What happened.
+    pub kind: BusErrorKind,
+    /// Identifier of the frame destroyed, if one was on the wire.
+    pub id: Option<u32>,
+    /// The members that were transmitting.
+    pub transmitters: Vec<MemberId>,
+}
+
+/// Something that happened on the bus.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum BusEvent {
+    /// A frame was received by everyone but its senders, at `end` (end of EOF).
+    Frame {
+        /// The member that sent it.
+        from: MemberId,
+        /// Other members that sent the very same frame in the same arbitration (all succeed).
+        co_senders: Vec<MemberId>,
+        /// The frame.
+        frame: Frame,
+        /// Start of frame.
+        start: Nanos,
+        /// End of frame.
+        end: Nanos,
+    },
+    /// An error frame.
+    Error(BusError),
+    /// A member's error state changed.
+    State {
+        /// The member.
+        member: MemberId,
+        /// When.
+        at: Nanos,
+        /// New state.
+        state: BusState,
+        /// Transmit error counter then.
+        tec: u16,
+        /// Receive error counter then.
+        rec: u16,
+    },
+}
+
+/// Why [`Timeline::submit`] did not queue a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rejected {
+    /// The transmit queue was full of frames at least as important.
+    QueueFull,
+    /// The member is bus-off.
+    BusOff,
+    /// No such member.
+    NoMember,
+}
+
+/// What [`Timeline::submit`] did with a frame it accepted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accepted {
+    /// Queued.
+    Queued,
+    /// Queued in place of a less important frame, which is lost (and counted).
+    Evicted(Frame),
+}
+
+/// Counters of one member.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MemberStats {
+    /// Frames that went on the bus successfully.
+    pub sent: u64,
+    /// Frames lost because the transmit queue was full.
+    pub lost_overflow: u64,
+    /// Frames lost because the member was (or went) bus-off.
+    pub lost_bus_off: u64,
+    /// Transmissions that ended in an error frame (retransmitted automatically).
+    pub tx_errors: u64,
+    /// Of those, collisions with another member sending the same identifier.
+    pub collisions: u64,
+    /// Time the last sent frame waited from submission to its start of frame.
+    pub last_wait: Nanos,
+    /// Longest such wait.
+    pub max_wait: Nanos,
+    /// Frames waiting in the transmit queue.
+    pub queued: usize,
+    /// Transmit error counter.
+    pub tec: u16,
+    /// Receive error counter.
+    pub rec: u16,
+    /// Error state.
+    pub state: BusState,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Queued {
+    frame: Frame,
+    key: u32,
+    ready_at: Nanos,
+    seq: u64,
+    on_wire: bool,
+}
+
+/// The order in which a controller's transmit queue goes on the bus.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TxOrder {
+    /// Its most important frame first (lowest identifier; the same identifier in submission
+    /// order): a microcontroller's CAN peripheral with several transmit buffers (bxCAN with
+    /// TXFP = 0, most others), which is what a sensor has.
+    #[default]
+    Priority,
+    /// In submission order, head of line: a Linux host's SocketCAN interface (the netdev queue
+    /// is FIFO and most drivers hand the controller one frame at a time), i.e. what stands
+    /// behind a socketcand client. A full queue drops the new frame.
+    Fifo,
+}
+
+#[derive(Debug, Default)]
+struct Member {
+    live: bool,
+    order: TxOrder,
+    /// Left: removed once its queue is empty.
+    leaving: bool,
+    queue: Vec<Queued>,
+    depth: usize,
+    tec: u16,
+    rec: u16,
+    state: BusState,
+    /// Error passive: may not start a frame before this (suspend transmission).
+    suspend_until: Nanos,
+    /// Bus-off: 11-recessive-bit sequences seen so far, and the start of the current
+    /// recessive run.
+    off_sequences: u64,
+    off_run_start: Nanos,
+    /// The transceiver no longer drives the bus: every attempt is a bit error at SOF.
+    transceiver_failed: bool,
+    next_attempt: Nanos,
+    stats: MemberStats,
+}
+
+impl Member {
+    /// The frame this member offers at an arbitration at `t`: its most important frame ready
+    /// by then (lowest identifier; the same identifier in submission order).
+    fn offer(&self, t: Nanos) -> Option<usize> {
+        if self.order == TxOrder::Fifo {
+            let (i, head) = self.queue.iter().enumerate().min_by_key(|(_, q)| q.seq)?;
+            return (head.ready_at <= t).then_some(i);
+        }
+        self.queue
+            .iter()
+            .enumerate()
+            .filter(|(_, q)| q.ready_at <= t)
+            .min_by_key(|(_, q)| (q.key, q.seq))
+            .map(|(i, _)| i)
+    }
+
+    fn earliest_ready(&self) -> Option<Nanos> {
+        self.queue.iter().map(|q| q.ready_at).min()
+    }
+
+    fn can_arbitrate(&self) -> bool {
+        self.live && self.state != BusState::BusOff && !self.transceiver_failed
+    }
+}
+
+/// A member's frame in an arbitration: member index, queue index, arbitration value.
+type Offer = (u32, usize, u32);
+
+#[derive(Debug)]
+struct OnWire {
+    senders: Vec<(MemberId, u64)>,
+    frame: Frame,
+    start: Nanos,
+    /// End of EOF (success) or of the error delimiter (error).
+    end: Nanos,
+    /// The bus is free for the next SOF (after the intermission).
+    free: Nanos,
+    /// Whether the frame failed, and how.
+    error: Option<BusErrorKind>,
+    /// Bits on the wire, for the load.
+    bits: u64,
+    /// Error-passive senders of the same identifier that lost at a data bit (and the bit).
+    passive_losers: Vec<(MemberId, u32)>,
+}
+
+/// The bus.
+#[derive(Debug)]
+pub struct Timeline {
+    bitrate_kbps: u32,
+    bit_ns: Nanos,
+    members: Vec<Member>,
+    free_slots: Vec<u32>,
+    /// Members with something queued (arbitration looks at these only).
+    active: Vec<u32>,
+    /// Members that are bus-off (recovery counting).
+    off: Vec<u32>,
+    /// Members with a failed transceiver.
+    failed: Vec<u32>,
+    current: Option<OnWire>,
+    /// The bus is free for a start of frame from here on.
+    free_at: Nanos,
+    seq: u64,
+    /// (end, bits, is a frame) of everything on the bus within the load window.
+    window: VecDeque<(Nanos, u64, bool)>,
+    window_bits: u64,
+    window_frames: u64,
+    frames: u64,
+    error_frames: u64,
+    /// Corrupted frames per million (injected).
+    corrupt_ppm: u32,
+    rng: u64,
+    /// A pending stuck-dominant interval.
+    stuck: Option<(Nanos, Nanos)>,
+    /// Some member's REC may be above 0.
+    rec_raised: bool,
+}
+
+/// A parameter of a bus disturbance out of range.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct BadDisturbance(pub String);
+
+/// Checks a bit rate against the CiA 301 table.
+pub fn check_bitrate(kbps: u32) -> Result<u32, String> {
+    if CIA301_BITRATES.contains(&kbps) {
+        Ok(kbps)
+    } else {
+        Err(format!(
+            "{kbps} kbit/s is not a CiA 301 bit rate (kbit/s: 10, 20, 50, 100, 125, 250, 500, 800, 1000)"
+        ))
+    }
+}
+
+impl Timeline {
+    /// A bus at `kbps` kbit/s; it must be a CiA 301 bit rate.
+    pub fn new(kbps: u32) -> Result<Timeline, String> {
+        let kbps = check_bitrate(kbps)?;
+        Ok(Timeline {
+            bitrate_kbps: kbps,
+            // 1000 kbit/s: 1000 ns per bit; all CiA 301 rates divide 10⁶ ns·kbit/s exactly.
+            bit_ns: 1_000_000 / Nanos::from(kbps),
+            members: Vec::new(),
+            free_slots: Vec::new(),
+            active: Vec::new(),
+            off: Vec::new(),
+            failed: Vec::new(),
+            current: None,
+            free_at: 0,
+            seq: 0,
+            window: VecDeque::new(),
+            window_bits: 0,
+            window_frames: 0,
+            frames: 0,
+            error_frames: 0,
+            corrupt_ppm: 0,
+            rng: 0x9E37_79B9_7F4A_7C15,
+            stuck: None,
+            rec_raised: false,
+        })
+    }
+
+    /// The bit rate, kbit/s.
+    pub fn bitrate_kbps(&self) -> u32 {
+        self.bitrate_kbps
+    }
+
+    /// One bit time.
+    pub fn bit_time(&self) -> Nanos {
+        self.bit_ns
+    }
+
+    /// How long `frame` occupies the bus, intermission included.
+    pub fn frame_time(&self, frame: &Frame) -> Nanos {
+        Nanos::from(frame_length(frame).total) * self.bit_ns
+    }
+
+    /// Adds a controller with a transmit queue of `depth` frames (at least 1), drained by
+    /// priority ([`TxOrder::Priority`]).
+    pub fn join(&mut self, depth: usize) -> MemberId {
+        self.join_with(depth, TxOrder::Priority)
+    }
+
+    /// Adds a controller whose transmit queue of `depth` frames drains in `order`.
+    pub fn join_with(&mut self, depth: usize, order: TxOrder) -> MemberId {
+        let m = Member {
+            live: true,
+            depth: depth.max(1),
+            order,
+            ..Member::default()
+        };
+        match self.free_slots.pop() {
+            Some(i) => {
+                self.members[i as usize] = m;
+                MemberId(i)
+            }
+            None => {
+                self.members.push(m);
+                MemberId(self.members.len() as u32 - 1)
+            }
+        }
+    }
+
+    /// Removes a controller once what it queued has gone out (as frames handed to a
+    /// SocketCAN socket still go out after it is closed); at once when nothing is queued or it
+    /// cannot send (bus-off, failed transceiver).
+    pub fn leave(&mut self, id: MemberId) {
+        let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) else {
+            return;
+        };
+        m.leaving = true;
+        if m.queue.is_empty() || m.state == BusState::BusOff || m.transceiver_failed {
+            self.remove(id);
+        }
+    }
+
+    fn remove(&mut self, id: MemberId) {
+        let m = &mut self.members[id.0 as usize];
+        if !m.live {
+            return;
+        }
+        // A frame on the wire finishes without it.
+        if let Some(c) = &mut self.current {
+            c.senders.retain(|s| s.0 != id);
+        }
+        *m = Member::default();
+        self.active.retain(|&i| i != id.0);
+        self.off.retain(|&i| i != id.0);
+        self.failed.retain(|&i| i != id.0);
+        self.free_slots.push(id.0);
+    }
+
+    fn member(&self, id: MemberId) -> Option<&Member> {
+        self.members.get(id.0 as usize).filter(|m| m.live)
+    }
+
+    /// A member's counters.
+    pub fn stats(&self, id: MemberId) -> Option<MemberStats> {
+        self.member(id).map(|m| MemberStats {
+            queued: m.queue.len(),
+            tec: m.tec,
+            rec: m.rec,
+            state: m.state,
+            ..m.stats
+        })
+    }
+
+    /// Queues `frame` from member `id`, ready at `now`.
+    ///
+    /// A full queue keeps its most important frames: a frame with a lower identifier than the
+    /// least important one queued takes its place (that one is lost), otherwise the new frame
+    /// is lost. Either loss is counted.
+    pub fn submit(&mut self, id: MemberId, frame: Frame, now: Nanos) -> Result<Accepted, Rejected> {
+        let seq = self.seq;
+        let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) else {
+            return Err(Rejected::NoMember);
+        };
+        if m.state == BusState::BusOff {
+            m.stats.lost_bus_off += 1;
+            return Err(Rejected::BusOff);
+        }
+        let q = Queued {
+            frame,
+            key: arbitration_key(&frame),
+            ready_at: now,
+            seq,
+            on_wire: false,
+        };
+        let mut result = Accepted::Queued;
+        if m.queue.len() >= m.depth && m.order == TxOrder::Fifo {
+            m.stats.lost_overflow += 1;
+            return Err(Rejected::QueueFull);
+        }
+        if m.queue.len() >= m.depth {
+            let worst = m
+                .queue
+                .iter()
+                .enumerate()
+                .filter(|(_, q)| !q.on_wire)
+                .max_by_key(|(_, q)| (q.key, q.seq))
+                .map(|(i, q)| (i, q.key));
+            match worst {
+                Some((i, key)) if q.key < key => {
+                    let lost = m.queue.swap_remove(i);
+                    m.stats.lost_overflow += 1;
+                    result = Accepted::Evicted(lost.frame);
+                }
+                _ => {
+                    m.stats.lost_overflow += 1;
+                    return Err(Rejected::QueueFull);
+                }
+            }
+        }
+        self.seq += 1;
+        if m.queue.is_empty() && !m.transceiver_failed {
+            self.active.push(id.0);
+        }
+        if m.transceiver_failed && m.queue.is_empty() {
+            m.next_attempt = m.next_attempt.max(now);
+        }
+        m.queue.push(q);
+        Ok(result)
+    }
+
+    /// Corrupts about `per_million` of every million frames on the wire (0 stops it).
+    pub fn set_corruption(&mut self, per_million: u32) -> Result<(), BadDisturbance> {
+        if per_million > 1_000_000 {
+            return Err(BadDisturbance(format!(
+                "corrupted-frame rate {per_million} per million is above 1000000"
+            )));
+        }
+        self.corrupt_ppm = per_million;
+        Ok(())
+    }
+
+    /// Corrupted frames per million.
+    pub fn corruption(&self) -> u32 {
+        self.corrupt_ppm
+    }
+
+    /// Holds the bus dominant from `from` for `duration` (at most [`MAX_STUCK`]; one interval
+    /// at a time).
+    pub fn stuck_dominant(&mut self, from: Nanos, duration: Nanos) -> Result<(), BadDisturbance> {
+        if duration < self.bit_ns || duration > MAX_STUCK {
+            return Err(BadDisturbance(format!(
+                "stuck-dominant interval of {duration} ns is outside one bit time ({} ns) … 60 s",
+                self.bit_ns
+            )));
+        }
+        if self.stuck.is_some() {
+            return Err(BadDisturbance(
+                "a stuck-dominant interval is already pending".into(),
+            ));
+        }
+        self.stuck = Some((from, from + duration));
+        Ok(())
+    }
+
+    /// Makes a member's transceiver fail (its frames never reach the bus; every attempt is a
+    /// bit error) or work again.
+    pub fn set_transceiver_failed(&mut self, id: MemberId, failed: bool, now: Nanos) -> bool {
+        let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) else {
+            return false;
+        };
+        if m.transceiver_failed == failed {
+            return true;
+        }
+        m.transceiver_failed = failed;
+        if failed {
+            m.next_attempt = now;
+            self.failed.push(id.0);
+            self.active.retain(|&i| i != id.0);
+        } else {
+            self.failed.retain(|&i| i != id.0);
+            if !m.queue.is_empty() {
+                self.active.push(id.0);
+            }
+        }
+        true
+    }
+
+    /// Bus load over the last [`LOAD_WINDOW`] before `now`: (fraction 0…1, frames per second).
+    pub fn load(&mut self, now: Nanos) -> (f64, f64) {
+        self.trim_window(now);
+        let span = now.clamp(1, LOAD_WINDOW);
+        let busy = self.window_bits * self.bit_ns;
+        (
+            (busy as f64 / span as f64).min(1.0),
+            self.window_frames as f64 * 1e9 / span as f64,
+        )
+    }
+
+    /// Frames sent successfully since the start.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Error frames since the start.
+    pub fn error_frames(&self) -> u64 {
+        self.error_frames
+    }
+
+    fn trim_window(&mut self, now: Nanos) {
+        while let Some(&(end, bits, frame)) = self.window.front() {
+            if end + LOAD_WINDOW > now {
+                break;
+            }
+            self.window.pop_front();
+            self.window_bits -= bits;
+            self.window_frames -= u64::from(frame);
+        }
+    }
+
+    fn record(&mut self, end: Nanos, bits: u64, frame: bool) {
+        self.window.push_back((end, bits, frame));
+        self.window_bits += bits;
+        self.window_frames += u64::from(frame);
+        self.trim_window(end);
+    }
+
+    /// When the next arbitration could take place and who would take part.
+    fn next_start(&self) -> Option<Nanos> {
+        self.active
+            .iter()
+            .filter_map(|&i| {
+                let m = &self.members[i as usize];
+                if !m.can_arbitrate() {
+                    return None;
+                }
+                Some(m.earliest_ready()?.max(self.free_at).max(m.suspend_until))
+            })
+            .min()
+    }
+
+    fn next_attempt(&self) -> Option<Nanos> {
+        self.failed
+            .iter()
+            .filter_map(|&i| {
+                let m = &self.members[i as usize];
+                (m.state != BusState::BusOff && !m.queue.is_empty())
+                    .then(|| m.next_attempt.max(m.earliest_ready().unwrap_or(0)))
+            })
+            .min()
+    }
+
+    /// When a bus-off member recovers if the bus stays idle from `free_at`.
+    fn next_recovery(&self) -> Option<Nanos> {
+        let seq = Nanos::from(RECESSIVE_SEQUENCE_BITS) * self.bit_ns;
+        self.off
+            .iter()
+            .map(|&i| {
+                let m = &self.members[i as usize];
+                let left = u64::from(BUS_OFF_RECOVERY_SEQUENCES).saturating_sub(m.off_sequences);
+                m.off_run_start + left * seq
+            })
+            .min()
+    }
+
+    /// When [`advance`](Self::advance) next has something to do (`None`: nothing until a
+    /// submission).
+    pub fn next_event(&self) -> Option<Nanos> {
+        let bus = match &self.current {
+            Some(c) => Some(c.end),
+            None => self.next_start(),
+        };
+        let bus = match (bus, self.stuck) {
+            (Some(t), Some((a, b))) if t >= a => Some(b),
+            (None, Some((_, b))) => Some(b),
+            (t, _) => t,
+        };
+        let recovery = if self.current.is_none() {
+            self.next_recovery()
+        } else {
+            None
+        };
+        [bus, self.next_attempt(), recovery]
+            .into_iter()
+            .flatten()
+            .min()
+    }
+
+    /// Runs the bus up to `now`, appending what happened to `out`: the bus's frames and error
+    /// frames in time order (the attempts of a member whose transceiver failed are its own and
+    /// may be reported ahead of them).
+    pub fn advance(&mut self, now: Nanos, out: &mut Vec<BusEvent>) {
+        self.failed_attempts(now, out);
+        loop {
+            if let Some(cur) = &self.current {
+                if let Some((a, b)) = self.stuck {
+                    if a < cur.end {
+                        if now < b {
+                            return;
+                        }
+                        self.apply_stuck(out);
+                        continue;
+                    }
+                }
+                if cur.end > now {
+                    return;
+                }
+                let cur = self.current.take().expect("checked");
+                self.finish(cur, out);
+                continue;
+            }
+            let start = self.next_start();
+            if let Some((a, b)) = self.stuck {
+                if start.is_none_or(|t| t >= a) && now >= a {
+                    if now < b {
+                        return;
+                    }
+                    self.recover_until(a, out);
+                    self.apply_stuck(out);
+                    continue;
+                }
+            }
+            let Some(t) = start else {
+                self.recover_until(now, out);
+                return;
+            };
+            if t > now {
+                self.recover_until(now, out);
+                return;
+            }
+            self.recover_until(t, out);
+            self.arbitrate(t);
+        }
+    }
+
+    /// Bus-off members that have seen their 128 × 11 recessive bits by `t` (bus idle).
+    fn recover_until(&mut self, t: Nanos, out: &mut Vec<BusEvent>) {
+        let seq = Nanos::from(RECESSIVE_SEQUENCE_BITS) * self.bit_ns;
+        let mut i = 0;
+        while i < self.off.len() {
+            let id = self.off[i];
+            let m = &mut self.members[id as usize];
+            let left = u64::from(BUS_OFF_RECOVERY_SEQUENCES).saturating_sub(m.off_sequences);
+            let at = m.off_run_start + left * seq;
+            if at <= t {
+                m.tec = 0;
+                m.rec = 0;
+                m.state = BusState::ErrorActive;
+                m.off_sequences = 0;
+                m.next_attempt = at;
+                self.off.swap_remove(i);
+                out.push(BusEvent::State {
+                    member: MemberId(id),
+                    at,
+                    state: BusState::ErrorActive,
+                    tec: 0,
+                    rec: 0,
+                });
+            } else {
+                i += 1;
+            }
+        }
+    }
+
+    /// A frame starts at `t` (bus off members: the recessive run ends here).
+    fn note_bus_activity(&mut self, t: Nanos) {
+        let seq = Nanos::from(RECESSIVE_SEQUENCE_BITS) * self.bit_ns;
+        for &i in &self.off {
+            let m = &mut self.members[i as usize];
+            m.off_sequences += t.saturating_sub(m.off_run_start) / seq;
+            m.off_run_start = Nanos::MAX / 2;
+        }
+    }
+
+    /// The recessive tail of a frame or error frame that ended at `end` starts a new run
+    /// (ACK delimiter and EOF, or the error delimiter: 8 recessive bits before `end`).
+    fn note_bus_idle(&mut self, end: Nanos) {
+        let run = end.saturating_sub(8 * self.bit_ns);
+        for &i in &self.off {
+            let m = &mut self.members[i as usize];
+            m.off_run_start = run;
+        }
+    }
+
+    fn next_random(&mut self) -> u64 {
+        // xorshift64*: deterministic per bus, good enough to spread corrupted frames.
+        let mut x = self.rng;
+        x ^= x >> 12;
+        x ^= x << 25;
+        x ^= x >> 27;
+        self.rng = x;
+        x.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    fn arbitrate(&mut self, t: Nanos) {
+        // Everyone with a frame ready at `t` takes part; the lowest arbitration value wins.
+        let mut best: Option<u32> = None;
+        let mut offers: Vec<Offer> = Vec::new();
+        for &i in &self.active {
+            let m = &self.members[i as usize];
+            if !m.can_arbitrate() || m.suspend_until > t {
+                continue;
+            }
+            if let Some(q) = m.offer(t) {
+                let key = m.queue[q].key;
+                offers.push((i, q, key));
+                best = Some(best.map_or(key, |b| b.min(key)));
+            }
+        }
+        let Some(best) = best else {
+            return;
+        };
+        offers.retain(|&(_, _, k)| k == best);
+        self.note_bus_activity(t);
+        // The same identifier with other bits: at the first difference, whoever sends recessive
+        // and reads dominant has a bit error. An error-active one destroys the frame with its
+        // active error flag (so every sender sees the error); an error-passive one's flag is
+        // recessive: it drops out alone and the others' frame goes on.
+        let stuffed_of =
+            |m: &[Member], o: &(u32, usize, u32)| stuffed(&m[o.0 as usize].queue[o.1].frame);
+        let mut passive_losers = Vec::new();
+        let mut diff = None;
+        loop {
+            let lead = self.members[offers[0].0 as usize].queue[offers[0].1].frame;
+            let p = offers
+                .iter()
+                .skip(1)
+                .filter_map(|o| {
+                    first_difference(&lead, &self.members[o.0 as usize].queue[o.1].frame)
+                })
+                .min();
+            let Some(p) = p else { break };
+            let (losers, winners): (Vec<Offer>, Vec<Offer>) = offers
+                .iter()
+                .partition(|o| stuffed_of(&self.members, o).get(p));
+            if losers
+                .iter()
+                .any(|o| self.members[o.0 as usize].state == BusState::ErrorActive)
+            {
+                diff = Some(p);
+                break;
+            }
+            passive_losers.extend(losers.iter().map(|o| (MemberId(o.0), p)));
+            offers = winners;
+        }
+        let (first, fq, _) = offers[0];
+        let frame = self.members[first as usize].queue[fq].frame;
+        let senders: Vec<(MemberId, u64)> = offers
+            .iter()
+            .map(|&(i, q, _)| {
+                let m = &mut self.members[i as usize];
+                m.queue[q].on_wire = true;
+                (MemberId(i), m.queue[q].seq)
+            })
+            .collect();
+        let bit = self.bit_ns;
+        let (error, bits) = if let Some(p) = diff {
+            (
+                Some(BusErrorKind::Collision),
+                u64::from(p + 1 + ERROR_FRAME_BITS),
+            )
+        } else if self.corrupt_ppm > 0
+            && self.next_random() % 1_000_000 < u64::from(self.corrupt_ppm)
+        {
+            let len = u64::from(stuffed(&frame).len());
+            let p = 1 + self.next_random() % (len - 1);
+            (
+                Some(BusErrorKind::Corrupted),
+                p + 1 + u64::from(ERROR_FRAME_BITS),
+            )
+        } else {
+            let total = u64::from(frame_length(&frame).total);
+            (None, total - u64::from(INTERMISSION_BITS))
+        };
+        let end = t + bits * bit;
+        self.current = Some(OnWire {
+            senders,
+            frame,
+            start: t,
+            end,
+            free: end + u64::from(INTERMISSION_BITS) * bit,
+            error,
+            bits: bits + u64::from(INTERMISSION_BITS),
+            passive_losers,
+        });
+    }
+
+    fn finish(&mut self, cur: OnWire, out: &mut Vec<BusEvent>) {
+        self.free_at = cur.free;
+        for &(id, p) in &cur.passive_losers {
+            let m = &mut self.members[id.0 as usize];
+            m.stats.tx_errors += 1;
+            m.stats.collisions += 1;
+            m.suspend_until = cur.free + u64::from(SUSPEND_BITS) * self.bit_ns;
+            let at = cur.start + u64::from(p + 1 + ERROR_FRAME_BITS) * self.bit_ns;
+            self.bump_tec(id, 8, at.min(cur.end), out);
+        }
+        self.record(cur.end, cur.bits, cur.error.is_none());
+        let senders: Vec<MemberId> = cur.senders.iter().map(|s| s.0).collect();
+        match cur.error {
+            None => {
+                self.frames += 1;
+                for &(id, seq) in &cur.senders {
+                    let m = &mut self.members[id.0 as usize];
+                    if !m.live {
+                        continue;
+                    }
+                    if let Some(i) = m.queue.iter().position(|q| q.seq == seq) {
+                        let q = m.queue.swap_remove(i);
+                        let wait = cur.start - q.ready_at;
+                        m.stats.last_wait = wait;
+                        m.stats.max_wait = m.stats.max_wait.max(wait);
+                    }
+                    m.stats.sent += 1;
+                    m.tec = m.tec.saturating_sub(1);
+                    if m.queue.is_empty() {
+                        self.active.retain(|&i| i != id.0);
+                    }
+                }
+                for &(id, _) in &cur.senders {
+                    let m = &self.members[id.0 as usize];
+                    if m.leaving && m.queue.is_empty() {
+                        self.remove(id);
+                    }
+                }
+                self.receivers_ok(&senders, cur.end, out);
+                out.push(BusEvent::Frame {
+                    // Its senders all left while it was on the wire: from nobody.
+                    from: senders.first().copied().unwrap_or(MemberId(u32::MAX)),
+                    co_senders: senders.get(1..).unwrap_or_default().to_vec(),
+                    frame: cur.frame,
+                    start: cur.start,
+                    end: cur.end,
+                });
+            }
+            Some(kind) => {
+                self.error_frames += 1;
+                for &(id, seq) in &cur.senders {
+                    let m = &mut self.members[id.0 as usize];
+                    if let Some(q) = m.queue.iter_mut().find(|q| q.seq == seq) {
+                        q.on_wire = false;
+                    }
+                    m.stats.tx_errors += 1;
+                    if kind == BusErrorKind::Collision {
+                        m.stats.collisions += 1;
+                    }
+                }
+                out.push(BusEvent::Error(BusError {
+                    at: cur.end,
+                    kind,
+                    id: Some(cur.frame.id()),
+                    transmitters: senders.clone(),
+                }));
+                for &s in &senders {
+                    self.bump_tec(s, 8, cur.end, out);
+                }
+                self.receivers_error(&senders, 1, cur.end, out);
+            }
+        }
+        // An error-passive transmitter waits 8 more bits before its next frame.
+        for &s in &senders {
+            let m = &mut self.members[s.0 as usize];
+            if m.state == BusState::ErrorPassive {
+                m.suspend_until = cur.free + u64::from(SUSPEND_BITS) * self.bit_ns;
+            }
+            self.update_state(s, cur.end, out);
+        }
+        self.note_bus_idle(cur.end);
+    }
+
+    /// Successful reception: REC − 1 (above 127: back to 119; ISO 11898-1 allows 119…127).
+    fn receivers_ok(&mut self, senders: &[MemberId], at: Nanos, out: &mut Vec<BusEvent>) {
+        // Most buses never see an error: no pass over every member per frame then.
+        if !self.rec_raised {
+            return;
+        }
+        let mut any = false;
+        for i in 0..self.members.len() as u32 {
+            let m = &mut self.members[i as usize];
+            if m.rec == 0
+                || !m.live
+                || m.state == BusState::BusOff
+                || senders.contains(&MemberId(i))
+            {
+                any |= m.rec > 0;
+                continue;
+            }
+            m.rec = if m.rec > 127 { 119 } else { m.rec - 1 };
+            any |= m.rec > 0;
+            self.update_state(MemberId(i), at, out);
+        }
+        self.rec_raised = any;
+    }
+
+    fn receivers_error(
+        &mut self,
+        senders: &[MemberId],
+        by: u16,
+        at: Nanos,
+        out: &mut Vec<BusEvent>,
+    ) {
+        for i in 0..self.members.len() as u32 {
+            let m = &mut self.members[i as usize];
+            if !m.live || m.state == BusState::BusOff || senders.contains(&MemberId(i)) {
+                continue;
+            }
+            m.rec = (m.rec + by).min(255);
+            self.rec_raised = true;
+            self.update_state(MemberId(i), at, out);
+        }
+    }
+
+    fn bump_tec(&mut self, id: MemberId, by: u16, at: Nanos, out: &mut Vec<BusEvent>) {
+        let m = &mut self.members[id.0 as usize];
+        if !m.live || m.state == BusState::BusOff {
+            return;
+        }
+        m.tec = (m.tec + by).min(256);
+        self.update_state(id, at, out);
+    }
+
+    /// Applies the thresholds: error passive at 128, bus-off at 256 (ISO 11898-1).
+    fn update_state(&mut self, id: MemberId, at: Nanos, out: &mut Vec<BusEvent>) {
+        let m = &mut self.members[id.0 as usize];
+        if !m.live || m.state == BusState::BusOff {
+            return;
+        }
+        let state = if m.tec >= 256 {
+            BusState::BusOff
+        } else if m.tec >= 128 || m.rec >= 128 {
+            BusState::ErrorPassive
+        } else {
+            BusState::ErrorActive
+        };
+        if state == m.state {
+            return;
+        }
+        m.state = state;
+        if state == BusState::BusOff {
+            // The controller leaves the bus: what it had queued is lost.
+            let on_wire = m.queue.iter().filter(|q| q.on_wire).count();
+            m.stats.lost_bus_off += (m.queue.len() - on_wire) as u64;
+            m.queue.retain(|q| q.on_wire);
+            m.off_sequences = 0;
+            m.off_run_start = at;
+            self.off.push(id.0);
+            self.active.retain(|&i| i != id.0);
+        }
+        out.push(BusEvent::State {
+            member: id,
+            at,
+            state,
+            tec: m.tec,
+            rec: m.rec,
+        });
+    }
+
+    /// Attempts of members whose transceiver failed: a bit error at SOF each, seen by nobody
+    /// else (the bus stays recessive).
+    fn failed_attempts(&mut self, now: Nanos, out: &mut Vec<BusEvent>) {
+        let bit = self.bit_ns;
+        for k in 0..self.failed.len() {
+            let id = self.failed[k];
+            loop {
+                let m = &mut self.members[id as usize];
+                if m.state == BusState::BusOff {
+                    break;
+                }
+                let Some(ready) = m.earliest_ready() else {
+                    break;
+                };
+                let t = m.next_attempt.max(ready);
+                if t > now {
+                    break;
+                }
+                let end = t + u64::from(1 + ERROR_FRAME_BITS) * bit;
+                let mut next = end + u64::from(INTERMISSION_BITS) * bit;
+                if m.state == BusState::ErrorPassive {
+                    next += u64::from(SUSPEND_BITS) * bit;
+                }
+                m.next_attempt = next;
+                m.stats.tx_errors += 1;
+                self.bump_tec(MemberId(id), 8, end, out);
+                let m = &mut self.members[id as usize];
+                if m.state == BusState::BusOff {
+                    // It counts recessive bits from here (the bus itself is fine).
+                    m.off_run_start = end;
+                }
+            }
+        }
+    }
+
+    /// The bus was held dominant for [a, b): the frame on the wire is destroyed; every 8
+    /// dominant bits after the first 14 raise the transmitter's TEC and the receivers' REC by 8
+    /// (ISO 11898-1 fault confinement rule 6), after the error each saw first.
+    fn apply_stuck(&mut self, out: &mut Vec<BusEvent>) {
+        let Some((a, b)) = self.stuck.take() else {
+            return;
+        };
+        let bits = (b - a) / self.bit_ns;
+        let steps = if bits >= 14 { 1 + (bits - 14) / 8 } else { 0 };
+        let cur = self.current.take();
+        let senders: Vec<MemberId> = cur
+            .as_ref()
+            .map(|c| c.senders.iter().map(|s| s.0).collect())
+            .unwrap_or_default();
+        if let Some(c) = &cur {
+            for &(id, seq) in &c.senders {
+                let m = &mut self.members[id.0 as usize];
+                if let Some(q) = m.queue.iter_mut().find(|q| q.seq == seq) {
+                    q.on_wire = false;
+                }
+                m.stats.tx_errors += 1;
+            }
+        }
+        self.note_bus_activity(a);
+        self.error_frames += 1;
+        self.record(b, bits, false);
+        out.push(BusEvent::Error(BusError {
+            at: b,
+            kind: BusErrorKind::StuckDominant { bits },
+            id: cur.as_ref().map(|c| c.frame.id()),
+            transmitters: senders.clone(),
+        }));
+        for &s in &senders {
+            for _ in 0..=steps {
+                self.bump_tec(s, 8, b, out);
+            }
+        }
+        // Receivers: the error they detect (+1), then +8 per step.
+        self.receivers_error(&senders, (1 + 8 * steps).min(255) as u16, b, out);
+        // Bus integration: 11 recessive bits before anyone may start.
+        self.free_at = b + u64::from(RECESSIVE_SEQUENCE_BITS) * self.bit_ns;
+        self.note_bus_idle(b + 8 * self.bit_ns);
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# The TH firmware (issue 14, docs/FIRMWARE.md): builds it for thumbv7em-none-eabihf at
+# opt-level s, measures flash and RAM, runs it under QEMU (mps2-an386) against the host-side
+# test, and prints as its last line
+#   firmware: flash N B, ram M B, qemu: K passed, F failed
+# Missing tools are installed (rustup target, Debian packages via scripts/deps.sh); if that
+# fails, this fails. It never skips.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+TARGET=thumbv7em-none-eabihf
+fail() { echo "!!! FAILED: $*" >&2; exit 1; }
+
+if ! rustup target list --installed | grep -qx "$TARGET"; then
+  rustup target add "$TARGET" || fail "rustup could not add $TARGET"
+fi
+for tool in qemu-system-arm arm-none-eabi-size python3; do
+  command -v "$tool" >/dev/null || scripts/deps.sh
+  command -v "$tool" >/dev/null || fail "$tool is missing (scripts/deps.sh installs it)"
+done
+
+# The core with its host features (all models, names, EDS) stays no_std-clean for the MCU too.
+cargo build -p canpos-core --locked --quiet --target "$TARGET"
+HOST=$(rustc -vV | sed -n 's/^host: //p')
+# The portable part's unit tests (SLCAN lines) run on the host; the rest is built for the MCU.
+(cd firmware && cargo fmt --check && cargo clippy --release --locked --quiet -- -D warnings &&
+  cargo test --lib --locked --quiet --target "$HOST" &&
+  cargo build --release --locked --quiet)
+BIN=firmware/target/$TARGET/release
+
+# Section sizes from the ELF: flash = vector table + code + constants + initialised data,
+# static RAM = .data + .bss + .uninit (the stack comes on top, measured in QEMU).
+sections() {
+  arm-none-eabi-size -A "$1" | awk '
+    $1==".vector_table"||$1==".text"||$1==".rodata" {f+=$2}
+    $1==".data" {f+=$2; r+=$2}
+    $1==".bss"||$1==".uninit" {r+=$2}
+    END {print f+0, r+0}'
+}
+read -r th_flash th_static <<<"$(sections "$BIN/th")"
+read -r plain_flash _ <<<"$(sections "$BIN/plain")"
+read -r base_flash _ <<<"$(sections "$BIN/baseline")"
+# The plain build's own dictionary and model description (constants of the `plain` binary).
+plain_od=$(arm-none-eabi-nm -S -C "$BIN/plain" | python3 -c 'import sys
+print(sum(int(l.split()[1], 16) for l in sys.stdin
+          if l.split()[-1] in ("plain::ENTRIES", "plain::KEYS", "plain::MODEL")))')
+stack_only=$((plain_flash - base_flash - plain_od))
+
+mkdir -p target
+set +e
+timeout 300 python3 tests/firmware/qemu_th.py "$BIN/th" | tee target/firmware-qemu.log
+rc=${PIPESTATUS[0]}
+set -e
+passed=$(grep -oE '^qemu: [0-9]+ passed' target/firmware-qemu.log | grep -oE '[0-9]+' || echo 0)
+failed=$(grep -oE ', [0-9]+ failed$' target/firmware-qemu.log | grep -oE '[0-9]+' || echo 1)
+stack=$(grep -oE '^stack peak: [0-9]+' target/firmware-qemu.log | grep -oE '[0-9]+' || echo 0)
+th_ram=$((th_static + stack))
+
+goal() { if [ "$1" -le "$2" ]; then echo "met"; else echo "NOT met"; fi; }
+echo
+echo "sizes at opt-level s (arm-none-eabi-size -A; RAM = .data + .bss + stack high-water mark in QEMU):"
+echo "  TH firmware        flash $th_flash B (goal <= 32768: $(goal "$th_flash" 32768)), RAM $th_ram B = $th_static static + $stack stack (goal <= 4096: $(goal "$th_ram" 4096))"
+echo "  plain (CiA 301/305 stack, minimal OD) flash $plain_flash B; board alone (baseline) $base_flash B; its OD $plain_od B"
+echo "  stack on its own   $stack_only B = plain - baseline - OD (goal: CANopenNode's stack objects, ~12.5 KiB: $(goal "$stack_only" 12800))"
+if [ "$rc" -ne 0 ] && [ "$failed" -eq 0 ]; then failed=1; fi
+echo "firmware: flash $th_flash B, ram $th_ram B, qemu: $passed passed, $failed failed"
+[ "$failed" -eq 0 ] && [ "$passed" -gt 0 ]
