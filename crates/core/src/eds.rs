@@ -364,7 +364,7 @@ fn write_var(
 fn limits(e: &Entry) -> Option<(i64, i64)> {
     match e.range {
         Range::Any => None,
-        Range::MinMax(lo, hi) => Some((lo, hi)),
+        Range::MinMax(..) => e.limits(),
         Range::OneOf(list) => {
             let lo = list.iter().map(|&v| e.ty.to_i64(v)).min()?;
             let hi = list.iter().map(|&v| e.ty.to_i64(v)).max()?;

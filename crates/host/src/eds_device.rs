@@ -914,7 +914,7 @@ impl Builder<'_> {
                         format!("HighLimit {hi} is below LowLimit {lo}"),
                     ));
                 }
-                Range::MinMax(lo, hi)
+                Range::between(lo, hi)
             }
         };
 
@@ -937,7 +937,7 @@ impl Builder<'_> {
                         )
                     })?;
                     if let Range::MinMax(lo, hi) = range {
-                        let x = ty.to_i64(raw);
+                        let (x, lo, hi) = (ty.to_i64(raw), ty.to_i64(lo), ty.to_i64(hi));
                         if (x < lo || x > hi) && !(index == 0x1003 && sub == 0) {
                             return Err(self.err(
                                 k.line,

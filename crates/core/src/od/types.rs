@@ -223,10 +223,20 @@ pub enum Default {
 pub enum Range {
     /// Any value of the type.
     Any,
-    /// Inclusive numeric range (interpreted with the entry's signedness).
-    MinMax(i64, i64),
+    /// Inclusive numeric range, as raw values of the entry's type (read with its signedness,
+    /// like the value itself): 32 bits each, so that a table entry stays small on a
+    /// microcontroller. [`Range::between`] builds one from numbers.
+    MinMax(u32, u32),
     /// One of an explicit list (raw values).
     OneOf(&'static [u32]),
+}
+
+impl Range {
+    /// The inclusive range `lo..=hi` of numbers of an entry's type (both within its natural
+    /// range; a signed bound is kept as its two's-complement bits).
+    pub const fn between(lo: i64, hi: i64) -> Range {
+        Range::MinMax(lo as u32, hi as u32)
+    }
 }
 
 /// One object-dictionary entry (an index / sub-index pair): everything SDO access checks, PDO
@@ -333,15 +343,23 @@ impl Entry {
         }
         match self.range {
             Range::Any => true,
-            Range::MinMax(lo, hi) => v >= lo && v <= hi,
+            Range::MinMax(lo, hi) => v >= self.ty.to_i64(lo) && v <= self.ty.to_i64(hi),
             Range::OneOf(list) => list.contains(&raw),
+        }
+    }
+
+    /// The declared [`Range::MinMax`] as numbers of the entry's type.
+    pub const fn limits(&self) -> Option<(i64, i64)> {
+        match self.range {
+            Range::MinMax(lo, hi) => Some((self.ty.to_i64(lo), self.ty.to_i64(hi))),
+            _ => None,
         }
     }
 
     /// Whether a raw value is above the declared range (for the "too high" abort code).
     pub fn above_range(&self, raw: u32) -> bool {
         match self.range {
-            Range::MinMax(_, hi) => self.ty.to_i64(raw) > hi,
+            Range::MinMax(_, hi) => self.ty.to_i64(raw) > self.ty.to_i64(hi),
             _ => false,
         }
     }
@@ -349,7 +367,7 @@ impl Entry {
     /// Whether a raw value is below the declared range (for the "too low" abort code).
     pub fn below_range(&self, raw: u32) -> bool {
         match self.range {
-            Range::MinMax(lo, _) => self.ty.to_i64(raw) < lo,
+            Range::MinMax(lo, _) => self.ty.to_i64(raw) < self.ty.to_i64(lo),
             _ => false,
         }
     }

@@ -99,7 +99,7 @@ fn cia301_written_values_lie_in_the_type_and_the_declared_range() {
     let b = entry(0x2000, 1, DataType::Boolean, Range::Any);
     assert!(b.accepts(0) && b.accepts(1) && !b.accepts(2));
 
-    let i8r = entry(0x2001, 0, DataType::Integer8, Range::MinMax(-5, 5));
+    let i8r = entry(0x2001, 0, DataType::Integer8, Range::between(-5, 5));
     for (raw, ok) in [
         (0xFB, true),
         (0xFA, false),

@@ -93,8 +93,9 @@ fn other_value(e: &Entry, cur: u32) -> u32 {
         // Error register ×1 is mappable (CONFORMANCE PDO-30).
         (0x1A00..=0x1A03, _) => 0x1001_0008,
         _ => match e.range {
-            Range::MinMax(lo, hi) => {
-                if cur as i64 == lo {
+            Range::MinMax(..) => {
+                let (lo, hi) = e.limits().unwrap();
+                if e.ty.to_i64(cur) == lo {
                     hi as u32
                 } else {
                     lo as u32

@@ -116,9 +116,10 @@ fn write_other(r: &mut Rig, e: &Entry) -> u32 {
         (Hook::PendingBitRate, _) => 250,
         _ => match (e.ty, e.range) {
             (DataType::Boolean, _) => cur ^ 1,
-            (_, Range::MinMax(lo, hi)) => {
+            (_, Range::MinMax(..)) => {
+                let (lo, hi) = e.limits().unwrap();
                 // Whole µm for a measuring step (R31): the top of the range.
-                if cur as i64 == hi {
+                if e.ty.to_i64(cur) == hi {
                     lo as u32
                 } else {
                     hi as u32
