@@ -61,6 +61,9 @@ pub mod code {
 pub const HISTORY_LEN: usize = 8;
 const ACTIVE_LEN: usize = 8;
 const PENDING_LEN: usize = 8;
+// The history and the pending frames are rings (indices masked), so that nothing is shifted:
+// a shift compiles to a call of the general-purpose `memmove`, 1.6 KB of firmware.
+const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_two());
 
 /// The EMCY producer's state.
 #[derive(Clone, Debug)]
@@ -68,8 +71,12 @@ pub struct Emcy {
     active: [(u16, u8); ACTIVE_LEN],
     n_active: usize,
     history: [u32; HISTORY_LEN],
+    /// Where the newest history entry is.
+    newest: usize,
     n_history: usize,
     pending: [[u8; 8]; PENDING_LEN],
+    /// Where the oldest pending frame is.
+    first_pending: usize,
     n_pending: usize,
     inhibit: Duration,
     next_allowed: Instant,
@@ -88,8 +95,10 @@ impl core::default::Default for Emcy {
             active: [(0, 0); ACTIVE_LEN],
             n_active: 0,
             history: [0; HISTORY_LEN],
+            newest: 0,
             n_history: 0,
             pending: [[0; 8]; PENDING_LEN],
+            first_pending: 0,
             n_pending: 0,
             inhibit: Duration::ZERO,
             next_allowed: Instant::ZERO,
@@ -165,7 +174,10 @@ impl Emcy {
             return;
         };
         let before = self.register();
-        self.active.copy_within(i + 1..self.n_active, i);
+        // Element by element over the fixed array: a `copy_within` would call `memmove`.
+        for j in i..ACTIVE_LEN - 1 {
+            self.active[j] = self.active[j + 1];
+        }
         self.n_active -= 1;
         self.generation = self.generation.wrapping_add(1);
         let after = self.register();
@@ -207,7 +219,7 @@ impl Emcy {
         if i == 0 || i > self.n_history {
             None
         } else {
-            Some(self.history[i - 1])
+            Some(self.history[(self.newest + i - 1) % HISTORY_LEN])
         }
     }
     /// Number of history entries (0x1003/0).
@@ -225,8 +237,8 @@ impl Emcy {
         // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
         // entry matches the frame (conformance EMCY-06).
         let entry = code as u32 | (u16::from_le_bytes([mfr[0], mfr[1]]) as u32) << 16;
-        self.history.copy_within(0..HISTORY_LEN - 1, 1);
-        self.history[0] = entry;
+        self.newest = (self.newest + HISTORY_LEN - 1) % HISTORY_LEN;
+        self.history[self.newest] = entry;
         self.n_history = (self.n_history + 1).min(HISTORY_LEN);
         self.generation = self.generation.wrapping_add(1);
     }
@@ -237,7 +249,7 @@ impl Emcy {
             return;
         }
         let c = code.to_le_bytes();
-        self.pending[self.n_pending] =
+        self.pending[(self.first_pending + self.n_pending) % PENDING_LEN] =
             [c[0], c[1], register, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]];
         self.n_pending += 1;
     }
@@ -263,8 +275,8 @@ impl Emcy {
         if self.n_pending == 0 || now < self.next_allowed {
             return None;
         }
-        let f = self.pending[0];
-        self.pending.copy_within(1..self.n_pending, 0);
+        let f = self.pending[self.first_pending];
+        self.first_pending = (self.first_pending + 1) % PENDING_LEN;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
         Some(f)

@@ -306,7 +306,7 @@ pub fn update_image<S: Storage>(
         while at + 8 + 4 <= old_len {
             let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
             if !replaced(key) {
-                buf.copy_within(at..at + 8, 8 + 8 * kept);
+                move_record(&mut buf, at, 8 + 8 * kept);
                 kept += 1;
             }
             at += 8;
@@ -316,7 +316,10 @@ pub fn update_image<S: Storage>(
     if 8 + 8 * (new + kept) + 4 > buf.len() {
         return Err(StorageError::Io);
     }
-    buf.copy_within(8..8 + 8 * kept, 8 + 8 * new);
+    // From the last record down, as the records move up.
+    for r in (0..kept).rev() {
+        move_record(&mut buf, 8 + 8 * r, 8 + 8 * (new + r));
+    }
     let mut w = ImageWriter::new(&mut buf, model_tag);
     for (k, v) in put {
         debug_assert!(replaced(k), "record {k:#x} would be stored twice");
@@ -328,6 +331,14 @@ pub fn update_image<S: Storage>(
     w.count += kept as u16;
     let n = w.finish();
     st.save(&buf[..n])
+}
+
+/// Copies the 8-byte record at `from` to `to` (a fixed-size copy: `copy_within` of a variable
+/// length would link the general-purpose `memmove` into firmware).
+#[inline(always)]
+fn move_record(buf: &mut [u8], from: usize, to: usize) {
+    let rec: [u8; 8] = buf[from..from + 8].try_into().unwrap_or([0; 8]);
+    buf[to..to + 8].copy_from_slice(&rec);
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.
