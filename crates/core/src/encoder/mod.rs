@@ -604,7 +604,9 @@ impl Application for Encoder {
     }
 
     /// Runs one measurement cycle. Returns true when the model's reaction forces the node back
-    /// to pre-operational.
+    /// to pre-operational. Out of line, so that its frame is gone before the node stores what
+    /// the cycle changed (0x2901): on an MCU that store is the deepest stack.
+    #[inline(never)]
     fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
         let tmi = cx.model.features.tmi_error_reactions;
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
