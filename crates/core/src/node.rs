@@ -1282,13 +1282,16 @@ impl<A: Application, S: Storage> Device<A, S> {
             Hook::SyncCobId => {
                 // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
                 // the CiA 301 restricted CAN-IDs (conformance OTH-10).
-                if raw & 0x6000_0000 != 0 || pdo::restricted_id(raw & 0x7FF) {
+                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
+                    || pdo::restricted_id(raw & 0x7FF)
+                {
                     return Err(Abort::InvalidValue);
                 }
                 Ok(())
             }
             Hook::EmcyCobId => {
-                if raw & 0x2000_0000 != 0 {
+                // Bit 30 is reserved (0), bit 29 would be a 29-bit id.
+                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0 {
                     return Err(Abort::InvalidValue);
                 }
                 // A valid EMCY COB-ID may not be a restricted CAN-ID (conformance OTH-10).
@@ -1302,7 +1305,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                 // 29-bit ids and restricted CAN-IDs other than the pre-defined 0x700 + node-id
                 // are refused.
                 let id = raw & 0x7FF;
-                if raw & 0x6000_0000 != 0
+                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
                     || (pdo::restricted_id(id) && id != 0x700 + self.node_id as u32)
                 {
                     return Err(Abort::InvalidValue);

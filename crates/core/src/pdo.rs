@@ -18,6 +18,9 @@ pub const COB_INVALID: u32 = 0x8000_0000;
 pub const COB_NO_RTR: u32 = 0x4000_0000;
 /// COB-ID bit 29: 29-bit identifier (not supported).
 pub const COB_EXTENDED: u32 = 0x2000_0000;
+/// COB-ID bits 11–28: part of a 29-bit identifier only, so 0 in every COB-ID of an 11-bit
+/// frame (CiA 301 §7.5.2.5, 7.5.2.17, 7.5.2.35: a value with them set is refused, 0x06090030).
+pub const COB_ID_HIGH_BITS: u32 = 0x1FFF_F800;
 
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
@@ -321,7 +324,7 @@ impl Tpdos {
         if index < map_index(0) {
             match sub {
                 // 29-bit CAN-IDs are not supported; a valid PDO may not use a restricted one.
-                1 if raw & COB_EXTENDED != 0
+                1 if raw & (COB_EXTENDED | COB_ID_HIGH_BITS) != 0
                     || (raw & COB_INVALID == 0 && restricted_id(raw & 0x7FF)) =>
                 {
                     return Err(Abort::InvalidValue)

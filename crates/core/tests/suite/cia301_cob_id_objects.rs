@@ -26,6 +26,9 @@ fn cia301_7_5_2_5_cob_id_sync_values() {
         0x6000_0081,
         0x0000_0701,
         0x0000_0001,
+        // Bits 11–28 belong to 29-bit ids only.
+        0x0000_0880,
+        0x1000_0080,
     ] {
         assert_eq!(write(&mut r, 0x1005, bad), Some(INVALID_VALUE), "{bad:#x}");
         assert_eq!(r.read(0x1005, 0), 0x80, "{bad:#x} changed nothing");
@@ -44,14 +47,25 @@ fn emcy_on(r: &mut Rig) -> Vec<u16> {
     r.take().iter().filter_map(|f| f.std_id()).collect()
 }
 
-/// 0x1014: bit 29 is refused; a valid COB-ID (bit 31 = 0) may not carry a restricted CAN-ID,
+/// 0x1014: bits 29 and 30 (reserved) are refused, and so are bits 11–28 (29-bit ids only),
+/// whatever bit 31 says; a valid COB-ID (bit 31 = 0) may not carry a restricted CAN-ID,
 /// an invalid one may; and while the EMCY is valid its CAN-ID cannot change ("bits 0–29 shall
 /// not be changed while the object exists"): invalidate first, change, validate.
 #[test]
 fn cia301_7_5_2_17_cob_id_emcy_values() {
     let mut r = Rig::booted(&TH);
     assert_eq!(r.read(0x1014, 0), 0xFF);
-    for bad in [0x2000_00FF, 0x0000_0701, 0x0000_0001, 0x0000_00A0] {
+    for bad in [
+        0x2000_00FF,
+        0x0000_0701,
+        0x0000_0001,
+        0x0000_00A0,
+        0x4000_00FF,
+        0x0000_08FF,
+        0x1000_00FF,
+        0x8000_08FF,
+        0xC000_00FF,
+    ] {
         assert_eq!(write(&mut r, 0x1014, bad), Some(INVALID_VALUE), "{bad:#x}");
         assert_eq!(r.read(0x1014, 0), 0xFF, "{bad:#x} changed nothing");
     }
@@ -83,7 +97,7 @@ fn guard_answer(r: &mut Rig, id: u16) -> Vec<Frame> {
     r.take()
 }
 
-/// 0x100E (TH): bits 30 and 29 are refused, and so is a restricted CAN-ID other than the
+/// 0x100E (TH): bits 30 and 29 are refused, and so are bits 11–28 (29-bit ids only), and so is a restricted CAN-ID other than the
 /// pre-defined 0x700 + node-id, which stays allowed.
 #[test]
 fn th_cob_id_guarding_values() {
@@ -94,6 +108,8 @@ fn th_cob_id_guarding_values() {
         0x0000_077E,
         0x0000_0701,
         0x0000_0001,
+        0x0000_0B00,
+        0x1000_0300,
     ] {
         assert_eq!(write(&mut r, 0x100E, bad), Some(INVALID_VALUE), "{bad:#x}");
         assert_eq!(r.read(0x100E, 0), 0x77F, "{bad:#x} changed nothing");

@@ -150,7 +150,8 @@ fn cia301_7_5_2_37_only_existing_mappable_objects_map() {
     assert_eq!(w8(&mut r, 0x1A00, 0, 3), None);
 }
 
-/// §7.5.2.35 COB-ID: bit 29 (29-bit CAN-ID) is not supported, and a valid PDO may not use a
+/// §7.5.2.35 COB-ID: bit 29 (29-bit CAN-ID) is not supported, bits 11–28 are 0 in an 11-bit
+/// COB-ID, and a valid PDO may not use a
 /// restricted CAN-ID (Table 72); an invalid one may hold any 11-bit CAN-ID. Every TPDO's record
 /// follows the rule.
 #[test]
@@ -166,6 +167,14 @@ fn cia301_7_5_2_35_extended_and_restricted_can_ids_are_refused() {
         Some(0x0609_0030),
         "bit 29"
     );
+    for stray in [0x8000_09FF, 0x0000_09FF, 0x9000_01FF, 0x4010_01FF] {
+        assert_eq!(
+            w32(&mut r, 0x1800, 1, stray),
+            Some(0x0609_0030),
+            "{stray:#x}: bits 11–28 belong to 29-bit ids"
+        );
+    }
+    assert_eq!(r.read(0x1800, 1), 0x1FF, "refused writes changed nothing");
     for n in 0..4u16 {
         let ci = 0x1800 + n;
         assert_eq!(w32(&mut r, ci, 1, 0x8000_0000 | (0x1FF + n as u32)), None);

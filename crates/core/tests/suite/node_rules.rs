@@ -477,6 +477,11 @@ fn cia301_state_file_values_load_only_as_an_sdo_write_would_be_accepted() {
         (0x1005, 0, 0x0000_0090, true),
         (0x1014, 0, 0xA000_0085, false), // 29-bit, not valid
         (0x1014, 0, 0x8000_0300, true),  // not valid, another CAN-ID
+        (0x1014, 0, 0x4000_0085, false), // reserved bit 30
+        (0x1014, 0, 0x8000_0885, false), // bit 11: 29-bit ids only
+        (0x1005, 0, 0x0001_0090, false), // bit 16: 29-bit ids only
+        (0x100E, 0, 0x0000_0BA5, false), // bit 11
+        (0x1800, 1, 0x8010_0285, false), // bit 20
         (0x1014, 0, 0x0000_0300, true),  // valid, another CAN-ID: a write needs bit 31 first
         (0x1800, 1, 0xA000_0185, false), // 29-bit, not valid
         (0x1800, 1, 0x0000_0123, false), // restricted
