@@ -138,15 +138,17 @@ def test_bcm_sync_producer_for_a_sensor(hub, sensors):
         while observer.recv(0.05) is not None:
             pass
         bcm.sendall(b"< add 0 10000 080 0 >")
+        # 30 cycles of 10 ms, given up to 2 s: a loaded machine (the UML guest beside a build)
+        # may run the hub late, and the job then skips cycles rather than bursting.
         t0 = time.monotonic()
         syncs, pdos = 0, 0
-        while time.monotonic() - t0 < 0.5:
+        while syncs < 30 and time.monotonic() - t0 < 2.0:
             m = observer.recv(0.1)
             if m is None:
                 continue
             syncs += m.arbitration_id == 0x80
             pdos += m.arbitration_id == 0x1FF
-        assert syncs >= 20, syncs
+        assert syncs >= 30, syncs
         assert pdos >= syncs - 2, (syncs, pdos)
         bcm.sendall(b"< delete 080 >")
         time.sleep(0.1)
