@@ -9,7 +9,7 @@ import canopen
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from conftest import (ROOT, add_node, check_defaults, export_eds, guard_for_half_a_second,
+from conftest import (ROOT, add_node, assert_period, check_defaults, export_eds, guard_for_half_a_second,
                       wait_bootup)
 
 IO_EDS = ROOT / "examples" / "io-device.eds"
@@ -114,7 +114,8 @@ def test_hand_written_eds_tpdo_remap_and_reception(network, sensors):
     node.tpdo[1].wait_for_reception(2)
     assert [v.raw for v in node.tpdo[1].map] == [10, 4321, 2000]
     time.sleep(0.5)
-    assert 15 <= len(stamps) <= 35, len(stamps)
+    assert_period(stamps, 0.02, 12)
+    assert len(stamps) <= 35, len(stamps)
     # A string cannot be mapped (0x06040041); entries change only at count 0 (0x06010000).
     pdo1 = node.tpdo[1]
     pdo1.enabled = False
@@ -130,10 +131,11 @@ def test_hand_written_eds_heartbeat_and_guarding(network, sensors):
     wait_bootup(network, 5, lambda: start_eds(sensors, IO_EDS, node_id=5))
     node = io_node(network)
     node.sdo["Producer heartbeat time"].raw = 100
-    beats = []
-    network.subscribe(0x705, lambda c, d, t: beats.append(bytes(d)))
+    beats, times = [], []
+    network.subscribe(0x705, lambda c, d, t: (beats.append(bytes(d)), times.append(t)))
     time.sleep(1.05)
-    assert 9 <= len(beats) <= 12, beats
+    assert_period(times, 0.1, 8)
+    assert len(beats) <= 12, beats
     assert all(b == b"\x7f" for b in beats)
     node.sdo["Producer heartbeat time"].raw = 0
     time.sleep(0.2)
