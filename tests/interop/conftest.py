@@ -97,6 +97,13 @@ def network(transport, bus_url):
     net = canopen.Network()
     if transport == "socketcan":
         net.connect(interface="socketcan", channel=VCAN)
+        # The master's receive queue: the default (about 200 frames) overflows in the slow UML
+        # guest when python falls behind a sensor's 1000 TPDOs/s, and the frames a test waits
+        # for go with it. 8 MiB, as a master host would size it (SO_RCVBUFFORCE as root).
+        try:
+            net.bus.socket.setsockopt(socket.SOL_SOCKET, 33, 8 << 20)
+        except OSError:
+            net.bus.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
     else:
         port = int(bus_url.rsplit(":", 1)[1].split("/")[0])
         net.connect(interface="socketcand", host="127.0.0.1", port=port, channel="can0")
