@@ -360,15 +360,22 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
         assert len(v) > 20, (t0, t1, len(v))
         return sum(v) / len(v) * 1000.0
 
-    def t2901():
-        # A sample of the temperature: a read lost beside 1000 TPDOs/s (the master's socket
-        # overflows first, in the slow UML guest) is taken again, it does not change the curve.
+    def t2901_at():
+        """A sample of the temperature and when it was taken (the middle of the SDO round trip
+        that answered). A read lost beside 1000 TPDOs/s (the master's socket overflows first,
+        in the slow UML guest) is taken again: the stamp is the retry's, not the first try's."""
         for attempt in range(3):
+            t0 = time.monotonic()
             try:
-                return struct.unpack("<b", node.sdo.upload(0x2901, 1))[0]
+                r = struct.unpack("<b", node.sdo.upload(0x2901, 1))[0]
+                t1 = time.monotonic()
+                return r, (t0 + t1) / 2, t1 - t0
             except SdoCommunicationError:
                 if attempt == 2:
                     raise
+
+    def t2901():
+        return t2901_at()[0]
 
     st = ctl(port, {"cmd": "state"})
     tc = st["unit_tempco_ppm_per_k"]
@@ -388,12 +395,12 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
     tw = lambda t: amb + 3 - (amb + 3 - tw0) * math.exp(-t / tau_w)
     drift = lambda t: x_mm * 1000.0 * tc * 1e-6 * (tw(t) - tw0)  # µm
     final = drift(math.inf)
-    reads = []
+    reads, rtts = [], []
     while time.monotonic() < t_step + 1.2 * tau_w:
-        t0 = time.monotonic()
-        r = t2901()
-        # The read happened somewhere during the SDO round trip: stamp it in the middle.
-        reads.append(((t0 + time.monotonic()) / 2 - t_step, r))
+        # The read happened somewhere during the SDO round trip: stamped in the middle.
+        r, t, rtt = t2901_at()
+        reads.append((t - t_step, r))
+        rtts.append(rtt)
         time.sleep(0.1)
 
     # 0x2901: no jump, then the electronics' first-order lag. The first read comes well inside
@@ -401,9 +408,11 @@ def test_ambient_step_lags_position_and_0x2901(network, sensors):
     # check below then rules out a jump, which would be ~55 K off at that time.
     t_first, r_first = reads[0]
     assert t_first < tau_e / 2 and r_first - r0 <= 0.5 * (amb + 10 - te0), reads[:3]
-    for t, r in reads:
-        # Rounding to whole °C plus a few ms of round trip at up to 17 K/s.
-        assert abs(r - te(t)) <= 2.5, (t, r, te(t))
+    slope = (amb + 10 - te0) / tau_e  # K/s, the steepest, right after the step
+    for (t, r), rtt in zip(reads, rtts):
+        # Rounding to whole °C, plus what the curve can move while the round trip lasts (a few
+        # ms when idle; a loaded guest's slow answers widen the bound rather than fail it).
+        assert abs(r - te(t)) <= 2.5 + slope * rtt / 2, (t, r, te(t), rtt)
     assert all(b >= a - 1 for (_, a), (_, b) in zip(reads, reads[1:])), reads
     assert reads[-1][1] - r0 >= 0.6 * (amb + 10 - te0), reads[-1]
 
