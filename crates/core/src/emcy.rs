@@ -348,6 +348,35 @@ mod tests {
 
     /// The pending queue is bounded: an EMCY that does not fit is counted as lost, the queued
     /// ones go out in order.
+    /// The rings once they have wrapped: 0x1003 lists the last eight errors newest first, and
+    /// the pending frames leave in the order they were queued, with the ninth counted as lost.
+    #[test]
+    fn history_and_pending_keep_their_order_after_wrapping() {
+        let mut e = Emcy::default();
+        for k in 0..10u16 {
+            e.event(0x1000 + k, [0; 5]);
+        }
+        let hist: [u32; HISTORY_LEN] = core::array::from_fn(|i| e.history(i + 1).unwrap());
+        assert_eq!(hist, core::array::from_fn(|i| 0x1009 - i as u32));
+        assert_eq!(e.history(HISTORY_LEN + 1), None);
+        // Ten queued, eight kept (the first eight), two lost; take three, queue four more.
+        assert_eq!(e.lost, 2);
+        let code = |f: [u8; 8]| u16::from_le_bytes([f[0], f[1]]);
+        let first: [u16; 3] = core::array::from_fn(|_| code(e.poll(Instant(0)).unwrap()));
+        assert_eq!(first, [0x1000, 0x1001, 0x1002]);
+        for k in 0..3u16 {
+            e.event(0x2000 + k, [0; 5]);
+        }
+        e.event(0x2003, [0; 5]);
+        assert_eq!(e.lost, 3, "the fourth finds the queue full again");
+        let rest: [u16; 8] = core::array::from_fn(|_| code(e.poll(Instant(0)).unwrap()));
+        assert_eq!(
+            rest,
+            [0x1003, 0x1004, 0x1005, 0x1006, 0x1007, 0x2000, 0x2001, 0x2002]
+        );
+        assert_eq!(e.poll(Instant(0)), None);
+    }
+
     #[test]
     fn a_full_pending_queue_counts_the_lost_emcy() {
         let mut e = Emcy::default();

@@ -1280,8 +1280,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
         match e.hook {
             Hook::SyncCobId => {
-                // SYNC consumer only: bit 30 (generate) and 29-bit ids are refused, and so are
-                // the CiA 301 restricted CAN-IDs (conformance OTH-10).
+                // SYNC consumer only: bit 30 (generate), 29-bit ids and bits 11–28 are refused,
+                // and so are the CiA 301 restricted CAN-IDs (conformance OTH-10).
                 if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
                     || pdo::restricted_id(raw & 0x7FF)
                 {

@@ -494,6 +494,15 @@ mod tests {
         let keys: [u32; 5] = core::array::from_fn(|_| it.next().unwrap().0);
         assert_eq!(keys, [2, 8, 4, 3, 5]);
         assert!(it.next().is_none());
+        // One new record in front of five kept ones: the kept ones move up by one record, over
+        // themselves (moved from the last one down, or they would overwrite each other).
+        update_image(&mut st, 7, |k| k == 6, [(6, 60)].into_iter()).unwrap();
+        let mut buf6 = [0u8; IMAGE_MAX];
+        let got: [(u32, u32); 6] = {
+            let mut it = load_image(&mut st, 7, &mut buf6).unwrap();
+            core::array::from_fn(|_| it.next().unwrap())
+        };
+        assert_eq!(got, [(6, 60), (2, 21), (8, 80), (4, 41), (3, 30), (5, 50)]);
         // An update that does not fit is refused and leaves the stored image as it was.
         let before = st.saves;
         let many = (0..RECORDS_MAX as u32).map(|k| (0x100 + k, k));

@@ -97,8 +97,8 @@ fn guard_answer(r: &mut Rig, id: u16) -> Vec<Frame> {
     r.take()
 }
 
-/// 0x100E (TH): bits 30 and 29 are refused, and so are bits 11–28 (29-bit ids only), and so is a restricted CAN-ID other than the
-/// pre-defined 0x700 + node-id, which stays allowed.
+/// 0x100E (TH): bits 30 and 29 are refused, and so are bits 11–28 (29-bit ids only) and a
+/// restricted CAN-ID other than the pre-defined 0x700 + node-id, which stays allowed.
 #[test]
 fn th_cob_id_guarding_values() {
     let mut r = Rig::booted(&TH);

@@ -95,3 +95,22 @@ fn error_history_sub_0_counts_from_0_and_the_fields_are_recorded() {
         }
     }
 }
+
+/// A declared range's raw bounds read as numbers of the entry's type: low ≤ high, both within
+/// the type's natural range (a signed bound written as the raw bits of another width, such as
+/// 0xD8 for −40 on an INTEGER16, would read as a different number and fail here).
+#[test]
+fn declared_ranges_are_numbers_of_the_entry_type() {
+    for m in models::all() {
+        for e in m.entries.iter() {
+            let Some((lo, hi)) = e.limits() else { continue };
+            let (nlo, nhi) = e.ty.natural_range();
+            assert!(
+                nlo <= lo && lo <= hi && hi <= nhi,
+                "{m:?} {:04X}/{}: {lo}…{hi}",
+                e.index,
+                e.sub
+            );
+        }
+    }
+}
