@@ -99,9 +99,10 @@ def network(transport, bus_url):
         net.connect(interface="socketcan", channel=VCAN)
         # The master's receive queue: the default (about 200 frames) overflows in the slow UML
         # guest when python falls behind a sensor's 1000 TPDOs/s, and the frames a test waits
-        # for go with it. 8 MiB, as a master host would size it (SO_RCVBUFFORCE as root).
+        # for go with it. 8 MiB asked (the kernel doubles it), as a master host would size it.
+        so_rcvbufforce = 33  # linux/socket.h; root may exceed rmem_max
         try:
-            net.bus.socket.setsockopt(socket.SOL_SOCKET, 33, 8 << 20)
+            net.bus.socket.setsockopt(socket.SOL_SOCKET, so_rcvbufforce, 8 << 20)
         except OSError:
             net.bus.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
     else:

@@ -185,8 +185,9 @@ def test_two_sensors_and_python_canopen_share_a_hub(network, sensors, tmp_path):
     for cob in seen:
         network.subscribe(cob, lambda c, d, t: seen.__setitem__(c, seen[c] + 1))
     time.sleep(0.3)
-    # About 300 each at 1 kHz; a loaded machine (99 seen in the UML guest beside a build) runs
-    # the receiving python late. Both streams flowing at a high rate is the point.
+    # Both streams flowing is the point. Two 1 kHz TPDO streams share the bus (the hub's bus
+    # model limits them, and the loaded UML guest receives late: 99 in 0.3 s seen there), so
+    # this counts at least 30 each; the event timer's period is tested on its own elsewhere.
     assert seen[0x18A] > 30 and seen[0x18B] > 30, seen
 
 
@@ -299,9 +300,11 @@ def test_tpdo_never_reports_a_change_before_its_pulse_returned(network, sensors)
     node = add_node(network, 127)
     node.sdo.download(0x1800, 5, struct.pack("<H", 1))  # TPDO1 event timer 1 ms
     step_nm = u32(node, 0x6005, 1)
+    # Stamped by their receive time (the kernel's on SocketCAN, the hub's end of frame over
+    # socketcand; wall clock), so that a late python does not count as the sensor's lag.
     frames = []
     network.subscribe(0x1FF, lambda c, d, t: frames.append(
-        (time.monotonic(), struct.unpack_from("<i", bytes(d))[0])))
+        (t, struct.unpack_from("<i", bytes(d))[0])))
     node.nmt.state = "OPERATIONAL"
     time.sleep(0.2)
     assert frames
@@ -309,7 +312,7 @@ def test_tpdo_never_reports_a_change_before_its_pulse_returned(network, sensors)
     for i, target in enumerate([7600.0, 1000.0] * 5):
         want = round(target * 1e6 / step_nm)
         # Taken before the request: the runtime moves the magnet later, never earlier.
-        t_change = time.monotonic()
+        t_change = time.time()
         assert ctl(port, {"cmd": "magnet", "index": 0, "mm": target})["ok"]
         first = None
         end = time.monotonic() + 2
@@ -330,8 +333,8 @@ def test_tpdo_never_reports_a_change_before_its_pulse_returned(network, sensors)
         assert lag >= ready_us / 1e6, (target, lag, timing)
         assert lag >= delay_us / 1e6, (target, lag, timing)
         # ... and not much later: output delay + one cycle + event timer, with slack for the host
-        # (this VM stalls about 100 ms now and then; 133 ms seen in the UML guest beside a build).
-        assert lag < (timing["output_delay_us"] + timing["cycle_us"]) / 1e6 + 0.5, (target, lag)
+        # (this VM stalls about 100 ms now and then).
+        assert lag < (timing["output_delay_us"] + timing["cycle_us"]) / 1e6 + 0.25, (target, lag)
         time.sleep(0.02 + 0.0013 * i)  # vary the phase against the 4 ms cycle
 
 

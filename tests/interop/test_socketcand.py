@@ -150,14 +150,19 @@ def test_bcm_sync_producer_for_a_sensor(hub, sensors):
             pdos += m.arbitration_id == 0x1FF
         assert syncs >= 30, syncs
         bcm.sendall(b"< delete 080 >")
-        # The answers to the last SYNCs are still on their way: count until the bus is quiet.
+        # The answers to the last SYNCs are still on their way: count until the bus is quiet
+        # (within a second: a job that does not stop fails here rather than hanging).
+        quiet_by = time.monotonic() + 1.0
         while (m := observer.recv(0.3)) is not None:
             syncs += m.arbitration_id == 0x80
             pdos += m.arbitration_id == 0x1FF
+            assert time.monotonic() < quiet_by, "the SYNC job did not stop"
         assert pdos >= syncs - 2, (syncs, pdos)
-        later = []
-        while (m := observer.recv(0.2)) is not None:
-            later.append(m)
+        # ... and stays quiet (another 0.3 s, well past the 10 ms cycle).
+        later, end = [], time.monotonic() + 0.3
+        while time.monotonic() < end:
+            if (m := observer.recv(0.05)) is not None:
+                later.append(m)
         assert not [m for m in later if m.arbitration_id in (0x80, 0x1FF)], later
     finally:
         bcm.close()
