@@ -320,6 +320,9 @@ macro_rules! tpdo_map_names {
         ]
     };
 }
+/// The search keys of a table, as [`Model::keys`] wants them (a device outside this crate,
+/// such as firmware with its own dictionary, builds them the way the models do).
+pub use table::keys;
 pub(crate) use tpdo_map_names;
 
 /// Compile-time table assembly.
