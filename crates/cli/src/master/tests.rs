@@ -884,8 +884,7 @@ fn value_types_encode_and_decode() {
 /// frame in the candump log (`CAN_ERR_FLAG` | protocol violation), and nothing else is written.
 #[test]
 fn record_keeps_the_error_frames_of_a_hub() {
-    let dir = std::env::temp_dir().join(format!("canpos-master-err-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tempdir();
     let file = dir.join("errors.log");
     let hub = canpos_host::socketcand::Hub::bind("127.0.0.1:0")
         .unwrap()
@@ -893,17 +892,7 @@ fn record_keeps_the_error_frames_of_a_hub() {
         .unwrap();
     let mut port = hub.attach("can0");
     let url = format!("socketcand://{}/can0", hub.local_addr());
-    let f2 = file.clone();
-    let rec = thread::spawn(move || {
-        record(RecordArgs {
-            file: f2,
-            bus: BusArg { bus: url },
-            format: None,
-            duration: Some(5.0),
-            count: Some(2),
-            interface: None,
-        })
-    });
+    let rec = spawn_record(&file, url, 2);
     // The recorder is connected once its file exists.
     let end = Instant::now() + Duration::from_secs(5);
     while !file.exists() {
@@ -932,24 +921,12 @@ fn record_keeps_the_error_frames_of_a_hub() {
 
 #[test]
 fn record_then_replay_keeps_frames_and_timing() {
-    let dir = std::env::temp_dir().join(format!("canpos-master-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tempdir();
     let file = dir.join("rec.log");
     let rec_name = bus_name("rec");
     let bus = MemBus::named(&rec_name);
     let sender = bus.attach();
-    let f2 = file.clone();
-    let url = format!("mem://{rec_name}");
-    let rec = thread::spawn(move || {
-        record(RecordArgs {
-            file: f2,
-            bus: BusArg { bus: url },
-            format: None,
-            duration: Some(5.0),
-            count: Some(3),
-            interface: None,
-        })
-    });
+    let rec = spawn_record(&file, format!("mem://{rec_name}"), 3);
     // Wait until the recorder is attached.
     while bus.port_count() < 2 {
         thread::sleep(Duration::from_millis(1));
@@ -1027,17 +1004,7 @@ fn record_keeps_stamps_in_order() {
     let name = bus_name("order");
     let bus = MemBus::named(&name);
     let sender = bus.attach();
-    let (f2, url) = (file.clone(), format!("mem://{name}"));
-    let rec = thread::spawn(move || {
-        record(RecordArgs {
-            file: f2,
-            bus: BusArg { bus: url },
-            format: None,
-            duration: Some(5.0),
-            count: Some(3),
-            interface: None,
-        })
-    });
+    let rec = spawn_record(&file, format!("mem://{name}"), 3);
     while bus.port_count() < 2 {
         thread::sleep(Duration::from_millis(1));
     }
@@ -1070,6 +1037,21 @@ fn record_keeps_stamps_in_order() {
         ]
     );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `canpos record FILE --bus URL --count N` on a thread (at most 5 s).
+fn spawn_record(file: &std::path::Path, url: String, count: u64) -> JoinHandle<Result<i32>> {
+    let file = file.to_path_buf();
+    thread::spawn(move || {
+        record(RecordArgs {
+            file,
+            bus: BusArg { bus: url },
+            format: None,
+            duration: Some(5.0),
+            count: Some(count),
+            interface: None,
+        })
+    })
 }
 
 fn tempdir() -> std::path::PathBuf {
