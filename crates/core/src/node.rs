@@ -152,22 +152,30 @@ struct HotSlots {
     emcy_cob: u16,
     /// 0x1001 error register.
     err_reg: u16,
-    /// 0x1003 sub 0…8.
-    hist: [u16; 1 + emcy::HISTORY_LEN],
+    /// 0x1003 sub 0.
+    hist: u16,
+    /// How many of 0x1003 sub 1…8 the table has: they follow sub 0 in the slots.
+    hist_subs: u8,
 }
 
 impl HotSlots {
-    fn new(od: &Dictionary) -> Self {
-        let slot = |index: u16, sub: u8| od.find(index, sub).map_or(NO_SLOT, |s| s as u16);
-        let mut hist = [NO_SLOT; 1 + emcy::HISTORY_LEN];
-        for (i, h) in hist.iter_mut().enumerate() {
-            *h = slot(0x1003, i as u8);
-        }
+    /// From the table's keys (not the dictionary, which would then have to be in memory
+    /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
+    fn new(keys: &[u32]) -> Self {
+        let slot = |index: u16, sub: u8| {
+            let key = (index as u32) << 8 | sub as u32;
+            keys.binary_search(&key).map_or(NO_SLOT, |s| s as u16)
+        };
+        let hist = slot(0x1003, 0);
+        let hist_subs = (1..=emcy::HISTORY_LEN as u16)
+            .take_while(|&i| hist != NO_SLOT && slot(0x1003, i as u8) == hist + i)
+            .count() as u8;
         HotSlots {
             sync: slot(0x1005, 0),
             emcy_cob: slot(0x1014, 0),
             err_reg: slot(0x1001, 0),
             hist,
+            hist_subs,
         }
     }
 }
@@ -235,7 +243,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     #[inline(always)] // as `new`
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
         let od = Dictionary::new(model.entries, model.keys);
-        let hot = HotSlots::new(&od);
+        let hot = HotSlots::new(model.keys);
         Node {
             sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
             held_sdo: None,
@@ -1115,10 +1123,10 @@ impl<A: Application, S: Storage> Device<A, S> {
         let r = self.emcy.register();
         self.od.set_hot(h.err_reg, r as u32);
         let n = self.emcy.history_len();
-        self.od.set_hot(h.hist[0], n as u32);
-        for i in 1..=emcy::HISTORY_LEN {
-            self.od
-                .set_hot(h.hist[i], self.emcy.history(i).unwrap_or(0));
+        self.od.set_hot(h.hist, n as u32);
+        for i in 1..=usize::from(h.hist_subs) {
+            let v = self.emcy.history(i).unwrap_or(0);
+            self.od.set(usize::from(h.hist) + i, v);
         }
         self.emcy_synced = self.emcy.generation();
     }
