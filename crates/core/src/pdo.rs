@@ -45,11 +45,10 @@ pub struct Tpdo {
     /// `cob`'s 11-bit CAN-ID, kept with it (read for every frame).
     id: u16,
     ttype: u8,
-    inhibit: Duration,
-    event: Duration,
-    /// `event` in µs, at least 1: the event timer's period (the timer only runs when
-    /// `event` > 0; the floor keeps the schedule's division defined regardless).
-    period_us: u64,
+    /// Inhibit time in µs (0x1800:3 is 16 bits of 100 µs: at most 6.6 s, so 32 bits hold it).
+    inhibit_us: u32,
+    /// Event timer period in µs, 0 when off (0x1800:5 is 16 bits of ms: at most 65.5 s).
+    event_us: u32,
     map: [Mapped; MAX_MAP],
     n_map: u8,
     len: u8,
@@ -69,9 +68,8 @@ impl core::default::Default for Tpdo {
             cob: COB_INVALID,
             id: 0,
             ttype: 0,
-            inhibit: Duration::ZERO,
-            event: Duration::ZERO,
-            period_us: 1,
+            inhibit_us: 0,
+            event_us: 0,
             map: [Mapped::default(); MAX_MAP],
             n_map: 0,
             len: 0,
@@ -101,6 +99,10 @@ impl Tpdo {
     fn asynchronous(&self) -> bool {
         self.ttype >= 254
     }
+    #[inline(always)]
+    fn inhibit(&self) -> Duration {
+        Duration::from_micros(u64::from(self.inhibit_us))
+    }
 
     /// The timers of an asynchronous TPDO at `now`: the event timer on its absolute
     /// schedule, then the inhibit time. Returns the frame when it is to be sent now.
@@ -111,7 +113,9 @@ impl Tpdo {
         let fired = now.0 >= t;
         if fired {
             // Absolute schedule: the next period starts where this one was due.
-            let per = self.period_us;
+            // At least 1 µs: the division below stays defined whatever the period (the timer
+            // only runs when it is not 0).
+            let per = u64::from(self.event_us.max(1));
             let mut next = t + per;
             if next <= now.0 {
                 let skipped = (now.0 - next) / per + 1;
@@ -123,7 +127,7 @@ impl Tpdo {
         if (fired || self.pending) && now >= self.inhibit_until {
             self.pending = false;
             self.changed = false;
-            self.inhibit_until = now + self.inhibit;
+            self.inhibit_until = now + self.inhibit();
             return Some(build(self, od));
         }
         if fired {
@@ -279,9 +283,9 @@ impl Tpdos {
         p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
         p.id = (p.cob & 0x7FF) as u16;
         p.ttype = od.value(ci, 2).unwrap_or(254) as u8;
-        p.inhibit = Duration::from_micros(od.value(ci, 3).unwrap_or(0) as u64 * 100);
-        p.event = Duration::from_millis(od.value(ci, 5).unwrap_or(0) as u64);
-        p.period_us = p.event.micros().max(1);
+        // Both are UNSIGNED16 in the table; the `min` only keeps the products in 32 bits.
+        p.inhibit_us = od.value(ci, 3).unwrap_or(0).min(0xFFFF) * 100;
+        p.event_us = od.value(ci, 5).unwrap_or(0).min(0xFFFF) * 1000;
         let mi = map_index(n);
         let count = od.value(mi, 0).unwrap_or(0) as usize;
         p.n_map = 0;
@@ -418,8 +422,8 @@ impl Tpdos {
     pub fn set_active(&mut self, active: bool, now: Instant) {
         if active && !self.active {
             for p in &mut self.pdos[..self.count] {
-                p.next_event = if p.valid() && p.asynchronous() && p.event.micros() > 0 {
-                    (now + p.event).0
+                p.next_event = if p.valid() && p.asynchronous() && p.event_us > 0 {
+                    (now + Duration::from_micros(u64::from(p.event_us))).0
                 } else {
                     NEVER
                 };
@@ -487,7 +491,7 @@ impl Tpdos {
             };
             if send {
                 out.push(build(p, od));
-                p.inhibit_until = now + p.inhibit;
+                p.inhibit_until = now + p.inhibit();
             }
         }
         // Synchronous TPDOs have no timer of their own: the schedule is unchanged.
@@ -507,7 +511,7 @@ impl Tpdos {
         for p in &mut self.pdos[..self.count] {
             if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
                 out(build(p, od));
-                p.inhibit_until = now + p.inhibit;
+                p.inhibit_until = now + p.inhibit();
                 self.refresh_due();
                 return true;
             }
