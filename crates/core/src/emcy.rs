@@ -69,15 +69,16 @@ const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_t
 #[derive(Clone, Debug)]
 pub struct Emcy {
     active: [(u16, u8); ACTIVE_LEN],
-    n_active: usize,
+    // The counts and ring positions are bytes (every ring holds 8): 16 B less RAM than `usize`.
+    n_active: u8,
     history: [u32; HISTORY_LEN],
     /// Where the newest history entry is.
-    newest: usize,
-    n_history: usize,
+    newest: u8,
+    n_history: u8,
     pending: [[u8; 8]; PENDING_LEN],
     /// Where the oldest pending frame is.
-    first_pending: usize,
-    n_pending: usize,
+    first_pending: u8,
+    n_pending: u8,
     inhibit: Duration,
     next_allowed: Instant,
     /// EMCYs that could not be queued (pending queue full).
@@ -87,6 +88,14 @@ pub struct Emcy {
     generation: u32,
     /// See [`Emcy::set_reset_on_register_change`].
     on_register_change: bool,
+}
+
+impl Emcy {
+    /// The active errors: code and error-register bits.
+    #[inline]
+    fn active_codes(&self) -> &[(u16, u8)] {
+        &self.active[..usize::from(self.n_active)]
+    }
 }
 
 impl core::default::Default for Emcy {
@@ -114,7 +123,7 @@ impl Emcy {
     #[inline]
     pub fn register(&self) -> u8 {
         let mut r = 0;
-        for &(_, bits) in &self.active[..self.n_active] {
+        for &(_, bits) in self.active_codes() {
             r |= bits | reg::GENERIC;
         }
         r
@@ -134,7 +143,7 @@ impl Emcy {
 
     /// Whether `code` is active.
     pub fn is_active(&self, code: u16) -> bool {
-        self.active[..self.n_active].iter().any(|&(c, _)| c == code)
+        self.active_codes().iter().any(|&(c, _)| c == code)
     }
 
     /// Sets the inhibit time (0x1015, 100 µs units).
@@ -148,8 +157,8 @@ impl Emcy {
         if self.is_active(code) {
             return;
         }
-        if self.n_active < ACTIVE_LEN {
-            self.active[self.n_active] = (code, reg_bits);
+        if usize::from(self.n_active) < ACTIVE_LEN {
+            self.active[usize::from(self.n_active)] = (code, reg_bits);
             self.n_active += 1;
         }
         self.generation = self.generation.wrapping_add(1);
@@ -167,10 +176,7 @@ impl Emcy {
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
     pub fn clear(&mut self, code: u16) {
-        let Some(i) = self.active[..self.n_active]
-            .iter()
-            .position(|&(c, _)| c == code)
-        else {
+        let Some(i) = self.active_codes().iter().position(|&(c, _)| c == code) else {
             return;
         };
         let before = self.register();
@@ -216,15 +222,15 @@ impl Emcy {
 
     /// Entry `i` (1-based, newest first) of 0x1003.
     pub fn history(&self, i: usize) -> Option<u32> {
-        if i == 0 || i > self.n_history {
+        if i == 0 || i > usize::from(self.n_history) {
             None
         } else {
-            Some(self.history[(self.newest + i - 1) % HISTORY_LEN])
+            Some(self.history[(usize::from(self.newest) + i - 1) % HISTORY_LEN])
         }
     }
     /// Number of history entries (0x1003/0).
     pub fn history_len(&self) -> usize {
-        self.n_history
+        usize::from(self.n_history)
     }
     /// Clears 0x1003.
     pub fn clear_history(&mut self) {
@@ -237,19 +243,20 @@ impl Emcy {
         // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
         // entry matches the frame (conformance EMCY-06).
         let entry = code as u32 | (u16::from_le_bytes([mfr[0], mfr[1]]) as u32) << 16;
-        self.newest = (self.newest + HISTORY_LEN - 1) % HISTORY_LEN;
-        self.history[self.newest] = entry;
-        self.n_history = (self.n_history + 1).min(HISTORY_LEN);
+        let newest = (usize::from(self.newest) + HISTORY_LEN - 1) % HISTORY_LEN;
+        self.newest = newest as u8;
+        self.history[newest] = entry;
+        self.n_history = (self.n_history + 1).min(HISTORY_LEN as u8);
         self.generation = self.generation.wrapping_add(1);
     }
 
     fn queue(&mut self, code: u16, register: u8, mfr: [u8; 5]) {
-        if self.n_pending == PENDING_LEN {
+        if usize::from(self.n_pending) == PENDING_LEN {
             self.lost = self.lost.wrapping_add(1);
             return;
         }
         let c = code.to_le_bytes();
-        self.pending[(self.first_pending + self.n_pending) % PENDING_LEN] =
+        self.pending[usize::from(self.first_pending + self.n_pending) % PENDING_LEN] =
             [c[0], c[1], register, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]];
         self.n_pending += 1;
     }
@@ -275,8 +282,8 @@ impl Emcy {
         if self.n_pending == 0 || now < self.next_allowed {
             return None;
         }
-        let f = self.pending[self.first_pending];
-        self.first_pending = (self.first_pending + 1) % PENDING_LEN;
+        let f = self.pending[usize::from(self.first_pending) % PENDING_LEN];
+        self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
         Some(f)
