@@ -282,7 +282,7 @@ impl Emcy {
         if self.n_pending == 0 || now < self.next_allowed {
             return None;
         }
-        let f = self.pending[usize::from(self.first_pending) % PENDING_LEN];
+        let f = self.pending[usize::from(self.first_pending)];
         self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;

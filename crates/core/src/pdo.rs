@@ -113,11 +113,12 @@ impl Tpdo {
         let fired = now.0 >= t;
         if fired {
             // Absolute schedule: the next period starts where this one was due.
-            // At least 1 µs: the division below stays defined whatever the period (the timer
-            // only runs when it is not 0).
-            let per = u64::from(self.event_us.max(1));
+            let per = u64::from(self.event_us);
             let mut next = t + per;
             if next <= now.0 {
+                // At least 1 µs, so that the division is defined whatever the period (the timer
+                // only runs when it is not 0). Here, off the usual path, it costs nothing there.
+                let per = per.max(1);
                 let skipped = (now.0 - next) / per + 1;
                 self.missed = self.missed.wrapping_add(skipped as u32);
                 next += skipped * per;
