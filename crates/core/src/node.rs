@@ -11,7 +11,9 @@ use crate::errctl::{ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave};
 use crate::models::{DeviceConfig, Model};
 use crate::nmt::{NmtCommand, NmtState};
-use crate::od::{le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource};
+use crate::od::{
+    self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
+};
 use crate::pdo::{self, Tpdos};
 use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
@@ -163,8 +165,8 @@ impl HotSlots {
     /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
     fn new(keys: &[u32]) -> Self {
         let slot = |index: u16, sub: u8| {
-            let key = (index as u32) << 8 | sub as u32;
-            keys.binary_search(&key).map_or(NO_SLOT, |s| s as u16)
+            keys.binary_search(&od::key(index, sub))
+                .map_or(NO_SLOT, |s| s as u16)
         };
         let hist = slot(0x1003, 0);
         let hist_subs = (1..=emcy::HISTORY_LEN as u16)
@@ -1456,7 +1458,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// stays right).
     #[inline]
     fn find(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
-        let key = (index as u32) << 8 | sub as u32;
+        let key = od::key(index, sub);
         if self.memo.0 == key {
             return Ok(self.memo.1);
         }

@@ -117,7 +117,7 @@ impl Tpdo {
             let mut next = t + per;
             if next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
-                // only runs when it is not 0). Here, off the usual path, it costs nothing there.
+                // only runs when it is not 0); floored here, off the usual path, where it is used.
                 let per = per.max(1);
                 let skipped = (now.0 - next) / per + 1;
                 self.missed = self.missed.wrapping_add(skipped as u32);

@@ -8,7 +8,7 @@
 
 mod types;
 
-pub use types::{Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
+pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
 
 /// Most entries a model's table may have (the value array is sized for it). 256, so that a
 /// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
@@ -72,8 +72,7 @@ impl Dictionary {
     #[cfg_attr(feature = "inline-lookups", inline)]
     #[cfg_attr(not(feature = "inline-lookups"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
-        let key = (index as u32) << 8 | sub as u32;
-        match self.keys.binary_search(&key) {
+        match self.keys.binary_search(&key(index, sub)) {
             Ok(slot) => Ok(slot),
             Err(pos) => {
                 let has_index = self.entries.get(pos).is_some_and(|e| e.index == index)

@@ -267,6 +267,13 @@ pub struct Entry {
     pub hook: Hook,
 }
 
+/// The `index << 8 | sub` key of an object: what a model's table is sorted by and its key
+/// array holds.
+#[inline]
+pub const fn key(index: u16, sub: u8) -> u32 {
+    (index as u32) << 8 | sub as u32
+}
+
 impl Hook {
     /// Whether a write sets something in motion once the value has landed (the other hooks
     /// only check a write, or act instead of storing it).
@@ -328,9 +335,9 @@ impl Entry {
         self.index >= 0x1000 && self.index <= 0x1FFF
     }
 
-    /// The `index << 8 | sub` key the table is sorted by.
+    /// The [`key`] the table is sorted by.
     pub const fn key(&self) -> u32 {
-        (self.index as u32) << 8 | self.sub as u32
+        key(self.index, self.sub)
     }
 
     /// Whether a raw value is acceptable for this entry (type range and declared range).
