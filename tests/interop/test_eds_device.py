@@ -113,9 +113,7 @@ def test_hand_written_eds_tpdo_remap_and_reception(network, sensors):
     node.nmt.state = "OPERATIONAL"
     node.tpdo[1].wait_for_reception(2)
     assert [v.raw for v in node.tpdo[1].map] == [10, 4321, 2000]
-    time.sleep(0.5)
-    assert_period(stamps, 0.02, 12)
-    assert len(stamps) <= 35, len(stamps)
+    assert_period(stamps, 0.02, 0.5, 12, 35)
     # A string cannot be mapped (0x06040041); entries change only at count 0 (0x06010000).
     pdo1 = node.tpdo[1]
     pdo1.enabled = False
@@ -133,9 +131,7 @@ def test_hand_written_eds_heartbeat_and_guarding(network, sensors):
     node.sdo["Producer heartbeat time"].raw = 100
     beats, times = [], []
     network.subscribe(0x705, lambda c, d, t: (beats.append(bytes(d)), times.append(t)))
-    time.sleep(1.05)
-    assert_period(times, 0.1, 8)
-    assert len(beats) <= 12, beats
+    assert_period(times, 0.1, 1.05, 8, 12)
     assert all(b == b"\x7f" for b in beats)
     node.sdo["Producer heartbeat time"].raw = 0
     time.sleep(0.2)

@@ -74,10 +74,8 @@ def test_heartbeat(network, sensors):
     node.sdo.download(0x1017, 0, struct.pack("<H", 100))
     stamps = []
     network.subscribe(0x77F, lambda c, d, t: stamps.append((t, bytes(d))))
-    time.sleep(1.05)
-    assert_period([t for t, _ in stamps], 0.1, 8)
-    assert len(stamps) <= 12, stamps
-    assert all(d == b"\x7f" for _, d in stamps)
+    got = assert_period(stamps, 0.1, 1.05, 8, 12, key=lambda s: s[0])
+    assert all(d == b"\x7f" for _, d in got)
     node.nmt.state = "OPERATIONAL"
     node.nmt.wait_for_heartbeat(1.0)
     assert node.nmt.state == "OPERATIONAL"
@@ -112,9 +110,7 @@ def test_tpdo_examples_4_and_5_and_default_pdo(network, sensors, tmp_path, model
     # Rate: about one PDO per 10 ms.
     n = []
     network.subscribe(0x1FF, lambda c, d, t: n.append(t))
-    time.sleep(0.5)
-    assert_period(n, 0.01, 25)
-    assert len(n) <= 60, len(n)
+    assert_period(n, 0.01, 0.5, 25, 60)
 
 
 def test_lss_commission_node_id_5(network, sensors, tmp_path):
@@ -184,11 +180,14 @@ def test_two_sensors_and_python_canopen_share_a_hub(network, sensors, tmp_path):
     seen = {0x18A: 0, 0x18B: 0}
     for cob in seen:
         network.subscribe(cob, lambda c, d, t: seen.__setitem__(c, seen[c] + 1))
-    time.sleep(0.3)
-    # Both streams flowing is the point. Two 1 kHz TPDO streams share the bus (the hub's bus
-    # model limits them, and the loaded UML guest receives late: 99 in 0.3 s seen there), so
-    # this counts at least 30 each; the event timer's period is tested on its own elsewhere.
-    assert seen[0x18A] > 30 and seen[0x18B] > 30, seen
+    # Both streams flowing is the point; the event timer's period is tested on its own
+    # elsewhere. Two 1 kHz TPDO streams share the bus (the hub's bus model limits them): 300
+    # each in 0.3 s when idle, but the loaded UML guest once delivered 11 each in that time.
+    # So this waits, up to 5 s, for 100 of each.
+    end = time.monotonic() + 5
+    while min(seen.values()) < 100 and time.monotonic() < end:
+        time.sleep(0.05)
+    assert min(seen.values()) >= 100, seen
 
 
 @pytest.mark.parametrize("model", ["th", "tmi"])
