@@ -1220,8 +1220,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         storage::update_image(
             &mut self.storage,
             self.model.features.tag,
-            covered,
-            values.chain(node),
+            &covered,
+            &mut values.chain(node),
         )
         .map_err(|_| Abort::CannotStore)
     }
@@ -1240,8 +1240,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         match storage::update_image(
             &mut self.storage,
             self.model.features.tag,
-            forgotten,
-            core::iter::empty(),
+            &forgotten,
+            &mut core::iter::empty(),
         ) {
             Ok(()) => Ok(()),
             Err(_) => Err(Abort::CannotStore),
@@ -1274,8 +1274,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         storage::update_image(
             &mut self.storage,
             self.model.features.tag,
-            replaced,
-            lss.into_iter().chain(copies),
+            &replaced,
+            &mut lss.into_iter().chain(copies),
         )?;
         self.stored_lss = (Some(id), Some(kbps));
         Ok(())

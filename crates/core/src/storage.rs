@@ -287,15 +287,15 @@ pub fn load_image<'a, S: Storage>(
 ///
 /// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
-/// moved up behind the space for the new ones, and the new ones written first, so the image
-/// has the new records first and the kept ones after them, in their stored order. Never
-/// inlined, so the buffer is on the stack only while an update runs.
+/// in their stored order, and the new ones follow them. Nothing is saved when they do not all
+/// fit. Never inlined, so the buffer is on the stack only while an update runs; the rule and
+/// the records come as trait objects, so that every caller shares one copy of the code.
 #[inline(never)]
 pub fn update_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
-    replaced: impl Fn(u32) -> bool,
-    put: impl Iterator<Item = (u32, u32)> + Clone,
+    replaced: &dyn Fn(u32) -> bool,
+    put: &mut dyn Iterator<Item = (u32, u32)>,
 ) -> Result<(), StorageError> {
     let mut buf = [0u8; IMAGE_MAX];
     let old_len = st.load(&mut buf).unwrap_or(0);
@@ -312,23 +312,15 @@ pub fn update_image<S: Storage>(
             at += 8;
         }
     }
-    let new = put.clone().count();
-    if 8 + 8 * (new + kept) + 4 > buf.len() {
-        return Err(StorageError::Io);
-    }
-    // From the last record down, as the records move up.
-    for r in (0..kept).rev() {
-        move_record(&mut buf, 8 + 8 * r, 8 + 8 * (new + r));
-    }
     let mut w = ImageWriter::new(&mut buf, model_tag);
+    w.len += 8 * kept;
+    w.count += kept as u16;
     for (k, v) in put {
         debug_assert!(replaced(k), "record {k:#x} would be stored twice");
         if !w.push(k, v) {
             return Err(StorageError::Io);
         }
     }
-    w.len += 8 * kept;
-    w.count += kept as u16;
     let n = w.finish();
     st.save(&buf[..n])
 }
@@ -442,16 +434,16 @@ mod tests {
     #[test]
     fn update_image_keeps_unreplaced_records_and_refuses_an_overflow() {
         let mut st = RamStorage::default();
-        update_image(&mut st, 1, |_| true, [(1, 10), (2, 20)].into_iter()).unwrap();
-        update_image(&mut st, 1, |k| k == 2, [(2, 21)].into_iter()).unwrap();
+        update_image(&mut st, 1, &|_| true, &mut [(1, 10), (2, 20)].into_iter()).unwrap();
+        update_image(&mut st, 1, &|k| k == 2, &mut [(2, 21)].into_iter()).unwrap();
         let mut b = [0u8; IMAGE_MAX];
         let recs = load_image(&mut st, 1, &mut b).unwrap();
         assert_eq!(recs.clone().count(), 2);
         assert!(recs.clone().any(|r| r == (1, 10)) && recs.clone().any(|r| r == (2, 21)));
         let fit = (IMAGE_MAX - 12) / 8;
-        let many = (100..100 + fit as u32).map(|k| (k, k));
+        let mut many = (100..100 + fit as u32).map(|k| (k, k));
         assert_eq!(
-            update_image(&mut st, 1, |k| k >= 100, many),
+            update_image(&mut st, 1, &|k| k >= 100, &mut many),
             Err(StorageError::Io),
             "two kept + all that fit is too many"
         );
@@ -464,13 +456,19 @@ mod tests {
     }
 
     #[test]
-    fn update_in_place_puts_new_records_first_then_the_kept_ones_in_order() {
+    fn update_in_place_keeps_the_stored_order_and_appends_the_new_records() {
         let mut st = RamStorage::default();
         let old = [(1, 10), (2, 20), (3, 30), (4, 40), (5, 50)];
-        update_image(&mut st, 7, |_| true, old.into_iter()).unwrap();
-        // Replace 2 and 4, add 9 and 8; 1, 3, 5 stay behind the new ones.
+        update_image(&mut st, 7, &|_| true, &mut old.into_iter()).unwrap();
+        // Replace 2 and 4, add 9 and 8: 1, 3, 5 move to the front, the new ones follow.
         let put = [(9, 90), (2, 21), (8, 80), (4, 41)];
-        update_image(&mut st, 7, |k| matches!(k, 2 | 4 | 8 | 9), put.into_iter()).unwrap();
+        update_image(
+            &mut st,
+            7,
+            &|k| matches!(k, 2 | 4 | 8 | 9),
+            &mut put.into_iter(),
+        )
+        .unwrap();
         let mut buf = [0u8; IMAGE_MAX];
         let got: [(u32, u32); 7] = {
             let mut it = load_image(&mut st, 7, &mut buf).unwrap();
@@ -479,35 +477,34 @@ mod tests {
         assert_eq!(
             got,
             [
+                (1, 10),
+                (3, 30),
+                (5, 50),
                 (9, 90),
                 (2, 21),
                 (8, 80),
-                (4, 41),
-                (1, 10),
-                (3, 30),
-                (5, 50)
+                (4, 41)
             ]
         );
-        // Dropping records only (the kept ones move towards the front).
-        update_image(&mut st, 7, |k| k == 9 || k == 1, core::iter::empty()).unwrap();
+        // Dropping records only (the kept ones close the gaps, in order).
+        update_image(&mut st, 7, &|k| k == 9 || k == 1, &mut core::iter::empty()).unwrap();
         let mut it = load_image(&mut st, 7, &mut buf).unwrap();
         let keys: [u32; 5] = core::array::from_fn(|_| it.next().unwrap().0);
-        assert_eq!(keys, [2, 8, 4, 3, 5]);
+        assert_eq!(keys, [3, 5, 2, 8, 4]);
         assert!(it.next().is_none());
-        // One new record in front of five kept ones: the kept ones move up by one record, over
-        // themselves (moved from the last one down, or they would overwrite each other).
-        update_image(&mut st, 7, |k| k == 6, [(6, 60)].into_iter()).unwrap();
-        let mut buf6 = [0u8; IMAGE_MAX];
-        let got: [(u32, u32); 6] = {
-            let mut it = load_image(&mut st, 7, &mut buf6).unwrap();
+        // Replacing the first record moves every other one down by one, over itself.
+        update_image(&mut st, 7, &|k| k == 3, &mut [(3, 31)].into_iter()).unwrap();
+        let mut buf5 = [0u8; IMAGE_MAX];
+        let got: [(u32, u32); 5] = {
+            let mut it = load_image(&mut st, 7, &mut buf5).unwrap();
             core::array::from_fn(|_| it.next().unwrap())
         };
-        assert_eq!(got, [(6, 60), (2, 21), (8, 80), (4, 41), (3, 30), (5, 50)]);
+        assert_eq!(got, [(5, 50), (2, 21), (8, 80), (4, 41), (3, 31)]);
         // An update that does not fit is refused and leaves the stored image as it was.
         let before = st.saves;
-        let many = (0..RECORDS_MAX as u32).map(|k| (0x100 + k, k));
+        let mut many = (0..RECORDS_MAX as u32).map(|k| (0x100 + k, k));
         assert_eq!(
-            update_image(&mut st, 7, |k| k >= 0x100, many),
+            update_image(&mut st, 7, &|k| k >= 0x100, &mut many),
             Err(StorageError::Io)
         );
         assert_eq!(st.saves, before);

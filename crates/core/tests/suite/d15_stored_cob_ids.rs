@@ -69,8 +69,8 @@ fn older_image(mut st: RamStorage) -> RamStorage {
     storage::update_image(
         &mut st,
         TH.features.tag,
-        |k| k == KEY_SAVED_NODE_ID,
-        core::iter::empty(),
+        &|k| k == KEY_SAVED_NODE_ID,
+        &mut core::iter::empty(),
     )
     .unwrap();
     st

@@ -62,12 +62,12 @@ fn a_host_image_holds_240_records() {
 
     // Updating the stored image to exactly 240 records fits too; one more does not.
     let mut st = RamStorage::default();
-    update_image(&mut st, 1, |_| true, (0..200).map(|k| (k, k))).unwrap();
-    update_image(&mut st, 1, |k| k >= 200, (200..240).map(|k| (k, k))).unwrap();
+    update_image(&mut st, 1, &|_| true, &mut (0..200).map(|k| (k, k))).unwrap();
+    update_image(&mut st, 1, &|k| k >= 200, &mut (200..240).map(|k| (k, k))).unwrap();
     let mut b = [0u8; IMAGE_MAX];
     assert_eq!(st.load(&mut b), Ok(IMAGE_MAX));
     assert_eq!(
-        update_image(&mut st, 1, |k| k >= 200, (200..241).map(|k| (k, k))),
+        update_image(&mut st, 1, &|k| k >= 200, &mut (200..241).map(|k| (k, k))),
         Err(StorageError::Io)
     );
     assert_eq!(load_image(&mut st, 1, &mut b).unwrap().count(), 240);
