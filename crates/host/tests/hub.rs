@@ -384,16 +384,22 @@ fn many_connects_and_disconnects() {
     for w in workers {
         w.join().unwrap();
     }
-    wait_until("all clients gone", || h.stats().clients == 0);
-    assert_eq!(h.stats().accepted, 200);
+    // A connection still in the listen backlog is not yet counted: wait for all 200.
+    wait_until("all clients accepted and gone", || {
+        let s = h.stats();
+        s.clients == 0 && s.accepted == 200
+    });
     assert!(h.is_running());
-    while port.try_recv().unwrap().is_some() {}
     let mut c = Client::connect(addr, "can0").unwrap();
     c.send(&f(0x42, &[])).unwrap();
-    assert_eq!(
-        port.recv_timeout(Some(WAIT)).unwrap().unwrap().frame,
-        f(0x42, &[])
-    );
+    // The workers' frames may still be on the (timed) bus ahead of it; nothing else may be.
+    loop {
+        let got = port.recv_timeout(Some(WAIT)).unwrap().unwrap().frame;
+        if got == f(0x42, &[]) {
+            break;
+        }
+        assert!((0x100..0x104).contains(&got.id()), "{got:?}");
+    }
 }
 
 #[test]
