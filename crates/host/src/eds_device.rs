@@ -881,7 +881,7 @@ impl Builder<'_> {
                 ty,
                 access,
                 pdo: false,
-                default: Default::Str(leak(s)),
+                default: Default::Str(Box::leak(Box::new(leak(s)))),
                 range: Range::Any,
                 group: Group::Volatile,
                 hook,

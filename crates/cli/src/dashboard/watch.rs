@@ -344,9 +344,9 @@ pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Mod
         return Some(candidates[0]);
     }
     candidates.into_iter().find(|m| {
-        m.entries
-            .iter()
-            .any(|e| e.index == 0x1008 && matches!(e.default, OdDefault::Str(s) if Some(s) == name))
+        m.entries.iter().any(|e| {
+            e.index == 0x1008 && matches!(e.default, OdDefault::Str(s) if Some(*s) == name)
+        })
     })
 }
 

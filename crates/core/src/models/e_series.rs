@@ -32,9 +32,9 @@ const COMM_HEAD: &[Entry] = &[
 #[rustfmt::skip]
 const COMM: &[Entry] = &[
     entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
-    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("MTS")),
-    entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str("1.00")),
-    entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str("1.04")),
+    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str(&"MTS")),
+    entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str(&"1.00")),
+    entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str(&"1.04")),
     entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
     entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(1)),

@@ -32,9 +32,9 @@ const COMM_HEAD: &[Entry] = &[
 #[rustfmt::skip]
 const COMM: &[Entry] = &[
     entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
-    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("C304")),
-    entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str("1.00")),
-    entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str("1.01")),
+    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str(&"C304")),
+    entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str(&"1.00")),
+    entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str(&"1.01")),
     // Tracks the active node-id (Table 15 default 0x7F = the default node-id).
     entry!(0x100B, 0, "Node-ID", Unsigned32, Ro, Param(Param::NodeId)),
     entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),

@@ -46,7 +46,7 @@ const COMM_HEAD: &[Entry] = &[
 const COMM: &[Entry] = &[
     entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile).with_hook(Hook::SyncCobId),
     // SPEC §1: the manual names no device; "TMI".
-    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str("TMI")),
+    entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str(&"TMI")),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(3)),
     entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
     entry!(0x1010, 2, "Store communication parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),

@@ -210,8 +210,10 @@ pub enum Default {
     Const(u32),
     /// `base + node-id` (pre-defined connection set COB-IDs).
     NodeId(u32),
-    /// A fixed string (VISIBLE_STRING, const / ro).
-    Str(&'static str),
+    /// A fixed string (VISIBLE_STRING, const / ro). Behind a second reference, so that the
+    /// variant holds one pointer rather than a pointer and a length: the entries of a table
+    /// are then 32 bytes instead of 36 on a 32-bit microcontroller.
+    Str(&'static &'static str),
     /// A configuration-dependent value.
     Param(Param),
     /// A live value computed by the application; no default (reads its current value, 0 at boot).

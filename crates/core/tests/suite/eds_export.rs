@@ -138,7 +138,7 @@ fn every_model_eds_parses_and_lists_every_object() {
                             "{what}"
                         )
                     }
-                    Default::Str(s) => assert_eq!(sec["DefaultValue"], s, "{what}"),
+                    Default::Str(s) => assert_eq!(sec["DefaultValue"], *s, "{what}"),
                     Default::Const(v) => {
                         assert_eq!(num(&sec["DefaultValue"]), e.ty.to_i64(v), "{what}")
                     }

@@ -140,7 +140,7 @@ fn the_hand_written_io_device() {
     assert_eq!(find(m, 0x2102, 0).limits(), Some((-100_000, 100_000)));
     assert_eq!(find(m, 0x2103, 0).limits(), Some((-10, 10)));
     assert_eq!(find(m, 0x2101, 0).limits(), Some((1, 1000)));
-    assert_eq!(find(m, 0x2300, 0).default, Default::Str("v1.2-io"));
+    assert_eq!(find(m, 0x2300, 0).default, Default::Str(&"v1.2-io"));
     assert_eq!(find(m, 0x1008, 0).access, Access::Const);
     assert_eq!(find(m, 0x2200, 0).access, Access::Wo);
     assert!(find(m, 0x2000, 0).pdo && !find(m, 0x2100, 0).pdo);
