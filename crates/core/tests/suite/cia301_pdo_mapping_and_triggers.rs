@@ -179,7 +179,8 @@ fn cia301_7_5_2_35_extended_and_restricted_can_ids_are_refused() {
         let ci = 0x1800 + n;
         assert_eq!(w32(&mut r, ci, 1, 0x8000_0000 | (0x1FF + n as u32)), None);
         for id in [
-            0x000, 0x07F, 0x101, 0x180, 0x5FF, 0x601, 0x6E0, 0x77F, 0x7FF,
+            0x000, 0x001, 0x07F, 0x101, 0x180, 0x581, 0x5FF, 0x601, 0x67F, 0x6E0, 0x6FF, 0x701,
+            0x77F, 0x780, 0x7FF,
         ] {
             assert_eq!(
                 w32(&mut r, ci, 1, id),
@@ -192,7 +193,7 @@ fn cia301_7_5_2_35_extended_and_restricted_can_ids_are_refused() {
                 "{id:03X} invalid"
             );
         }
-        for id in [0x080, 0x100, 0x181, 0x580, 0x680, 0x6DF] {
+        for id in [0x080, 0x100, 0x181, 0x580, 0x600, 0x680, 0x6DF, 0x700] {
             assert_eq!(w32(&mut r, ci, 1, 0x8000_0000 | id), None);
             assert_eq!(w32(&mut r, ci, 1, id), None, "{ci:04X} {id:03X}");
             assert_eq!(w32(&mut r, ci, 1, 0x8000_0000 | id), None);
