@@ -862,14 +862,24 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
 /// from the head before the code sequence (D18), saturated to INTEGER16.
 fn velocity(dnm: i64, dt_us: i64, od: &Dictionary) -> i64 {
     let vstep = od.value(0x6005, 2).unwrap_or(100).max(1) as i64;
-    // 1 nm/µs = 1 mm/s = 100 × 0.01 mm/s.
-    let num = dnm as i128 * 100;
-    let den = dt_us as i128 * vstep as i128;
-    let mut v = (2 * num + num.signum() * den) / (2 * den);
-    if od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
-        v = -v;
-    }
-    v.clamp(i16::MIN as i128, i16::MAX as i128) as i64
+    let reversed = od.value(0x6000, 0).unwrap_or(0) & 1 != 0;
+    velocity_units(dnm, dt_us, vstep, reversed)
+}
+
+/// `dnm` nm in `dt_us` µs in units of `vstep` × 0.01 mm/s, rounded half away from zero,
+/// negated when `reversed`, saturated to INTEGER16.
+///
+/// 1 nm/µs = 1 mm/s = 100 × 0.01 mm/s. In 64 bits, not 128 (a 128-bit division is 1 KB of
+/// firmware): a product past i64 saturates, and only a move of some 10^17 nm in one interval
+/// could make that change a result the clamp lets through.
+fn velocity_units(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
+    let num = dnm.saturating_mul(100);
+    let den = dt_us.saturating_mul(vstep).max(1) as u64;
+    let (q, r) = (num.unsigned_abs() / den, num.unsigned_abs() % den);
+    // Half away from zero: one more when the remainder is at least half the divisor.
+    let mag = (q + (r >= den - r) as u64).min(1 << 15) as i64;
+    let v = if (num < 0) != reversed { -mag } else { mag };
+    v.clamp(i16::MIN as i64, i16::MAX as i64)
 }
 
 /// TMI R27: TPDO1's event timer is shorter than one worst-case frame at the active bit rate.
@@ -894,4 +904,69 @@ fn event_timer_insufficient(cx: &AppCtx<'_>) -> bool {
     let bits = 47 + 8 * bytes + (34 + 8 * bytes - 1) / 4;
     let frame_us = bits as u64 * 1000 / cx.bitrate_kbps as u64;
     (et_ms as u64) * 1000 < frame_us
+}
+
+#[cfg(test)]
+mod tests {
+    use super::velocity_units;
+    use proptest::prelude::*;
+
+    /// The exact quotient, rounded half away from zero, in 128 bits.
+    fn reference(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
+        let (num, den) = (dnm as i128 * 100, dt_us as i128 * vstep as i128);
+        let v = (2 * num + num.signum() * den) / (2 * den);
+        let v = if reversed { -v } else { v };
+        v.clamp(i16::MIN as i128, i16::MAX as i128) as i64
+    }
+
+    #[test]
+    fn halves_round_away_from_zero_and_the_range_saturates() {
+        let v = |dnm, dt_us, vstep| velocity_units(dnm, dt_us, vstep, false);
+        // 1 nm/µs = 100 units of 0.01 mm/s; 0.5 unit rounds away from zero.
+        assert_eq!(v(1, 1, 1), 100);
+        assert_eq!(v(1, 200, 1), 1);
+        assert_eq!(v(-1, 200, 1), -1);
+        assert_eq!(v(1, 201, 1), 0);
+        assert_eq!(v(3, 200, 1), 2);
+        assert_eq!(v(-3, 200, 1), -2);
+        assert_eq!(v(0, 1, 1), 0);
+        assert_eq!(v(i64::MAX, 1, 1), 32767);
+        assert_eq!(v(i64::MIN, 1, 1), -32768);
+        assert_eq!(v(1, i64::MAX, i64::MAX), 0);
+        // Reversed (code sequence): the sign flips before the clamp, so the most negative
+        // move saturates at +32767 rather than wrapping.
+        assert_eq!(velocity_units(i64::MIN, 1, 1, true), 32767);
+        assert_eq!(velocity_units(i64::MAX, 1, 1, true), -32768);
+        assert_eq!(velocity_units(3, 200, 1, true), -2);
+    }
+
+    proptest! {
+        /// Equal to the 128-bit quotient for every move, interval and step a sensor can see.
+        #[test]
+        fn equals_the_128_bit_quotient(
+            dnm in -1_000_000_000_000_000i64..1_000_000_000_000_000,
+            dt_us in 1i64..1_000_000_000_000,
+            vstep in 1i64..=u32::MAX as i64,
+            reversed: bool,
+        ) {
+            prop_assert_eq!(
+                velocity_units(dnm, dt_us, vstep, reversed),
+                reference(dnm, dt_us, vstep, reversed)
+            );
+        }
+
+        /// Small moves over short intervals, where the rounding decides.
+        #[test]
+        fn equals_the_128_bit_quotient_near_halves(
+            dnm in -100_000i64..100_000,
+            dt_us in 1i64..10_000,
+            vstep in 1i64..1_000,
+            reversed: bool,
+        ) {
+            prop_assert_eq!(
+                velocity_units(dnm, dt_us, vstep, reversed),
+                reference(dnm, dt_us, vstep, reversed)
+            );
+        }
+    }
 }
