@@ -86,7 +86,7 @@ if [ "$((uml_rp + uml_pp))" -eq 0 ]; then
 fi
 
 # --- fuzz smoke runs (issue 6) -------------------------------------------------------------------
-# ~20 s per cargo-fuzz target; skipped with a loud NOTE when nightly is missing.
+# ~10 s per cargo-fuzz target; skipped with a loud NOTE when nightly is missing.
 step "fuzz smoke (cargo +nightly fuzz)"
 scripts/fuzz-smoke.sh
 
