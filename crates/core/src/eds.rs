@@ -362,7 +362,7 @@ fn write_var(
 /// Declared range as EDS limits (lists of allowed values are not expressible; they get the
 /// smallest and largest member).
 fn limits(e: &Entry) -> Option<(i64, i64)> {
-    match e.range {
+    match *e.range {
         Range::Any => None,
         Range::MinMax(..) => e.limits(),
         Range::OneOf(list) => {

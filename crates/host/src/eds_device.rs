@@ -882,7 +882,7 @@ impl Builder<'_> {
                 access,
                 pdo: false,
                 default: Default::Str(Box::leak(Box::new(leak(s)))),
-                range: Range::Any,
+                range: &Range::Any,
                 group: Group::Volatile,
                 hook,
             });
@@ -973,7 +973,11 @@ impl Builder<'_> {
             access,
             pdo: pdo && access.readable(),
             default,
-            range,
+            // Leaked like the names: a device's dictionary lives as long as the process.
+            range: match range {
+                Range::Any => &Range::Any,
+                r => Box::leak(Box::new(r)),
+            },
             group,
             hook,
         })

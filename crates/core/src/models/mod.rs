@@ -276,7 +276,7 @@ macro_rules! entry {
             $crate::od::Access::$acc,
             $pdo,
             $def,
-            $crate::od::Range::$range $( ( $($r)* ) )?,
+            &$crate::od::Range::$range $( ( $($r)* ) )?,
             $crate::od::Group::$grp,
         )
     };
@@ -338,7 +338,7 @@ pub(crate) mod table {
         access: Access::Const,
         pdo: false,
         default: Default::Const(0),
-        range: Range::Any,
+        range: &Range::Any,
         group: Group::Volatile,
         hook: Hook::None,
     };
@@ -353,7 +353,7 @@ pub(crate) mod table {
         access: Access,
         pdo: bool,
         default: Default,
-        range: Range,
+        range: &'static Range,
         group: Group,
     ) -> [Entry; N] {
         let _ = &names; // only the `names` feature keeps them
@@ -367,7 +367,7 @@ pub(crate) mod table {
             access: Access::Const,
             pdo: false,
             default: Default::Const(N as u32 - 1),
-            range: Range::Any,
+            range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
         };
@@ -399,7 +399,7 @@ pub(crate) mod table {
         /// Default transmission type (sub 2).
         pub ttype: u32,
         /// Transmission types the model accepts (TMI TPDO2: synchronous only).
-        pub ttype_range: Range,
+        pub ttype_range: &'static Range,
         /// Sub 3 inhibit time exists (E-Series, TMI; not listed for TH).
         pub inhibit: bool,
         /// Sub 5 event timer exists, with this default in ms.
@@ -432,7 +432,7 @@ pub(crate) mod table {
             access: Access::Const,
             pdo: false,
             default: Default::Const(highest),
-            range: Range::Any,
+            range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
         };
@@ -445,7 +445,7 @@ pub(crate) mod table {
             access: Access::Rw,
             pdo: false,
             default: c.cob,
-            range: Range::Any,
+            range: &Range::Any,
             group: c.group,
             hook: Hook::TpdoComm,
         };
@@ -473,7 +473,7 @@ pub(crate) mod table {
                 access: Access::Rw,
                 pdo: false,
                 default: Default::Const(0),
-                range: Range::Any,
+                range: &Range::Any,
                 group: c.group,
                 hook: Hook::TpdoComm,
             };
@@ -489,7 +489,7 @@ pub(crate) mod table {
                 access: Access::Rw,
                 pdo: false,
                 default: Default::Const(ms),
-                range: Range::Any,
+                range: &Range::Any,
                 group: c.group,
                 hook: Hook::TpdoComm,
             };
@@ -525,7 +525,7 @@ pub(crate) mod table {
                 access: Access::Rw,
                 pdo: false,
                 default: Default::Const(if i == 0 { count } else { maps[i - 1] }),
-                range: Range::Any,
+                range: &Range::Any,
                 group,
                 hook: Hook::TpdoMap,
             };
@@ -570,9 +570,9 @@ pub(crate) mod table {
                     Default::Live
                 },
                 range: if i == 0 {
-                    Range::MinMax(0, 0)
+                    &Range::MinMax(0, 0)
                 } else {
-                    Range::Any
+                    &Range::Any
                 },
                 group: Group::Volatile,
                 hook: Hook::ErrorHistory,
@@ -711,7 +711,7 @@ mod tests {
             access: Access::Ro,
             pdo: false,
             default: Default::Const(0),
-            range: Range::Any,
+            range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
         }

@@ -83,7 +83,7 @@ fn entry(index: u16, sub: u8, ty: DataType, range: Range) -> Entry {
         Access::Rw,
         false,
         Default::Const(0),
-        range,
+        Box::leak(Box::new(range)),
         Group::App,
     )
 }

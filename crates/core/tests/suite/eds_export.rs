@@ -293,7 +293,7 @@ fn arrays_records_and_object_names() {
                 Access::Rw,
                 false,
                 Default::Const(0),
-                Range::Any,
+                &Range::Any,
                 Group::App,
             )
         };

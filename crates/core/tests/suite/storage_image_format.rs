@@ -100,7 +100,7 @@ fn entry(group: Group) -> Entry {
         Access::Rw,
         false,
         Default::Const(0),
-        Range::Any,
+        &Range::Any,
         group,
     )
 }

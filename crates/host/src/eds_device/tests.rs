@@ -122,7 +122,7 @@ fn the_hand_written_io_device() {
     assert_eq!(find(m, 0x1011, 3).hook, Hook::RestoreDefaults);
     assert_eq!(find(m, 0x100C, 0).hook, Hook::Guarding);
     assert_eq!(find(m, 0x1003, 0).hook, Hook::ErrorHistory);
-    assert_eq!(find(m, 0x1003, 0).range, Range::MinMax(0, 0));
+    assert_eq!(*find(m, 0x1003, 0).range, Range::MinMax(0, 0));
     assert_eq!(find(m, 0x1800, 1).hook, Hook::TpdoComm);
     assert_eq!(find(m, 0x1800, 0).hook, Hook::None);
     assert_eq!(find(m, 0x1A01, 0).hook, Hook::TpdoMap);
