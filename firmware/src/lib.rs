@@ -82,15 +82,20 @@ where
     /// frame, the timers, every frame to send. Returns the instant the loop must run again
     /// by (the caller sleeps until then or the next interrupt). Out of line, so its frame is
     /// not part of `main`'s while `main` builds the node.
+    ///
+    /// The node's frames go to the controller after each received frame, so that its transmit
+    /// queue (8 frames here) holds only what one frame sets off (a SYNC's TPDOs, say) and what
+    /// the controller's mailboxes have no room for.
     #[inline(never)]
     pub fn step(&mut self, now: Instant) -> Instant {
         self.measure(now);
+        self.transmit(now);
         while let Ok(f) = self.can.receive() {
             if let Some(f) = Frame::from_embedded(&f) {
                 self.node.handle_frame(&f, now);
             }
+            self.transmit(now);
         }
-        self.transmit(now);
         let next = Instant::from_micros(self.next_cycle);
         if self.unsent.is_some() {
             // Try again at the next pass (the controller's TX interrupt wakes the loop).
