@@ -106,7 +106,8 @@ impl Tpdo {
 
     /// The timers of an asynchronous TPDO at `now`: the event timer on its absolute
     /// schedule, then the inhibit time. Returns the frame when it is to be sent now.
-    #[inline(always)]
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn step(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
         let t = self.next_event;
         // The event timer expired (it is `NEVER` while off).
@@ -537,8 +538,11 @@ impl Tpdos {
     }
 
     /// [`Tpdos::poll_due`] for a caller that knows `due` has passed (the node's timer fast
-    /// path): the walk over the timers, which also recomputes `due`.
-    #[inline(always)]
+    /// path): the walk over the timers, which also recomputes `due`. Out of line without the
+    /// `inline-hot-paths` feature: the node calls it from two places, and [`Tpdo::step`] is
+    /// called twice in it (the TH firmware: 1 KB less flash).
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
         if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
             // One TPDO with a timer: its own deadlines are all there is.

@@ -67,10 +67,10 @@ impl Dictionary {
     }
 
     /// Finds the slot of `index`/`sub`, with the abort code CiA 301 gives when it is missing.
-    /// Out of line without the `inline-lookups` feature: some forty call sites then share one
+    /// Out of line without the `inline-hot-paths` feature: some forty call sites then share one
     /// copy (the TH firmware: 4.9 KB less flash).
-    #[cfg_attr(feature = "inline-lookups", inline)]
-    #[cfg_attr(not(feature = "inline-lookups"), inline(never))]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
         match self.keys.binary_search(&key(index, sub)) {
             Ok(slot) => Ok(slot),
@@ -112,15 +112,15 @@ impl Dictionary {
     }
 
     /// Raw value of `index`/`sub`, if it exists.
-    #[cfg_attr(feature = "inline-lookups", inline)]
-    #[cfg_attr(not(feature = "inline-lookups"), inline(never))]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn value(&self, index: u16, sub: u8) -> Option<u32> {
         self.find(index, sub).ok().map(|s| self.values[s])
     }
 
     /// Sets `index`/`sub` if it exists (application side, unchecked); returns whether it did.
-    #[cfg_attr(feature = "inline-lookups", inline)]
-    #[cfg_attr(not(feature = "inline-lookups"), inline(never))]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn set_value(&mut self, index: u16, sub: u8, raw: u32) -> bool {
         match self.find(index, sub) {
             Ok(s) => {
