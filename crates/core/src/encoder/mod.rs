@@ -21,6 +21,7 @@ pub use sample::{Sample, MAX_CHANNELS};
 
 use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
+use crate::models::{Features, Model, BUILT_ALONE};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 
@@ -295,7 +296,7 @@ impl Encoder {
     /// One channel's measurement: position, velocity, then the states derived from them.
     fn measure(&mut self, ch: usize, nm: Option<i64>, cx: &mut AppCtx<'_>) {
         let sub = ch as u8 + 1;
-        let tmi = cx.model.features.tmi_error_reactions;
+        let tmi = features(cx.model).tmi_error_reactions;
         let c = &mut self.ch[ch];
         match nm {
             Some(nm) => {
@@ -362,7 +363,7 @@ impl Encoder {
     /// [`crate::models::Features::preset_zero_shift`]).
     fn offset(&self, ch: usize, cx: &AppCtx<'_>) -> i64 {
         let sub = ch as u8 + 1;
-        let index = if cx.model.features.preset_zero_shift {
+        let index = if features(cx.model).preset_zero_shift {
             0x6010
         } else {
             0x650C
@@ -373,11 +374,11 @@ impl Encoder {
     /// Writing a preset makes the current position read it (SPEC §10); E-Series clears the
     /// preset with 0xFFFFFFFF. On a zero-shift model the preset is the offset itself.
     fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
-        if cx.model.features.preset_zero_shift {
+        if features(cx.model).preset_zero_shift {
             return;
         }
         let sub = ch as u8 + 1;
-        let offset = if cx.model.features.preset_clear && raw == 0xFFFF_FFFF {
+        let offset = if features(cx.model).preset_clear && raw == 0xFFFF_FFFF {
             cx.od.set_value(0x6010, sub, 0);
             0
         } else {
@@ -396,7 +397,7 @@ impl Encoder {
         let sub = ch as u8 + 1;
         let enable = cx.od.value(0x6301, sub).unwrap_or(0);
         let polarity = cx.od.value(0x6302, sub).unwrap_or(0);
-        let window = cx.model.features.window_cams;
+        let window = features(cx.model).window_cams;
         let mut state = 0u32;
         for k in 0..4u16 {
             let low = cx.od.value(0x6310 + k, sub).unwrap_or(0) as i32 as i64;
@@ -422,7 +423,7 @@ impl Encoder {
                 state |= bit;
             }
         }
-        if set_live(cx, 0x6300, sub, state, true) && cx.model.features.tmi_error_reactions {
+        if set_live(cx, 0x6300, sub, state, true) && features(cx.model).tmi_error_reactions {
             cx.emcy
                 .event(emcy::code::TMI_CAM, [sub, state as u8, 0, 0, 0]);
         }
@@ -435,7 +436,7 @@ impl Encoder {
         let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
         let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
         let end = cx.cfg.stroke_mm as i64 * 1_000_000;
-        let out = if cx.model.features.preset_zero_shift {
+        let out = if features(cx.model).preset_zero_shift {
             // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length" (the
             // length in position steps).
             let step = cx
@@ -448,7 +449,7 @@ impl Encoder {
             nm < 0 || nm > end
         };
         let state = ((pos < low) as u32) << 2 | ((pos > high) as u32) << 1 | out as u32;
-        if set_live(cx, 0x6400, sub, state, true) && cx.model.features.tmi_error_reactions {
+        if set_live(cx, 0x6400, sub, state, true) && features(cx.model).tmi_error_reactions {
             cx.emcy
                 .event(emcy::code::TMI_WORK_AREA, [sub, 0, state as u8, 0, 0]);
         }
@@ -487,7 +488,7 @@ impl Encoder {
 
     /// Brings alarms, warnings and EMCYs in line with the conditions.
     fn sync(&mut self, cx: &mut AppCtx<'_>) {
-        let tmi = cx.model.features.tmi_error_reactions;
+        let tmi = features(cx.model).tmi_error_reactions;
         let position_error = self.faults & (F_MISSING | F_TRANSDUCER) != 0;
         cx.od.set_value(0x6503, 0, position_error as u32);
         cx.od.set_value(0x6505, 0, self.warnings as u32);
@@ -608,7 +609,7 @@ impl Application for Encoder {
     /// the cycle changed (0x2901): on an MCU that store is the deepest stack.
     #[inline(never)]
     fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_error_reactions;
+        let tmi = features(cx.model).tmi_error_reactions;
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
         self.receiving = true;
         // TMI sensor error: "the current process values stay in the object directory; the cam
@@ -640,7 +641,7 @@ impl Application for Encoder {
     /// Injects (`active`) or removes a fault condition. Returns true when the model's
     /// reaction forces the node back to pre-operational.
     fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = cx.model.features.tmi_error_reactions;
+        let tmi = features(cx.model).tmi_error_reactions;
         match f {
             Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
             Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
@@ -660,7 +661,7 @@ impl Application for Encoder {
                     // models whose EMCYs follow every change of the error state, the error
                     // reset follows (TMI: its table has 0x0000 only for the sensor error).
                     cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
-                    if cx.model.features.emcy_on_register_change {
+                    if features(cx.model).emcy_on_register_change {
                         cx.emcy.reset_message();
                     }
                 }
@@ -807,7 +808,7 @@ impl Application for Encoder {
     /// generic EMCY 0x6300.
     fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
         self.storage_corrupt = true;
-        cx.model.features.tmi_error_reactions
+        features(cx.model).tmi_error_reactions
     }
 }
 
@@ -856,6 +857,24 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
     cx.od.set(slot, raw);
     cx.pdo.value_changed(slot, event);
     true
+}
+
+/// The features of the product the encoder runs. A build with one product model compiled in
+/// (a firmware) runs the encoder with that model only: its features are then constants
+/// ([`BUILT_ALONE`]), and the other products' branches are not linked (1.3 KB of the TH
+/// firmware). Any other build reads them from `model`.
+#[inline(always)]
+fn features(model: &'static Model) -> &'static Features {
+    match BUILT_ALONE {
+        Some(m) => {
+            debug_assert!(
+                core::ptr::eq(m, model),
+                "a one-model build runs its own model"
+            );
+            &m.features
+        }
+        None => &model.features,
+    }
 }
 
 /// Velocity in 0x6005/2 units (of 0.01 mm/s), rounded half away from zero, positive away

@@ -207,6 +207,23 @@ pub fn by_name(name: &str) -> Option<&'static Model> {
         .find(|m| m.name.eq_ignore_ascii_case(name))
 }
 
+/// The product model of a build that compiles in exactly one of them (a firmware: `th`,
+/// `e-series` or `tmi` alone), else `None`. Code that only ever runs with a product model (the
+/// CiA 406 encoder) takes its [`Features`] from here when it is `Some`: constants then, so the
+/// other products' branches are not linked.
+pub const BUILT_ALONE: Option<&'static Model> = built_alone();
+
+const fn built_alone() -> Option<&'static Model> {
+    #[cfg(all(feature = "th", not(feature = "e-series"), not(feature = "tmi")))]
+    return Some(&th::TH);
+    #[cfg(all(feature = "e-series", not(feature = "th"), not(feature = "tmi")))]
+    return Some(&e_series::E_SERIES);
+    #[cfg(all(feature = "tmi", not(feature = "th"), not(feature = "e-series")))]
+    return Some(&tmi::TMI);
+    #[allow(unreachable_code)]
+    None
+}
+
 /// Stored entries (group other than volatile) of each model built in, 0 for one left out: what
 /// sizes the storage image of a firmware build.
 #[cfg(not(feature = "host-buffers"))]
