@@ -54,6 +54,12 @@ pub trait Application {
     /// A fault the application reports the way its device's manual says.
     type Fault: Copy;
 
+    /// Whether the application runs only with the product models of [`crate::models`] (CiA
+    /// 406's encoder). A build that compiles in one product model then takes the node's
+    /// [`crate::models::Features`] as constants ([`crate::models::features_of`]), so the other
+    /// products' branches of the stack and of the application are not linked.
+    const PRODUCT_ONLY: bool = false;
+
     /// Power-on: back to the state of a device that was just switched on.
     fn power_on(&mut self) {}
 

@@ -9,7 +9,7 @@ use crate::emcy::{self, Emcy};
 use crate::encoder::Encoder;
 use crate::errctl::{ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave};
-use crate::models::{DeviceConfig, Model};
+use crate::models::{self, DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{
     self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
@@ -246,8 +246,9 @@ impl<A: Application, S: Storage> Node<A, S> {
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
         let od = Dictionary::new(model.entries, model.keys);
         let hot = HotSlots::new(model.keys);
+        let f = models::features_of(model, A::PRODUCT_ONLY);
         Node {
-            sdo: SdoServer::new(model.features.sdo_segmented, model.features.sdo_block),
+            sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),
             held_sdo: None,
             lss: LssSlave::default(),
             timers: TimerTable::default(),
@@ -298,7 +299,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
         self.dev.emcy = Emcy::default();
-        let on_change = self.dev.model.features.emcy_on_register_change;
+        let on_change = self.dev.features().emcy_on_register_change;
         self.dev.emcy.set_reset_on_register_change(on_change);
         self.dev.app.power_on();
         self.dev.stored_lss = (None, None);
@@ -397,14 +398,14 @@ impl<A: Application, S: Storage> Node<A, S> {
             // CiA 305: no node-id, no NMT: wait in LSS for one, in LSS waiting for a master to
             // select (DS 305 V2), or in configuration by itself (TMI R7).
             d.nmt = NmtState::Initialising;
-            if d.model.features.lss_unconfigured_configures {
+            if d.features().lss_unconfigured_configures {
                 self.lss.force_configuration();
             }
             return;
         }
         d.nmt = NmtState::PreOperational;
         d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
-        if d.model.features.power_on_emcy {
+        if d.features().power_on_emcy {
             d.emcy.power_on();
         }
     }
@@ -493,7 +494,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         // apart; this keeps it so whatever else changes).
         if id == d.errctl.guarding_id() && !sync {
             // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
-            if d.model.features.node_guarding && (f.is_remote() || f.dlc() == 0) {
+            if d.features().node_guarding && (f.is_remote() || f.dlc() == 0) {
                 let b = d.errctl.guard_request(d.nmt, now);
                 d.tx.push(Frame::std_len(id, [b, 0, 0, 0, 0, 0, 0, 0], 1));
                 d.update_pdo_activity(now);
@@ -507,7 +508,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             if f.dlc() <= 1 {
                 let Device { pdo, od, tx, .. } = d;
                 pdo.on_sync(od, now, tx);
-            } else if d.model.features.sync_length_emcy {
+            } else if d.features().sync_length_emcy {
                 // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
                 // The TMI's own EMCY table has no such code, so it ignores the frame.
@@ -802,6 +803,13 @@ impl<A: Application, S: Storage> Node<A, S> {
 }
 
 impl<A: Application, S: Storage> Device<A, S> {
+    /// The model's features: constants in a one-model build whose application runs only
+    /// product models ([`models::features_of`]; 0.7 KB of the TH firmware).
+    #[inline(always)]
+    pub fn features(&self) -> &'static Features {
+        models::features_of(self.model, A::PRODUCT_ONLY)
+    }
+
     /// The product model.
     pub fn model(&self) -> &'static Model {
         self.model
@@ -871,7 +879,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
         let sync_id = self.od.hot(self.hot.sync).unwrap_or(0x80);
         let is_sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !remote;
-        !(is_sync || remote && self.model.features.tpdo_rtr)
+        !(is_sync || remote && self.features().tpdo_rtr)
     }
 
     /// [`Node::poll_transmit`] once a frame was lost: counts it and the rest that are lost.
@@ -1000,8 +1008,8 @@ impl<A: Application, S: Storage> Device<A, S> {
             }
         }
         let mut buf = [0u8; IMAGE_MAX];
-        let Ok(recs) = storage::load_image(&mut self.storage, self.model.features.tag, &mut buf)
-        else {
+        let tag = self.features().tag;
+        let Ok(recs) = storage::load_image(&mut self.storage, tag, &mut buf) else {
             return;
         };
         let saved_node = recs
@@ -1050,7 +1058,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[inline(never)]
     fn stored_lss_config(&mut self) -> ((Option<u8>, Option<u16>), bool) {
         let mut buf = [0u8; IMAGE_MAX];
-        let recs = match storage::load_image(&mut self.storage, self.model.features.tag, &mut buf) {
+        let tag = self.features().tag;
+        let recs = match storage::load_image(&mut self.storage, tag, &mut buf) {
             Ok(recs) => recs,
             Err(StorageError::Empty) => return ((None, None), false),
             Err(_) => return ((None, None), true),
@@ -1111,7 +1120,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// Pushes the cached service configuration from the dictionary after a reload.
     fn apply_comm_config(&mut self, now: Instant) {
         self.pdo
-            .configure_all(self.model.features.tpdos as usize, &self.od);
+            .configure_all(self.features().tpdos as usize, &self.od);
         let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
         self.errctl.set_heartbeat(hb, now);
         self.apply_guarding(now);
@@ -1217,13 +1226,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             .map(|(slot, e)| (e.key(), od.get(slot)));
         let node =
             (scope != Scope::Auto).then_some((storage::KEY_SAVED_NODE_ID, self.node_id as u32));
-        storage::update_image(
-            &mut self.storage,
-            self.model.features.tag,
-            &covered,
-            &mut values.chain(node),
-        )
-        .map_err(|_| Abort::CannotStore)
+        let tag = self.features().tag;
+        storage::update_image(&mut self.storage, tag, &covered, &mut values.chain(node))
+            .map_err(|_| Abort::CannotStore)
     }
 
     /// "load" (0x1011) of `scope`: forgets what was stored for it (the LSS configuration and
@@ -1237,12 +1242,8 @@ impl<A: Application, S: Storage> Device<A, S> {
                     .find((k >> 8) as u16, k as u8)
                     .map_or(true, |s| scope.covers(od.entry(s)))
         };
-        match storage::update_image(
-            &mut self.storage,
-            self.model.features.tag,
-            &forgotten,
-            &mut core::iter::empty(),
-        ) {
+        let tag = self.features().tag;
+        match storage::update_image(&mut self.storage, tag, &forgotten, &mut core::iter::empty()) {
             Ok(()) => Ok(()),
             Err(_) => Err(Abort::CannotStore),
         }
@@ -1271,9 +1272,10 @@ impl<A: Application, S: Storage> Device<A, S> {
                         matches!(od.entry(s).hook, Hook::PendingNodeId | Hook::PendingBitRate)
                     })
         };
+        let tag = self.features().tag;
         storage::update_image(
             &mut self.storage,
-            self.model.features.tag,
+            tag,
             &replaced,
             &mut lss.into_iter().chain(copies),
         )?;
@@ -1370,7 +1372,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     fn validate_service(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         match e.hook {
             Hook::TpdoComm | Hook::TpdoMap => {
-                let strict = self.model.features.event_timer_above_inhibit;
+                let strict = self.features().event_timer_above_inhibit;
                 self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
             Hook::App(h) => {
@@ -1426,7 +1428,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     // Out of line: its image buffers would give every write a 4 KiB stack frame.
     #[inline(never)]
     fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
-        let f = self.model.features;
+        let f = self.features();
         let scope = Scope::of_sub(e.sub);
         if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
@@ -1496,10 +1498,10 @@ impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
         (self.pending_node_id, self.pending_bitrate)
     }
     fn fastscan(&self) -> bool {
-        self.model.features.lss_fastscan
+        self.features().lss_fastscan
     }
     fn bit_timing(&self) -> &'static [u8] {
-        self.model.features.lss_bit_timing
+        self.features().lss_bit_timing
     }
 }
 

@@ -21,7 +21,7 @@ pub use sample::{Sample, MAX_CHANNELS};
 
 use crate::app::{AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
-use crate::models::{Features, Model, BUILT_ALONE};
+use crate::models::{features_of, Features, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 
@@ -581,6 +581,8 @@ impl Encoder {
 impl Application for Encoder {
     type Sample = Sample;
     type Fault = Fault;
+    // The CiA 406 application of the three products.
+    const PRODUCT_ONLY: bool = true;
 
     fn power_on(&mut self) {
         *self = Encoder::default();
@@ -859,22 +861,11 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
     true
 }
 
-/// The features of the product the encoder runs. A build with one product model compiled in
-/// (a firmware) runs the encoder with that model only: its features are then constants
-/// ([`BUILT_ALONE`]), and the other products' branches are not linked (1.3 KB of the TH
-/// firmware). Any other build reads them from `model`.
+/// The features of the product the encoder runs: constants in a one-model build
+/// ([`features_of`]; 1.3 KB of the TH firmware).
 #[inline(always)]
 fn features(model: &'static Model) -> &'static Features {
-    match BUILT_ALONE {
-        Some(m) => {
-            debug_assert!(
-                core::ptr::eq(m, model),
-                "a one-model build runs its own model"
-            );
-            &m.features
-        }
-        None => &model.features,
-    }
+    features_of(model, <Encoder as Application>::PRODUCT_ONLY)
 }
 
 /// Velocity in 0x6005/2 units (of 0.01 mm/s), rounded half away from zero, positive away

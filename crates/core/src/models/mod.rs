@@ -208,10 +208,28 @@ pub fn by_name(name: &str) -> Option<&'static Model> {
 }
 
 /// The product model of a build that compiles in exactly one of them (a firmware: `th`,
-/// `e-series` or `tmi` alone), else `None`. Code that only ever runs with a product model (the
-/// CiA 406 encoder) takes its [`Features`] from here when it is `Some`: constants then, so the
-/// other products' branches are not linked.
+/// `e-series` or `tmi` alone), else `None`. A node whose application runs only with product
+/// models (the CiA 406 encoder) takes its [`Features`] from here when it is `Some`
+/// ([`features_of`]): constants then, so the other products' branches are not linked.
 pub const BUILT_ALONE: Option<&'static Model> = built_alone();
+
+/// `model`'s features: [`BUILT_ALONE`]'s, constants, when the node's application runs only
+/// with product models (`product_only`, [`crate::app::Application::PRODUCT_ONLY`]) and the build
+/// has one; else read from `model`. In a one-model build such an application runs that model
+/// only.
+#[inline(always)]
+pub fn features_of(model: &'static Model, product_only: bool) -> &'static Features {
+    match BUILT_ALONE {
+        Some(m) if product_only => {
+            debug_assert!(
+                core::ptr::eq(m, model),
+                "a one-model build runs its own model"
+            );
+            &m.features
+        }
+        _ => &model.features,
+    }
+}
 
 const fn built_alone() -> Option<&'static Model> {
     #[cfg(all(feature = "th", not(feature = "e-series"), not(feature = "tmi")))]
