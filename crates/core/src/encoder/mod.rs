@@ -888,7 +888,8 @@ fn velocity_units(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
     let (q, r) = (num.unsigned_abs() / den, num.unsigned_abs() % den);
     // Half away from zero: one more when the remainder is at least half the divisor.
     let mag = (q + (r >= den - r) as u64).min(1 << 15) as i64;
-    let v = if (num < 0) != reversed { -mag } else { mag };
+    let v = mag * num.signum();
+    let v = if reversed { -v } else { v };
     v.clamp(i16::MIN as i64, i16::MAX as i64)
 }
 
