@@ -1458,7 +1458,8 @@ impl<A: Application, S: Storage> Device<A, S> {
 impl<A: Application, S: Storage> Device<A, S> {
     /// [`Dictionary::find`] with a one-entry memo (the table never changes, so a found slot
     /// stays right).
-    #[inline]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn find(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
         let key = od::key(index, sub);
         if self.memo.0 == key {

@@ -194,7 +194,8 @@ pub const fn map_index(n: usize) -> u16 {
 }
 
 /// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs).
-#[inline]
+#[cfg_attr(feature = "inline-hot-paths", inline)]
+#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 pub fn restricted_id(id: u32) -> bool {
     // One bit per 11-bit CAN-ID (a table lookup instead of eight range compares): the compares
     // cost an SDO download of a COB-ID some 30 instructions more on a host, for 324 B less
@@ -252,7 +253,8 @@ impl Tpdos {
     }
 
     /// Recomputes `due` after a change of timers (validity unchanged).
-    #[inline]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn refresh_due(&mut self) {
         let mut t = NEVER;
         let mut mask = self.timer_mask;
@@ -615,7 +617,8 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     Ok(())
 }
 
-#[inline(always)]
+#[cfg_attr(feature = "inline-hot-paths", inline(always))]
+#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 fn build(p: &Tpdo, od: &Dictionary) -> Frame {
     // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
     // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).

@@ -87,7 +87,8 @@ impl Dictionary {
     }
 
     /// The entry in `slot`.
-    #[inline]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn entry(&self, slot: usize) -> &'static Entry {
         &self.entries[slot]
     }
