@@ -731,6 +731,34 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
     }
 }
 
+/// The CiA 406 cams and work areas of a four-channel unit with threshold cams (one low limit
+/// per cam, 0x6310–0x6313), as the TH's and the E-Series' tables both have them. The TMI's
+/// window cams (high limits, hysteresis) are its own.
+#[cfg(any(feature = "th", feature = "e-series"))]
+#[rustfmt::skip]
+const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
+    use crate::encoder::hook;
+    use crate::od::{Access::{Ro, Rw}, DataType::*, Default::*, Group::*, Hook, Param, Range::Any};
+    use table::{channels, hooked};
+    &[
+        &channels::<5>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
+        &hooked(channels::<5>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
+        &hooked(channels::<5>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
+        &hooked(channels::<5>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+        &channels::<5>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
+        &hooked(channels::<5>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+        &hooked(channels::<5>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+    ]
+};
+
+/// [`THRESHOLD_CAM_PARTS`] as one part of a model's table.
+#[cfg(any(feature = "th", feature = "e-series"))]
+pub(crate) const THRESHOLD_CAMS_AND_WORK_AREAS: [Entry; table::total(THRESHOLD_CAM_PARTS)] =
+    table::concat(THRESHOLD_CAM_PARTS);
+
 #[cfg(test)]
 mod tests {
     use super::table;

@@ -156,16 +156,7 @@ const PARTS: &[&[Entry]] = &[
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, &Any, Volatile),
     STATUS,
-    &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
-    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
-    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
-    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+    &super::THRESHOLD_CAMS_AND_WORK_AREAS,
     DIAG,
     // The offsets the presets produced (CiA 406), stored with "save" so a preset survives a
     // power cycle; "load" returns them to 0.
