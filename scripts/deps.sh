@@ -8,6 +8,7 @@ PACKAGES=(
   chromium # the dashboard test drives the page in it (tests/dashboard, playwright-core)
   qemu-system-arm   # scripts/firmware.sh: runs the TH firmware on mps2-an386
   gcc-arm-none-eabi # scripts/firmware.sh: arm-none-eabi-size / -nm measure the firmware
+  libnewlib-arm-none-eabi # firmware/build.rs: newlib-nano's memcpy / memset (size-optimised)
 )
 missing=()
 for p in "${PACKAGES[@]}"; do

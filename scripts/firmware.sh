@@ -13,10 +13,14 @@ fail() { echo "!!! FAILED: $*" >&2; exit 1; }
 if ! rustup target list --installed | grep -qx "$TARGET"; then
   rustup target add "$TARGET" || fail "rustup could not add $TARGET"
 fi
-for tool in qemu-system-arm arm-none-eabi-size python3; do
+for tool in qemu-system-arm arm-none-eabi-size arm-none-eabi-gcc python3; do
   command -v "$tool" >/dev/null || scripts/deps.sh
   command -v "$tool" >/dev/null || fail "$tool is missing (scripts/deps.sh installs it)"
 done
+# newlib-nano (its memcpy / memset are linked into the firmware, firmware/build.rs).
+nano() { arm-none-eabi-gcc -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-sp-d16 -print-file-name=libc_nano.a; }
+[ -e "$(nano)" ] || scripts/deps.sh
+[ -e "$(nano)" ] || fail "newlib-nano (libc_nano.a) is missing (scripts/deps.sh installs libnewlib-arm-none-eabi)"
 
 # The core with its host features (all models, names, EDS) stays no_std-clean for the MCU too.
 cargo build -p canpos-core --locked --quiet --target "$TARGET"
