@@ -46,7 +46,7 @@ read -r base_flash _ <<<"$(sections "$BIN/baseline")"
 # The plain build's own dictionary and model description (constants of the `plain` binary).
 plain_od=$(arm-none-eabi-nm -S -C "$BIN/plain" | python3 -c 'import sys
 print(sum(int(l.split()[1], 16) for l in sys.stdin
-          if l.split()[-1] in ("plain::ENTRIES", "plain::KEYS", "plain::MODEL")))')
+          if l.split()[-1] in ("plain::ENTRIES", "plain::MODEL")))')
 stack_only=$((plain_flash - base_flash - plain_od))
 
 mkdir -p target

@@ -161,11 +161,12 @@ struct HotSlots {
 }
 
 impl HotSlots {
-    /// From the table's keys (not the dictionary, which would then have to be in memory
+    /// From the model's table (not the dictionary, which would then have to be in memory
     /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
-    fn new(keys: &[u32]) -> Self {
+    fn new(model: &Model) -> Self {
         let slot = |index: u16, sub: u8| {
-            keys.binary_search(&od::key(index, sub))
+            model
+                .search(od::key(index, sub))
                 .map_or(NO_SLOT, |s| s as u16)
         };
         let hist = slot(0x1003, 0);
@@ -244,8 +245,8 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// [`Node::power_on`].
     #[inline(always)] // as `new`
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
-        let od = Dictionary::new(model.entries, model.keys);
-        let hot = HotSlots::new(model.keys);
+        let od = Dictionary::new(model);
+        let hot = HotSlots::new(model);
         let f = models::features_of(model, A::PRODUCT_ONLY);
         Node {
             sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),

@@ -9,7 +9,7 @@
 mod board;
 
 use board::{BoardClock, Nvm, Uart, UartCan};
-use canpos_core::models::{common_param, keys, DeviceConfig, Features, Model};
+use canpos_core::models::{common_param, DeviceConfig, Features, Model};
 use canpos_core::od::{Default::*, Entry, Hook, Param};
 use canpos_core::{entry, Node, Plain};
 use canpos_firmware::Clock;
@@ -60,8 +60,6 @@ static ENTRIES: [Entry; 38] = [
     entry!(0x2001, 0, "", Unsigned8, Rw, Const(0), Any, App, true),
 ];
 
-static KEYS: [u32; 38] = keys(&ENTRIES);
-
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
     common_param(cfg, p, 0)
 }
@@ -71,7 +69,6 @@ static MODEL: Model = Model {
     product: "",
     vendor: "",
     entries: &ENTRIES,
-    keys: &KEYS,
     features: Features {
         tag: 0x50,
         tpdos: 1,

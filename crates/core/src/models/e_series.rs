@@ -156,6 +156,7 @@ const PARTS: &[&[Entry]] = &[
 
 pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "E-Series table unsorted or too large");
 
@@ -187,6 +188,7 @@ pub static E_SERIES: Model = Model {
     product: "Temposonics E-Series CANopen",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
+    #[cfg(feature = "inline-hot-paths")]
     keys: &KEYS,
     features: Features {
         tag: 2,

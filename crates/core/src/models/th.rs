@@ -165,6 +165,7 @@ const PARTS: &[&[Entry]] = &[
 
 pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");
 
@@ -200,6 +201,7 @@ pub static TH: Model = Model {
     product: "Temposonics TH CANbus",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
+    #[cfg(feature = "inline-hot-paths")]
     keys: &KEYS,
     features: Features {
         tag: 1,

@@ -174,6 +174,7 @@ const PARTS: &[&[Entry]] = &[
 
 pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = table::concat(PARTS);
+#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(table::valid(&TABLE), "TMI table unsorted or too large");
 
@@ -230,6 +231,7 @@ pub static TMI: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES,
+    #[cfg(feature = "inline-hot-paths")]
     keys: &KEYS,
     features: Features {
         tag: 3,

@@ -10,6 +10,8 @@ mod types;
 
 pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
 
+use crate::models::Model;
+
 /// Most entries a model's table may have (the value array is sized for it). 256, so that a
 /// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
 /// Without the `host-buffers` feature (firmware): the largest table built in, trading that
@@ -19,6 +21,14 @@ pub const MAX_ENTRIES: usize = 256;
 /// Most entries a model's table may have: the largest table built in (firmware builds).
 #[cfg(not(feature = "host-buffers"))]
 pub const MAX_ENTRIES: usize = crate::models::largest_table();
+
+/// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
+/// (hosts search [`Model::keys`]), one shared copy.
+#[cfg(not(feature = "inline-hot-paths"))]
+#[inline(never)]
+pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
+    entries.binary_search_by_key(&key, Entry::key)
+}
 
 /// Configuration-dependent values that [`Default::Param`] entries resolve against.
 pub trait ParamSource {
@@ -30,17 +40,20 @@ pub trait ParamSource {
 #[derive(Clone)]
 pub struct Dictionary {
     entries: &'static [Entry],
-    /// `entries[i].key()`, searched by [`Dictionary::find`].
+    /// [`Model::keys`], searched by [`Dictionary::find`] (hosts; firmware searches the
+    /// entries).
+    #[cfg(feature = "inline-hot-paths")]
     keys: &'static [u32],
     values: [u32; MAX_ENTRIES],
 }
 
 impl Dictionary {
-    /// A dictionary for `entries` (sorted by index, sub-index; at most [`MAX_ENTRIES`]) and
-    /// their `keys` (each entry's [`Entry::key`], in the same order) with all values zero (the
-    /// node loads the defaults at its first reset).
+    /// A dictionary for `model`'s table (sorted by index, sub-index; at most [`MAX_ENTRIES`];
+    /// on hosts with its [`Model::keys`]) with all values zero (the node loads the defaults at
+    /// its first reset).
     #[inline(always)] // as `Node::new`
-    pub fn new(entries: &'static [Entry], keys: &'static [u32]) -> Self {
+    pub fn new(model: &'static Model) -> Self {
+        let entries = model.entries;
         assert!(
             entries.len() <= MAX_ENTRIES,
             "table larger than MAX_ENTRIES"
@@ -49,13 +62,16 @@ impl Dictionary {
             entries.windows(2).all(|w| w[0].key() < w[1].key()),
             "table not sorted"
         );
+        #[cfg(feature = "inline-hot-paths")]
         assert!(
-            keys.len() == entries.len() && keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
+            model.keys.len() == entries.len()
+                && model.keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
             "keys do not match the table"
         );
         Dictionary {
             entries,
-            keys,
+            #[cfg(feature = "inline-hot-paths")]
+            keys: model.keys,
             values: [0; MAX_ENTRIES],
         }
     }
@@ -72,7 +88,11 @@ impl Dictionary {
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
-        match self.keys.binary_search(&key(index, sub)) {
+        #[cfg(feature = "inline-hot-paths")]
+        let found = self.keys.binary_search(&key(index, sub));
+        #[cfg(not(feature = "inline-hot-paths"))]
+        let found = search_entries(self.entries, key(index, sub));
+        match found {
             Ok(slot) => Ok(slot),
             Err(pos) => {
                 let has_index = self.entries.get(pos).is_some_and(|e| e.index == index)
