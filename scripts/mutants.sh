@@ -33,7 +33,9 @@ base=(cargo mutants --package canpos-core --no-shuffle --jobs "$JOBS" --profile 
   # Compiled only without the host-buffers feature (firmware sizing); the default features this
   # run builds with cannot reach them (docs/MUTANTS.md).
   --exclude-re '^crates/core/src/models/mod.rs:.*(th_stored|e_series_stored|tmi_stored|largest_table|table::stored|built_alone|features_of)'
-  --exclude-re '^crates/core/src/storage.rs:.*firmware_records_max')
+  --exclude-re '^crates/core/src/storage.rs:.*firmware_records_max'
+  # Compiled only without inline-hot-paths: the firmware's table search (docs/MUTANTS.md).
+  --exclude-re '^crates/core/src/od/mod.rs:.*search_entries')
 mkdir -p target/mutants
 runs=()
 run() { # NAME ARGS...
