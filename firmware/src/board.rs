@@ -289,6 +289,8 @@ impl BoardClock {
 }
 
 impl Clock for BoardClock {
+    // One shared copy: the main loop and the firmware read the clock in several places.
+    #[inline(never)]
     fn now(&self) -> Instant {
         let v = reg_read(TIMER_VALUE);
         // A down-counter over all 2^32 values: the wrapping difference is the ticks elapsed.
