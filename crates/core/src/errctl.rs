@@ -100,7 +100,7 @@ impl ErrCtl {
                 // Absolute schedule: no drift; skip whole periods if the host was late.
                 let mut next = t + p;
                 if next <= now {
-                    let behind = (now - t).micros() / p.micros();
+                    let behind = crate::div::div((now - t).micros(), p.micros());
                     next = t + Duration(p.micros() * (behind + 1));
                 }
                 self.next_heartbeat = Some(next);

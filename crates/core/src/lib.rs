@@ -60,6 +60,7 @@
 #![deny(missing_docs)]
 
 mod app;
+mod div;
 #[cfg(feature = "names")]
 pub mod eds;
 pub mod emcy;

@@ -120,7 +120,7 @@ impl Tpdo {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
                 // only runs when it is not 0); floored here, off the usual path, where it is used.
                 let per = per.max(1);
-                let skipped = (now.0 - next) / per + 1;
+                let skipped = crate::div::div(now.0 - next, per) + 1;
                 self.missed = self.missed.wrapping_add(skipped as u32);
                 next += skipped * per;
             }

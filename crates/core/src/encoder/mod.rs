@@ -20,6 +20,7 @@ mod sample;
 pub use sample::{Sample, MAX_CHANNELS};
 
 use crate::app::{AppCtx, AppView, Application};
+use crate::div;
 use crate::emcy::{self, Emcy};
 use crate::models::{features_of, Features, Model};
 use crate::nmt::NmtState;
@@ -348,10 +349,10 @@ impl Encoder {
             .unwrap_or(cx.cfg.position_step_nm)
             .max(1) as i64;
         // Round to nearest: truncating would bias every reading by −step / 2 (issue 15).
-        let steps = (nm + step / 2).div_euclid(step);
+        let steps = div::div_floor(nm + step / 2, step as u64);
         if cx.od.value(0x6000, 0).unwrap_or(0) & 1 != 0 {
             // Code sequence: counts decrease away from the head, from the end of the range.
-            let max = cx.cfg.stroke_mm as i64 * 1_000_000 / step;
+            let max = div::div(u64::from(cx.cfg.stroke_mm) * 1_000_000, step as u64) as i64;
             max - steps
         } else {
             steps
@@ -444,7 +445,7 @@ impl Encoder {
                 .value(0x6005, 1)
                 .unwrap_or(cx.cfg.position_step_nm)
                 .max(1) as i64;
-            pos <= self.offset(ch, cx) || pos >= end / step
+            pos <= self.offset(ch, cx) || pos >= div::div(end as u64, step as u64) as i64
         } else {
             nm < 0 || nm > end
         };
@@ -887,7 +888,7 @@ fn velocity(dnm: i64, dt_us: i64, od: &Dictionary) -> i64 {
 fn velocity_units(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
     let num = dnm.saturating_mul(100);
     let den = dt_us.saturating_mul(vstep).max(1) as u64;
-    let (q, r) = (num.unsigned_abs() / den, num.unsigned_abs() % den);
+    let (q, r) = div::div_rem(num.unsigned_abs(), den);
     // Half away from zero: one more when the remainder is at least half the divisor.
     let mag = (q + (r >= den - r) as u64).min(1 << 15) as i64;
     let v = mag * num.signum();
@@ -915,8 +916,9 @@ fn event_timer_insufficient(cx: &AppCtx<'_>) -> bool {
     // 11-bit data frame: 47 bits of frame plus data, plus worst-case stuff bits on the 34 + 8n
     // stuffable bits (the manuals' "103…126 bits" for 7 bytes).
     let bits = 47 + 8 * bytes + (34 + 8 * bytes - 1) / 4;
-    let frame_us = bits as u64 * 1000 / cx.bitrate_kbps as u64;
-    (et_ms as u64) * 1000 < frame_us
+    // Small numbers: 32 bits (µs of one frame at ≥ 1 kbit/s).
+    let frame_us = bits * 1000 / u32::from(cx.bitrate_kbps);
+    u64::from(et_ms) * 1000 < u64::from(frame_us)
 }
 
 #[cfg(test)]

@@ -14,6 +14,7 @@
     allow(dead_code, unused_imports, unused_macros)
 )]
 
+use crate::div;
 use crate::od::{Entry, Param};
 
 #[cfg(feature = "e-series")]
@@ -736,10 +737,12 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
         Param::VelocityStep => {
             let num = cfg.position_step_nm as u64 * 100; // nm → 0.01 µm
             let den = cfg.cycle_us.max(1) as u64 * 10;
-            (((num * 1000 / den) + 500) / 1000) as u32
+            div::div(div::div(num * 1000, den) + 500, 1000) as u32
         }
         Param::MinPosition => 0,
-        Param::MaxPosition => (cfg.stroke_mm as u64 * 1_000_000 / step).min(i32::MAX as u64) as u32,
+        Param::MaxPosition => {
+            div::div(cfg.stroke_mm as u64 * 1_000_000, step).min(i32::MAX as u64) as u32
+        }
         Param::Channels => cfg.channels as u32,
         Param::Model(_) => 0,
     }
