@@ -39,15 +39,29 @@ impl core::default::Default for TxQueue {
 
 impl TxQueue {
     /// Queues a frame; false (and counted) if full.
-    #[inline]
+    #[inline(always)]
     pub fn push(&mut self, f: Frame) -> bool {
+        match self.reserve() {
+            Some(slot) => {
+                *slot = f;
+                true
+            }
+            None => false,
+        }
+    }
+    /// The slot of the next frame, now counted as queued; `None` (and counted) if full. A
+    /// firmware's call sites share one out-of-line copy and write their frames straight into
+    /// the slot.
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn reserve(&mut self) -> Option<&mut Frame> {
         if self.len == TXQ_LEN {
             self.overruns = self.overruns.wrapping_add(1);
-            return false;
+            return None;
         }
-        self.buf[(self.head + self.len) & MASK] = f;
+        let i = (self.head + self.len) & MASK;
         self.len += 1;
-        true
+        Some(&mut self.buf[i])
     }
     /// Takes the oldest frame.
     #[inline]
