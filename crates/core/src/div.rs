@@ -16,11 +16,6 @@ pub(crate) fn div_rem(n: u64, d: u64) -> (u64, u64) {
     }
     #[cfg(not(target_pointer_width = "64"))]
     {
-        if (n | d) >> 32 == 0 {
-            // Both fit a register: the processor's own 32-bit division.
-            let (n, d) = (n as u32, d as u32);
-            return (u64::from(n / d), u64::from(n % d));
-        }
         long_div(n, d)
     }
 }
@@ -45,12 +40,18 @@ pub(crate) fn div_floor(n: i64, d: u64) -> i64 {
     }
 }
 
-/// Binary long division, one quotient bit per step from the dividend's highest set bit.
+/// Binary long division, one quotient bit per step from the dividend's highest set bit (one
+/// 32-bit division when both fit 32 bits).
 /// Out of line: the one copy every 64-bit division of a 32-bit build shares (a 64-bit host
 /// only tests it).
 #[cfg(any(test, not(target_pointer_width = "64")))]
 #[inline(never)]
 pub(crate) fn long_div(n: u64, d: u64) -> (u64, u64) {
+    if (n | d) >> 32 == 0 {
+        // Both fit a register: the processor's own 32-bit division.
+        let (n, d) = (n as u32, d as u32);
+        return (u64::from(n / d), u64::from(n % d));
+    }
     let (mut q, mut r) = (0u64, 0u64);
     let mut bit = 64 - n.leading_zeros();
     while bit > 0 {
