@@ -1166,6 +1166,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.nmt.sdo_allowed()
     }
 
+    // Out of line: `flush_emcy` is inlined at every entry point's end.
+    #[inline(never)]
     fn flush_emcy_slow(&mut self) {
         // Nothing else writes 0x1001 / 0x1003 between resets, so an unchanged EMCY state needs
         // no mirroring (this runs after every frame).
