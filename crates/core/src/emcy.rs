@@ -120,7 +120,8 @@ impl core::default::Default for Emcy {
 
 impl Emcy {
     /// The error register (0x1001) as the active errors make it.
-    #[inline]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn register(&self) -> u8 {
         let mut r = 0;
         for &(_, bits) in self.active_codes() {

@@ -164,11 +164,14 @@ impl HotSlots {
     /// From the model's table (not the dictionary, which would then have to be in memory
     /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
     fn new(model: &Model) -> Self {
-        let slot = |index: u16, sub: u8| {
+        // Out of line: six lookups share it (this runs once per node).
+        #[inline(never)]
+        fn find(model: &Model, index: u16, sub: u8) -> u16 {
             model
                 .search(od::key(index, sub))
                 .map_or(NO_SLOT, |s| s as u16)
-        };
+        }
+        let slot = |index: u16, sub: u8| find(model, index, sub);
         let hist = slot(0x1003, 0);
         let hist_subs = (1..=emcy::HISTORY_LEN as u16)
             .take_while(|&i| hist != NO_SLOT && slot(0x1003, i as u8) == hist + i)
