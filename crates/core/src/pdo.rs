@@ -197,10 +197,17 @@ pub const fn map_index(n: usize) -> u16 {
 #[cfg_attr(feature = "inline-hot-paths", inline)]
 #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 pub fn restricted_id(id: u32) -> bool {
-    // One bit per 11-bit CAN-ID (a table lookup instead of eight range compares): the compares
-    // cost an SDO download of a COB-ID some 30 instructions more on a host, for 324 B less
-    // flash in firmware.
-    id < 0x800 && RESTRICTED[(id >> 6) as usize] >> (id & 63) & 1 != 0
+    // A host looks up one bit per 11-bit CAN-ID: the eight range compares cost an SDO download
+    // of a COB-ID some 30 instructions more. A firmware compares: the bitmap is 256 B of flash
+    // for a check only COB-ID writes make.
+    #[cfg(feature = "inline-hot-paths")]
+    {
+        id < 0x800 && RESTRICTED[(id >> 6) as usize] >> (id & 63) & 1 != 0
+    }
+    #[cfg(not(feature = "inline-hot-paths"))]
+    {
+        restricted_by_range(id)
+    }
 }
 
 const fn restricted_by_range(id: u32) -> bool {
@@ -208,6 +215,7 @@ const fn restricted_by_range(id: u32) -> bool {
 }
 
 /// Bit `id % 64` of word `id / 64`: [`restricted_by_range`] of `id`.
+#[cfg(feature = "inline-hot-paths")]
 static RESTRICTED: [u64; 32] = {
     let mut t = [0u64; 32];
     let mut id = 0u32;
