@@ -172,7 +172,41 @@ pub enum Hook {
     PendingBitRate,
     /// An object of the application, which validates it, reacts to writes and refreshes it
     /// before reads; the number is the application's own (e.g. `encoder::hook`).
-    App(u8),
+    App(AppHook),
+}
+
+/// An application's own hook number, 0 to 15 (what [`Hook::App`] carries). A closed set rather
+/// than any `u8`, so that a [`Hook`] is one byte and a table entry 20 bytes rather than 24 on
+/// a 32-bit microcontroller.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+#[allow(missing_docs)] // the variants are the numbers
+#[rustfmt::skip]
+pub enum AppHook {
+    N0, N1, N2, N3, N4, N5, N6, N7, N8, N9, N10, N11, N12, N13, N14, N15,
+}
+
+impl AppHook {
+    const ALL: [AppHook; 16] = {
+        use AppHook::*;
+        [
+            N0, N1, N2, N3, N4, N5, N6, N7, N8, N9, N10, N11, N12, N13, N14, N15,
+        ]
+    };
+
+    /// Hook number `n`, below 16: a larger one fails to compile where a table or a constant
+    /// names it (the only places that make hook numbers).
+    pub const fn new(n: u8) -> AppHook {
+        if n as usize >= Self::ALL.len() {
+            panic!("application hook numbers are 0 to 15");
+        }
+        Self::ALL[n as usize]
+    }
+
+    /// The number.
+    pub const fn get(self) -> u8 {
+        self as u8
+    }
 }
 
 /// Values that depend on the unit's configuration rather than on the model alone.

@@ -1,7 +1,7 @@
 //! CiA 301 §7.1 basic data types (sizes, EDS codes, value ranges), the access attributes, an
 //! entry's value checks, and the SDO abort codes of §7.2.4.3.17 (Table 22) with their meanings.
 
-use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Range};
+use canpos_core::od::{Access, AppHook, DataType, Default, Entry, Group, Hook, Range};
 use canpos_core::Abort;
 
 const ALL_TYPES: [DataType; 9] = [
@@ -181,7 +181,7 @@ fn hooks_that_act_after_a_write() {
         Hook::TpdoComm,
         Hook::TpdoMap,
         Hook::Guarding,
-        Hook::App(0),
+        Hook::App(AppHook::new(0)),
     ] {
         assert!(h.acts_when_written(), "{h:?}");
     }
