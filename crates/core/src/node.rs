@@ -1346,36 +1346,28 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// one (a state file's values are loaded without the latter).
     #[inline]
     fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
-        match e.hook {
-            Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) => self.validate_service(e, raw),
+        if let Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) = e.hook {
+            return self.validate_service(e, raw);
+        }
+        // One call for every other hook (`value_allowed` is a match of its own).
+        self.value_allowed(e, raw)?;
+        let clash = match e.hook {
+            // The CAN-ID of a valid EMCY may not change (CiA 301 7.5.2.17).
             Hook::EmcyCobId => {
-                self.value_allowed(e, raw)?;
-                // The CAN-ID of a valid EMCY may not change (CiA 301 7.5.2.17).
-                if cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0 {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
+                cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0
             }
             // Guarding and SYNC may not share a CAN-ID: a zero-length data frame counts as a
             // guard request (D22), so every SYNC would be answered as one.
-            Hook::SyncCobId => {
-                self.value_allowed(e, raw)?;
-                if raw & 0x7FF == u32::from(self.errctl.guarding_id()) {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
-            }
-            Hook::GuardingCobId => {
-                self.value_allowed(e, raw)?;
-                if raw & 0x7FF == self.sync_can_id() {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
-            }
+            Hook::SyncCobId => raw & 0x7FF == u32::from(self.errctl.guarding_id()),
+            Hook::GuardingCobId => raw & 0x7FF == self.sync_can_id(),
             // The others (`Hook::None` among them) check nothing beyond their own value (or
             // act instead of storing).
-            _ => self.value_allowed(e, raw),
+            _ => false,
+        };
+        if clash {
+            return Err(Abort::InvalidValue);
         }
+        Ok(())
     }
 
     /// [`Device::validate`] for the PDO parameters and the application's objects.
