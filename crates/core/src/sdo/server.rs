@@ -125,6 +125,7 @@ impl SdoServer {
     }
 
     /// Aborts any transfer in progress without sending anything (NMT reset).
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn reset(&mut self) {
         self.state = State::Idle;
         self.deadline = None;
