@@ -405,7 +405,8 @@ impl SdoServer {
         }
     }
 
-    #[inline]
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn download_expedited(
         &mut self,
         mux: Mux,
