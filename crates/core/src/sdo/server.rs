@@ -440,6 +440,8 @@ impl SdoServer {
 
     /// Initiate-time checks of a segmented / block download: the object is writable and an
     /// indicated size fits the object and the buffer.
+    // Out of line: the segmented and the block initiate share it.
+    #[inline(never)]
     fn check_download_size(
         &mut self,
         mux: Mux,
@@ -570,6 +572,8 @@ impl SdoServer {
     }
 
     /// Sets up the block that starts at `self.pos`; `poll_transmit` emits its segments.
+    // Out of line: the block-upload start and every acknowledged block share it.
+    #[inline(never)]
     fn start_block(&mut self, crc: bool, blksize: u8) {
         let left = self.len.saturating_sub(self.pos);
         // An empty rest still needs one (empty, c = 1) segment.
