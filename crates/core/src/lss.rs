@@ -125,6 +125,7 @@ struct Sequence {
 impl Sequence {
     /// Frame `step` of the sequence arrived; returns false (and starts over) if it is out of
     /// order. Frame 0 always (re)starts the sequence, so a master can retry at any point.
+    #[inline(never)] // both LSS sequences share one copy
     fn advance(&mut self, step: u8, matched: bool) -> bool {
         if step == 0 {
             *self = Sequence {

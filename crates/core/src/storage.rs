@@ -334,6 +334,7 @@ fn move_record(buf: &mut [u8], from: usize, to: usize) {
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.
+#[inline(never)] // stores and loads share one copy
 pub fn crc32(data: &[u8]) -> u32 {
     let mut crc = 0xFFFF_FFFFu32;
     for &b in data {

@@ -270,6 +270,7 @@ pub fn block_upload_end(unused: u8, crc: u16) -> [u8; 8] {
 
 /// CRC-16 of block transfers: CCITT polynomial 0x1021, initial value 0, no reflection (the
 /// XMODEM variant CiA 301 specifies).
+#[inline(never)] // block uploads and downloads share one copy
 pub fn crc16(data: &[u8]) -> u16 {
     let mut crc: u16 = 0;
     for &b in data {
