@@ -10,7 +10,7 @@
 //! no application of its own (every object a plain value).
 
 use crate::emcy::Emcy;
-use crate::models::{DeviceConfig, Model};
+use crate::models::{features_of, DeviceConfig, Features, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, AppHook, Dictionary};
 use crate::pdo::Tpdos;
@@ -60,6 +60,12 @@ pub trait Application {
     /// products' branches of the stack and of the application are not linked.
     const PRODUCT_ONLY: bool = false;
 
+    /// The device's [`Features`] when the build fixes them: a firmware for a device of its
+    /// own, as CANopenNode's `CO_config.h` fixes its services. It must be the node's model's
+    /// own `features`; the node then takes them as constants and links no branch for a feature
+    /// the device lacks. `None` (the default): read from the model ([`features_of`]).
+    const FEATURES: Option<&'static Features> = None;
+
     /// Power-on: back to the state of a device that was just switched on.
     fn power_on(&mut self) {}
 
@@ -108,6 +114,22 @@ pub trait Application {
     /// that itself; otherwise the node raises the generic EMCY 0x6300.
     fn storage_corrupt(&mut self, _cx: &mut AppCtx<'_>) -> bool {
         false
+    }
+}
+
+/// The features of a node of `model` running `A`: [`Application::FEATURES`], else
+/// [`features_of`] the model.
+#[inline(always)]
+pub(crate) fn features<A: Application>(model: &'static Model) -> &'static Features {
+    match A::FEATURES {
+        Some(f) => {
+            debug_assert!(
+                core::ptr::eq(f, &model.features),
+                "FEATURES are the model's"
+            );
+            f
+        }
+        None => features_of(model, A::PRODUCT_ONLY),
     }
 }
 

@@ -4,12 +4,12 @@
 //! `poll_timeout`, `update_sample`. [`Device`] holds the state the services share; the SDO
 //! server and the LSS slave sit beside it so they can borrow it mutably while they run.
 
-use crate::app::{AppCtx, AppView, Application};
+use crate::app::{self, AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
 use crate::encoder::Encoder;
 use crate::errctl::{ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave};
-use crate::models::{self, DeviceConfig, Features, Model};
+use crate::models::{DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{
     self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
@@ -250,7 +250,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
         let od = Dictionary::new(model);
         let hot = HotSlots::new(model);
-        let f = models::features_of(model, A::PRODUCT_ONLY);
+        let f = app::features::<A>(model);
         Node {
             sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),
             held_sdo: None,
@@ -816,7 +816,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// product models ([`models::features_of`]; 0.7 KB of the TH firmware).
     #[inline(always)]
     pub fn features(&self) -> &'static Features {
-        models::features_of(self.model, A::PRODUCT_ONLY)
+        app::features::<A>(self.model)
     }
 
     /// The product model.

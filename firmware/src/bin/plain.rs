@@ -1,5 +1,6 @@
-//! The CiA 301 / 305 stack on its own, for its size figure: canpos-core's node with the
-//! [`Plain`] application (no CiA 406) and a minimal communication dictionary (identity, error
+//! The CiA 301 / 305 stack on its own, for its size figure: canpos-core's node with no
+//! application of its own (no CiA 406), its features fixed at build time, and a minimal
+//! communication dictionary (identity, error
 //! register and history, SYNC, guarding, heartbeat, EMCY, store / restore, one SDO server, one
 //! TPDO), on the same board as the TH firmware. docs/FIRMWARE.md says how the figure is taken.
 #![no_std]
@@ -11,7 +12,7 @@ mod board;
 use board::{BoardClock, Nvm, Uart, UartCan};
 use canpos_core::models::{common_param, DeviceConfig, Features, Model};
 use canpos_core::od::{Default::*, Entry, Hook, Param};
-use canpos_core::{entry, Node, Plain};
+use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
 use core::mem::MaybeUninit;
 use embedded_can::nb::Can;
@@ -104,7 +105,18 @@ static MODEL: Model = Model {
     },
 };
 
-type PlainNode = Node<Plain, Nvm>;
+/// No application of its own, and the features of [`MODEL`] fixed at build time (as
+/// CANopenNode's `CO_config.h` fixes its services, and as a one-model TH build fixes the
+/// TH's): the stack links what this device uses.
+struct Device;
+
+impl Application for Device {
+    type Sample = ();
+    type Fault = core::convert::Infallible;
+    const FEATURES: Option<&'static Features> = Some(&MODEL.features);
+}
+
+type PlainNode = Node<Device, Nvm>;
 
 #[inline(never)]
 fn place() -> &'static mut PlainNode {
@@ -114,7 +126,7 @@ fn place() -> &'static mut PlainNode {
         (*core::ptr::addr_of_mut!(NODE)).write(Node::with_app(
             &MODEL,
             MODEL.default_config,
-            Plain,
+            Device,
             Nvm,
         ))
     }
