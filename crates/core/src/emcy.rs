@@ -240,7 +240,8 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
     }
 
-    #[inline(never)] // every raise shares one copy
+    // A firmware's raises share one copy.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn record(&mut self, code: u16, mfr: [u8; 5]) {
         // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
         // entry matches the frame (conformance EMCY-06).

@@ -30,7 +30,8 @@ pub enum ErrCtlEvent {
 
 impl ErrCtl {
     /// Applies 0x1017 (ms, 0 = off): the first heartbeat follows one period after `now`.
-    #[inline(never)] // reset and 0x1017 writes share one copy
+    // A firmware's reset and 0x1017 writes share one copy.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn set_heartbeat(&mut self, ms: u16, now: Instant) {
         if ms == 0 {
             self.heartbeat = None;
