@@ -2,7 +2,7 @@
 //! events it does not own itself.
 //!
 //! The stack (NMT, SDO, PDO, EMCY, error control, storage, LSS) knows nothing of encoders or
-//! products. An object in the model's table whose hook is [`crate::od::Hook::App`] belongs to
+//! products. An object in the model's table whose hook is [`crate::od::Hook::app`] belongs to
 //! the application: the stack asks it to [`Application::validate`] a write, tells it what was
 //! [`Application::written`], lets it [`Application::refresh`] a derived value before a read,
 //! and runs its [`Application::cycle`] with each process sample. CiA 406
@@ -12,7 +12,7 @@
 use crate::emcy::Emcy;
 use crate::models::{features_of, DeviceConfig, Features, Model};
 use crate::nmt::NmtState;
-use crate::od::{Abort, AppHook, Dictionary};
+use crate::od::{Abort, Dictionary};
 use crate::pdo::Tpdos;
 use crate::wire::Instant;
 
@@ -85,19 +85,19 @@ pub trait Application {
     }
 
     /// The rule of application hook `h` for a write of `raw` to sub-index `sub`.
-    fn validate(&self, _h: AppHook, _sub: u8, _raw: u32, _cx: &AppView<'_>) -> Result<(), Abort> {
+    fn validate(&self, _h: u8, _sub: u8, _raw: u32, _cx: &AppView<'_>) -> Result<(), Abort> {
         Ok(())
     }
 
     /// The side effects of application hook `h` once `raw` was written to `sub`.
-    fn written(&mut self, _h: AppHook, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+    fn written(&mut self, _h: u8, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
 
     /// Communication parameter `sub` of TPDO `n` changed (an application may keep an object
     /// of its own in step, such as CiA 406's cyclic timer 0x6200).
     fn tpdo_comm_written(&mut self, _n: usize, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
 
     /// Brings a value the application derives (hook `h`) up to date before it is read.
-    fn refresh(&self, _h: AppHook, _od: &mut Dictionary, _nmt: NmtState) {}
+    fn refresh(&self, _h: u8, _od: &mut Dictionary, _nmt: NmtState) {}
 
     /// Whether values of the automatically stored group changed since the last call (the node
     /// then persists them).

@@ -1346,7 +1346,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// one (a state file's values are loaded without the latter).
     #[inline]
     fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
-        if let Hook::TpdoComm | Hook::TpdoMap | Hook::App(_) = e.hook {
+        if e.hook.checked_by_service() {
             return self.validate_service(e, raw);
         }
         // One call for every other hook (`value_allowed` is a match of its own).
@@ -1378,15 +1378,17 @@ impl<A: Application, S: Storage> Device<A, S> {
                 let strict = self.features().event_timer_above_inhibit;
                 self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
-            Hook::App(h) => {
-                let cx = AppView {
-                    od: &self.od,
-                    model: self.model,
-                    cfg: &self.cfg,
-                };
-                self.app.validate(h, e.sub, raw, &cx)
-            }
-            _ => Ok(()),
+            hook => match hook.app_number() {
+                Some(h) => {
+                    let cx = AppView {
+                        od: &self.od,
+                        model: self.model,
+                        cfg: &self.cfg,
+                    };
+                    self.app.validate(h, e.sub, raw, &cx)
+                }
+                None => Ok(()),
+            },
         }
     }
 
@@ -1420,11 +1422,12 @@ impl<A: Application, S: Storage> Device<A, S> {
             }
             Hook::PendingNodeId => self.pending_node_id = raw as u8,
             Hook::PendingBitRate => self.pending_bitrate = kbps_of_object(raw),
-            Hook::App(h) => {
-                let (app, mut cx) = self.app_ctx(now);
-                app.written(h, e.sub, raw, &mut cx);
+            hook => {
+                if let Some(h) = hook.app_number() {
+                    let (app, mut cx) = self.app_ctx(now);
+                    app.written(h, e.sub, raw, &mut cx);
+                }
             }
-            _ => {}
         }
     }
 
@@ -1520,7 +1523,7 @@ impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
         let slot = self.find(index, sub)?;
         self.readable(slot)?;
         // Values the application derives from others are current when read.
-        if let Hook::App(h) = self.od.entry(slot).hook {
+        if let Some(h) = self.od.entry(slot).hook.app_number() {
             self.app.refresh(h, &mut self.od, self.nmt);
         }
         Ok(self.od.read_at(slot, offset, buf))

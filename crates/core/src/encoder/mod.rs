@@ -24,34 +24,32 @@ use crate::div;
 use crate::emcy::{self, Emcy};
 use crate::models::{features_of, Features, Model};
 use crate::nmt::NmtState;
-use crate::od::{Abort, AppHook, Dictionary};
+use crate::od::{Abort, Dictionary};
 
-/// The CiA 406 object rules, as [`crate::od::Hook::App`] numbers in the model tables: each
+/// The CiA 406 object rules, as [`crate::od::Hook::app`] numbers in the model tables: each
 /// object names the rule that governs it, so no index list is repeated here.
 pub mod hook {
-    use crate::od::AppHook;
-
     /// 0x6000 operating parameters: only the code-sequence bit (D2); positions follow it.
-    pub const CODE_SEQUENCE: AppHook = AppHook::new(1);
+    pub const CODE_SEQUENCE: u8 = 1;
     /// 0x6005/1 position measuring step (writable on TMI, R31): whole µm, not below the
     /// variant's minimum; positions follow it.
-    pub const MEASURING_STEP: AppHook = AppHook::new(2);
+    pub const MEASURING_STEP: u8 = 2;
     /// 0x6010/n preset: the current position reads the written value (SPEC §10).
-    pub const PRESET: AppHook = AppHook::new(3);
+    pub const PRESET: u8 = 3;
     /// 0x6301/n cam enable, 0x6302/n cam polarity: one bit per cam, four cams.
-    pub const CAM_SWITCH: AppHook = AppHook::new(4);
+    pub const CAM_SWITCH: u8 = 4;
     /// 0x631x / 0x632x / 0x633x cam limits and hysteresis: the cam states follow.
-    pub const CAM_LIMIT: AppHook = AppHook::new(5);
+    pub const CAM_LIMIT: u8 = 5;
     /// 0x6401/n, 0x6402/n work-area limits: the work-area state follows.
-    pub const WORK_AREA_LIMIT: AppHook = AppHook::new(6);
+    pub const WORK_AREA_LIMIT: u8 = 6;
     /// 0x6200 cyclic timer: one value with TPDO1's event timer (D12).
-    pub const CYCLIC_TIMER: AppHook = AppHook::new(7);
+    pub const CYCLIC_TIMER: u8 = 7;
     /// 0x6500 operating status: reads the active 0x6000 (D2).
-    pub const OPERATING_STATUS: AppHook = AppHook::new(8);
+    pub const OPERATING_STATUS: u8 = 8;
     /// 0x6509 offset value: reads the offset of channel 1's preset (0x650C/1).
-    pub const OFFSET: AppHook = AppHook::new(9);
+    pub const OFFSET: u8 = 9;
     /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
-    pub const MANUFACTURER_STATUS: AppHook = AppHook::new(10);
+    pub const MANUFACTURER_STATUS: u8 = 10;
 }
 
 /// TMI system-data errors (§1.14, 0x5000 with sub-codes). All but
@@ -712,7 +710,7 @@ impl Application for Encoder {
     }
 
     /// The rule of application hook `h` for a write of `raw` to `sub`.
-    fn validate(&self, h: AppHook, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+    fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
         match h {
             // D2: only the code-sequence bit.
             hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
@@ -726,7 +724,7 @@ impl Application for Encoder {
     }
 
     /// The side effects of application hook `h` once `raw` was written to `sub`.
-    fn written(&mut self, h: AppHook, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+    fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
         match h {
             hook::PRESET => {
@@ -777,7 +775,7 @@ impl Application for Encoder {
     /// object with application hook `h` (they must be right even when no measurement cycle ran
     /// since the change): 0x6500 mirrors 0x6000 (D2), 0x6509 mirrors 0x650C/1, TMI 0x1002
     /// carries the NMT state.
-    fn refresh(&self, h: AppHook, od: &mut Dictionary, nmt: NmtState) {
+    fn refresh(&self, h: u8, od: &mut Dictionary, nmt: NmtState) {
         match h {
             hook::OPERATING_STATUS => {
                 let v = od.value(0x6000, 0).unwrap_or(0);

@@ -91,24 +91,24 @@ const CH: usize = 5;
 #[rustfmt::skip]
 const MFR: &[Entry] = &[
     // D2: only bit 0 (code sequence); the encoder refuses other bits with 0x06090030.
-    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App).with_hook(Hook::App(hook::CODE_SEQUENCE)),
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App).with_hook(Hook::app(hook::CODE_SEQUENCE)),
     // D20: stored, no effect (scaling is fixed).
     entry!(0x6002, 0, "Total measuring range", Unsigned32, Rw, Const(0), Any, App),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::App(hook::MEASURING_STEP)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::app(hook::MEASURING_STEP)),
     entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(Param::VelocityStep)),
 ];
 
 #[rustfmt::skip]
 const STATUS: &[Entry] = &[
     // D12: one value with 0x1800/5 (node.rs keeps them equal).
-    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App).with_hook(Hook::App(hook::CYCLIC_TIMER)),
+    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App).with_hook(Hook::app(hook::CYCLIC_TIMER)),
 ];
 
 #[rustfmt::skip]
 const DIAG: &[Entry] = &[
     // D2: reads the active 0x6000.
-    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::App(hook::OPERATING_STATUS)),
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::app(hook::OPERATING_STATUS)),
     entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
     // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
@@ -119,7 +119,7 @@ const DIAG: &[Entry] = &[
     entry!(0x6507, 0, "Profile and software version", Unsigned32, Const, Const(0x0301_0100)),
     entry!(0x6508, 0, "Operating time", Unsigned32, Const, Const(0xFFFF_FFFF)),
     // The offset the channel 1 preset produced (mirrors 0x650C/1).
-    entry!(0x6509, 0, "Offset value", Integer32, Ro, Live).with_hook(Hook::App(hook::OFFSET)),
+    entry!(0x6509, 0, "Offset value", Integer32, Ro, Live).with_hook(Hook::app(hook::OFFSET)),
     entry!(0x650A, 0, "Module identification: number of entries", Unsigned8, Const, Const(3)),
     entry!(0x650A, 1, "Manufacturer offset value", Integer32, Const, Const(0)),
     entry!(0x650A, 2, "Manufacturer min. position value", Integer32, Ro, Param(Param::MinPosition)),
@@ -141,7 +141,7 @@ const PARTS: &[&[Entry]] = &[
     &table::tpdo_map::<9>(0x1A02, tpdo_map_names!(3), 0, map(3), Comm),
     &table::tpdo_map::<9>(0x1A03, tpdo_map_names!(4), 0, map(4), Comm),
     MFR,
-    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::PRESET)),
+    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::PRESET)),
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, &Any, Volatile),
     STATUS,

@@ -759,15 +759,15 @@ const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
     use table::{channels, hooked};
     &[
         &channels::<5>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
-        &hooked(channels::<5>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
-        &hooked(channels::<5>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
-        &hooked(channels::<5>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-        &hooked(channels::<5>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-        &hooked(channels::<5>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-        &hooked(channels::<5>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6301, chnames!("Cam enable"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_SWITCH)),
+        &hooked(channels::<5>(0x6302, chnames!("Cam polarity"; 1, 2, 3, 4), Unsigned8, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_SWITCH)),
+        &hooked(channels::<5>(0x6310, chnames!("Cam1 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6311, chnames!("Cam2 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+        &hooked(channels::<5>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
         &channels::<5>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
-        &hooked(channels::<5>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
-        &hooked(channels::<5>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+        &hooked(channels::<5>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+        &hooked(channels::<5>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
     ]
 };
 

@@ -105,24 +105,24 @@ const MFR: &[Entry] = &[
     entry!(0x2901, 4, "Max. temperature over operational life", Integer8, Ro, Live, Any, Auto),
     entry!(0x2901, 5, "Min. temperature over operational life", Integer8, Ro, Live, Any, Auto),
     // D2: only bit 0 (code sequence); the encoder refuses other bits with 0x06090030.
-    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App).with_hook(Hook::App(hook::CODE_SEQUENCE)),
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, App).with_hook(Hook::app(hook::CODE_SEQUENCE)),
     // D20: stored, no effect (scaling is fixed).
     entry!(0x6002, 0, "Total measuring range", Unsigned32, Rw, Const(0), Any, App),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::App(hook::MEASURING_STEP)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::app(hook::MEASURING_STEP)),
     entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(Param::VelocityStep)),
 ];
 
 #[rustfmt::skip]
 const STATUS: &[Entry] = &[
     // D12: one value with 0x1800/5 (node.rs keeps them equal).
-    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App).with_hook(Hook::App(hook::CYCLIC_TIMER)),
+    entry!(0x6200, 0, "Cyclic timer", Unsigned16, Rw, Const(1), Any, App).with_hook(Hook::app(hook::CYCLIC_TIMER)),
 ];
 
 #[rustfmt::skip]
 const DIAG: &[Entry] = &[
     // D2: reads the active 0x6000.
-    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::App(hook::OPERATING_STATUS)),
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::app(hook::OPERATING_STATUS)),
     entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
     // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
@@ -152,7 +152,7 @@ const PARTS: &[&[Entry]] = &[
     &table::tpdo_map::<9>(0x1A02, tpdo_map_names!(3), 0, map(3), Comm),
     &table::tpdo_map::<9>(0x1A03, tpdo_map_names!(4), 0, map(4), Comm),
     MFR,
-    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::PRESET)),
+    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::PRESET)),
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, &Any, Volatile),
     STATUS,

@@ -39,7 +39,7 @@ const COMM_HEAD: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
     entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
     // §1.15: status bits, NMT state in bits 1–0.
-    entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live).with_hook(Hook::App(hook::MANUFACTURER_STATUS)),
+    entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live).with_hook(Hook::app(hook::MANUFACTURER_STATUS)),
 ];
 
 #[rustfmt::skip]
@@ -120,16 +120,16 @@ const MFR: &[Entry] = &[
     entry!(0x2000, 0, "Node-ID", Unsigned8, Rw, Param(Param::NodeId), MinMax(1, 127), App).with_hook(Hook::PendingNodeId),
     entry!(0x2001, 0, "CAN bit rate", Unsigned16, Rw, Param(Param::BitRateKbps), OneOf(BITRATES_2001), App).with_hook(Hook::PendingBitRate),
     // D2.
-    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::App(hook::CODE_SEQUENCE)),
+    entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::app(hook::CODE_SEQUENCE)),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
     // R31: 1 µm steps up to 100 µm, not below the variant's minimum (checked by the encoder).
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(Param::PositionStepNm), MinMax(1000, 100_000), App).with_hook(Hook::App(hook::MEASURING_STEP)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(Param::PositionStepNm), MinMax(1000, 100_000), App).with_hook(Hook::app(hook::MEASURING_STEP)),
     entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Rw, Param(Param::VelocityStep), OneOf(&[20, 50, 100, 250]), App),
 ];
 
 #[rustfmt::skip]
 const DIAG: &[Entry] = &[
-    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::App(hook::OPERATING_STATUS)),
+    entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::app(hook::OPERATING_STATUS)),
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
     entry!(0x6504, 0, "Supported alarms", Unsigned16, Const, Const(0x0001)),
     entry!(0x6505, 0, "Warnings", Unsigned16, Ro, Live),
@@ -147,28 +147,28 @@ const PARTS: &[&[Entry]] = &[
     &table::tpdo_map::<6>(0x1A00, tpdo_map_names!(1), 4, map(1), Comm),
     &table::tpdo_map::<6>(0x1A01, tpdo_map_names!(2), 4, map(2), Comm),
     MFR,
-    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::PRESET)),
+    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::PRESET)),
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2), Integer16, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2), Unsigned8, Ro, true, Live, &Any, Volatile),
     // Not in the §1.16 storage list.
-    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, Volatile), Hook::App(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6320, chnames!("Cam1 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6321, chnames!("Cam2 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6322, chnames!("Cam3 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6323, chnames!("Cam4 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::App(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, Volatile), Hook::app(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_SWITCH)),
+    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6320, chnames!("Cam1 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6321, chnames!("Cam2 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6322, chnames!("Cam3 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6323, chnames!("Cam4 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+    &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
     &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2), Unsigned8, Ro, true, Live, &Any, Volatile),
-    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
-    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::App(hook::WORK_AREA_LIMIT)),
+    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
     DIAG,
 ];
 

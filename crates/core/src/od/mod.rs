@@ -8,7 +8,7 @@
 
 mod types;
 
-pub use types::{key, Abort, Access, AppHook, DataType, Default, Entry, Group, Hook, Param, Range};
+pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
 
 use crate::models::Model;
 

@@ -138,6 +138,7 @@ pub enum Group {
 /// per-object extensions at run time; here they are data). [`Hook::None`] entries are plain
 /// values: the table's type, access and range checks are all there is to them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum Hook {
     /// A plain value.
     None,
@@ -160,52 +161,90 @@ pub enum Hook {
     EmcyInhibit,
     /// 0x1017 producer heartbeat time.
     Heartbeat,
-    /// A TPDO communication parameter (0x1800…, PDO service).
-    TpdoComm,
-    /// A TPDO mapping parameter (0x1A00…, PDO service).
-    TpdoMap,
     /// An object copy of the node-id that the next reset communication activates (TMI
     /// 0x2000): one value with LSS "configure node-id".
     PendingNodeId,
     /// An object copy of the bit rate (kbit/s, 0xFFFF autobaud) that the next reset activates
     /// (TMI 0x2001): one value with LSS "configure bit timing".
     PendingBitRate,
-    /// An object of the application, which validates it, reacts to writes and refreshes it
-    /// before reads; the number is the application's own (e.g. `encoder::hook`).
-    App(AppHook),
+    // The hooks from here on are those whose values their service checks (PDO service, the
+    // application): `Hook::checked_by_service` is then one compare.
+    /// A TPDO communication parameter (0x1800…, PDO service).
+    TpdoComm,
+    /// A TPDO mapping parameter (0x1A00…, PDO service).
+    TpdoMap,
+    /// Objects of the application, which validates them, reacts to writes and refreshes them
+    /// before reads: [`Hook::app`]`(n)` with the application's own number `n` (0–15, e.g.
+    /// `encoder::hook`), which [`Hook::app_number`] gives back. Sixteen variants rather than
+    /// one carrying a number: a `Hook` is then one plain byte, so a table entry is 20 bytes
+    /// rather than 24 on a 32-bit microcontroller, and the node's matches on hooks (several
+    /// per SDO write) stay plain compares.
+    App0,
+    #[allow(missing_docs)]
+    App1,
+    #[allow(missing_docs)]
+    App2,
+    #[allow(missing_docs)]
+    App3,
+    #[allow(missing_docs)]
+    App4,
+    #[allow(missing_docs)]
+    App5,
+    #[allow(missing_docs)]
+    App6,
+    #[allow(missing_docs)]
+    App7,
+    #[allow(missing_docs)]
+    App8,
+    #[allow(missing_docs)]
+    App9,
+    #[allow(missing_docs)]
+    App10,
+    #[allow(missing_docs)]
+    App11,
+    #[allow(missing_docs)]
+    App12,
+    #[allow(missing_docs)]
+    App13,
+    #[allow(missing_docs)]
+    App14,
+    #[allow(missing_docs)]
+    App15,
 }
 
-/// An application's own hook number, 0 to 15 (what [`Hook::App`] carries). A closed set rather
-/// than any `u8`, so that a [`Hook`] is one byte and a table entry 20 bytes rather than 24 on
-/// a 32-bit microcontroller.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(u8)]
-#[allow(missing_docs)] // the variants are the numbers
-#[rustfmt::skip]
-pub enum AppHook {
-    N0, N1, N2, N3, N4, N5, N6, N7, N8, N9, N10, N11, N12, N13, N14, N15,
-}
-
-impl AppHook {
-    const ALL: [AppHook; 16] = {
-        use AppHook::*;
+impl Hook {
+    /// The application hooks in number order.
+    const APP: [Hook; 16] = {
+        use Hook::*;
         [
-            N0, N1, N2, N3, N4, N5, N6, N7, N8, N9, N10, N11, N12, N13, N14, N15,
+            App0, App1, App2, App3, App4, App5, App6, App7, App8, App9, App10, App11, App12, App13,
+            App14, App15,
         ]
     };
 
-    /// Hook number `n`, below 16: a larger one fails to compile where a table or a constant
-    /// names it (the only places that make hook numbers).
-    pub const fn new(n: u8) -> AppHook {
-        if n as usize >= Self::ALL.len() {
+    /// The application's hook number `n`, below 16: a larger one fails to compile in a table
+    /// or a constant (the only places that make hooks).
+    pub const fn app(n: u8) -> Hook {
+        if n as usize >= Self::APP.len() {
             panic!("application hook numbers are 0 to 15");
         }
-        Self::ALL[n as usize]
+        Self::APP[n as usize]
     }
 
-    /// The number.
-    pub const fn get(self) -> u8 {
-        self as u8
+    /// Whether the service that owns the object checks a written value itself (the PDO
+    /// service its parameters, the application its objects) rather than the node.
+    #[inline]
+    pub const fn checked_by_service(self) -> bool {
+        self as u8 >= Hook::TpdoComm as u8
+    }
+
+    /// The application's number of an application hook, `None` for the services' hooks.
+    #[inline]
+    pub const fn app_number(self) -> Option<u8> {
+        match (self as u8).checked_sub(Hook::App0 as u8) {
+            Some(n) => Some(n),
+            None => None,
+        }
     }
 }
 

@@ -1,7 +1,7 @@
 //! CiA 301 §7.1 basic data types (sizes, EDS codes, value ranges), the access attributes, an
 //! entry's value checks, and the SDO abort codes of §7.2.4.3.17 (Table 22) with their meanings.
 
-use canpos_core::od::{Access, AppHook, DataType, Default, Entry, Group, Hook, Range};
+use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Range};
 use canpos_core::Abort;
 
 const ALL_TYPES: [DataType; 9] = [
@@ -181,7 +181,7 @@ fn hooks_that_act_after_a_write() {
         Hook::TpdoComm,
         Hook::TpdoMap,
         Hook::Guarding,
-        Hook::App(AppHook::new(0)),
+        Hook::app(0),
     ] {
         assert!(h.acts_when_written(), "{h:?}");
     }
@@ -310,4 +310,18 @@ fn cia301_7_2_4_3_17_abort_codes() {
     }
     assert_eq!(Abort::from_code(0x0504_0006), None);
     assert_eq!(Abort::from_code(0), None);
+}
+
+/// An application's hook numbers: each one its own and given back, the services' hooks none,
+/// and a hook one byte (a firmware's table entry is 20 bytes because of it).
+#[test]
+fn app_hook_numbers_round_trip_in_one_byte() {
+    for n in 0..16 {
+        assert_eq!(Hook::app(n).app_number(), Some(n));
+    }
+    assert_ne!(Hook::app(1), Hook::app(2));
+    for h in [Hook::None, Hook::ErrorHistory, Hook::PendingBitRate] {
+        assert_eq!(h.app_number(), None, "{h:?}");
+    }
+    assert_eq!(core::mem::size_of::<Hook>(), 1);
 }
