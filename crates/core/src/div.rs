@@ -86,6 +86,13 @@ mod tests {
             (1 << 32, 3),
             (u64::MAX, 0xFFFF_FFFF),
             (12345, 1 << 40),
+            // Both in 32 bits: the processor's division.
+            (7, 2),
+            (100, 7),
+            (0xFFFF_FFFF, 3),
+            // Low halves zero: the long way (the high halves decide the path).
+            (1 << 40, 1 << 33),
+            (3 << 32, 1 << 32),
         ] {
             assert_eq!(long_div(n, d), (n / d, n % d), "{n} / {d}");
             assert_eq!(div_rem(n, d), (n / d, n % d), "{n} / {d}");
@@ -108,6 +115,11 @@ mod tests {
 
         #[test]
         fn long_division_of_small_divisors(n: u64, d in 1u64..100_000) {
+            prop_assert_eq!(long_div(n, d), (n / d, n % d));
+        }
+
+        #[test]
+        fn long_division_in_32_bits(n in 0u64..1 << 32, d in 1u64..1 << 32) {
             prop_assert_eq!(long_div(n, d), (n / d, n % d));
         }
 

@@ -812,8 +812,9 @@ impl<A: Application, S: Storage> Node<A, S> {
 }
 
 impl<A: Application, S: Storage> Device<A, S> {
-    /// The model's features: constants in a one-model build whose application runs only
-    /// product models ([`models::features_of`]; 0.7 KB of the TH firmware).
+    /// The model's features: constants where the application fixes them
+    /// ([`Application::FEATURES`]) or in a one-model build whose application runs only product
+    /// models ([`crate::models::features_of`]; 0.7 KB of the TH firmware).
     #[inline(always)]
     pub fn features(&self) -> &'static Features {
         app::features::<A>(self.model)
