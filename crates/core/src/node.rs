@@ -324,7 +324,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.epilogue();
     }
 
-    /// [`Node::epilogue`] out of line: every entry point but the per-frame one.
+    /// [`Node::epilogue_inline`] out of line: every entry point, and in a firmware build (without
+    /// `inline-hot-paths`) the per-frame one too.
     #[inline(never)]
     fn epilogue(&mut self) {
         self.epilogue_inline();
@@ -332,8 +333,9 @@ impl<A: Application, S: Storage> Node<A, S> {
 
     /// The end of every `&mut` entry point: what was raised goes out as EMCY, the talk gate
     /// follows the bit rates, and the timer table and the deadlines derived from it are
-    /// written again from the services' own `poll_timeout`s. Nothing else keeps them. Inline
-    /// in [`Node::handle_frame`], where a request's answer waits for it.
+    /// written again from the services' own `poll_timeout`s. Nothing else keeps them. A host
+    /// (`inline-hot-paths`) inlines it in [`Node::handle_frame`], where a request's answer waits
+    /// for it.
     #[inline(always)]
     fn epilogue_inline(&mut self) {
         let d = &mut self.dev;

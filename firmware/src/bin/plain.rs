@@ -108,15 +108,15 @@ static MODEL: Model = Model {
 /// No application of its own, and the features of [`MODEL`] fixed at build time (as
 /// CANopenNode's `CO_config.h` fixes its services, and as a one-model TH build fixes the
 /// TH's): the stack links what this device uses.
-struct Device;
+struct PlainDevice;
 
-impl Application for Device {
+impl Application for PlainDevice {
     type Sample = ();
     type Fault = core::convert::Infallible;
     const FEATURES: Option<&'static Features> = Some(&MODEL.features);
 }
 
-type PlainNode = Node<Device, Nvm>;
+type PlainNode = Node<PlainDevice, Nvm>;
 
 #[inline(never)]
 fn place() -> &'static mut PlainNode {
@@ -126,7 +126,7 @@ fn place() -> &'static mut PlainNode {
         (*core::ptr::addr_of_mut!(NODE)).write(Node::with_app(
             &MODEL,
             MODEL.default_config,
-            Device,
+            PlainDevice,
             Nvm,
         ))
     }

@@ -168,7 +168,7 @@ pub enum Hook {
     /// (TMI 0x2001): one value with LSS "configure bit timing".
     PendingBitRate,
     // The hooks from here on are those whose values their service checks (PDO service, the
-    // application): `Hook::checked_by_service` is then one compare.
+    // application): `Hook::checked_by_service` is then one compare. A new hook goes above.
     /// A TPDO communication parameter (0x1800…, PDO service).
     TpdoComm,
     /// A TPDO mapping parameter (0x1A00…, PDO service).
@@ -212,6 +212,15 @@ pub enum Hook {
     App15,
 }
 
+// The order `Hook::checked_by_service` and `Hook::app_number` rely on: the PDO hooks, then the
+// sixteen application hooks, last.
+const _: () = assert!(
+    Hook::TpdoMap as u8 == Hook::TpdoComm as u8 + 1
+        && Hook::App0 as u8 == Hook::TpdoMap as u8 + 1
+        && Hook::App15 as u8 == Hook::App0 as u8 + 15
+        && Hook::APP[15] as u8 == Hook::App15 as u8
+);
+
 impl Hook {
     /// The application hooks in number order.
     const APP: [Hook; 16] = {
@@ -225,9 +234,6 @@ impl Hook {
     /// The application's hook number `n`, below 16: a larger one fails to compile in a table
     /// or a constant (the only places that make hooks).
     pub const fn app(n: u8) -> Hook {
-        if n as usize >= Self::APP.len() {
-            panic!("application hook numbers are 0 to 15");
-        }
         Self::APP[n as usize]
     }
 
@@ -241,10 +247,7 @@ impl Hook {
     /// The application's number of an application hook, `None` for the services' hooks.
     #[inline]
     pub const fn app_number(self) -> Option<u8> {
-        match (self as u8).checked_sub(Hook::App0 as u8) {
-            Some(n) => Some(n),
-            None => None,
-        }
+        (self as u8).checked_sub(Hook::App0 as u8)
     }
 }
 
@@ -336,7 +339,7 @@ pub struct Entry {
     pub default: Default,
     /// Accepted values on write. Behind a reference, so that the many entries with
     /// [`Range::Any`] take one pointer (4 bytes on a 32-bit microcontroller) rather than the
-    /// 12 of a range: the table's entries are 24 bytes there.
+    /// 12 of a range: the table's entries are 20 bytes there.
     pub range: &'static Range,
     /// Storage group.
     pub group: Group,

@@ -5,6 +5,8 @@
 //! generic EMCY 0x6300 (CiA 301 §7.2.7.1: 0x63xx data set).
 
 use canpos_core::models::th::TH;
+use canpos_core::models::tmi::TMI;
+use canpos_core::models::Features;
 use canpos_core::nmt::NmtState;
 use canpos_core::storage::RamStorage;
 use canpos_core::Application;
@@ -80,4 +82,37 @@ fn corrupt_storage_raises_the_generic_data_set_emcy() {
         emcy.iter().any(|f| f.data()[..2] == [0x00, 0x63]),
         "expected EMCY 0x6300, got {emcy:?}"
     );
+}
+
+/// An application that fixes its device's features at build time (`Application::FEATURES`, as
+/// a firmware for a device of its own does; the `plain` size reference is one).
+struct Fixed;
+
+impl Application for Fixed {
+    type Sample = ();
+    type Fault = u8;
+    const FEATURES: Option<&'static Features> = Some(&TH.features);
+}
+
+#[test]
+fn features_fixed_at_build_time_are_the_nodes() {
+    let n = started(Fixed);
+    assert!(core::ptr::eq(n.device().features(), &TH.features));
+    assert_eq!(n.device().nmt_state(), NmtState::Operational);
+}
+
+/// Features of another model than the node's: a programming error.
+struct Mismatched;
+
+impl Application for Mismatched {
+    type Sample = ();
+    type Fault = u8;
+    const FEATURES: Option<&'static Features> = Some(&TMI.features);
+}
+
+#[test]
+#[cfg(debug_assertions)]
+#[should_panic(expected = "FEATURES are the model's")]
+fn features_of_another_model_fail_a_debug_build() {
+    let _ = Node::with_app(&TH, TH.default_config, Mismatched, RamStorage::default());
 }

@@ -320,8 +320,28 @@ fn app_hook_numbers_round_trip_in_one_byte() {
         assert_eq!(Hook::app(n).app_number(), Some(n));
     }
     assert_ne!(Hook::app(1), Hook::app(2));
-    for h in [Hook::None, Hook::ErrorHistory, Hook::PendingBitRate] {
+    let services = [
+        (Hook::None, false),
+        (Hook::ErrorHistory, false),
+        (Hook::SyncCobId, false),
+        (Hook::Guarding, false),
+        (Hook::GuardingCobId, false),
+        (Hook::StoreParameters, false),
+        (Hook::RestoreDefaults, false),
+        (Hook::EmcyCobId, false),
+        (Hook::EmcyInhibit, false),
+        (Hook::Heartbeat, false),
+        (Hook::PendingNodeId, false),
+        (Hook::PendingBitRate, false),
+        (Hook::TpdoComm, true),
+        (Hook::TpdoMap, true),
+    ];
+    for (h, by_service) in services {
         assert_eq!(h.app_number(), None, "{h:?}");
+        assert_eq!(h.checked_by_service(), by_service, "{h:?}");
+    }
+    for n in 0..16 {
+        assert!(Hook::app(n).checked_by_service(), "{n}");
     }
     assert_eq!(core::mem::size_of::<Hook>(), 1);
 }
