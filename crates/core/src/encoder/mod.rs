@@ -22,7 +22,7 @@ pub use sample::{Sample, MAX_CHANNELS};
 use crate::app::{AppCtx, AppView, Application};
 use crate::div;
 use crate::emcy::{self, Emcy};
-use crate::models::{features_of, Features, Model};
+use crate::models::{Features, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 
@@ -862,13 +862,14 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
     true
 }
 
-/// The features of the product the encoder runs: constants in a one-model build
-/// ([`features_of`]; 1.3 KB of the TH firmware). Evaluated here, where they are used, rather
-/// than handed in through the context: a reference in [`AppCtx`] is a run-time value to the
-/// out-of-line cycle, and the other products' branches then stay (+1.3 KB, measured).
+/// The features of the product the encoder runs, by the node's own rule
+/// ([`crate::app::features`]): constants in a one-model build ([`crate::models::features_of`]; 1.3 KB of the
+/// TH firmware). Evaluated here, where they are used, rather than handed in through the
+/// context: a reference in [`AppCtx`] is a run-time value to the out-of-line cycle, and the
+/// other products' branches then stay (+1.3 KB, measured).
 #[inline(always)]
 fn features(model: &'static Model) -> &'static Features {
-    features_of(model, <Encoder as Application>::PRODUCT_ONLY)
+    crate::app::features::<Encoder>(model)
 }
 
 /// Velocity in 0x6005/2 units (of 0.01 mm/s), rounded half away from zero, positive away
