@@ -863,10 +863,11 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
 }
 
 /// The features of the product the encoder runs, by the node's own rule
-/// ([`crate::app::features`]): constants in a one-model build ([`crate::models::features_of`]; 1.3 KB of the
-/// TH firmware). Evaluated here, where they are used, rather than handed in through the
-/// context: a reference in [`AppCtx`] is a run-time value to the out-of-line cycle, and the
-/// other products' branches then stay (+1.3 KB, measured).
+/// ([`crate::app::features`]): constants in a one-model build
+/// ([`crate::models::features_of`]; 1.3 KB of the TH firmware). Evaluated here, where they are
+/// used, rather than handed in through the context: a reference in [`AppCtx`] is a run-time
+/// value to the out-of-line cycle, and the other products' branches then stay (+1.3 KB,
+/// measured).
 #[inline(always)]
 fn features(model: &'static Model) -> &'static Features {
     crate::app::features::<Encoder>(model)
