@@ -484,7 +484,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         if id == cob::SDO_RX + node && !f.is_remote() {
             if d.nmt.sdo_allowed() {
-                if let Some(r) = self.sdo.handle(f.data(), now, d) {
+                // Read only where a request needs them (the expedited fast path does not).
+                let model = d.model;
+                let t = move || app::features::<A>(model).sdo_transfers();
+                if let Some(r) = self.sdo.handle_as(f.data(), now, d, t) {
                     match d.sdo_hold_until.take() {
                         Some(t) => self.held_sdo = Some((t, r)),
                         None => {
@@ -493,7 +496,7 @@ impl<A: Application, S: Storage> Node<A, S> {
                     }
                 }
                 // Block-upload segments (a whole block answers one request).
-                while let Some(s) = self.sdo.poll_transmit() {
+                while let Some(s) = self.sdo.poll_transmit_as(t) {
                     d.tx.push(Frame::std8(cob::SDO_TX + node, s));
                 }
             }

@@ -16,6 +16,7 @@
 
 use crate::div;
 use crate::od::{Entry, Param};
+use crate::sdo::Transfers;
 
 #[cfg(feature = "e-series")]
 pub mod e_series;
@@ -80,6 +81,17 @@ pub struct Features {
     /// A node without a valid node-id enters LSS configuration by itself (TMI, DSP 305 V1.1
     /// R7); DS 305 V2 nodes wait in LSS waiting for a master to select them.
     pub lss_unconfigured_configures: bool,
+}
+
+impl Features {
+    /// The SDO transfer types beyond expedited ones.
+    #[inline(always)]
+    pub const fn sdo_transfers(&self) -> Transfers {
+        Transfers {
+            segmented: self.sdo_segmented,
+            block: self.sdo_block,
+        }
+    }
 }
 
 /// The unit-specific configuration (what the order code and label say).

@@ -4,7 +4,7 @@
 mod server;
 pub mod wire;
 
-pub use server::{SdoServer, TransferKind, SDO_BUF_LEN, SDO_TIMEOUT, SERVER_BLKSIZE};
+pub use server::{SdoServer, TransferKind, Transfers, SDO_BUF_LEN, SDO_TIMEOUT, SERVER_BLKSIZE};
 
 use crate::od::Abort;
 

@@ -14,6 +14,28 @@ pub const SDO_BUF_LEN: usize = 64;
 /// the block size, bounds a transfer: data beyond [`SDO_BUF_LEN`] is refused.
 pub const SERVER_BLKSIZE: u8 = MAX_BLKSIZE;
 
+/// The transfer types a server offers beyond expedited ones (a model without one answers its
+/// initiates with 0x05040001).
+///
+/// A node passes its model's with every request ([`SdoServer::handle_as`]): where the build fixes
+/// the features (a firmware), they are constants and the code of a type the device lacks is not
+/// linked.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Transfers {
+    /// Segmented upload and download.
+    pub segmented: bool,
+    /// Block upload and download.
+    pub block: bool,
+}
+
+impl Transfers {
+    /// Every transfer type.
+    pub const ALL: Transfers = Transfers {
+        segmented: true,
+        block: true,
+    };
+}
+
 /// The kind of an unfinished transfer (for hosts' status displays and tests).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TransferKind {
@@ -89,8 +111,8 @@ enum State {
 pub struct SdoServer {
     /// Requests ignored because their DLC was not 8.
     pub bad_dlc: u32,
-    segmented: bool,
-    block: bool,
+    /// What [`SdoServer::handle`] offers.
+    transfers: Transfers,
     state: State,
     mux: Mux,
     buf: [u8; SDO_BUF_LEN],
@@ -113,8 +135,7 @@ impl SdoServer {
     pub fn new(segmented: bool, block: bool) -> Self {
         SdoServer {
             bad_dlc: 0,
-            segmented,
-            block,
+            transfers: Transfers { segmented, block },
             state: State::Idle,
             mux: Mux::default(),
             buf: [0; SDO_BUF_LEN],
@@ -163,6 +184,22 @@ impl SdoServer {
         now: Instant,
         od: &mut dyn ObjectAccess,
     ) -> Option<[u8; 8]> {
+        let t = self.transfers;
+        self.handle_as(data, now, od, || t)
+    }
+
+    /// [`SdoServer::handle`] with the transfer types `t()`, which must be those the server was
+    /// made with: a node passes its features' (constants where the build fixes them). Called
+    /// only for a request that is not an expedited one outside a transfer.
+    #[inline(always)]
+    pub fn handle_as(
+        &mut self,
+        data: &[u8],
+        now: Instant,
+        od: &mut dyn ObjectAccess,
+        t: impl Fn() -> Transfers,
+    ) -> Option<[u8; 8]> {
+        debug_assert_eq!(t(), self.transfers, "the server's own transfer types");
         // Expedited transfers outside a transfer are what masters mostly send (polling,
         // configuration): served without decoding a `Request`, with the same checks and
         // answers as the general path (an upload that turns out segmented takes that path),
@@ -179,7 +216,7 @@ impl SdoServer {
                 }
             }
         }
-        self.handle_general(data, now, od)
+        self.handle_general(data, now, od, t())
     }
 
     /// An expedited download initiate in state `Idle` (see [`SdoServer::handle`]).
@@ -200,18 +237,21 @@ impl SdoServer {
         }
     }
 
+    // A host keeps the fast path's caller small; a firmware inlines it at its one call site,
+    // where `t` is a constant and a transfer type the device lacks drops out.
     #[inline(never)]
     fn handle_general(
         &mut self,
         data: &[u8],
         now: Instant,
         od: &mut dyn ObjectAccess,
+        t: Transfers,
     ) -> Option<[u8; 8]> {
         let Ok(req) = <[u8; 8]>::try_from(data) else {
             self.bad_dlc = self.bad_dlc.wrapping_add(1);
             return None;
         };
-        if let State::BlkDown { last: false, .. } = self.state {
+        if let (true, State::BlkDown { last: false, .. }) = (t.block, self.state) {
             return self.block_download_segment(&req, now);
         }
         let parsed = Request::parse(&req);
@@ -225,7 +265,7 @@ impl SdoServer {
         } else {
             self.mux
         };
-        let r = self.dispatch(parsed, od);
+        let r = self.dispatch(parsed, od, t);
         match r {
             Ok(r) => {
                 if self.state == State::Idle {
@@ -247,10 +287,13 @@ impl SdoServer {
         }
     }
 
+    /// The request `req` in the current state. Every arm of a transfer type is guarded by `t`,
+    /// so that one the device lacks is gone with its constant.
     fn dispatch(
         &mut self,
         req: Request,
         od: &mut dyn ObjectAccess,
+        t: Transfers,
     ) -> Result<Option<[u8; 8]>, Abort> {
         if req.is_initiate() {
             // A new transfer replaces an unfinished one (see the type's docs).
@@ -269,13 +312,15 @@ impl SdoServer {
                 self.mux = mux;
                 if expedited {
                     self.download_expedited(mux, size, &data, od).map(Some)
-                } else {
+                } else if t.segmented {
                     self.download_segmented_initiate(mux, size, od).map(Some)
+                } else {
+                    Err(Abort::InvalidCommand)
                 }
             }
             (Request::UploadInitiate { mux }, _) => {
                 self.mux = mux;
-                self.upload_initiate(mux, od).map(Some)
+                self.upload_initiate(mux, od, t.segmented).map(Some)
             }
             (
                 Request::BlockUploadInitiate {
@@ -285,12 +330,12 @@ impl SdoServer {
                     pst,
                 },
                 _,
-            ) => {
+            ) if t.block => {
                 self.mux = mux;
-                self.block_upload_initiate(mux, crc, blksize, pst, od)
+                self.block_upload_initiate(mux, crc, blksize, pst, od, t.segmented)
                     .map(Some)
             }
-            (Request::BlockDownloadInitiate { mux, crc, size }, _) => {
+            (Request::BlockDownloadInitiate { mux, crc, size }, _) if t.block => {
                 self.mux = mux;
                 self.block_download_initiate(mux, crc, size, od).map(Some)
             }
@@ -301,9 +346,9 @@ impl SdoServer {
                     last,
                     data,
                 },
-                State::DownSeg { toggle: t, size },
-            ) => {
-                if toggle != t {
+                State::DownSeg { toggle: tg, size },
+            ) if t.segmented => {
+                if toggle != tg {
                     return Err(Abort::Toggle);
                 }
                 let k = SEGMENT_DATA.saturating_sub(unused as usize);
@@ -312,27 +357,27 @@ impl SdoServer {
                     self.finish_download(size, od)?;
                     self.state = State::Idle;
                 } else {
-                    self.state = State::DownSeg { toggle: !t, size };
+                    self.state = State::DownSeg { toggle: !tg, size };
                 }
-                Ok(Some(wire::download_segment_ack(t)))
+                Ok(Some(wire::download_segment_ack(tg)))
             }
-            (Request::UploadSegment { toggle }, State::UpSeg { toggle: t }) => {
-                if toggle != t {
+            (Request::UploadSegment { toggle }, State::UpSeg { toggle: tg }) if t.segmented => {
+                if toggle != tg {
                     return Err(Abort::Toggle);
                 }
                 let end = self.len.min(self.pos + SEGMENT_DATA);
                 let chunk = self.buf.get(self.pos..end).unwrap_or(&[]);
                 let last = end >= self.len;
-                let r = wire::upload_segment(t, chunk, last);
+                let r = wire::upload_segment(tg, chunk, last);
                 self.pos = end;
                 self.state = if last {
                     State::Idle
                 } else {
-                    State::UpSeg { toggle: !t }
+                    State::UpSeg { toggle: !tg }
                 };
                 Ok(Some(r))
             }
-            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) => {
+            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) if t.block => {
                 self.pos = 0;
                 self.start_block(crc, blksize);
                 Ok(None)
@@ -342,7 +387,7 @@ impl SdoServer {
                 State::BlkUp {
                     crc, segs, next, ..
                 },
-            ) => {
+            ) if t.block => {
                 // SDO-27: an ackseq beyond what was sent is a bad sequence number.
                 if ackseq > segs || ackseq >= next {
                     return Err(Abort::BlockSequence);
@@ -369,7 +414,7 @@ impl SdoServer {
                 self.start_block(crc, blksize);
                 Ok(None)
             }
-            (Request::BlockUploadEnd, State::BlkUpEnd) => {
+            (Request::BlockUploadEnd, State::BlkUpEnd) if t.block => {
                 self.state = State::Idle;
                 Ok(None)
             }
@@ -382,7 +427,7 @@ impl SdoServer {
                     last: true,
                     ..
                 },
-            ) => {
+            ) if t.block => {
                 let total = raw
                     .checked_sub(unused as usize)
                     .ok_or(Abort::LengthMismatch)?;
@@ -426,9 +471,6 @@ impl SdoServer {
         size: Option<u32>,
         od: &mut dyn ObjectAccess,
     ) -> Result<[u8; 8], Abort> {
-        if !self.segmented {
-            return Err(Abort::InvalidCommand);
-        }
         let size = self.check_download_size(mux, size, od)?;
         self.len = 0;
         self.state = State::DownSeg {
@@ -517,7 +559,14 @@ impl SdoServer {
         }))
     }
 
-    fn upload_initiate(&mut self, mux: Mux, od: &mut dyn ObjectAccess) -> Result<[u8; 8], Abort> {
+    /// An upload initiate; a value that needs a segmented transfer is refused unless
+    /// `segmented`.
+    fn upload_initiate(
+        &mut self,
+        mux: Mux,
+        od: &mut dyn ObjectAccess,
+        segmented: bool,
+    ) -> Result<[u8; 8], Abort> {
         let size = od.upload_size(mux.index, mux.sub)?;
         if (1..=4).contains(&size) {
             let mut b = [0u8; 4];
@@ -528,7 +577,7 @@ impl SdoServer {
             ));
         }
         // Longer (or empty) values need a segmented transfer.
-        if !self.segmented {
+        if !segmented {
             return Err(Abort::InvalidCommand);
         }
         self.load(mux, size, od)?;
@@ -554,17 +603,15 @@ impl SdoServer {
         blksize: u8,
         pst: u8,
         od: &mut dyn ObjectAccess,
+        segmented: bool,
     ) -> Result<[u8; 8], Abort> {
-        if !self.block {
-            return Err(Abort::InvalidCommand);
-        }
         if blksize == 0 || blksize > MAX_BLKSIZE {
             return Err(Abort::BlockSize);
         }
         let size = od.upload_size(mux.index, mux.sub)?;
         if pst != 0 && size <= pst as usize {
             // Protocol switch: the client allows a plain upload for a value this small.
-            return self.upload_initiate(mux, od);
+            return self.upload_initiate(mux, od, segmented);
         }
         self.load(mux, size, od)?;
         self.state = State::BlkUpInit { crc, blksize };
@@ -594,9 +641,6 @@ impl SdoServer {
         size: Option<u32>,
         od: &mut dyn ObjectAccess,
     ) -> Result<[u8; 8], Abort> {
-        if !self.block {
-            return Err(Abort::InvalidCommand);
-        }
         let size = self.check_download_size(mux, size, od)?;
         self.len = 0;
         self.state = State::BlkDown {
@@ -677,6 +721,13 @@ impl SdoServer {
     /// [`SdoServer::handle`] until it returns `None`.
     #[inline]
     pub fn poll_transmit(&mut self) -> Option<[u8; 8]> {
+        let t = self.transfers;
+        self.poll_transmit_as(|| t)
+    }
+
+    /// [`SdoServer::poll_transmit`] with the transfer types `t()` (as [`SdoServer::handle_as`]).
+    #[inline]
+    pub fn poll_transmit_as(&mut self, t: impl Fn() -> Transfers) -> Option<[u8; 8]> {
         let State::BlkUp {
             crc,
             segs,
@@ -686,6 +737,9 @@ impl SdoServer {
         else {
             return None;
         };
+        if !t().block {
+            return None;
+        }
         if next > segs {
             return None;
         }
