@@ -94,9 +94,15 @@ impl ErrCtl {
         us(self.next_heartbeat).min(us(self.guard_deadline))
     }
 
-    /// Handles expired timers; call until it returns `None`.
+    /// Handles expired timers; call until it returns `None`. `guarding`: the device has node
+    /// guarding (without it life guarding is never armed; a constant drops its code).
     #[inline]
-    pub fn handle_timeout(&mut self, now: Instant, state: NmtState) -> Option<ErrCtlEvent> {
+    pub fn handle_timeout(
+        &mut self,
+        now: Instant,
+        state: NmtState,
+        guarding: bool,
+    ) -> Option<ErrCtlEvent> {
         if let (Some(t), Some(p)) = (self.next_heartbeat, self.heartbeat) {
             if now >= t {
                 // Absolute schedule: no drift; skip whole periods if the host was late.
@@ -109,7 +115,7 @@ impl ErrCtl {
                 return Some(ErrCtlEvent::Heartbeat(state.code()));
             }
         }
-        if let Some(d) = self.guard_deadline {
+        if let (true, Some(d)) = (guarding, self.guard_deadline) {
             if now >= d {
                 self.guard_deadline = None;
                 self.life_guard_lost = true;

@@ -659,7 +659,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         if d.nmt == NmtState::Initialising {
             return;
         }
-        while let Some(ev) = d.errctl.handle_timeout(now, d.nmt) {
+        let guarding = d.features().node_guarding;
+        while let Some(ev) = d.errctl.handle_timeout(now, d.nmt, guarding) {
             match ev {
                 ErrCtlEvent::Heartbeat(b) => {
                     d.tx.push(Frame::std_len(
@@ -1121,10 +1122,14 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// Hands guard time, life time factor and the guarding COB-ID (0x100E where the model has
     /// it, else the pre-defined 0x700 + node-id) to the error-control service.
+    /// Without the feature (a constant where the build fixes the features) life guarding is
+    /// never armed, and its code is not linked.
     fn apply_guarding(&mut self, now: Instant) {
-        let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
-        let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
-        self.errctl.set_guarding(gt, lf, now);
+        if self.features().node_guarding {
+            let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
+            let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
+            self.errctl.set_guarding(gt, lf, now);
+        }
         let id = self
             .od
             .value(0x100E, 0)
@@ -1206,9 +1211,11 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// PDOs run in Operational unless life guarding was lost (D11).
     fn update_pdo_activity(&mut self, now: Instant) {
-        let on = self.nmt == NmtState::Operational && !self.errctl.life_guard_lost;
+        let guarding = self.features().node_guarding;
+        let lost = guarding && self.errctl.life_guard_lost;
+        let on = self.nmt == NmtState::Operational && !lost;
         self.pdo.set_active(on, now);
-        if !self.errctl.life_guard_lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
+        if guarding && !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
             self.emcy.clear(emcy::code::LIFE_GUARD);
             self.flush_emcy();
         }
