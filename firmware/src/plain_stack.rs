@@ -1,0 +1,194 @@
+//! The CiA 301 / 305 stack on its own, for its size figures: canpos-core's node with no
+//! application of its own (no CiA 406), its features fixed at build time, and a minimal
+//! communication dictionary, on the same board as the TH firmware. Two builds share it (the
+//! crate root defines `ENTRIES` and `MODEL`):
+//!
+//! - `plain`: the services of CANopenNode's default configuration (`CO_config.h`) that canpos
+//!   has: SDO server with segmented transfer but no block transfer, no node guarding; NMT,
+//!   heartbeat, EMCY with history, SYNC, one TPDO, store / restore, LSS;
+//! - `plain_full`: every CiA 301 / 305 service canpos has (also SDO block transfer and node
+//!   guarding with life guarding).
+//!
+//! docs/FIRMWARE.md says how the figures are taken.
+
+use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
+use canpos_core::models::{common_param, DeviceConfig, Features, Model};
+use canpos_core::od::{Default::*, Entry, Hook, Param};
+use canpos_core::{entry, Application, Node};
+use canpos_firmware::Clock;
+use core::mem::MaybeUninit;
+use embedded_can::nb::Can;
+
+/// Identity, error register and history, SYNC (0x1000…0x1005).
+#[rustfmt::skip]
+pub const HEAD: [Entry; 8] = [
+    entry!(0x1000, 0, "", Unsigned32, Ro, Param(Param::DeviceType)),
+    entry!(0x1001, 0, "", Unsigned8, Ro, Live),
+    entry!(0x1003, 0, "", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 1, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 2, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 3, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1003, 4, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
+    entry!(0x1005, 0, "", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
+];
+
+/// Node guarding and life guarding (0x100C…0x100E).
+#[allow(dead_code)] // `plain_full`'s only
+#[rustfmt::skip]
+pub const GUARDING: [Entry; 3] = [
+    entry!(0x100C, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
+    entry!(0x100D, 0, "", Unsigned8, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
+    entry!(0x100E, 0, "", Unsigned32, Rw, NodeId(0x700), Any, Comm).with_hook(Hook::GuardingCobId),
+];
+
+/// Store / restore, EMCY, heartbeat, identity object, SDO server, one TPDO, two manufacturer
+/// objects (0x1010…0x2001).
+#[rustfmt::skip]
+pub const TAIL: [Entry; 27] = [
+    entry!(0x1010, 0, "", Unsigned8, Const, Const(1)),
+    entry!(0x1010, 1, "", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1011, 0, "", Unsigned8, Const, Const(1)),
+    entry!(0x1011, 1, "", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
+    entry!(0x1014, 0, "", Unsigned32, Rw, NodeId(0x80), Any, Comm).with_hook(Hook::EmcyCobId),
+    entry!(0x1015, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::EmcyInhibit),
+    entry!(0x1017, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
+    entry!(0x1018, 0, "", Unsigned8, Const, Const(4)),
+    entry!(0x1018, 1, "", Unsigned32, Const, Const(0)),
+    entry!(0x1018, 2, "", Unsigned32, Const, Const(0)),
+    entry!(0x1018, 3, "", Unsigned32, Const, Const(0)),
+    entry!(0x1018, 4, "", Unsigned32, Ro, Param(Param::SerialNumber)),
+    entry!(0x1200, 0, "", Unsigned8, Const, Const(2)),
+    entry!(0x1200, 1, "", Unsigned32, Ro, NodeId(0x600)),
+    entry!(0x1200, 2, "", Unsigned32, Ro, NodeId(0x580)),
+    entry!(0x1800, 0, "", Unsigned8, Const, Const(5)),
+    entry!(0x1800, 1, "", Unsigned32, Rw, NodeId(0x180), Any, Comm).with_hook(Hook::TpdoComm),
+    entry!(0x1800, 2, "", Unsigned8, Rw, Const(0xFE), Any, Comm).with_hook(Hook::TpdoComm),
+    entry!(0x1800, 3, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoComm),
+    entry!(0x1800, 5, "", Unsigned16, Rw, Const(100), Any, Comm).with_hook(Hook::TpdoComm),
+    entry!(0x1A00, 0, "", Unsigned8, Rw, Const(1), Any, Comm).with_hook(Hook::TpdoMap),
+    entry!(0x1A00, 1, "", Unsigned32, Rw, Const(0x1001_0008), Any, Comm).with_hook(Hook::TpdoMap),
+    entry!(0x1A00, 2, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
+    entry!(0x1A00, 3, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
+    entry!(0x1A00, 4, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
+    // A manufacturer object to map and store.
+    entry!(0x2000, 0, "", Unsigned32, Rw, Const(0), Any, App, true),
+    entry!(0x2001, 0, "", Unsigned8, Rw, Const(0), Any, App, true),
+];
+
+/// `a` then `b` (`N` = A + B): a table from the parts above, still sorted by key.
+pub const fn join<const A: usize, const B: usize, const N: usize>(
+    a: &[Entry; A],
+    b: &[Entry; B],
+) -> [Entry; N] {
+    assert!(A + B == N && A > 0);
+    let mut out = [a[0]; N];
+    let mut i = 0;
+    while i < N {
+        out[i] = if i < A { a[i] } else { b[i - A] };
+        i += 1;
+    }
+    out
+}
+
+fn param(cfg: &DeviceConfig, p: Param) -> u32 {
+    common_param(cfg, p, 0)
+}
+
+fn derive(c: DeviceConfig) -> DeviceConfig {
+    c
+}
+
+/// The model of a plain device with `entries`, with or without node guarding and SDO block
+/// transfer.
+pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Model {
+    Model {
+        name: "plain",
+        product: "",
+        vendor: "",
+        entries,
+        features: Features {
+            tag: 0x50,
+            tpdos: 1,
+            sdo_segmented: true,
+            sdo_block: block,
+            node_guarding: guarding,
+            tpdo_rtr: true,
+            lss_fastscan: true,
+            lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
+            bitrates: &[],
+            store_preop_only: false,
+            kill_signature: false,
+            preset_clear: false,
+            preset_zero_shift: false,
+            tmi_error_reactions: false,
+            window_cams: false,
+            power_on_emcy: true,
+            sync_length_emcy: false,
+            emcy_on_register_change: false,
+            event_timer_above_inhibit: false,
+            lss_unconfigured_configures: false,
+        },
+        param,
+        derive,
+        default_config: DeviceConfig {
+            node_id: 1,
+            bitrate_kbps: 125,
+            serial: 1,
+            stroke_mm: 0,
+            position_step_nm: 1,
+            channels: 1,
+            cycle_us: 1000,
+        },
+    }
+}
+
+/// No application of its own, and the features of the crate's `MODEL` fixed at build time (as
+/// CANopenNode's `CO_config.h` fixes its services, and as a one-model TH build fixes the
+/// TH's): the stack links what this device uses.
+struct PlainDevice;
+
+impl Application for PlainDevice {
+    type Sample = ();
+    type Fault = core::convert::Infallible;
+    const FEATURES: Option<&'static Features> = Some(&crate::MODEL.features);
+}
+
+type PlainNode = Node<PlainDevice, Nvm>;
+
+#[inline(never)]
+fn place() -> &'static mut PlainNode {
+    static mut NODE: MaybeUninit<PlainNode> = MaybeUninit::uninit();
+    // SAFETY: called once, from `run`; nothing else refers to NODE.
+    unsafe {
+        (*core::ptr::addr_of_mut!(NODE)).write(Node::with_app(
+            &crate::MODEL,
+            crate::MODEL.default_config,
+            PlainDevice,
+            Nvm,
+        ))
+    }
+}
+
+/// Start-up and the main loop.
+pub fn run() -> ! {
+    board::paint_stack();
+    let mut cp = cortex_m::Peripherals::take().unwrap_or_else(|| board::halt());
+    let clock = BoardClock::start(&mut cp.SYST);
+    let mut can = UartCan::new(Uart::init());
+    let node = place();
+    node.power_on(clock.now());
+    loop {
+        let now = clock.now();
+        while let Ok(f) = can.receive() {
+            node.handle_frame(&f, now);
+        }
+        while let Some(f) = node.poll(now) {
+            let _ = can.transmit(&f);
+        }
+        board::answer_diagnostics();
+        let idle = node.poll_timeout().is_none_or(|t| clock.now() < t);
+        if idle && !board::rx_pending() {
+            cortex_m::asm::wfi();
+        }
+    }
+}
