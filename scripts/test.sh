@@ -22,6 +22,15 @@ step "cargo test"
 cargo test --workspace --locked 2>&1 | tee target/cargo-test.log
 grep -E '^test result:' target/cargo-test.log | awk '{p+=$4; f+=$6} END {printf "rust: %d passed, %d failed\n", p, f}'
 
+# The core's suites again on the code paths a firmware build takes (without the host's
+# `inline-hot-paths`: the SDO general path for expedited requests, the table search, the
+# out-of-line helpers), with every model so every table is covered.
+step "cargo test: the core as firmware builds it (no inline-hot-paths)"
+cargo test -p canpos-core --locked --no-default-features --features names,host-buffers,th,e-series,tmi 2>&1 |
+  tee target/cargo-test-firmware-paths.log
+grep -E '^test result:' target/cargo-test-firmware-paths.log |
+  awk '{p+=$4; f+=$6} END {printf "rust, firmware paths: %d passed, %d failed\n", p, f}'
+
 # The core as firmware (issue 14): the TH firmware for thumbv7em-none-eabihf, its sizes, and
 # its QEMU (mps2-an386) test; installs the rustup target and Debian tools or fails loudly.
 step "firmware: TH sensor on a Cortex-M4 under QEMU"

@@ -302,9 +302,11 @@ fn arrays_records_and_object_names() {
         entries.push(sub(2, tys[1]));
         entries.sort_by_key(Entry::key);
         let entries: &'static [Entry] = Box::leak(entries.into_boxed_slice());
+        #[cfg(feature = "inline-hot-paths")]
         let keys: &'static [u32] = Box::leak(entries.iter().map(Entry::key).collect());
         let m: &'static Model = Box::leak(Box::new(Model {
             entries,
+            #[cfg(feature = "inline-hot-paths")]
             keys,
             ..*th
         }));
