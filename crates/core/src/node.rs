@@ -1215,7 +1215,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         let lost = guarding && self.errctl.life_guard_lost;
         let on = self.nmt == NmtState::Operational && !lost;
         self.pdo.set_active(on, now);
-        if guarding && !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
+        // Also a 0x8130 raised from outside (`Node::set_error`), on every model.
+        if !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
             self.emcy.clear(emcy::code::LIFE_GUARD);
             self.flush_emcy();
         }

@@ -17,7 +17,7 @@ pub const SERVER_BLKSIZE: u8 = MAX_BLKSIZE;
 /// The transfer types a server offers beyond expedited ones (a model without one answers its
 /// initiates with 0x05040001).
 ///
-/// A node passes its model's with every request ([`SdoServer::handle_as`]): where the build fixes
+/// A node passes its model's with every request (`SdoServer::handle_as`): where the build fixes
 /// the features (a firmware), they are constants and the code of a type the device lacks is not
 /// linked.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -189,10 +189,10 @@ impl SdoServer {
     }
 
     /// [`SdoServer::handle`] with the transfer types `t()`, which must be those the server was
-    /// made with: a node passes its features' (constants where the build fixes them). A host
-    /// calls it only for a request that is not an expedited one outside a transfer.
+    /// made with: a node passes its features' (constants where the build fixes them). On a
+    /// host `t` is called only for a request that is not an expedited one outside a transfer.
     #[inline(always)]
-    pub fn handle_as(
+    pub(crate) fn handle_as(
         &mut self,
         data: &[u8],
         now: Instant,
@@ -238,8 +238,9 @@ impl SdoServer {
         }
     }
 
-    // A host keeps the fast path's caller small; a firmware inlines it at its one call site,
-    // where `t` is a constant and a transfer type the device lacks drops out.
+    // Out of line (a host keeps the fast path's caller small). Its one caller passes the same
+    // `t` every time, a constant where the build fixes the features, and LTO's constant
+    // propagation then drops the code of a transfer type the device lacks.
     #[inline(never)]
     fn handle_general(
         &mut self,
@@ -252,7 +253,7 @@ impl SdoServer {
             self.bad_dlc = self.bad_dlc.wrapping_add(1);
             return None;
         };
-        if let (true, State::BlkDown { last: false, .. }) = (t.block, self.state) {
+        if let State::BlkDown { last: false, .. } = self.state_as(t) {
             return self.block_download_segment(&req, now);
         }
         let parsed = Request::parse(&req);
@@ -288,8 +289,28 @@ impl SdoServer {
         }
     }
 
-    /// The request `req` in the current state. Every arm of a transfer type is guarded by `t`,
-    /// so that one the device lacks is gone with its constant.
+    /// The state as far as the transfer types `t` allow: a type the device lacks never left a
+    /// state of its own (its initiates are refused), and saying so lets a build with constant
+    /// features drop the code of that type's states.
+    #[inline(always)]
+    fn state_as(&self, t: Transfers) -> State {
+        match self.state {
+            State::DownSeg { .. } | State::UpSeg { .. } if !t.segmented => State::Idle,
+            State::BlkDown { .. }
+            | State::BlkUpInit { .. }
+            | State::BlkUp { .. }
+            | State::BlkUpEnd
+                if !t.block =>
+            {
+                State::Idle
+            }
+            s => s,
+        }
+    }
+
+    /// The request `req` in the current state. The initiates of a transfer type are guarded by
+    /// `t`, its later requests by [`SdoServer::state_as`], so that a type the device lacks is
+    /// gone with its constant.
     fn dispatch(
         &mut self,
         req: Request,
@@ -300,7 +321,7 @@ impl SdoServer {
             // A new transfer replaces an unfinished one (see the type's docs).
             self.reset();
         }
-        match (req, self.state) {
+        match (req, self.state_as(t)) {
             (
                 Request::DownloadInitiate {
                     mux,
@@ -348,7 +369,7 @@ impl SdoServer {
                     data,
                 },
                 State::DownSeg { toggle: tg, size },
-            ) if t.segmented => {
+            ) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
@@ -362,7 +383,7 @@ impl SdoServer {
                 }
                 Ok(Some(wire::download_segment_ack(tg)))
             }
-            (Request::UploadSegment { toggle }, State::UpSeg { toggle: tg }) if t.segmented => {
+            (Request::UploadSegment { toggle }, State::UpSeg { toggle: tg }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
@@ -378,7 +399,7 @@ impl SdoServer {
                 };
                 Ok(Some(r))
             }
-            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) if t.block => {
+            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) => {
                 self.pos = 0;
                 self.start_block(crc, blksize);
                 Ok(None)
@@ -388,7 +409,7 @@ impl SdoServer {
                 State::BlkUp {
                     crc, segs, next, ..
                 },
-            ) if t.block => {
+            ) => {
                 // SDO-27: an ackseq beyond what was sent is a bad sequence number.
                 if ackseq > segs || ackseq >= next {
                     return Err(Abort::BlockSequence);
@@ -415,7 +436,7 @@ impl SdoServer {
                 self.start_block(crc, blksize);
                 Ok(None)
             }
-            (Request::BlockUploadEnd, State::BlkUpEnd) if t.block => {
+            (Request::BlockUploadEnd, State::BlkUpEnd) => {
                 self.state = State::Idle;
                 Ok(None)
             }
@@ -428,7 +449,7 @@ impl SdoServer {
                     last: true,
                     ..
                 },
-            ) if t.block => {
+            ) => {
                 let total = raw
                     .checked_sub(unused as usize)
                     .ok_or(Abort::LengthMismatch)?;
@@ -728,7 +749,7 @@ impl SdoServer {
 
     /// [`SdoServer::poll_transmit`] with the transfer types `t()` (as [`SdoServer::handle_as`]).
     #[inline]
-    pub fn poll_transmit_as(&mut self, t: impl Fn() -> Transfers) -> Option<[u8; 8]> {
+    pub(crate) fn poll_transmit_as(&mut self, t: impl Fn() -> Transfers) -> Option<[u8; 8]> {
         let State::BlkUp {
             crc,
             segs,

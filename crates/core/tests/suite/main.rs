@@ -18,6 +18,7 @@ mod cia301_pdo_timers;
 mod cia301_predefined_cob_ids;
 mod cia301_sdo_command_bytes;
 mod cia301_sdo_sizes;
+mod cia301_sdo_transfer_types;
 mod cia301_store_restore_scopes;
 mod cia301_sync_consumer;
 mod cia301_tpdo_host_view;
