@@ -348,23 +348,23 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         d.flush_emcy();
         d.update_talk();
-        let t = &mut self.timers;
-        let mut other = NEVER;
-        let mut set = |timer, us: u64| {
-            t.set_us(timer, us);
-            other = other.min(us);
-        };
         let us = |t: Option<Instant>| t.map_or(NEVER, |t| t.0);
-        set(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
-        set(Timer::SdoTransfer, self.sdo.due_us());
-        set(Timer::LssSwitch, self.lss.due_us());
-        set(Timer::Silence, us(d.silent_until));
-        set(Timer::ErrorControl, d.errctl.due_us());
         // Armed exactly when `flush_emcy` sends (else a deadline would stay due with nothing
         // to serve it, and a host would spin).
-        let serves = d.emcy_served();
-        set(Timer::Emcy, if serves { d.emcy.due_us() } else { NEVER });
-        debug_assert_eq!(other, self.timers.next());
+        let emcy = if d.emcy_served() {
+            d.emcy.due_us()
+        } else {
+            NEVER
+        };
+        let t = &mut self.timers;
+        t.set_us(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
+        t.set_us(Timer::SdoTransfer, self.sdo.due_us());
+        t.set_us(Timer::LssSwitch, self.lss.due_us());
+        t.set_us(Timer::Silence, us(d.silent_until));
+        t.set_us(Timer::ErrorControl, d.errctl.due_us());
+        t.set_us(Timer::Emcy, emcy);
+        // Every entry was just written: the earliest is the earliest of these.
+        let other = t.next();
         self.other_due = other;
         // The TPDOs keep their own schedule (the hot path reads it directly).
         self.deadline = other.min(d.pdo.due_us());
@@ -410,7 +410,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             return;
         }
         d.nmt = NmtState::PreOperational;
-        d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
+        d.tx.push_std(cob::ERRCTL + d.node_id as u16, [0; 8], 1);
         if d.features().power_on_emcy {
             d.emcy.power_on();
         }
@@ -440,7 +440,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             // Autobaud just locked: the node joins the bus and announces itself (R19).
             let d = &mut self.dev;
             if autobaud && d.bitrate != 0 && d.node_id != UNCONFIGURED {
-                d.tx.push(Frame::std_len(cob::ERRCTL + d.node_id as u16, [0; 8], 1));
+                d.tx.push_std(cob::ERRCTL + d.node_id as u16, [0; 8], 1);
             }
             return true;
         }
@@ -491,13 +491,13 @@ impl<A: Application, S: Storage> Node<A, S> {
                     match d.sdo_hold_until.take() {
                         Some(t) => self.held_sdo = Some((t, r)),
                         None => {
-                            d.tx.push(Frame::std8(cob::SDO_TX + node, r));
+                            d.tx.push_std(cob::SDO_TX + node, r, 8);
                         }
                     }
                 }
                 // Block-upload segments (a whole block answers one request).
                 while let Some(s) = self.sdo.poll_transmit_as(t) {
-                    d.tx.push(Frame::std8(cob::SDO_TX + node, s));
+                    d.tx.push_std(cob::SDO_TX + node, s, 8);
                 }
             }
             return true;
@@ -510,7 +510,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             // Node guarding: an RTR, or on socketcand (no RTR) a zero-length data frame (D11, D22).
             if d.features().node_guarding && (f.is_remote() || f.dlc() == 0) {
                 let b = d.errctl.guard_request(d.nmt, now);
-                d.tx.push(Frame::std_len(id, [b, 0, 0, 0, 0, 0, 0, 0], 1));
+                d.tx.push_std(id, [b, 0, 0, 0, 0, 0, 0, 0], 1);
                 d.update_pdo_activity(now);
             }
             return true;
@@ -635,13 +635,13 @@ impl<A: Application, S: Storage> Node<A, S> {
             // A node stopped during the store time no longer serves SDO.
             if self.dev.nmt.sdo_allowed() {
                 let id = cob::SDO_TX + self.dev.node_id as u16;
-                self.dev.tx.push(Frame::std8(id, r));
+                self.dev.tx.push_std(id, r, 8);
             }
         }
         if transfer {
             if let Some(r) = self.sdo.handle_timeout(now) {
                 let id = cob::SDO_TX + self.dev.node_id as u16;
-                self.dev.tx.push(Frame::std8(id, r));
+                self.dev.tx.push_std(id, r, 8);
             }
         }
         if switch {
@@ -663,11 +663,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         while let Some(ev) = d.errctl.handle_timeout(now, d.nmt, guarding) {
             match ev {
                 ErrCtlEvent::Heartbeat(b) => {
-                    d.tx.push(Frame::std_len(
-                        cob::ERRCTL + d.node_id as u16,
-                        [b, 0, 0, 0, 0, 0, 0, 0],
-                        1,
-                    ));
+                    let id = cob::ERRCTL + d.node_id as u16;
+                    d.tx.push_std(id, [b, 0, 0, 0, 0, 0, 0, 0], 1);
                 }
                 ErrCtlEvent::LifeGuardingLost => {
                     d.emcy
@@ -1197,7 +1194,7 @@ impl<A: Application, S: Storage> Device<A, S> {
             .unwrap_or(0x80 + self.node_id as u32);
         while let Some(p) = self.emcy.poll(self.now) {
             if cobid & 0x8000_0000 == 0 {
-                self.tx.push(Frame::std8((cobid & 0x7FF) as u16, p));
+                self.tx.push_std((cobid & 0x7FF) as u16, p, 8);
             }
         }
     }
@@ -1606,15 +1603,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         if e.ty == DataType::Boolean && raw > 1 {
             return Err(Abort::InvalidValue);
         }
-        if !e.accepts(raw) {
-            return Err(if e.above_range(raw) {
-                Abort::ValueTooHigh
-            } else if e.below_range(raw) {
-                Abort::ValueTooLow
-            } else {
-                Abort::InvalidValue
-            });
-        }
+        e.check(raw)?;
         self.validate(e, self.od.get(slot), raw)?;
         self.od.set(slot, raw);
         self.written(e, raw);

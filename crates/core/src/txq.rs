@@ -49,6 +49,13 @@ impl TxQueue {
             None => false,
         }
     }
+    /// Queues a standard data frame of `len` bytes; false (and counted) if full. A firmware's
+    /// call sites share one out-of-line copy instead of each building the frame.
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    pub fn push_std(&mut self, id: u16, data: [u8; 8], len: u8) -> bool {
+        self.push(Frame::std_len(id, data, len))
+    }
     /// The slot of the next frame, now counted as queued; `None` (and counted) if full. A
     /// firmware's call sites share one out-of-line copy and write their frames straight into
     /// the slot.

@@ -423,15 +423,33 @@ impl Entry {
     /// Whether a raw value is acceptable for this entry (type range and declared range).
     #[inline]
     pub fn accepts(&self, raw: u32) -> bool {
+        self.check(raw).is_ok()
+    }
+
+    /// [`Entry::accepts`] with the SDO abort of a refusal: beyond the declared range "value too
+    /// high" ([`Entry::above_range`]) or "too low" ([`Entry::below_range`]), else "invalid
+    /// value". One comparison of each bound for both answers.
+    pub fn check(&self, raw: u32) -> Result<(), Abort> {
         let v = self.ty.to_i64(raw);
         let (lo, hi) = self.ty.natural_range();
-        if v < lo || v > hi {
-            return false;
-        }
-        match *self.range {
-            Range::Any => true,
-            Range::MinMax(lo, hi) => v >= self.ty.to_i64(lo) && v <= self.ty.to_i64(hi),
-            Range::OneOf(list) => list.contains(&raw),
+        let natural = lo <= v && v <= hi;
+        let ok = match *self.range {
+            Range::Any => natural,
+            Range::MinMax(lo, hi) => {
+                if v > self.ty.to_i64(hi) {
+                    return Err(Abort::ValueTooHigh);
+                }
+                if v < self.ty.to_i64(lo) {
+                    return Err(Abort::ValueTooLow);
+                }
+                natural
+            }
+            Range::OneOf(list) => natural && list.contains(&raw),
+        };
+        if ok {
+            Ok(())
+        } else {
+            Err(Abort::InvalidValue)
         }
     }
 
