@@ -160,7 +160,7 @@ fn place() -> &'static mut PlainNode {
     static mut NODE: MaybeUninit<PlainNode> = MaybeUninit::uninit();
     // SAFETY: called once, from `run`; nothing else refers to NODE.
     unsafe {
-        (*core::ptr::addr_of_mut!(NODE)).write(Node::with_app(
+        core::hint::black_box(&mut *core::ptr::addr_of_mut!(NODE)).write(Node::with_app(
             &crate::MODEL,
             crate::MODEL.default_config,
             PlainDevice,

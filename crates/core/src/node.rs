@@ -1309,8 +1309,9 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// holds now: an SDO write must pass it, and a value from the state file that fails it is
     /// not loaded. For COB-IDs of services this node produces or answers on it keeps them off
     /// 29-bit and CiA 301 restricted CAN-IDs (else a write or a state file could make the node
-    /// talk on the NMT or SYNC identifier).
-    #[inline]
+    /// talk on the NMT or SYNC identifier). Out of line in firmware: writes and loads share it.
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
         match e.hook {
             Hook::SyncCobId => {

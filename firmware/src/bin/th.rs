@@ -59,7 +59,10 @@ type Th = Firmware<UartCan, SweepingMagnet, Nvm>;
 fn place(can: UartCan, source: SweepingMagnet) -> &'static mut Th {
     static mut FW: MaybeUninit<Th> = MaybeUninit::uninit();
     // SAFETY: called once, from `main`; nothing else refers to FW.
-    unsafe { (*core::ptr::addr_of_mut!(FW)).write(Firmware::new(can, source, Nvm)) }
+    unsafe {
+        core::hint::black_box(&mut *core::ptr::addr_of_mut!(FW))
+            .write(Firmware::new(can, source, Nvm))
+    }
 }
 
 #[entry]
