@@ -71,6 +71,27 @@ impl DataType {
             _ => raw as i64,
         }
     }
+    /// The raw value as a `u32` whose unsigned order is the order of the numbers
+    /// [`DataType::to_i64`] gives (signed types sign-extended and offset by 2³¹): range checks
+    /// in 32 bits.
+    const fn order_key(self, raw: u32) -> u32 {
+        match self {
+            DataType::Integer8 => raw as u8 as i8 as i32 as u32 ^ 0x8000_0000,
+            DataType::Integer16 => raw as u16 as i16 as i32 as u32 ^ 0x8000_0000,
+            DataType::Integer32 => raw ^ 0x8000_0000,
+            _ => raw,
+        }
+    }
+    /// The largest raw value within the type's natural range: every raw value of a signed type
+    /// is (only its low `size()` bytes count).
+    const fn natural_max_raw(self) -> u32 {
+        match self {
+            DataType::Boolean => 1,
+            DataType::Unsigned8 => u8::MAX as u32,
+            DataType::Unsigned16 => u16::MAX as u32,
+            _ => u32::MAX,
+        }
+    }
     /// Natural range of the type, as (min, max).
     pub const fn natural_range(self) -> (i64, i64) {
         match self {
@@ -430,16 +451,17 @@ impl Entry {
     /// high" ([`Entry::above_range`]) or "too low" ([`Entry::below_range`]), else "invalid
     /// value". One comparison of each bound for both answers.
     pub fn check(&self, raw: u32) -> Result<(), Abort> {
-        let v = self.ty.to_i64(raw);
-        let (lo, hi) = self.ty.natural_range();
-        let natural = lo <= v && v <= hi;
+        // In 32 bits (64-bit compares cost a 32-bit target twice the code): the same answers
+        // as comparing `DataType::to_i64` numbers with `DataType::natural_range`.
+        let natural = raw <= self.ty.natural_max_raw();
         let ok = match *self.range {
             Range::Any => natural,
             Range::MinMax(lo, hi) => {
-                if v > self.ty.to_i64(hi) {
+                let v = self.ty.order_key(raw);
+                if v > self.ty.order_key(hi) {
                     return Err(Abort::ValueTooHigh);
                 }
-                if v < self.ty.to_i64(lo) {
+                if v < self.ty.order_key(lo) {
                     return Err(Abort::ValueTooLow);
                 }
                 natural

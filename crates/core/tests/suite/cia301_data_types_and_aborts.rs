@@ -135,6 +135,67 @@ fn cia301_written_values_lie_in_the_type_and_the_declared_range() {
     assert!(!u32r.accepts(9) && u32r.accepts(10));
 }
 
+/// `Entry::check` (32-bit compares) answers as the definition in 64-bit numbers does: refused
+/// beyond the declared range with "too high" / "too low", else outside the type's natural range
+/// or the list with "invalid value", for every type, range kind and edge value.
+#[test]
+fn check_answers_as_the_type_and_range_definition() {
+    let types = [
+        DataType::Boolean,
+        DataType::Integer8,
+        DataType::Integer16,
+        DataType::Integer32,
+        DataType::Unsigned8,
+        DataType::Unsigned16,
+        DataType::Unsigned32,
+    ];
+    let edges: Vec<u32> = [
+        0u32, 1, 2, 5, 0x7F, 0x80, 0xFF, 0x100, 0x7FFF, 0x8000, 0xFFFF,
+    ]
+    .into_iter()
+    .chain([
+        0x1_0000,
+        0x7FFF_FFFF,
+        0x8000_0000,
+        0xFFFF_FF80,
+        0xFFFF_FFFB,
+        u32::MAX,
+    ])
+    .collect();
+    let lists: &'static [u32] = &[1, 0x80, 0xFFFF, 0x8000_0000];
+    for ty in types {
+        let mut ranges = vec![Range::Any, Range::OneOf(lists)];
+        for &lo in &edges {
+            for &hi in &edges {
+                if ty.to_i64(lo) <= ty.to_i64(hi) {
+                    ranges.push(Range::MinMax(lo, hi));
+                }
+            }
+        }
+        for range in ranges {
+            let e = entry(0x2000, 0, ty, range);
+            for &raw in &edges {
+                let v = ty.to_i64(raw);
+                let (nlo, nhi) = ty.natural_range();
+                let natural = nlo <= v && v <= nhi;
+                let want = match range {
+                    Range::MinMax(_, hi) if v > ty.to_i64(hi) => Err(Abort::ValueTooHigh),
+                    Range::MinMax(lo, _) if v < ty.to_i64(lo) => Err(Abort::ValueTooLow),
+                    Range::OneOf(l) if !l.contains(&raw) => Err(Abort::InvalidValue),
+                    _ if !natural => Err(Abort::InvalidValue),
+                    _ => Ok(()),
+                };
+                assert_eq!(e.check(raw), want, "{ty:?} {range:?} {raw:#X}");
+                assert_eq!(e.accepts(raw), want.is_ok());
+                assert_eq!(e.above_range(raw), want == Err(Abort::ValueTooHigh));
+                if want != Err(Abort::ValueTooHigh) {
+                    assert_eq!(e.below_range(raw), want == Err(Abort::ValueTooLow));
+                }
+            }
+        }
+    }
+}
+
 /// D6: reset communication reloads the communication profile area 0x1000…0x1FFF only; the
 /// table is sorted by `index << 8 | sub`.
 #[test]
