@@ -214,12 +214,15 @@ pub struct Node<A: Application, S: Storage> {
     /// every frame, and an answer kept is free.
     deadline: u64,
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
-    /// future a timer expiry can only concern TPDOs.
+    /// future a timer expiry can only concern TPDOs. (This and `fast_due` serve the host's
+    /// timer fast path only: a firmware takes the full path, for less flash.)
+    #[cfg(feature = "inline-hot-paths")]
     other_due: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
     /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
     /// 0. (EMCY needs no term of its own: the epilogue flushes what was raised, and an EMCY
     /// held back by its inhibit time has its deadline in `other_due`.)
+    #[cfg(feature = "inline-hot-paths")]
     fast_due: u64,
 }
 
@@ -257,7 +260,9 @@ impl<A: Application, S: Storage> Node<A, S> {
             lss: LssSlave::default(),
             timers: TimerTable::default(),
             deadline: NEVER,
+            #[cfg(feature = "inline-hot-paths")]
             other_due: NEVER,
+            #[cfg(feature = "inline-hot-paths")]
             fast_due: 0,
             dev: Device {
                 model,
@@ -342,8 +347,11 @@ impl<A: Application, S: Storage> Node<A, S> {
         if !d.powered {
             self.timers.clear();
             self.deadline = NEVER;
-            self.other_due = NEVER;
-            self.fast_due = 0;
+            #[cfg(feature = "inline-hot-paths")]
+            {
+                self.other_due = NEVER;
+                self.fast_due = 0;
+            }
             return;
         }
         d.flush_emcy();
@@ -365,13 +373,16 @@ impl<A: Application, S: Storage> Node<A, S> {
         t.set_us(Timer::Emcy, emcy);
         // Every entry was just written: the earliest is the earliest of these.
         let other = t.next();
-        self.other_due = other;
         // The TPDOs keep their own schedule (the hot path reads it directly).
         self.deadline = other.min(d.pdo.due_us());
         // A node without a node-id stays in initialisation (`reset`), so one test says both.
         debug_assert!(d.node_id != UNCONFIGURED || d.nmt == NmtState::Initialising);
-        let runs = d.nmt != NmtState::Initialising;
-        self.fast_due = if runs { self.other_due } else { 0 };
+        #[cfg(feature = "inline-hot-paths")]
+        {
+            self.other_due = other;
+            let runs = d.nmt != NmtState::Initialising;
+            self.fast_due = if runs { other } else { 0 };
+        }
     }
 
     /// Power off: the node neither sends nor receives until [`Node::power_on`].
@@ -603,6 +614,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         // Fast path for a producing node: while every other deadline is in the future, the
         // steps of the full path would all do nothing but the TPDOs'. (`fast_due` is 0
         // while powered off, unconfigured, initialising or with EMCY work.)
+        // (A firmware takes the full path: the same steps, less flash.)
+        #[cfg(feature = "inline-hot-paths")]
         if now.0 < self.fast_due {
             self.dev.run_pdos(now);
             self.after_tpdo_timers(now);
@@ -678,6 +691,7 @@ impl<A: Application, S: Storage> Node<A, S> {
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
     /// (TPDOs change neither the other deadlines nor the EMCY state).
+    #[cfg(feature = "inline-hot-paths")]
     #[inline(always)]
     fn after_tpdo_timers(&mut self, now: Instant) {
         let d = &mut self.dev;
@@ -707,6 +721,11 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// order.
     #[inline(always)]
     pub fn poll(&mut self, now: Instant) -> Option<Frame> {
+        #[cfg(not(feature = "inline-hot-paths"))]
+        if now.0 >= self.deadline {
+            self.handle_timeout(now);
+        }
+        #[cfg(feature = "inline-hot-paths")]
         if now.0 >= self.deadline {
             if now.0 < self.fast_due && self.dev.tx.is_empty() && self.dev.can_talk(now) {
                 // `now ≥ deadline` and `now < other_due`: the TPDOs' `due` has passed.

@@ -82,6 +82,7 @@ impl TxQueue {
         Some(f)
     }
     /// Whether nothing waits.
+    #[cfg_attr(not(feature = "inline-hot-paths"), allow(dead_code))] // the host's fast path
     pub fn is_empty(&self) -> bool {
         self.len == 0
     }
