@@ -109,6 +109,7 @@ pub struct Device<A: Application, S: Storage> {
     /// Bit rate that becomes active at the next reset / activation.
     pub(crate) pending_bitrate: u16,
     /// Bit rate of the bus the node is attached to, if known.
+    #[cfg(feature = "bus-model")]
     pub(crate) bus_bitrate: Option<u16>,
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
@@ -119,6 +120,7 @@ pub struct Device<A: Application, S: Storage> {
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
     pub(crate) factory_lss: (u8, u16),
+    #[cfg(feature = "bus-model")]
     autobaud_frames: u8,
     /// Node-id and bit rate as stored by LSS (kept across "restore defaults").
     pub(crate) stored_lss: (Option<u8>, Option<u16>),
@@ -274,10 +276,12 @@ impl<A: Application, S: Storage> Node<A, S> {
                 pending_node_id: cfg.node_id,
                 bitrate: cfg.bitrate_kbps,
                 pending_bitrate: cfg.bitrate_kbps,
+                #[cfg(feature = "bus-model")]
                 bus_bitrate: None,
                 silent_until: None,
                 talk_from: 0,
                 factory_lss: (cfg.node_id, cfg.bitrate_kbps),
+                #[cfg(feature = "bus-model")]
                 autobaud_frames: 0,
                 stored_lss: (None, None),
                 tx: TxQueue::default(),
@@ -761,6 +765,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     }
 
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
+    #[cfg(feature = "bus-model")]
     pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
         self.dev.bus_bitrate = kbps;
         self.epilogue();
@@ -935,6 +940,10 @@ impl<A: Application, S: Storage> Device<A, S> {
                 return false;
             }
         }
+        // Without the bus model (firmware), the controller hears only its own bit rate.
+        #[cfg(not(feature = "bus-model"))]
+        return true;
+        #[cfg(feature = "bus-model")]
         match self.bus_bitrate {
             None => true,
             Some(bus) if self.bitrate == 0 => {
@@ -965,10 +974,11 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// What `talk_from` must be.
     fn talk_from_now(&self) -> u64 {
-        match self.bus_bitrate {
-            Some(bus) if bus != self.bitrate => u64::MAX,
-            _ => self.silent_until.map_or(0, |t| t.0),
+        #[cfg(feature = "bus-model")]
+        if self.bus_bitrate.is_some_and(|bus| bus != self.bitrate) {
+            return u64::MAX;
         }
+        self.silent_until.map_or(0, |t| t.0)
     }
 
     /// Recomputes `talk_from` from `bitrate`, `bus_bitrate` and `silent_until` (the node's
@@ -1019,7 +1029,10 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn activate_bitrate(&mut self, kbps: u16) {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
-        self.autobaud_frames = 0;
+        #[cfg(feature = "bus-model")]
+        {
+            self.autobaud_frames = 0;
+        }
     }
 
     /// Reloads values: the entries a reset communication covers always, every other one on

@@ -74,6 +74,7 @@ fn kill_in_both_byte_orders_deletes_the_stored_set() {
     }
 }
 
+#[cfg(feature = "bus-model")] // the bus's bit rate: host only
 #[test]
 fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     let mut r = booted("tmi");
@@ -102,6 +103,7 @@ fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     assert_eq!(r.req(0x67F, &hex("40 00 10 00 00 00 00 00")).0, 0x5FF);
 }
 
+#[cfg(feature = "bus-model")] // the bus's bit rate: host only
 #[test]
 fn wrong_bit_rate_node_is_silent_and_deaf() {
     let mut r = booted("tmi");
