@@ -129,7 +129,11 @@ impl Dictionary {
     /// values derived by services).
     #[inline]
     pub fn set(&mut self, slot: usize, raw: u32) {
-        self.values[slot] = raw;
+        // Slots come from this table: a miss cannot happen, and ignoring one costs less flash
+        // than a panic path at every call site.
+        if let Some(v) = self.values.get_mut(slot) {
+            *v = raw;
+        }
     }
 
     /// Raw value of `index`/`sub`, if it exists.
@@ -160,6 +164,7 @@ impl Dictionary {
         const CAP: usize = 64;
         let e = &self.entries[slot];
         // Numbers from the start (every expedited upload): fixed-length copies, no memcpy call.
+        #[cfg(feature = "inline-hot-paths")]
         if offset == 0 {
             let le = self.values[slot].to_le_bytes();
             match (e.ty.size(), &mut *buf) {
