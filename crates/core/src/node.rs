@@ -109,7 +109,7 @@ pub struct Device<A: Application, S: Storage> {
     /// Bit rate that becomes active at the next reset / activation.
     pub(crate) pending_bitrate: u16,
     /// Bit rate of the bus the node is attached to, if known.
-    #[cfg(feature = "bus-model")]
+    #[cfg(feature = "simulation")]
     pub(crate) bus_bitrate: Option<u16>,
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
@@ -120,7 +120,7 @@ pub struct Device<A: Application, S: Storage> {
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
     pub(crate) factory_lss: (u8, u16),
-    #[cfg(feature = "bus-model")]
+    #[cfg(feature = "simulation")]
     autobaud_frames: u8,
     /// Node-id and bit rate as stored by LSS (kept across "restore defaults").
     pub(crate) stored_lss: (Option<u8>, Option<u16>),
@@ -132,6 +132,7 @@ pub struct Device<A: Application, S: Storage> {
     pub(crate) storage: S,
     pub(crate) now: Instant,
     /// A store completed: the SDO answer waits until this instant (D7).
+    #[cfg(feature = "simulation")]
     pub(crate) sdo_hold_until: Option<Instant>,
     pub(crate) stats: Stats,
     /// Slots of the objects the per-frame paths touch.
@@ -207,6 +208,7 @@ impl Dictionary {
 /// A CANopen position sensor node.
 pub struct Node<A: Application, S: Storage> {
     sdo: SdoServer,
+    #[cfg(feature = "simulation")]
     held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
     dev: Device<A, S>,
@@ -258,6 +260,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         let f = app::features::<A>(model);
         Node {
             sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),
+            #[cfg(feature = "simulation")]
             held_sdo: None,
             lss: LssSlave::default(),
             timers: TimerTable::default(),
@@ -276,12 +279,12 @@ impl<A: Application, S: Storage> Node<A, S> {
                 pending_node_id: cfg.node_id,
                 bitrate: cfg.bitrate_kbps,
                 pending_bitrate: cfg.bitrate_kbps,
-                #[cfg(feature = "bus-model")]
+                #[cfg(feature = "simulation")]
                 bus_bitrate: None,
                 silent_until: None,
                 talk_from: 0,
                 factory_lss: (cfg.node_id, cfg.bitrate_kbps),
-                #[cfg(feature = "bus-model")]
+                #[cfg(feature = "simulation")]
                 autobaud_frames: 0,
                 stored_lss: (None, None),
                 tx: TxQueue::default(),
@@ -291,6 +294,7 @@ impl<A: Application, S: Storage> Node<A, S> {
                 app,
                 storage,
                 now: Instant::ZERO,
+                #[cfg(feature = "simulation")]
                 sdo_hold_until: None,
                 stats: Stats::default(),
                 hot,
@@ -307,7 +311,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.dev.powered = true;
         self.dev.tx.clear();
         self.sdo.reset();
-        self.held_sdo = None;
+        #[cfg(feature = "simulation")]
+        {
+            self.held_sdo = None;
+        }
         self.lss = LssSlave::default();
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
@@ -369,6 +376,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             NEVER
         };
         let t = &mut self.timers;
+        #[cfg(feature = "simulation")]
         t.set_us(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
         t.set_us(Timer::SdoTransfer, self.sdo.due_us());
         t.set_us(Timer::LssSwitch, self.lss.due_us());
@@ -401,8 +409,11 @@ impl<A: Application, S: Storage> Node<A, S> {
         let d = &mut self.dev;
         d.now = now;
         self.sdo.reset();
-        self.held_sdo = None;
-        d.sdo_hold_until = None;
+        #[cfg(feature = "simulation")]
+        {
+            self.held_sdo = None;
+            d.sdo_hold_until = None;
+        }
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
         d.cfg.node_id = d.node_id;
@@ -503,12 +514,15 @@ impl<A: Application, S: Storage> Node<A, S> {
                 let model = d.model;
                 let t = move || app::features::<A>(model).sdo_transfers();
                 if let Some(r) = self.sdo.handle_as(f.data(), now, d, t) {
+                    #[cfg(feature = "simulation")]
                     match d.sdo_hold_until.take() {
                         Some(t) => self.held_sdo = Some((t, r)),
                         None => {
                             d.tx.push_std(cob::SDO_TX + node, r, 8);
                         }
                     }
+                    #[cfg(not(feature = "simulation"))]
+                    d.tx.push_std(cob::SDO_TX + node, r, 8);
                 }
                 // Block-upload segments (a whole block answers one request).
                 while let Some(s) = self.sdo.poll_transmit_as(t) {
@@ -642,13 +656,13 @@ impl<A: Application, S: Storage> Node<A, S> {
         // The table says which services have a deadline that passed (the epilogue of the
         // entry point before wrote it); the others have nothing to do.
         let due = |t| self.timers.due(t, now.0);
-        let (held, transfer, switch, silence) = (
-            due(Timer::HeldSdo),
+        let (transfer, switch, silence) = (
             due(Timer::SdoTransfer),
             due(Timer::LssSwitch),
             due(Timer::Silence),
         );
-        if let Some((_, r)) = self.held_sdo.take_if(|_| held) {
+        #[cfg(feature = "simulation")]
+        if let Some((_, r)) = self.held_sdo.take_if(|_| due(Timer::HeldSdo)) {
             // A node stopped during the store time no longer serves SDO.
             if self.dev.nmt.sdo_allowed() {
                 let id = cob::SDO_TX + self.dev.node_id as u16;
@@ -765,7 +779,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     }
 
     /// Tells the node the bit rate of the bus it is attached to (virtual buses).
-    #[cfg(feature = "bus-model")]
+    #[cfg(feature = "simulation")]
     pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
         self.dev.bus_bitrate = kbps;
         self.epilogue();
@@ -941,9 +955,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             }
         }
         // Without the bus model (firmware), the controller hears only its own bit rate.
-        #[cfg(not(feature = "bus-model"))]
+        #[cfg(not(feature = "simulation"))]
         return true;
-        #[cfg(feature = "bus-model")]
+        #[cfg(feature = "simulation")]
         match self.bus_bitrate {
             None => true,
             Some(bus) if self.bitrate == 0 => {
@@ -974,7 +988,7 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// What `talk_from` must be.
     fn talk_from_now(&self) -> u64 {
-        #[cfg(feature = "bus-model")]
+        #[cfg(feature = "simulation")]
         if self.bus_bitrate.is_some_and(|bus| bus != self.bitrate) {
             return u64::MAX;
         }
@@ -1029,7 +1043,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn activate_bitrate(&mut self, kbps: u16) {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
-        #[cfg(feature = "bus-model")]
+        #[cfg(feature = "simulation")]
         {
             self.autobaud_frames = 0;
         }
@@ -1500,7 +1514,10 @@ impl<A: Application, S: Storage> Device<A, S> {
             self.forget(scope)?;
         }
         // D7: the answer leaves no earlier than the store time after the request arrived.
-        self.sdo_hold_until = Some(self.now + STORE_TIME);
+        #[cfg(feature = "simulation")]
+        {
+            self.sdo_hold_until = Some(self.now + STORE_TIME);
+        }
         Ok(())
     }
 }

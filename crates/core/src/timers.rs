@@ -10,7 +10,8 @@
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
 pub(crate) enum Timer {
-    /// An SDO answer held back by the store time (D7).
+    /// An SDO answer held back by the store time (D7; feature `simulation`).
+    #[cfg(feature = "simulation")]
     HeldSdo,
     /// A segmented / block SDO transfer's timeout.
     SdoTransfer,
@@ -74,7 +75,7 @@ mod tests {
         let mut t = TimerTable::default();
         assert_eq!(t.next(), NEVER);
         t.set_us(Timer::Emcy, 50);
-        t.set_us(Timer::HeldSdo, 70);
+        t.set_us(Timer::SdoTransfer, 70);
         assert_eq!(t.next(), 50);
         assert!(t.due(Timer::Emcy, 50) && !t.due(Timer::Emcy, 49));
         assert!(!t.due(Timer::LssSwitch, u64::MAX - 1));

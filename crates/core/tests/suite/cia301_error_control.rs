@@ -80,8 +80,7 @@ fn cia301_7_2_8_3_1_reset_communication_ends_life_guarding_until_the_next_reques
     r.req(0x67F, &hex("2B 0C 10 00 64 00 00 00")); // 100 ms × 3
     r.req(0x67F, &hex("2F 0D 10 00 03 00 00 00"));
     // Save, so that the reset keeps them (the answer follows the write to storage).
-    r.send(0x67F, &hex("23 10 10 01 73 61 76 65"));
-    let saved = r.advance_ms(100);
+    let saved = r.store_cmd(0x67F, &hex("23 10 10 01 73 61 76 65"), 100);
     assert!(saved
         .iter()
         .any(|(_, f)| f.std_id() == Some(0x5FF) && f.data()[0] == 0x60));

@@ -160,8 +160,7 @@ fn d15_stored_default_tpdo_cob_ids_follow_custom_ones_stay() {
         r.req(0x67F, &hex("23 01 18 01 50 03 00 80")),
         (0x5FF, hex("60 01 18 01 00 00 00 00"))
     );
-    assert!(r.send(0x67F, &hex("23 10 10 01 73 61 76 65")).is_empty());
-    let held = r.advance_ms(25);
+    let held = r.store_cmd(0x67F, &hex("23 10 10 01 73 61 76 65"), 25);
     assert!(held
         .iter()
         .any(|(_, f)| f.std_id() == Some(0x5FF) && f.data()[0] == 0x60));
@@ -190,7 +189,7 @@ fn example_1b_read_node_id() {
     lss_answer(&mut r, "5E 00 00 00 00 00 00 00", "5E 7F 00 00 00 00 00 00");
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// Example 2: 500 kbit/s without activation; the new rate applies at the next reset (R18).
 /// Then the node talks on a 500 kbit/s bus and is silent on a 125 kbit/s one (SPEC §9).
 #[test]
@@ -225,7 +224,7 @@ fn example_2_bit_rate_500_applies_after_reset() {
     assert!(r.send(0x67F, &sdo).is_empty());
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// Activate bit timing (0x15): silent for the switch delay, switch, silent for the delay again
 /// ("timing in ms internal multiplied by 2", TH Table 4), delay 16 bit little-endian.
 #[test]
@@ -268,7 +267,7 @@ fn activate_bit_timing_switch_delay_on_virtual_clock() {
     assert_eq!(r.node.device().bitrate(), 125);
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// TMI picture 4: configure, activate, then switch mode global back to operation; the NMT side
 /// keeps running at the new rate without a reset.
 #[test]

@@ -13,7 +13,7 @@ fn emcy_codes(frames: &[Frame]) -> Vec<u16> {
         .collect()
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// CiA 305 §5.8 (switch bit rate): between "activate bit timing" and the end of the second
 /// switch delay the node neither receives nor sends. A frame arriving in that window is not
 /// heard, and it does not make the node announce itself (a boot-up belongs to autobaud locking,
@@ -257,7 +257,7 @@ fn a_model_without_tpdo_rtr_answers_no_remote_request() {
     assert!(r.take().is_empty());
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// The counters a host shows (`Stats`): frames heard while the bus runs another bit rate, frames
 /// the node produced meanwhile and lost (as on a real bus: nobody can receive them), and whether
 /// the stored image failed its check at the last power-on.
@@ -292,7 +292,7 @@ fn stats_count_frames_lost_to_a_wrong_bit_rate_and_report_corrupt_storage() {
     );
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// CiA 305 §5.8: the node is deaf for twice the switch delay after "activate bit timing" and
 /// hears again from the end of the second delay on: a frame handed in at that very instant
 /// (before the host served the node's timer) is heard.
@@ -314,7 +314,7 @@ fn cia305_the_switch_window_ends_at_twice_the_delay() {
     assert_eq!(a[0].data()[..2], [0x5E, 0x7F]);
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// TMI R19 / DECISIONS ("autobaud locks on after 4 received frames and then sends the
 /// boot-up"): three frames are not enough; the fourth locks the rate, and only then the node
 /// announces itself and serves requests.

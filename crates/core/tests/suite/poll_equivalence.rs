@@ -31,7 +31,7 @@ enum Stim {
     /// Time: through every deadline up to +dt µs, or one jump.
     Advance(u32, bool),
     /// The bit rate of the bus (None: matches the node); frames are lost on a mismatch.
-    #[cfg_attr(not(feature = "bus-model"), allow(dead_code))]
+    #[cfg_attr(not(feature = "simulation"), allow(dead_code))]
     Bus(Option<u16>),
     PowerCycle,
 }
@@ -157,12 +157,12 @@ impl Pair {
                 self.now = end;
             }
             // Without the bus model (a firmware build) the bus's rate stays unknown.
-            #[cfg(feature = "bus-model")]
+            #[cfg(feature = "simulation")]
             Stim::Bus(kbps) => {
                 self.a.set_bus_bitrate(kbps);
                 self.b.set_bus_bitrate(kbps);
             }
-            #[cfg(not(feature = "bus-model"))]
+            #[cfg(not(feature = "simulation"))]
             Stim::Bus(_) => {}
             Stim::PowerCycle => {
                 self.a.power_off();

@@ -4,12 +4,8 @@
 use crate::common::{booted, hex, Rig};
 
 fn store(r: &mut Rig, bytes: &str) -> Vec<u8> {
-    assert!(
-        r.send(0x67F, &hex(bytes)).is_empty(),
-        "answer only after the store time"
-    );
-    let f = r.advance_ms(25);
-    f.into_iter()
+    r.store_cmd(0x67F, &hex(bytes), 25)
+        .into_iter()
         .find(|(_, f)| f.std_id() == Some(0x5FF))
         .map(|(_, f)| f.data().to_vec())
         .unwrap()
@@ -74,7 +70,7 @@ fn kill_in_both_byte_orders_deletes_the_stored_set() {
     }
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 #[test]
 fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     let mut r = booted("tmi");
@@ -103,7 +99,7 @@ fn autobaud_via_0x2001_adopts_the_bus_rate_after_a_few_frames() {
     assert_eq!(r.req(0x67F, &hex("40 00 10 00 00 00 00 00")).0, 0x5FF);
 }
 
-#[cfg(feature = "bus-model")] // the bus's bit rate: host only
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
 #[test]
 fn wrong_bit_rate_node_is_silent_and_deaf() {
     let mut r = booted("tmi");

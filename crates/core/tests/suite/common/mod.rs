@@ -150,6 +150,24 @@ impl Rig {
         out
     }
 
+    /// Sends a store or restore command (0x1010 / 0x1011) and runs `ms` milliseconds on: every
+    /// frame with its instant. With the core's `simulation` feature the SDO answer waits for
+    /// the store time (D7), so nothing comes at once; without it (a firmware build, whose real
+    /// store takes its own time) the answer comes at once.
+    pub fn store_cmd(&mut self, id: u16, data: &[u8], ms: u64) -> Vec<(Instant, Frame)> {
+        let at = self.now;
+        let first = self.send(id, data);
+        if cfg!(feature = "simulation") {
+            assert!(
+                first.is_empty(),
+                "answer only after the store time: {first:?}"
+            );
+        }
+        let mut out: Vec<_> = first.into_iter().map(|f| (at, f)).collect();
+        out.extend(self.advance_ms(ms));
+        out
+    }
+
     /// Advances time by `ms` milliseconds.
     pub fn advance_ms(&mut self, ms: u64) -> Vec<(Instant, Frame)> {
         let t = Instant::from_micros(self.now.micros() + ms * 1000);
