@@ -1542,6 +1542,27 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
     /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
     /// expects the read of 1003:01 to abort when the history is empty).
+    /// The slot of `index`/`sub` if it may be read now (the two steps of every upload; one
+    /// shared copy in firmware).
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn find_readable(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let slot = self.find(index, sub)?;
+        self.readable(slot)?;
+        Ok(slot)
+    }
+
+    /// The slot of `index`/`sub` if it may be written (every download's first step).
+    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn find_writable(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
+        let slot = self.find(index, sub)?;
+        if !self.od.entry(slot).access.writable() {
+            return Err(Abort::ReadOnly);
+        }
+        Ok(slot)
+    }
+
     #[inline]
     fn readable(&self, slot: usize) -> Result<(), Abort> {
         let e = self.od.entry(slot);
@@ -1575,14 +1596,12 @@ impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
 
 impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
     fn upload_size(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
-        let slot = self.find(index, sub)?;
-        self.readable(slot)?;
+        let slot = self.find_readable(index, sub)?;
         Ok(self.od.size_of(slot))
     }
 
     fn read(&mut self, index: u16, sub: u8, offset: usize, buf: &mut [u8]) -> Result<usize, Abort> {
-        let slot = self.find(index, sub)?;
-        self.readable(slot)?;
+        let slot = self.find_readable(index, sub)?;
         // Values the application derives from others are current when read.
         if let Some(h) = self.od.entry(slot).hook.app_number() {
             self.app.refresh(h, &mut self.od, self.nmt);
@@ -1591,19 +1610,12 @@ impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
     }
 
     fn download_size(&mut self, index: u16, sub: u8) -> Result<Option<usize>, Abort> {
-        let slot = self.find(index, sub)?;
-        let e = self.od.entry(slot);
-        if !e.access.writable() {
-            return Err(Abort::ReadOnly);
-        }
-        Ok(e.ty.size())
+        let slot = self.find_writable(index, sub)?;
+        Ok(self.od.entry(slot).ty.size())
     }
 
     fn write(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), Abort> {
-        let slot = self.find(index, sub)?;
-        if !self.od.entry(slot).access.writable() {
-            return Err(Abort::ReadOnly);
-        }
+        let slot = self.find_writable(index, sub)?;
         self.write_slot(slot, data.len(), le_u32(data))
     }
 
@@ -1616,11 +1628,8 @@ impl<A: Application, S: Storage> ObjectAccess for Device<A, S> {
         data: &[u8; 4],
     ) -> Result<(), Abort> {
         // `download_size` and `write` with one lookup: the same checks in the same order.
-        let slot = self.find(index, sub)?;
+        let slot = self.find_writable(index, sub)?;
         let e = self.od.entry(slot);
-        if !e.access.writable() {
-            return Err(Abort::ReadOnly);
-        }
         let len = match size {
             Some(n) => n as usize,
             None => e.ty.size().unwrap_or(4),
