@@ -12,7 +12,7 @@
 //! docs/FIRMWARE.md says how the figures are taken.
 
 use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
-use canpos_core::models::{common_param, DeviceConfig, Features, Model};
+use canpos_core::models::{DeviceConfig, Features, Model};
 use canpos_core::od::{Default::*, Entry, Hook, Param};
 use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
@@ -22,7 +22,7 @@ use embedded_can::nb::Can;
 /// Identity, error register and history, SYNC (0x1000…0x1005).
 #[rustfmt::skip]
 pub const HEAD: [Entry; 8] = [
-    entry!(0x1000, 0, "", Unsigned32, Ro, Param(Param::DeviceType)),
+    entry!(0x1000, 0, "", Unsigned32, Ro, Const(0)), // no device profile
     entry!(0x1001, 0, "", Unsigned8, Ro, Live),
     entry!(0x1003, 0, "", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
     entry!(0x1003, 1, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
@@ -90,8 +90,13 @@ pub const fn join<const A: usize, const B: usize, const N: usize>(
     out
 }
 
+/// The dictionary's parameters (`Default::Param`): a plain CiA 301 device, with no profile and
+/// no sensor (stroke, steps, channels), has its serial number and nothing else.
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
-    common_param(cfg, p, 0)
+    match p {
+        Param::SerialNumber => cfg.serial,
+        _ => 0,
+    }
 }
 
 fn derive(c: DeviceConfig) -> DeviceConfig {
