@@ -1360,34 +1360,19 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
         match e.hook {
-            Hook::SyncCobId => {
-                // SYNC consumer only: bit 30 (generate), 29-bit ids and bits 11–28 are refused,
-                // and so are the CiA 301 restricted CAN-IDs (conformance OTH-10).
-                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
-                    || pdo::restricted_id(raw & 0x7FF)
-                {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
-            }
-            Hook::EmcyCobId => {
-                // Bit 30 is reserved (0), bit 29 would be a 29-bit id.
-                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0 {
-                    return Err(Abort::InvalidValue);
-                }
-                // A valid EMCY COB-ID may not be a restricted CAN-ID (conformance OTH-10).
-                if raw & 0x8000_0000 == 0 && pdo::restricted_id(raw & 0x7FF) {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
-            }
-            Hook::GuardingCobId => {
-                // Guarding answers on the COB-ID's 11-bit CAN-ID (it has no "not valid" bit);
-                // 29-bit ids and restricted CAN-IDs other than the pre-defined 0x700 + node-id
-                // are refused.
+            Hook::SyncCobId | Hook::EmcyCobId | Hook::GuardingCobId => {
+                // Bit 30 (SYNC: generate; EMCY: reserved), 29-bit ids and bits 11–28 are
+                // refused, and so are the CiA 301 restricted CAN-IDs (conformance OTH-10) but
+                // for an EMCY COB-ID marked not valid and guarding's pre-defined 0x700 + node-id
+                // (guarding answers on the COB-ID's CAN-ID: it has no "not valid" bit).
                 let id = raw & 0x7FF;
+                let may_be_restricted = match e.hook {
+                    Hook::EmcyCobId => raw & 0x8000_0000 != 0,
+                    Hook::GuardingCobId => id == 0x700 + self.node_id as u32,
+                    _ => false,
+                };
                 if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
-                    || (pdo::restricted_id(id) && id != 0x700 + self.node_id as u32)
+                    || !may_be_restricted && pdo::restricted_id(id)
                 {
                     return Err(Abort::InvalidValue);
                 }
