@@ -261,12 +261,26 @@ pub fn parse_image(
     if crc != crc32(&image[..body]) {
         return Err(StorageError::Corrupt);
     }
-    Ok(image[8..body].chunks_exact(8).map(|r| {
-        (
-            u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
-            u32::from_le_bytes([r[4], r[5], r[6], r[7]]),
-        )
-    }))
+    Ok(Records(&image[8..body]))
+}
+
+/// The records of a checked image, walked record by record: each step splits one 8-byte
+/// record off the front, so no index is computed or bounds-checked per record.
+#[derive(Clone)]
+struct Records<'a>(&'a [u8]);
+
+impl Iterator for Records<'_> {
+    type Item = (u32, u32);
+
+    fn next(&mut self) -> Option<(u32, u32)> {
+        let (rec, rest) = self.0.split_first_chunk::<8>()?;
+        self.0 = rest;
+        let [k0, k1, k2, k3, v0, v1, v2, v3] = *rec;
+        Some((
+            u32::from_le_bytes([k0, k1, k2, k3]),
+            u32::from_le_bytes([v0, v1, v2, v3]),
+        ))
+    }
 }
 
 /// Loads the stored image into `buf` and checks it: its records, or why there are none.
