@@ -1240,17 +1240,17 @@ impl<A: Application, S: Storage> Device<A, S> {
                         .find((k >> 8) as u16, k as u8)
                         .is_ok_and(|s| scope.covers(od.entry(s)))
         };
-        let values = od
-            .entries()
-            .iter()
-            .enumerate()
-            .filter(|(_, e)| scope.covers(e))
-            .map(|(slot, e)| (e.key(), od.get(slot)));
-        let node =
-            (scope != Scope::Auto).then_some((storage::KEY_SAVED_NODE_ID, self.node_id as u32));
+        let node = self.node_id as u32;
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            od.entries()
+                .iter()
+                .enumerate()
+                .filter(|(_, e)| scope.covers(e))
+                .all(|(slot, e)| w.push(e.key(), od.get(slot)))
+                && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
+        };
         let tag = self.features().tag;
-        storage::update_image(&mut self.storage, tag, &covered, &mut values.chain(node))
-            .map_err(|_| Abort::CannotStore)
+        storage::change_image(&mut self.storage, tag, &covered, put).map_err(|_| Abort::CannotStore)
     }
 
     /// "load" (0x1011) of `scope`: forgets what was stored for it (the LSS configuration and
@@ -1265,7 +1265,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                     .map_or(true, |s| scope.covers(od.entry(s)))
         };
         let tag = self.features().tag;
-        match storage::update_image(&mut self.storage, tag, &forgotten, &mut core::iter::empty()) {
+        match storage::change_image(&mut self.storage, tag, &forgotten, &mut |_| true) {
             Ok(()) => Ok(()),
             Err(_) => Err(Abort::CannotStore),
         }
@@ -1277,15 +1277,15 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
         let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
         let od = &self.od;
-        let copies = od.entries().iter().filter_map(move |e| match e.hook {
-            Hook::PendingNodeId => Some((e.key(), id as u32)),
-            Hook::PendingBitRate => Some((e.key(), object_of_kbps(kbps))),
-            _ => None,
-        });
-        let lss = [
-            (storage::KEY_LSS_NODE_ID, id as u32),
-            (storage::KEY_LSS_BITRATE, kbps as u32),
-        ];
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            w.push(storage::KEY_LSS_NODE_ID, id as u32)
+                && w.push(storage::KEY_LSS_BITRATE, kbps as u32)
+                && od.entries().iter().all(|e| match e.hook {
+                    Hook::PendingNodeId => w.push(e.key(), id as u32),
+                    Hook::PendingBitRate => w.push(e.key(), object_of_kbps(kbps)),
+                    _ => true,
+                })
+        };
         let replaced = |k: u32| {
             k == storage::KEY_LSS_NODE_ID
                 || k == storage::KEY_LSS_BITRATE
@@ -1295,12 +1295,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                     })
         };
         let tag = self.features().tag;
-        storage::update_image(
-            &mut self.storage,
-            tag,
-            &replaced,
-            &mut lss.into_iter().chain(copies),
-        )?;
+        storage::change_image(&mut self.storage, tag, &replaced, put)?;
         self.stored_lss = (Some(id), Some(kbps));
         Ok(())
     }

@@ -294,22 +294,23 @@ pub fn load_image<'a, S: Storage>(
     parse_image(&buf[..n], model_tag)
 }
 
-/// The one way the stored image changes: the records `put` yields are written, the stored
-/// records for which `replaced` holds are dropped, and every other stored record stays.
-/// `replaced` must hold for every key `put` writes, so that no key is stored twice. A stored
-/// image that fails its check counts as empty (it could not be loaded anyway).
+/// The one way the stored image changes: `put` writes the new records, the stored records for
+/// which `replaced` holds are dropped, and every other stored record stays. `replaced` must
+/// hold for every key `put` writes, so that no key is stored twice; `put` answers false when
+/// a record did not fit (see [`ImageWriter::push`]). A stored image that fails its check counts
+/// as empty (it could not be loaded anyway).
 ///
 /// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
 /// in their stored order, and the new ones follow them. Nothing is saved when they do not all
-/// fit. Never inlined, so the buffer is on the stack only while an update runs; the rule and
-/// the records come as trait objects, so that every caller shares one copy of the code.
+/// fit. Never inlined, so the buffer is on the stack only while a change runs; the rule and
+/// the writing come as trait objects, so that every kind of store shares one copy of the code.
 #[inline(never)]
-pub fn update_image<S: Storage>(
+pub fn change_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
     replaced: &dyn Fn(u32) -> bool,
-    put: &mut dyn Iterator<Item = (u32, u32)>,
+    put: &mut dyn FnMut(&mut ImageWriter<'_>) -> bool,
 ) -> Result<(), StorageError> {
     let mut buf = [0u8; IMAGE_MAX];
     let old_len = st.load(&mut buf).unwrap_or(0);
@@ -329,14 +330,32 @@ pub fn update_image<S: Storage>(
     let mut w = ImageWriter::new(&mut buf, model_tag);
     w.len += 8 * kept;
     w.count += kept as u16;
-    for (k, v) in put {
-        debug_assert!(replaced(k), "record {k:#x} would be stored twice");
-        if !w.push(k, v) {
-            return Err(StorageError::Io);
-        }
+    if !put(&mut w) {
+        return Err(StorageError::Io);
     }
+    debug_assert!(
+        Records(&w.buf[8 + 8 * kept..w.len]).all(|(k, _)| replaced(k)),
+        "a record would be stored twice"
+    );
     let n = w.finish();
     st.save(&buf[..n])
+}
+
+/// [`change_image`] with the new records from an iterator.
+pub fn update_image<S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    replaced: &dyn Fn(u32) -> bool,
+    put: &mut dyn Iterator<Item = (u32, u32)>,
+) -> Result<(), StorageError> {
+    change_image(st, model_tag, replaced, &mut |w| {
+        for (k, v) in &mut *put {
+            if !w.push(k, v) {
+                return false;
+            }
+        }
+        true
+    })
 }
 
 /// Copies the 8-byte record at `from` to `to` (a fixed-size copy: `copy_within` of a variable
