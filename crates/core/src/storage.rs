@@ -219,12 +219,20 @@ impl<'a> ImageWriter<'a> {
     }
 
     /// Appends one record; returns false when the buffer is full.
+    // One window for the record and the CRC that must still fit after it: one bounds check.
+    // Out of line: every kind of store writes through it.
+    #[inline(never)]
     pub fn push(&mut self, key: u32, value: u32) -> bool {
-        if self.len + 8 + 4 > self.buf.len() {
+        let Some(window) = self
+            .buf
+            .get_mut(self.len..)
+            .and_then(<[u8]>::first_chunk_mut::<12>)
+        else {
             return false;
-        }
-        self.buf[self.len..self.len + 4].copy_from_slice(&key.to_le_bytes());
-        self.buf[self.len + 4..self.len + 8].copy_from_slice(&value.to_le_bytes());
+        };
+        let (rec, _crc) = window.split_at_mut(8);
+        rec[..4].copy_from_slice(&key.to_le_bytes());
+        rec[4..].copy_from_slice(&value.to_le_bytes());
         self.len += 8;
         self.count += 1;
         true
