@@ -61,18 +61,25 @@ pub const fn is_object_key(key: u32) -> bool {
 
 /// What a store or a restore covers: the CiA 301 0x1010 / 0x1011 sub-indices, or the values
 /// the device keeps by itself. Membership comes from each entry's [`Group`] in the model's
-/// table, so no index list decides it.
+/// table, so no index list decides it. Each scope's discriminant is the set of groups it
+/// covers (bit `group as u32`), so that [`Scope::covers`] is one AND.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
 pub enum Scope {
     /// Sub 1: every parameter.
-    All,
+    All = group_bit(Group::Comm) | group_bit(Group::App),
     /// Sub 2: the communication parameters.
-    Comm,
+    Comm = group_bit(Group::Comm),
     /// Sub 3: the application parameters.
-    App,
+    App = group_bit(Group::App),
     /// The values the device stores whenever they change ([`Group::Auto`]); "save" and
     /// "load" leave them alone, they are records of the unit, not parameters.
-    Auto,
+    Auto = group_bit(Group::Auto),
+}
+
+/// `g`'s bit in a [`Scope`]'s set of groups.
+const fn group_bit(g: Group) -> u32 {
+    1 << g as u32
 }
 
 impl Scope {
@@ -87,13 +94,7 @@ impl Scope {
 
     /// Whether `e`'s value belongs to this scope.
     pub const fn covers(self, e: &Entry) -> bool {
-        matches!(
-            (self, e.group),
-            (Scope::All, Group::Comm | Group::App)
-                | (Scope::Comm, Group::Comm)
-                | (Scope::App, Group::App)
-                | (Scope::Auto, Group::Auto)
-        )
+        self as u32 & group_bit(e.group) != 0
     }
 }
 
@@ -394,6 +395,37 @@ pub fn crc32(data: &[u8]) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The group bitsets answer as the table they replace: each scope covers exactly its
+    /// groups, the volatile one is in none.
+    #[test]
+    fn each_scope_covers_exactly_its_groups() {
+        use crate::od::{Access, DataType, Default, Range};
+        let groups = [Group::Volatile, Group::Comm, Group::App, Group::Auto];
+        for scope in [Scope::All, Scope::Comm, Scope::App, Scope::Auto] {
+            for g in groups {
+                let e = Entry::build(
+                    0x2000,
+                    0,
+                    "x",
+                    DataType::Unsigned8,
+                    Access::Rw,
+                    false,
+                    Default::Const(0),
+                    &Range::Any,
+                    g,
+                );
+                let expected = matches!(
+                    (scope, g),
+                    (Scope::All, Group::Comm | Group::App)
+                        | (Scope::Comm, Group::Comm)
+                        | (Scope::App, Group::App)
+                        | (Scope::Auto, Group::Auto)
+                );
+                assert_eq!(scope.covers(&e), expected, "{scope:?} / {g:?}");
+            }
+        }
+    }
 
     #[test]
     fn crc32_check_value() {
