@@ -55,6 +55,18 @@ fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
 }
 
+/// The slot and entry of this model's object that a stored record's `key` names, if any (an
+/// LSS or bookkeeping key names none). Out of line: every reading and writing of the image
+/// looks its records up through it.
+#[inline(never)]
+fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
+    if !storage::is_object_key(key) {
+        return None;
+    }
+    let slot = od.find((key >> 8) as u16, key as u8).ok()?;
+    Some((slot, od.entries().get(slot)?))
+}
+
 /// A stored value of `e` as it applies under node-id `node` (D15): a COB-ID whose CAN-ID was the
 /// pre-defined one (`base + node-id`) for the node-id it was saved under moves to this node's,
 /// keeping its other bits; any other value stays as stored. Images without the saved node-id
@@ -1030,13 +1042,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             .find(|&(k, _)| k == storage::KEY_SAVED_NODE_ID)
             .and_then(|(_, v)| stored_node_id(v));
         for (k, v) in recs {
-            if !storage::is_object_key(k) {
-                continue;
-            }
-            let Ok(slot) = self.od.find((k >> 8) as u16, k as u8) else {
+            let Some((slot, e)) = stored_entry(&self.od, k) else {
                 continue;
             };
-            let e = self.od.entry(slot);
             if e.group != crate::od::Group::Volatile && reloads(e) {
                 let v = follow_node_id(e, v, saved_node, node);
                 // A checksummed image can still hold what no write would have been let in (a
@@ -1085,18 +1093,11 @@ impl<A: Application, S: Storage> Device<A, S> {
                 // node 0 or 200.
                 storage::KEY_LSS_NODE_ID => lss.0 = stored_node_id(v).or(lss.0),
                 storage::KEY_LSS_BITRATE => lss.1 = Some(v as u16),
-                _ if storage::is_object_key(k) => {
-                    match self
-                        .od
-                        .find((k >> 8) as u16, k as u8)
-                        .map(|s| self.od.entry(s).hook)
-                    {
-                        Ok(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
-                        Ok(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
-                        _ => {}
-                    }
-                }
-                _ => {}
+                _ => match stored_entry(&self.od, k).map(|(_, e)| e.hook) {
+                    Some(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
+                    Some(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
+                    _ => {}
+                },
             }
         }
         ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
@@ -1235,10 +1236,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         let od = &self.od;
         let covered = |k: u32| {
             k == storage::KEY_SAVED_NODE_ID
-                || storage::is_object_key(k)
-                    && od
-                        .find((k >> 8) as u16, k as u8)
-                        .is_ok_and(|s| scope.covers(od.entry(s)))
+                || stored_entry(od, k).is_some_and(|(_, e)| scope.covers(e))
         };
         let node = self.node_id as u32;
         let put = &mut |w: &mut storage::ImageWriter<'_>| {
@@ -1259,10 +1257,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn forget(&mut self, scope: Scope) -> Result<(), Abort> {
         let od = &self.od;
         let forgotten = |k: u32| {
-            storage::is_object_key(k)
-                && od
-                    .find((k >> 8) as u16, k as u8)
-                    .map_or(true, |s| scope.covers(od.entry(s)))
+            // Records of objects this model does not have go too.
+            storage::is_object_key(k) && stored_entry(od, k).is_none_or(|(_, e)| scope.covers(e))
         };
         let tag = self.features().tag;
         match storage::change_image(&mut self.storage, tag, &forgotten, &mut |_| true) {
@@ -1289,10 +1285,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         let replaced = |k: u32| {
             k == storage::KEY_LSS_NODE_ID
                 || k == storage::KEY_LSS_BITRATE
-                || storage::is_object_key(k)
-                    && od.find((k >> 8) as u16, k as u8).is_ok_and(|s| {
-                        matches!(od.entry(s).hook, Hook::PendingNodeId | Hook::PendingBitRate)
-                    })
+                || stored_entry(od, k).is_some_and(|(_, e)| {
+                    matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
+                })
         };
         let tag = self.features().tag;
         storage::change_image(&mut self.storage, tag, &replaced, put)?;
