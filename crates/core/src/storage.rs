@@ -253,6 +253,11 @@ pub fn parse_image(
     image: &[u8],
     model_tag: u8,
 ) -> Result<impl Iterator<Item = (u32, u32)> + Clone + '_, StorageError> {
+    parse_records(image, model_tag)
+}
+
+/// [`parse_image`], its records as they lie in the image.
+fn parse_records(image: &[u8], model_tag: u8) -> Result<Records<'_>, StorageError> {
     if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
         return Err(StorageError::Corrupt);
     }
@@ -293,14 +298,25 @@ impl Iterator for Records<'_> {
 }
 
 /// Loads the stored image into `buf` and checks it: its records, or why there are none.
-#[inline(never)]
+#[inline(always)] // only names `load_records`' answer for the public interface
 pub fn load_image<'a, S: Storage>(
     st: &mut S,
     model_tag: u8,
     buf: &'a mut [u8; IMAGE_MAX],
 ) -> Result<impl Iterator<Item = (u32, u32)> + Clone + 'a, StorageError> {
+    load_records(st, model_tag, buf)
+}
+
+/// [`load_image`], its records as they lie in `buf`. Out of line: every loader and every
+/// change of the image share it.
+#[inline(never)]
+fn load_records<'a, S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    buf: &'a mut [u8; IMAGE_MAX],
+) -> Result<Records<'a>, StorageError> {
     let n = st.load(buf)?;
-    parse_image(&buf[..n], model_tag)
+    parse_records(&buf[..n], model_tag)
 }
 
 /// The one way the stored image changes: `put` writes the new records, the stored records for
@@ -322,19 +338,18 @@ pub fn change_image<S: Storage>(
     put: &mut dyn FnMut(&mut ImageWriter<'_>) -> bool,
 ) -> Result<(), StorageError> {
     let mut buf = [0u8; IMAGE_MAX];
-    let old_len = st.load(&mut buf).unwrap_or(0);
+    // The stored records, if the image passes its check, are the `old` bytes after the header.
+    let old = load_records(st, model_tag, &mut buf).map_or(0, |recs| recs.0.len());
     let mut kept = 0;
-    if parse_image(&buf[..old_len], model_tag).is_ok() {
-        // Records only move towards the front here, so copying in place is safe.
-        let mut at = 8;
-        while at + 8 + 4 <= old_len {
-            let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
-            if !replaced(key) {
-                move_record(&mut buf, at, 8 + 8 * kept);
-                kept += 1;
-            }
-            at += 8;
+    // Records only move towards the front here, so copying in place is safe.
+    let mut at = 8;
+    while at < 8 + old {
+        let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
+        if !replaced(key) {
+            move_record(&mut buf, at, 8 + 8 * kept);
+            kept += 1;
         }
+        at += 8;
     }
     let mut w = ImageWriter::new(&mut buf, model_tag);
     w.len += 8 * kept;
