@@ -241,9 +241,9 @@ impl<'a> ImageWriter<'a> {
 
     /// Seals the image with its count and CRC; returns its length.
     pub fn finish(self) -> usize {
-        self.buf[6..8].copy_from_slice(&self.count.to_le_bytes());
-        let crc = crc32(&self.buf[..self.len]);
-        self.buf[self.len..self.len + 4].copy_from_slice(&crc.to_le_bytes());
+        let (body, crc) = self.buf.split_at_mut(self.len);
+        body[6..8].copy_from_slice(&self.count.to_le_bytes());
+        crc[..4].copy_from_slice(&crc32(body).to_le_bytes());
         self.len + 4
     }
 }
@@ -342,14 +342,13 @@ pub fn change_image<S: Storage>(
     let old = load_records(st, model_tag, &mut buf).map_or(0, |recs| recs.0.len());
     let mut kept = 0;
     // Records only move towards the front here, so copying in place is safe.
-    let mut at = 8;
-    while at < 8 + old {
-        let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
-        if !replaced(key) {
-            move_record(&mut buf, at, 8 + 8 * kept);
+    let (recs, _) = buf[8..8 + old].as_chunks_mut::<8>();
+    for at in 0..recs.len() {
+        let rec = recs[at];
+        if !replaced(u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]])) {
+            recs[kept] = rec;
             kept += 1;
         }
-        at += 8;
     }
     let mut w = ImageWriter::new(&mut buf, model_tag);
     w.len += 8 * kept;
@@ -380,14 +379,6 @@ pub fn update_image<S: Storage>(
         }
         true
     })
-}
-
-/// Copies the 8-byte record at `from` to `to` (a fixed-size copy: `copy_within` of a variable
-/// length would link the general-purpose `memmove` into firmware).
-#[inline(always)]
-fn move_record(buf: &mut [u8], from: usize, to: usize) {
-    let rec: [u8; 8] = buf[from..from + 8].try_into().unwrap_or([0; 8]);
-    buf[to..to + 8].copy_from_slice(&rec);
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.
