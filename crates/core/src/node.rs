@@ -1242,9 +1242,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         };
         let node = self.node_id as u32;
         let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            od.entries()
-                .iter()
-                .enumerate()
+            // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
+            (0..od::MAX_ENTRIES)
+                .zip(od.entries())
                 .filter(|(_, e)| scope.covers(e))
                 .all(|(slot, e)| w.push(e.key(), od.get(slot)))
                 && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
