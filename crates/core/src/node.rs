@@ -1235,38 +1235,35 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// itself: the covered entries' current values replace what was stored for them; the
     /// rest of the image stays. The active node-id goes with it (D15).
     pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
+        self.store_or_forget(scope, true)
+    }
+
+    /// [`Device::store`] (`save`), or "load" (0x1011) of `scope` (not `save`): forgets what was
+    /// stored for it (the LSS configuration and records of entries outside the scope stay,
+    /// records this model has no entry for go); defaults apply at the next reset (D7). One
+    /// change of the image for both, as they differ only in the records they drop and write.
+    fn store_or_forget(&mut self, scope: Scope, save: bool) -> Result<(), Abort> {
         let od = &self.od;
-        let covered = |k: u32| {
-            k == storage::KEY_SAVED_NODE_ID
-                || stored_entry(od, k).is_some_and(|(_, e)| scope.covers(e))
+        let replaced = |k: u32| match stored_entry(od, k) {
+            Some((_, e)) => scope.covers(e),
+            // A store replaces the saved node-id; a "load" forgets the records of objects this
+            // model does not have too.
+            None if save => k == storage::KEY_SAVED_NODE_ID,
+            None => storage::is_object_key(k),
         };
         let node = self.node_id as u32;
         let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
-            (0..od::MAX_ENTRIES)
-                .zip(od.entries())
-                .filter(|(_, e)| scope.covers(e))
-                .all(|(slot, e)| w.push(e.key(), od.get(slot)))
-                && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
+            !save
+                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
+                || (0..od::MAX_ENTRIES)
+                    .zip(od.entries())
+                    .filter(|(_, e)| scope.covers(e))
+                    .all(|(slot, e)| w.push(e.key(), od.get(slot)))
+                    && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
         };
         let tag = self.features().tag;
-        storage::change_image(&mut self.storage, tag, &covered, put).map_err(|_| Abort::CannotStore)
-    }
-
-    /// "load" (0x1011) of `scope`: forgets what was stored for it (the LSS configuration and
-    /// records of entries outside the scope stay, records this model has no entry for go);
-    /// defaults apply at the next reset (D7).
-    pub(crate) fn forget(&mut self, scope: Scope) -> Result<(), Abort> {
-        let od = &self.od;
-        let forgotten = |k: u32| {
-            // Records of objects this model does not have go too.
-            storage::is_object_key(k) && stored_entry(od, k).is_none_or(|(_, e)| scope.covers(e))
-        };
-        let tag = self.features().tag;
-        match storage::change_image(&mut self.storage, tag, &forgotten, &mut |_| true) {
-            Ok(()) => Ok(()),
-            Err(_) => Err(Abort::CannotStore),
-        }
+        storage::change_image(&mut self.storage, tag, &replaced, put)
+            .map_err(|_| Abort::CannotStore)
     }
 
     /// LSS "store configuration": keeps the pending node-id and bit rate, in the LSS records
@@ -1440,7 +1437,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         let f = self.features();
         let scope = Scope::of_sub(e.sub);
-        if e.hook == Hook::StoreParameters {
+        // "save" stores; "load", and "kill" where the model has it, forget.
+        let save = if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
             if raw != SIG_SAVE && !kill {
                 return Err(Abort::CannotStore);
@@ -1448,17 +1446,14 @@ impl<A: Application, S: Storage> Device<A, S> {
             if f.store_preop_only && self.nmt != NmtState::PreOperational {
                 return Err(Abort::WrongState);
             }
-            if kill {
-                self.forget(scope)?;
-            } else {
-                self.store(scope)?;
-            }
+            !kill
         } else {
             if raw != SIG_LOAD {
                 return Err(Abort::CannotStore);
             }
-            self.forget(scope)?;
-        }
+            false
+        };
+        self.store_or_forget(scope, save)?;
         // D7: the answer leaves no earlier than the store time after the request arrived.
         self.sdo_hold_until = Some(self.now + STORE_TIME);
         Ok(())
