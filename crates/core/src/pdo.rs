@@ -378,8 +378,17 @@ impl Tpdos {
         raw: u32,
         event_gt_inhibit: bool,
     ) -> Result<(), Abort> {
-        if (0x1800..0x1800 + self.count as u16).contains(&index) {
-            Self::check_value(od, index, sub, raw)?;
+        let n = self.count as u16;
+        let comm = (comm_index(0)..comm_index(0) + n).contains(&index);
+        if !comm && !(map_index(0)..map_index(0) + n).contains(&index) {
+            return Ok(());
+        }
+        // The manuals' procedure: set sub 0 to zero before changing entries (checked first).
+        if !comm && sub != 0 && od.value(index, 0).unwrap_or(0) != 0 {
+            return Err(Abort::UnsupportedAccess);
+        }
+        Self::check_value(od, index, sub, raw)?;
+        if comm {
             match sub {
                 1 => {
                     let cur = od.value(index, 1).unwrap_or(COB_INVALID);
@@ -403,30 +412,19 @@ impl Tpdos {
                 }
                 _ => {}
             }
-            return Ok(());
-        }
-        if (0x1A00..0x1A00 + self.count as u16).contains(&index) {
-            if sub == 0 {
-                Self::check_value(od, index, sub, raw)?;
-                let mut bits = 0u32;
-                for k in 1..=raw as usize {
-                    let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
-                    if e == 0 {
-                        // An empty entry cannot be counted in.
-                        return Err(Abort::NotMappable);
-                    }
-                    check_mappable(od, e)?;
-                    bits += e & 0xFF;
+        } else if sub == 0 {
+            let mut bits = 0u32;
+            for k in 1..=raw as usize {
+                let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
+                if e == 0 {
+                    // An empty entry cannot be counted in.
+                    return Err(Abort::NotMappable);
                 }
-                if bits > 64 {
-                    return Err(Abort::MappingLength);
-                }
-            } else {
-                // The manuals' procedure: set sub 0 to zero before changing entries.
-                if od.value(index, 0).unwrap_or(0) != 0 {
-                    return Err(Abort::UnsupportedAccess);
-                }
-                Self::check_value(od, index, sub, raw)?;
+                check_mappable(od, e)?;
+                bits += e & 0xFF;
+            }
+            if bits > 64 {
+                return Err(Abort::MappingLength);
             }
         }
         Ok(())
