@@ -282,8 +282,9 @@ impl Tpdos {
     /// timers from `now` with the new values.
     pub fn reconfigure(&mut self, n: usize, od: &Dictionary, now: Instant) {
         self.configure(n, od);
-        if self.active() {
-            self.set_active(false, now);
+        if self.active {
+            // As if production started again now.
+            self.active = false;
             self.set_active(true, now);
         }
     }
@@ -432,26 +433,26 @@ impl Tpdos {
 
     /// Starts or stops production (entering / leaving Operational, life guarding).
     pub fn set_active(&mut self, active: bool, now: Instant) {
-        if active && !self.active {
-            for p in &mut self.pdos[..self.count] {
-                p.next_event = if p.valid() && p.asynchronous() && p.event_us > 0 {
-                    (now + Duration::from_micros(u64::from(p.event_us))).0
-                } else {
-                    NEVER
-                };
-                p.pending = false;
-                p.sync_count = 0;
-                p.changed = true;
-            }
+        if !(active && self.active) {
+            self.active = active;
+            self.restart(now);
         }
-        if !active {
-            for p in &mut self.pdos[..self.count] {
-                p.next_event = NEVER;
-                p.pending = false;
-            }
-        }
-        self.active = active;
         self.refresh_due();
+    }
+
+    /// Every TPDO's timers from `now`: started while active, stopped otherwise. The SYNC
+    /// state restarts too (it is read only while active, and set again when production starts).
+    fn restart(&mut self, now: Instant) {
+        for p in &mut self.pdos[..self.count] {
+            p.next_event = if self.active && p.valid() && p.asynchronous() && p.event_us > 0 {
+                (now + Duration::from_micros(u64::from(p.event_us))).0
+            } else {
+                NEVER
+            };
+            p.pending = false;
+            p.sync_count = 0;
+            p.changed = true;
+        }
     }
 
     /// Whether PDOs are being produced.
