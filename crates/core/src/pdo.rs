@@ -586,27 +586,25 @@ impl Tpdos {
             return f;
         }
         let mut due = NEVER;
+        let mut f = None;
         let mut mask = self.timer_mask;
         while mask != 0 {
+            if f.is_some() {
+                // The TPDOs after a frame are looked at by the next call: until then
+                // something may still be due now.
+                due = now.0;
+                break;
+            }
             // `timer_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
             let n = (mask.trailing_zeros() & (MAX_TPDOS as u32 - 1)) as usize;
             mask &= mask - 1;
             let p = &mut self.pdos[n];
-            if let Some(f) = p.step(od, now) {
-                // The TPDOs after this one are looked at by the next call: until then
-                // something may still be due now.
-                self.due = if mask == 0 {
-                    due.min(p.own_due())
-                } else {
-                    now.0
-                };
-                return Some(f);
-            }
+            f = p.step(od, now);
             due = due.min(p.own_due());
         }
         // `due` is `NEVER` while inactive: no timer runs then.
         self.due = due;
-        None
+        f
     }
 
     /// Read access to TPDO `n` (0-based).
