@@ -129,14 +129,29 @@ impl Tpdo {
         if (fired || self.pending) && now >= self.inhibit_until {
             self.pending = false;
             self.changed = false;
-            self.inhibit_until = now + self.inhibit();
-            return Some(build(self, od));
+            return Some(self.send(od, now));
         }
         if fired {
             // Held back by the inhibit time.
             self.pending = true;
         }
         None
+    }
+
+    /// The frame of this TPDO at `now`, which starts its inhibit time. Out of line without
+    /// `inline-hot-paths`: SYNC, RTR and the timers share it.
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn send(&mut self, od: &Dictionary, now: Instant) -> Frame {
+        self.inhibit_until = now + self.inhibit();
+        // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
+        // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
+        let mut acc = 0u64;
+        for m in self.map.iter().take(self.n_map as usize) {
+            acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
+        }
+        // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
+        Frame::std_checked(self.can_id(), acc.to_le_bytes(), self.len)
     }
 
     /// The earliest instant at which [`Tpdo::step`] has work.
@@ -503,8 +518,7 @@ impl Tpdos {
                 }
             };
             if send {
-                out.push(build(p, od));
-                p.inhibit_until = now + p.inhibit();
+                out.push(p.send(od, now));
             }
         }
         // Synchronous TPDOs have no timer of their own: the schedule is unchanged.
@@ -523,8 +537,7 @@ impl Tpdos {
         }
         for p in &mut self.pdos[..self.count] {
             if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
-                out(build(p, od));
-                p.inhibit_until = now + p.inhibit();
+                out(p.send(od, now));
                 self.refresh_due();
                 return true;
             }
@@ -626,19 +639,6 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
         return Err(Abort::NotMappable);
     }
     Ok(())
-}
-
-#[cfg_attr(feature = "inline-hot-paths", inline(always))]
-#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
-fn build(p: &Tpdo, od: &Dictionary) -> Frame {
-    // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
-    // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
-    let mut acc = 0u64;
-    for m in p.map.iter().take(p.n_map as usize) {
-        acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
-    }
-    // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
-    Frame::std_checked(p.can_id(), acc.to_le_bytes(), p.len)
 }
 
 #[cfg(test)]
