@@ -332,15 +332,10 @@ impl Tpdos {
                 break;
             }
             // Precomputed so that building a TPDO is one mask and one shift per entry.
-            let b = u32::from(bytes).min(4);
             p.map[p.n_map as usize] = Mapped {
                 slot: slot as u8,
                 shift: 8 * p.len,
-                mask: if b == 4 {
-                    u32::MAX
-                } else {
-                    (1u32 << (8 * b)) - 1
-                },
+                mask: byte_mask(bytes),
             };
             p.n_map += 1;
             p.len += bytes;
@@ -641,9 +636,26 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     Ok(())
 }
 
+/// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
+/// instead of a branch around the shift by 32.
+#[inline(always)]
+fn byte_mask(bytes: u8) -> u32 {
+    1u32.checked_shl(8 * u32::from(bytes))
+        .map_or(u32::MAX, |v| v - 1)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn byte_mask_keeps_the_low_bytes() {
+        // Every entry length `configure` admits (at most 8 bytes in all).
+        for bytes in 0..=8u8 {
+            let want = ((1u64 << (8 * bytes.min(4))) - 1) as u32;
+            assert_eq!(byte_mask(bytes), want, "{bytes}");
+        }
+    }
 
     #[test]
     fn restricted_table_matches_ranges() {
