@@ -320,7 +320,7 @@ impl Tpdos {
         let count = od.value(mi, 0).unwrap_or(0) as usize;
         p.n_map = 0;
         p.len = 0;
-        for k in 1..=count.min(MAX_MAP) {
+        for k in 1..count.min(MAX_MAP) + 1 {
             let Some(raw) = od.value(mi, k as u8) else {
                 break;
             };
@@ -359,7 +359,7 @@ impl Tpdos {
                     return Err(Abort::InvalidValue)
                 }
                 // D10: 241–253 are reserved.
-                2 if (241..=253).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
+                2 if (241..254).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
                 _ => {}
             }
             return Ok(());
@@ -425,7 +425,8 @@ impl Tpdos {
             }
         } else if sub == 0 {
             let mut bits = 0u32;
-            for k in 1..=raw as usize {
+            // `check_value` kept `raw` to the entries there are: no overflow.
+            for k in 1..raw + 1 {
                 let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
                 if e == 0 {
                     // An empty entry cannot be counted in.
