@@ -119,10 +119,12 @@ impl Tpdo {
             if next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
                 // only runs when it is not 0); floored here, off the usual path, where it is used.
+                // `q` whole periods passed since `t` (`q` ≥ 1 here: all but the one due at `t`
+                // were missed) and `r` µs of the current one: the next starts `per - r` µs on.
                 let per = per.max(1);
-                let skipped = crate::div::div(now.0 - next, per) + 1;
-                self.missed = self.missed.wrapping_add(skipped as u32);
-                next += skipped * per;
+                let (q, r) = crate::div::div_rem(now.0 - t, per);
+                self.missed = self.missed.wrapping_add(q as u32);
+                next = now.0 - r + per;
             }
             self.next_event = next;
         }
