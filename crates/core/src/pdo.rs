@@ -258,7 +258,7 @@ impl Tpdos {
     /// Recomputes `timer_mask`, `sync_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
         let (mut mask, mut sync) = (0u8, 0u8);
-        for (n, p) in self.pdos[..self.count].iter().enumerate() {
+        for (n, p) in self.pdos.iter().take(self.count).enumerate() {
             if p.valid() {
                 if p.asynchronous() {
                     mask |= 1 << n;
@@ -456,7 +456,7 @@ impl Tpdos {
     /// Every TPDO's timers from `now`: started while active, stopped otherwise. The SYNC
     /// state restarts too (it is read only while active, and set again when production starts).
     fn restart(&mut self, now: Instant) {
-        for p in &mut self.pdos[..self.count] {
+        for p in self.pdos.iter_mut().take(self.count) {
             p.next_event = if self.active && p.valid() && p.asynchronous() && p.event_us > 0 {
                 (now + Duration::from_micros(u64::from(p.event_us))).0
             } else {
@@ -476,7 +476,7 @@ impl Tpdos {
     /// A mapped value changed. `event` marks application events (cam / work-area state
     /// changes) that trigger asynchronous TPDOs mapping `slot`.
     pub fn value_changed(&mut self, slot: usize, event: bool) {
-        for p in &mut self.pdos[..self.count] {
+        for p in self.pdos.iter_mut().take(self.count) {
             if !p.valid()
                 || !p.map[..p.n_map as usize]
                     .iter()
@@ -533,7 +533,7 @@ impl Tpdos {
         if !self.active {
             return false;
         }
-        for p in &mut self.pdos[..self.count] {
+        for p in self.pdos.iter_mut().take(self.count) {
             if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
                 out(p.send(od, now));
                 self.refresh_due();
