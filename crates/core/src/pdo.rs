@@ -456,8 +456,10 @@ impl Tpdos {
     /// Every TPDO's timers from `now`: started while active, stopped otherwise. The SYNC
     /// state restarts too (it is read only while active, and set again when production starts).
     fn restart(&mut self, now: Instant) {
-        for p in self.pdos.iter_mut().take(self.count) {
-            p.next_event = if self.active && p.valid() && p.asynchronous() && p.event_us > 0 {
+        // The TPDOs in `timer_mask` are the valid asynchronous ones.
+        let timers = if self.active { self.timer_mask } else { 0 };
+        for (n, p) in self.pdos.iter_mut().take(self.count).enumerate() {
+            p.next_event = if timers >> n & 1 != 0 && p.event_us > 0 {
                 (now + Duration::from_micros(u64::from(p.event_us))).0
             } else {
                 NEVER
