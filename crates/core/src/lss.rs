@@ -91,25 +91,20 @@ const REFUSED: u8 = 1;
 /// Status byte of store configuration: storage media access error.
 const STORAGE_ERROR: u8 = 2;
 
+/// Marks the reserved entry of [`BIT_TIMING_TABLE`].
+const RESERVED: u16 = u16::MAX;
+
 /// The CiA 305 bit-timing table 0 in kbit/s, by index (5 is reserved, 9 is automatic
 /// bit-rate detection, which canpos represents as 0).
-const BIT_TIMING_TABLE: [Option<u16>; 10] = [
-    Some(1000),
-    Some(800),
-    Some(500),
-    Some(250),
-    Some(125),
-    None,
-    Some(50),
-    Some(20),
-    Some(10),
-    Some(0),
-];
+const BIT_TIMING_TABLE: [u16; 10] = [1000, 800, 500, 250, 125, RESERVED, 50, 20, 10, 0];
 
 /// The bit rate in kbit/s of CiA 305 table-0 entry `index` (0 = automatic detection), `None`
 /// for a reserved or unknown index. Whether a model accepts it is a separate question (D9).
 pub fn bit_timing_kbps(index: u8) -> Option<u16> {
-    BIT_TIMING_TABLE.get(index as usize).copied().flatten()
+    BIT_TIMING_TABLE
+        .get(index as usize)
+        .copied()
+        .filter(|&k| k != RESERVED)
 }
 
 /// Progress through a multi-frame LSS sequence (switch selective, identify remote slave): how
