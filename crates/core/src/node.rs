@@ -561,6 +561,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.update_pdo_activity(now);
     }
 
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))] // one copy for both callers
     fn after_lss(&mut self, now: Instant) {
         // A node that was unconfigured enters NMT once it has a node-id and LSS is waiting.
         let d = &self.dev;
