@@ -959,33 +959,32 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.talk_from = self.talk_from_now();
     }
 
-    /// Carries out what an LSS request asks; returns whether it succeeded.
+    /// Carries out what an LSS request asks; returns whether it succeeded. Configure node-id /
+    /// bit timing set the pending value and the objects that copy it (TMI 0x2000 / 0x2001), so
+    /// that every copy says the same.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))] // rare: out of the frame path
     fn lss_request(&mut self, r: lss::Request) -> bool {
-        match r {
-            lss::Request::ConfigureNodeId(id) => self.set_pending_node_id(id),
-            lss::Request::ConfigureBitRate(kbps) => self.set_pending_bitrate(kbps),
+        let (hook, raw) = match r {
+            lss::Request::ConfigureNodeId(id) => {
+                self.pending_node_id = id;
+                if id == UNCONFIGURED {
+                    return true;
+                }
+                (Hook::PendingNodeId, id as u32)
+            }
+            lss::Request::ConfigureBitRate(kbps) => {
+                self.pending_bitrate = kbps;
+                (Hook::PendingBitRate, object_of_kbps(kbps))
+            }
             lss::Request::ActivateBitRate { silent_until } => {
                 // Deaf and mute for both switch delays; checked on every frame.
                 self.silent_until = Some(silent_until);
+                return true;
             }
             lss::Request::StoreConfiguration => return self.store_lss().is_ok(),
-        }
+        };
+        self.set_hooked(hook, raw);
         true
-    }
-
-    /// Sets the pending node-id (LSS configure node-id) and the objects that copy it (TMI
-    /// 0x2000), so that every copy says the same.
-    fn set_pending_node_id(&mut self, id: u8) {
-        self.pending_node_id = id;
-        if id != UNCONFIGURED {
-            self.set_hooked(Hook::PendingNodeId, id as u32);
-        }
-    }
-
-    /// Sets the pending bit rate (LSS configure bit timing) and its object copies (TMI 0x2001).
-    fn set_pending_bitrate(&mut self, kbps: u16) {
-        self.pending_bitrate = kbps;
-        self.set_hooked(Hook::PendingBitRate, object_of_kbps(kbps));
     }
 
     /// Sets every entry with `hook` (rare paths only: it scans the table).
