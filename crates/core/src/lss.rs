@@ -199,6 +199,9 @@ pub enum Request {
 
 /// What one LSS frame produced.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+// A word-sized tag puts an answer on a word boundary: written and read as two aligned words
+// (a byte tag leaves it at offset 1).
+#[repr(u32)]
 pub enum Output {
     /// No answer (CiA 305 slaves stay silent on what is not for them).
     Silent,
