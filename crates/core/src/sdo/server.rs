@@ -1,4 +1,4 @@
-use super::wire::{self, Mux, Request, MAX_BLKSIZE, SEGMENT_DATA};
+use super::wire::{self, Mux, MAX_BLKSIZE, SEGMENT_DATA};
 use super::{abort_payload, ObjectAccess};
 use crate::od::Abort;
 use crate::wire::{Duration, Instant};
@@ -256,19 +256,26 @@ impl SdoServer {
         if let State::BlkDown { last: false, .. } = self.state_as(t) {
             return self.block_download_segment(&req, now);
         }
-        let parsed = Request::parse(&req);
-        if let Request::Abort { .. } = parsed {
+        // The command byte is decoded where it is used (as `Request::parse` does), without a
+        // `Request` in between: one decoding, not a value built and taken apart again.
+        let b0 = req[0];
+        let ccs = b0 >> 5;
+        if ccs == 4 {
             // The client's abort ends any transfer and is never answered.
             self.reset();
             return None;
         }
-        let mux = if self.state == State::Idle || parsed.is_initiate() {
-            Mux::from_frame(&req)
-        } else {
-            self.mux
-        };
-        let r = self.dispatch(parsed, od, t);
-        match r {
+        // `Request::is_initiate`: download, upload, block upload (cs 0), block download (cs 0).
+        if matches!(ccs, 1 | 2) || (ccs == 5 && b0 & 0x03 == 0) || (ccs == 6 && b0 & 0x01 == 0) {
+            // A new transfer replaces an unfinished one (see the type's docs).
+            self.reset();
+        }
+        if self.state == State::Idle {
+            // The object of a new transfer, and what an abort outside a transfer echoes (the
+            // multiplexor is read only while a transfer is unfinished).
+            self.mux = Mux::from_frame(&req);
+        }
+        match self.dispatch(&req, od, t) {
             Ok(r) => {
                 if self.state == State::Idle {
                     self.deadline = None;
@@ -277,16 +284,17 @@ impl SdoServer {
                 }
                 r
             }
-            Err(a) => {
-                let m = if self.state == State::Idle {
-                    mux
-                } else {
-                    self.mux
-                };
-                self.reset();
-                Some(abort_payload(m.index, m.sub, a))
-            }
+            Err(a) => self.abort(a),
         }
+    }
+
+    /// Ends the transfer with the abort `a`, which carries the transfer's multiplexor.
+    // Out of line: every abort the server sends leaves through it.
+    #[inline(never)]
+    fn abort(&mut self, a: Abort) -> Option<[u8; 8]> {
+        let m = self.mux;
+        self.reset();
+        Some(abort_payload(m.index, m.sub, a))
     }
 
     /// The state as far as the transfer types `t` allow: a type the device lacks never left a
@@ -308,74 +316,55 @@ impl SdoServer {
         }
     }
 
-    /// The request `req` in the current state. The initiates of a transfer type are guarded by
-    /// `t`, its later requests by [`SdoServer::state_as`], so that a type the device lacks is
-    /// gone with its constant.
+    /// The request `req` in the current state (an initiate has reset the server and set
+    /// `self.mux`). Every arm of a transfer type is guarded by `t` (its later requests also by
+    /// [`SdoServer::state_as`]), so that a type the device lacks is gone with its constant. The
+    /// fields are those [`wire::Request::parse`] decodes.
     fn dispatch(
         &mut self,
-        req: Request,
+        req: &[u8; 8],
         od: &mut dyn ObjectAccess,
         t: Transfers,
     ) -> Result<Option<[u8; 8]>, Abort> {
-        if req.is_initiate() {
-            // A new transfer replaces an unfinished one (see the type's docs).
-            self.reset();
-        }
-        match (req, self.state_as(t)) {
-            (
-                Request::DownloadInitiate {
-                    mux,
-                    expedited,
-                    size,
-                    data,
-                },
-                _,
-            ) => {
-                self.mux = mux;
-                if expedited {
+        let b0 = req[0];
+        let mux = self.mux;
+        let le32 = u32::from_le_bytes([req[4], req[5], req[6], req[7]]);
+        // s bit of a download initiate, t bit of a segment.
+        let indicated = b0 & 0x01 != 0;
+        let toggle = b0 & 0x10 != 0;
+        // cs of the block commands (ccs 5: bits 0…1; ccs 6: bit 0).
+        let cs = b0 & 0x03;
+        let crc = b0 & 0x04 != 0;
+        match (b0 >> 5, self.state_as(t)) {
+            (1, _) => {
+                if b0 & 0x02 != 0 {
+                    let size = indicated.then(|| 4 - u32::from((b0 >> 2) & 0x03));
+                    let data = [req[4], req[5], req[6], req[7]];
                     self.download_expedited(mux, size, &data, od).map(Some)
                 } else if t.segmented {
-                    self.download_segmented_initiate(mux, size, od).map(Some)
+                    self.download_segmented_initiate(mux, indicated.then_some(le32), od)
+                        .map(Some)
                 } else {
                     Err(Abort::InvalidCommand)
                 }
             }
-            (Request::UploadInitiate { mux }, _) => {
-                self.mux = mux;
-                self.upload_initiate(mux, od, t.segmented).map(Some)
-            }
-            (
-                Request::BlockUploadInitiate {
-                    mux,
-                    crc,
-                    blksize,
-                    pst,
-                },
-                _,
-            ) if t.block => {
-                self.mux = mux;
-                self.block_upload_initiate(mux, crc, blksize, pst, od, t.segmented)
-                    .map(Some)
-            }
-            (Request::BlockDownloadInitiate { mux, crc, size }, _) if t.block => {
-                self.mux = mux;
+            (2, _) => self.upload_initiate(mux, od, t.segmented).map(Some),
+            (5, _) if t.block && cs == 0 => self
+                .block_upload_initiate(mux, crc, req[4], req[5], od, t.segmented)
+                .map(Some),
+            (6, _) if t.block && cs & 0x01 == 0 => {
+                let size = (b0 & 0x02 != 0).then_some(le32);
                 self.block_download_initiate(mux, crc, size, od).map(Some)
             }
-            (
-                Request::DownloadSegment {
-                    toggle,
-                    unused,
-                    last,
-                    data,
-                },
-                State::DownSeg { toggle: tg, size },
-            ) => {
+            (0, State::DownSeg { toggle: tg, size }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
-                let k = SEGMENT_DATA.saturating_sub(unused as usize);
-                self.append(data.get(..k).unwrap_or(&[]), size)?;
-                if last {
+                // n = bits 1…3: bytes 1…7 less the n unused ones.
+                let k = SEGMENT_DATA - usize::from((b0 >> 1) & 0x07);
+                self.append(req.get(1..1 + k).unwrap_or(&[]), size)?;
+                if indicated {
+                    // c bit: the last segment.
                     self.finish_download(size, od)?;
                     self.state = State::Idle;
                 } else {
@@ -383,7 +372,7 @@ impl SdoServer {
                 }
                 Ok(Some(wire::download_segment_ack(tg)))
             }
-            (Request::UploadSegment { toggle }, State::UpSeg { toggle: tg }) => {
+            (3, State::UpSeg { toggle: tg }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
@@ -399,17 +388,20 @@ impl SdoServer {
                 };
                 Ok(Some(r))
             }
-            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) => {
+            (5, State::BlkUpInit { crc, blksize }) if t.block && cs == 3 => {
+                // Start of the block upload.
                 self.pos = 0;
                 self.start_block(crc, blksize);
                 Ok(None)
             }
             (
-                Request::BlockUploadAck { ackseq, blksize },
+                5,
                 State::BlkUp {
                     crc, segs, next, ..
                 },
-            ) => {
+            ) if t.block && cs == 2 => {
+                // Block acknowledgement: ackseq, blksize.
+                let (ackseq, blksize) = (req[1], req[2]);
                 // SDO-27: an ackseq beyond what was sent is a bad sequence number.
                 if ackseq > segs || ackseq >= next {
                     return Err(Abort::BlockSequence);
@@ -436,12 +428,13 @@ impl SdoServer {
                 self.start_block(crc, blksize);
                 Ok(None)
             }
-            (Request::BlockUploadEnd, State::BlkUpEnd) => {
+            (5, State::BlkUpEnd) if t.block && cs == 1 => {
+                // The client confirms the end frame.
                 self.state = State::Idle;
                 Ok(None)
             }
             (
-                Request::BlockDownloadEnd { unused, crc },
+                6,
                 State::BlkDown {
                     crc: use_crc,
                     size,
@@ -449,7 +442,10 @@ impl SdoServer {
                     last: true,
                     ..
                 },
-            ) => {
+            ) if t.block && indicated => {
+                // End of block download: n = bits 2…4, the CRC in bytes 1…2.
+                let unused = (b0 >> 2) & 0x07;
+                let crc = u16::from_le_bytes([req[1], req[2]]);
                 let total = raw
                     .checked_sub(unused as usize)
                     .ok_or(Abort::LengthMismatch)?;
