@@ -690,13 +690,8 @@ impl SdoServer {
         }
         let s = req[0] & 0x7F;
         let c = req[0] & 0x80 != 0;
-        let fail = |me: &mut Self, a: Abort| {
-            let m = me.mux;
-            me.reset();
-            Some(abort_payload(m.index, m.sub, a))
-        };
         if s == 0 || s > SERVER_BLKSIZE {
-            return fail(self, Abort::BlockSequence);
+            return self.abort(Abort::BlockSequence);
         }
         self.deadline = Some(now + SDO_TIMEOUT);
         let mut raw = raw;
@@ -706,10 +701,10 @@ impl SdoServer {
             let data = req.get(1..8).unwrap_or(&[]);
             let room = SDO_BUF_LEN.saturating_sub(self.len);
             if !c && data.len() > room {
-                return fail(self, Abort::OutOfMemory);
+                return self.abort(Abort::OutOfMemory);
             }
             if !c && size.is_some_and(|sz| raw + data.len() > sz) {
-                return fail(self, Abort::LengthMismatch);
+                return self.abort(Abort::LengthMismatch);
             }
             // The last segment's padding may not fit: its length is known only at the end.
             let k = data.len().min(room);
@@ -794,11 +789,7 @@ impl SdoServer {
     #[inline]
     pub fn handle_timeout(&mut self, now: Instant) -> Option<[u8; 8]> {
         match self.poll_timeout() {
-            Some(t) if now >= t => {
-                let m = self.mux;
-                self.reset();
-                Some(abort_payload(m.index, m.sub, Abort::Timeout))
-            }
+            Some(t) if now >= t => self.abort(Abort::Timeout),
             _ => None,
         }
     }
