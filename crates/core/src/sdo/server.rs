@@ -468,8 +468,7 @@ impl SdoServer {
         }
     }
 
-    #[cfg_attr(feature = "inline-hot-paths", inline)]
-    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    #[inline]
     fn download_expedited(
         &mut self,
         mux: Mux,
