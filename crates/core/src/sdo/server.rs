@@ -120,7 +120,8 @@ pub struct SdoServer {
     len: usize,
     /// Upload: bytes confirmed sent (segmented) or the start of the current block (block).
     pos: usize,
-    deadline: Option<Instant>,
+    /// The transfer's deadline in µs, `u64::MAX` for none (as [`SdoServer::due_us`]).
+    deadline: u64,
 }
 
 impl Default for SdoServer {
@@ -141,7 +142,7 @@ impl SdoServer {
             buf: [0; SDO_BUF_LEN],
             len: 0,
             pos: 0,
-            deadline: None,
+            deadline: u64::MAX,
         }
     }
 
@@ -149,7 +150,7 @@ impl SdoServer {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn reset(&mut self) {
         self.state = State::Idle;
-        self.deadline = None;
+        self.deadline = u64::MAX;
         self.len = 0;
         self.pos = 0;
     }
@@ -277,11 +278,11 @@ impl SdoServer {
         }
         match self.dispatch(&req, od, t) {
             Ok(r) => {
-                if self.state == State::Idle {
-                    self.deadline = None;
+                self.deadline = if self.state == State::Idle {
+                    u64::MAX
                 } else {
-                    self.deadline = Some(now + SDO_TIMEOUT);
-                }
+                    (now + SDO_TIMEOUT).0
+                };
                 r
             }
             Err(a) => self.abort(a),
@@ -692,7 +693,7 @@ impl SdoServer {
         if s == 0 || s > SERVER_BLKSIZE {
             return self.abort(Abort::BlockSequence);
         }
-        self.deadline = Some(now + SDO_TIMEOUT);
+        self.deadline = (now + SDO_TIMEOUT).0;
         let mut raw = raw;
         let mut seq = seq;
         let mut last = false;
@@ -778,9 +779,10 @@ impl SdoServer {
     /// [`SdoServer::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
-        match self.deadline {
-            Some(t) if self.state != State::Idle => t.0,
-            _ => u64::MAX,
+        if self.state != State::Idle {
+            self.deadline
+        } else {
+            u64::MAX
         }
     }
 
