@@ -254,29 +254,33 @@ impl SdoServer {
             self.bad_dlc = self.bad_dlc.wrapping_add(1);
             return None;
         };
-        if let State::BlkDown { last: false, .. } = self.state_as(t) {
-            return self.block_download_segment(&req, now);
-        }
-        // The command byte is decoded where it is used (as `Request::parse` does), without a
-        // `Request` in between: one decoding, not a value built and taken apart again.
-        let b0 = req[0];
-        let ccs = b0 >> 5;
-        if ccs == 4 {
-            // The client's abort ends any transfer and is never answered.
-            self.reset();
-            return None;
-        }
-        // `Request::is_initiate`: download, upload, block upload (cs 0), block download (cs 0).
-        if matches!(ccs, 1 | 2) || (ccs == 5 && b0 & 0x03 == 0) || (ccs == 6 && b0 & 0x01 == 0) {
-            // A new transfer replaces an unfinished one (see the type's docs).
-            self.reset();
-        }
-        if self.state == State::Idle {
-            // The object of a new transfer, and what an abort outside a transfer echoes (the
-            // multiplexor is read only while a transfer is unfinished).
-            self.mux = Mux::from_frame(&req);
-        }
-        match self.dispatch(&req, od, t) {
+        let r = if let State::BlkDown { last: false, .. } = self.state_as(t) {
+            self.block_download_segment(&req)
+        } else {
+            // The command byte is decoded where it is used (as `Request::parse` does), without
+            // a `Request` in between: one decoding, not a value built and taken apart again.
+            let b0 = req[0];
+            let ccs = b0 >> 5;
+            if ccs == 4 {
+                // The client's abort ends any transfer and is never answered.
+                self.reset();
+                return None;
+            }
+            // `Request::is_initiate`: download, upload, block upload / download (cs 0).
+            if matches!(ccs, 1 | 2) || (ccs == 5 && b0 & 0x03 == 0) || (ccs == 6 && b0 & 0x01 == 0)
+            {
+                // A new transfer replaces an unfinished one (see the type's docs).
+                self.reset();
+            }
+            if self.state == State::Idle {
+                // The object of a new transfer, and what an abort outside a transfer echoes
+                // (the multiplexor is read only while a transfer is unfinished).
+                self.mux = Mux::from_frame(&req);
+            }
+            self.dispatch(&req, od, t)
+        };
+        // Every answer, sub-block segments' included, leaves here: one deadline and one abort.
+        match r {
             Ok(r) => {
                 self.deadline = if self.state == State::Idle {
                     u64::MAX
@@ -672,7 +676,7 @@ impl SdoServer {
     }
 
     /// One frame inside a block-download sub-block.
-    fn block_download_segment(&mut self, req: &[u8; 8], now: Instant) -> Option<[u8; 8]> {
+    fn block_download_segment(&mut self, req: &[u8; 8]) -> Result<Option<[u8; 8]>, Abort> {
         let State::BlkDown {
             crc,
             size,
@@ -681,19 +685,18 @@ impl SdoServer {
             ..
         } = self.state
         else {
-            return None;
+            return Ok(None);
         };
         if req[0] == 0x80 {
             // c = 1 with seqno 0 is no segment: it is the client's abort.
             self.reset();
-            return None;
+            return Ok(None);
         }
         let s = req[0] & 0x7F;
         let c = req[0] & 0x80 != 0;
         if s == 0 || s > SERVER_BLKSIZE {
-            return self.abort(Abort::BlockSequence);
+            return Err(Abort::BlockSequence);
         }
-        self.deadline = (now + SDO_TIMEOUT).0;
         let mut raw = raw;
         let mut seq = seq;
         let mut last = false;
@@ -701,10 +704,10 @@ impl SdoServer {
             let data = req.get(1..8).unwrap_or(&[]);
             let room = SDO_BUF_LEN.saturating_sub(self.len);
             if !c && data.len() > room {
-                return self.abort(Abort::OutOfMemory);
+                return Err(Abort::OutOfMemory);
             }
             if !c && size.is_some_and(|sz| raw + data.len() > sz) {
-                return self.abort(Abort::LengthMismatch);
+                return Err(Abort::LengthMismatch);
             }
             // The last segment's padding may not fit: its length is known only at the end.
             let k = data.len().min(room);
@@ -727,7 +730,7 @@ impl SdoServer {
             seq: if block_end { 0 } else { seq },
             last,
         };
-        block_end.then(|| wire::block_download_ack(seq, SERVER_BLKSIZE))
+        Ok(block_end.then(|| wire::block_download_ack(seq, SERVER_BLKSIZE)))
     }
 
     /// The next block-upload segment to send, if a block is being sent. Call after
