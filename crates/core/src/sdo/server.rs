@@ -340,27 +340,42 @@ impl SdoServer {
         // cs of the block commands (ccs 5: bits 0…1; ccs 6: bit 0).
         let cs = b0 & 0x03;
         let crc = b0 & 0x04 != 0;
-        match (b0 >> 5, self.state_as(t)) {
-            (1, _) => {
-                if b0 & 0x02 != 0 {
-                    let size = indicated.then(|| 4 - u32::from((b0 >> 2) & 0x03));
-                    let data = [req[4], req[5], req[6], req[7]];
-                    self.download_expedited(mux, size, &data, od).map(Some)
-                } else if t.segmented {
-                    self.download_segmented_initiate(mux, indicated.then_some(le32), od)
-                        .map(Some)
+        let ccs = b0 >> 5;
+        match (ccs, self.state_as(t)) {
+            (1, _) if b0 & 0x02 != 0 => {
+                let size = indicated.then(|| 4 - u32::from((b0 >> 2) & 0x03));
+                let data = [req[4], req[5], req[6], req[7]];
+                self.download_expedited(mux, size, &data, od).map(Some)
+            }
+            // Segmented and block download initiates share one call of the size checks.
+            (1, _) | (6, _)
+                if (ccs == 1 && t.segmented) || (ccs == 6 && t.block && cs & 0x01 == 0) =>
+            {
+                // s: bit 0 (segmented), bit 1 (block).
+                let s = if ccs == 1 { indicated } else { b0 & 0x02 != 0 };
+                let size = self.check_download_size(mux, s.then_some(le32), od)?;
+                self.len = 0;
+                Ok(Some(if ccs == 1 {
+                    self.state = State::DownSeg {
+                        toggle: false,
+                        size,
+                    };
+                    wire::download_initiate_ack(mux)
                 } else {
-                    Err(Abort::InvalidCommand)
-                }
+                    self.state = State::BlkDown {
+                        crc,
+                        size,
+                        raw: 0,
+                        seq: 0,
+                        last: false,
+                    };
+                    wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE)
+                }))
             }
             (2, _) => self.upload_initiate(mux, od, t.segmented).map(Some),
             (5, _) if t.block && cs == 0 => self
                 .block_upload_initiate(mux, crc, req[4], req[5], od, t.segmented)
                 .map(Some),
-            (6, _) if t.block && cs & 0x01 == 0 => {
-                let size = (b0 & 0x02 != 0).then_some(le32);
-                self.block_download_initiate(mux, crc, size, od).map(Some)
-            }
             (0, State::DownSeg { toggle: tg, size }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
@@ -487,25 +502,8 @@ impl SdoServer {
         Ok(wire::download_initiate_ack(mux))
     }
 
-    fn download_segmented_initiate(
-        &mut self,
-        mux: Mux,
-        size: Option<u32>,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let size = self.check_download_size(mux, size, od)?;
-        self.len = 0;
-        self.state = State::DownSeg {
-            toggle: false,
-            size,
-        };
-        Ok(wire::download_initiate_ack(mux))
-    }
-
     /// Initiate-time checks of a segmented / block download: the object is writable and an
     /// indicated size fits the object and the buffer.
-    // Out of line: the segmented and the block initiate share it.
-    #[inline(never)]
     fn check_download_size(
         &mut self,
         mux: Mux,
@@ -654,25 +652,6 @@ impl SdoServer {
             next: 1,
             blksize,
         };
-    }
-
-    fn block_download_initiate(
-        &mut self,
-        mux: Mux,
-        crc: bool,
-        size: Option<u32>,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let size = self.check_download_size(mux, size, od)?;
-        self.len = 0;
-        self.state = State::BlkDown {
-            crc,
-            size,
-            raw: 0,
-            seq: 0,
-            last: false,
-        };
-        Ok(wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE))
     }
 
     /// One frame inside a block-download sub-block.
