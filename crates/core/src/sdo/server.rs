@@ -372,10 +372,12 @@ impl SdoServer {
                     wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE)
                 }))
             }
-            (2, _) => self.upload_initiate(mux, od, t.segmented).map(Some),
-            (5, _) if t.block && cs == 0 => self
-                .block_upload_initiate(mux, crc, req[4], req[5], od, t.segmented)
-                .map(Some),
+            (2, _) => self.upload_initiate(mux, od, t.segmented, None).map(Some),
+            (5, _) if t.block && cs == 0 => {
+                // blksize, pst.
+                let block = Some((crc, req[4], req[5]));
+                self.upload_initiate(mux, od, t.segmented, block).map(Some)
+            }
             (0, State::DownSeg { toggle: tg, size }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
@@ -579,15 +581,27 @@ impl SdoServer {
         }))
     }
 
-    /// An upload initiate; a value that needs a segmented transfer is refused unless
-    /// `segmented`.
+    /// An upload initiate: a plain one (`block` = `None`), where a value that needs a
+    /// segmented transfer is refused unless `segmented`, or a block one (`block` = `Some((crc,
+    /// blksize, pst))`). Both share the size query and the read into the buffer.
     fn upload_initiate(
         &mut self,
         mux: Mux,
         od: &mut dyn ObjectAccess,
         segmented: bool,
+        block: Option<(bool, u8, u8)>,
     ) -> Result<[u8; 8], Abort> {
+        if block.is_some_and(|(_, blksize, _)| blksize == 0 || blksize > MAX_BLKSIZE) {
+            return Err(Abort::BlockSize);
+        }
         let size = od.upload_size(mux.index, mux.sub)?;
+        // Protocol switch: the client allows a plain upload for a value this small.
+        let block = block.filter(|&(_, _, pst)| pst == 0 || size > pst as usize);
+        if let Some((crc, blksize, _)) = block {
+            self.load(mux, size, od)?;
+            self.state = State::BlkUpInit { crc, blksize };
+            return Ok(wire::block_upload_initiate(mux, crc, self.len as u32));
+        }
         if (1..=4).contains(&size) {
             let mut b = [0u8; 4];
             let n = od.read(mux.index, mux.sub, 0, &mut b)?;
@@ -614,28 +628,6 @@ impl SdoServer {
         self.len = n.min(size);
         self.pos = 0;
         Ok(())
-    }
-
-    fn block_upload_initiate(
-        &mut self,
-        mux: Mux,
-        crc: bool,
-        blksize: u8,
-        pst: u8,
-        od: &mut dyn ObjectAccess,
-        segmented: bool,
-    ) -> Result<[u8; 8], Abort> {
-        if blksize == 0 || blksize > MAX_BLKSIZE {
-            return Err(Abort::BlockSize);
-        }
-        let size = od.upload_size(mux.index, mux.sub)?;
-        if pst != 0 && size <= pst as usize {
-            // Protocol switch: the client allows a plain upload for a value this small.
-            return self.upload_initiate(mux, od, segmented);
-        }
-        self.load(mux, size, od)?;
-        self.state = State::BlkUpInit { crc, blksize };
-        Ok(wire::block_upload_initiate(mux, crc, self.len as u32))
     }
 
     /// Sets up the block that starts at `self.pos`; `poll_transmit` emits its segments.
