@@ -91,25 +91,20 @@ const REFUSED: u8 = 1;
 /// Status byte of store configuration: storage media access error.
 const STORAGE_ERROR: u8 = 2;
 
+/// Marks the reserved entry of [`BIT_TIMING_TABLE`].
+const RESERVED: u16 = u16::MAX;
+
 /// The CiA 305 bit-timing table 0 in kbit/s, by index (5 is reserved, 9 is automatic
 /// bit-rate detection, which canpos represents as 0).
-const BIT_TIMING_TABLE: [Option<u16>; 10] = [
-    Some(1000),
-    Some(800),
-    Some(500),
-    Some(250),
-    Some(125),
-    None,
-    Some(50),
-    Some(20),
-    Some(10),
-    Some(0),
-];
+const BIT_TIMING_TABLE: [u16; 10] = [1000, 800, 500, 250, 125, RESERVED, 50, 20, 10, 0];
 
 /// The bit rate in kbit/s of CiA 305 table-0 entry `index` (0 = automatic detection), `None`
 /// for a reserved or unknown index. Whether a model accepts it is a separate question (D9).
 pub fn bit_timing_kbps(index: u8) -> Option<u16> {
-    BIT_TIMING_TABLE.get(index as usize).copied().flatten()
+    BIT_TIMING_TABLE
+        .get(index as usize)
+        .copied()
+        .filter(|&k| k != RESERVED)
 }
 
 /// Progress through a multi-frame LSS sequence (switch selective, identify remote slave): how
@@ -123,25 +118,31 @@ struct Sequence {
 }
 
 impl Sequence {
-    /// Frame `step` of the sequence arrived; returns false (and starts over) if it is out of
-    /// order. Frame 0 always (re)starts the sequence, so a master can retry at any point.
+    /// Frame `step` of a sequence whose frames are `0..=last` arrived, `matched` or not. True
+    /// once frame `last` completes it in order with every frame matched; the sequence then starts
+    /// over. A frame out of order starts it over too; frame 0 always (re)starts it, so a master
+    /// can retry at any point.
     #[inline(never)] // both LSS sequences share one copy
-    fn advance(&mut self, step: u8, matched: bool) -> bool {
+    fn advance(&mut self, step: u8, matched: bool, last: u8) -> bool {
         if step == 0 {
             *self = Sequence {
                 step: 1,
                 matched,
                 low: 0,
             };
-            return true;
-        }
-        if self.step != step {
+        } else if self.step != step {
             *self = Sequence::default();
             return false;
+        } else {
+            self.step += 1;
+            self.matched &= matched;
         }
-        self.step += 1;
-        self.matched &= matched;
-        true
+        if step != last {
+            return false;
+        }
+        let all = self.matched;
+        *self = Sequence::default();
+        all
     }
 }
 
@@ -198,6 +199,9 @@ pub enum Request {
 
 /// What one LSS frame produced.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+// A word-sized tag puts an answer on a word boundary: written and read as two aligned words
+// (a byte tag leaves it at offset 1).
+#[repr(u32)]
 pub enum Output {
     /// No answer (CiA 305 slaves stay silent on what is not for them).
     Silent,
@@ -246,6 +250,7 @@ impl LssSlave {
     }
 
     /// Handles one frame on 0x7E5.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn handle(&mut self, data: &[u8], now: Instant, node: &impl LssNode) -> Output {
         // CiA 305 frames are always 8 bytes; anything else is not LSS and gets no answer.
         let Ok(d) = <&[u8; 8]>::try_from(data) else {
@@ -270,21 +275,15 @@ impl LssSlave {
             // a slave already in configuration ignores it, as CANopenNode does.
             c @ cs::SWITCH_SEL_VENDOR..=cs::SWITCH_SEL_SERIAL if !self.configuration => {
                 let part = c - cs::SWITCH_SEL_VENDOR;
-                let ok = self
-                    .selective
-                    .advance(part, value == node.address()[part as usize]);
-                if ok && part == 3 {
-                    let all = self.selective.matched;
-                    self.selective = Sequence::default();
-                    if all {
-                        self.configuration = true;
-                        return Output::Answer(answer(cs::SWITCH_SEL_RESPONSE, 0));
-                    }
+                let matched = value == address_part(node, part);
+                if self.selective.advance(part, matched, 3) {
+                    self.configuration = true;
+                    return Output::Answer(answer(cs::SWITCH_SEL_RESPONSE, 0));
                 }
                 Output::Silent
             }
             c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => {
-                answer_if(self.identify(c, value, &node.address()))
+                answer_if(self.identify(c, value, node))
             }
             cs::IDENTIFY_NON_CONFIGURED => answer_if(
                 node.unconfigured()
@@ -326,7 +325,7 @@ impl LssSlave {
             }
             cs::STORE_CONFIGURATION => Output::Do(Request::StoreConfiguration),
             c @ cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL => {
-                let v = node.address()[(c - cs::INQUIRE_VENDOR) as usize].to_le_bytes();
+                let v = address_part(node, c - cs::INQUIRE_VENDOR).to_le_bytes();
                 Output::Answer([c, v[0], v[1], v[2], v[3], 0, 0, 0])
             }
             // The manuals' example answers `5E 7F` for a node running as 127: the active
@@ -339,28 +338,20 @@ impl LssSlave {
     /// Identify remote slave (0x46…0x4B): answers 0x4F after the sixth frame if vendor and
     /// product equal the slave's and revision and serial lie within the bounds (inclusive).
     /// Valid in both LSS states (CiA 305), so a master can look for slaves at any time.
-    fn identify(&mut self, c: u8, value: u32, addr: &[u32; 4]) -> Option<[u8; 8]> {
+    fn identify(&mut self, c: u8, value: u32, node: &impl LssNode) -> Option<[u8; 8]> {
         let step = c - cs::IDENTIFY_VENDOR;
-        let matched = match step {
-            0 => value == addr[0],
-            1 => value == addr[1],
-            // Low bounds are kept until their high bound arrives.
-            2 | 4 => true,
-            3 => (self.identify.low..=value).contains(&addr[2]),
-            _ => (self.identify.low..=value).contains(&addr[3]),
-        };
-        if !self.identify.advance(step, matched) {
-            return None;
-        }
-        if step == 2 || step == 4 {
+        // Steps 2 and 4 are the low bounds of revision and serial, kept until their high bounds
+        // (3, 5) arrive; vendor and product (0, 1) are a range of one value.
+        let bound = step == 2 || step == 4;
+        if bound {
+            // A frame out of order clears it again in `advance`.
             self.identify.low = value;
         }
-        if step == 5 {
-            let all = self.identify.matched;
-            self.identify = Sequence::default();
-            return all.then(|| answer(cs::IDENTIFY_SLAVE, 0));
-        }
-        None
+        let low = if step < 2 { value } else { self.identify.low };
+        let matched = bound || (low..=value).contains(&address_part(node, step.div_ceil(2)));
+        self.identify
+            .advance(step, matched, 5)
+            .then(|| answer(cs::IDENTIFY_SLAVE, 0))
     }
 
     /// Fastscan (CiA 305 V2): byte 5 `bitChecked`, byte 6 `lssSub`, byte 7 `lssNext`. Only
@@ -370,7 +361,6 @@ impl LssSlave {
         if !node.fastscan() || self.configuration || !node.unconfigured() {
             return None;
         }
-        let addr = &node.address();
         let (bit_checked, sub, next) = (d[5], d[6], d[7]);
         if bit_checked == FASTSCAN_CONFIRM {
             // Reset: every participant answers and starts again with the vendor-id.
@@ -382,7 +372,7 @@ impl LssSlave {
         }
         // Bits bit_checked…31 are compared; the lower ones are still unknown to the master.
         let mask = u32::MAX << bit_checked;
-        if addr[sub as usize] & mask != id_number & mask {
+        if address_part(node, sub) & mask != id_number & mask {
             return None;
         }
         self.fastscan_pos = next;
@@ -416,6 +406,13 @@ impl LssSlave {
         self.switch = None;
         Some(s.kbps)
     }
+}
+
+/// Part `i` (0 vendor-id … 3 serial number) of the node's LSS address. One copy for the four
+/// services that compare or report a part (`i` is at most 3 at every call).
+#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+fn address_part(node: &impl LssNode, i: u8) -> u32 {
+    node.address()[i as usize]
 }
 
 /// An LSS answer frame: specifier, status / byte 1, zeros.
@@ -485,13 +482,32 @@ mod tests {
     #[test]
     fn sequence_restarts_and_rejects_out_of_order() {
         let mut s = Sequence::default();
-        assert!(!s.advance(1, true));
-        assert!(s.advance(0, true));
-        assert!(s.advance(1, false));
-        assert!(!s.matched);
-        assert!(s.advance(0, true));
-        assert!(s.matched && s.step == 1);
-        assert!(!s.advance(2, true));
+        assert!(!s.advance(1, true, 3));
         assert_eq!(s.step, 0);
+        assert!(!s.advance(0, true, 3));
+        assert!(!s.advance(1, false, 3));
+        assert!(!s.matched);
+        assert!(!s.advance(0, true, 3));
+        assert!(s.matched && s.step == 1);
+        assert!(!s.advance(2, true, 3));
+        assert_eq!(s.step, 0);
+    }
+
+    #[test]
+    fn sequence_completes_only_in_order_and_all_matched() {
+        let mut s = Sequence::default();
+        for step in 0..3 {
+            assert!(!s.advance(step, true, 3));
+        }
+        assert!(s.advance(3, true, 3));
+        assert_eq!(s, Sequence::default(), "starts over once complete");
+        for step in 0..3 {
+            assert!(!s.advance(step, step != 1, 3));
+        }
+        assert!(!s.advance(3, true, 3), "one frame did not match");
+        assert_eq!(s, Sequence::default());
+        for step in [0, 1, 3] {
+            assert!(!s.advance(step, true, 3), "frame 2 missing");
+        }
     }
 }

@@ -51,8 +51,22 @@ fn object_of_kbps(kbps: u16) -> u32 {
 }
 
 /// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
+// Out of line: the image loaders share one copy.
+#[inline(never)]
 fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
+}
+
+/// The slot and entry of this model's object that a stored record's `key` names, if any (an
+/// LSS or bookkeeping key names none). Out of line: every reading and writing of the image
+/// looks its records up through it.
+#[inline(never)]
+fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
+    if !storage::is_object_key(key) {
+        return None;
+    }
+    let slot = od.find((key >> 8) as u16, key as u8).ok()?;
+    Some((slot, od.entries().get(slot)?))
 }
 
 /// A stored value of `e` as it applies under node-id `node` (D15): a COB-ID whose CAN-ID was the
@@ -590,6 +604,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.update_pdo_activity(now);
     }
 
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))] // one copy for both callers
     fn after_lss(&mut self, now: Instant) {
         // A node that was unconfigured enters NMT once it has a node-id and LSS is waiting.
         let d = &self.dev;
@@ -1001,33 +1016,32 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.talk_from = self.talk_from_now();
     }
 
-    /// Carries out what an LSS request asks; returns whether it succeeded.
+    /// Carries out what an LSS request asks; returns whether it succeeded. Configure node-id /
+    /// bit timing set the pending value and the objects that copy it (TMI 0x2000 / 0x2001), so
+    /// that every copy says the same.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))] // rare: out of the frame path
     fn lss_request(&mut self, r: lss::Request) -> bool {
-        match r {
-            lss::Request::ConfigureNodeId(id) => self.set_pending_node_id(id),
-            lss::Request::ConfigureBitRate(kbps) => self.set_pending_bitrate(kbps),
+        let (hook, raw) = match r {
+            lss::Request::ConfigureNodeId(id) => {
+                self.pending_node_id = id;
+                if id == UNCONFIGURED {
+                    return true;
+                }
+                (Hook::PendingNodeId, id as u32)
+            }
+            lss::Request::ConfigureBitRate(kbps) => {
+                self.pending_bitrate = kbps;
+                (Hook::PendingBitRate, object_of_kbps(kbps))
+            }
             lss::Request::ActivateBitRate { silent_until } => {
                 // Deaf and mute for both switch delays; checked on every frame.
                 self.silent_until = Some(silent_until);
+                return true;
             }
             lss::Request::StoreConfiguration => return self.store_lss().is_ok(),
-        }
+        };
+        self.set_hooked(hook, raw);
         true
-    }
-
-    /// Sets the pending node-id (LSS configure node-id) and the objects that copy it (TMI
-    /// 0x2000), so that every copy says the same.
-    fn set_pending_node_id(&mut self, id: u8) {
-        self.pending_node_id = id;
-        if id != UNCONFIGURED {
-            self.set_hooked(Hook::PendingNodeId, id as u32);
-        }
-    }
-
-    /// Sets the pending bit rate (LSS configure bit timing) and its object copies (TMI 0x2001).
-    fn set_pending_bitrate(&mut self, kbps: u16) {
-        self.pending_bitrate = kbps;
-        self.set_hooked(Hook::PendingBitRate, object_of_kbps(kbps));
     }
 
     /// Sets every entry with `hook` (rare paths only: it scans the table).
@@ -1076,13 +1090,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             .find(|&(k, _)| k == storage::KEY_SAVED_NODE_ID)
             .and_then(|(_, v)| stored_node_id(v));
         for (k, v) in recs {
-            if !storage::is_object_key(k) {
-                continue;
-            }
-            let Ok(slot) = self.od.find((k >> 8) as u16, k as u8) else {
+            let Some((slot, e)) = stored_entry(&self.od, k) else {
                 continue;
             };
-            let e = self.od.entry(slot);
             if e.group != crate::od::Group::Volatile && reloads(e) {
                 let v = follow_node_id(e, v, saved_node, node);
                 // A checksummed image can still hold what no write would have been let in (a
@@ -1131,18 +1141,11 @@ impl<A: Application, S: Storage> Device<A, S> {
                 // node 0 or 200.
                 storage::KEY_LSS_NODE_ID => lss.0 = stored_node_id(v).or(lss.0),
                 storage::KEY_LSS_BITRATE => lss.1 = Some(v as u16),
-                _ if storage::is_object_key(k) => {
-                    match self
-                        .od
-                        .find((k >> 8) as u16, k as u8)
-                        .map(|s| self.od.entry(s).hook)
-                    {
-                        Ok(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
-                        Ok(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
-                        _ => {}
-                    }
-                }
-                _ => {}
+                _ => match stored_entry(&self.od, k).map(|(_, e)| e.hook) {
+                    Some(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
+                    Some(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
+                    _ => {}
+                },
             }
         }
         ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
@@ -1278,43 +1281,35 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// itself: the covered entries' current values replace what was stored for them; the
     /// rest of the image stays. The active node-id goes with it (D15).
     pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
-        let od = &self.od;
-        let covered = |k: u32| {
-            k == storage::KEY_SAVED_NODE_ID
-                || storage::is_object_key(k)
-                    && od
-                        .find((k >> 8) as u16, k as u8)
-                        .is_ok_and(|s| scope.covers(od.entry(s)))
-        };
-        let values = od
-            .entries()
-            .iter()
-            .enumerate()
-            .filter(|(_, e)| scope.covers(e))
-            .map(|(slot, e)| (e.key(), od.get(slot)));
-        let node =
-            (scope != Scope::Auto).then_some((storage::KEY_SAVED_NODE_ID, self.node_id as u32));
-        let tag = self.features().tag;
-        storage::update_image(&mut self.storage, tag, &covered, &mut values.chain(node))
-            .map_err(|_| Abort::CannotStore)
+        self.store_or_forget(scope, true)
     }
 
-    /// "load" (0x1011) of `scope`: forgets what was stored for it (the LSS configuration and
-    /// records of entries outside the scope stay, records this model has no entry for go);
-    /// defaults apply at the next reset (D7).
-    pub(crate) fn forget(&mut self, scope: Scope) -> Result<(), Abort> {
+    /// [`Device::store`] (`save`), or "load" (0x1011) of `scope` (not `save`): forgets what was
+    /// stored for it (the LSS configuration and records of entries outside the scope stay,
+    /// records this model has no entry for go); defaults apply at the next reset (D7). One
+    /// change of the image for both, as they differ only in the records they drop and write.
+    fn store_or_forget(&mut self, scope: Scope, save: bool) -> Result<(), Abort> {
         let od = &self.od;
-        let forgotten = |k: u32| {
-            storage::is_object_key(k)
-                && od
-                    .find((k >> 8) as u16, k as u8)
-                    .map_or(true, |s| scope.covers(od.entry(s)))
+        let replaced = |k: u32| match stored_entry(od, k) {
+            Some((_, e)) => scope.covers(e),
+            // A store replaces the saved node-id; a "load" forgets the records of objects this
+            // model does not have too.
+            None if save => k == storage::KEY_SAVED_NODE_ID,
+            None => storage::is_object_key(k),
+        };
+        let node = self.node_id as u32;
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            !save
+                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
+                || (0..od::MAX_ENTRIES)
+                    .zip(od.entries())
+                    .filter(|(_, e)| scope.covers(e))
+                    .all(|(slot, e)| w.push(e.key(), od.get(slot)))
+                    && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
         };
         let tag = self.features().tag;
-        match storage::update_image(&mut self.storage, tag, &forgotten, &mut core::iter::empty()) {
-            Ok(()) => Ok(()),
-            Err(_) => Err(Abort::CannotStore),
-        }
+        storage::change_image(&mut self.storage, tag, &replaced, put)
+            .map_err(|_| Abort::CannotStore)
     }
 
     /// LSS "store configuration": keeps the pending node-id and bit rate, in the LSS records
@@ -1323,30 +1318,24 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
         let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
         let od = &self.od;
-        let copies = od.entries().iter().filter_map(move |e| match e.hook {
-            Hook::PendingNodeId => Some((e.key(), id as u32)),
-            Hook::PendingBitRate => Some((e.key(), object_of_kbps(kbps))),
-            _ => None,
-        });
-        let lss = [
-            (storage::KEY_LSS_NODE_ID, id as u32),
-            (storage::KEY_LSS_BITRATE, kbps as u32),
-        ];
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            w.push(storage::KEY_LSS_NODE_ID, id as u32)
+                && w.push(storage::KEY_LSS_BITRATE, kbps as u32)
+                && od.entries().iter().all(|e| match e.hook {
+                    Hook::PendingNodeId => w.push(e.key(), id as u32),
+                    Hook::PendingBitRate => w.push(e.key(), object_of_kbps(kbps)),
+                    _ => true,
+                })
+        };
         let replaced = |k: u32| {
             k == storage::KEY_LSS_NODE_ID
                 || k == storage::KEY_LSS_BITRATE
-                || storage::is_object_key(k)
-                    && od.find((k >> 8) as u16, k as u8).is_ok_and(|s| {
-                        matches!(od.entry(s).hook, Hook::PendingNodeId | Hook::PendingBitRate)
-                    })
+                || stored_entry(od, k).is_some_and(|(_, e)| {
+                    matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
+                })
         };
         let tag = self.features().tag;
-        storage::update_image(
-            &mut self.storage,
-            tag,
-            &replaced,
-            &mut lss.into_iter().chain(copies),
-        )?;
+        storage::change_image(&mut self.storage, tag, &replaced, put)?;
         self.stored_lss = (Some(id), Some(kbps));
         Ok(())
     }
@@ -1479,7 +1468,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         let f = self.features();
         let scope = Scope::of_sub(e.sub);
-        if e.hook == Hook::StoreParameters {
+        // "save" stores; "load", and "kill" where the model has it, forget.
+        let save = if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
             if raw != SIG_SAVE && !kill {
                 return Err(Abort::CannotStore);
@@ -1487,17 +1477,14 @@ impl<A: Application, S: Storage> Device<A, S> {
             if f.store_preop_only && self.nmt != NmtState::PreOperational {
                 return Err(Abort::WrongState);
             }
-            if kill {
-                self.forget(scope)?;
-            } else {
-                self.store(scope)?;
-            }
+            !kill
         } else {
             if raw != SIG_LOAD {
                 return Err(Abort::CannotStore);
             }
-            self.forget(scope)?;
-        }
+            false
+        };
+        self.store_or_forget(scope, save)?;
         // D7: the answer leaves no earlier than the store time after the request arrived.
         #[cfg(feature = "simulation")]
         {

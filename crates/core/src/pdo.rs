@@ -119,24 +119,41 @@ impl Tpdo {
             if next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
                 // only runs when it is not 0); floored here, off the usual path, where it is used.
+                // `q` whole periods passed since `t` (`q` ≥ 1 here: all but the one due at `t`
+                // were missed) and `r` µs of the current one: the next starts `per - r` µs on.
                 let per = per.max(1);
-                let skipped = crate::div::div(now.0 - next, per) + 1;
-                self.missed = self.missed.wrapping_add(skipped as u32);
-                next += skipped * per;
+                let (q, r) = crate::div::div_rem(now.0 - t, per);
+                self.missed = self.missed.wrapping_add(q as u32);
+                next = now.0 - r + per;
             }
             self.next_event = next;
         }
         if (fired || self.pending) && now >= self.inhibit_until {
             self.pending = false;
             self.changed = false;
-            self.inhibit_until = now + self.inhibit();
-            return Some(build(self, od));
+            return Some(self.send(od, now));
         }
         if fired {
             // Held back by the inhibit time.
             self.pending = true;
         }
         None
+    }
+
+    /// The frame of this TPDO at `now`, which starts its inhibit time. Out of line without
+    /// `inline-hot-paths`: SYNC, RTR and the timers share it.
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn send(&mut self, od: &Dictionary, now: Instant) -> Frame {
+        self.inhibit_until = now + self.inhibit();
+        // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
+        // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
+        let mut acc = 0u64;
+        for m in self.map.iter().take(self.n_map as usize) {
+            acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
+        }
+        // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
+        Frame::std_checked(self.can_id(), acc.to_le_bytes(), self.len)
     }
 
     /// The earliest instant at which [`Tpdo::step`] has work.
@@ -241,7 +258,7 @@ impl Tpdos {
     /// Recomputes `timer_mask`, `sync_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
         let (mut mask, mut sync) = (0u8, 0u8);
-        for (n, p) in self.pdos[..self.count].iter().enumerate() {
+        for (n, p) in self.pdos.iter().take(self.count).enumerate() {
             if p.valid() {
                 if p.asynchronous() {
                     mask |= 1 << n;
@@ -282,8 +299,9 @@ impl Tpdos {
     /// timers from `now` with the new values.
     pub fn reconfigure(&mut self, n: usize, od: &Dictionary, now: Instant) {
         self.configure(n, od);
-        if self.active() {
-            self.set_active(false, now);
+        if self.active {
+            // As if production started again now.
+            self.active = false;
             self.set_active(true, now);
         }
     }
@@ -304,7 +322,7 @@ impl Tpdos {
         let count = od.value(mi, 0).unwrap_or(0) as usize;
         p.n_map = 0;
         p.len = 0;
-        for k in 1..=count.min(MAX_MAP) {
+        for k in 1..count.min(MAX_MAP) + 1 {
             let Some(raw) = od.value(mi, k as u8) else {
                 break;
             };
@@ -316,15 +334,10 @@ impl Tpdos {
                 break;
             }
             // Precomputed so that building a TPDO is one mask and one shift per entry.
-            let b = u32::from(bytes).min(4);
             p.map[p.n_map as usize] = Mapped {
                 slot: slot as u8,
                 shift: 8 * p.len,
-                mask: if b == 4 {
-                    u32::MAX
-                } else {
-                    (1u32 << (8 * b)) - 1
-                },
+                mask: byte_mask(bytes),
             };
             p.n_map += 1;
             p.len += bytes;
@@ -348,7 +361,7 @@ impl Tpdos {
                     return Err(Abort::InvalidValue)
                 }
                 // D10: 241–253 are reserved.
-                2 if (241..=253).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
+                2 if (241..254).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
                 _ => {}
             }
             return Ok(());
@@ -378,8 +391,17 @@ impl Tpdos {
         raw: u32,
         event_gt_inhibit: bool,
     ) -> Result<(), Abort> {
-        if (0x1800..0x1800 + self.count as u16).contains(&index) {
-            Self::check_value(od, index, sub, raw)?;
+        let n = self.count as u16;
+        let comm = (comm_index(0)..comm_index(0) + n).contains(&index);
+        if !comm && !(map_index(0)..map_index(0) + n).contains(&index) {
+            return Ok(());
+        }
+        // The manuals' procedure: set sub 0 to zero before changing entries (checked first).
+        if !comm && sub != 0 && od.value(index, 0).unwrap_or(0) != 0 {
+            return Err(Abort::UnsupportedAccess);
+        }
+        Self::check_value(od, index, sub, raw)?;
+        if comm {
             match sub {
                 1 => {
                     let cur = od.value(index, 1).unwrap_or(COB_INVALID);
@@ -403,30 +425,20 @@ impl Tpdos {
                 }
                 _ => {}
             }
-            return Ok(());
-        }
-        if (0x1A00..0x1A00 + self.count as u16).contains(&index) {
-            if sub == 0 {
-                Self::check_value(od, index, sub, raw)?;
-                let mut bits = 0u32;
-                for k in 1..=raw as usize {
-                    let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
-                    if e == 0 {
-                        // An empty entry cannot be counted in.
-                        return Err(Abort::NotMappable);
-                    }
-                    check_mappable(od, e)?;
-                    bits += e & 0xFF;
+        } else if sub == 0 {
+            let mut bits = 0u32;
+            // `check_value` kept `raw` to the entries there are: no overflow.
+            for k in 1..raw + 1 {
+                let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
+                if e == 0 {
+                    // An empty entry cannot be counted in.
+                    return Err(Abort::NotMappable);
                 }
-                if bits > 64 {
-                    return Err(Abort::MappingLength);
-                }
-            } else {
-                // The manuals' procedure: set sub 0 to zero before changing entries.
-                if od.value(index, 0).unwrap_or(0) != 0 {
-                    return Err(Abort::UnsupportedAccess);
-                }
-                Self::check_value(od, index, sub, raw)?;
+                check_mappable(od, e)?;
+                bits += e & 0xFF;
+            }
+            if bits > 64 {
+                return Err(Abort::MappingLength);
             }
         }
         Ok(())
@@ -434,26 +446,28 @@ impl Tpdos {
 
     /// Starts or stops production (entering / leaving Operational, life guarding).
     pub fn set_active(&mut self, active: bool, now: Instant) {
-        if active && !self.active {
-            for p in &mut self.pdos[..self.count] {
-                p.next_event = if p.valid() && p.asynchronous() && p.event_us > 0 {
-                    (now + Duration::from_micros(u64::from(p.event_us))).0
-                } else {
-                    NEVER
-                };
-                p.pending = false;
-                p.sync_count = 0;
-                p.changed = true;
-            }
+        if !(active && self.active) {
+            self.active = active;
+            self.restart(now);
         }
-        if !active {
-            for p in &mut self.pdos[..self.count] {
-                p.next_event = NEVER;
-                p.pending = false;
-            }
-        }
-        self.active = active;
         self.refresh_due();
+    }
+
+    /// Every TPDO's timers from `now`: started while active, stopped otherwise. The SYNC
+    /// state restarts too (it is read only while active, and set again when production starts).
+    fn restart(&mut self, now: Instant) {
+        // The TPDOs in `timer_mask` are the valid asynchronous ones.
+        let timers = if self.active { self.timer_mask } else { 0 };
+        for (n, p) in self.pdos.iter_mut().take(self.count).enumerate() {
+            p.next_event = if timers >> n & 1 != 0 && p.event_us > 0 {
+                (now + Duration::from_micros(u64::from(p.event_us))).0
+            } else {
+                NEVER
+            };
+            p.pending = false;
+            p.sync_count = 0;
+            p.changed = true;
+        }
     }
 
     /// Whether PDOs are being produced.
@@ -464,7 +478,7 @@ impl Tpdos {
     /// A mapped value changed. `event` marks application events (cam / work-area state
     /// changes) that trigger asynchronous TPDOs mapping `slot`.
     pub fn value_changed(&mut self, slot: usize, event: bool) {
-        for p in &mut self.pdos[..self.count] {
+        for p in self.pdos.iter_mut().take(self.count) {
             if !p.valid()
                 || !p.map[..p.n_map as usize]
                     .iter()
@@ -504,8 +518,7 @@ impl Tpdos {
                 }
             };
             if send {
-                out.push(build(p, od));
-                p.inhibit_until = now + p.inhibit();
+                out.push(p.send(od, now));
             }
         }
         // Synchronous TPDOs have no timer of their own: the schedule is unchanged.
@@ -522,10 +535,9 @@ impl Tpdos {
         if !self.active {
             return false;
         }
-        for p in &mut self.pdos[..self.count] {
+        for p in self.pdos.iter_mut().take(self.count) {
             if p.valid() && p.cob & COB_NO_RTR == 0 && p.can_id() == id {
-                out(build(p, od));
-                p.inhibit_until = now + p.inhibit();
+                out(p.send(od, now));
                 self.refresh_due();
                 return true;
             }
@@ -587,27 +599,25 @@ impl Tpdos {
             return f;
         }
         let mut due = NEVER;
+        let mut f = None;
         let mut mask = self.timer_mask;
         while mask != 0 {
+            if f.is_some() {
+                // The TPDOs after a frame are looked at by the next call: until then
+                // something may still be due now.
+                due = now.0;
+                break;
+            }
             // `timer_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
             let n = (mask.trailing_zeros() & (MAX_TPDOS as u32 - 1)) as usize;
             mask &= mask - 1;
             let p = &mut self.pdos[n];
-            if let Some(f) = p.step(od, now) {
-                // The TPDOs after this one are looked at by the next call: until then
-                // something may still be due now.
-                self.due = if mask == 0 {
-                    due.min(p.own_due())
-                } else {
-                    now.0
-                };
-                return Some(f);
-            }
+            f = p.step(od, now);
             due = due.min(p.own_due());
         }
         // `due` is `NEVER` while inactive: no timer runs then.
         self.due = due;
-        None
+        f
     }
 
     /// Read access to TPDO `n` (0-based).
@@ -631,22 +641,26 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     Ok(())
 }
 
-#[cfg_attr(feature = "inline-hot-paths", inline(always))]
-#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
-fn build(p: &Tpdo, od: &Dictionary) -> Frame {
-    // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
-    // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
-    let mut acc = 0u64;
-    for m in p.map.iter().take(p.n_map as usize) {
-        acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
-    }
-    // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
-    Frame::std_checked(p.can_id(), acc.to_le_bytes(), p.len)
+/// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
+/// instead of a branch around the shift by 32.
+#[inline(always)]
+fn byte_mask(bytes: u8) -> u32 {
+    1u32.checked_shl(8 * u32::from(bytes))
+        .map_or(u32::MAX, |v| v - 1)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn byte_mask_keeps_the_low_bytes() {
+        // Every entry length `configure` admits (at most 8 bytes in all).
+        for bytes in 0..=8u8 {
+            let want = ((1u64 << (8 * bytes.min(4))) - 1) as u32;
+            assert_eq!(byte_mask(bytes), want, "{bytes}");
+        }
+    }
 
     #[test]
     fn restricted_table_matches_ranges() {

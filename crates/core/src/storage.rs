@@ -61,18 +61,25 @@ pub const fn is_object_key(key: u32) -> bool {
 
 /// What a store or a restore covers: the CiA 301 0x1010 / 0x1011 sub-indices, or the values
 /// the device keeps by itself. Membership comes from each entry's [`Group`] in the model's
-/// table, so no index list decides it.
+/// table, so no index list decides it. Each scope's discriminant is the set of groups it
+/// covers (bit `group as u32`), so that [`Scope::covers`] is one AND.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u32)]
 pub enum Scope {
     /// Sub 1: every parameter.
-    All,
+    All = group_bit(Group::Comm) | group_bit(Group::App),
     /// Sub 2: the communication parameters.
-    Comm,
+    Comm = group_bit(Group::Comm),
     /// Sub 3: the application parameters.
-    App,
+    App = group_bit(Group::App),
     /// The values the device stores whenever they change ([`Group::Auto`]); "save" and
     /// "load" leave them alone, they are records of the unit, not parameters.
-    Auto,
+    Auto = group_bit(Group::Auto),
+}
+
+/// `g`'s bit in a [`Scope`]'s set of groups.
+const fn group_bit(g: Group) -> u32 {
+    1 << g as u32
 }
 
 impl Scope {
@@ -87,13 +94,7 @@ impl Scope {
 
     /// Whether `e`'s value belongs to this scope.
     pub const fn covers(self, e: &Entry) -> bool {
-        matches!(
-            (self, e.group),
-            (Scope::All, Group::Comm | Group::App)
-                | (Scope::Comm, Group::Comm)
-                | (Scope::App, Group::App)
-                | (Scope::Auto, Group::Auto)
-        )
+        self as u32 & group_bit(e.group) != 0
     }
 }
 
@@ -219,12 +220,20 @@ impl<'a> ImageWriter<'a> {
     }
 
     /// Appends one record; returns false when the buffer is full.
+    // One window for the record and the CRC that must still fit after it: one bounds check.
+    // Out of line: every kind of store writes through it.
+    #[inline(never)]
     pub fn push(&mut self, key: u32, value: u32) -> bool {
-        if self.len + 8 + 4 > self.buf.len() {
+        let Some(window) = self
+            .buf
+            .get_mut(self.len..)
+            .and_then(<[u8]>::first_chunk_mut::<12>)
+        else {
             return false;
-        }
-        self.buf[self.len..self.len + 4].copy_from_slice(&key.to_le_bytes());
-        self.buf[self.len + 4..self.len + 8].copy_from_slice(&value.to_le_bytes());
+        };
+        let (rec, _crc) = window.split_at_mut(8);
+        rec[..4].copy_from_slice(&key.to_le_bytes());
+        rec[4..].copy_from_slice(&value.to_le_bytes());
         self.len += 8;
         self.count += 1;
         true
@@ -232,9 +241,9 @@ impl<'a> ImageWriter<'a> {
 
     /// Seals the image with its count and CRC; returns its length.
     pub fn finish(self) -> usize {
-        self.buf[6..8].copy_from_slice(&self.count.to_le_bytes());
-        let crc = crc32(&self.buf[..self.len]);
-        self.buf[self.len..self.len + 4].copy_from_slice(&crc.to_le_bytes());
+        let (body, crc) = self.buf.split_at_mut(self.len);
+        body[6..8].copy_from_slice(&self.count.to_le_bytes());
+        crc[..4].copy_from_slice(&crc32(body).to_le_bytes());
         self.len + 4
     }
 }
@@ -244,6 +253,11 @@ pub fn parse_image(
     image: &[u8],
     model_tag: u8,
 ) -> Result<impl Iterator<Item = (u32, u32)> + Clone + '_, StorageError> {
+    parse_records(image, model_tag)
+}
+
+/// [`parse_image`], its records as they lie in the image.
+fn parse_records(image: &[u8], model_tag: u8) -> Result<Records<'_>, StorageError> {
     if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
         return Err(StorageError::Corrupt);
     }
@@ -261,76 +275,110 @@ pub fn parse_image(
     if crc != crc32(&image[..body]) {
         return Err(StorageError::Corrupt);
     }
-    Ok(image[8..body].chunks_exact(8).map(|r| {
-        (
-            u32::from_le_bytes([r[0], r[1], r[2], r[3]]),
-            u32::from_le_bytes([r[4], r[5], r[6], r[7]]),
-        )
-    }))
+    Ok(Records(&image[8..body]))
+}
+
+/// The records of a checked image, walked record by record: each step splits one 8-byte
+/// record off the front, so no index is computed or bounds-checked per record.
+#[derive(Clone)]
+struct Records<'a>(&'a [u8]);
+
+impl Iterator for Records<'_> {
+    type Item = (u32, u32);
+
+    fn next(&mut self) -> Option<(u32, u32)> {
+        let (rec, rest) = self.0.split_first_chunk::<8>()?;
+        self.0 = rest;
+        let [k0, k1, k2, k3, v0, v1, v2, v3] = *rec;
+        Some((
+            u32::from_le_bytes([k0, k1, k2, k3]),
+            u32::from_le_bytes([v0, v1, v2, v3]),
+        ))
+    }
 }
 
 /// Loads the stored image into `buf` and checks it: its records, or why there are none.
-#[inline(never)]
+#[inline(always)] // only names `load_records`' answer for the public interface
 pub fn load_image<'a, S: Storage>(
     st: &mut S,
     model_tag: u8,
     buf: &'a mut [u8; IMAGE_MAX],
 ) -> Result<impl Iterator<Item = (u32, u32)> + Clone + 'a, StorageError> {
-    let n = st.load(buf)?;
-    parse_image(&buf[..n], model_tag)
+    load_records(st, model_tag, buf)
 }
 
-/// The one way the stored image changes: the records `put` yields are written, the stored
-/// records for which `replaced` holds are dropped, and every other stored record stays.
-/// `replaced` must hold for every key `put` writes, so that no key is stored twice. A stored
-/// image that fails its check counts as empty (it could not be loaded anyway).
+/// [`load_image`], its records as they lie in `buf`. Out of line: every loader and every
+/// change of the image share it.
+#[inline(never)]
+fn load_records<'a, S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    buf: &'a mut [u8; IMAGE_MAX],
+) -> Result<Records<'a>, StorageError> {
+    let n = st.load(buf)?;
+    parse_records(&buf[..n], model_tag)
+}
+
+/// The one way the stored image changes: `put` writes the new records, the stored records for
+/// which `replaced` holds are dropped, and every other stored record stays. `replaced` must
+/// hold for every key `put` writes, so that no key is stored twice; `put` answers false when
+/// a record did not fit (see [`ImageWriter::push`]). A stored image that fails its check counts
+/// as empty (it could not be loaded anyway).
 ///
 /// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
 /// in their stored order, and the new ones follow them. Nothing is saved when they do not all
-/// fit. Never inlined, so the buffer is on the stack only while an update runs; the rule and
-/// the records come as trait objects, so that every caller shares one copy of the code.
+/// fit. Never inlined, so the buffer is on the stack only while a change runs; the rule and
+/// the writing come as trait objects, so that every kind of store shares one copy of the code.
 #[inline(never)]
+pub fn change_image<S: Storage>(
+    st: &mut S,
+    model_tag: u8,
+    replaced: &dyn Fn(u32) -> bool,
+    put: &mut dyn FnMut(&mut ImageWriter<'_>) -> bool,
+) -> Result<(), StorageError> {
+    let mut buf = [0u8; IMAGE_MAX];
+    // The stored records, if the image passes its check, are the `old` bytes after the header.
+    let old = load_records(st, model_tag, &mut buf).map_or(0, |recs| recs.0.len());
+    let mut kept = 0;
+    // Records only move towards the front here, so copying in place is safe.
+    let (recs, _) = buf[8..8 + old].as_chunks_mut::<8>();
+    for at in 0..recs.len() {
+        let rec = recs[at];
+        if !replaced(u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]])) {
+            recs[kept] = rec;
+            kept += 1;
+        }
+    }
+    let mut w = ImageWriter::new(&mut buf, model_tag);
+    w.len += 8 * kept;
+    w.count += kept as u16;
+    if !put(&mut w) {
+        return Err(StorageError::Io);
+    }
+    debug_assert!(
+        Records(&w.buf[8 + 8 * kept..w.len]).all(|(k, _)| replaced(k)),
+        "a record would be stored twice"
+    );
+    let n = w.finish();
+    st.save(&buf[..n])
+}
+
+/// [`change_image`] with the new records from an iterator.
 pub fn update_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
     replaced: &dyn Fn(u32) -> bool,
     put: &mut dyn Iterator<Item = (u32, u32)>,
 ) -> Result<(), StorageError> {
-    let mut buf = [0u8; IMAGE_MAX];
-    let old_len = st.load(&mut buf).unwrap_or(0);
-    let mut kept = 0;
-    if parse_image(&buf[..old_len], model_tag).is_ok() {
-        // Records only move towards the front here, so copying in place is safe.
-        let mut at = 8;
-        while at + 8 + 4 <= old_len {
-            let key = u32::from_le_bytes([buf[at], buf[at + 1], buf[at + 2], buf[at + 3]]);
-            if !replaced(key) {
-                move_record(&mut buf, at, 8 + 8 * kept);
-                kept += 1;
+    change_image(st, model_tag, replaced, &mut |w| {
+        for (k, v) in &mut *put {
+            if !w.push(k, v) {
+                return false;
             }
-            at += 8;
         }
-    }
-    let mut w = ImageWriter::new(&mut buf, model_tag);
-    w.len += 8 * kept;
-    w.count += kept as u16;
-    for (k, v) in put {
-        debug_assert!(replaced(k), "record {k:#x} would be stored twice");
-        if !w.push(k, v) {
-            return Err(StorageError::Io);
-        }
-    }
-    let n = w.finish();
-    st.save(&buf[..n])
-}
-
-/// Copies the 8-byte record at `from` to `to` (a fixed-size copy: `copy_within` of a variable
-/// length would link the general-purpose `memmove` into firmware).
-#[inline(always)]
-fn move_record(buf: &mut [u8], from: usize, to: usize) {
-    let rec: [u8; 8] = buf[from..from + 8].try_into().unwrap_or([0; 8]);
-    buf[to..to + 8].copy_from_slice(&rec);
+        true
+    })
 }
 
 /// CRC-32 (IEEE 802.3, reflected, as zlib). Bitwise: images are small and stores are rare.
@@ -353,6 +401,37 @@ pub fn crc32(data: &[u8]) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The group bitsets answer as the table they replace: each scope covers exactly its
+    /// groups, the volatile one is in none.
+    #[test]
+    fn each_scope_covers_exactly_its_groups() {
+        use crate::od::{Access, DataType, Default, Range};
+        let groups = [Group::Volatile, Group::Comm, Group::App, Group::Auto];
+        for scope in [Scope::All, Scope::Comm, Scope::App, Scope::Auto] {
+            for g in groups {
+                let e = Entry::build(
+                    0x2000,
+                    0,
+                    "x",
+                    DataType::Unsigned8,
+                    Access::Rw,
+                    false,
+                    Default::Const(0),
+                    &Range::Any,
+                    g,
+                );
+                let expected = matches!(
+                    (scope, g),
+                    (Scope::All, Group::Comm | Group::App)
+                        | (Scope::Comm, Group::Comm)
+                        | (Scope::App, Group::App)
+                        | (Scope::Auto, Group::Auto)
+                );
+                assert_eq!(scope.covers(&e), expected, "{scope:?} / {g:?}");
+            }
+        }
+    }
 
     #[test]
     fn crc32_check_value() {

@@ -1,4 +1,4 @@
-use super::wire::{self, Mux, Request, MAX_BLKSIZE, SEGMENT_DATA};
+use super::wire::{self, Mux, MAX_BLKSIZE, SEGMENT_DATA};
 use super::{abort_payload, ObjectAccess};
 use crate::od::Abort;
 use crate::wire::{Duration, Instant};
@@ -120,7 +120,8 @@ pub struct SdoServer {
     len: usize,
     /// Upload: bytes confirmed sent (segmented) or the start of the current block (block).
     pos: usize,
-    deadline: Option<Instant>,
+    /// The transfer's deadline in µs, `u64::MAX` for none (as [`SdoServer::due_us`]).
+    deadline: u64,
 }
 
 impl Default for SdoServer {
@@ -141,7 +142,7 @@ impl SdoServer {
             buf: [0; SDO_BUF_LEN],
             len: 0,
             pos: 0,
-            deadline: None,
+            deadline: u64::MAX,
         }
     }
 
@@ -149,7 +150,7 @@ impl SdoServer {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn reset(&mut self) {
         self.state = State::Idle;
-        self.deadline = None;
+        self.deadline = u64::MAX;
         self.len = 0;
         self.pos = 0;
     }
@@ -253,40 +254,52 @@ impl SdoServer {
             self.bad_dlc = self.bad_dlc.wrapping_add(1);
             return None;
         };
-        if let State::BlkDown { last: false, .. } = self.state_as(t) {
-            return self.block_download_segment(&req, now);
-        }
-        let parsed = Request::parse(&req);
-        if let Request::Abort { .. } = parsed {
-            // The client's abort ends any transfer and is never answered.
-            self.reset();
-            return None;
-        }
-        let mux = if self.state == State::Idle || parsed.is_initiate() {
-            Mux::from_frame(&req)
+        let r = if let State::BlkDown { last: false, .. } = self.state_as(t) {
+            self.block_download_segment(&req)
         } else {
-            self.mux
+            // The command byte is decoded where it is used (as `Request::parse` does), without
+            // a `Request` in between: one decoding, not a value built and taken apart again.
+            let b0 = req[0];
+            let ccs = b0 >> 5;
+            if ccs == 4 {
+                // The client's abort ends any transfer and is never answered.
+                self.reset();
+                return None;
+            }
+            // `Request::is_initiate`: download, upload, block upload / download (cs 0).
+            if matches!(ccs, 1 | 2) || (ccs == 5 && b0 & 0x03 == 0) || (ccs == 6 && b0 & 0x01 == 0)
+            {
+                // A new transfer replaces an unfinished one (see the type's docs).
+                self.reset();
+            }
+            if self.state == State::Idle {
+                // The object of a new transfer, and what an abort outside a transfer echoes
+                // (the multiplexor is read only while a transfer is unfinished).
+                self.mux = Mux::from_frame(&req);
+            }
+            self.dispatch(&req, od, t)
         };
-        let r = self.dispatch(parsed, od, t);
+        // Every answer, sub-block segments' included, leaves here: one deadline and one abort.
         match r {
             Ok(r) => {
-                if self.state == State::Idle {
-                    self.deadline = None;
+                self.deadline = if self.state == State::Idle {
+                    u64::MAX
                 } else {
-                    self.deadline = Some(now + SDO_TIMEOUT);
-                }
+                    (now + SDO_TIMEOUT).0
+                };
                 r
             }
-            Err(a) => {
-                let m = if self.state == State::Idle {
-                    mux
-                } else {
-                    self.mux
-                };
-                self.reset();
-                Some(abort_payload(m.index, m.sub, a))
-            }
+            Err(a) => self.abort(a),
         }
+    }
+
+    /// Ends the transfer with the abort `a`, which carries the transfer's multiplexor.
+    // Out of line: every abort the server sends leaves through it.
+    #[inline(never)]
+    fn abort(&mut self, a: Abort) -> Option<[u8; 8]> {
+        let m = self.mux;
+        self.reset();
+        Some(abort_payload(m.index, m.sub, a))
     }
 
     /// The state as far as the transfer types `t` allow: a type the device lacks never left a
@@ -308,74 +321,72 @@ impl SdoServer {
         }
     }
 
-    /// The request `req` in the current state. The initiates of a transfer type are guarded by
-    /// `t`, its later requests by [`SdoServer::state_as`], so that a type the device lacks is
-    /// gone with its constant.
+    /// The request `req` in the current state (an initiate has reset the server and set
+    /// `self.mux`). Every arm of a transfer type is guarded by `t` (its later requests also by
+    /// [`SdoServer::state_as`]), so that a type the device lacks is gone with its constant. The
+    /// fields are those [`wire::Request::parse`] decodes.
     fn dispatch(
         &mut self,
-        req: Request,
+        req: &[u8; 8],
         od: &mut dyn ObjectAccess,
         t: Transfers,
     ) -> Result<Option<[u8; 8]>, Abort> {
-        if req.is_initiate() {
-            // A new transfer replaces an unfinished one (see the type's docs).
-            self.reset();
-        }
-        match (req, self.state_as(t)) {
-            (
-                Request::DownloadInitiate {
-                    mux,
-                    expedited,
-                    size,
-                    data,
-                },
-                _,
-            ) => {
-                self.mux = mux;
-                if expedited {
-                    self.download_expedited(mux, size, &data, od).map(Some)
-                } else if t.segmented {
-                    self.download_segmented_initiate(mux, size, od).map(Some)
+        let b0 = req[0];
+        let mux = self.mux;
+        let le32 = u32::from_le_bytes([req[4], req[5], req[6], req[7]]);
+        // s bit of a download initiate, t bit of a segment.
+        let indicated = b0 & 0x01 != 0;
+        let toggle = b0 & 0x10 != 0;
+        // cs of the block commands (ccs 5: bits 0…1; ccs 6: bit 0).
+        let cs = b0 & 0x03;
+        let crc = b0 & 0x04 != 0;
+        let ccs = b0 >> 5;
+        match (ccs, self.state_as(t)) {
+            (1, _) if b0 & 0x02 != 0 => {
+                let size = indicated.then(|| 4 - u32::from((b0 >> 2) & 0x03));
+                let data = [req[4], req[5], req[6], req[7]];
+                self.download_expedited(mux, size, &data, od).map(Some)
+            }
+            // Segmented and block download initiates share one call of the size checks.
+            (1, _) | (6, _)
+                if (ccs == 1 && t.segmented) || (ccs == 6 && t.block && cs & 0x01 == 0) =>
+            {
+                // s: bit 0 (segmented), bit 1 (block).
+                let s = if ccs == 1 { indicated } else { b0 & 0x02 != 0 };
+                let size = self.check_download_size(mux, s.then_some(le32), od)?;
+                self.len = 0;
+                Ok(Some(if ccs == 1 {
+                    self.state = State::DownSeg {
+                        toggle: false,
+                        size,
+                    };
+                    wire::download_initiate_ack(mux)
                 } else {
-                    Err(Abort::InvalidCommand)
-                }
+                    self.state = State::BlkDown {
+                        crc,
+                        size,
+                        raw: 0,
+                        seq: 0,
+                        last: false,
+                    };
+                    wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE)
+                }))
             }
-            (Request::UploadInitiate { mux }, _) => {
-                self.mux = mux;
-                self.upload_initiate(mux, od, t.segmented).map(Some)
+            (2, _) => self.upload_initiate(mux, od, t.segmented, None).map(Some),
+            (5, _) if t.block && cs == 0 => {
+                // blksize, pst.
+                let block = Some((crc, req[4], req[5]));
+                self.upload_initiate(mux, od, t.segmented, block).map(Some)
             }
-            (
-                Request::BlockUploadInitiate {
-                    mux,
-                    crc,
-                    blksize,
-                    pst,
-                },
-                _,
-            ) if t.block => {
-                self.mux = mux;
-                self.block_upload_initiate(mux, crc, blksize, pst, od, t.segmented)
-                    .map(Some)
-            }
-            (Request::BlockDownloadInitiate { mux, crc, size }, _) if t.block => {
-                self.mux = mux;
-                self.block_download_initiate(mux, crc, size, od).map(Some)
-            }
-            (
-                Request::DownloadSegment {
-                    toggle,
-                    unused,
-                    last,
-                    data,
-                },
-                State::DownSeg { toggle: tg, size },
-            ) => {
+            (0, State::DownSeg { toggle: tg, size }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
-                let k = SEGMENT_DATA.saturating_sub(unused as usize);
-                self.append(data.get(..k).unwrap_or(&[]), size)?;
-                if last {
+                // n = bits 1…3: bytes 1…7 less the n unused ones.
+                let k = SEGMENT_DATA - usize::from((b0 >> 1) & 0x07);
+                self.append(req.get(1..1 + k).unwrap_or(&[]), size)?;
+                if indicated {
+                    // c bit: the last segment.
                     self.finish_download(size, od)?;
                     self.state = State::Idle;
                 } else {
@@ -383,7 +394,7 @@ impl SdoServer {
                 }
                 Ok(Some(wire::download_segment_ack(tg)))
             }
-            (Request::UploadSegment { toggle }, State::UpSeg { toggle: tg }) => {
+            (3, State::UpSeg { toggle: tg }) => {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
@@ -399,17 +410,20 @@ impl SdoServer {
                 };
                 Ok(Some(r))
             }
-            (Request::BlockUploadStart, State::BlkUpInit { crc, blksize }) => {
+            (5, State::BlkUpInit { crc, blksize }) if t.block && cs == 3 => {
+                // Start of the block upload.
                 self.pos = 0;
                 self.start_block(crc, blksize);
                 Ok(None)
             }
             (
-                Request::BlockUploadAck { ackseq, blksize },
+                5,
                 State::BlkUp {
                     crc, segs, next, ..
                 },
-            ) => {
+            ) if t.block && cs == 2 => {
+                // Block acknowledgement: ackseq, blksize.
+                let (ackseq, blksize) = (req[1], req[2]);
                 // SDO-27: an ackseq beyond what was sent is a bad sequence number.
                 if ackseq > segs || ackseq >= next {
                     return Err(Abort::BlockSequence);
@@ -436,12 +450,13 @@ impl SdoServer {
                 self.start_block(crc, blksize);
                 Ok(None)
             }
-            (Request::BlockUploadEnd, State::BlkUpEnd) => {
+            (5, State::BlkUpEnd) if t.block && cs == 1 => {
+                // The client confirms the end frame.
                 self.state = State::Idle;
                 Ok(None)
             }
             (
-                Request::BlockDownloadEnd { unused, crc },
+                6,
                 State::BlkDown {
                     crc: use_crc,
                     size,
@@ -449,7 +464,10 @@ impl SdoServer {
                     last: true,
                     ..
                 },
-            ) => {
+            ) if t.block && indicated => {
+                // End of block download: n = bits 2…4, the CRC in bytes 1…2.
+                let unused = (b0 >> 2) & 0x07;
+                let crc = u16::from_le_bytes([req[1], req[2]]);
                 let total = raw
                     .checked_sub(unused as usize)
                     .ok_or(Abort::LengthMismatch)?;
@@ -472,8 +490,7 @@ impl SdoServer {
         }
     }
 
-    #[cfg_attr(feature = "inline-hot-paths", inline)]
-    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    #[inline]
     fn download_expedited(
         &mut self,
         mux: Mux,
@@ -487,25 +504,8 @@ impl SdoServer {
         Ok(wire::download_initiate_ack(mux))
     }
 
-    fn download_segmented_initiate(
-        &mut self,
-        mux: Mux,
-        size: Option<u32>,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let size = self.check_download_size(mux, size, od)?;
-        self.len = 0;
-        self.state = State::DownSeg {
-            toggle: false,
-            size,
-        };
-        Ok(wire::download_initiate_ack(mux))
-    }
-
     /// Initiate-time checks of a segmented / block download: the object is writable and an
     /// indicated size fits the object and the buffer.
-    // Out of line: the segmented and the block initiate share it.
-    #[inline(never)]
     fn check_download_size(
         &mut self,
         mux: Mux,
@@ -581,15 +581,27 @@ impl SdoServer {
         }))
     }
 
-    /// An upload initiate; a value that needs a segmented transfer is refused unless
-    /// `segmented`.
+    /// An upload initiate: a plain one (`block` = `None`), where a value that needs a
+    /// segmented transfer is refused unless `segmented`, or a block one (`block` = `Some((crc,
+    /// blksize, pst))`). Both share the size query and the read into the buffer.
     fn upload_initiate(
         &mut self,
         mux: Mux,
         od: &mut dyn ObjectAccess,
         segmented: bool,
+        block: Option<(bool, u8, u8)>,
     ) -> Result<[u8; 8], Abort> {
+        if block.is_some_and(|(_, blksize, _)| blksize == 0 || blksize > MAX_BLKSIZE) {
+            return Err(Abort::BlockSize);
+        }
         let size = od.upload_size(mux.index, mux.sub)?;
+        // Protocol switch: the client allows a plain upload for a value this small.
+        let block = block.filter(|&(_, _, pst)| pst == 0 || size > pst as usize);
+        if let Some((crc, blksize, _)) = block {
+            self.load(mux, size, od)?;
+            self.state = State::BlkUpInit { crc, blksize };
+            return Ok(wire::block_upload_initiate(mux, crc, self.len as u32));
+        }
         if (1..=4).contains(&size) {
             let mut b = [0u8; 4];
             let n = od.read(mux.index, mux.sub, 0, &mut b)?;
@@ -618,28 +630,6 @@ impl SdoServer {
         Ok(())
     }
 
-    fn block_upload_initiate(
-        &mut self,
-        mux: Mux,
-        crc: bool,
-        blksize: u8,
-        pst: u8,
-        od: &mut dyn ObjectAccess,
-        segmented: bool,
-    ) -> Result<[u8; 8], Abort> {
-        if blksize == 0 || blksize > MAX_BLKSIZE {
-            return Err(Abort::BlockSize);
-        }
-        let size = od.upload_size(mux.index, mux.sub)?;
-        if pst != 0 && size <= pst as usize {
-            // Protocol switch: the client allows a plain upload for a value this small.
-            return self.upload_initiate(mux, od, segmented);
-        }
-        self.load(mux, size, od)?;
-        self.state = State::BlkUpInit { crc, blksize };
-        Ok(wire::block_upload_initiate(mux, crc, self.len as u32))
-    }
-
     /// Sets up the block that starts at `self.pos`; `poll_transmit` emits its segments.
     // Out of line: the block-upload start and every acknowledged block share it.
     #[inline(never)]
@@ -656,27 +646,8 @@ impl SdoServer {
         };
     }
 
-    fn block_download_initiate(
-        &mut self,
-        mux: Mux,
-        crc: bool,
-        size: Option<u32>,
-        od: &mut dyn ObjectAccess,
-    ) -> Result<[u8; 8], Abort> {
-        let size = self.check_download_size(mux, size, od)?;
-        self.len = 0;
-        self.state = State::BlkDown {
-            crc,
-            size,
-            raw: 0,
-            seq: 0,
-            last: false,
-        };
-        Ok(wire::block_download_initiate_ack(mux, crc, SERVER_BLKSIZE))
-    }
-
     /// One frame inside a block-download sub-block.
-    fn block_download_segment(&mut self, req: &[u8; 8], now: Instant) -> Option<[u8; 8]> {
+    fn block_download_segment(&mut self, req: &[u8; 8]) -> Result<Option<[u8; 8]>, Abort> {
         let State::BlkDown {
             crc,
             size,
@@ -685,24 +656,18 @@ impl SdoServer {
             ..
         } = self.state
         else {
-            return None;
+            return Ok(None);
         };
         if req[0] == 0x80 {
             // c = 1 with seqno 0 is no segment: it is the client's abort.
             self.reset();
-            return None;
+            return Ok(None);
         }
         let s = req[0] & 0x7F;
         let c = req[0] & 0x80 != 0;
-        let fail = |me: &mut Self, a: Abort| {
-            let m = me.mux;
-            me.reset();
-            Some(abort_payload(m.index, m.sub, a))
-        };
         if s == 0 || s > SERVER_BLKSIZE {
-            return fail(self, Abort::BlockSequence);
+            return Err(Abort::BlockSequence);
         }
-        self.deadline = Some(now + SDO_TIMEOUT);
         let mut raw = raw;
         let mut seq = seq;
         let mut last = false;
@@ -710,10 +675,10 @@ impl SdoServer {
             let data = req.get(1..8).unwrap_or(&[]);
             let room = SDO_BUF_LEN.saturating_sub(self.len);
             if !c && data.len() > room {
-                return fail(self, Abort::OutOfMemory);
+                return Err(Abort::OutOfMemory);
             }
             if !c && size.is_some_and(|sz| raw + data.len() > sz) {
-                return fail(self, Abort::LengthMismatch);
+                return Err(Abort::LengthMismatch);
             }
             // The last segment's padding may not fit: its length is known only at the end.
             let k = data.len().min(room);
@@ -736,7 +701,7 @@ impl SdoServer {
             seq: if block_end { 0 } else { seq },
             last,
         };
-        block_end.then(|| wire::block_download_ack(seq, SERVER_BLKSIZE))
+        Ok(block_end.then(|| wire::block_download_ack(seq, SERVER_BLKSIZE)))
     }
 
     /// The next block-upload segment to send, if a block is being sent. Call after
@@ -788,9 +753,10 @@ impl SdoServer {
     /// [`SdoServer::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
-        match self.deadline {
-            Some(t) if self.state != State::Idle => t.0,
-            _ => u64::MAX,
+        if self.state != State::Idle {
+            self.deadline
+        } else {
+            u64::MAX
         }
     }
 
@@ -798,11 +764,7 @@ impl SdoServer {
     #[inline]
     pub fn handle_timeout(&mut self, now: Instant) -> Option<[u8; 8]> {
         match self.poll_timeout() {
-            Some(t) if now >= t => {
-                let m = self.mux;
-                self.reset();
-                Some(abort_payload(m.index, m.sub, Abort::Timeout))
-            }
+            Some(t) if now >= t => self.abort(Abort::Timeout),
             _ => None,
         }
     }
