@@ -68,7 +68,9 @@ const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_t
 /// The EMCY producer's state.
 #[derive(Clone, Debug)]
 pub struct Emcy {
-    active: [(u16, u8); ACTIVE_LEN],
+    /// The active errors, each its code in bits 0–15 and its error-register bits in 16–23:
+    /// a word has no padding, so a new `Emcy` is all zero bytes (one `memclr`, not a loop).
+    active: [u32; ACTIVE_LEN],
     // The counts and ring positions are bytes (every ring holds 8): 16 B less RAM than `usize`.
     n_active: u8,
     history: [u32; HISTORY_LEN],
@@ -91,9 +93,9 @@ pub struct Emcy {
 }
 
 impl Emcy {
-    /// The active errors: code and error-register bits.
+    /// The active errors: code (bits 0–15) and error-register bits (16–23).
     #[inline]
-    fn active_codes(&self) -> &[(u16, u8)] {
+    fn active_codes(&self) -> &[u32] {
         &self.active[..usize::from(self.n_active)]
     }
 }
@@ -101,7 +103,7 @@ impl Emcy {
 impl core::default::Default for Emcy {
     fn default() -> Self {
         Emcy {
-            active: [(0, 0); ACTIVE_LEN],
+            active: [0; ACTIVE_LEN],
             n_active: 0,
             history: [0; HISTORY_LEN],
             newest: 0,
@@ -124,8 +126,8 @@ impl Emcy {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn register(&self) -> u8 {
         let mut r = 0;
-        for &(_, bits) in self.active_codes() {
-            r |= bits | reg::GENERIC;
+        for &a in self.active_codes() {
+            r |= (a >> 16) as u8 | reg::GENERIC;
         }
         r
     }
@@ -144,7 +146,7 @@ impl Emcy {
 
     /// Whether `code` is active.
     pub fn is_active(&self, code: u16) -> bool {
-        self.active_codes().iter().any(|&(c, _)| c == code)
+        self.active_codes().iter().any(|&a| a as u16 == code)
     }
 
     /// Sets the inhibit time (0x1015, 100 µs units).
@@ -159,7 +161,7 @@ impl Emcy {
             return;
         }
         if usize::from(self.n_active) < ACTIVE_LEN {
-            self.active[usize::from(self.n_active)] = (code, reg_bits);
+            self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
             self.n_active += 1;
         }
         self.generation = self.generation.wrapping_add(1);
@@ -177,7 +179,7 @@ impl Emcy {
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
     pub fn clear(&mut self, code: u16) {
-        let Some(i) = self.active_codes().iter().position(|&(c, _)| c == code) else {
+        let Some(i) = self.active_codes().iter().position(|&a| a as u16 == code) else {
             return;
         };
         let before = self.register();
