@@ -96,7 +96,8 @@ impl Emcy {
     /// The active errors: code (bits 0–15) and error-register bits (16–23).
     #[inline]
     fn active_codes(&self) -> &[u32] {
-        &self.active[..usize::from(self.n_active)]
+        // `n_active` never exceeds the array: `min` costs less than a bounds check's panic.
+        &self.active[..usize::from(self.n_active).min(ACTIVE_LEN)]
     }
 }
 
@@ -287,7 +288,8 @@ impl Emcy {
         if self.n_pending == 0 || now < self.next_allowed {
             return None;
         }
-        let f = self.pending[usize::from(self.first_pending)];
+        // Always in range; the mask spares the bounds check.
+        let f = self.pending[usize::from(self.first_pending) % PENDING_LEN];
         self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
