@@ -232,6 +232,13 @@ impl Emcy {
             Some(self.history[(usize::from(self.newest) + i - 1) % HISTORY_LEN])
         }
     }
+    /// Entry `i` (1-based, newest first, at most [`HISTORY_LEN`]) of 0x1003, 0 past the last
+    /// one: as [`Emcy::history`] with `unwrap_or(0)`, without its check, since the slots past
+    /// the entries are zero (cleared with the history, filled newest first).
+    #[inline]
+    pub(crate) fn history_or_zero(&self, i: usize) -> u32 {
+        self.history[(usize::from(self.newest) + i.wrapping_sub(1)) % HISTORY_LEN]
+    }
     /// Number of history entries (0x1003/0).
     pub fn history_len(&self) -> usize {
         usize::from(self.n_history)
@@ -439,6 +446,38 @@ mod tests {
         assert_eq!(e.history(2), Some(0x1234));
         e.clear_history();
         assert_eq!((e.history_len(), e.history(1)), (0, None));
+    }
+
+    /// `history_or_zero` reads the ring without checking the count: it answers as `history`
+    /// with 0 for a missing entry, however full the history and after a clear.
+    #[test]
+    fn history_or_zero_answers_as_history() {
+        let mut e = Emcy::default();
+        let check = |e: &Emcy| {
+            for i in 1..=HISTORY_LEN {
+                assert_eq!(e.history_or_zero(i), e.history(i).unwrap_or(0), "entry {i}");
+            }
+        };
+        check(&e);
+        for round in 0..3u16 {
+            for k in 0..11u16 {
+                e.event(0x1000 + k, [k as u8, round as u8, 0, 0, 0]);
+                check(&e);
+                e.poll(Instant(0));
+                if k == 4 {
+                    e.reset();
+                    check(&e);
+                }
+            }
+            e.clear_history();
+            check(&e);
+            for k in 0..=round {
+                e.raise(0x2000 + k, reg::MANUFACTURER, [1; 5]);
+                check(&e);
+            }
+            e.clear_history();
+            check(&e);
+        }
     }
 
     #[test]
