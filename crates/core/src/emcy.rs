@@ -167,15 +167,15 @@ impl Emcy {
         }
         self.generation = self.generation.wrapping_add(1);
         self.record(code, mfr);
-        let r = self.register();
-        self.queue(code, r, mfr);
+        self.queue(code, mfr);
     }
 
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
+    // A firmware's events share one copy.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn event(&mut self, code: u16, mfr: [u8; 5]) {
         self.record(code, mfr);
-        let r = self.register();
-        self.queue(code, r, mfr);
+        self.queue(code, mfr);
     }
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
@@ -192,7 +192,7 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
         let after = self.register();
         if self.n_active == 0 || (self.on_register_change && after != before) {
-            self.queue(code::NO_ERROR, after, [0; 5]);
+            self.queue(code::NO_ERROR, [0; 5]);
         }
     }
 
@@ -206,14 +206,12 @@ impl Emcy {
     /// one-shot event such as "recovered from bus-off" on models whose EMCYs go along with
     /// every change of the error state.
     pub fn reset_message(&mut self) {
-        let r = self.register();
-        self.queue(code::NO_ERROR, r, [0; 5]);
+        self.queue(code::NO_ERROR, [0; 5]);
     }
 
     /// Sends the power-on EMCY "without reasonable data" (D14).
     pub fn power_on(&mut self) {
-        let r = self.register();
-        self.queue(code::NO_ERROR, r, [0; 5]);
+        self.queue(code::NO_ERROR, [0; 5]);
     }
 
     /// Forgets active errors and pending frames (reset); the history survives until cleared.
@@ -263,7 +261,10 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
     }
 
-    fn queue(&mut self, code: u16, register: u8, mfr: [u8; 5]) {
+    /// Queues the EMCY `code` with the current error register: every caller sends that, and
+    /// reading it here spares each call site its own call.
+    fn queue(&mut self, code: u16, mfr: [u8; 5]) {
+        let register = self.register();
         if usize::from(self.n_pending) == PENDING_LEN {
             self.lost = self.lost.wrapping_add(1);
             return;
