@@ -68,7 +68,9 @@ const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_t
 /// The EMCY producer's state.
 #[derive(Clone, Debug)]
 pub struct Emcy {
-    active: [(u16, u8); ACTIVE_LEN],
+    /// The active errors, each its code in bits 0–15 and its error-register bits in 16–23:
+    /// a word has no padding, so a new `Emcy` is all zero bytes (one `memclr`, not a loop).
+    active: [u32; ACTIVE_LEN],
     // The counts and ring positions are bytes (every ring holds 8): 16 B less RAM than `usize`.
     n_active: u8,
     history: [u32; HISTORY_LEN],
@@ -91,17 +93,18 @@ pub struct Emcy {
 }
 
 impl Emcy {
-    /// The active errors: code and error-register bits.
+    /// The active errors: code (bits 0–15) and error-register bits (16–23).
     #[inline]
-    fn active_codes(&self) -> &[(u16, u8)] {
-        &self.active[..usize::from(self.n_active)]
+    fn active_codes(&self) -> &[u32] {
+        // `n_active` never exceeds the array: `min` costs less than a bounds check's panic.
+        &self.active[..usize::from(self.n_active).min(ACTIVE_LEN)]
     }
 }
 
 impl core::default::Default for Emcy {
     fn default() -> Self {
         Emcy {
-            active: [(0, 0); ACTIVE_LEN],
+            active: [0; ACTIVE_LEN],
             n_active: 0,
             history: [0; HISTORY_LEN],
             newest: 0,
@@ -124,8 +127,8 @@ impl Emcy {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn register(&self) -> u8 {
         let mut r = 0;
-        for &(_, bits) in self.active_codes() {
-            r |= bits | reg::GENERIC;
+        for &a in self.active_codes() {
+            r |= (a >> 16) as u8 | reg::GENERIC;
         }
         r
     }
@@ -144,7 +147,7 @@ impl Emcy {
 
     /// Whether `code` is active.
     pub fn is_active(&self, code: u16) -> bool {
-        self.active_codes().iter().any(|&(c, _)| c == code)
+        self.active_codes().iter().any(|&a| a as u16 == code)
     }
 
     /// Sets the inhibit time (0x1015, 100 µs units).
@@ -159,25 +162,25 @@ impl Emcy {
             return;
         }
         if usize::from(self.n_active) < ACTIVE_LEN {
-            self.active[usize::from(self.n_active)] = (code, reg_bits);
+            self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
             self.n_active += 1;
         }
         self.generation = self.generation.wrapping_add(1);
         self.record(code, mfr);
-        let r = self.register();
-        self.queue(code, r, mfr);
+        self.queue(code, mfr);
     }
 
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
+    // A firmware's events share one copy.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn event(&mut self, code: u16, mfr: [u8; 5]) {
         self.record(code, mfr);
-        let r = self.register();
-        self.queue(code, r, mfr);
+        self.queue(code, mfr);
     }
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
     pub fn clear(&mut self, code: u16) {
-        let Some(i) = self.active_codes().iter().position(|&(c, _)| c == code) else {
+        let Some(i) = self.active_codes().iter().position(|&a| a as u16 == code) else {
             return;
         };
         let before = self.register();
@@ -189,7 +192,7 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
         let after = self.register();
         if self.n_active == 0 || (self.on_register_change && after != before) {
-            self.queue(code::NO_ERROR, after, [0; 5]);
+            self.queue(code::NO_ERROR, [0; 5]);
         }
     }
 
@@ -203,14 +206,12 @@ impl Emcy {
     /// one-shot event such as "recovered from bus-off" on models whose EMCYs go along with
     /// every change of the error state.
     pub fn reset_message(&mut self) {
-        let r = self.register();
-        self.queue(code::NO_ERROR, r, [0; 5]);
+        self.queue(code::NO_ERROR, [0; 5]);
     }
 
     /// Sends the power-on EMCY "without reasonable data" (D14).
     pub fn power_on(&mut self) {
-        let r = self.register();
-        self.queue(code::NO_ERROR, r, [0; 5]);
+        self.queue(code::NO_ERROR, [0; 5]);
     }
 
     /// Forgets active errors and pending frames (reset); the history survives until cleared.
@@ -228,6 +229,13 @@ impl Emcy {
         } else {
             Some(self.history[(usize::from(self.newest) + i - 1) % HISTORY_LEN])
         }
+    }
+    /// Entry `i` (1-based, newest first, at most [`HISTORY_LEN`]) of 0x1003, 0 past the last
+    /// one: as [`Emcy::history`] with `unwrap_or(0)`, without its check, since the slots past
+    /// the entries are zero (cleared with the history, filled newest first).
+    #[inline]
+    pub(crate) fn history_or_zero(&self, i: usize) -> u32 {
+        self.history[(usize::from(self.newest) + i.wrapping_sub(1)) % HISTORY_LEN]
     }
     /// Number of history entries (0x1003/0).
     pub fn history_len(&self) -> usize {
@@ -253,7 +261,10 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
     }
 
-    fn queue(&mut self, code: u16, register: u8, mfr: [u8; 5]) {
+    /// Queues the EMCY `code` with the current error register: every caller sends that, and
+    /// reading it here spares each call site its own call.
+    fn queue(&mut self, code: u16, mfr: [u8; 5]) {
+        let register = self.register();
         if usize::from(self.n_pending) == PENDING_LEN {
             self.lost = self.lost.wrapping_add(1);
             return;
@@ -285,7 +296,8 @@ impl Emcy {
         if self.n_pending == 0 || now < self.next_allowed {
             return None;
         }
-        let f = self.pending[usize::from(self.first_pending)];
+        // Always in range; the mask spares the bounds check.
+        let f = self.pending[usize::from(self.first_pending) % PENDING_LEN];
         self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
@@ -435,6 +447,38 @@ mod tests {
         assert_eq!(e.history(2), Some(0x1234));
         e.clear_history();
         assert_eq!((e.history_len(), e.history(1)), (0, None));
+    }
+
+    /// `history_or_zero` reads the ring without checking the count: it answers as `history`
+    /// with 0 for a missing entry, however full the history and after a clear.
+    #[test]
+    fn history_or_zero_answers_as_history() {
+        let mut e = Emcy::default();
+        let check = |e: &Emcy| {
+            for i in 1..=HISTORY_LEN {
+                assert_eq!(e.history_or_zero(i), e.history(i).unwrap_or(0), "entry {i}");
+            }
+        };
+        check(&e);
+        for round in 0..3u16 {
+            for k in 0..11u16 {
+                e.event(0x1000 + k, [k as u8, round as u8, 0, 0, 0]);
+                check(&e);
+                e.poll(Instant(0));
+                if k == 4 {
+                    e.reset();
+                    check(&e);
+                }
+            }
+            e.clear_history();
+            check(&e);
+            for k in 0..=round {
+                e.raise(0x2000 + k, reg::MANUFACTURER, [1; 5]);
+                check(&e);
+            }
+            e.clear_history();
+            check(&e);
+        }
     }
 
     #[test]

@@ -7,8 +7,11 @@ use crate::wire::{Duration, Instant};
 /// Heartbeat and node-guarding state of the slave.
 #[derive(Clone, Debug, Default)]
 pub struct ErrCtl {
-    heartbeat: Option<Duration>,
-    next_heartbeat: Option<Instant>,
+    /// The heartbeat period (0x1017), zero for off: a period is at least 1 ms, and a plain
+    /// duration tests and stores cheaper than an `Option`.
+    heartbeat: Duration,
+    /// When the next heartbeat is due; meaningless while the heartbeat is off.
+    next_heartbeat: Instant,
     toggle: bool,
     life_time: Option<Duration>,
     /// Deadline of the next expected guard request, once guarding has started.
@@ -33,14 +36,9 @@ impl ErrCtl {
     // A firmware's reset and 0x1017 writes share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn set_heartbeat(&mut self, ms: u16, now: Instant) {
-        if ms == 0 {
-            self.heartbeat = None;
-            self.next_heartbeat = None;
-        } else {
-            let p = Duration::from_millis(ms as u64);
-            self.heartbeat = Some(p);
-            self.next_heartbeat = Some(now + p);
-        }
+        let p = Duration::from_millis(ms as u64);
+        self.heartbeat = p;
+        self.next_heartbeat = now + p;
     }
 
     /// Applies 0x100C (ms) and 0x100D: life guarding is armed once both are non-zero and a guard
@@ -73,7 +71,23 @@ impl ErrCtl {
 
     /// Clears the toggle and guarding state (reset communication).
     pub fn reset(&mut self) {
-        *self = ErrCtl::default();
+        // Field by field: the default built whole goes through a stack temporary. The
+        // heartbeat's deadline is left, meaningless with the heartbeat off.
+        let ErrCtl {
+            heartbeat,
+            next_heartbeat: _,
+            toggle,
+            life_time,
+            guard_deadline,
+            life_guard_lost,
+            guarding_id,
+        } = self;
+        *heartbeat = Duration::ZERO;
+        *toggle = false;
+        *life_time = None;
+        *guard_deadline = None;
+        *life_guard_lost = false;
+        *guarding_id = 0;
     }
 
     /// A guard request arrived: returns the reply byte (state | toggle) and re-arms life guarding.
@@ -90,8 +104,12 @@ impl ErrCtl {
     /// The next deadline of this service in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
-        let us = |t: Option<Instant>| t.map_or(u64::MAX, |t| t.0);
-        us(self.next_heartbeat).min(us(self.guard_deadline))
+        let hb = if self.heartbeat == Duration::ZERO {
+            u64::MAX
+        } else {
+            self.next_heartbeat.0
+        };
+        hb.min(self.guard_deadline.map_or(u64::MAX, |t| t.0))
     }
 
     /// Handles expired timers; call until it returns `None`. `guarding`: the device has node
@@ -103,17 +121,26 @@ impl ErrCtl {
         state: NmtState,
         guarding: bool,
     ) -> Option<ErrCtlEvent> {
-        if let (Some(t), Some(p)) = (self.next_heartbeat, self.heartbeat) {
-            if now >= t {
-                // Absolute schedule: no drift; skip whole periods if the host was late.
-                let mut next = t + p;
-                if next <= now {
-                    let behind = crate::div::div((now - t).micros(), p.micros());
-                    next = t + Duration(p.micros() * (behind + 1));
-                }
-                self.next_heartbeat = Some(next);
-                return Some(ErrCtlEvent::Heartbeat(state.code()));
-            }
+        let (t, p) = (self.next_heartbeat, self.heartbeat);
+        if p != Duration::ZERO && now >= t {
+            // Absolute schedule: no drift; skip whole periods if the host was late.
+            // `now >= t`: no saturating subtraction needed.
+            let late = || {
+                let behind = crate::div::div(now.0 - t.0, p.micros());
+                t + Duration(p.micros() * (behind + 1))
+            };
+            // The host skips the division when on time.
+            #[cfg(feature = "inline-hot-paths")]
+            let next = match t + p {
+                n if n > now => n,
+                _ => late(),
+            };
+            // A firmware always divides (on time, 0 whole periods behind: the same result):
+            // less code, and one 32-bit division per heartbeat.
+            #[cfg(not(feature = "inline-hot-paths"))]
+            let next = late();
+            self.next_heartbeat = next;
+            return Some(ErrCtlEvent::Heartbeat(state.code()));
         }
         if let (true, Some(d)) = (guarding, self.guard_deadline) {
             if now >= d {

@@ -1,31 +1,29 @@
 //! NMT slave (CiA 301 §7.2.8): states, commands and what each state lets through.
 
-/// NMT states of the slave, with the byte heartbeat / guarding replies carry.
+/// NMT states of the slave, with the byte heartbeat / guarding replies carry (the
+/// discriminant, so that [`NmtState::code`] is no lookup).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum NmtState {
     /// Initialising (only seen in the boot-up frame, byte 0x00).
-    Initialising,
+    Initialising = 0x00,
     /// Pre-operational: SDO, EMCY, SYNC and error control active; no PDOs.
-    PreOperational,
+    PreOperational = 0x7F,
     /// Operational: everything.
-    Operational,
+    Operational = 0x05,
     /// Stopped: only NMT and error control.
-    Stopped,
+    Stopped = 0x04,
 }
 
 impl NmtState {
     /// The state byte of heartbeat and node-guarding frames.
     pub const fn code(self) -> u8 {
-        match self {
-            NmtState::Initialising => 0x00,
-            NmtState::Stopped => 0x04,
-            NmtState::Operational => 0x05,
-            NmtState::PreOperational => 0x7F,
-        }
+        self as u8
     }
     /// SDO, EMCY and SYNC are served.
     pub const fn sdo_allowed(self) -> bool {
-        matches!(self, NmtState::PreOperational | NmtState::Operational)
+        // Pre-operational (0x7F) and operational (0x05) are the states with odd codes.
+        self as u8 & 1 != 0
     }
 }
 
@@ -77,6 +75,21 @@ impl NmtCommand {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The state bytes of CiA 301 §7.2.8.3.2.1 (heartbeat / guarding), and SDO, EMCY and SYNC
+    /// served in pre-operational and operational only.
+    #[test]
+    fn state_codes_and_what_each_state_serves() {
+        let all = [
+            (NmtState::Initialising, 0x00, false),
+            (NmtState::PreOperational, 0x7F, true),
+            (NmtState::Operational, 0x05, true),
+            (NmtState::Stopped, 0x04, false),
+        ];
+        for (s, code, sdo) in all {
+            assert_eq!((s.code(), s.sdo_allowed()), (code, sdo), "{s:?}");
+        }
+    }
 
     #[test]
     fn nmt_table_3_commands() {

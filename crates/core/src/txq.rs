@@ -81,6 +81,11 @@ impl TxQueue {
         self.len -= 1;
         Some(f)
     }
+    /// How many frames wait.
+    #[inline]
+    pub fn len(&self) -> usize {
+        self.len
+    }
     /// Whether nothing waits.
     #[cfg_attr(not(feature = "inline-hot-paths"), allow(dead_code))] // the host's fast path
     pub fn is_empty(&self) -> bool {

@@ -292,6 +292,22 @@ fn stats_count_frames_lost_to_a_wrong_bit_rate_and_report_corrupt_storage() {
     );
 }
 
+/// Every frame the node produced while it cannot talk is lost and counted, however many wait at
+/// once (here a power-on's boot-up and power-on EMCY), and none goes out once the bit rate
+/// matches again.
+#[cfg(feature = "simulation")] // the bus's bit rate: host only
+#[test]
+fn every_frame_waiting_while_the_bit_rate_is_wrong_is_counted_lost() {
+    let boot = Rig::new(&TH).take().len();
+    assert!(boot > 1, "a power-on sends more than one frame");
+    let mut r = Rig::booted(&TH);
+    r.node.set_bus_bitrate(Some(500));
+    assert!(r.power_cycle().is_empty());
+    assert_eq!(r.node.device().stats().tx_wrong_bitrate, boot as u32);
+    r.node.set_bus_bitrate(Some(125));
+    assert!(r.take().is_empty(), "lost, not delayed");
+}
+
 #[cfg(feature = "simulation")] // the bus's bit rate: host only
 /// CiA 305 §5.8: the node is deaf for twice the switch delay after "activate bit timing" and
 /// hears again from the end of the second delay on: a frame handed in at that very instant
