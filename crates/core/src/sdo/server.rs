@@ -51,6 +51,8 @@ pub enum TransferKind {
 
 /// Where a transfer stands between two requests.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+// A plain tag byte: every state test is one compare (no niches in the fields).
+#[repr(u8)]
 enum State {
     Idle,
     /// Segmented download: `buf[..len]` received so far.
