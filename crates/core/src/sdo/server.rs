@@ -122,7 +122,8 @@ pub struct SdoServer {
     len: usize,
     /// Upload: bytes confirmed sent (segmented) or the start of the current block (block).
     pos: usize,
-    /// The transfer's deadline in µs, `u64::MAX` for none (as [`SdoServer::due_us`]).
+    /// The transfer's deadline in µs (as [`SdoServer::due_us`]); meaningful only while a
+    /// transfer is unfinished, so only a request that leaves one unfinished sets it.
     deadline: u64,
 }
 
@@ -151,10 +152,8 @@ impl SdoServer {
     /// Aborts any transfer in progress without sending anything (NMT reset).
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn reset(&mut self) {
+        // `len`, `pos` and `deadline` mean something only in a transfer, whose start sets them.
         self.state = State::Idle;
-        self.deadline = u64::MAX;
-        self.len = 0;
-        self.pos = 0;
     }
 
     /// Whether a segmented or block transfer is unfinished.
@@ -284,11 +283,9 @@ impl SdoServer {
         // Every answer, sub-block segments' included, leaves here: one deadline and one abort.
         match r {
             Ok(r) => {
-                self.deadline = if self.state == State::Idle {
-                    u64::MAX
-                } else {
-                    (now + SDO_TIMEOUT).0
-                };
+                if self.state != State::Idle {
+                    self.deadline = (now + SDO_TIMEOUT).0;
+                }
                 r
             }
             Err(a) => self.abort(a),
@@ -755,6 +752,7 @@ impl SdoServer {
     /// [`SdoServer::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
+        // While idle `deadline` is stale (nothing clears it).
         if self.state != State::Idle {
             self.deadline
         } else {
