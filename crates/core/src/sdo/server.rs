@@ -388,8 +388,9 @@ impl SdoServer {
                     // c bit: the last segment.
                     self.finish_download(size, od)?;
                     self.state = State::Idle;
-                } else {
-                    self.state = State::DownSeg { toggle: !tg, size };
+                } else if let State::DownSeg { toggle, .. } = &mut self.state {
+                    // The next segment's t bit (the rest of the state stays).
+                    *toggle = !tg;
                 }
                 Ok(Some(wire::download_segment_ack(tg)))
             }
