@@ -116,7 +116,9 @@ pub struct SdoServer {
     /// What [`SdoServer::handle`] offers.
     transfers: Transfers,
     state: State,
-    mux: Mux,
+    /// The transfer's multiplexor as bytes 1…3 of a frame (byte 0 zero, little endian): one
+    /// word to store and load, and or'ed with a command byte it is an answer's first four bytes.
+    head: u32,
     buf: [u8; SDO_BUF_LEN],
     /// Valid bytes in `buf` (download: received; upload: the value's size).
     len: usize,
@@ -141,7 +143,7 @@ impl SdoServer {
             bad_dlc: 0,
             transfers: Transfers { segmented, block },
             state: State::Idle,
-            mux: Mux::default(),
+            head: 0,
             buf: [0; SDO_BUF_LEN],
             len: 0,
             pos: 0,
@@ -154,6 +156,21 @@ impl SdoServer {
     pub fn reset(&mut self) {
         // `len`, `pos` and `deadline` mean something only in a transfer, whose start sets them.
         self.state = State::Idle;
+    }
+
+    /// The transfer's multiplexor.
+    #[inline]
+    fn mux(&self) -> Mux {
+        Mux {
+            index: (self.head >> 8) as u16,
+            sub: (self.head >> 24) as u8,
+        }
+    }
+
+    /// Sets the transfer's multiplexor.
+    #[inline]
+    fn set_mux(&mut self, m: Mux) {
+        self.head = (u32::from(m.index) << 8) | (u32::from(m.sub) << 24);
     }
 
     /// Whether a segmented or block transfer is unfinished.
@@ -173,7 +190,7 @@ impl SdoServer {
                 TransferKind::BlockUpload
             }
         };
-        Some((k, self.mux))
+        Some((k, self.mux()))
     }
 
     /// Handles one request frame's data (any length; DLC ≠ 8 is ignored and counted).
@@ -228,7 +245,7 @@ impl SdoServer {
         let b0 = req[0];
         let mux = Mux::from_frame(req);
         self.reset();
-        self.mux = mux;
+        self.set_mux(mux);
         let size = (b0 & 0x01 != 0).then(|| 4 - u32::from((b0 >> 2) & 0x03));
         let data = [req[4], req[5], req[6], req[7]];
         match self.download_expedited(mux, size, &data, od) {
@@ -276,7 +293,7 @@ impl SdoServer {
             if self.state == State::Idle {
                 // The object of a new transfer, and what an abort outside a transfer echoes
                 // (the multiplexor is read only while a transfer is unfinished).
-                self.mux = Mux::from_frame(&req);
+                self.set_mux(Mux::from_frame(&req));
             }
             self.dispatch(&req, od, t)
         };
@@ -296,7 +313,7 @@ impl SdoServer {
     // Out of line: every abort the server sends leaves through it.
     #[inline(never)]
     fn abort(&mut self, a: Abort) -> Option<[u8; 8]> {
-        let m = self.mux;
+        let m = self.mux();
         self.reset();
         Some(abort_payload(m.index, m.sub, a))
     }
@@ -331,7 +348,7 @@ impl SdoServer {
         t: Transfers,
     ) -> Result<Option<[u8; 8]>, Abort> {
         let b0 = req[0];
-        let mux = self.mux;
+        let mux = self.mux();
         let le32 = u32::from_le_bytes([req[4], req[5], req[6], req[7]]);
         // s bit of a download initiate, t bit of a segment.
         let indicated = b0 & 0x01 != 0;
@@ -481,7 +498,7 @@ impl SdoServer {
                 if use_crc && wire::crc16(data) != crc {
                     return Err(Abort::Crc);
                 }
-                od.write(self.mux.index, self.mux.sub, data)?;
+                od.write(mux.index, mux.sub, data)?;
                 self.state = State::Idle;
                 Ok(Some(wire::block_download_end_ack()))
             }
@@ -544,7 +561,8 @@ impl SdoServer {
             return Err(Abort::LengthMismatch);
         }
         let data = self.buf.get(..self.len).unwrap_or(&[]);
-        od.write(self.mux.index, self.mux.sub, data)
+        let m = self.mux();
+        od.write(m.index, m.sub, data)
     }
 
     /// Upload initiate while idle, for values of 1…4 bytes (and refusals); `None` when the
@@ -557,7 +575,7 @@ impl SdoServer {
             return None;
         }
         self.reset();
-        self.mux = mux;
+        self.set_mux(mux);
         let r = size.and_then(|_| {
             let mut b = [0u8; 4];
             let n = od.read(mux.index, mux.sub, 0, &mut b)?;
