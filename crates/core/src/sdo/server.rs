@@ -310,8 +310,6 @@ impl SdoServer {
     }
 
     /// Ends the transfer with the abort `a`, which carries the transfer's multiplexor.
-    // Out of line: every abort the server sends leaves through it.
-    #[inline(never)]
     fn abort(&mut self, a: Abort) -> Option<[u8; 8]> {
         let m = self.mux();
         self.reset();
