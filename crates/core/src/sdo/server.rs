@@ -110,23 +110,26 @@ enum State {
 ///   acknowledged by the last in-order sequence number, so the client repeats from there; a
 ///   sequence number of 0 or above the block size is 0x05040003.
 #[derive(Clone, Debug)]
+// In this order: the fields every request reads sit at the start, where a Thumb load or store
+// of them is a 16-bit instruction (byte offsets up to 31, word offsets up to 124).
+#[repr(C)]
 pub struct SdoServer {
-    /// Requests ignored because their DLC was not 8.
-    pub bad_dlc: u32,
-    /// What [`SdoServer::handle`] offers.
-    transfers: Transfers,
     state: State,
     /// The transfer's multiplexor as bytes 1…3 of a frame (byte 0 zero, little endian): one
     /// word to store and load, and or'ed with a command byte it is an answer's first four bytes.
     head: u32,
-    buf: [u8; SDO_BUF_LEN],
     /// Valid bytes in `buf` (download: received; upload: the value's size).
     len: usize,
     /// Upload: bytes confirmed sent (segmented) or the start of the current block (block).
     pos: usize,
+    /// Requests ignored because their DLC was not 8.
+    pub bad_dlc: u32,
+    /// What [`SdoServer::handle`] offers.
+    transfers: Transfers,
     /// The transfer's deadline in µs (as [`SdoServer::due_us`]); meaningful only while a
     /// transfer is unfinished, so only a request that leaves one unfinished sets it.
     deadline: u64,
+    buf: [u8; SDO_BUF_LEN],
 }
 
 impl Default for SdoServer {
