@@ -57,6 +57,19 @@ fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
 }
 
+/// A change of the stored image ([`Device::change_stored`]).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Change {
+    /// "save" (0x1010) of a scope, or the automatic store ([`Scope::Auto`]).
+    Save(Scope),
+    /// "load" (0x1011) of a scope, or "kill": forgets what was stored for it (the LSS
+    /// configuration and records of entries outside the scope stay, records this model has no
+    /// entry for go); defaults apply at the next reset (D7).
+    Forget(Scope),
+    /// LSS "store configuration".
+    Lss,
+}
+
 /// The slot and entry of this model's object that a stored record's `key` names, if any (an
 /// LSS or bookkeeping key names none). Out of line: every reading and writing of the image
 /// looks its records up through it.
@@ -1235,34 +1248,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// itself: the covered entries' current values replace what was stored for them; the
     /// rest of the image stays. The active node-id goes with it (D15).
     pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
-        self.store_or_forget(scope, true)
-    }
-
-    /// [`Device::store`] (`save`), or "load" (0x1011) of `scope` (not `save`): forgets what was
-    /// stored for it (the LSS configuration and records of entries outside the scope stay,
-    /// records this model has no entry for go); defaults apply at the next reset (D7). One
-    /// change of the image for both, as they differ only in the records they drop and write.
-    fn store_or_forget(&mut self, scope: Scope, save: bool) -> Result<(), Abort> {
-        let od = &self.od;
-        let replaced = |k: u32| match stored_entry(od, k) {
-            Some((_, e)) => scope.covers(e),
-            // A store replaces the saved node-id; a "load" forgets the records of objects this
-            // model does not have too.
-            None if save => k == storage::KEY_SAVED_NODE_ID,
-            None => storage::is_object_key(k),
-        };
-        let node = self.node_id as u32;
-        let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            !save
-                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
-                || (0..od::MAX_ENTRIES)
-                    .zip(od.entries())
-                    .filter(|(_, e)| scope.covers(e))
-                    .all(|(slot, e)| w.push(e.key(), od.get(slot)))
-                    && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
-        };
-        let tag = self.features().tag;
-        storage::change_image(&mut self.storage, tag, &replaced, put)
+        self.change_stored(Change::Save(scope))
             .map_err(|_| Abort::CannotStore)
     }
 
@@ -1270,28 +1256,56 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// and in the objects that hold copies of them (TMI 0x2000 / 0x2001), so that every copy
     /// says the same after the next power-on.
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
-        let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
+        self.change_stored(Change::Lss)?;
+        self.stored_lss = (Some(self.pending_node_id), Some(self.pending_bitrate));
+        Ok(())
+    }
+
+    /// Every change of the stored image: the records `change` covers are dropped and the
+    /// values it stores written in their place; the rest of the image stays. One rule and one
+    /// writer for all of them, as they differ only in which records those are.
+    fn change_stored(&mut self, change: Change) -> Result<(), StorageError> {
         let od = &self.od;
-        let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            w.push(storage::KEY_LSS_NODE_ID, id as u32)
-                && w.push(storage::KEY_LSS_BITRATE, kbps as u32)
-                && od.entries().iter().all(|e| match e.hook {
-                    Hook::PendingNodeId => w.push(e.key(), id as u32),
-                    Hook::PendingBitRate => w.push(e.key(), object_of_kbps(kbps)),
-                    _ => true,
-                })
+        let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
+        let replaced = |k: u32| match (stored_entry(od, k), change) {
+            (Some((_, e)), Change::Save(scope) | Change::Forget(scope)) => scope.covers(e),
+            (Some((_, e)), Change::Lss) => {
+                matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
+            }
+            // A store replaces the saved node-id; a "load" forgets the records of objects this
+            // model does not have too.
+            (None, Change::Save(_)) => k == storage::KEY_SAVED_NODE_ID,
+            (None, Change::Forget(_)) => storage::is_object_key(k),
+            (None, Change::Lss) => k == storage::KEY_LSS_NODE_ID || k == storage::KEY_LSS_BITRATE,
         };
-        let replaced = |k: u32| {
-            k == storage::KEY_LSS_NODE_ID
-                || k == storage::KEY_LSS_BITRATE
-                || stored_entry(od, k).is_some_and(|(_, e)| {
-                    matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
-                })
+        // The value `change` stores for `e` in `slot`, if any.
+        let value = |slot: usize, e: &Entry| match change {
+            Change::Save(scope) => scope.covers(e).then(|| od.get(slot)),
+            Change::Forget(_) => None,
+            Change::Lss => match e.hook {
+                Hook::PendingNodeId => Some(id as u32),
+                Hook::PendingBitRate => Some(object_of_kbps(kbps)),
+                _ => None,
+            },
+        };
+        let node = self.node_id as u32;
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            (change != Change::Lss
+                || w.push(storage::KEY_LSS_NODE_ID, id as u32)
+                    && w.push(storage::KEY_LSS_BITRATE, kbps as u32))
+                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
+                && (0..od::MAX_ENTRIES)
+                    .zip(od.entries())
+                    .all(|(slot, e)| value(slot, e).is_none_or(|v| w.push(e.key(), v)))
+                && match change {
+                    Change::Save(scope) if scope != Scope::Auto => {
+                        w.push(storage::KEY_SAVED_NODE_ID, node)
+                    }
+                    _ => true,
+                }
         };
         let tag = self.features().tag;
-        storage::change_image(&mut self.storage, tag, &replaced, put)?;
-        self.stored_lss = (Some(id), Some(kbps));
-        Ok(())
+        storage::change_image(&mut self.storage, tag, &replaced, put)
     }
 
     /// The rule of an entry's hook for a value of its own, on this node-id, whatever the object
@@ -1438,7 +1452,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         let f = self.features();
         let scope = Scope::of_sub(e.sub);
         // "save" stores; "load", and "kill" where the model has it, forget.
-        let save = if e.hook == Hook::StoreParameters {
+        let change = if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
             if raw != SIG_SAVE && !kill {
                 return Err(Abort::CannotStore);
@@ -1446,14 +1460,18 @@ impl<A: Application, S: Storage> Device<A, S> {
             if f.store_preop_only && self.nmt != NmtState::PreOperational {
                 return Err(Abort::WrongState);
             }
-            !kill
+            if kill {
+                Change::Forget(scope)
+            } else {
+                Change::Save(scope)
+            }
         } else {
             if raw != SIG_LOAD {
                 return Err(Abort::CannotStore);
             }
-            false
+            Change::Forget(scope)
         };
-        self.store_or_forget(scope, save)?;
+        self.change_stored(change).map_err(|_| Abort::CannotStore)?;
         // D7: the answer leaves no earlier than the store time after the request arrived.
         self.sdo_hold_until = Some(self.now + STORE_TIME);
         Ok(())
