@@ -344,9 +344,9 @@ pub fn change_image<S: Storage>(
     // Records only move towards the front here, so copying in place is safe.
     let (recs, _) = buf[8..8 + old].as_chunks_mut::<8>();
     for at in 0..recs.len() {
-        let rec = recs[at];
-        if !replaced(u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]])) {
-            recs[kept] = rec;
+        let [k0, k1, k2, k3, ..] = recs[at];
+        if !replaced(u32::from_le_bytes([k0, k1, k2, k3])) {
+            recs[kept] = recs[at];
             kept += 1;
         }
     }
