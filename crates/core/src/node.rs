@@ -1264,6 +1264,9 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// Every change of the stored image: the records `change` covers are dropped and the
     /// values it stores written in their place; the rest of the image stays. One rule and one
     /// writer for all of them, as they differ only in which records those are.
+    // Out of line: the image buffer of `change_image`, inlined here, is on the stack only
+    // while a change runs.
+    #[inline(never)]
     fn change_stored(&mut self, change: Change) -> Result<(), StorageError> {
         let od = &self.od;
         let (id, kbps) = (self.pending_node_id, self.pending_bitrate);

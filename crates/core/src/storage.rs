@@ -328,9 +328,10 @@ fn load_records<'a, S: Storage>(
 /// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
 /// in their stored order, and the new ones follow them. Nothing is saved when they do not all
-/// fit. Never inlined, so the buffer is on the stack only while a change runs; the rule and
-/// the writing come as trait objects, so that every kind of store shares one copy of the code.
-#[inline(never)]
+/// fit. The rule and the writing come as trait objects, so that every kind of store can share
+/// one copy of the code. Callers are out of line (the node's one caller is, and has it and the
+/// closures inlined), so that the buffer is on the stack only while a change runs.
+#[inline]
 pub fn change_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
@@ -364,7 +365,8 @@ pub fn change_image<S: Storage>(
     st.save(&buf[..n])
 }
 
-/// [`change_image`] with the new records from an iterator.
+/// [`change_image`] with the new records from an iterator (out of line, for the buffer's sake).
+#[inline(never)]
 pub fn update_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
