@@ -221,8 +221,6 @@ impl<'a> ImageWriter<'a> {
 
     /// Appends one record; returns false when the buffer is full.
     // One window for the record and the CRC that must still fit after it: one bounds check.
-    // Out of line: every kind of store writes through it.
-    #[inline(never)]
     pub fn push(&mut self, key: u32, value: u32) -> bool {
         let Some(window) = self
             .buf
