@@ -1100,22 +1100,31 @@ impl<A: Application, S: Storage> Device<A, S> {
             Err(StorageError::Empty) => return ((None, None), false),
             Err(_) => return ((None, None), true),
         };
-        let (mut lss, mut obj) = ((None, None), (None, None));
+        // The last node-id and bit rate of each source: [LSS node-id, LSS bit rate, object
+        // node-id, object bit rate].
+        let mut last = [None; 4];
         for (k, v) in recs {
-            match k {
-                // A checksummed image can still hold an impossible node-id (a hand-edited or
-                // foreign file; found by fuzzing): ignore it rather than talk on COB-IDs of
-                // node 0 or 200.
-                storage::KEY_LSS_NODE_ID => lss.0 = stored_node_id(v).or(lss.0),
-                storage::KEY_LSS_BITRATE => lss.1 = Some(v as u16),
+            let at = match k {
+                storage::KEY_LSS_NODE_ID => 0,
+                storage::KEY_LSS_BITRATE => 1,
                 _ => match stored_entry(&self.od, k).map(|(_, e)| e.hook) {
-                    Some(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
-                    Some(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
-                    _ => {}
+                    Some(Hook::PendingNodeId) => 2,
+                    Some(Hook::PendingBitRate) => 3,
+                    _ => continue,
                 },
+            };
+            // A checksummed image can still hold an impossible node-id (a hand-edited or
+            // foreign file; found by fuzzing): ignore it rather than talk on COB-IDs of node 0
+            // or 200.
+            if at & 1 == 0 && stored_node_id(v).is_none() {
+                continue;
             }
+            last[at] = Some(v);
         }
-        ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
+        let [lss_id, lss_kbps, obj_id, obj_kbps] = last;
+        let id = obj_id.or(lss_id).map(|v| v as u8);
+        let kbps = obj_kbps.map(kbps_of_object).or(lss_kbps.map(|v| v as u16));
+        ((id, kbps), false)
     }
 
     /// The application and the context it runs in (disjoint borrows of the device).
