@@ -51,8 +51,6 @@ fn object_of_kbps(kbps: u16) -> u32 {
 }
 
 /// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
-// Out of line: the image loaders share one copy.
-#[inline(never)]
 fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
 }
