@@ -1070,9 +1070,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
         // The write rule that relates guarding to SYNC (`validate`), once both are loaded:
         // guarding on SYNC's CAN-ID keeps its default (0x700 + node-id, which SYNC cannot have).
-        if let Ok(g) = self.od.find(0x100E, 0) {
+        // 0x100E:0 by its record key: slot and entry in one look-up.
+        if let Some((g, e)) = stored_entry(&self.od, 0x0010_0E00) {
             if self.od.get(g) & 0x7FF == self.sync_can_id() {
-                let e = self.od.entry(g);
                 self.od.set(g, crate::od::resolve_default(e, &p, node));
             }
         }
