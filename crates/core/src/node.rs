@@ -76,6 +76,11 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
     if !storage::is_object_key(key) {
         return None;
     }
+    // Firmware searches by the key itself: no index and sub-index to split it into, no abort
+    // to work out for a key the table lacks.
+    #[cfg(not(feature = "inline-hot-paths"))]
+    let slot = od::search_entries(od.entries(), key).ok()?;
+    #[cfg(feature = "inline-hot-paths")]
     let slot = od.find((key >> 8) as u16, key as u8).ok()?;
     Some((slot, od.entries().get(slot)?))
 }
