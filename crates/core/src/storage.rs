@@ -327,8 +327,9 @@ fn load_records<'a, S: Storage>(
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
 /// in their stored order, and the new ones follow them. Nothing is saved when they do not all
 /// fit. The rule and the writing come as trait objects, so that every kind of store can share
-/// one copy of the code. Callers are out of line (the node's one caller is, and has it and the
-/// closures inlined), so that the buffer is on the stack only while a change runs.
+/// one copy of the code. Its callers are kept out of line instead of it (the node's one
+/// caller has it and the closures inlined), so that the buffer is on the stack only while a
+/// change runs.
 #[inline]
 pub fn change_image<S: Storage>(
     st: &mut S,
