@@ -183,15 +183,16 @@ impl Emcy {
         let Some(i) = self.active_codes().iter().position(|&a| a as u16 == code) else {
             return;
         };
-        let before = self.register();
+        // The register before is the one after with the cleared error's bits: no pass over the
+        // list before the shift, and none at all unless the rule needs it.
+        let gone = (self.active[i % ACTIVE_LEN] >> 16) as u8 | reg::GENERIC;
         // Element by element over the fixed array: a `copy_within` would call `memmove`.
         for j in i..ACTIVE_LEN - 1 {
             self.active[j] = self.active[j + 1];
         }
         self.n_active -= 1;
         self.generation = self.generation.wrapping_add(1);
-        let after = self.register();
-        if self.n_active == 0 || (self.on_register_change && after != before) {
+        if self.n_active == 0 || (self.on_register_change && gone & !self.register() != 0) {
             self.queue(code::NO_ERROR, [0; 5]);
         }
     }
@@ -357,6 +358,32 @@ mod tests {
         assert_eq!(e.register(), 0x0D);
         e.clear(0x3100);
         assert_eq!(e.register(), 0x09);
+    }
+
+    /// With the rule "0x0000 on every change of the register", an error clearing while others
+    /// stay sends 0x0000 exactly when the register loses bits; without it, only the last one
+    /// clearing does.
+    #[test]
+    fn reset_on_register_change_sends_only_when_the_register_changes() {
+        for on in [false, true] {
+            let mut e = Emcy::default();
+            e.set_reset_on_register_change(on);
+            e.raise(0x3100, reg::VOLTAGE, [0; 5]);
+            e.raise(0x4200, reg::TEMPERATURE, [0; 5]);
+            e.raise(0x4210, reg::TEMPERATURE, [0; 5]);
+            while e.poll(Instant(0)).is_some() {}
+            e.clear(0x3100);
+            let changed = on.then_some([0, 0, 0x09, 0, 0, 0, 0, 0]);
+            assert_eq!(
+                e.poll(Instant(0)),
+                changed,
+                "0x1001 0x0D -> 0x09, rule {on}"
+            );
+            e.clear(0x4200);
+            assert_eq!(e.poll(Instant(0)), None, "0x1001 stays 0x09, rule {on}");
+            e.clear(0x4210);
+            assert_eq!(e.poll(Instant(0)), Some([0; 8]), "none left, rule {on}");
+        }
     }
 
     /// CiA 301 §7.5.2.5 (0x1003): an entry holds the error code in bits 0–15 and the first two
