@@ -77,7 +77,8 @@ pub struct Emcy {
     /// Where the newest history entry is.
     newest: u8,
     n_history: u8,
-    pending: [[u8; 8]; PENDING_LEN],
+    /// The pending frames' payloads, little-endian words (see [`payload`]).
+    pending: [u64; PENDING_LEN],
     /// Where the oldest pending frame is.
     first_pending: u8,
     n_pending: u8,
@@ -109,7 +110,7 @@ impl core::default::Default for Emcy {
             history: [0; HISTORY_LEN],
             newest: 0,
             n_history: 0,
-            pending: [[0; 8]; PENDING_LEN],
+            pending: [0; PENDING_LEN],
             first_pending: 0,
             n_pending: 0,
             inhibit: Duration::ZERO,
@@ -166,16 +167,18 @@ impl Emcy {
             self.n_active += 1;
         }
         self.generation = self.generation.wrapping_add(1);
-        self.record(code, mfr);
-        self.queue(code, mfr);
+        let p = payload(code, mfr);
+        self.record(p);
+        self.queue(p);
     }
 
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
     // A firmware's events share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn event(&mut self, code: u16, mfr: [u8; 5]) {
-        self.record(code, mfr);
-        self.queue(code, mfr);
+        let p = payload(code, mfr);
+        self.record(p);
+        self.queue(p);
     }
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
@@ -193,7 +196,7 @@ impl Emcy {
         self.n_active -= 1;
         self.generation = self.generation.wrapping_add(1);
         if self.n_active == 0 || (self.on_register_change && gone & !self.register() != 0) {
-            self.queue(code::NO_ERROR, [0; 5]);
+            self.queue(payload(code::NO_ERROR, [0; 5]));
         }
     }
 
@@ -207,12 +210,12 @@ impl Emcy {
     /// one-shot event such as "recovered from bus-off" on models whose EMCYs go along with
     /// every change of the error state.
     pub fn reset_message(&mut self) {
-        self.queue(code::NO_ERROR, [0; 5]);
+        self.queue(payload(code::NO_ERROR, [0; 5]));
     }
 
     /// Sends the power-on EMCY "without reasonable data" (D14).
     pub fn power_on(&mut self) {
-        self.queue(code::NO_ERROR, [0; 5]);
+        self.queue(payload(code::NO_ERROR, [0; 5]));
     }
 
     /// Forgets active errors and pending frames (reset); the history survives until cleared.
@@ -251,10 +254,10 @@ impl Emcy {
 
     // A firmware's raises share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
-    fn record(&mut self, code: u16, mfr: [u8; 5]) {
+    fn record(&mut self, p: u64) {
         // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
         // entry matches the frame (conformance EMCY-06).
-        let entry = code as u32 | (u16::from_le_bytes([mfr[0], mfr[1]]) as u32) << 16;
+        let entry = p as u16 as u32 | ((p >> 24) as u16 as u32) << 16;
         let newest = (usize::from(self.newest) + HISTORY_LEN - 1) % HISTORY_LEN;
         self.newest = newest as u8;
         self.history[newest] = entry;
@@ -262,17 +265,16 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
     }
 
-    /// Queues the EMCY `code` with the current error register: every caller sends that, and
-    /// reading it here spares each call site its own call.
-    fn queue(&mut self, code: u16, mfr: [u8; 5]) {
+    /// Queues the EMCY of payload `p` (see [`payload`]) with the current error register: every
+    /// caller sends that, and reading it here spares each call site its own call.
+    fn queue(&mut self, p: u64) {
         let register = self.register();
         if usize::from(self.n_pending) == PENDING_LEN {
             self.lost = self.lost.wrapping_add(1);
             return;
         }
-        let c = code.to_le_bytes();
         self.pending[usize::from(self.first_pending + self.n_pending) % PENDING_LEN] =
-            [c[0], c[1], register, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]];
+            p | u64::from(register) << 16;
         self.n_pending += 1;
     }
 
@@ -302,8 +304,17 @@ impl Emcy {
         self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
-        Some(f)
+        Some(f.to_le_bytes())
     }
+}
+
+/// An EMCY's payload as a little-endian word, its error register (byte 2) left 0: the code
+/// in bytes 0–1, the manufacturer bytes in 3–7. Passed in registers, not as a byte array on
+/// the stack, and stored whole.
+#[inline]
+fn payload(code: u16, mfr: [u8; 5]) -> u64 {
+    let c = code.to_le_bytes();
+    u64::from_le_bytes([c[0], c[1], 0, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]])
 }
 
 #[cfg(test)]
