@@ -100,6 +100,14 @@ impl Emcy {
         // `n_active` never exceeds the array: `min` costs less than a bounds check's panic.
         &self.active[..usize::from(self.n_active).min(ACTIVE_LEN)]
     }
+
+    /// Where `code` is in the active list, `ACTIVE_LEN` if it is not active (one register,
+    /// not an `Option`'s two). A firmware's raise, clear and `is_active` share one search.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn find(&self, code: u16) -> usize {
+        let found = self.active_codes().iter().position(|&a| a as u16 == code);
+        found.unwrap_or(ACTIVE_LEN)
+    }
 }
 
 impl core::default::Default for Emcy {
@@ -148,7 +156,7 @@ impl Emcy {
 
     /// Whether `code` is active.
     pub fn is_active(&self, code: u16) -> bool {
-        self.active_codes().iter().any(|&a| a as u16 == code)
+        self.find(code) < ACTIVE_LEN
     }
 
     /// Sets the inhibit time (0x1015, 100 µs units).
@@ -183,9 +191,10 @@ impl Emcy {
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
     pub fn clear(&mut self, code: u16) {
-        let Some(i) = self.active_codes().iter().position(|&a| a as u16 == code) else {
+        let i = self.find(code);
+        if i >= ACTIVE_LEN {
             return;
-        };
+        }
         // The register before is the one after with the cleared error's bits: no pass over the
         // list before the shift, and none at all unless the rule needs it.
         let gone = (self.active[i % ACTIVE_LEN] >> 16) as u8 | reg::GENERIC;
