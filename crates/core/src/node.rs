@@ -1223,13 +1223,14 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
     }
 
+    /// At power-on, the stored image failed its check: the application's reaction, else EMCY
+    /// 0x6300. Sent by the epilogue that ends [`Node::power_on`] right after.
     fn report_corrupt_storage(&mut self) {
         let now = self.now;
         let (app, mut cx) = self.app_ctx(now);
         if !app.storage_corrupt(&mut cx) {
             self.emcy.raise(emcy::code::DATA_SET, 0, [0; 5]);
         }
-        self.flush_emcy();
     }
 
     /// "save" (0x1010) of `scope`, or the automatic store of the values the device keeps by
