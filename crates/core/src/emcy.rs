@@ -105,8 +105,10 @@ impl Emcy {
     /// not an `Option`'s two). A firmware's raise, clear and `is_active` share one search.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn find(&self, code: u16) -> usize {
-        let found = self.active_codes().iter().position(|&a| a as u16 == code);
-        found.unwrap_or(ACTIVE_LEN)
+        // Over indices, not a slice's `position`: a tighter loop.
+        (0..usize::from(self.n_active).min(ACTIVE_LEN))
+            .find(|&i| self.active[i] as u16 == code)
+            .unwrap_or(ACTIVE_LEN)
     }
 }
 
