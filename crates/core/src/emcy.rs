@@ -200,11 +200,10 @@ impl Emcy {
         // The register before is the one after with the cleared error's bits: no pass over the
         // list before the shift, and none at all unless the rule needs it.
         let gone = (self.active[i % ACTIVE_LEN] >> 16) as u8 | reg::GENERIC;
-        // Element by element over the fixed array: a `copy_within` would call `memmove`.
-        for j in i..ACTIVE_LEN - 1 {
-            self.active[j] = self.active[j + 1];
-        }
+        // The last error takes its place: the list's order tells nothing (the register is a
+        // union, and a search finds a code anywhere), so nothing needs shifting.
         self.n_active -= 1;
+        self.active[i % ACTIVE_LEN] = self.active[usize::from(self.n_active) % ACTIVE_LEN];
         self.generation = self.generation.wrapping_add(1);
         if self.n_active == 0 || (self.on_register_change && gone & !self.register() != 0) {
             self.queue(payload(code::NO_ERROR, [0; 5]));
