@@ -198,7 +198,7 @@ impl Emcy {
             return;
         }
         // The register before is the one after with the cleared error's bits: no pass over the
-        // list before the shift, and none at all unless the rule needs it.
+        // list before the removal, and none at all unless the rule needs it.
         let gone = (self.active[i % ACTIVE_LEN] >> 16) as u8 | reg::GENERIC;
         // The last error takes its place: the list's order tells nothing (the register is a
         // union, and a search finds a code anywhere), so nothing needs shifting.

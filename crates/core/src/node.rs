@@ -1189,7 +1189,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         if self.emcy.generation() != self.emcy_synced {
             self.sync_error_register();
         }
-        if !self.emcy.has_pending() || !self.emcy_served() {
+        // No separate "nothing waits" test: `poll` makes it (reading the COB-ID first is cheap).
+        if !self.emcy_served() {
             return;
         }
         let cobid = self
