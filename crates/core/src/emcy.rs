@@ -176,7 +176,7 @@ impl Emcy {
             self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
             self.n_active += 1;
         }
-        self.generation = self.generation.wrapping_add(1);
+        // `record` bumps the generation (the register's change with it).
         let p = payload(code, mfr);
         self.record(p);
         self.queue(p);
