@@ -77,7 +77,8 @@ pub struct Emcy {
     /// Where the newest history entry is.
     newest: u8,
     n_history: u8,
-    pending: [[u8; 8]; PENDING_LEN],
+    /// The pending frames' payloads, little-endian words (see [`payload`]).
+    pending: [u64; PENDING_LEN],
     /// Where the oldest pending frame is.
     first_pending: u8,
     n_pending: u8,
@@ -99,6 +100,16 @@ impl Emcy {
         // `n_active` never exceeds the array: `min` costs less than a bounds check's panic.
         &self.active[..usize::from(self.n_active).min(ACTIVE_LEN)]
     }
+
+    /// Where `code` is in the active list, `ACTIVE_LEN` if it is not active (one register,
+    /// not an `Option`'s two). A firmware's raise, clear and `is_active` share one search.
+    #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
+    fn find(&self, code: u16) -> usize {
+        // Over indices, not a slice's `position`: a tighter loop.
+        (0..usize::from(self.n_active).min(ACTIVE_LEN))
+            .find(|&i| self.active[i] as u16 == code)
+            .unwrap_or(ACTIVE_LEN)
+    }
 }
 
 impl core::default::Default for Emcy {
@@ -109,7 +120,7 @@ impl core::default::Default for Emcy {
             history: [0; HISTORY_LEN],
             newest: 0,
             n_history: 0,
-            pending: [[0; 8]; PENDING_LEN],
+            pending: [0; PENDING_LEN],
             first_pending: 0,
             n_pending: 0,
             inhibit: Duration::ZERO,
@@ -147,7 +158,7 @@ impl Emcy {
 
     /// Whether `code` is active.
     pub fn is_active(&self, code: u16) -> bool {
-        self.active_codes().iter().any(|&a| a as u16 == code)
+        self.find(code) < ACTIVE_LEN
     }
 
     /// Sets the inhibit time (0x1015, 100 µs units).
@@ -165,34 +176,37 @@ impl Emcy {
             self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
             self.n_active += 1;
         }
-        self.generation = self.generation.wrapping_add(1);
-        self.record(code, mfr);
-        self.queue(code, mfr);
+        // `record` bumps the generation (the register's change with it).
+        let p = payload(code, mfr);
+        self.record(p);
+        self.queue(p);
     }
 
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
     // A firmware's events share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn event(&mut self, code: u16, mfr: [u8; 5]) {
-        self.record(code, mfr);
-        self.queue(code, mfr);
+        let p = payload(code, mfr);
+        self.record(p);
+        self.queue(p);
     }
 
     /// An error goes away; when no error is left, EMCY 0x0000 with the register follows.
     pub fn clear(&mut self, code: u16) {
-        let Some(i) = self.active_codes().iter().position(|&a| a as u16 == code) else {
+        let i = self.find(code);
+        if i >= ACTIVE_LEN {
             return;
-        };
-        let before = self.register();
-        // Element by element over the fixed array: a `copy_within` would call `memmove`.
-        for j in i..ACTIVE_LEN - 1 {
-            self.active[j] = self.active[j + 1];
         }
+        // The register before is the one after with the cleared error's bits: no pass over the
+        // list before the removal, and none at all unless the rule needs it.
+        let gone = (self.active[i % ACTIVE_LEN] >> 16) as u8 | reg::GENERIC;
+        // The last error takes its place: the list's order tells nothing (the register is a
+        // union, and a search finds a code anywhere), so nothing needs shifting.
         self.n_active -= 1;
+        self.active[i % ACTIVE_LEN] = self.active[usize::from(self.n_active) % ACTIVE_LEN];
         self.generation = self.generation.wrapping_add(1);
-        let after = self.register();
-        if self.n_active == 0 || (self.on_register_change && after != before) {
-            self.queue(code::NO_ERROR, [0; 5]);
+        if self.n_active == 0 || (self.on_register_change && gone & !self.register() != 0) {
+            self.queue(payload(code::NO_ERROR, [0; 5]));
         }
     }
 
@@ -206,12 +220,12 @@ impl Emcy {
     /// one-shot event such as "recovered from bus-off" on models whose EMCYs go along with
     /// every change of the error state.
     pub fn reset_message(&mut self) {
-        self.queue(code::NO_ERROR, [0; 5]);
+        self.queue(payload(code::NO_ERROR, [0; 5]));
     }
 
     /// Sends the power-on EMCY "without reasonable data" (D14).
     pub fn power_on(&mut self) {
-        self.queue(code::NO_ERROR, [0; 5]);
+        self.queue(payload(code::NO_ERROR, [0; 5]));
     }
 
     /// Forgets active errors and pending frames (reset); the history survives until cleared.
@@ -250,10 +264,10 @@ impl Emcy {
 
     // A firmware's raises share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
-    fn record(&mut self, code: u16, mfr: [u8; 5]) {
+    fn record(&mut self, p: u64) {
         // Bits 16–31 hold the first two manufacturer bytes (EMCY bytes 3–4), so the history
         // entry matches the frame (conformance EMCY-06).
-        let entry = code as u32 | (u16::from_le_bytes([mfr[0], mfr[1]]) as u32) << 16;
+        let entry = p as u16 as u32 | ((p >> 24) as u16 as u32) << 16;
         let newest = (usize::from(self.newest) + HISTORY_LEN - 1) % HISTORY_LEN;
         self.newest = newest as u8;
         self.history[newest] = entry;
@@ -261,17 +275,16 @@ impl Emcy {
         self.generation = self.generation.wrapping_add(1);
     }
 
-    /// Queues the EMCY `code` with the current error register: every caller sends that, and
-    /// reading it here spares each call site its own call.
-    fn queue(&mut self, code: u16, mfr: [u8; 5]) {
+    /// Queues the EMCY of payload `p` (see [`payload`]) with the current error register: every
+    /// caller sends that, and reading it here spares each call site its own call.
+    fn queue(&mut self, p: u64) {
         let register = self.register();
         if usize::from(self.n_pending) == PENDING_LEN {
             self.lost = self.lost.wrapping_add(1);
             return;
         }
-        let c = code.to_le_bytes();
         self.pending[usize::from(self.first_pending + self.n_pending) % PENDING_LEN] =
-            [c[0], c[1], register, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]];
+            p | u64::from(register) << 16;
         self.n_pending += 1;
     }
 
@@ -301,8 +314,17 @@ impl Emcy {
         self.first_pending = ((usize::from(self.first_pending) + 1) % PENDING_LEN) as u8;
         self.n_pending -= 1;
         self.next_allowed = now + self.inhibit;
-        Some(f)
+        Some(f.to_le_bytes())
     }
+}
+
+/// An EMCY's payload as a little-endian word, its error register (byte 2) left 0: the code
+/// in bytes 0–1, the manufacturer bytes in 3–7. Passed in registers, not as a byte array on
+/// the stack, and stored whole.
+#[inline]
+fn payload(code: u16, mfr: [u8; 5]) -> u64 {
+    let c = code.to_le_bytes();
+    u64::from_le_bytes([c[0], c[1], 0, mfr[0], mfr[1], mfr[2], mfr[3], mfr[4]])
 }
 
 #[cfg(test)]
@@ -357,6 +379,32 @@ mod tests {
         assert_eq!(e.register(), 0x0D);
         e.clear(0x3100);
         assert_eq!(e.register(), 0x09);
+    }
+
+    /// With the rule "0x0000 on every change of the register", an error clearing while others
+    /// stay sends 0x0000 exactly when the register loses bits; without it, only the last one
+    /// clearing does.
+    #[test]
+    fn reset_on_register_change_sends_only_when_the_register_changes() {
+        for on in [false, true] {
+            let mut e = Emcy::default();
+            e.set_reset_on_register_change(on);
+            e.raise(0x3100, reg::VOLTAGE, [0; 5]);
+            e.raise(0x4200, reg::TEMPERATURE, [0; 5]);
+            e.raise(0x4210, reg::TEMPERATURE, [0; 5]);
+            while e.poll(Instant(0)).is_some() {}
+            e.clear(0x3100);
+            let changed = on.then_some([0, 0, 0x09, 0, 0, 0, 0, 0]);
+            assert_eq!(
+                e.poll(Instant(0)),
+                changed,
+                "0x1001 0x0D -> 0x09, rule {on}"
+            );
+            e.clear(0x4200);
+            assert_eq!(e.poll(Instant(0)), None, "0x1001 stays 0x09, rule {on}");
+            e.clear(0x4210);
+            assert_eq!(e.poll(Instant(0)), Some([0; 8]), "none left, rule {on}");
+        }
     }
 
     /// CiA 301 §7.5.2.5 (0x1003): an entry holds the error code in bits 0–15 and the first two

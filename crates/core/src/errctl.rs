@@ -5,17 +5,21 @@ use crate::nmt::NmtState;
 use crate::wire::{Duration, Instant};
 
 /// Heartbeat and node-guarding state of the slave.
+// "Off" and "none" are zero, not `Option`s: cheaper tests and stores, and the default (a
+// reset) is all zero bytes.
 #[derive(Clone, Debug, Default)]
 pub struct ErrCtl {
-    /// The heartbeat period (0x1017), zero for off: a period is at least 1 ms, and a plain
-    /// duration tests and stores cheaper than an `Option`.
+    /// The heartbeat period (0x1017), zero for off (a period is at least 1 ms).
     heartbeat: Duration,
     /// When the next heartbeat is due; meaningless while the heartbeat is off.
     next_heartbeat: Instant,
     toggle: bool,
-    life_time: Option<Duration>,
-    /// Deadline of the next expected guard request, once guarding has started.
-    guard_deadline: Option<Instant>,
+    /// Guard time × life time factor (0x100C × 0x100D), zero for none (either is zero).
+    life_time: Duration,
+    /// Deadline of the next expected guard request, once guarding has started; zero for none
+    /// (a deadline is a non-zero life time after some instant, and the add saturates, so it is
+    /// never zero).
+    guard_deadline: Instant,
     /// A life-guarding event happened and no guard request has come since.
     pub life_guard_lost: bool,
     /// CAN-ID on which guard requests are answered (0x100E; pre-defined 0x700 + node-id).
@@ -44,16 +48,15 @@ impl ErrCtl {
     /// Applies 0x100C (ms) and 0x100D: life guarding is armed once both are non-zero and a guard
     /// request has arrived.
     pub fn set_guarding(&mut self, guard_ms: u16, factor: u8, now: Instant) {
-        self.life_time = if guard_ms != 0 && factor != 0 {
-            Some(Duration::from_millis(guard_ms as u64 * factor as u64))
+        // Zero exactly when either is.
+        let l = Duration::from_millis(guard_ms as u64 * factor as u64);
+        self.life_time = l;
+        self.guard_deadline = if l != Duration::ZERO && self.guard_deadline != Instant::ZERO {
+            now + l
         } else {
-            None
+            Instant::ZERO
         };
-        self.guard_deadline = match (self.life_time, self.guard_deadline) {
-            (Some(l), Some(_)) => Some(now + l),
-            _ => None,
-        };
-        if self.life_time.is_none() {
+        if l == Duration::ZERO {
             self.life_guard_lost = false;
         }
     }
@@ -71,31 +74,16 @@ impl ErrCtl {
 
     /// Clears the toggle and guarding state (reset communication).
     pub fn reset(&mut self) {
-        // Field by field: the default built whole goes through a stack temporary. The
-        // heartbeat's deadline is left, meaningless with the heartbeat off.
-        let ErrCtl {
-            heartbeat,
-            next_heartbeat: _,
-            toggle,
-            life_time,
-            guard_deadline,
-            life_guard_lost,
-            guarding_id,
-        } = self;
-        *heartbeat = Duration::ZERO;
-        *toggle = false;
-        *life_time = None;
-        *guard_deadline = None;
-        *life_guard_lost = false;
-        *guarding_id = 0;
+        *self = ErrCtl::default();
     }
 
     /// A guard request arrived: returns the reply byte (state | toggle) and re-arms life guarding.
     pub fn guard_request(&mut self, state: NmtState, now: Instant) -> u8 {
         let b = state.code() | if self.toggle { 0x80 } else { 0 };
         self.toggle = !self.toggle;
-        if let Some(l) = self.life_time {
-            self.guard_deadline = Some(now + l);
+        let l = self.life_time;
+        if l != Duration::ZERO {
+            self.guard_deadline = now + l;
         }
         self.life_guard_lost = false;
         b
@@ -109,7 +97,12 @@ impl ErrCtl {
         } else {
             self.next_heartbeat.0
         };
-        hb.min(self.guard_deadline.map_or(u64::MAX, |t| t.0))
+        let guard = if self.guard_deadline == Instant::ZERO {
+            u64::MAX
+        } else {
+            self.guard_deadline.0
+        };
+        hb.min(guard)
     }
 
     /// Handles expired timers; call until it returns `None`. `guarding`: the device has node
@@ -142,12 +135,11 @@ impl ErrCtl {
             self.next_heartbeat = next;
             return Some(ErrCtlEvent::Heartbeat(state.code()));
         }
-        if let (true, Some(d)) = (guarding, self.guard_deadline) {
-            if now >= d {
-                self.guard_deadline = None;
-                self.life_guard_lost = true;
-                return Some(ErrCtlEvent::LifeGuardingLost);
-            }
+        let d = self.guard_deadline;
+        if guarding && d != Instant::ZERO && now >= d {
+            self.guard_deadline = Instant::ZERO;
+            self.life_guard_lost = true;
+            return Some(ErrCtlEvent::LifeGuardingLost);
         }
         None
     }

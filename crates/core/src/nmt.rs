@@ -27,31 +27,27 @@ impl NmtState {
     }
 }
 
-/// NMT node-control commands (COB-ID 0x000, 2 bytes: command, node-id or 0 for all).
+/// NMT node-control commands (COB-ID 0x000, 2 bytes: command, node-id or 0 for all), with
+/// their command specifiers as discriminants.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
 pub enum NmtCommand {
     /// 0x01 start remote node.
-    Start,
+    Start = 0x01,
     /// 0x02 stop remote node.
-    Stop,
+    Stop = 0x02,
     /// 0x80 enter pre-operational.
-    EnterPreOperational,
+    EnterPreOperational = 0x80,
     /// 0x81 reset node (application).
-    ResetNode,
+    ResetNode = 0x81,
     /// 0x82 reset communication.
-    ResetCommunication,
+    ResetCommunication = 0x82,
 }
 
 impl NmtCommand {
     /// The command specifier byte.
     pub const fn code(self) -> u8 {
-        match self {
-            NmtCommand::Start => 0x01,
-            NmtCommand::Stop => 0x02,
-            NmtCommand::EnterPreOperational => 0x80,
-            NmtCommand::ResetNode => 0x81,
-            NmtCommand::ResetCommunication => 0x82,
-        }
+        self as u8
     }
 
     /// Decodes an NMT frame's data for the node `node_id`. Returns `None` for frames that are
@@ -88,6 +84,22 @@ mod tests {
         ];
         for (s, code, sdo) in all {
             assert_eq!((s.code(), s.sdo_allowed()), (code, sdo), "{s:?}");
+        }
+    }
+
+    /// Each command's specifier byte, and `parse` reads it back.
+    #[test]
+    fn command_codes_round_trip() {
+        let all = [
+            (NmtCommand::Start, 0x01),
+            (NmtCommand::Stop, 0x02),
+            (NmtCommand::EnterPreOperational, 0x80),
+            (NmtCommand::ResetNode, 0x81),
+            (NmtCommand::ResetCommunication, 0x82),
+        ];
+        for (c, code) in all {
+            assert_eq!(c.code(), code, "{c:?}");
+            assert_eq!(NmtCommand::parse(&[code, 0], 5), Some(c));
         }
     }
 

@@ -51,10 +51,21 @@ fn object_of_kbps(kbps: u16) -> u32 {
 }
 
 /// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
-// Out of line: the image loaders share one copy.
-#[inline(never)]
 fn stored_node_id(v: u32) -> Option<u8> {
     ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
+}
+
+/// A change of the stored image ([`Device::change_stored`]).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Change {
+    /// "save" (0x1010) of a scope, or the automatic store ([`Scope::Auto`]).
+    Save(Scope),
+    /// "load" (0x1011) of a scope, or "kill": forgets what was stored for it (the LSS
+    /// configuration and records of entries outside the scope stay, records this model has no
+    /// entry for go); defaults apply at the next reset (D7).
+    Forget(Scope),
+    /// LSS "store configuration".
+    Lss,
 }
 
 /// The slot and entry of this model's object that a stored record's `key` names, if any (an
@@ -65,6 +76,11 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
     if !storage::is_object_key(key) {
         return None;
     }
+    // Firmware searches by the key itself: no index and sub-index to split it into, no abort
+    // to work out for a key the table lacks.
+    #[cfg(not(feature = "inline-hot-paths"))]
+    let slot = od::search_entries(od.entries(), key).ok()?;
+    #[cfg(feature = "inline-hot-paths")]
     let slot = od.find((key >> 8) as u16, key as u8).ok()?;
     Some((slot, od.entries().get(slot)?))
 }
@@ -1104,9 +1120,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
         // The write rule that relates guarding to SYNC (`validate`), once both are loaded:
         // guarding on SYNC's CAN-ID keeps its default (0x700 + node-id, which SYNC cannot have).
-        if let Ok(g) = self.od.find(0x100E, 0) {
+        // 0x100E:0 by its record key: slot and entry in one look-up.
+        if let Some((g, e)) = stored_entry(&self.od, 0x0010_0E00) {
             if self.od.get(g) & 0x7FF == self.sync_can_id() {
-                let e = self.od.entry(g);
                 self.od.set(g, crate::od::resolve_default(e, &p, node));
             }
         }
@@ -1132,22 +1148,31 @@ impl<A: Application, S: Storage> Device<A, S> {
             Err(StorageError::Empty) => return ((None, None), false),
             Err(_) => return ((None, None), true),
         };
-        let (mut lss, mut obj) = ((None, None), (None, None));
+        // The last node-id and bit rate of each source: [LSS node-id, LSS bit rate, object
+        // node-id, object bit rate].
+        let mut last = [None; 4];
         for (k, v) in recs {
-            match k {
-                // A checksummed image can still hold an impossible node-id (a hand-edited or
-                // foreign file; found by fuzzing): ignore it rather than talk on COB-IDs of
-                // node 0 or 200.
-                storage::KEY_LSS_NODE_ID => lss.0 = stored_node_id(v).or(lss.0),
-                storage::KEY_LSS_BITRATE => lss.1 = Some(v as u16),
+            let at = match k {
+                storage::KEY_LSS_NODE_ID => 0,
+                storage::KEY_LSS_BITRATE => 1,
                 _ => match stored_entry(&self.od, k).map(|(_, e)| e.hook) {
-                    Some(Hook::PendingNodeId) => obj.0 = stored_node_id(v).or(obj.0),
-                    Some(Hook::PendingBitRate) => obj.1 = Some(kbps_of_object(v)),
-                    _ => {}
+                    Some(Hook::PendingNodeId) => 2,
+                    Some(Hook::PendingBitRate) => 3,
+                    _ => continue,
                 },
+            };
+            // A checksummed image can still hold an impossible node-id (a hand-edited or
+            // foreign file; found by fuzzing): ignore it rather than talk on COB-IDs of node 0
+            // or 200.
+            if at & 1 == 0 && stored_node_id(v).is_none() {
+                continue;
             }
+            last[at] = Some(v);
         }
-        ((obj.0.or(lss.0), obj.1.or(lss.1)), false)
+        let [lss_id, lss_kbps, obj_id, obj_kbps] = last;
+        let id = obj_id.or(lss_id).map(|v| v as u8);
+        let kbps = obj_kbps.map(kbps_of_object).or(lss_kbps.map(|v| v as u16));
+        ((id, kbps), false)
     }
 
     /// The application and the context it runs in (disjoint borrows of the device).
@@ -1212,10 +1237,14 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// register and history into the dictionary.
     #[inline]
     fn flush_emcy(&mut self) {
-        // Runs after every frame and timer: the usual "nothing to do" stays inline.
-        if self.emcy.generation() != self.emcy_synced || self.emcy.has_pending() {
-            self.flush_emcy_slow();
+        // Runs after every frame and timer: on a host the usual "nothing to do" stays inline; a
+        // firmware calls straight through (`flush_emcy_slow` checks the same), a test fewer at
+        // every call site.
+        #[cfg(feature = "inline-hot-paths")]
+        if self.emcy.generation() == self.emcy_synced && !self.emcy.has_pending() {
+            return;
         }
+        self.flush_emcy_slow();
     }
 
     /// Whether EMCYs go out now: in pre-operational and operational only. A stopped node keeps
@@ -1234,7 +1263,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         if self.emcy.generation() != self.emcy_synced {
             self.sync_error_register();
         }
-        if !self.emcy.has_pending() || !self.emcy_served() {
+        // No separate "nothing waits" test: `poll` makes it (reading the COB-ID first is cheap).
+        if !self.emcy_served() {
             return;
         }
         let cobid = self
@@ -1268,47 +1298,21 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
     }
 
+    /// At power-on, the stored image failed its check: the application's reaction, else EMCY
+    /// 0x6300. Sent by the epilogue that ends [`Node::power_on`] right after.
     fn report_corrupt_storage(&mut self) {
         let now = self.now;
         let (app, mut cx) = self.app_ctx(now);
         if !app.storage_corrupt(&mut cx) {
             self.emcy.raise(emcy::code::DATA_SET, 0, [0; 5]);
         }
-        self.flush_emcy();
     }
 
     /// "save" (0x1010) of `scope`, or the automatic store of the values the device keeps by
     /// itself: the covered entries' current values replace what was stored for them; the
     /// rest of the image stays. The active node-id goes with it (D15).
     pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
-        self.store_or_forget(scope, true)
-    }
-
-    /// [`Device::store`] (`save`), or "load" (0x1011) of `scope` (not `save`): forgets what was
-    /// stored for it (the LSS configuration and records of entries outside the scope stay,
-    /// records this model has no entry for go); defaults apply at the next reset (D7). One
-    /// change of the image for both, as they differ only in the records they drop and write.
-    fn store_or_forget(&mut self, scope: Scope, save: bool) -> Result<(), Abort> {
-        let od = &self.od;
-        let replaced = |k: u32| match stored_entry(od, k) {
-            Some((_, e)) => scope.covers(e),
-            // A store replaces the saved node-id; a "load" forgets the records of objects this
-            // model does not have too.
-            None if save => k == storage::KEY_SAVED_NODE_ID,
-            None => storage::is_object_key(k),
-        };
-        let node = self.node_id as u32;
-        let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            !save
-                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
-                || (0..od::MAX_ENTRIES)
-                    .zip(od.entries())
-                    .filter(|(_, e)| scope.covers(e))
-                    .all(|(slot, e)| w.push(e.key(), od.get(slot)))
-                    && (scope == Scope::Auto || w.push(storage::KEY_SAVED_NODE_ID, node))
-        };
-        let tag = self.features().tag;
-        storage::change_image(&mut self.storage, tag, &replaced, put)
+        self.change_stored(Change::Save(scope))
             .map_err(|_| Abort::CannotStore)
     }
 
@@ -1316,28 +1320,59 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// and in the objects that hold copies of them (TMI 0x2000 / 0x2001), so that every copy
     /// says the same after the next power-on.
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
-        let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
+        self.change_stored(Change::Lss)?;
+        self.stored_lss = (Some(self.pending_node_id), Some(self.pending_bitrate));
+        Ok(())
+    }
+
+    /// Every change of the stored image: the records `change` covers are dropped and the
+    /// values it stores written in their place; the rest of the image stays. One rule and one
+    /// writer for all of them, as they differ only in which records those are.
+    // Out of line: the image buffer of `change_image`, inlined here, is on the stack only
+    // while a change runs.
+    #[inline(never)]
+    fn change_stored(&mut self, change: Change) -> Result<(), StorageError> {
         let od = &self.od;
-        let put = &mut |w: &mut storage::ImageWriter<'_>| {
-            w.push(storage::KEY_LSS_NODE_ID, id as u32)
-                && w.push(storage::KEY_LSS_BITRATE, kbps as u32)
-                && od.entries().iter().all(|e| match e.hook {
-                    Hook::PendingNodeId => w.push(e.key(), id as u32),
-                    Hook::PendingBitRate => w.push(e.key(), object_of_kbps(kbps)),
-                    _ => true,
-                })
+        let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
+        let replaced = |k: u32| match (stored_entry(od, k), change) {
+            (Some((_, e)), Change::Save(scope) | Change::Forget(scope)) => scope.covers(e),
+            (Some((_, e)), Change::Lss) => {
+                matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
+            }
+            // A store replaces the saved node-id; a "load" forgets the records of objects this
+            // model does not have too.
+            (None, Change::Save(_)) => k == storage::KEY_SAVED_NODE_ID,
+            (None, Change::Forget(_)) => storage::is_object_key(k),
+            (None, Change::Lss) => k == storage::KEY_LSS_NODE_ID || k == storage::KEY_LSS_BITRATE,
         };
-        let replaced = |k: u32| {
-            k == storage::KEY_LSS_NODE_ID
-                || k == storage::KEY_LSS_BITRATE
-                || stored_entry(od, k).is_some_and(|(_, e)| {
-                    matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
-                })
+        // The value `change` stores for `e` in `slot`, if any.
+        let value = |slot: usize, e: &Entry| match change {
+            Change::Save(scope) => scope.covers(e).then(|| od.get(slot)),
+            Change::Forget(_) => None,
+            Change::Lss => match e.hook {
+                Hook::PendingNodeId => Some(id as u32),
+                Hook::PendingBitRate => Some(object_of_kbps(kbps)),
+                _ => None,
+            },
+        };
+        let node = self.node_id as u32;
+        let put = &mut |w: &mut storage::ImageWriter<'_>| {
+            (change != Change::Lss
+                || w.push(storage::KEY_LSS_NODE_ID, id as u32)
+                    && w.push(storage::KEY_LSS_BITRATE, kbps as u32))
+                // Slots counted up to MAX_ENTRIES, which no table exceeds: no bounds check.
+                && (0..od::MAX_ENTRIES)
+                    .zip(od.entries())
+                    .all(|(slot, e)| value(slot, e).is_none_or(|v| w.push(e.key(), v)))
+                && match change {
+                    Change::Save(scope) if scope != Scope::Auto => {
+                        w.push(storage::KEY_SAVED_NODE_ID, node)
+                    }
+                    _ => true,
+                }
         };
         let tag = self.features().tag;
-        storage::change_image(&mut self.storage, tag, &replaced, put)?;
-        self.stored_lss = (Some(id), Some(kbps));
-        Ok(())
+        storage::change_image(&mut self.storage, tag, &replaced, put)
     }
 
     /// The rule of an entry's hook for a value of its own, on this node-id, whatever the object
@@ -1469,7 +1504,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         let f = self.features();
         let scope = Scope::of_sub(e.sub);
         // "save" stores; "load", and "kill" where the model has it, forget.
-        let save = if e.hook == Hook::StoreParameters {
+        let change = if e.hook == Hook::StoreParameters {
             let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
             if raw != SIG_SAVE && !kill {
                 return Err(Abort::CannotStore);
@@ -1477,14 +1512,18 @@ impl<A: Application, S: Storage> Device<A, S> {
             if f.store_preop_only && self.nmt != NmtState::PreOperational {
                 return Err(Abort::WrongState);
             }
-            !kill
+            if kill {
+                Change::Forget(scope)
+            } else {
+                Change::Save(scope)
+            }
         } else {
             if raw != SIG_LOAD {
                 return Err(Abort::CannotStore);
             }
-            false
+            Change::Forget(scope)
         };
-        self.store_or_forget(scope, save)?;
+        self.change_stored(change).map_err(|_| Abort::CannotStore)?;
         // D7: the answer leaves no earlier than the store time after the request arrived.
         #[cfg(feature = "simulation")]
         {

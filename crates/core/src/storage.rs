@@ -221,8 +221,6 @@ impl<'a> ImageWriter<'a> {
 
     /// Appends one record; returns false when the buffer is full.
     // One window for the record and the CRC that must still fit after it: one bounds check.
-    // Out of line: every kind of store writes through it.
-    #[inline(never)]
     pub fn push(&mut self, key: u32, value: u32) -> bool {
         let Some(window) = self
             .buf
@@ -328,9 +326,11 @@ fn load_records<'a, S: Storage>(
 /// The new image is built in the buffer the old one was loaded into (one [`IMAGE_MAX`] buffer
 /// of stack, which matters on a microcontroller): the kept records are compacted to the front,
 /// in their stored order, and the new ones follow them. Nothing is saved when they do not all
-/// fit. Never inlined, so the buffer is on the stack only while a change runs; the rule and
-/// the writing come as trait objects, so that every kind of store shares one copy of the code.
-#[inline(never)]
+/// fit. The rule and the writing come as trait objects, so that every kind of store can share
+/// one copy of the code. Its callers are kept out of line instead of it (the node's one
+/// caller has it and the closures inlined), so that the buffer is on the stack only while a
+/// change runs.
+#[inline]
 pub fn change_image<S: Storage>(
     st: &mut S,
     model_tag: u8,
@@ -344,9 +344,9 @@ pub fn change_image<S: Storage>(
     // Records only move towards the front here, so copying in place is safe.
     let (recs, _) = buf[8..8 + old].as_chunks_mut::<8>();
     for at in 0..recs.len() {
-        let rec = recs[at];
-        if !replaced(u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]])) {
-            recs[kept] = rec;
+        let [k0, k1, k2, k3, ..] = recs[at];
+        if !replaced(u32::from_le_bytes([k0, k1, k2, k3])) {
+            recs[kept] = recs[at];
             kept += 1;
         }
     }
@@ -364,7 +364,8 @@ pub fn change_image<S: Storage>(
     st.save(&buf[..n])
 }
 
-/// [`change_image`] with the new records from an iterator.
+/// [`change_image`] with the new records from an iterator (out of line, for the buffer's sake).
+#[inline(never)]
 pub fn update_image<S: Storage>(
     st: &mut S,
     model_tag: u8,

@@ -425,6 +425,26 @@ fn tmi_lss_store_then_save_keeps_the_new_node_id() {
     assert_eq!(read(&mut r, 0x2000, 0), 9);
 }
 
+/// TMI R17 / R19: a node-id and bit rate written to 0x2000 / 0x2001 and saved after an LSS
+/// store are the newer ones: at power-on the saved object copies win over the LSS records.
+#[test]
+fn tmi_saved_object_copies_win_over_the_lss_records() {
+    let mut r = booted("tmi");
+    // LSS: node-id 9, bit rate 250 kbit/s (table index 3), store.
+    r.lss_configure(&[
+        "11 09 00 00 00 00 00 00",
+        "13 00 03 00 00 00 00 00",
+        "17 00 00 00 00 00 00 00",
+    ]);
+    write(&mut r, 0x2000, 0, 1, 5).unwrap();
+    write(&mut r, 0x2001, 0, 2, 500).unwrap();
+    save(&mut r);
+    let boot = r.power_cycle();
+    assert_eq!(boot[0].std_id(), Some(0x705), "{boot:?}");
+    assert_eq!(r.node.device().bitrate(), 500);
+    assert_eq!(read(&mut r, 0x2000, 0), 5);
+}
+
 /// D7: the answer to "save" leaves at least 20 ms after the request, the first one included.
 #[cfg(feature = "simulation")] // the store time is the simulated device's
 #[test]
