@@ -1310,7 +1310,8 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// "save" (0x1010) of `scope`, or the automatic store of the values the device keeps by
     /// itself: the covered entries' current values replace what was stored for them; the
-    /// rest of the image stays. The active node-id goes with it (D15).
+    /// rest of the image stays. A "save" records the active node-id with them (D15); the
+    /// automatic store keeps the one recorded.
     pub(crate) fn store(&mut self, scope: Scope) -> Result<(), Abort> {
         self.change_stored(Change::Save(scope))
             .map_err(|_| Abort::CannotStore)
@@ -1339,9 +1340,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             (Some((_, e)), Change::Lss) => {
                 matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
             }
-            // A store replaces the saved node-id; a "load" forgets the records of objects this
-            // model does not have too.
-            (None, Change::Save(_)) => k == storage::KEY_SAVED_NODE_ID,
+            // A "save" replaces the saved node-id (the automatic store, of no COB-ID, keeps
+            // it: D15); a "load" forgets the records of objects this model does not have too.
+            (None, Change::Save(scope)) => scope != Scope::Auto && k == storage::KEY_SAVED_NODE_ID,
             (None, Change::Forget(_)) => storage::is_object_key(k),
             (None, Change::Lss) => k == storage::KEY_LSS_NODE_ID || k == storage::KEY_LSS_BITRATE,
         };

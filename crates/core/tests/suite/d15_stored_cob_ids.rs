@@ -128,3 +128,22 @@ fn d15_a_following_can_id_keeps_the_stored_flags() {
         "not the default"
     );
 }
+
+/// The device's own automatic store (the TH's operating-life temperature record, D19) stores no
+/// COB-ID, so it keeps the node-id the COB-IDs were saved under: the rule with the saved node-id
+/// still applies after it (it once dropped that record, and the older-image rule took over).
+#[test]
+fn d15_an_automatic_store_keeps_the_saved_node_id() {
+    let mut r = crate::common::Rig {
+        node: Node::new(&TH, TH.default_config, saved_th(COBS)),
+        now: Instant::ZERO,
+    };
+    r.node.power_on(r.now);
+    r.take();
+    let saves = r.node.storage_mut().saves;
+    r.cycle_temp(Some(1_000_000), 25);
+    r.cycle_temp(Some(1_000_000), 26);
+    assert!(r.node.storage_mut().saves > saves, "an automatic store");
+    let c = cobs_as(5, r.node.storage_mut().clone());
+    assert_eq!(c[1], 0x8000_02C0, "still the user's own CAN-ID");
+}
