@@ -1384,29 +1384,27 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
-        match e.hook {
-            Hook::SyncCobId | Hook::EmcyCobId | Hook::GuardingCobId => {
-                // Bit 30 (SYNC: generate; EMCY: reserved), 29-bit ids and bits 11–28 are
-                // refused, and so are the CiA 301 restricted CAN-IDs (conformance OTH-10) but
-                // for an EMCY COB-ID marked not valid and guarding's pre-defined 0x700 + node-id
-                // (guarding answers on the COB-ID's CAN-ID: it has no "not valid" bit).
-                let id = raw & 0x7FF;
-                let may_be_restricted = match e.hook {
-                    Hook::EmcyCobId => raw & 0x8000_0000 != 0,
-                    Hook::GuardingCobId => id == 0x700 + self.node_id as u32,
-                    _ => false,
-                };
-                if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
-                    || !may_be_restricted && pdo::restricted_id(id)
-                {
-                    return Err(Abort::InvalidValue);
-                }
-                Ok(())
+        // Bit 30 (SYNC: generate; EMCY: reserved), 29-bit ids and bits 11–28 are refused, and
+        // so are the CiA 301 restricted CAN-IDs (conformance OTH-10) but for an EMCY COB-ID
+        // marked not valid and guarding's pre-defined 0x700 + node-id (guarding answers on the
+        // COB-ID's CAN-ID: it has no "not valid" bit).
+        let id = raw & 0x7FF;
+        let may_be_restricted = match e.hook {
+            Hook::SyncCobId => false,
+            Hook::EmcyCobId => raw & 0x8000_0000 != 0,
+            Hook::GuardingCobId => id == 0x700 + self.node_id as u32,
+            Hook::TpdoComm | Hook::TpdoMap => {
+                return Tpdos::check_value(&self.od, e.index, e.sub, raw)
             }
-            Hook::TpdoComm | Hook::TpdoMap => Tpdos::check_value(&self.od, e.index, e.sub, raw),
             // The others check nothing beyond the table.
-            _ => Ok(()),
+            _ => return Ok(()),
+        };
+        if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
+            || !may_be_restricted && pdo::restricted_id(id)
+        {
+            return Err(Abort::InvalidValue);
         }
+        Ok(())
     }
 
     /// The rule of an entry's hook for an SDO write of `raw` over `cur` that passed the
@@ -1551,12 +1549,9 @@ impl<A: Application, S: Storage> Device<A, S> {
 }
 
 impl<A: Application, S: Storage> Device<A, S> {
-    /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
-    /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
-    /// expects the read of 1003:01 to abort when the history is empty).
     /// The slot of `index`/`sub` if it may be read now (the two steps of every upload; one
     /// shared copy in firmware).
-    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))] // a host: on the SDO fast paths
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn find_readable(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
         let slot = self.find(index, sub)?;
@@ -1565,7 +1560,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     }
 
     /// The slot of `index`/`sub` if it may be written (every download's first step).
-    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))] // a host: on the SDO fast paths
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn find_writable(&mut self, index: u16, sub: u8) -> Result<usize, Abort> {
         let slot = self.find(index, sub)?;
@@ -1575,6 +1570,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         Ok(slot)
     }
 
+    /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
+    /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
+    /// expects the read of 1003:01 to abort when the history is empty).
     #[inline]
     fn readable(&self, slot: usize) -> Result<(), Abort> {
         let e = self.od.entry(slot);

@@ -451,6 +451,7 @@ impl Entry {
     /// [`Entry::accepts`] with the SDO abort of a refusal: beyond the declared range "value too
     /// high" ([`Entry::above_range`]) or "too low" ([`Entry::below_range`]), else "invalid
     /// value". One comparison of each bound for both answers.
+    #[cfg_attr(feature = "inline-hot-paths", inline)] // every SDO download
     pub fn check(&self, raw: u32) -> Result<(), Abort> {
         // In 32 bits (64-bit compares cost a 32-bit target twice the code): the same answers
         // as comparing `DataType::to_i64` numbers with `DataType::natural_range`.
