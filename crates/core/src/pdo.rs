@@ -315,9 +315,10 @@ impl Tpdos {
         p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
         p.id = (p.cob & 0x7FF) as u16;
         p.ttype = od.value(ci, 2).unwrap_or(254) as u8;
-        // Both are UNSIGNED16 in the table; the `min` only keeps the products in 32 bits.
-        p.inhibit_us = od.value(ci, 3).unwrap_or(0).min(0xFFFF) * 100;
-        p.event_us = od.value(ci, 5).unwrap_or(0).min(0xFFFF) * 1000;
+        // Both are UNSIGNED16 in the table (every write and load is checked against the type),
+        // read as such: the products stay in 32 bits.
+        p.inhibit_us = u32::from(od.value(ci, 3).unwrap_or(0) as u16) * 100;
+        p.event_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
         let mi = map_index(n);
         let count = od.value(mi, 0).unwrap_or(0) as usize;
         p.n_map = 0;
