@@ -531,7 +531,7 @@ impl Tpdos {
         id: u16,
         od: &Dictionary,
         now: Instant,
-        out: &mut dyn FnMut(Frame),
+        mut out: impl FnMut(Frame),
     ) -> bool {
         if !self.active {
             return false;
