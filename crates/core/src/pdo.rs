@@ -321,28 +321,30 @@ impl Tpdos {
         p.event_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
         let mi = map_index(n);
         let count = od.value(mi, 0).unwrap_or(0) as usize;
-        p.n_map = 0;
-        p.len = 0;
-        for k in 1..count.min(MAX_MAP) + 1 {
-            let Some(raw) = od.value(mi, k as u8) else {
+        let (mut n_map, mut len) = (0u8, 0u8);
+        // Entries from sub 1 on, at most `MAX_MAP`; the first that cannot be mapped ends them.
+        for m in p.map.iter_mut().take(count) {
+            let Some(raw) = od.value(mi, n_map + 1) else {
                 break;
             };
             let Ok(slot) = od.find((raw >> 16) as u16, (raw >> 8) as u8) else {
                 break;
             };
             let bytes = ((raw & 0xFF) / 8) as u8;
-            if p.len + bytes > 8 {
+            if len + bytes > 8 {
                 break;
             }
             // Precomputed so that building a TPDO is one mask and one shift per entry.
-            p.map[p.n_map as usize] = Mapped {
+            *m = Mapped {
                 slot: slot as u8,
-                shift: 8 * p.len,
+                shift: 8 * len,
                 mask: byte_mask(bytes),
             };
-            p.n_map += 1;
-            p.len += bytes;
+            n_map += 1;
+            len += bytes;
         }
+        p.n_map = n_map;
+        p.len = len;
         p.next_event = NEVER;
         p.pending = false;
         p.sync_count = 0;
