@@ -25,6 +25,7 @@ pub const COB_ID_HIGH_BITS: u32 = 0x1FFF_F800;
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
 /// `Tpdos::single` when zero or several TPDOs have timers.
+#[cfg(feature = "inline-hot-paths")]
 const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
 
@@ -179,7 +180,9 @@ pub struct Tpdos {
     /// masks are derived in `refresh`, which every configuration change ends in.
     sync_mask: u8,
     /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
-    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk.
+    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk. A host's shortcut
+    /// only (a firmware walks the one TPDO as any other).
+    #[cfg(feature = "inline-hot-paths")]
     single: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
@@ -195,6 +198,7 @@ impl Default for Tpdos {
             active: false,
             timer_mask: 0,
             sync_mask: 0,
+            #[cfg(feature = "inline-hot-paths")]
             single: NO_SINGLE,
             due: NEVER,
         }
@@ -269,11 +273,14 @@ impl Tpdos {
         }
         self.timer_mask = mask;
         self.sync_mask = sync;
-        self.single = if mask.is_power_of_two() {
-            mask.trailing_zeros() as u8
-        } else {
-            NO_SINGLE
-        };
+        #[cfg(feature = "inline-hot-paths")]
+        {
+            self.single = if mask.is_power_of_two() {
+                mask.trailing_zeros() as u8
+            } else {
+                NO_SINGLE
+            };
+        }
         self.refresh_due();
     }
 
@@ -590,12 +597,8 @@ impl Tpdos {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
         // A host's shortcut (a firmware walks the one TPDO as any other: 56 B less flash).
-        let single = if cfg!(feature = "inline-hot-paths") {
-            usize::from(self.single)
-        } else {
-            usize::from(NO_SINGLE)
-        };
-        if let Some(p) = self.pdos.get_mut(single) {
+        #[cfg(feature = "inline-hot-paths")]
+        if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
             // One TPDO with a timer: its own deadlines are all there is.
             let f = p.step(od, now);
             self.due = p.own_due();
