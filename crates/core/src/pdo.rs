@@ -298,7 +298,9 @@ impl Tpdos {
                 t = t.min(p.inhibit_until.0);
             }
         }
-        self.due = if self.active { t } else { NEVER };
+        // `NEVER` while inactive: stopping stops every timer, and nothing starts one then.
+        debug_assert!(self.active || t == NEVER);
+        self.due = t;
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
