@@ -291,7 +291,8 @@ impl Tpdos {
         let mut t = NEVER;
         let mut mask = self.timer_mask;
         while mask != 0 {
-            let p = &self.pdos[mask.trailing_zeros() as usize];
+            // `timer_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
+            let p = &self.pdos[mask.trailing_zeros() as usize & (MAX_TPDOS - 1)];
             mask &= mask - 1;
             t = t.min(p.next_event);
             if p.pending {
