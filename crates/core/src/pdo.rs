@@ -380,12 +380,9 @@ impl Tpdos {
             return Ok(());
         }
         if sub == 0 {
-            let n_entries = od
-                .entries()
-                .iter()
-                .filter(|e| e.index == index && e.sub > 0)
-                .count();
-            if raw as usize > n_entries {
+            // A mapping record's entries are subs 1…N without a gap (every model's are, tested):
+            // `raw` counts no more of them than there are when sub `raw` exists.
+            if raw > 0xFF || od.find(index, raw as u8).is_err() {
                 return Err(Abort::MappingLength);
             }
         } else if raw != 0 {
@@ -661,6 +658,39 @@ fn byte_mask(bytes: u8) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `check_value` of a mapping count looks up sub `raw`: the same answer as counting the
+    /// record's entries, as long as every model's mapping records have no gap in their subs.
+    #[test]
+    #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
+    fn mapping_count_is_checked_against_the_entries_there_are() {
+        use crate::od::Hook;
+        let mut records = 0;
+        for model in crate::models::all() {
+            let od = Dictionary::new(model);
+            for e in od.entries() {
+                if e.hook != Hook::TpdoMap || e.sub != 0 {
+                    continue;
+                }
+                records += 1;
+                let n = od
+                    .entries()
+                    .iter()
+                    .filter(|x| x.index == e.index && x.sub > 0)
+                    .count() as u32;
+                for raw in (0..0x300).chain([0x1_0000, u32::MAX]) {
+                    let want = if raw > n {
+                        Err(Abort::MappingLength)
+                    } else {
+                        Ok(())
+                    };
+                    let got = Tpdos::check_value(&od, e.index, 0, raw);
+                    assert_eq!(got, want, "{model:?} {:#X} {raw:#X}", e.index);
+                }
+            }
+        }
+        assert!(records >= 3, "no mapping record found");
+    }
 
     #[test]
     fn byte_mask_keeps_the_low_bytes() {
