@@ -635,12 +635,9 @@ impl Tpdos {
 fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
     let e = od.entry(slot);
-    let bits = raw & 0xFF;
-    if !e.pdo
-        || !e.access.readable()
-        || bits == 0
-        || !bits.is_multiple_of(8)
-        || bits > e.ty.bits() as u32
+    // Compared as the u8s they are (a byte table of the types' sizes, not a word table).
+    let bits = raw as u8;
+    if !e.pdo || !e.access.readable() || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits()
     {
         return Err(Abort::NotMappable);
     }
