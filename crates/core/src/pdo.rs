@@ -467,9 +467,11 @@ impl Tpdos {
     /// state restarts too (it is read only while active, and set again when production starts).
     fn restart(&mut self, now: Instant) {
         // The TPDOs in `timer_mask` are the valid asynchronous ones.
-        let timers = if self.active { self.timer_mask } else { 0 };
-        for (n, p) in self.pdos.iter_mut().take(self.count).enumerate() {
-            p.next_event = if timers >> n & 1 != 0 && p.event_us > 0 {
+        let mut timers = if self.active { self.timer_mask } else { 0 };
+        for p in self.pdos.iter_mut().take(self.count) {
+            let timer = timers & 1 != 0;
+            timers >>= 1;
+            p.next_event = if timer && p.event_us > 0 {
                 (now + Duration::from_micros(u64::from(p.event_us))).0
             } else {
                 NEVER
