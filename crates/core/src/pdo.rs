@@ -262,14 +262,16 @@ impl Tpdos {
     /// Recomputes `timer_mask`, `sync_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
         let (mut mask, mut sync) = (0u8, 0u8);
-        for (n, p) in self.pdos.iter().take(self.count).enumerate() {
+        let mut bit = 1u8;
+        for p in self.pdos.iter().take(self.count) {
             if p.valid() {
                 if p.asynchronous() {
-                    mask |= 1 << n;
+                    mask |= bit;
                 } else {
-                    sync |= 1 << n;
+                    sync |= bit;
                 }
             }
+            bit <<= 1;
         }
         self.timer_mask = mask;
         self.sync_mask = sync;
