@@ -117,11 +117,14 @@ impl Tpdo {
             // Absolute schedule: the next period starts where this one was due.
             let per = u64::from(self.event_us);
             let mut next = t + per;
-            if next <= now.0 {
+            // A host divides only when late (an expiry on time costs it a comparison); a
+            // firmware divides at every expiry, one code path (on time: q = 0, r = now - t, the
+            // same next start).
+            if !cfg!(feature = "inline-hot-paths") || next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
-                // only runs when it is not 0); floored here, off the usual path, where it is used.
-                // `q` whole periods passed since `t` (`q` ≥ 1 here: all but the one due at `t`
-                // were missed) and `r` µs of the current one: the next starts `per - r` µs on.
+                // only runs when it is not 0); floored here, where it is used.
+                // `q` whole periods passed since `t` (all but the one due at `t` were missed)
+                // and `r` µs of the current one: the next starts `per - r` µs on.
                 let per = per.max(1);
                 let (q, r) = crate::div::div_rem(now.0 - t, per);
                 self.missed = self.missed.wrapping_add(q as u32);
