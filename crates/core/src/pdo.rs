@@ -152,12 +152,30 @@ impl Tpdo {
         self.inhibit_until = now + self.inhibit();
         // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
         // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
-        let mut acc = 0u64;
-        for m in self.map.iter().take(self.n_map as usize) {
-            acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
-        }
+        #[cfg(feature = "inline-hot-paths")]
+        let data = {
+            let mut acc = 0u64;
+            for m in self.map.iter().take(self.n_map as usize) {
+                acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
+            }
+            acc.to_le_bytes()
+        };
+        // A firmware stores each entry's four bytes at its offset, in order: its bytes past
+        // its length are 0 (masked) until the next entry overwrites them. No 64-bit shifts.
+        // An empty entry may start at byte 8 (shift 64): the buffer has room past the frame.
+        #[cfg(not(feature = "inline-hot-paths"))]
+        let data = {
+            let mut buf = [0u8; 20];
+            for m in self.map.iter().take(self.n_map as usize) {
+                let at = usize::from(m.shift >> 3) & 15;
+                buf[at..at + 4].copy_from_slice(&(od.get_u8(m.slot) & m.mask).to_le_bytes());
+            }
+            let mut data = [0u8; 8];
+            data.copy_from_slice(&buf[..8]);
+            data
+        };
         // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
-        Frame::std_checked(self.can_id(), acc.to_le_bytes(), self.len)
+        Frame::std_checked(self.can_id(), data, self.len)
     }
 
     /// The earliest instant at which [`Tpdo::step`] has work.
