@@ -152,28 +152,12 @@ impl Tpdo {
         self.inhibit_until = now + self.inhibit();
         // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
         // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
+        let map = self.map.iter().take(self.n_map as usize);
+        let value = |slot| od.get_u8(slot);
         #[cfg(feature = "inline-hot-paths")]
-        let data = {
-            let mut acc = 0u64;
-            for m in self.map.iter().take(self.n_map as usize) {
-                acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
-            }
-            acc.to_le_bytes()
-        };
-        // A firmware stores each entry's four bytes at its offset, in order: its bytes past
-        // its length are 0 (masked) until the next entry overwrites them. No 64-bit shifts.
-        // An empty entry may start at byte 8 (shift 64): the buffer has room past the frame.
+        let data = assemble_shifted(map, value);
         #[cfg(not(feature = "inline-hot-paths"))]
-        let data = {
-            let mut buf = [0u8; 20];
-            for m in self.map.iter().take(self.n_map as usize) {
-                let at = usize::from(m.shift >> 3) & 15;
-                buf[at..at + 4].copy_from_slice(&(od.get_u8(m.slot) & m.mask).to_le_bytes());
-            }
-            let mut data = [0u8; 8];
-            data.copy_from_slice(&buf[..8]);
-            data
-        };
+        let data = assemble_stored(map, value);
         // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
         Frame::std_checked(self.can_id(), data, self.len)
     }
@@ -669,6 +653,40 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     Ok(())
 }
 
+/// A TPDO's data from its entries (as `configure` lays them out: in order, 8 bytes in all,
+/// shift ≤ 64) and their values, in one little-endian u64 (the host's: no per-entry copies).
+#[cfg(any(test, feature = "inline-hot-paths"))]
+#[inline(always)]
+fn assemble_shifted<'a>(
+    map: impl Iterator<Item = &'a Mapped>,
+    value: impl Fn(u8) -> u32,
+) -> [u8; 8] {
+    let mut acc = 0u64;
+    for m in map {
+        acc |= u64::from(value(m.slot) & m.mask) << (m.shift & 63);
+    }
+    acc.to_le_bytes()
+}
+
+/// [`assemble_shifted`] without 64-bit shifts (a firmware's): each entry's four masked bytes
+/// stored at its offset, in order. Its bytes past its length are 0 until the next entry
+/// overwrites them; an empty entry may start at byte 8, so the buffer has room past the frame.
+#[cfg(any(test, not(feature = "inline-hot-paths")))]
+#[inline(always)]
+fn assemble_stored<'a>(
+    map: impl Iterator<Item = &'a Mapped>,
+    value: impl Fn(u8) -> u32,
+) -> [u8; 8] {
+    let mut buf = [0u8; 20];
+    for m in map {
+        let at = usize::from(m.shift >> 3) & 15;
+        buf[at..at + 4].copy_from_slice(&(value(m.slot) & m.mask).to_le_bytes());
+    }
+    let mut data = [0u8; 8];
+    data.copy_from_slice(&buf[..8]);
+    data
+}
+
 /// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
 /// instead of a branch around the shift by 32.
 #[inline(always)]
@@ -712,6 +730,36 @@ mod tests {
             }
         }
         assert!(records >= 3, "no mapping record found");
+    }
+
+    /// Both ways of assembling a TPDO give the same data for every layout `configure` makes
+    /// of up to four entries of 0…8 bytes (empty ones and ones past 4 bytes included).
+    #[test]
+    fn tpdo_assembly_by_stores_matches_the_shifts() {
+        let value = |slot: u8| 0x9E37_79B9u32.wrapping_mul(u32::from(slot) + 1) | 0x0101_0101;
+        let mut layouts = 0;
+        for code in 0..9u32.pow(4) {
+            let (mut map, mut len) = ([Mapped::default(); 4], 0u8);
+            let mut n = 0;
+            for (k, m) in map.iter_mut().enumerate() {
+                let bytes = (code / 9u32.pow(k as u32) % 9) as u8;
+                if len + bytes > 8 {
+                    break;
+                }
+                *m = Mapped {
+                    slot: k as u8,
+                    shift: 8 * len,
+                    mask: byte_mask(bytes),
+                };
+                n += 1;
+                len += bytes;
+            }
+            let want = assemble_shifted(map.iter().take(n), value);
+            let got = assemble_stored(map.iter().take(n), value);
+            assert_eq!(got, want, "{:?}", &map[..n]);
+            layouts += 1;
+        }
+        assert_eq!(layouts, 6561);
     }
 
     #[test]
