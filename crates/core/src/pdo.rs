@@ -25,6 +25,7 @@ pub const COB_ID_HIGH_BITS: u32 = 0x1FFF_F800;
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
 /// `Tpdos::single` when zero or several TPDOs have timers.
+#[cfg(feature = "inline-hot-paths")]
 const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
 
@@ -116,11 +117,14 @@ impl Tpdo {
             // Absolute schedule: the next period starts where this one was due.
             let per = u64::from(self.event_us);
             let mut next = t + per;
-            if next <= now.0 {
+            // A host divides only when late (an expiry on time costs it a comparison); a
+            // firmware divides at every expiry, one code path (on time: q = 0, r = now - t, the
+            // same next start).
+            if !cfg!(feature = "inline-hot-paths") || next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
-                // only runs when it is not 0); floored here, off the usual path, where it is used.
-                // `q` whole periods passed since `t` (`q` ≥ 1 here: all but the one due at `t`
-                // were missed) and `r` µs of the current one: the next starts `per - r` µs on.
+                // only runs when it is not 0); floored here, where it is used.
+                // `q` whole periods passed since `t` (all but the one due at `t` were missed)
+                // and `r` µs of the current one: the next starts `per - r` µs on.
                 let per = per.max(1);
                 let (q, r) = crate::div::div_rem(now.0 - t, per);
                 self.missed = self.missed.wrapping_add(q as u32);
@@ -148,12 +152,14 @@ impl Tpdo {
         self.inhibit_until = now + self.inhibit();
         // Assembled in one little-endian u64: no per-entry slice copies. `configure` keeps the
         // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
-        let mut acc = 0u64;
-        for m in self.map.iter().take(self.n_map as usize) {
-            acc |= u64::from(od.get_u8(m.slot) & m.mask) << (m.shift & 63);
-        }
+        let map = self.map.iter().take(self.n_map as usize);
+        let value = |slot| od.get_u8(slot);
+        #[cfg(feature = "inline-hot-paths")]
+        let data = assemble_shifted(map, value);
+        #[cfg(not(feature = "inline-hot-paths"))]
+        let data = assemble_stored(map, value);
         // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
-        Frame::std_checked(self.can_id(), acc.to_le_bytes(), self.len)
+        Frame::std_checked(self.can_id(), data, self.len)
     }
 
     /// The earliest instant at which [`Tpdo::step`] has work.
@@ -179,7 +185,9 @@ pub struct Tpdos {
     /// masks are derived in `refresh`, which every configuration change ends in.
     sync_mask: u8,
     /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
-    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk.
+    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk. A host's shortcut
+    /// only (a firmware walks the one TPDO as any other).
+    #[cfg(feature = "inline-hot-paths")]
     single: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
@@ -195,6 +203,7 @@ impl Default for Tpdos {
             active: false,
             timer_mask: 0,
             sync_mask: 0,
+            #[cfg(feature = "inline-hot-paths")]
             single: NO_SINGLE,
             due: NEVER,
         }
@@ -258,22 +267,27 @@ impl Tpdos {
     /// Recomputes `timer_mask`, `sync_mask` and `due` after a change of configuration.
     fn refresh(&mut self) {
         let (mut mask, mut sync) = (0u8, 0u8);
-        for (n, p) in self.pdos.iter().take(self.count).enumerate() {
+        let mut bit = 1u8;
+        for p in self.pdos.iter().take(self.count) {
             if p.valid() {
                 if p.asynchronous() {
-                    mask |= 1 << n;
+                    mask |= bit;
                 } else {
-                    sync |= 1 << n;
+                    sync |= bit;
                 }
             }
+            bit <<= 1;
         }
         self.timer_mask = mask;
         self.sync_mask = sync;
-        self.single = if mask.is_power_of_two() {
-            mask.trailing_zeros() as u8
-        } else {
-            NO_SINGLE
-        };
+        #[cfg(feature = "inline-hot-paths")]
+        {
+            self.single = if mask.is_power_of_two() {
+                mask.trailing_zeros() as u8
+            } else {
+                NO_SINGLE
+            };
+        }
         self.refresh_due();
     }
 
@@ -284,14 +298,17 @@ impl Tpdos {
         let mut t = NEVER;
         let mut mask = self.timer_mask;
         while mask != 0 {
-            let p = &self.pdos[mask.trailing_zeros() as usize];
+            // `timer_mask` has bits below `count` ≤ MAX_TPDOS only (a power of two).
+            let p = &self.pdos[mask.trailing_zeros() as usize & (MAX_TPDOS - 1)];
             mask &= mask - 1;
             t = t.min(p.next_event);
             if p.pending {
                 t = t.min(p.inhibit_until.0);
             }
         }
-        self.due = if self.active { t } else { NEVER };
+        // `NEVER` while inactive: stopping stops every timer, and nothing starts one then.
+        debug_assert!(self.active || t == NEVER);
+        self.due = t;
     }
 
     /// Re-reads TPDO `n` (0-based) after a write to its parameters. Timers restart.
@@ -315,33 +332,36 @@ impl Tpdos {
         p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
         p.id = (p.cob & 0x7FF) as u16;
         p.ttype = od.value(ci, 2).unwrap_or(254) as u8;
-        // Both are UNSIGNED16 in the table; the `min` only keeps the products in 32 bits.
-        p.inhibit_us = od.value(ci, 3).unwrap_or(0).min(0xFFFF) * 100;
-        p.event_us = od.value(ci, 5).unwrap_or(0).min(0xFFFF) * 1000;
+        // Both are UNSIGNED16 in the table (every write and load is checked against the type),
+        // read as such: the products stay in 32 bits.
+        p.inhibit_us = u32::from(od.value(ci, 3).unwrap_or(0) as u16) * 100;
+        p.event_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
         let mi = map_index(n);
         let count = od.value(mi, 0).unwrap_or(0) as usize;
-        p.n_map = 0;
-        p.len = 0;
-        for k in 1..count.min(MAX_MAP) + 1 {
-            let Some(raw) = od.value(mi, k as u8) else {
+        let (mut n_map, mut len) = (0u8, 0u8);
+        // Entries from sub 1 on, at most `MAX_MAP`; the first that cannot be mapped ends them.
+        for m in p.map.iter_mut().take(count) {
+            let Some(raw) = od.value(mi, n_map + 1) else {
                 break;
             };
             let Ok(slot) = od.find((raw >> 16) as u16, (raw >> 8) as u8) else {
                 break;
             };
             let bytes = ((raw & 0xFF) / 8) as u8;
-            if p.len + bytes > 8 {
+            if len + bytes > 8 {
                 break;
             }
             // Precomputed so that building a TPDO is one mask and one shift per entry.
-            p.map[p.n_map as usize] = Mapped {
+            *m = Mapped {
                 slot: slot as u8,
-                shift: 8 * p.len,
+                shift: 8 * len,
                 mask: byte_mask(bytes),
             };
-            p.n_map += 1;
-            p.len += bytes;
+            n_map += 1;
+            len += bytes;
         }
+        p.n_map = n_map;
+        p.len = len;
         p.next_event = NEVER;
         p.pending = false;
         p.sync_count = 0;
@@ -367,12 +387,9 @@ impl Tpdos {
             return Ok(());
         }
         if sub == 0 {
-            let n_entries = od
-                .entries()
-                .iter()
-                .filter(|e| e.index == index && e.sub > 0)
-                .count();
-            if raw as usize > n_entries {
+            // A mapping record's entries are subs 1…N without a gap (every model's are, tested):
+            // `raw` counts no more of them than there are when sub `raw` exists.
+            if raw > 0xFF || od.find(index, raw as u8).is_err() {
                 return Err(Abort::MappingLength);
             }
         } else if raw != 0 {
@@ -457,9 +474,11 @@ impl Tpdos {
     /// state restarts too (it is read only while active, and set again when production starts).
     fn restart(&mut self, now: Instant) {
         // The TPDOs in `timer_mask` are the valid asynchronous ones.
-        let timers = if self.active { self.timer_mask } else { 0 };
-        for (n, p) in self.pdos.iter_mut().take(self.count).enumerate() {
-            p.next_event = if timers >> n & 1 != 0 && p.event_us > 0 {
+        let mut timers = if self.active { self.timer_mask } else { 0 };
+        for p in self.pdos.iter_mut().take(self.count) {
+            let timer = timers & 1 != 0;
+            timers >>= 1;
+            p.next_event = if timer && p.event_us > 0 {
                 (now + Duration::from_micros(u64::from(p.event_us))).0
             } else {
                 NEVER
@@ -530,7 +549,7 @@ impl Tpdos {
         id: u16,
         od: &Dictionary,
         now: Instant,
-        out: &mut dyn FnMut(Frame),
+        mut out: impl FnMut(Frame),
     ) -> bool {
         if !self.active {
             return false;
@@ -587,12 +606,8 @@ impl Tpdos {
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
         // A host's shortcut (a firmware walks the one TPDO as any other: 56 B less flash).
-        let single = if cfg!(feature = "inline-hot-paths") {
-            usize::from(self.single)
-        } else {
-            usize::from(NO_SINGLE)
-        };
-        if let Some(p) = self.pdos.get_mut(single) {
+        #[cfg(feature = "inline-hot-paths")]
+        if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
             // One TPDO with a timer: its own deadlines are all there is.
             let f = p.step(od, now);
             self.due = p.own_due();
@@ -629,16 +644,47 @@ impl Tpdos {
 fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
     let e = od.entry(slot);
-    let bits = raw & 0xFF;
-    if !e.pdo
-        || !e.access.readable()
-        || bits == 0
-        || !bits.is_multiple_of(8)
-        || bits > e.ty.bits() as u32
+    // Compared as the u8s they are (a byte table of the types' sizes, not a word table).
+    let bits = raw as u8;
+    if !e.pdo || !e.access.readable() || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits()
     {
         return Err(Abort::NotMappable);
     }
     Ok(())
+}
+
+/// A TPDO's data from its entries (as `configure` lays them out: in order, 8 bytes in all,
+/// shift ≤ 64) and their values, in one little-endian u64 (the host's: no per-entry copies).
+#[cfg(any(test, feature = "inline-hot-paths"))]
+#[inline(always)]
+fn assemble_shifted<'a>(
+    map: impl Iterator<Item = &'a Mapped>,
+    value: impl Fn(u8) -> u32,
+) -> [u8; 8] {
+    let mut acc = 0u64;
+    for m in map {
+        acc |= u64::from(value(m.slot) & m.mask) << (m.shift & 63);
+    }
+    acc.to_le_bytes()
+}
+
+/// [`assemble_shifted`] without 64-bit shifts (a firmware's): each entry's four masked bytes
+/// stored at its offset, in order. Its bytes past its length are 0 until the next entry
+/// overwrites them; an empty entry may start at byte 8, so the buffer has room past the frame.
+#[cfg(any(test, not(feature = "inline-hot-paths")))]
+#[inline(always)]
+fn assemble_stored<'a>(
+    map: impl Iterator<Item = &'a Mapped>,
+    value: impl Fn(u8) -> u32,
+) -> [u8; 8] {
+    let mut buf = [0u8; 20];
+    for m in map {
+        let at = usize::from(m.shift >> 3) & 15;
+        buf[at..at + 4].copy_from_slice(&(value(m.slot) & m.mask).to_le_bytes());
+    }
+    let mut data = [0u8; 8];
+    data.copy_from_slice(&buf[..8]);
+    data
 }
 
 /// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
@@ -652,6 +698,69 @@ fn byte_mask(bytes: u8) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `check_value` of a mapping count looks up sub `raw`: the same answer as counting the
+    /// record's entries, as long as every model's mapping records have no gap in their subs.
+    #[test]
+    #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
+    fn mapping_count_is_checked_against_the_entries_there_are() {
+        use crate::od::Hook;
+        let mut records = 0;
+        for model in crate::models::all() {
+            let od = Dictionary::new(model);
+            for e in od.entries() {
+                if e.hook != Hook::TpdoMap || e.sub != 0 {
+                    continue;
+                }
+                records += 1;
+                let n = od
+                    .entries()
+                    .iter()
+                    .filter(|x| x.index == e.index && x.sub > 0)
+                    .count() as u32;
+                for raw in (0..0x300).chain([0x1_0000, u32::MAX]) {
+                    let want = if raw > n {
+                        Err(Abort::MappingLength)
+                    } else {
+                        Ok(())
+                    };
+                    let got = Tpdos::check_value(&od, e.index, 0, raw);
+                    assert_eq!(got, want, "{model:?} {:#X} {raw:#X}", e.index);
+                }
+            }
+        }
+        assert!(records >= 3, "no mapping record found");
+    }
+
+    /// Both ways of assembling a TPDO give the same data for every layout `configure` makes
+    /// of up to four entries of 0…8 bytes (empty ones and ones past 4 bytes included).
+    #[test]
+    fn tpdo_assembly_by_stores_matches_the_shifts() {
+        let value = |slot: u8| 0x9E37_79B9u32.wrapping_mul(u32::from(slot) + 1) | 0x0101_0101;
+        let mut layouts = 0;
+        for code in 0..9u32.pow(4) {
+            let (mut map, mut len) = ([Mapped::default(); 4], 0u8);
+            let mut n = 0;
+            for (k, m) in map.iter_mut().enumerate() {
+                let bytes = (code / 9u32.pow(k as u32) % 9) as u8;
+                if len + bytes > 8 {
+                    break;
+                }
+                *m = Mapped {
+                    slot: k as u8,
+                    shift: 8 * len,
+                    mask: byte_mask(bytes),
+                };
+                n += 1;
+                len += bytes;
+            }
+            let want = assemble_shifted(map.iter().take(n), value);
+            let got = assemble_stored(map.iter().take(n), value);
+            assert_eq!(got, want, "{:?}", &map[..n]);
+            layouts += 1;
+        }
+        assert_eq!(layouts, 6561);
+    }
 
     #[test]
     fn byte_mask_keeps_the_low_bytes() {
