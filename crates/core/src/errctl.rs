@@ -144,3 +144,43 @@ impl ErrCtl {
         None
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A heartbeat served exactly one period late goes out once, and the schedule stays on its
+    /// grid: the next one is due a period later, not at once again.
+    #[test]
+    fn a_heartbeat_one_period_late_is_sent_once_and_the_grid_kept() {
+        let mut e = ErrCtl::default();
+        e.set_heartbeat(100, Instant::ZERO);
+        let at = Instant::from_millis(200);
+        let s = NmtState::PreOperational;
+        assert_eq!(
+            e.handle_timeout(at, s, false),
+            Some(ErrCtlEvent::Heartbeat(0x7F))
+        );
+        assert_eq!(e.handle_timeout(at, s, false), None, "once at 200 ms");
+        assert_eq!(e.due_us(), 300_000);
+    }
+
+    /// Only switching guarding off (a zero guard time or factor) forgets a lost life guarding; a
+    /// new non-zero life time is no guard request.
+    #[test]
+    fn only_guarding_off_forgets_a_lost_life_guarding() {
+        let mut e = ErrCtl::default();
+        let s = NmtState::Operational;
+        e.set_guarding(100, 3, Instant::ZERO);
+        e.guard_request(s, Instant::ZERO);
+        let at = Instant::from_millis(300);
+        assert_eq!(
+            e.handle_timeout(at, s, true),
+            Some(ErrCtlEvent::LifeGuardingLost)
+        );
+        e.set_guarding(200, 3, at);
+        assert!(e.life_guard_lost, "still lost");
+        e.set_guarding(0, 3, at);
+        assert!(!e.life_guard_lost, "guarding off");
+    }
+}
