@@ -405,16 +405,22 @@ impl<A: Application, S: Storage> Node<A, S> {
         } else {
             NEVER
         };
+        // Every entry is written, so the earliest is the earliest of these (taken as they go:
+        // a host reads them from registers, not back from the table).
         let t = &mut self.timers;
+        let mut other = NEVER;
+        let mut set = |timer, us: u64| {
+            t.set_us(timer, us);
+            other = other.min(us);
+        };
         #[cfg(feature = "simulation")]
-        t.set_us(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
-        t.set_us(Timer::SdoTransfer, self.sdo.due_us());
-        t.set_us(Timer::LssSwitch, self.lss.due_us());
-        t.set_us(Timer::Silence, us(d.silent_until));
-        t.set_us(Timer::ErrorControl, d.errctl.due_us());
-        t.set_us(Timer::Emcy, emcy);
-        // Every entry was just written: the earliest is the earliest of these.
-        let other = t.next();
+        set(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
+        set(Timer::SdoTransfer, self.sdo.due_us());
+        set(Timer::LssSwitch, self.lss.due_us());
+        set(Timer::Silence, us(d.silent_until));
+        set(Timer::ErrorControl, d.errctl.due_us());
+        set(Timer::Emcy, emcy);
+        debug_assert_eq!(other, self.timers.next());
         // The TPDOs keep their own schedule (the hot path reads it directly).
         self.deadline = other.min(d.pdo.due_us());
         // A node without a node-id stays in initialisation (`reset`), so one test says both.
