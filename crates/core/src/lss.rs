@@ -149,8 +149,13 @@ impl Sequence {
 /// An "activate bit timing" in progress. CiA 305: the slave stops sending and receiving, waits
 /// the switch delay, switches its bit rate, waits the delay again, then goes on at the new rate
 /// (the node stays silent until [`Request::ActivateBitRate`]'s `silent_until`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+///
+/// A flag rather than an `Option`: the default (none pending) is all zeros, which a node reset
+/// writes in place.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 struct BitSwitch {
+    /// A switch is pending.
+    pending: bool,
     /// End of the first delay: the new bit rate becomes active.
     switch_at: Instant,
     /// The bit rate to switch to (kbit/s).
@@ -233,7 +238,7 @@ pub struct LssSlave {
     identify: Sequence,
     /// Which LSS address part (0 vendor … 3 serial) fastscan is checking.
     fastscan_pos: u8,
-    switch: Option<BitSwitch>,
+    switch: BitSwitch,
 }
 
 impl LssSlave {
@@ -315,10 +320,11 @@ impl LssSlave {
             cs::ACTIVATE_BIT_TIMING => {
                 let delay = Duration::from_millis(u16::from_le_bytes([d[1], d[2]]) as u64);
                 let switch_at = now + delay;
-                self.switch = Some(BitSwitch {
+                self.switch = BitSwitch {
+                    pending: true,
                     switch_at,
                     kbps: node.pending().1,
-                });
+                };
                 Output::Do(Request::ActivateBitRate {
                     silent_until: switch_at + delay,
                 })
@@ -387,23 +393,27 @@ impl LssSlave {
     /// Deadline of a pending bit-rate switch.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.switch.map(|s| s.switch_at)
+        self.switch.pending.then_some(self.switch.switch_at)
     }
 
     /// [`LssSlave::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
-        self.switch.map_or(u64::MAX, |s| s.switch_at.0)
+        if self.switch.pending {
+            self.switch.switch_at.0
+        } else {
+            u64::MAX
+        }
     }
 
     /// Advances a pending bit-rate switch: the bit rate to make active now, once the first
     /// switch delay is over.
     pub fn handle_timeout(&mut self, now: Instant) -> Option<u16> {
-        let s = self.switch?;
-        if now < s.switch_at {
+        let s = self.switch;
+        if !s.pending || now < s.switch_at {
             return None;
         }
-        self.switch = None;
+        self.switch.pending = false;
         Some(s.kbps)
     }
 }
