@@ -124,19 +124,13 @@ impl Sequence {
     /// can retry at any point.
     #[inline(never)] // both LSS sequences share one copy
     fn advance(&mut self, step: u8, matched: bool, last: u8) -> bool {
-        if step == 0 {
-            *self = Sequence {
-                step: 1,
-                matched,
-                low: 0,
-            };
-        } else if self.step != step {
+        if step != 0 && self.step != step {
             *self = Sequence::default();
             return false;
-        } else {
-            self.step += 1;
-            self.matched &= matched;
         }
+        // `low` is left as it is: only a low-bound frame in order sets what a later one reads.
+        self.matched = matched && (step == 0 || self.matched);
+        self.step = step + 1;
         if step != last {
             return false;
         }
@@ -309,9 +303,8 @@ impl LssSlave {
             }
             cs::CONFIGURE_BIT_TIMING => {
                 let (table, index) = (d[1], d[2]);
-                let supported = node.bit_timing().contains(&index);
                 match bit_timing_kbps(index) {
-                    Some(kbps) if table == 0 && supported => {
+                    Some(kbps) if table == 0 && node.bit_timing().contains(&index) => {
                         Output::Do(Request::ConfigureBitRate(kbps))
                     }
                     _ => Output::Answer(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
