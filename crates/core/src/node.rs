@@ -1277,15 +1277,21 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn store_lss(&mut self) -> Result<(), StorageError> {
         let (id, kbps) = (self.pending_node_id, self.pending_bitrate);
         let od = &self.od;
-        let copies = od.entries().iter().filter_map(move |e| match e.hook {
-            Hook::PendingNodeId => Some((e.key(), id as u32)),
-            Hook::PendingBitRate => Some((e.key(), object_of_kbps(kbps))),
-            _ => None,
+        let entries = od.entries();
+        // The two LSS records, then the objects' copies: one iterator rather than a chain of
+        // two, one `next` in firmware.
+        let mut records = (0..entries.len() + 2).filter_map(move |i| match i {
+            0 => Some((storage::KEY_LSS_NODE_ID, id as u32)),
+            1 => Some((storage::KEY_LSS_BITRATE, kbps as u32)),
+            _ => {
+                let e = entries.get(i - 2)?;
+                match e.hook {
+                    Hook::PendingNodeId => Some((e.key(), id as u32)),
+                    Hook::PendingBitRate => Some((e.key(), object_of_kbps(kbps))),
+                    _ => None,
+                }
+            }
         });
-        let lss = [
-            (storage::KEY_LSS_NODE_ID, id as u32),
-            (storage::KEY_LSS_BITRATE, kbps as u32),
-        ];
         let replaced = |k: u32| {
             k == storage::KEY_LSS_NODE_ID
                 || k == storage::KEY_LSS_BITRATE
@@ -1295,12 +1301,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                     })
         };
         let tag = self.features().tag;
-        storage::update_image(
-            &mut self.storage,
-            tag,
-            &replaced,
-            &mut lss.into_iter().chain(copies),
-        )?;
+        storage::update_image(&mut self.storage, tag, &replaced, &mut records)?;
         self.stored_lss = (Some(id), Some(kbps));
         Ok(())
     }
