@@ -513,4 +513,46 @@ mod tests {
             assert!(!s.advance(step, true, 3), "frame 2 missing");
         }
     }
+
+    /// Store configuration on the TMI: the pending node-id and bit rate go to the LSS records
+    /// and to their copies 0x2000 / 0x2001, in that order, and nothing else is stored.
+    #[cfg(feature = "tmi")]
+    #[test]
+    fn store_configuration_keeps_the_records_and_the_objects_copies() {
+        use crate::models::tmi::TMI;
+        use crate::storage::{self, RamStorage, IMAGE_MAX, KEY_LSS_BITRATE, KEY_LSS_NODE_ID};
+        let mut n = crate::Node::new(
+            &TMI,
+            TMI.configure(TMI.default_config),
+            RamStorage::default(),
+        );
+        n.power_on(Instant::ZERO);
+        for (i, d) in [
+            [cs::SWITCH_GLOBAL, 1, 0, 0, 0, 0, 0, 0],
+            [cs::CONFIGURE_NODE_ID, 9, 0, 0, 0, 0, 0, 0],
+            [cs::CONFIGURE_BIT_TIMING, 0, 2, 0, 0, 0, 0, 0],
+            [cs::STORE_CONFIGURATION, 0, 0, 0, 0, 0, 0, 0],
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let now = Instant::from_micros(1_000 * (i as u64 + 1));
+            n.handle_frame(&crate::Frame::new(0x7E5, &d).unwrap(), now);
+            while n.poll(now).is_some() {}
+        }
+        let mut buf = [0; IMAGE_MAX];
+        let tag = TMI.features.tag;
+        let mut it = storage::load_image(n.storage_mut(), tag, &mut buf).unwrap();
+        let recs: [Option<(u32, u32)>; 5] = core::array::from_fn(|_| it.next());
+        assert_eq!(
+            recs,
+            [
+                Some((KEY_LSS_NODE_ID, 9)),
+                Some((KEY_LSS_BITRATE, 500)),
+                Some((0x0020_0000, 9)),
+                Some((0x0020_0100, 500)),
+                None,
+            ]
+        );
+    }
 }
