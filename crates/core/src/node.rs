@@ -989,8 +989,9 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// Sets every entry with `hook` (rare paths only: it scans the table).
     fn set_hooked(&mut self, hook: Hook, raw: u32) {
-        for slot in 0..self.od.entries().len() {
-            if self.od.entry(slot).hook == hook {
+        // The table is 'static: walked directly, not looked up slot by slot.
+        for (slot, e) in self.od.entries().iter().enumerate() {
+            if e.hook == hook {
                 self.od.set(slot, raw);
             }
         }
