@@ -161,6 +161,11 @@ struct BitSwitch {
 pub trait LssNode {
     /// The LSS address: 0x1018 sub 1…4 (vendor-id, product code, revision, serial).
     fn address(&self) -> [u32; 4];
+    /// Part `i` (0 vendor-id … 3 serial number) of [`LssNode::address`], all a service
+    /// compares or reports at a time; a node can look up just that one.
+    fn address_part(&self, i: u8) -> u32 {
+        self.address()[i as usize]
+    }
     /// Active node-id ([`UNCONFIGURED`] = none).
     fn node_id(&self) -> u8;
     /// Node-id and bit rate (kbit/s) that the next reset activates.
@@ -411,11 +416,10 @@ impl LssSlave {
     }
 }
 
-/// Part `i` (0 vendor-id … 3 serial number) of the node's LSS address. One copy for the four
-/// services that compare or report a part (`i` is at most 3 at every call).
+/// [`LssNode::address_part`]: one call for the four services that compare or report a part.
 #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 fn address_part(node: &impl LssNode, i: u8) -> u32 {
-    node.address()[i as usize]
+    node.address_part(i)
 }
 
 /// An LSS answer frame: specifier, status / byte 1, zeros.

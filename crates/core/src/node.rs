@@ -1512,6 +1512,10 @@ impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
     fn address(&self) -> [u32; 4] {
         self.lss_address()
     }
+    fn address_part(&self, i: u8) -> u32 {
+        // One dictionary search rather than the four of `lss_address`.
+        self.od.value(0x1018, i + 1).unwrap_or(0)
+    }
     fn node_id(&self) -> u8 {
         self.node_id
     }
