@@ -371,7 +371,8 @@ impl LssSlave {
             self.fastscan_pos = 0;
             return Some(answer(cs::IDENTIFY_SLAVE, 0));
         }
-        if bit_checked > 31 || sub > 3 || next > 3 || sub != self.fastscan_pos {
+        // `fastscan_pos` is at most 3 (it is 0 or a checked `next`), so `sub` is too.
+        if bit_checked > 31 || next > 3 || sub != self.fastscan_pos {
             return None;
         }
         // Bits bit_checked…31 are compared; the lower ones are still unknown to the master.
