@@ -124,19 +124,13 @@ impl Sequence {
     /// can retry at any point.
     #[inline(never)] // both LSS sequences share one copy
     fn advance(&mut self, step: u8, matched: bool, last: u8) -> bool {
-        if step == 0 {
-            *self = Sequence {
-                step: 1,
-                matched,
-                low: 0,
-            };
-        } else if self.step != step {
+        if step != 0 && self.step != step {
             *self = Sequence::default();
             return false;
-        } else {
-            self.step += 1;
-            self.matched &= matched;
         }
+        // `low` is left as it is: only a low-bound frame in order sets what a later one reads.
+        self.matched = matched && (step == 0 || self.matched);
+        self.step = step + 1;
         if step != last {
             return false;
         }
@@ -149,8 +143,13 @@ impl Sequence {
 /// An "activate bit timing" in progress. CiA 305: the slave stops sending and receiving, waits
 /// the switch delay, switches its bit rate, waits the delay again, then goes on at the new rate
 /// (the node stays silent until [`Request::ActivateBitRate`]'s `silent_until`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+///
+/// A flag rather than an `Option`: the default (none pending) is all zeros, which a node reset
+/// writes in place.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 struct BitSwitch {
+    /// A switch is pending.
+    pending: bool,
     /// End of the first delay: the new bit rate becomes active.
     switch_at: Instant,
     /// The bit rate to switch to (kbit/s).
@@ -162,6 +161,11 @@ struct BitSwitch {
 pub trait LssNode {
     /// The LSS address: 0x1018 sub 1…4 (vendor-id, product code, revision, serial).
     fn address(&self) -> [u32; 4];
+    /// Part `i` (0 vendor-id … 3 serial number) of [`LssNode::address`], all a service
+    /// compares or reports at a time; a node can look up just that one.
+    fn address_part(&self, i: u8) -> u32 {
+        self.address()[i as usize]
+    }
     /// Active node-id ([`UNCONFIGURED`] = none).
     fn node_id(&self) -> u8;
     /// Node-id and bit rate (kbit/s) that the next reset activates.
@@ -233,7 +237,7 @@ pub struct LssSlave {
     identify: Sequence,
     /// Which LSS address part (0 vendor … 3 serial) fastscan is checking.
     fastscan_pos: u8,
-    switch: Option<BitSwitch>,
+    switch: BitSwitch,
 }
 
 impl LssSlave {
@@ -304,9 +308,8 @@ impl LssSlave {
             }
             cs::CONFIGURE_BIT_TIMING => {
                 let (table, index) = (d[1], d[2]);
-                let supported = node.bit_timing().contains(&index);
                 match bit_timing_kbps(index) {
-                    Some(kbps) if table == 0 && supported => {
+                    Some(kbps) if table == 0 && node.bit_timing().contains(&index) => {
                         Output::Do(Request::ConfigureBitRate(kbps))
                     }
                     _ => Output::Answer(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
@@ -315,10 +318,11 @@ impl LssSlave {
             cs::ACTIVATE_BIT_TIMING => {
                 let delay = Duration::from_millis(u16::from_le_bytes([d[1], d[2]]) as u64);
                 let switch_at = now + delay;
-                self.switch = Some(BitSwitch {
+                self.switch = BitSwitch {
+                    pending: true,
                     switch_at,
                     kbps: node.pending().1,
-                });
+                };
                 Output::Do(Request::ActivateBitRate {
                     silent_until: switch_at + delay,
                 })
@@ -367,7 +371,8 @@ impl LssSlave {
             self.fastscan_pos = 0;
             return Some(answer(cs::IDENTIFY_SLAVE, 0));
         }
-        if bit_checked > 31 || sub > 3 || next > 3 || sub != self.fastscan_pos {
+        // `fastscan_pos` is at most 3 (it is 0 or a checked `next`), so `sub` is too.
+        if bit_checked > 31 || next > 3 || sub != self.fastscan_pos {
             return None;
         }
         // Bits bit_checked…31 are compared; the lower ones are still unknown to the master.
@@ -387,32 +392,35 @@ impl LssSlave {
     /// Deadline of a pending bit-rate switch.
     #[inline]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.switch.map(|s| s.switch_at)
+        self.switch.pending.then_some(self.switch.switch_at)
     }
 
     /// [`LssSlave::poll_timeout`] in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
-        self.switch.map_or(u64::MAX, |s| s.switch_at.0)
+        if self.switch.pending {
+            self.switch.switch_at.0
+        } else {
+            u64::MAX
+        }
     }
 
     /// Advances a pending bit-rate switch: the bit rate to make active now, once the first
     /// switch delay is over.
     pub fn handle_timeout(&mut self, now: Instant) -> Option<u16> {
-        let s = self.switch?;
-        if now < s.switch_at {
+        let s = self.switch;
+        if !s.pending || now < s.switch_at {
             return None;
         }
-        self.switch = None;
+        self.switch.pending = false;
         Some(s.kbps)
     }
 }
 
-/// Part `i` (0 vendor-id … 3 serial number) of the node's LSS address. One copy for the four
-/// services that compare or report a part (`i` is at most 3 at every call).
+/// [`LssNode::address_part`]: one call for the four services that compare or report a part.
 #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 fn address_part(node: &impl LssNode, i: u8) -> u32 {
-    node.address()[i as usize]
+    node.address_part(i)
 }
 
 /// An LSS answer frame: specifier, status / byte 1, zeros.
@@ -509,5 +517,47 @@ mod tests {
         for step in [0, 1, 3] {
             assert!(!s.advance(step, true, 3), "frame 2 missing");
         }
+    }
+
+    /// Store configuration on the TMI: the pending node-id and bit rate go to the LSS records
+    /// and to their copies 0x2000 / 0x2001, in that order, and nothing else is stored.
+    #[cfg(feature = "tmi")]
+    #[test]
+    fn store_configuration_keeps_the_records_and_the_objects_copies() {
+        use crate::models::tmi::TMI;
+        use crate::storage::{self, RamStorage, IMAGE_MAX, KEY_LSS_BITRATE, KEY_LSS_NODE_ID};
+        let mut n = crate::Node::new(
+            &TMI,
+            TMI.configure(TMI.default_config),
+            RamStorage::default(),
+        );
+        n.power_on(Instant::ZERO);
+        for (i, d) in [
+            [cs::SWITCH_GLOBAL, 1, 0, 0, 0, 0, 0, 0],
+            [cs::CONFIGURE_NODE_ID, 9, 0, 0, 0, 0, 0, 0],
+            [cs::CONFIGURE_BIT_TIMING, 0, 2, 0, 0, 0, 0, 0],
+            [cs::STORE_CONFIGURATION, 0, 0, 0, 0, 0, 0, 0],
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let now = Instant::from_micros(1_000 * (i as u64 + 1));
+            n.handle_frame(&crate::Frame::new(0x7E5, &d).unwrap(), now);
+            while n.poll(now).is_some() {}
+        }
+        let mut buf = [0; IMAGE_MAX];
+        let tag = TMI.features.tag;
+        let mut it = storage::load_image(n.storage_mut(), tag, &mut buf).unwrap();
+        let recs: [Option<(u32, u32)>; 5] = core::array::from_fn(|_| it.next());
+        assert_eq!(
+            recs,
+            [
+                Some((KEY_LSS_NODE_ID, 9)),
+                Some((KEY_LSS_BITRATE, 500)),
+                Some((0x0020_0000, 9)),
+                Some((0x0020_0100, 500)),
+                None,
+            ]
+        );
     }
 }

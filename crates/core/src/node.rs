@@ -1067,8 +1067,9 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// Sets every entry with `hook` (rare paths only: it scans the table).
     fn set_hooked(&mut self, hook: Hook, raw: u32) {
-        for slot in 0..self.od.entries().len() {
-            if self.od.entry(slot).hook == hook {
+        // The table is 'static: walked directly, not looked up slot by slot.
+        for (slot, e) in self.od.entries().iter().enumerate() {
+            if e.hook == hook {
                 self.od.set(slot, raw);
             }
         }
@@ -1595,6 +1596,10 @@ impl<A: Application, S: Storage> Device<A, S> {
 impl<A: Application, S: Storage> lss::LssNode for Device<A, S> {
     fn address(&self) -> [u32; 4] {
         self.lss_address()
+    }
+    fn address_part(&self, i: u8) -> u32 {
+        // One dictionary search rather than the four of `lss_address`.
+        self.od.value(0x1018, i + 1).unwrap_or(0)
     }
     fn node_id(&self) -> u8 {
         self.node_id
