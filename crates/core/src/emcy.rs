@@ -540,4 +540,24 @@ mod tests {
         assert_eq!(e.poll_timeout(), Some(Instant(10_000)));
         assert!(e.poll(Instant(10_000)).is_some());
     }
+
+    /// With the register-change rule, clearing an error whose register bit no other active error
+    /// holds sends EMCY 0x0000, whatever its place in the list (here the second of two); one
+    /// whose bit another error keeps sends nothing.
+    #[test]
+    fn clearing_the_only_error_of_a_register_bit_reports_the_change() {
+        let mut e = Emcy::default();
+        e.set_reset_on_register_change(true);
+        e.raise(code::TEMPERATURE, reg::TEMPERATURE, [0; 5]);
+        e.raise(0x3100, reg::VOLTAGE, [0; 5]);
+        e.raise(0x3200, reg::VOLTAGE, [0; 5]);
+        while e.poll(Instant(0)).is_some() {}
+        e.clear(0x3200);
+        assert!(e.poll(Instant(0)).is_none(), "voltage still held by 0x3100");
+        e.clear(0x3100);
+        let f = e
+            .poll(Instant(0))
+            .expect("EMCY 0x0000: the voltage bit is gone");
+        assert_eq!(f[..3], [0x00, 0x00, reg::GENERIC | reg::TEMPERATURE]);
+    }
 }
