@@ -487,6 +487,19 @@ mod tests {
         assert_eq!((s.poll_timeout(), s.due_us()), (None, u64::MAX));
     }
 
+    /// A node that gives only its whole address answers the inquiry of each part from it (the
+    /// default `LssNode::address_part`).
+    #[test]
+    fn inquiries_read_the_default_address_part() {
+        let mut s = LssSlave::default();
+        let t0 = Instant::ZERO;
+        s.handle(&[cs::SWITCH_GLOBAL, 1, 0, 0, 0, 0, 0, 0], t0, &Unit);
+        for (c, v) in (cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL).zip(1u8..) {
+            let out = s.handle(&[c, 0, 0, 0, 0, 0, 0, 0], t0, &Unit);
+            assert_eq!(out, Output::Answer([c, v, 0, 0, 0, 0, 0, 0]), "{c:#x}");
+        }
+    }
+
     #[test]
     fn sequence_restarts_and_rejects_out_of_order() {
         let mut s = Sequence::default();
