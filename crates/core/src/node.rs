@@ -550,15 +550,20 @@ impl<A: Application, S: Storage> Node<A, S> {
                 let model = d.model;
                 let t = move || app::features::<A>(model).sdo_transfers();
                 if let Some(r) = self.sdo.handle_as(f.data(), now, d, t) {
+                    // A simulated store holds its answer (D7).
                     #[cfg(feature = "simulation")]
-                    match d.sdo_hold_until.take() {
-                        Some(t) => self.held_sdo = Some((t, r)),
-                        None => {
-                            d.tx.push_std(cob::SDO_TX + node, r, 8);
+                    let r = match d.sdo_hold_until.take() {
+                        Some(t) => {
+                            self.held_sdo = Some((t, r));
+                            None
                         }
-                    }
+                        None => Some(r),
+                    };
                     #[cfg(not(feature = "simulation"))]
-                    d.tx.push_std(cob::SDO_TX + node, r, 8);
+                    let r = Some(r);
+                    if let Some(r) = r {
+                        d.tx.push_std(cob::SDO_TX + node, r, 8);
+                    }
                 }
                 // Block-upload segments (a whole block answers one request).
                 while let Some(s) = self.sdo.poll_transmit_as(t) {
@@ -776,12 +781,9 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// order.
     #[inline(always)]
     pub fn poll(&mut self, now: Instant) -> Option<Frame> {
-        #[cfg(not(feature = "inline-hot-paths"))]
         if now.0 >= self.deadline {
-            self.handle_timeout(now);
-        }
-        #[cfg(feature = "inline-hot-paths")]
-        if now.0 >= self.deadline {
+            // The host's fast path (a firmware takes the full one).
+            #[cfg(feature = "inline-hot-paths")]
             if now.0 < self.fast_due && self.dev.tx.is_empty() && self.dev.can_talk(now) {
                 // `now ≥ deadline` and `now < other_due`: the TPDOs' `due` has passed.
                 let Device { pdo, od, .. } = &mut self.dev;
@@ -790,9 +792,9 @@ impl<A: Application, S: Storage> Node<A, S> {
                 if first.is_some() {
                     return first;
                 }
-            } else {
-                self.handle_timeout(now);
+                return self.poll_transmit();
             }
+            self.handle_timeout(now);
         }
         self.poll_transmit()
     }
