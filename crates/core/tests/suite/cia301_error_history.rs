@@ -2,7 +2,7 @@
 //! afterwards no sub-index holds an error (reads abort "no data", as the conformance tool's
 //! EMCY-03 expects of an empty history), and the next error is the first entry again.
 
-use crate::common::{booted, hex, Rig};
+use crate::common::{booted, hex, model, Rig};
 use canpos_core::models::th::TH;
 
 #[test]
@@ -64,4 +64,35 @@ fn tmi_error_register_follows_a_partial_clear() {
     r.node.set_error(0x8110, 0x10, [0; 5], false);
     assert!(r.take().is_empty(), "no EMCY while an error stays");
     assert_eq!(r.node.read_object(0x1001, 0), Ok(0x01));
+}
+
+/// Every sub-index of 0x1003 mirrors the history, the last one (the oldest error kept) too:
+/// for each model, as many errors as the table has subs, then each sub read back, newest first.
+#[test]
+fn cia301_7_5_2_4_every_history_sub_index_holds_its_error() {
+    for name in ["th", "e-series", "tmi"] {
+        let mut r = booted(name);
+        // The subs 1… the table has, in a row.
+        let has = |s: u8| {
+            model(name)
+                .entries
+                .iter()
+                .any(|e| e.index == 0x1003 && e.sub == s)
+        };
+        let subs = (1u8..=8).take_while(|&s| has(s)).count() as u8;
+        assert!(subs > 1, "{name}: a history of several entries");
+        for k in 0..subs as u16 {
+            r.node.set_error(0x5000 + k, 0x01, [0; 5], true);
+            r.node.set_error(0x5000 + k, 0x01, [0; 5], false);
+        }
+        r.take();
+        for s in 1..=subs {
+            let newest_first = 0x5000 + (subs - s) as u32;
+            assert_eq!(
+                r.node.read_object(0x1003, s).map(|v| v & 0xFFFF),
+                Ok(newest_first),
+                "{name}: 1003:{s}"
+            );
+        }
+    }
 }
