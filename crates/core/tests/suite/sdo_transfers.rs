@@ -181,6 +181,54 @@ fn new_initiate_replaces_unfinished_transfer() {
     assert_eq!(r.node.read_object(0x1017, 0), Ok(0));
 }
 
+/// A block transfer's later requests are taken in their own state only: a command that belongs
+/// to another step of the block upload is refused as an invalid command (0x05040001), at each
+/// step (the start, an acknowledgement, the end's confirmation).
+#[test]
+fn block_upload_commands_out_of_their_step_are_refused() {
+    let invalid = hex("80 00 10 00 01 00 04 05");
+    let mut r = Rig::booted(&TH);
+    let init = "A0 00 10 00 14 00 00 00";
+    // Initiated: an acknowledgement before the start.
+    assert_eq!(r.sdo(init)[0], 0xC2);
+    assert_eq!(
+        r.sdo("A2 01 14 00 00 00 00 00"),
+        invalid,
+        "ack before start"
+    );
+    // Started: a second start instead of an acknowledgement.
+    assert_eq!(r.sdo(init)[0], 0xC2);
+    assert_eq!(r.sdo("A3 00 00 00 00 00 00 00")[0], 0x81);
+    assert_eq!(r.sdo("A3 00 00 00 00 00 00 00"), invalid, "start twice");
+    // Ended: an acknowledgement instead of the confirmation.
+    assert_eq!(r.sdo(init)[0], 0xC2);
+    assert_eq!(r.sdo("A3 00 00 00 00 00 00 00")[0], 0x81);
+    assert_eq!(r.sdo("A2 01 14 00 00 00 00 00")[0], 0xCD);
+    assert_eq!(
+        r.sdo("A2 01 14 00 00 00 00 00"),
+        invalid,
+        "ack after the end"
+    );
+    assert!(!r.node.sdo_server().busy());
+}
+
+/// A block download's initiate replaces an unfinished transfer as any initiate does, and is
+/// answered as in a fresh start.
+#[test]
+fn block_download_initiate_replaces_an_unfinished_transfer() {
+    let mut r = Rig::booted(&TH);
+    // Unfinished: a segmented download of 0x100C.
+    assert_eq!(r.sdo("21 0C 10 00 02 00 00 00")[0], 0x60);
+    assert_eq!(
+        r.sdo("C2 17 10 00 02 00 00 00"),
+        hex("A0 17 10 00 7F 00 00 00")
+    );
+    assert_eq!(r.sdo("81 64 00 00 00 00 00 00")[0], 0xA2);
+    assert_eq!(r.sdo("D5 00 00 00 00 00 00 00")[0], 0xA1);
+    assert_eq!(r.node.read_object(0x1017, 0), Ok(100));
+    assert_eq!(r.node.read_object(0x100C, 0), Ok(0), "the abandoned one unwritten");
+}
+
 /// A client abort ends the transfer without an answer and without a later timeout abort.
 #[test]
 fn client_abort_is_silent() {
