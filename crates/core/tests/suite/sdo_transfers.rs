@@ -212,10 +212,10 @@ fn block_upload_commands_out_of_their_step_are_refused() {
     assert!(!r.node.sdo_server().busy());
 }
 
-/// A block download's initiate replaces an unfinished transfer as any initiate does, and is
-/// answered as in a fresh start.
+/// A block download's or block upload's initiate replaces an unfinished transfer as any
+/// initiate does, and is answered as in a fresh start.
 #[test]
-fn block_download_initiate_replaces_an_unfinished_transfer() {
+fn block_initiates_replace_an_unfinished_transfer() {
     let mut r = Rig::booted(&TH);
     // Unfinished: a segmented download of 0x100C.
     assert_eq!(r.sdo("21 0C 10 00 02 00 00 00")[0], 0x60);
@@ -226,7 +226,17 @@ fn block_download_initiate_replaces_an_unfinished_transfer() {
     assert_eq!(r.sdo("81 64 00 00 00 00 00 00")[0], 0xA2);
     assert_eq!(r.sdo("D5 00 00 00 00 00 00 00")[0], 0xA1);
     assert_eq!(r.node.read_object(0x1017, 0), Ok(100));
-    assert_eq!(r.node.read_object(0x100C, 0), Ok(0), "the abandoned one unwritten");
+    assert_eq!(
+        r.node.read_object(0x100C, 0),
+        Ok(0),
+        "the abandoned one unwritten"
+    );
+    // A block upload's initiate too.
+    assert_eq!(r.sdo("21 0C 10 00 02 00 00 00")[0], 0x60);
+    assert_eq!(
+        r.sdo("A0 00 10 00 14 00 00 00"),
+        hex("C2 00 10 00 04 00 00 00")
+    );
 }
 
 /// A client abort ends the transfer without an answer and without a later timeout abort.
