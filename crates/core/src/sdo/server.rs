@@ -1,4 +1,4 @@
-use super::wire::{self, Mux, MAX_BLKSIZE, SEGMENT_DATA};
+use super::wire::{self, Command, Mux, MAX_BLKSIZE, SEGMENT_DATA};
 use super::{abort_payload, ObjectAccess};
 use crate::od::Abort;
 use crate::wire::{Duration, Instant};
@@ -229,12 +229,12 @@ impl SdoServer {
         // path for them too: one copy of each answer in flash (the TH: 0.5 KB less).
         if cfg!(feature = "inline-hot-paths") && self.state == State::Idle {
             if let Ok(req) = <[u8; 8]>::try_from(data) {
-                let b0 = req[0];
-                if b0 >> 5 == 2 {
+                let c = Command(req[0]);
+                if c.ccs() == 2 {
                     if let Some(r) = self.fast_upload(&req, od) {
                         return Some(r);
                     }
-                } else if b0 >> 5 == 1 && b0 & 0x02 != 0 {
+                } else if c.ccs() == 1 && c.expedited() {
                     return Some(self.fast_download(&req, od));
                 }
             }
@@ -245,11 +245,11 @@ impl SdoServer {
     /// An expedited download initiate in state `Idle` (see [`SdoServer::handle`]).
     #[inline]
     fn fast_download(&mut self, req: &[u8; 8], od: &mut dyn ObjectAccess) -> [u8; 8] {
-        let b0 = req[0];
+        let c = Command(req[0]);
         let mux = Mux::from_frame(req);
         self.reset();
         self.set_mux(mux);
-        let size = (b0 & 0x01 != 0).then(|| 4 - u32::from((b0 >> 2) & 0x03));
+        let size = c.size_indicated().then(|| c.expedited_len());
         let data = [req[4], req[5], req[6], req[7]];
         match self.download_expedited(mux, size, &data, od) {
             Ok(r) => r,
@@ -278,18 +278,15 @@ impl SdoServer {
         let r = if let State::BlkDown { last: false, .. } = self.state_as(t) {
             self.block_download_segment(&req)
         } else {
-            // The command byte is decoded where it is used (as `Request::parse` does), without
-            // a `Request` in between: one decoding, not a value built and taken apart again.
-            let b0 = req[0];
-            let ccs = b0 >> 5;
-            if ccs == 4 {
+            // The command byte is read field by field where it is used (`wire::Command`),
+            // without a `Request` in between: not a value built and taken apart again.
+            let c = Command(req[0]);
+            if c.ccs() == 4 {
                 // The client's abort ends any transfer and is never answered.
                 self.reset();
                 return None;
             }
-            // `Request::is_initiate`: download, upload, block upload / download (cs 0).
-            if matches!(ccs, 1 | 2) || (ccs == 5 && b0 & 0x03 == 0) || (ccs == 6 && b0 & 0x01 == 0)
-            {
+            if c.is_initiate() {
                 // A new transfer replaces an unfinished one (see the type's docs).
                 self.reset();
             }
@@ -348,19 +345,15 @@ impl SdoServer {
         od: &mut dyn ObjectAccess,
         t: Transfers,
     ) -> Result<Option<[u8; 8]>, Abort> {
-        let b0 = req[0];
+        let c = Command(req[0]);
         let mux = self.mux();
         let le32 = u32::from_le_bytes([req[4], req[5], req[6], req[7]]);
-        // s bit of a download initiate, t bit of a segment.
-        let indicated = b0 & 0x01 != 0;
-        let toggle = b0 & 0x10 != 0;
-        // cs of the block commands (ccs 5: bits 0…1; ccs 6: bit 0).
-        let cs = b0 & 0x03;
-        let crc = b0 & 0x04 != 0;
-        let ccs = b0 >> 5;
+        // Bit 0: s of a download initiate, c of a download segment, cs of a block download end.
+        let bit0 = c.size_indicated();
+        let (ccs, cs, toggle, crc) = (c.ccs(), c.block_cs(), c.toggle(), c.crc());
         match (ccs, self.state_as(t)) {
-            (1, _) if b0 & 0x02 != 0 => {
-                let size = indicated.then(|| 4 - u32::from((b0 >> 2) & 0x03));
+            (1, _) if c.expedited() => {
+                let size = bit0.then(|| c.expedited_len());
                 let data = [req[4], req[5], req[6], req[7]];
                 self.download_expedited(mux, size, &data, od).map(Some)
             }
@@ -368,8 +361,11 @@ impl SdoServer {
             (1, _) | (6, _)
                 if (ccs == 1 && t.segmented) || (ccs == 6 && t.block && cs & 0x01 == 0) =>
             {
-                // s: bit 0 (segmented), bit 1 (block).
-                let s = if ccs == 1 { indicated } else { b0 & 0x02 != 0 };
+                let s = if ccs == 1 {
+                    bit0
+                } else {
+                    c.block_size_indicated()
+                };
                 let size = self.check_download_size(mux, s.then_some(le32), od)?;
                 self.len = 0;
                 Ok(Some(if ccs == 1 {
@@ -399,11 +395,11 @@ impl SdoServer {
                 if toggle != tg {
                     return Err(Abort::Toggle);
                 }
-                // n = bits 1…3: bytes 1…7 less the n unused ones.
-                let k = SEGMENT_DATA - usize::from((b0 >> 1) & 0x07);
+                // Bytes 1…7 less the n unused ones.
+                let k = SEGMENT_DATA - usize::from(c.segment_unused());
                 self.append(req.get(1..1 + k).unwrap_or(&[]), size)?;
-                if indicated {
-                    // c bit: the last segment.
+                if bit0 {
+                    // c: the last segment.
                     self.finish_download(size, od)?;
                     self.state = State::Idle;
                 } else if let State::DownSeg { toggle, .. } = &mut self.state {
@@ -482,9 +478,9 @@ impl SdoServer {
                     last: true,
                     ..
                 },
-            ) if t.block && indicated => {
+            ) if t.block && bit0 => {
                 // End of block download: n = bits 2…4, the CRC in bytes 1…2.
-                let unused = (b0 >> 2) & 0x07;
+                let unused = c.end_unused();
                 let crc = u16::from_le_bytes([req[1], req[2]]);
                 let total = raw
                     .checked_sub(unused as usize)

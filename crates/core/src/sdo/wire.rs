@@ -27,6 +27,80 @@ pub const MAX_BLKSIZE: u8 = 127;
 /// Bytes of data an SDO segment carries.
 pub const SEGMENT_DATA: usize = 7;
 
+/// The command byte of a client request (byte 0), read field by field (CiA 301 §7.2.4.3): the
+/// one place the bits of a request are named. [`Request::parse`] is built from it, and the
+/// server reads it where it dispatches, without a [`Request`] in between.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Command(pub u8);
+
+impl Command {
+    /// ccs, the client command specifier (bits 5…7).
+    #[inline]
+    pub const fn ccs(self) -> u8 {
+        self.0 >> 5
+    }
+    /// cs of a block command (ccs 5: bits 0…1, 0 initiate, 1 end, 2 acknowledge, 3 start;
+    /// ccs 6: bit 0, 0 initiate, 1 end).
+    #[inline]
+    pub const fn block_cs(self) -> u8 {
+        self.0 & 0x03
+    }
+    /// s of a download initiate (bit 0): the size is indicated.
+    #[inline]
+    pub const fn size_indicated(self) -> bool {
+        self.0 & 0x01 != 0
+    }
+    /// c of a download segment (bit 0): the last one.
+    #[inline]
+    pub const fn last(self) -> bool {
+        self.0 & 0x01 != 0
+    }
+    /// e of a download initiate (bit 1): expedited.
+    #[inline]
+    pub const fn expedited(self) -> bool {
+        self.0 & 0x02 != 0
+    }
+    /// s of a block download initiate (bit 1): the size is indicated.
+    #[inline]
+    pub const fn block_size_indicated(self) -> bool {
+        self.0 & 0x02 != 0
+    }
+    /// cc of a block initiate (bit 2): the client takes part in the CRC.
+    #[inline]
+    pub const fn crc(self) -> bool {
+        self.0 & 0x04 != 0
+    }
+    /// t of a segment (bit 4).
+    #[inline]
+    pub const fn toggle(self) -> bool {
+        self.0 & 0x10 != 0
+    }
+    /// The data length of an expedited download with its size indicated: 4 − n (n: bits 2…3).
+    #[inline]
+    pub const fn expedited_len(self) -> u32 {
+        4 - ((self.0 >> 2) & 0x03) as u32
+    }
+    /// n of a download segment (bits 1…3): bytes of the segment that carry no data.
+    #[inline]
+    pub const fn segment_unused(self) -> u8 {
+        (self.0 >> 1) & 0x07
+    }
+    /// n of a block download end (bits 2…4): bytes of the last segment that carried no data.
+    #[inline]
+    pub const fn end_unused(self) -> u8 {
+        (self.0 >> 2) & 0x07
+    }
+    /// Whether the request starts a new transfer: download, upload, block upload and block
+    /// download initiates (as [`Request::is_initiate`]).
+    #[inline]
+    pub const fn is_initiate(self) -> bool {
+        let ccs = self.ccs();
+        matches!(ccs, 1 | 2)
+            || (ccs == 5 && self.block_cs() == 0)
+            || (ccs == 6 && self.block_cs() & 0x01 == 0)
+    }
+}
+
 /// A client request, decoded from its command byte. Block-download sub-block segments are not
 /// decodable without the server's state (their first byte is `c | seqno`), so the server reads
 /// those raw.
@@ -117,26 +191,25 @@ pub enum Request {
 impl Request {
     /// Decodes a request frame (outside a block-download sub-block).
     pub fn parse(f: &[u8; 8]) -> Request {
-        let b0 = f[0];
+        let c = Command(f[0]);
         let mux = Mux::from_frame(f);
         let le32 = u32::from_le_bytes([f[4], f[5], f[6], f[7]]);
-        match b0 >> 5 {
+        match c.ccs() {
             0 => {
                 let mut data = [0u8; 7];
                 data.copy_from_slice(&f[1..8]);
                 Request::DownloadSegment {
-                    toggle: b0 & 0x10 != 0,
-                    unused: (b0 >> 1) & 0x07,
-                    last: b0 & 0x01 != 0,
+                    toggle: c.toggle(),
+                    unused: c.segment_unused(),
+                    last: c.last(),
                     data,
                 }
             }
             1 => {
-                let expedited = b0 & 0x02 != 0;
-                let indicated = b0 & 0x01 != 0;
-                let size = match (expedited, indicated) {
+                let expedited = c.expedited();
+                let size = match (expedited, c.size_indicated()) {
                     (_, false) => None,
-                    (true, true) => Some(4 - u32::from((b0 >> 2) & 0x03)),
+                    (true, true) => Some(c.expedited_len()),
                     (false, true) => Some(le32),
                 };
                 Request::DownloadInitiate {
@@ -147,14 +220,12 @@ impl Request {
                 }
             }
             2 => Request::UploadInitiate { mux },
-            3 => Request::UploadSegment {
-                toggle: b0 & 0x10 != 0,
-            },
+            3 => Request::UploadSegment { toggle: c.toggle() },
             4 => Request::Abort { mux, code: le32 },
-            5 => match b0 & 0x03 {
+            5 => match c.block_cs() {
                 0 => Request::BlockUploadInitiate {
                     mux,
-                    crc: b0 & 0x04 != 0,
+                    crc: c.crc(),
                     blksize: f[4],
                     pst: f[5],
                 },
@@ -166,15 +237,15 @@ impl Request {
                 _ => Request::BlockUploadStart,
             },
             6 => {
-                if b0 & 0x01 == 0 {
+                if c.block_cs() & 0x01 == 0 {
                     Request::BlockDownloadInitiate {
                         mux,
-                        crc: b0 & 0x04 != 0,
-                        size: (b0 & 0x02 != 0).then_some(le32),
+                        crc: c.crc(),
+                        size: c.block_size_indicated().then_some(le32),
                     }
                 } else {
                     Request::BlockDownloadEnd {
-                        unused: (b0 >> 2) & 0x07,
+                        unused: c.end_unused(),
                         crc: u16::from_le_bytes([f[1], f[2]]),
                     }
                 }
@@ -296,6 +367,16 @@ mod tests {
         assert_eq!(crc16(b"CANopenDemoPIC32"), 0x43F3);
         assert_eq!(crc16(b"123456789"), 0x31C3);
         assert_eq!(crc16(&[0, 0]), 0);
+    }
+
+    /// The command byte's own test of a new transfer answers as the decoded request's, for
+    /// every byte.
+    #[test]
+    fn command_is_initiate_answers_as_the_request() {
+        for b in 0..=255u8 {
+            let r = Request::parse(&[b, 0, 0x10, 0, 0, 0, 0, 0]);
+            assert_eq!(Command(b).is_initiate(), r.is_initiate(), "{b:#04x}");
+        }
     }
 
     #[test]
