@@ -75,7 +75,7 @@ fn read_state(
     }
     // Unlocked: the unit may be running on it; this node only reads (it stores nothing unless
     // told by 0x1010, which nobody sends it).
-    let mut node = Node::new(model, cfg, FileStorage::new(path));
+    let mut node = Node::new(model, cfg, FileStorage::new(path).for_model(model));
     node.power_on(Instant::ZERO);
     cfg.node_id = node.device().node_id();
     cfg.bitrate_kbps = node.device().bitrate();
@@ -421,8 +421,9 @@ pub fn apply_to_state(
     cfg: DeviceConfig,
     state: &Path,
 ) -> Result<Vec<(u16, u8, usize, String)>> {
-    let storage =
-        FileStorage::open(state).with_context(|| format!("cannot open {}", state.display()))?;
+    let storage = FileStorage::open(state)
+        .with_context(|| format!("cannot open {}", state.display()))?
+        .for_model(dcf.model);
     let mut node = Node::new(dcf.model, cfg, storage);
     let mut now = Instant::ZERO;
     node.power_on(now);
