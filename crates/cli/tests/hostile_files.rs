@@ -4,11 +4,14 @@
 
 mod common;
 
+use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::process::{Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use canpos_core::storage::{parse_image, ImageWriter, IMAGE_MAX};
-use common::{free_port, run_in, text, wait_port, Proc};
+use common::{assert_fails, free_port, run_in, text, wait_port, Proc, BIN};
 
 const SHORT: Duration = Duration::from_secs(10);
 
@@ -234,4 +237,256 @@ fn a_state_file_of_unused_records_is_reported_and_saves_still_work() {
         .collect();
     assert!(recs.iter().all(|r| !unused.contains(r)), "{recs:?}");
     assert!(recs.iter().any(|r| r.0 == 0x0010_1700), "{recs:?}");
+}
+
+// ------------------------------------------------------------------------ replay input
+
+/// Peak resident memory a replay may reach before the watch below kills it.
+const RSS_LIMIT_KB: u64 = 256 * 1024;
+
+/// What [`run_watched`] saw.
+struct Watched {
+    code: Option<i32>,
+    out: String,
+    /// Peak RSS in KiB (`getrusage` of the child, from `wait4`).
+    max_rss_kb: u64,
+    /// Killed for memory past [`RSS_LIMIT_KB`] or time past 20 s.
+    killed: Option<String>,
+}
+
+/// Runs `canpos ARGS` in `dir`, its standard input copied from `input` (by a thread, until the
+/// child stops reading); kills it when its RSS passes [`RSS_LIMIT_KB`] (read from /proc while
+/// it runs, so that an unbounded reader cannot take the machine's memory) or after 20 s.
+fn run_watched(dir: &Path, args: &[&str], input: Option<Box<dyn Read + Send>>) -> Watched {
+    // Reaped by `wait4` below, which also gives its peak RSS (std's `wait` does not).
+    #[allow(clippy::zombie_processes)]
+    let mut child = Command::new(BIN)
+        .args(args)
+        .current_dir(dir)
+        .stdin(if input.is_some() {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as libc::pid_t;
+    if let Some(mut src) = input {
+        let mut w = child.stdin.take().unwrap();
+        // Ends with the child's end (EPIPE: the test harness ignores SIGPIPE, as Rust does).
+        std::thread::spawn(move || {
+            let _ = std::io::copy(&mut src, &mut w);
+        });
+    }
+    let out = Arc::new(Mutex::new(String::new()));
+    let readers: Vec<_> = [
+        Box::new(child.stdout.take().unwrap()) as Box<dyn Read + Send>,
+        Box::new(child.stderr.take().unwrap()),
+    ]
+    .into_iter()
+    .map(|mut s| {
+        let out = Arc::clone(&out);
+        std::thread::spawn(move || {
+            let mut t = String::new();
+            let _ = s.read_to_string(&mut t);
+            out.lock().unwrap().push_str(&t);
+        })
+    })
+    .collect();
+    let end = Instant::now() + Duration::from_secs(20);
+    let mut killed = None;
+    let (code, max_rss_kb) = loop {
+        let mut status = 0;
+        // SAFETY: a zeroed rusage is a valid value for wait4 to fill.
+        let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+        // SAFETY: waits for our own child, with valid pointers.
+        let r = unsafe { libc::wait4(pid, &mut status, libc::WNOHANG, &mut ru) };
+        if r == pid {
+            let code = libc::WIFEXITED(status).then(|| libc::WEXITSTATUS(status));
+            break (code, ru.ru_maxrss as u64);
+        }
+        assert_eq!(r, 0, "wait4: {}", std::io::Error::last_os_error());
+        if killed.is_none() {
+            let hwm = std::fs::read_to_string(format!("/proc/{pid}/status"))
+                .ok()
+                .and_then(|s| {
+                    s.lines()
+                        .find_map(|l| l.strip_prefix("VmHWM:"))
+                        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+                })
+                .unwrap_or(0);
+            let why = if hwm > RSS_LIMIT_KB {
+                Some(format!("RSS {hwm} kB"))
+            } else if Instant::now() > end {
+                Some("still running after 20 s".to_string())
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                // SAFETY: our child, not yet reaped.
+                unsafe { libc::kill(pid, libc::SIGKILL) };
+                killed = Some(why);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    for r in readers {
+        let _ = r.join();
+    }
+    let out = out.lock().unwrap().clone();
+    Watched {
+        code,
+        out,
+        max_rss_kb,
+        killed,
+    }
+}
+
+fn assert_refused_at_line_one(w: &Watched, file: &str, rss_kb: u64) {
+    assert_eq!(w.killed, None, "killed: {}", w.out);
+    assert_eq!(w.code, Some(1), "{}", w.out);
+    assert!(
+        w.out.contains(&format!(
+            "error: {file}:1: longer than 4096 bytes without a newline"
+        )),
+        "{}",
+        w.out
+    );
+    assert!(!w.out.contains("panicked"), "{}", w.out);
+    assert!(w.max_rss_kb < rss_kb, "peak RSS {} kB", w.max_rss_kb);
+}
+
+/// Issue 35 item 7: `canpos replay /dev/zero` reached 4.2 GB in 15 s. Now it ends at the line
+/// limit with the file and line, well under 256 MB.
+#[test]
+fn replay_of_dev_zero_ends_with_an_error_in_bounded_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let w = run_watched(
+        dir.path(),
+        &["replay", "/dev/zero", "--bus", "mem://r"],
+        None,
+    );
+    assert_refused_at_line_one(&w, "/dev/zero", RSS_LIMIT_KB);
+}
+
+/// … an endless standard input without a newline likewise (it reached 2.6 GB in 10 s) …
+#[test]
+fn replay_of_an_endless_stdin_without_newline_ends_with_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let endless = Box::new(std::io::repeat(b'7').take(8 << 30));
+    let w = run_watched(
+        dir.path(),
+        &["replay", "-", "--bus", "mem://r"],
+        Some(endless),
+    );
+    assert_refused_at_line_one(&w, "-", RSS_LIMIT_KB);
+}
+
+/// … and a 200 MB file without a newline errors at the line limit instead of after holding
+/// all of it (206 MB): its memory stays far below the file's size.
+#[test]
+fn replay_of_a_200_mb_file_without_newline_errors_at_the_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("one-line.log");
+    // Sparse: 200 MB of zeros that take no disk.
+    std::fs::File::create(&file)
+        .unwrap()
+        .set_len(200_000_000)
+        .unwrap();
+    let name = file.to_str().unwrap();
+    let w = run_watched(dir.path(), &["replay", name, "--bus", "mem://r"], None);
+    assert_refused_at_line_one(&w, name, 64 * 1024);
+}
+
+/// Issue 35 item 10: a log with a 1e9 s pause waited 31 years without a word. Now the wait is
+/// announced with its line first, and `--max-gap` shortens it.
+#[test]
+fn replay_announces_a_long_pause_and_max_gap_shortens_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("gap.log");
+    std::fs::write(
+        &log,
+        "(0.000000) can0 181#01\n(0.500000) can0 181#02\n(1000000000.000000) can0 181#03\n",
+    )
+    .unwrap();
+    let log = log.to_str().unwrap();
+    let mut p = Proc::start(dir.path(), &["replay", log, "--bus", "mem://r"]);
+    let out = p.wait_for("waiting", SHORT);
+    assert!(
+        out.contains(&format!(
+            "{log}:3: this frame comes 999999999.5 s (31.7 years) after the one before: waiting"
+        )),
+        "{out}"
+    );
+    assert!(out.contains("--max-gap"), "{out}");
+    p.stop();
+    let o = run_in(
+        dir.path(),
+        &["replay", log, "--bus", "mem://r", "--max-gap", "0.2"],
+        SHORT,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("replayed 3 frames"), "{}", text(&o));
+    assert!(!text(&o).contains("waiting"), "{}", text(&o));
+    assert_fails(
+        &run_in(
+            dir.path(),
+            &["replay", log, "--bus", "mem://r", "--max-gap=-1"],
+            SHORT,
+        ),
+        2,
+        "--max-gap",
+    );
+}
+
+// ------------------------------------------------------------------------ DCF
+
+/// Issue 35 item 10: a non-numeric `LSS_SerialNumber` was ignored while a bad `NodeID` is an
+/// error; now both are errors with the file and line.
+#[test]
+fn a_dcf_serial_number_that_is_none_is_an_error_at_its_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = Command::new(BIN)
+        .args(["eds", "--model", "th"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{o:?}");
+    let eds = String::from_utf8(o.stdout).unwrap();
+    // The EDS on stdout, then the DCF's commissioning: the line of the bad key is the last.
+    let eds: String = eds.lines().map(|l| format!("{l}\n")).collect();
+    for (key, value) in [("LSS_SerialNumber", "twelve"), ("NodeID", "200")] {
+        let mut dcf = eds.clone();
+        dcf.push_str("\n[DeviceComissioning]\nNodeID=5\nBaudrate=125\n");
+        if key == "NodeID" {
+            dcf = dcf.replace("NodeID=5", &format!("NodeID={value}"));
+        } else {
+            dcf.push_str(&format!("{key}={value}\n"));
+        }
+        let line = 1 + dcf
+            .lines()
+            .position(|l| l == format!("{key}={value}"))
+            .unwrap();
+        let file = dir.path().join("unit.dcf");
+        std::fs::write(&file, &dcf).unwrap();
+        let o = run_in(
+            dir.path(),
+            &[
+                "run",
+                "--dcf",
+                "unit.dcf",
+                "--bus",
+                "mem://r",
+                "--state-dir",
+                "state",
+            ],
+            SHORT,
+        );
+        assert_fails(
+            &o,
+            1,
+            &format!("unit.dcf:{line}: [DeviceComissioning] {key}: not a"),
+        );
+    }
 }
