@@ -4,7 +4,8 @@
 //! Half the inputs are sealed into a well-formed image (magic, version, model tag, count, CRC)
 //! so the fuzzer also reaches the interpretation of the records, not only the checksum.
 //! Invariants: no panic; a rejected image boots the factory defaults and is reported as
-//! corrupt; whatever is stored, the node comes up with a node-id in 1…127 or unconfigured and
+//! corrupt; `FileStorage::for_model` passes on a subsequence of the file's records, no key
+//! twice; whatever is stored, the node comes up with a node-id in 1…127 or unconfigured and
 //! sends its boot-up only on its own COB-ID; a parsed image re-written with `ImageWriter` is
 //! byte-identical.
 #![no_main]
@@ -70,6 +71,28 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         let mut buf = [0u8; IMAGE_MAX];
         if let Ok(n) = fs.load(&mut buf) {
             assert_eq!(&buf[..n], bytes, "FileStorage changed the bytes");
+        }
+        // With the model known, it passes on the records the model uses, the last of each
+        // key, in the file's order: never a record the file does not hold.
+        let mut fs = FileStorage::new(path()).for_model(model);
+        if let Ok(n) = fs.load(&mut buf) {
+            let kept: Vec<_> = storage::parse_image(&buf[..n], tag)
+                .expect("FileStorage passed on an image the core refuses")
+                .collect();
+            let all: Vec<_> = storage::parse_image(bytes, tag)
+                .expect("FileStorage passed on records of a refused image")
+                .collect();
+            let mut rest = all.iter();
+            for r in &kept {
+                assert!(rest.any(|a| a == r), "{r:08X?}: not in the file, or moved");
+            }
+            for (i, r) in kept.iter().enumerate() {
+                assert!(
+                    !kept[i + 1..].iter().any(|x| x.0 == r.0),
+                    "key {:08X} passed on twice",
+                    r.0
+                );
+            }
         }
 
         let mut ram = RamStorage::default();

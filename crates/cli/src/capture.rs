@@ -11,13 +11,14 @@
 //! in the id) are written the same way as data and remote frames once a bus delivers them.
 //! Every writer flushes after each record: `canpos record - | wireshark -k -i -` is a live view.
 
-use std::io::{self, Write};
+use std::io::{self, BufRead, Write};
 use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use canpos_core::Frame;
 use canpos_host::candump::{
-    format_record_line, ErrorFrame, FdFrame, Record, CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG,
+    format_record_line, read_line_bounded, ErrorFrame, FdFrame, LineRead, LogError, LogReader,
+    Record, CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, MAX_LINE,
 };
 
 /// `LINKTYPE_CAN_SOCKETCAN`.
@@ -472,6 +473,145 @@ pub fn parse_asc_line(line: &str) -> Result<AscLine, String> {
         // Other events (statistics, status lines of a CAN channel): no frame to play.
         [ch, ..] if ch.parse::<u8>().is_ok() => Ok(AscLine::NoFrame),
         _ => Err("not an ASC frame line".into()),
+    }
+}
+
+/// One line of a log as `canpos replay` takes it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LogItem {
+    /// A record at `t` seconds from the log's start (candump: the first line's stamp; ASC: the
+    /// start of measurement), from line `line`.
+    Record {
+        /// 1-based line number.
+        line: usize,
+        /// Seconds from the log's start.
+        t: f64,
+        /// What the line holds.
+        record: Record,
+    },
+    /// A line that is neither a frame nor a line a log may hold besides frames.
+    Malformed {
+        /// 1-based line number.
+        line: usize,
+        /// Why.
+        why: String,
+    },
+}
+
+/// The lines of a candump `-L` log or an ASC file, one at a time: no line longer than
+/// [`MAX_LINE`] is held (a longer one ends the log with [`LogError::TooLong`]), and nothing
+/// is read ahead of the line asked for but the reader's buffer. Lines without a frame (blank
+/// lines, ASC headers and events) are passed over.
+pub struct LogItems {
+    inner: Inner,
+}
+
+enum Inner {
+    Candump {
+        reader: LogReader<Box<dyn BufRead>>,
+        first: Option<SystemTime>,
+    },
+    Asc {
+        input: Box<dyn BufRead>,
+        line_no: usize,
+        line: Vec<u8>,
+        done: bool,
+    },
+}
+
+impl LogItems {
+    /// The lines of `input` in `format`: candump or ASC (the others are not read back).
+    pub fn new(input: Box<dyn BufRead>, format: Format) -> Option<LogItems> {
+        let inner = match format {
+            Format::Candump => Inner::Candump {
+                reader: LogReader::new(input),
+                first: None,
+            },
+            Format::Asc => Inner::Asc {
+                input,
+                line_no: 0,
+                line: Vec::new(),
+                done: false,
+            },
+            Format::Pcapng | Format::Pcap => return None,
+        };
+        Some(LogItems { inner })
+    }
+}
+
+impl Iterator for LogItems {
+    type Item = Result<LogItem, LogError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        match &mut self.inner {
+            Inner::Candump { reader, first } => {
+                let item = match reader.next()? {
+                    Ok(e) => {
+                        let t0 = *first.get_or_insert(e.timestamp);
+                        // A stamp before the first one plays at the start.
+                        let rel = e.timestamp.duration_since(t0).unwrap_or_default();
+                        LogItem::Record {
+                            line: reader.line_number(),
+                            t: rel.as_secs_f64(),
+                            record: e.record,
+                        }
+                    }
+                    Err(LogError::Parse { line, error }) => LogItem::Malformed {
+                        line,
+                        why: error.to_string(),
+                    },
+                    Err(e) => return Some(Err(e)),
+                };
+                Some(Ok(item))
+            }
+            Inner::Asc {
+                input,
+                line_no,
+                line,
+                done,
+            } => loop {
+                if *done {
+                    return None;
+                }
+                let read = read_line_bounded(input, line, MAX_LINE);
+                *line_no += 1;
+                match read {
+                    Ok(LineRead::Line) => {}
+                    Ok(LineRead::End) => return None,
+                    Ok(LineRead::TooLong) => {
+                        *done = true;
+                        return Some(Err(LogError::TooLong { line: *line_no }));
+                    }
+                    Err(e) => {
+                        *done = true;
+                        return Some(Err(LogError::Io(e)));
+                    }
+                }
+                // Bytes per line: one that is not UTF-8 is malformed, not the end of the log.
+                let Ok(text) = std::str::from_utf8(line) else {
+                    return Some(Ok(LogItem::Malformed {
+                        line: *line_no,
+                        why: "not UTF-8 text".into(),
+                    }));
+                };
+                match parse_asc_line(text) {
+                    Ok(AscLine::NoFrame) => {}
+                    Ok(AscLine::Record(t, record)) => {
+                        return Some(Ok(LogItem::Record {
+                            line: *line_no,
+                            t,
+                            record,
+                        }))
+                    }
+                    Err(why) => {
+                        return Some(Ok(LogItem::Malformed {
+                            line: *line_no,
+                            why,
+                        }))
+                    }
+                }
+            },
+        }
     }
 }
 

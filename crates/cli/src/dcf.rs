@@ -75,7 +75,7 @@ fn read_state(
     }
     // Unlocked: the unit may be running on it; this node only reads (it stores nothing unless
     // told by 0x1010, which nobody sends it).
-    let mut node = Node::new(model, cfg, FileStorage::new(path));
+    let mut node = Node::new(model, cfg, FileStorage::new(path).for_model(model));
     node.power_on(Instant::ZERO);
     cfg.node_id = node.device().node_id();
     cfg.bitrate_kbps = node.device().bitrate();
@@ -355,17 +355,26 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
         ),
     };
     let mut values = Vec::new();
-    let mut serial = ini
-        .get("DeviceComissioning", "LSS_SerialNumber")
-        .and_then(parse_num)
-        .map(|v| v as u32);
+    // A serial number is an UNSIGNED32 (0x1018/4): anything else is an error at its line, as a
+    // bad NodeID is (it names the state file: a wrong one would start another unit's state).
+    let serial_of = |v: &str, sec: &str, key: &str| {
+        parse_num(v)
+            .filter(|n| (0..=i64::from(u32::MAX)).contains(n))
+            .map(|n| n as u32)
+            .ok_or_else(|| bad(sec, key, "not a serial number (0…0xFFFFFFFF)"))
+    };
+    let mut serial = match ini.get("DeviceComissioning", "LSS_SerialNumber") {
+        None => None,
+        Some(v) => Some(serial_of(v, "DeviceComissioning", "LSS_SerialNumber")?),
+    };
     for e in model.entries {
         let sec = section_name(e, model);
         let Some(v) = ini.get(&sec, "ParameterValue") else {
             continue;
         };
-        if e.index == 0x1018 && e.sub == 4 && serial.is_none() {
-            serial = parse_num(v).map(|v| v as u32);
+        if e.index == 0x1018 && e.sub == 4 {
+            let v = serial_of(v, &sec, "ParameterValue")?;
+            serial.get_or_insert(v);
         }
         if !writable_config(e) {
             continue;
@@ -421,8 +430,9 @@ pub fn apply_to_state(
     cfg: DeviceConfig,
     state: &Path,
 ) -> Result<Vec<(u16, u8, usize, String)>> {
-    let storage =
-        FileStorage::open(state).with_context(|| format!("cannot open {}", state.display()))?;
+    let storage = FileStorage::open(state)
+        .with_context(|| format!("cannot open {}", state.display()))?
+        .for_model(dcf.model);
     let mut node = Node::new(dcf.model, cfg, storage);
     let mut now = Instant::ZERO;
     node.power_on(now);
@@ -598,6 +608,45 @@ mod tests {
         std::fs::write(&path, bad).unwrap();
         let e = read_model_dcf(&path).unwrap_err().to_string();
         assert!(e.contains("unit.dcf:") && e.contains("NodeID"), "{e}");
+        // So is a serial number that is none (issue 35 item 10: it used to be ignored), with
+        // the line of its key.
+        let line_of = |t: &str, key: &str| 1 + t.lines().position(|l| l.starts_with(key)).unwrap();
+        for (from, to) in [
+            ("LSS_SerialNumber=0x", "LSS_SerialNumber=zz"),
+            ("LSS_SerialNumber=0x", "LSS_SerialNumber=0x1"),
+            ("LSS_SerialNumber=0x", "LSS_SerialNumber=-0x"),
+        ] {
+            let bad = text.replacen(from, to, 1);
+            assert_ne!(bad, text);
+            std::fs::write(&path, &bad).unwrap();
+            let e = read_model_dcf(&path).unwrap_err().to_string();
+            let want = format!(
+                "unit.dcf:{}: [DeviceComissioning] LSS_SerialNumber: not a serial number",
+                line_of(&bad, "LSS_SerialNumber=")
+            );
+            assert!(e.contains(&want), "{to}: {e}");
+        }
+        // Without LSS_SerialNumber, 0x1018/4's ParameterValue is the serial: checked alike.
+        let no_lss: String = text
+            .lines()
+            .filter(|l| !l.starts_with("LSS_SerialNumber="))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        std::fs::write(&path, &no_lss).unwrap();
+        assert_eq!(
+            read_model_dcf(&path).unwrap().unwrap().serial,
+            Some(th.default_config.serial)
+        );
+        let sec = no_lss.find("[1018sub4]").unwrap();
+        let at = sec + no_lss[sec..].find("ParameterValue=").unwrap();
+        let end = at + no_lss[at..].find('\n').unwrap();
+        let bad = format!("{}ParameterValue=serial{}", &no_lss[..at], &no_lss[end..]);
+        std::fs::write(&path, &bad).unwrap();
+        let e = read_model_dcf(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("[1018sub4] ParameterValue: not a serial number"),
+            "{e}"
+        );
         // Another device's DCF is none of canpos's.
         let foreign = text.replace("ProductName=", "ProductName=Other ");
         std::fs::write(&path, foreign).unwrap();

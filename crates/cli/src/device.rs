@@ -511,7 +511,7 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
             seed: o.seed.unwrap_or(u64::from(cfg.serial)),
             ideal: o.ideal,
             motion,
-            storage: FileStorage::new(path),
+            storage: FileStorage::new(path).for_model(model),
         },
         warnings,
         nmt,
@@ -522,7 +522,7 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
 /// Opens the sensor's state file for use: locked against other processes, regular files only,
 /// stale temporaries removed, the directory checked for writing (see [`FileStorage::open`]).
 pub fn open_storage(setup: &mut SensorSetup) -> Result<()> {
-    setup.storage = FileStorage::open(setup.storage.path())?;
+    setup.storage = FileStorage::open(setup.storage.path())?.for_model(setup.model);
     Ok(())
 }
 

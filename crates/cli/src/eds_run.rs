@@ -29,6 +29,8 @@ pub fn run(a: RunArgs) -> Result<i32> {
     }
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     let state = dev.state_file(&state_dir);
+    // Locked, links refused, stale temporaries removed, as a sensor's (FileStorage::open).
+    let storage = FileStorage::open(&state)?.for_model(dev.model);
     let (transport, _hub) = open_bus(
         &a.bus,
         a.hub,
@@ -36,13 +38,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
         crate::device::pacing(a.bus_bitrate, a.instant_bus),
     )?;
     let desc = transport.describe();
-    let mut rt = PlainRuntime::new(
-        transport,
-        a.bus_bitrate,
-        dev.model,
-        dev.cfg,
-        FileStorage::new(&state),
-    );
+    let mut rt = PlainRuntime::new(transport, a.bus_bitrate, dev.model, dev.cfg, storage);
     rt.power_on()?;
     // The active node-id: a stored LSS node-id wins over the file's and the command line's.
     let id = rt.node().device().node_id();

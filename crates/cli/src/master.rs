@@ -22,7 +22,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use anyhow::{anyhow, bail, Context, Result};
 use canpos_core::Frame;
-use canpos_host::candump::{format_line, LogReader};
+use canpos_host::candump::format_line;
 use canpos_host::transport::{self, BusUrl, RxFrame, Transport, DEFAULT_URL};
 use clap::{Args, Subcommand, ValueEnum};
 
@@ -1317,6 +1317,10 @@ pub struct ReplayArgs {
     /// A malformed line: stop (nothing is sent) or skip it and play the rest.
     #[arg(long, value_enum, default_value = "stop", value_name = "ACTION")]
     pub on_malformed: OnMalformed,
+    /// Shorten every pause between frames longer than this to it (seconds of replay, after
+    /// --speed), as python-can's `can.player --skip` does; default: the log's pauses.
+    #[arg(long, value_name = "SECONDS", value_parser = crate::limits::parse_seconds)]
+    pub max_gap: Option<f64>,
 }
 
 fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
@@ -1327,69 +1331,164 @@ fn open_log(path: &PathBuf) -> Result<Box<dyn BufRead>> {
     Ok(Box::new(BufReader::new(f)))
 }
 
-/// A log read for replay: the records with their time in seconds from the log's start, and
-/// the malformed lines (line number, why).
-struct ReadLog {
-    records: Vec<(f64, canpos_host::candump::Record)>,
-    malformed: Vec<(usize, String)>,
+/// Most frames `canpos replay` holds from an input it cannot read twice (standard input, a
+/// pipe, a device): it checks a whole log before the first frame goes out, so such an input is
+/// held, and no more than this of it (about 80 MB). A regular file is read twice instead and
+/// holds nothing.
+pub const REPLAY_HELD_MAX: usize = 2_000_000;
+
+/// A wait for the next frame longer than this (seconds) is announced on stderr first.
+pub const REPLAY_LONG_WAIT: f64 = 10.0;
+
+/// What replay does with a record: a frame it sends, or a kind it counts.
+#[derive(Clone, Copy)]
+enum Play {
+    Frame(Frame),
+    Error,
+    Fd,
 }
 
-fn read_log(input: Box<dyn BufRead>, format: crate::capture::Format) -> Result<ReadLog> {
-    use crate::capture::{parse_asc_line, AscLine, Format};
-    use canpos_host::candump::LogError;
-    let mut log = ReadLog {
-        records: Vec::new(),
-        malformed: Vec::new(),
-    };
-    match format {
-        Format::Asc => {
-            // Bytes per line: one that is not UTF-8 is malformed, not the end of the log.
-            for (i, line) in input.split(b'\n').enumerate() {
-                let line = line?;
-                let Ok(line) = std::str::from_utf8(&line) else {
-                    log.malformed.push((i + 1, "not UTF-8 text".into()));
-                    continue;
-                };
-                match parse_asc_line(line) {
-                    Ok(AscLine::NoFrame) => {}
-                    Ok(AscLine::Record(t, r)) => log.records.push((t, r)),
-                    Err(why) => log.malformed.push((i + 1, why)),
-                }
-            }
-        }
-        Format::Candump => {
-            let mut first = None;
-            for e in LogReader::new(input) {
-                match e {
-                    Ok(e) => {
-                        let t0 = *first.get_or_insert(e.timestamp);
-                        // A stamp before the first one plays at the start.
-                        let rel = e.timestamp.duration_since(t0).unwrap_or_default();
-                        log.records.push((rel.as_secs_f64(), e.record));
-                    }
-                    Err(LogError::Parse { line, error }) => {
-                        log.malformed.push((line, error.to_string()))
-                    }
-                    Err(e @ LogError::Io(_)) => return Err(e.into()),
-                }
-            }
-        }
-        Format::Pcapng | Format::Pcap => {
-            return Err(usage!(
-                "replay reads candump -L logs and ASC files, not pcap / pcapng"
-            ))
+impl From<canpos_host::candump::Record> for Play {
+    fn from(r: canpos_host::candump::Record) -> Play {
+        use canpos_host::candump::Record;
+        match r {
+            Record::Frame(f) => Play::Frame(f),
+            Record::Error(_) => Play::Error,
+            Record::Fd(_) => Play::Fd,
         }
     }
-    Ok(log)
+}
+
+/// Each record's time of replay (seconds from the start): its log time divided by `--speed`,
+/// less what `--max-gap` took off the pauses before it.
+struct Timeline {
+    speed: f64,
+    max_gap: Option<f64>,
+    /// The latest log time seen (scaled), from the log's start.
+    latest: f64,
+    cut: f64,
+}
+
+impl Timeline {
+    fn new(speed: f64, max_gap: Option<f64>) -> Timeline {
+        Timeline {
+            speed,
+            max_gap,
+            latest: 0.0,
+            cut: 0.0,
+        }
+    }
+
+    fn offset(&mut self, t: f64) -> f64 {
+        if self.speed <= 0.0 {
+            return 0.0;
+        }
+        let t = t / self.speed;
+        if t > self.latest {
+            if let Some(m) = self.max_gap {
+                self.cut += (t - self.latest - m).max(0.0);
+            }
+            self.latest = t;
+        }
+        t - self.cut
+    }
+}
+
+/// The `FILE:LINE: why` of an error that ends reading a log.
+fn log_error(file: &str, e: canpos_host::candump::LogError) -> anyhow::Error {
+    use canpos_host::candump::LogError;
+    match e {
+        LogError::TooLong { line } => anyhow!(
+            "{file}:{line}: longer than {} bytes without a newline: not a candump -L log or ASC file; nothing more is read",
+            canpos_host::candump::MAX_LINE
+        ),
+        LogError::Parse { line, error } => anyhow!("{file}:{line}: {error}"),
+        LogError::Io(e) => anyhow::Error::new(e).context(format!("reading {file}")),
+    }
+}
+
+/// Sends the records of a replay on their times.
+struct Player {
+    bus: Box<dyn Transport>,
+    file: String,
+    t0: Instant,
+    timeline: Timeline,
+    /// The latest replay time sent at, s from the start.
+    last: f64,
+    sent: u64,
+    errors: u64,
+    fd: u64,
+    refused: u64,
+}
+
+impl Player {
+    fn play(&mut self, line: usize, t: f64, p: Play) -> Result<()> {
+        let f = match p {
+            Play::Frame(f) => f,
+            Play::Error => {
+                self.errors += 1;
+                return Ok(());
+            }
+            Play::Fd => {
+                self.fd += 1;
+                return Ok(());
+            }
+        };
+        let off = self.timeline.offset(t);
+        let pause = off - self.last;
+        self.last = self.last.max(off);
+        if off > 0.0 {
+            if let Some(due) = crate::limits::deadline(self.t0, off) {
+                let now = Instant::now();
+                if due > now {
+                    let wait = due - now;
+                    if wait.as_secs_f64() > REPLAY_LONG_WAIT {
+                        eprintln!(
+                            "{}:{line}: this frame comes {} after the one before: waiting (--max-gap shortens such pauses)",
+                            self.file,
+                            show_wait(pause.max(wait.as_secs_f64()))
+                        );
+                    }
+                    std::thread::sleep(wait);
+                }
+            }
+        }
+        match self.bus.send(&f) {
+            Ok(()) => self.sent += 1,
+            // The transport cannot carry this frame (socketcand: a remote frame with DLC).
+            Err(e) if e.kind() == io::ErrorKind::InvalidInput => self.refused += 1,
+            Err(e) => return Err(anyhow::Error::new(e).context("sending a frame")),
+        }
+        Ok(())
+    }
+}
+
+/// A pause in words: seconds, and days or years when that long.
+fn show_wait(s: f64) -> String {
+    let days = s / 86_400.0;
+    if days >= 365.25 {
+        format!("{s:.1} s ({:.1} years)", days / 365.25)
+    } else if days >= 1.0 {
+        format!("{s:.1} s ({days:.1} days)")
+    } else {
+        format!("{s:.1} s")
+    }
 }
 
 /// Replays a log; the frames keep their relative spacing, divided by `--speed`. Lines that
 /// cannot go on this bus (error frames, CAN FD frames, remote frames with a DLC on a
 /// transport without them) are skipped and counted; the counts are reported at the end.
+///
+/// The whole log is read and checked before the first frame goes out; memory stays bounded
+/// whatever the input: lines of at most `MAX_LINE` bytes, a regular file read twice (checked,
+/// then played) and any other input held up to [`REPLAY_HELD_MAX`] frames.
 pub fn replay(a: ReplayArgs) -> Result<i32> {
-    use canpos_host::candump::Record;
+    use crate::capture::{LogItem, LogItems};
     // Checked again for callers that build the arguments in code.
     crate::limits::parse_speed(&a.speed.to_string()).map_err(|e| anyhow!("--speed {e}"))?;
+    if let Some(g) = a.max_gap {
+        crate::limits::check_seconds(g, false).map_err(|e| anyhow!("--max-gap {e}"))?;
+    }
     if a.repeat && a.file.as_os_str() == "-" {
         bail!("--loop needs a file, not standard input");
     }
@@ -1400,85 +1499,101 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
             _ => crate::capture::Format::Candump,
         },
     };
+    let name = a.file.display().to_string();
+    let items = |input| {
+        LogItems::new(input, format)
+            .ok_or_else(|| usage!("replay reads candump -L logs and ASC files, not pcap / pcapng"))
+    };
+    // A regular file is read again to play it; anything else (standard input, a pipe, a
+    // device) only once, so its frames are held.
+    let again = a.file.as_os_str() != "-" && std::fs::metadata(&a.file).is_ok_and(|m| m.is_file());
+    let mut held: Option<Vec<(usize, f64, Play)>> = (!again).then(Vec::new);
     // Read everything first so a malformed log (with --on-malformed stop) fails before
-    // anything goes on the bus.
-    let log = read_log(open_log(&a.file)?, format)?;
-    for (line, why) in &log.malformed {
-        eprintln!("{}:{line}: {why}", a.file.display());
-    }
-    if !log.malformed.is_empty() && a.on_malformed == OnMalformed::Stop {
-        bail!(
-            "{}: {} malformed line(s), nothing sent (--on-malformed skip plays the rest)",
-            a.file.display(),
-            log.malformed.len()
-        );
-    }
-    if log.records.is_empty() {
-        eprintln!("{}: no frames", a.file.display());
-        return Ok(EXIT_OK);
-    }
-    // Each frame's offset from the start, in seconds of replay; all checked before the first
-    // frame goes out, so that a log too long for this speed sends nothing.
-    let offsets: Vec<f64> = log
-        .records
-        .iter()
-        .map(|(t, _)| if a.speed > 0.0 { t / a.speed } else { 0.0 })
-        .collect();
-    let span = offsets.iter().copied().fold(0.0, f64::max);
-    crate::limits::check_seconds(span, false).map_err(|e| {
-        anyhow!(
-            "{}: at --speed {} the replay would take {e}",
-            a.file.display(),
-            a.speed
-        )
-    })?;
-    let mut bus = open_bus(&a.bus.bus)?;
-    let (mut sent, mut errors, mut fd, mut refused) = (0u64, 0u64, 0u64, 0u64);
-    loop {
-        let t0 = Instant::now();
-        let sent_before = sent;
-        for ((_, r), &off) in log.records.iter().zip(&offsets) {
-            let f = match r {
-                Record::Frame(f) => f,
-                Record::Error(_) => {
-                    errors += 1;
-                    continue;
+    // anything goes on the bus, and a log too long for this speed sends nothing.
+    let (mut malformed, mut records) = (0u64, 0u64);
+    let mut timeline = Timeline::new(a.speed, a.max_gap);
+    let mut span = 0.0f64;
+    for item in items(open_log(&a.file)?)? {
+        match item.map_err(|e| log_error(&name, e))? {
+            LogItem::Malformed { line, why } => {
+                eprintln!("{name}:{line}: {why}");
+                malformed += 1;
+            }
+            LogItem::Record { line, t, record } => {
+                records += 1;
+                let play = Play::from(record);
+                if matches!(play, Play::Frame(_)) {
+                    span = span.max(timeline.offset(t));
                 }
-                Record::Fd(_) => {
-                    fd += 1;
-                    continue;
-                }
-            };
-            if off > 0.0 {
-                if let Some(due) = crate::limits::deadline(t0, off) {
-                    let now = Instant::now();
-                    if due > now {
-                        std::thread::sleep(due - now);
+                if let Some(h) = &mut held {
+                    if h.len() >= REPLAY_HELD_MAX {
+                        bail!(
+                            "{name}:{line}: more than {REPLAY_HELD_MAX} frames from an input that cannot be read twice; replay checks a whole log before sending, so it holds them: write the log to a file and replay that; nothing sent"
+                        );
                     }
+                    h.push((line, t, play));
                 }
             }
-            match bus.send(f) {
-                Ok(()) => sent += 1,
-                // The transport cannot carry this frame (socketcand: a remote frame with DLC).
-                Err(e) if e.kind() == io::ErrorKind::InvalidInput => refused += 1,
-                Err(e) => return Err(anyhow::Error::new(e).context("sending a frame")),
+        }
+    }
+    if malformed > 0 && a.on_malformed == OnMalformed::Stop {
+        bail!(
+            "{name}: {malformed} malformed line(s), nothing sent (--on-malformed skip plays the rest)"
+        );
+    }
+    if records == 0 {
+        eprintln!("{name}: no frames");
+        return Ok(EXIT_OK);
+    }
+    crate::limits::check_seconds(span, false)
+        .map_err(|e| anyhow!("{name}: at --speed {} the replay would take {e}", a.speed))?;
+    let mut p = Player {
+        bus: open_bus(&a.bus.bus)?,
+        file: name.clone(),
+        t0: Instant::now(),
+        timeline: Timeline::new(a.speed, a.max_gap),
+        last: 0.0,
+        sent: 0,
+        errors: 0,
+        fd: 0,
+        refused: 0,
+    };
+    loop {
+        p.t0 = Instant::now();
+        p.timeline = Timeline::new(a.speed, a.max_gap);
+        p.last = 0.0;
+        let sent_before = p.sent;
+        match &held {
+            Some(h) => {
+                for &(line, t, play) in h {
+                    p.play(line, t, play)?;
+                }
+            }
+            None => {
+                for item in items(open_log(&a.file)?)? {
+                    match item.map_err(|e| log_error(&name, e))? {
+                        // Reported when the log was checked.
+                        LogItem::Malformed { .. } => {}
+                        LogItem::Record { line, t, record } => p.play(line, t, record.into())?,
+                    }
+                }
             }
         }
         if !a.repeat {
             break;
         }
-        if sent == sent_before {
+        if p.sent == sent_before {
             // Nothing in the log could go on this bus: repeating would spin without end.
             eprintln!("--repeat: no frame of the log can be sent on this bus; stopping");
             break;
         }
     }
-    eprintln!("replayed {sent} frames");
-    let skipped = errors + fd + refused + log.malformed.len() as u64;
+    eprintln!("replayed {} frames", p.sent);
+    let skipped = p.errors + p.fd + p.refused + malformed;
     if skipped > 0 {
         eprintln!(
-            "skipped {skipped} lines: {errors} error frames, {fd} CAN FD frames, {refused} frames this bus cannot carry (remote frames with a DLC), {} malformed",
-            log.malformed.len()
+            "skipped {skipped} lines: {} error frames, {} CAN FD frames, {} frames this bus cannot carry (remote frames with a DLC), {malformed} malformed",
+            p.errors, p.fd, p.refused
         );
     }
     Ok(EXIT_OK)

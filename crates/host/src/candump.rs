@@ -127,9 +127,71 @@ pub enum LogError {
         /// What is wrong.
         error: ParseError,
     },
+    /// A line longer than [`MAX_LINE`]: no log line is, so the input is no log (`/dev/zero`, a
+    /// binary file); reading stops there rather than hold a line without end.
+    #[error("line {line}: longer than {MAX_LINE} bytes without a newline: not a log")]
+    TooLong {
+        /// 1-based line number.
+        line: usize,
+    },
     /// Reading failed.
     #[error("reading log: {0}")]
     Io(#[from] io::Error),
+}
+
+/// Longest line a log reader takes, newline included: a candump line of a 64-byte CAN FD frame
+/// is under 200 bytes and an ASC line under 400, so this leaves room for any real one while a
+/// line without end (`/dev/zero`, a file without newlines) is found after 4 KiB, not after all
+/// of it is read.
+pub const MAX_LINE: usize = 4096;
+
+/// What [`read_line_bounded`] found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LineRead {
+    /// A line (in the buffer, without its newline); the last one of the input may have none.
+    Line,
+    /// The end of the input.
+    End,
+    /// More than `max` bytes without a newline; the buffer holds the first of them.
+    TooLong,
+}
+
+/// Reads the next line of `input` into `line` (cleared first, newline dropped), taking no more
+/// than `max` bytes: the memory a line costs is bounded whatever the input.
+pub fn read_line_bounded(
+    input: &mut dyn BufRead,
+    line: &mut Vec<u8>,
+    max: usize,
+) -> io::Result<LineRead> {
+    line.clear();
+    loop {
+        let buf = match input.fill_buf() {
+            Ok(b) => b,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if buf.is_empty() {
+            return Ok(if line.is_empty() {
+                LineRead::End
+            } else {
+                LineRead::Line
+            });
+        }
+        let (take, done) = match buf.iter().position(|&b| b == b'\n') {
+            Some(i) => (i, true),
+            None => (buf.len(), false),
+        };
+        if line.len() + take + usize::from(done) > max {
+            let room = max.saturating_sub(line.len());
+            line.extend_from_slice(&buf[..room.min(take)]);
+            return Ok(LineRead::TooLong);
+        }
+        line.extend_from_slice(&buf[..take]);
+        input.consume(take + usize::from(done));
+        if done {
+            return Ok(LineRead::Line);
+        }
+    }
 }
 
 /// Formats one line (without newline).
@@ -336,11 +398,14 @@ impl<W: Write> LogWriter<W> {
     }
 }
 
-/// Reads candump `-L` lines; an iterator of entries. Blank lines are skipped.
+/// Reads candump `-L` lines; an iterator of entries. Blank lines are skipped. A line longer
+/// than [`MAX_LINE`] ends the iteration with [`LogError::TooLong`].
 pub struct LogReader<R: BufRead> {
     input: R,
     line_no: usize,
     line: Vec<u8>,
+    /// A line too long (or an I/O error) ended the log.
+    done: bool,
 }
 
 impl<R: BufRead> LogReader<R> {
@@ -350,6 +415,7 @@ impl<R: BufRead> LogReader<R> {
             input,
             line_no: 0,
             line: Vec::new(),
+            done: false,
         }
     }
 
@@ -363,16 +429,23 @@ impl<R: BufRead> Iterator for LogReader<R> {
     type Item = Result<LogEntry, LogError>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        loop {
-            self.line.clear();
+        while !self.done {
             // Bytes, not `read_line`: a line that is not UTF-8 is one malformed line (with its
             // number), not an I/O error that ends the log.
-            match self.input.read_until(b'\n', &mut self.line) {
-                Ok(0) => return None,
-                Ok(_) => {}
-                Err(e) => return Some(Err(LogError::Io(e))),
+            let read = read_line_bounded(&mut self.input, &mut self.line, MAX_LINE);
+            match read {
+                Ok(LineRead::End) => return None,
+                Ok(LineRead::Line) => self.line_no += 1,
+                Ok(LineRead::TooLong) => {
+                    self.done = true;
+                    self.line_no += 1;
+                    return Some(Err(LogError::TooLong { line: self.line_no }));
+                }
+                Err(e) => {
+                    self.done = true;
+                    return Some(Err(LogError::Io(e)));
+                }
             }
-            self.line_no += 1;
             let parsed = match std::str::from_utf8(&self.line) {
                 Ok(l) if l.trim().is_empty() => continue,
                 Ok(l) => parse_line(l.trim()),
@@ -383,6 +456,7 @@ impl<R: BufRead> Iterator for LogReader<R> {
                 error,
             }));
         }
+        None
     }
 }
 
@@ -545,6 +619,77 @@ mod tests {
         );
         assert!(r.next().is_none());
         assert_eq!(r.line_number(), 4);
+    }
+
+    /// A line without end (`/dev/zero`, a file without newlines) is an error at [`MAX_LINE`]
+    /// bytes, with its number, and reading stops: the input is not read to its end.
+    #[test]
+    fn a_line_without_end_stops_the_reader_at_the_limit() {
+        let mut input = b"(1.000000) can0 123#01\n".to_vec();
+        input.extend(std::iter::repeat_n(0u8, 10 * MAX_LINE));
+        input.extend_from_slice(b"\n(2.000000) can0 123#02\n");
+        let mut cursor = io::Cursor::new(&input[..]);
+        let mut r = LogReader::new(io::BufReader::with_capacity(512, &mut cursor));
+        assert!(r.next().unwrap().is_ok());
+        let e = r.next().unwrap().unwrap_err();
+        assert!(matches!(e, LogError::TooLong { line: 2 }), "{e}");
+        assert_eq!(
+            e.to_string(),
+            "line 2: longer than 4096 bytes without a newline: not a log"
+        );
+        assert!(r.next().is_none());
+        // Read up to the limit and a buffer more, no further.
+        assert!(
+            cursor.position() <= (24 + MAX_LINE + 512) as u64,
+            "{}",
+            cursor.position()
+        );
+    }
+
+    #[test]
+    fn bounded_lines_split_as_lines_do() {
+        for (input, max, want) in [
+            (
+                &b"ab\ncd"[..],
+                8,
+                vec![
+                    (LineRead::Line, &b"ab"[..]),
+                    (LineRead::Line, b"cd"),
+                    (LineRead::End, b""),
+                ],
+            ),
+            (
+                b"\n\n",
+                8,
+                vec![
+                    (LineRead::Line, &b""[..]),
+                    (LineRead::Line, b""),
+                    (LineRead::End, b""),
+                ],
+            ),
+            // Exactly `max` bytes with the newline fit; one more does not.
+            (
+                b"abc\n",
+                4,
+                vec![(LineRead::Line, &b"abc"[..]), (LineRead::End, b"")],
+            ),
+            (b"abcd\n", 4, vec![(LineRead::TooLong, &b"abcd"[..])]),
+            (b"abcdef", 4, vec![(LineRead::TooLong, &b"abcd"[..])]),
+        ] {
+            // One byte at a time too: the limit holds across buffer refills.
+            for cap in [1, 64] {
+                let mut r = io::BufReader::with_capacity(cap, input);
+                let mut line = Vec::new();
+                for (kind, text) in &want {
+                    assert_eq!(
+                        read_line_bounded(&mut r, &mut line, max).unwrap(),
+                        *kind,
+                        "{input:?}"
+                    );
+                    assert_eq!(&line[..], *text, "{input:?}");
+                }
+            }
+        }
     }
 
     fn arb_frame() -> impl Strategy<Value = Frame> {

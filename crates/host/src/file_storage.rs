@@ -3,39 +3,79 @@
 //! The core hands over a self-checking image (magic, version, model tag, CRC-32); this module
 //! only keeps the bytes, and keeps them safely:
 //!
-//! - **save** writes a temporary file in the same directory, `fsync`s it, renames it over the
-//!   image and `fsync`s the directory. `rename` is atomic within one file system, so after a
-//!   crash at any point the path holds either the complete old image or the complete new one.
+//! - **save** writes a temporary file with an unpredictable name in the same directory
+//!   (created with `O_CREAT | O_EXCL | O_NOFOLLOW`: never an existing file, never through a
+//!   link), `fsync`s it, renames it over the image and `fsync`s the directory. `rename` is
+//!   atomic within one file system, so after a crash at any point the path holds either the
+//!   complete old image or the complete new one.
 //! - **load** returns [`StorageError::Empty`] when there is no file, and
-//!   [`StorageError::Corrupt`] (with a log line) when it cannot be read or is longer than any
-//!   image; a short or bit-flipped file is caught by the core's CRC check. The device then
-//!   starts on defaults and reports it.
+//!   [`StorageError::Corrupt`] with a log line naming the file and the reason when it cannot be
+//!   read, is longer than any image, or fails the image's own check (length, magic, version,
+//!   model tag, CRC). The device then starts on defaults and reports it (EMCY 0x6300).
+//! - with the model known ([`FileStorage::for_model`]), load passes on only the records the
+//!   model uses, the last of each key (a load applies them in order): records of objects the
+//!   model does not store, unknown keys and repeats are dropped with one log line, so that
+//!   they never fill the image and make every later save fail.
 //! - nothing here ever deletes the good image on an error: a failed save removes only its own
 //!   temporary file.
+//! - **no link is followed in the state directory.** Every file is opened, created, renamed
+//!   and removed relative to the directory's descriptor with `O_NOFOLLOW`: a symbolic link
+//!   where the image or its lock file should be is refused with an error naming it, so nothing
+//!   outside the state directory is ever written. (The directory itself may be reached through
+//!   links: its path is the user's choice.)
 //! - only a regular file is ever read: the image is opened non-blocking and checked with
 //!   `fstat`, so a FIFO or device in its place is reported instead of hanging the boot.
 //!
 //! [`FileStorage::open`] (what the command line uses) also takes a lock: an exclusive `flock`
 //! on `<image>.lock`, held as long as any clone of the storage lives, so that a second process
 //! on the same state file gets a clear error instead of silently sharing it. Holding the lock, it
-//! removes the `<image>.tmp.<pid>` files that killed processes left behind, and it checks that
-//! the directory is writable before the sensor boots.
+//! removes the `<image>.tmp.*` files that killed processes left behind (regular files only), and
+//! it checks that the directory is writable before the sensor boots. It keeps the directory
+//! open: a directory moved or replaced under the path later still gets no file of this unit.
 
-use std::fs::{self, File, OpenOptions, TryLockError};
-use std::io::{self, Read, Write};
-use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
+use std::ffi::{OsStr, OsString};
+use std::fs::{self, File, TryLockError};
+use std::io::{self, Read, Seek, Write};
+use std::os::fd::OwnedFd;
+use std::os::unix::ffi::OsStrExt;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
+use canpos_core::od::{Group, Hook};
+use canpos_core::storage::{
+    crc32, is_object_key, parse_image, ImageWriter, Storage, StorageError, IMAGE_MAX,
+    KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
+};
+use canpos_core::Model;
+use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
+use rustix::io::Errno;
 
 /// A [`Storage`] kept in one file.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct FileStorage {
     path: PathBuf,
     saves: u64,
     /// The lock file, held open (and locked) while any clone lives; `None` for [`FileStorage::new`].
     lock: Option<Arc<File>>,
+    /// The state directory, held open by [`FileStorage::open`]; `None`: opened by path at each
+    /// use.
+    dir: Option<Arc<OwnedFd>>,
+    /// The model whose images these are ([`FileStorage::for_model`]).
+    model: Option<&'static Model>,
+    /// The last problem a load reported: the same one again is not logged again.
+    reported: Option<String>,
+}
+
+impl std::fmt::Debug for FileStorage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FileStorage")
+            .field("path", &self.path)
+            .field("saves", &self.saves)
+            .field("locked", &self.lock.is_some())
+            .field("model", &self.model.map(|m| m.name))
+            .finish()
+    }
 }
 
 /// Why [`FileStorage::open`] refused a state file.
@@ -49,13 +89,34 @@ pub enum OpenError {
         /// The pid written in the lock file by its holder, when readable.
         holder: Option<u32>,
     },
-    /// Something other than a regular file is at the image path.
-    #[error("state file {} is not a regular file ({kind}); remove it or choose another --state-dir", path.display())]
+    /// Something other than a regular file is where the image or its lock file should be.
+    #[error("{what} {} is not a regular file ({kind}); remove it or choose another --state-dir", path.display())]
     NotRegular {
-        /// The image path.
+        /// `state file` or `lock file`.
+        what: &'static str,
+        /// Its path.
         path: PathBuf,
         /// What it is (FIFO, directory, …).
         kind: &'static str,
+    },
+    /// A symbolic link is where the image or its lock file should be. It is not followed:
+    /// whoever can write the state directory could otherwise make the sensor write any file
+    /// its user may write.
+    #[error("{what} {} is a symbolic link; canpos follows no link in a state directory and wrote nothing through it: remove it", path.display())]
+    Link {
+        /// `state file` or `lock file`.
+        what: &'static str,
+        /// The link's path.
+        path: PathBuf,
+    },
+    /// The lock file has other names too (hard links): writing the pid into it would change a
+    /// file elsewhere.
+    #[error("lock file {} has {links} hard links; canpos writes only a lock file of its own: remove it", path.display())]
+    HardLinked {
+        /// The lock file's path.
+        path: PathBuf,
+        /// Its link count.
+        links: u64,
     },
     /// The state directory cannot be created or written.
     #[error("state directory {} is not writable: {source}", dir.display())]
@@ -67,20 +128,159 @@ pub enum OpenError {
     },
 }
 
-fn kind_name(ft: fs::FileType) -> &'static str {
-    if ft.is_dir() {
-        "a directory"
-    } else if ft.is_fifo() {
-        "a FIFO"
-    } else if ft.is_socket() {
-        "a socket"
-    } else if ft.is_char_device() {
-        "a character device"
-    } else if ft.is_block_device() {
-        "a block device"
-    } else {
-        "not a regular file"
+fn kind_name(ft: FileType) -> &'static str {
+    match ft {
+        FileType::Directory => "a directory",
+        FileType::Fifo => "a FIFO",
+        FileType::Socket => "a socket",
+        FileType::CharacterDevice => "a character device",
+        FileType::BlockDevice => "a block device",
+        FileType::Symlink => "a symbolic link",
+        _ => "not a regular file",
     }
+}
+
+/// Temporary names a save tries before it gives up: each is created only if no file of that
+/// name exists, so a taken name (a planted link, say) costs one more try.
+const TEMP_TRIES: usize = 16;
+
+/// `<image>.tmp.<16 hex digits>`: a name nobody can guess ahead (keyed SipHash of a counter,
+/// with the process's random keys), so no one can plant a file where the next save will go.
+fn random_temp_name(image: &OsStr) -> OsString {
+    use std::hash::{BuildHasher, Hasher};
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(COUNT.fetch_add(1, Ordering::Relaxed));
+    h.write_u32(std::process::id());
+    let mut name = image.to_os_string();
+    name.push(format!(".tmp.{:016x}", h.finish()));
+    name
+}
+
+/// Whether `name` is a temporary file of `image` (`<image>.tmp.` and hex digits: this
+/// version's random names and the `.tmp.<pid>` of earlier ones).
+fn is_temp_name(image: &OsStr, name: &[u8]) -> bool {
+    let mut prefix = image.as_encoded_bytes().to_vec();
+    prefix.extend_from_slice(b".tmp.");
+    name.strip_prefix(&prefix[..])
+        .is_some_and(|s| !s.is_empty() && s.len() <= 20 && s.iter().all(u8::is_ascii_hexdigit))
+}
+
+/// Creates `name` in `dir`, only as a new file and never through a link.
+fn create_new(dir: &OwnedFd, name: &OsStr) -> io::Result<File> {
+    let fd = rfs::openat(
+        dir,
+        name,
+        OFlags::WRONLY | OFlags::CREATE | OFlags::EXCL | OFlags::NOFOLLOW | OFlags::CLOEXEC,
+        Mode::from_raw_mode(0o666),
+    )?;
+    Ok(File::from(fd))
+}
+
+/// A new temporary file in `dir`, under the first of `names` that no file has yet.
+fn create_temp(
+    dir: &OwnedFd,
+    names: &mut dyn Iterator<Item = OsString>,
+) -> io::Result<(OsString, File)> {
+    let mut last = None;
+    for name in names.take(TEMP_TRIES) {
+        match create_new(dir, &name) {
+            Ok(f) => return Ok((name, f)),
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => last = Some(name),
+            Err(e) => return Err(e),
+        }
+    }
+    Err(io::Error::new(
+        io::ErrorKind::AlreadyExists,
+        format!(
+            "every temporary name tried exists (the last: {}); something keeps creating files in the state directory",
+            last.as_deref().unwrap_or(OsStr::new("none")).to_string_lossy()
+        ),
+    ))
+}
+
+/// Opens the directory at `dir` (following links in its path: the user chose it).
+fn open_dir(dir: &Path) -> io::Result<OwnedFd> {
+    Ok(rfs::open(
+        dir,
+        OFlags::RDONLY | OFlags::DIRECTORY | OFlags::CLOEXEC,
+        Mode::empty(),
+    )?)
+}
+
+/// The file type of `name` in `dir`, the name itself (a link is a link), or `None` when there
+/// is none.
+fn type_at(dir: &OwnedFd, name: &OsStr) -> io::Result<Option<(FileType, u64)>> {
+    match rfs::statat(dir, name, AtFlags::SYMLINK_NOFOLLOW) {
+        Ok(st) => Ok(Some((FileType::from_raw_mode(st.st_mode), st.st_nlink))),
+        Err(Errno::NOENT) => Ok(None),
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// Whether the core reads or keeps a record of `key` for `model` (node.rs: `stored_entry`,
+/// `load_values`, `stored_lss_config`, `change_stored`): the LSS and node-id records, and
+/// objects of the model that are stored (or hold the pending node-id or bit rate).
+fn record_used(model: &Model, key: u32) -> bool {
+    match key {
+        KEY_LSS_NODE_ID | KEY_LSS_BITRATE | KEY_SAVED_NODE_ID => true,
+        k if is_object_key(k) => model
+            .search(k)
+            .ok()
+            .and_then(|slot| model.entries.get(slot))
+            .is_some_and(|e| {
+                e.group != Group::Volatile
+                    || matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
+            }),
+        _ => false,
+    }
+}
+
+/// Why an image does not pass the core's check for a model with `tag`, in words (the header
+/// fields compared with the ones the core writes itself).
+fn image_problem(image: &[u8], tag: u8) -> String {
+    let mut hdr = [0u8; IMAGE_MAX];
+    let empty = ImageWriter::new(&mut hdr, tag).finish();
+    if image.len() < empty {
+        return format!("{} bytes, shorter than any image ({empty})", image.len());
+    }
+    if image[..4] != hdr[..4] {
+        return "not a canpos state image (no CPOS mark)".into();
+    }
+    if image[4] != hdr[4] {
+        return format!(
+            "format version {}, this canpos reads version {}",
+            image[4], hdr[4]
+        );
+    }
+    if image[5] != tag {
+        return format!(
+            "an image of another model (tag {}, this model's is {tag})",
+            image[5]
+        );
+    }
+    let count = u16::from_le_bytes([image[6], image[7]]) as usize;
+    let want = empty + 8 * count;
+    if image.len() != want {
+        return format!(
+            "{} bytes, but its header's {count} records make {want}",
+            image.len()
+        );
+    }
+    let body = image.len() - 4;
+    let stored = u32::from_le_bytes([
+        image[body],
+        image[body + 1],
+        image[body + 2],
+        image[body + 3],
+    ]);
+    let computed = crc32(&image[..body]);
+    if stored != computed {
+        return format!(
+            "CRC mismatch (stored {stored:08X}, computed {computed:08X}): torn or altered"
+        );
+    }
+    "refused by the image check".into()
 }
 
 impl FileStorage {
@@ -91,98 +291,181 @@ impl FileStorage {
             path: path.into(),
             saves: 0,
             lock: None,
+            dir: None,
+            model: None,
+            reported: None,
         }
     }
 
+    /// The same storage, for images of `model`: a load then also names an image of another
+    /// model as such, and passes on only the records `model` uses (see the module docs).
+    pub fn for_model(mut self, model: &'static Model) -> Self {
+        self.model = Some(model);
+        self
+    }
+
     /// Storage at `path` for a running sensor: creates the directory (reporting it when not
-    /// writable), refuses anything but a regular file at `path`, locks `<path>.lock` against
-    /// other processes and removes stale temporary files of earlier, killed processes.
+    /// writable), refuses anything but a regular file at `path` and at its lock file (a
+    /// symbolic link included), locks `<path>.lock` against other processes and removes stale
+    /// temporary files of earlier, killed processes.
     pub fn open(path: impl Into<PathBuf>) -> Result<Self, OpenError> {
         let mut s = FileStorage::new(path);
-        let dir = s.dir();
+        let dir_path = s.dir_path();
         let unwritable = |source| OpenError::Unwritable {
-            dir: dir.clone(),
+            dir: dir_path.clone(),
             source,
         };
-        fs::create_dir_all(&dir).map_err(unwritable)?;
-        if let Ok(m) = fs::metadata(&s.path) {
-            if !m.file_type().is_file() {
-                return Err(OpenError::NotRegular {
-                    path: s.path.clone(),
-                    kind: kind_name(m.file_type()),
-                });
+        fs::create_dir_all(&dir_path).map_err(unwritable)?;
+        let dir = open_dir(&dir_path).map_err(unwritable)?;
+        if let Ok(st) = rfs::fstat(&dir) {
+            // Sticky (as /tmp): others cannot remove or rename this unit's files.
+            if st.st_mode & 0o1002 == 0o002 {
+                tracing::warn!(dir = %dir_path.display(), mode = format!("{:o}", st.st_mode & 0o7777),
+                    "the state directory is writable by every user: any of them can replace its state files");
             }
         }
-        let lock_path = s.sibling(".lock");
-        let mut lock = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .custom_flags(libc::O_NONBLOCK)
-            .open(&lock_path)
-            .map_err(unwritable)?;
+        let name = s.name().map_err(unwritable)?.to_os_string();
+        match type_at(&dir, &name).map_err(unwritable)? {
+            Some((FileType::RegularFile, _)) | None => {}
+            Some((FileType::Symlink, _)) => {
+                return Err(OpenError::Link {
+                    what: "state file",
+                    path: s.path.clone(),
+                })
+            }
+            Some((ft, _)) => {
+                return Err(OpenError::NotRegular {
+                    what: "state file",
+                    path: s.path.clone(),
+                    kind: kind_name(ft),
+                })
+            }
+        }
+        let mut lock = s.open_lock(&dir).map_err(|e| match e {
+            LockOpen::Refused(e) => e,
+            LockOpen::Io(e) => unwritable(e),
+        })?;
         match lock.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
-                let holder = fs::read_to_string(&lock_path)
-                    .ok()
-                    .and_then(|t| t.trim().parse().ok());
+                let mut text = String::new();
+                let _ = lock.read_to_string(&mut text);
                 return Err(OpenError::InUse {
                     path: s.path.clone(),
-                    holder,
+                    holder: text.trim().parse().ok(),
                 });
             }
             Err(TryLockError::Error(e)) => return Err(unwritable(e)),
         }
-        // For the "in use" message of a second process; the lock is what counts.
+        // For the "in use" message of a second process; the lock is what counts. The file is
+        // our own regular file with one name (checked on its descriptor).
         let _ = lock.set_len(0);
+        let _ = lock.rewind();
         let _ = writeln!(lock, "{}", std::process::id());
         // Probe that the directory takes new files (a read-only directory would only show at
         // the first store, long after the boot).
-        let probe = s.temp_path();
-        File::create(&probe).map_err(unwritable)?;
-        let _ = fs::remove_file(&probe);
-        s.remove_stale_temps();
+        let (probe, f) = create_temp(
+            &dir,
+            &mut std::iter::repeat_with(|| random_temp_name(&name)),
+        )
+        .map_err(unwritable)?;
+        drop(f);
+        let _ = rfs::unlinkat(&dir, &probe, AtFlags::empty());
+        let dir = Arc::new(dir);
+        s.dir = Some(Arc::clone(&dir));
+        s.remove_stale_temps(&dir);
         s.lock = Some(Arc::new(lock));
         Ok(s)
     }
 
-    /// `<image><suffix>` in the image's directory.
-    fn sibling(&self, suffix: &str) -> PathBuf {
-        let mut name = self
-            .path
-            .file_name()
-            .map(|n| n.to_os_string())
-            .unwrap_or_default();
-        name.push(suffix);
-        self.path.with_file_name(name)
+    /// Opens (creating it if need be) `<image>.lock` in `dir`: never through a link, only a
+    /// regular file with no other name.
+    fn open_lock(&self, dir: &OwnedFd) -> Result<File, LockOpen> {
+        let mut name = self.name().map_err(LockOpen::Io)?.to_os_string();
+        name.push(".lock");
+        let path = self.path.with_file_name(&name);
+        let refuse = |ft: FileType, links: u64| match ft {
+            FileType::RegularFile if links <= 1 => Ok(()),
+            FileType::RegularFile => Err(LockOpen::Refused(OpenError::HardLinked {
+                path: path.clone(),
+                links,
+            })),
+            FileType::Symlink => Err(LockOpen::Refused(OpenError::Link {
+                what: "lock file",
+                path: path.clone(),
+            })),
+            ft => Err(LockOpen::Refused(OpenError::NotRegular {
+                what: "lock file",
+                path: path.clone(),
+                kind: kind_name(ft),
+            })),
+        };
+        // Looked at before it is opened: a device or FIFO is not even opened.
+        if let Some((ft, links)) = type_at(dir, &name).map_err(LockOpen::Io)? {
+            refuse(ft, links)?;
+        }
+        let fd = match rfs::openat(
+            dir,
+            &name,
+            OFlags::RDWR
+                | OFlags::CREATE
+                | OFlags::NOFOLLOW
+                | OFlags::NONBLOCK
+                | OFlags::NOCTTY
+                | OFlags::CLOEXEC,
+            Mode::from_raw_mode(0o666),
+        ) {
+            Ok(fd) => fd,
+            // Made a link since the look above.
+            Err(Errno::LOOP) => return Err(refuse(FileType::Symlink, 1).unwrap_err()),
+            Err(e) => return Err(LockOpen::Io(e.into())),
+        };
+        // And what was opened is checked again, on its descriptor.
+        let st = rfs::fstat(&fd).map_err(|e| LockOpen::Io(e.into()))?;
+        refuse(FileType::from_raw_mode(st.st_mode), st.st_nlink)?;
+        Ok(File::from(fd))
     }
 
-    /// Removes `<image>.tmp.*` left by killed processes. Only called with the lock held: no
-    /// other process is writing this image, so every such file is stale.
-    fn remove_stale_temps(&self) {
-        let Some(prefix) = self.sibling(".tmp.").file_name().map(|n| n.to_os_string()) else {
-            return;
-        };
-        let Ok(entries) = fs::read_dir(self.dir()) else {
+    /// The image's file name.
+    fn name(&self) -> io::Result<&OsStr> {
+        self.path.file_name().ok_or_else(|| {
+            io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("{} names no file", self.path.display()),
+            )
+        })
+    }
+
+    /// Removes `<image>.tmp.*` left by killed processes: regular files only, looked at
+    /// without following links. Only called with the lock held: no other process is writing
+    /// this image, so every such file is stale.
+    fn remove_stale_temps(&self, dir: &OwnedFd) {
+        let Ok(name) = self.name() else { return };
+        let Ok(entries) = rfs::Dir::read_from(dir) else {
             return;
         };
         for e in entries.flatten() {
-            let name = e.file_name();
-            let is_temp = name
-                .as_encoded_bytes()
-                .strip_prefix(prefix.as_encoded_bytes())
-                .is_some_and(|pid| !pid.is_empty() && pid.iter().all(u8::is_ascii_digit));
-            if is_temp && e.file_type().is_ok_and(|t| t.is_file()) {
-                match fs::remove_file(e.path()) {
-                    Ok(()) => {
-                        tracing::info!(file = %e.path().display(), "removed a stale temporary state file")
-                    }
-                    Err(err) => {
-                        tracing::warn!(file = %e.path().display(), error = %err, "cannot remove a stale temporary state file")
+            let entry = OsStr::from_bytes(e.file_name().to_bytes());
+            if !is_temp_name(name, entry.as_encoded_bytes()) {
+                continue;
+            }
+            let file = self.path.with_file_name(entry);
+            match type_at(dir, entry) {
+                Ok(Some((FileType::RegularFile, _))) => {
+                    match rfs::unlinkat(dir, entry, AtFlags::empty()) {
+                        Ok(()) => {
+                            tracing::info!(file = %file.display(), "removed a stale temporary state file")
+                        }
+                        Err(err) => {
+                            tracing::warn!(file = %file.display(), error = %err, "cannot remove a stale temporary state file")
+                        }
                     }
                 }
+                Ok(Some((ft, _))) => {
+                    tracing::warn!(file = %file.display(), kind = kind_name(ft),
+                        "not a regular file where a temporary state file would be: left alone, never followed or written")
+                }
+                Ok(None) | Err(_) => {}
             }
         }
     }
@@ -202,55 +485,116 @@ impl FileStorage {
         self.saves
     }
 
-    /// The temporary file a save writes before renaming. Per process, so two processes
-    /// pointed at the same state directory by mistake never write into each other's temp file.
-    fn temp_path(&self) -> PathBuf {
-        self.sibling(&format!(".tmp.{}", std::process::id()))
-    }
-
-    fn dir(&self) -> PathBuf {
+    fn dir_path(&self) -> PathBuf {
         match self.path.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         }
     }
 
+    /// The state directory's descriptor: the one held since [`FileStorage::open`], else the
+    /// directory opened now (created first when `create`).
+    fn dir(&self, create: bool) -> io::Result<Arc<OwnedFd>> {
+        if let Some(d) = &self.dir {
+            return Ok(Arc::clone(d));
+        }
+        let path = self.dir_path();
+        if create {
+            fs::create_dir_all(&path)?;
+        }
+        open_dir(&path).map(Arc::new)
+    }
+
     /// Writes `image` atomically (see the module docs).
     pub fn write_atomic(&self, image: &[u8]) -> io::Result<()> {
-        let dir = self.dir();
-        fs::create_dir_all(&dir)?;
-        let tmp = self.temp_path();
+        let name = self.name()?.to_os_string();
+        self.write_atomic_via(
+            image,
+            &mut std::iter::repeat_with(|| random_temp_name(&name)),
+        )
+    }
+
+    /// [`FileStorage::write_atomic`] through the first free one of `temp_names`.
+    fn write_atomic_via(
+        &self,
+        image: &[u8],
+        temp_names: &mut dyn Iterator<Item = OsString>,
+    ) -> io::Result<()> {
+        let name = self.name()?;
+        let dir = self.dir(true)?;
+        let (tmp, mut f) = create_temp(&dir, temp_names)?;
         let result = (|| {
-            let mut f = OpenOptions::new()
-                .write(true)
-                .create(true)
-                .truncate(true)
-                .open(&tmp)?;
             f.write_all(image)?;
             // The data must be on disk before the rename makes it the image; otherwise a power
             // loss could leave a renamed but empty file.
             f.sync_all()?;
-            drop(f);
-            fs::rename(&tmp, &self.path)?;
+            // rename replaces the name itself, whatever it is (a link included): it writes into
+            // no other file.
+            rfs::renameat(&*dir, &tmp, &*dir, name)?;
             // Make the rename itself durable.
-            sync_dir(&dir)
+            Ok(rfs::fsync(&*dir)?)
         })();
         if result.is_err() {
             // Only our own temporary file; the previous image stays untouched.
-            let _ = fs::remove_file(&tmp);
+            let _ = rfs::unlinkat(&*dir, &tmp, AtFlags::empty());
         }
         result
+    }
+
+    /// The stored bytes (at most `IMAGE_MAX + 1`: enough to tell "too long"); `Ok(None)` when
+    /// there is no file. Never through a link, never blocking on a FIFO.
+    fn read_bytes(&self) -> Result<Option<Vec<u8>>, String> {
+        let dir = match self.dir(false) {
+            Ok(d) => d,
+            Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("cannot open its directory: {e}")),
+        };
+        let name = self.name().map_err(|e| e.to_string())?;
+        // Non-blocking: opening a FIFO for reading would otherwise wait for a writer for ever.
+        let fd = match rfs::openat(
+            &*dir,
+            name,
+            OFlags::RDONLY | OFlags::NONBLOCK | OFlags::NOFOLLOW | OFlags::NOCTTY | OFlags::CLOEXEC,
+            Mode::empty(),
+        ) {
+            Ok(fd) => fd,
+            Err(Errno::NOENT) => return Ok(None),
+            Err(Errno::LOOP) => return Err("it is a symbolic link; not followed".into()),
+            Err(e) => return Err(format!("cannot open it: {}", io::Error::from(e))),
+        };
+        match rfs::fstat(&fd) {
+            Ok(st) => match FileType::from_raw_mode(st.st_mode) {
+                FileType::RegularFile => {}
+                ft => return Err(format!("it is not a regular file ({})", kind_name(ft))),
+            },
+            Err(e) => return Err(format!("cannot stat it: {}", io::Error::from(e))),
+        }
+        // Read one byte more than any image can be, to tell "too long" from "fits".
+        let mut bytes = Vec::with_capacity(IMAGE_MAX + 1);
+        File::from(fd)
+            .take((IMAGE_MAX + 1) as u64)
+            .read_to_end(&mut bytes)
+            .map_err(|e| format!("cannot read it: {e}"))?;
+        Ok(Some(bytes))
+    }
+
+    /// Logs a load's problem once (the same one at the next load stays quiet).
+    fn report(&mut self, why: String) {
+        if self.reported.as_ref() != Some(&why) {
+            tracing::warn!(path = %self.path.display(), reason = %why,
+                "the stored image cannot be used; starting on defaults");
+            self.reported = Some(why);
+        }
     }
 
     /// Fault injection (stored-data corruption): flips one bit in the middle of the stored
     /// image, or writes a short garbage file when nothing is stored, so the next load fails the
     /// core's check. Written atomically like a save.
     pub fn corrupt(&mut self) -> io::Result<()> {
-        let mut bytes = match fs::read(&self.path) {
-            Ok(b) => b,
-            Err(e) if e.kind() == io::ErrorKind::NotFound => b"not a canpos image".to_vec(),
-            Err(e) => return Err(e),
-        };
+        let mut bytes = self
+            .read_bytes()
+            .map_err(io::Error::other)?
+            .unwrap_or_else(|| b"not a canpos image".to_vec());
         if !bytes.is_empty() {
             let i = bytes.len() / 2;
             bytes[i] ^= 0x10;
@@ -259,56 +603,80 @@ impl FileStorage {
     }
 }
 
-fn sync_dir(dir: &Path) -> io::Result<()> {
-    File::open(dir)?.sync_all()
+/// Why the lock file could not be opened: refused for what it is, or an I/O error.
+enum LockOpen {
+    Refused(OpenError),
+    Io(io::Error),
 }
 
 impl Storage for FileStorage {
     fn load(&mut self, buf: &mut [u8]) -> Result<usize, StorageError> {
-        // Non-blocking: opening a FIFO for reading would otherwise wait for a writer for ever.
-        let mut f = match OpenOptions::new()
-            .read(true)
-            .custom_flags(libc::O_NONBLOCK)
-            .open(&self.path)
-        {
-            Ok(f) => f,
-            Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(StorageError::Empty),
-            Err(e) => {
-                tracing::warn!(path = %self.path.display(), error = %e,
-                    "cannot open the stored image; starting on defaults");
+        let bytes = match self.read_bytes() {
+            Ok(Some(b)) => b,
+            Ok(None) => {
+                self.reported = None;
+                return Err(StorageError::Empty);
+            }
+            Err(why) => {
+                self.report(why);
                 return Err(StorageError::Corrupt);
             }
         };
-        match f.metadata() {
-            Ok(m) if m.file_type().is_file() => {}
-            Ok(m) => {
-                tracing::warn!(path = %self.path.display(), kind = kind_name(m.file_type()),
-                    "the stored image is not a regular file; starting on defaults");
-                return Err(StorageError::Corrupt);
-            }
-            Err(e) => {
-                tracing::warn!(path = %self.path.display(), error = %e,
-                    "cannot stat the stored image; starting on defaults");
-                return Err(StorageError::Corrupt);
-            }
-        }
-        // Read one byte more than any image can be, to tell "too long" from "fits".
-        let mut bytes = Vec::with_capacity(IMAGE_MAX + 1);
-        if let Err(e) = Read::by_ref(&mut f)
-            .take((IMAGE_MAX + 1) as u64)
-            .read_to_end(&mut bytes)
-        {
-            tracing::warn!(path = %self.path.display(), error = %e,
-                "cannot read the stored image; starting on defaults");
-            return Err(StorageError::Corrupt);
-        }
         if bytes.len() > IMAGE_MAX || bytes.len() > buf.len() {
-            tracing::warn!(path = %self.path.display(), len = bytes.len(),
-                "stored image is longer than any valid image; starting on defaults");
+            self.report(format!(
+                "longer than any valid image ({} bytes at most)",
+                IMAGE_MAX.min(buf.len())
+            ));
             return Err(StorageError::Corrupt);
         }
-        buf[..bytes.len()].copy_from_slice(&bytes);
-        Ok(bytes.len())
+        // The core checks the image again; checked here too, to say why it failed (the core's
+        // answer is only EMCY 0x6300). Without a model, the image's own tag is taken.
+        let tag = match (self.model, bytes.get(5)) {
+            (Some(m), _) => m.features.tag,
+            (None, Some(&t)) => t,
+            (None, None) => 0,
+        };
+        let records = match parse_image(&bytes, tag) {
+            Ok(r) => r,
+            Err(_) => {
+                self.report(image_problem(&bytes, tag));
+                return Err(StorageError::Corrupt);
+            }
+        };
+        let Some(model) = self.model else {
+            self.reported = None;
+            buf[..bytes.len()].copy_from_slice(&bytes);
+            return Ok(bytes.len());
+        };
+        // The records the model uses, the last of each key (what a load of the core applies).
+        let all: Vec<(u32, u32)> = records.collect();
+        let kept: Vec<(u32, u32)> = all
+            .iter()
+            .enumerate()
+            .filter(|&(i, &(k, _))| record_used(model, k) && !all[i + 1..].iter().any(|r| r.0 == k))
+            .map(|(_, &r)| r)
+            .collect();
+        if kept.len() == all.len() {
+            self.reported = None;
+            buf[..bytes.len()].copy_from_slice(&bytes);
+            return Ok(bytes.len());
+        }
+        let why = format!(
+            "{} of its {} records name nothing the {} stores or repeat a key; ignored, and the next save leaves them out",
+            all.len() - kept.len(),
+            all.len(),
+            model.name
+        );
+        if self.reported.as_ref() != Some(&why) {
+            tracing::warn!(path = %self.path.display(), "{why}");
+            self.reported = Some(why);
+        }
+        let mut w = ImageWriter::new(buf, tag);
+        for (k, v) in kept {
+            // Fewer records than the image held: they fit.
+            w.push(k, v);
+        }
+        Ok(w.finish())
     }
 
     fn save(&mut self, image: &[u8]) -> Result<(), StorageError> {
@@ -325,14 +693,22 @@ impl Storage for FileStorage {
     }
 
     fn erase(&mut self) -> Result<(), StorageError> {
-        match fs::remove_file(&self.path) {
-            Ok(()) => sync_dir(&self.dir()).map_err(|_| StorageError::Io),
-            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(()),
-            Err(e) => {
-                tracing::error!(path = %self.path.display(), error = %e, "erase failed");
-                Err(StorageError::Io)
+        let result = (|| {
+            let dir = match self.dir(false) {
+                Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(()),
+                d => d?,
+            };
+            match rfs::unlinkat(&*dir, self.name()?, AtFlags::empty()) {
+                // unlink removes the name (a link's too), never what a link points at.
+                Ok(()) => Ok(rfs::fsync(&*dir)?),
+                Err(Errno::NOENT) => Ok(()),
+                Err(e) => Err(io::Error::from(e)),
             }
-        }
+        })();
+        result.map_err(|e| {
+            tracing::error!(path = %self.path.display(), error = %e, "erase failed");
+            StorageError::Io
+        })
     }
 }
 
@@ -340,6 +716,7 @@ impl Storage for FileStorage {
 mod tests {
     use super::*;
     use canpos_core::storage::{parse_image, ImageWriter};
+    use std::os::unix::fs::symlink;
 
     fn image(value: u32) -> Vec<u8> {
         let mut buf = [0u8; IMAGE_MAX];
@@ -356,6 +733,41 @@ mod tests {
         Ok(it.next().unwrap().1)
     }
 
+    fn names(dir: &Path) -> Vec<String> {
+        let mut names: Vec<_> = fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        names
+    }
+
+    /// A file outside the state directory that links in the directory point at: whatever the
+    /// sensor does, its bytes stay.
+    struct Decoy {
+        _dir: tempfile::TempDir,
+        path: PathBuf,
+    }
+
+    const DECOY: &[u8] = b"precious bytes of someone else's file\n";
+
+    impl Decoy {
+        fn new() -> Decoy {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("decoy");
+            fs::write(&path, DECOY).unwrap();
+            Decoy { _dir: dir, path }
+        }
+        fn assert_untouched(&self) {
+            assert_eq!(
+                fs::read(&self.path).unwrap(),
+                DECOY,
+                "the decoy was written"
+            );
+            assert!(fs::symlink_metadata(&self.path).unwrap().is_file());
+        }
+    }
+
     #[test]
     fn round_trip_empty_and_erase() {
         let dir = tempfile::tempdir().unwrap();
@@ -367,8 +779,7 @@ mod tests {
         assert_eq!(load_value(&mut s), Ok(8));
         assert_eq!(s.saves(), 2);
         // No temporary file left behind.
-        let names: Vec<_> = fs::read_dir(dir.path().join("sub")).unwrap().collect();
-        assert_eq!(names.len(), 1);
+        assert_eq!(names(&dir.path().join("sub")), ["th-1.bin"]);
         s.erase().unwrap();
         assert_eq!(load_value(&mut s), Err(StorageError::Empty));
         s.erase().unwrap();
@@ -382,12 +793,39 @@ mod tests {
         // Simulate a kill in the middle of a save: the temp file is (partly) written, the
         // rename never happened.
         let new = image(2);
-        fs::write(s.temp_path(), &new[..new.len() / 2]).unwrap();
+        let stale = dir.path().join(random_temp_name(OsStr::new("th-1.bin")));
+        fs::write(&stale, &new[..new.len() / 2]).unwrap();
         let mut after = FileStorage::new(dir.path().join("th-1.bin"));
         assert_eq!(load_value(&mut after), Ok(1));
-        // The next save overwrites the stale temp file and succeeds.
+        // The next save goes to a temp file of its own and succeeds.
         after.save(&image(3)).unwrap();
         assert_eq!(load_value(&mut after), Ok(3));
+        // Opening with the lock removes the stale one.
+        let _locked = FileStorage::open(dir.path().join("th-1.bin")).unwrap();
+        assert!(!stale.exists());
+    }
+
+    #[test]
+    fn temporary_names_are_new_each_time_and_recognised_as_temporary() {
+        let image = OsStr::new("th-1.bin");
+        let a = random_temp_name(image);
+        let b = random_temp_name(image);
+        assert_ne!(a, b);
+        for n in [&a, &b] {
+            assert!(is_temp_name(image, n.as_encoded_bytes()), "{n:?}");
+            assert_eq!(n.len(), "th-1.bin.tmp.".len() + 16, "{n:?}");
+        }
+        // The pid names of earlier versions too; not other names or other units' files.
+        assert!(is_temp_name(image, b"th-1.bin.tmp.4194000"));
+        for other in [
+            &b"th-1.bin.tmp."[..],
+            b"th-1.bin.tmp.notes",
+            b"th-2.bin.tmp.12",
+            b"th-1.bin.lock",
+            b"th-1.bin.tmp.0123456789abcdef01234",
+        ] {
+            assert!(!is_temp_name(image, other), "{other:?}");
+        }
     }
 
     #[test]
@@ -405,6 +843,65 @@ mod tests {
         assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
     }
 
+    /// Each check the core makes has its reason in words (the host logs it with the file: the
+    /// core's answer is only EMCY 0x6300), and a load refuses the image for it.
+    #[test]
+    fn an_image_failing_a_check_is_corrupt_with_its_reason() {
+        let th = canpos_core::models::by_name("th").unwrap();
+        let tag = th.features.tag;
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, tag);
+        w.push(0x0010_1700, 100);
+        let n = w.finish();
+        let good = buf[..n].to_vec();
+        let reseal = |at: usize, v: u8| {
+            let mut b = good.clone();
+            b[at] = v;
+            let crc = crc32(&b[..n - 4]).to_le_bytes();
+            b[n - 4..].copy_from_slice(&crc);
+            b
+        };
+        let mut flipped = good.clone();
+        flipped[9] ^= 1;
+        let cases = [
+            (good[..7].to_vec(), "7 bytes, shorter than any image (12)"),
+            (reseal(0, b'X'), "not a canpos state image"),
+            (
+                reseal(4, 9),
+                "format version 9, this canpos reads version 1",
+            ),
+            (
+                reseal(5, 3),
+                "an image of another model (tag 3, this model's is 1)",
+            ),
+            (reseal(6, 2), "20 bytes, but its header's 2 records make 28"),
+            (flipped, "CRC mismatch"),
+        ];
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        for (bytes, why) in cases {
+            let got = image_problem(&bytes, tag);
+            assert!(got.starts_with(why), "{got} / {why}");
+            fs::write(&path, &bytes).unwrap();
+            let mut s = FileStorage::new(&path).for_model(th);
+            assert_eq!(
+                s.load(&mut [0u8; IMAGE_MAX]),
+                Err(StorageError::Corrupt),
+                "{why}"
+            );
+            // What was reported is that reason.
+            assert!(
+                s.reported.as_deref().is_some_and(|r| r.starts_with(why)),
+                "{why}: {:?}",
+                s.reported
+            );
+        }
+        fs::write(&path, &good).unwrap();
+        let mut s = FileStorage::new(&path).for_model(th);
+        assert_eq!(s.load(&mut [0u8; IMAGE_MAX]), Ok(n));
+        assert_eq!(s.reported, None);
+    }
+
     #[test]
     fn fifo_is_refused_not_waited_on() {
         let dir = tempfile::tempdir().unwrap();
@@ -417,6 +914,17 @@ mod tests {
         assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
         let e = FileStorage::open(&path).unwrap_err();
         assert!(e.to_string().contains("a FIFO"), "{e}");
+        // Nor a FIFO as the lock file: refused before it is opened.
+        fs::remove_file(&path).unwrap();
+        let lock = dir.path().join("th-1.bin.lock");
+        let c = std::ffi::CString::new(lock.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: as above.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(
+            matches!(&e, OpenError::NotRegular { what: "lock file", path, .. } if *path == lock),
+            "{e}"
+        );
     }
 
     #[test]
@@ -438,25 +946,170 @@ mod tests {
         FileStorage::open(&path).unwrap();
     }
 
+    /// Issue 35 item 1: a link at `<file>.lock` to a file outside the state directory used to
+    /// be truncated and given the pid. Now the link is refused by name and its target (an
+    /// existing file, or a name nothing has yet) stays as it was.
+    #[test]
+    fn a_symlinked_lock_file_is_refused_and_its_target_untouched() {
+        let decoy = Decoy::new();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-4242.bin");
+        let lock = dir.path().join("th-4242.bin.lock");
+        symlink(&decoy.path, &lock).unwrap();
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(
+            matches!(&e, OpenError::Link { what: "lock file", path } if *path == lock),
+            "{e}"
+        );
+        let msg = e.to_string();
+        assert!(
+            msg.contains(&lock.display().to_string()) && msg.contains("symbolic link"),
+            "{msg}"
+        );
+        decoy.assert_untouched();
+        // A link to a name that does not exist yet: nothing is created there.
+        fs::remove_file(&lock).unwrap();
+        let absent = decoy.path.with_file_name("absent");
+        symlink(&absent, &lock).unwrap();
+        assert!(matches!(
+            FileStorage::open(&path),
+            Err(OpenError::Link { .. })
+        ));
+        assert!(!absent.exists());
+        // Nothing else was made in the state directory either.
+        assert_eq!(names(dir.path()), ["th-4242.bin.lock"]);
+    }
+
+    /// A hard link to another file as the lock file: its pid would land in that file.
+    #[test]
+    fn a_hard_linked_lock_file_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        // On the same file system as the state directory, as a hard link must be.
+        let outside = dir.path().join("outside");
+        fs::write(&outside, DECOY).unwrap();
+        let state = dir.path().join("state");
+        fs::create_dir(&state).unwrap();
+        fs::hard_link(&outside, state.join("th-1.bin.lock")).unwrap();
+        let e = FileStorage::open(state.join("th-1.bin")).unwrap_err();
+        assert!(matches!(e, OpenError::HardLinked { links: 2, .. }), "{e}");
+        assert!(e.to_string().contains("th-1.bin.lock"), "{e}");
+        assert_eq!(fs::read(&outside).unwrap(), DECOY);
+    }
+
+    /// A link where the state file should be: refused at open by name; a load does not read
+    /// through it (even to a valid image), and a save replaces the link itself.
+    #[test]
+    fn a_symlinked_state_file_is_refused_and_never_read_or_written_through() {
+        let decoy = Decoy::new();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        symlink(&decoy.path, &path).unwrap();
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(
+            matches!(&e, OpenError::Link { what: "state file", path: p } if *p == path),
+            "{e}"
+        );
+        assert!(e.to_string().contains(&path.display().to_string()), "{e}");
+        // Not even the lock was made.
+        assert_eq!(names(dir.path()), ["th-1.bin"]);
+        let mut s = FileStorage::new(&path);
+        assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
+        assert!(s
+            .reported
+            .as_deref()
+            .is_some_and(|r| r.contains("symbolic link")));
+        s.save(&image(4)).unwrap();
+        assert!(fs::symlink_metadata(&path).unwrap().is_file());
+        assert_eq!(load_value(&mut s), Ok(4));
+        decoy.assert_untouched();
+        // A valid image behind a link is not read either.
+        fs::write(&decoy.path, image(9)).unwrap();
+        fs::remove_file(&path).unwrap();
+        symlink(&decoy.path, &path).unwrap();
+        assert_eq!(load_value(&mut s), Err(StorageError::Corrupt));
+        // Erasing removes the link, not its target.
+        s.erase().unwrap();
+        assert_eq!(fs::read(&decoy.path).unwrap(), image(9));
+    }
+
+    /// Issue 35 item 2: a link at the temporary name a save used to write (`<file>.tmp.<pid>`,
+    /// the pid readable in the lock file) made the save write the image into its target. Now
+    /// a save writes only a new file of its own, the links are left alone, and a taken name
+    /// costs one more try.
+    #[test]
+    fn symlinks_at_temporary_names_are_never_written_through() {
+        let decoy = Decoy::new();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        let pid_name = dir
+            .path()
+            .join(format!("th-1.bin.tmp.{}", std::process::id()));
+        let hex_name = dir.path().join("th-1.bin.tmp.0123456789abcdef");
+        for l in [&pid_name, &hex_name] {
+            symlink(&decoy.path, l).unwrap();
+        }
+        let mut s = FileStorage::open(&path).unwrap();
+        for v in 0..5 {
+            s.save(&image(v)).unwrap();
+            assert_eq!(load_value(&mut s), Ok(v));
+        }
+        assert!(fs::symlink_metadata(&path).unwrap().is_file());
+        // The links are still there, neither followed nor removed.
+        for l in [&pid_name, &hex_name] {
+            assert!(fs::symlink_metadata(l).unwrap().file_type().is_symlink());
+        }
+        decoy.assert_untouched();
+        // A save whose first temporary name is taken by a link takes the next one.
+        let names = [
+            hex_name.file_name().unwrap().to_os_string(),
+            OsString::from("th-1.bin.tmp.ff"),
+        ];
+        s.write_atomic_via(&image(7), &mut names.into_iter())
+            .unwrap();
+        assert_eq!(load_value(&mut s), Ok(7));
+        decoy.assert_untouched();
+        // Only taken names: the save fails naming the last one, and the image stays.
+        let taken = std::iter::repeat(hex_name.file_name().unwrap().to_os_string());
+        let e = s
+            .write_atomic_via(&image(8), &mut taken.take(3))
+            .unwrap_err();
+        assert!(
+            e.to_string().contains("th-1.bin.tmp.0123456789abcdef"),
+            "{e}"
+        );
+        assert_eq!(load_value(&mut s), Ok(7));
+        decoy.assert_untouched();
+        // Creating a temporary file at a link's name is refused by the kernel (O_EXCL).
+        let d = s.dir(false).unwrap();
+        let e = create_new(&d, hex_name.file_name().unwrap()).unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::AlreadyExists);
+        decoy.assert_untouched();
+    }
+
     #[test]
     fn stale_temporary_files_are_removed_at_open() {
+        let decoy = Decoy::new();
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("th-1.bin");
         fs::write(dir.path().join("th-1.bin.tmp.99999"), b"half").unwrap();
         fs::write(dir.path().join("th-1.bin.tmp.12"), b"half").unwrap();
+        fs::write(dir.path().join("th-1.bin.tmp.00c0ffee00c0ffee"), b"half").unwrap();
         // Not ours: another unit's temp file, and a name that only looks similar.
         fs::write(dir.path().join("th-2.bin.tmp.99999"), b"other").unwrap();
         fs::write(dir.path().join("th-1.bin.tmp.notes"), b"keep").unwrap();
+        // A link at a temporary name: left alone, its target too.
+        symlink(&decoy.path, dir.path().join("th-1.bin.tmp.77")).unwrap();
         let _s = FileStorage::open(&path).unwrap();
-        let mut names: Vec<_> = fs::read_dir(dir.path())
-            .unwrap()
-            .map(|e| e.unwrap().file_name().into_string().unwrap())
-            .collect();
-        names.sort();
         assert_eq!(
-            names,
-            ["th-1.bin.lock", "th-1.bin.tmp.notes", "th-2.bin.tmp.99999"]
+            names(dir.path()),
+            [
+                "th-1.bin.lock",
+                "th-1.bin.tmp.77",
+                "th-1.bin.tmp.notes",
+                "th-2.bin.tmp.99999"
+            ]
         );
+        decoy.assert_untouched();
     }
 
     #[test]
@@ -471,6 +1124,26 @@ mod tests {
         assert!(e.to_string().contains("not writable"), "{e}");
     }
 
+    /// The storage keeps the directory it opened: a directory moved away and a link put at
+    /// its path (to somewhere else) get none of this unit's files.
+    #[test]
+    fn saves_go_to_the_directory_opened_even_when_its_path_changes() {
+        let decoy_dir = tempfile::tempdir().unwrap();
+        let root = tempfile::tempdir().unwrap();
+        let state = root.path().join("state");
+        let mut s = FileStorage::open(state.join("th-1.bin")).unwrap();
+        s.save(&image(1)).unwrap();
+        fs::rename(&state, root.path().join("moved")).unwrap();
+        symlink(decoy_dir.path(), &state).unwrap();
+        s.save(&image(2)).unwrap();
+        assert_eq!(load_value(&mut s), Ok(2));
+        assert!(names(decoy_dir.path()).is_empty());
+        assert_eq!(
+            names(&root.path().join("moved")),
+            ["th-1.bin", "th-1.bin.lock"]
+        );
+    }
+
     #[test]
     fn unreadable_path_is_corrupt_not_empty() {
         let dir = tempfile::tempdir().unwrap();
@@ -482,5 +1155,118 @@ mod tests {
         // And a failing save leaves the directory (the "old image") alone.
         assert_eq!(s.save(&image(1)), Err(StorageError::Io));
         assert!(path.is_dir());
+        assert_eq!(names(dir.path()), ["th-1.bin"]);
+    }
+
+    /// Issue 35 item 9: a CRC-valid image full of records the model has no use for (240 of
+    /// them) loaded, and every later save then aborted 0x08000020 (the kept records left no
+    /// room), with nothing logged. The records are now dropped at load (one log line), and
+    /// the save stores the unit's own configuration.
+    #[test]
+    fn an_image_of_unused_records_does_not_block_later_saves() {
+        use canpos_core::{Duration, Frame, Instant, Node};
+        let th = canpos_core::models::by_name("th").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        let fit = (IMAGE_MAX - 12) / 8;
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, th.features.tag);
+        // Objects a TH does not have, one it has but never stores (0x6004 position value),
+        // keys of no kind, and the heartbeat repeated: 240 records in all.
+        let mut unused = Vec::new();
+        for i in 0..(fit as u32 - 2) {
+            unused.push(match i % 3 {
+                0 => (0x0050_0000 + (i << 8), i),
+                1 => (0x0060_0400, i),
+                _ => (0xFE00_0000 + i, i),
+            });
+        }
+        unused.push((0x0010_1700, 100));
+        unused.push((0x0010_1700, 300));
+        for &(k, v) in &unused {
+            assert!(w.push(k, v));
+        }
+        let n = w.finish();
+        assert_eq!(n, IMAGE_MAX);
+        fs::write(&path, &buf[..n]).unwrap();
+
+        let mut node = Node::new(
+            th,
+            th.default_config.with_node_id(5),
+            FileStorage::new(&path).for_model(th),
+        );
+        let mut now = Instant::ZERO;
+        node.power_on(now);
+        while node.poll(now).is_some() {}
+        // The heartbeat's last record is the one in force.
+        assert_eq!(node.read_object(0x1017, 0), Ok(300));
+        assert!(
+            node.storage_mut()
+                .reported
+                .as_deref()
+                .is_some_and(|r| r.starts_with("239 of its 240 records")),
+            "{:?}",
+            node.storage_mut().reported
+        );
+        let mut sdo = |node: &mut Node<_, FileStorage>, req: [u8; 8]| {
+            now += Duration::from_millis(1);
+            node.handle_frame(&Frame::std8(0x605, req), now);
+            for _ in 0..1000 {
+                while let Some(f) = node.poll(now) {
+                    if f.std_id() == Some(0x585) {
+                        return *f.raw();
+                    }
+                }
+                now += Duration::from_millis(10);
+            }
+            panic!("no SDO answer");
+        };
+        // Heartbeat 250 ms, then 0x1010/1 "save".
+        assert_eq!(sdo(&mut node, [0x2B, 0x17, 0x10, 0, 250, 0, 0, 0])[0], 0x60);
+        let save = u32::from_le_bytes(*b"save").to_le_bytes();
+        let a = sdo(
+            &mut node,
+            [0x23, 0x10, 0x10, 1, save[0], save[1], save[2], save[3]],
+        );
+        assert_eq!(a[0], 0x60, "save answered {a:02X?}");
+        // The file holds the unit's records only, the new heartbeat among them.
+        let bytes = fs::read(&path).unwrap();
+        let recs: Vec<_> = parse_image(&bytes, th.features.tag).unwrap().collect();
+        assert!(recs.contains(&(0x0010_1700, 250)), "{recs:?}");
+        assert!(recs.iter().all(|&(k, _)| record_used(th, k)), "{recs:?}");
+        assert_eq!(recs.iter().filter(|r| r.0 == 0x0010_1700).count(), 1);
+        // And a later save works too.
+        let a = sdo(
+            &mut node,
+            [0x23, 0x10, 0x10, 1, save[0], save[1], save[2], save[3]],
+        );
+        assert_eq!(a[0], 0x60, "second save answered {a:02X?}");
+    }
+
+    /// The records the core uses are kept, every one (the LSS ones included), and in order.
+    #[test]
+    fn an_image_of_used_records_loads_unchanged() {
+        let tmi = canpos_core::models::by_name("tmi").unwrap();
+        let tag = tmi.features.tag;
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, tag);
+        for (k, v) in [
+            (KEY_LSS_NODE_ID, 5),
+            (KEY_LSS_BITRATE, 125),
+            (KEY_SAVED_NODE_ID, 5),
+            (0x0020_0000, 5),
+            (0x0010_1700, 100),
+        ] {
+            w.push(k, v);
+        }
+        let n = w.finish();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tmi-1.bin");
+        fs::write(&path, &buf[..n]).unwrap();
+        let mut s = FileStorage::new(&path).for_model(tmi);
+        let mut got = [0u8; IMAGE_MAX];
+        assert_eq!(s.load(&mut got), Ok(n));
+        assert_eq!(got[..n], buf[..n]);
+        assert_eq!(s.reported, None);
     }
 }

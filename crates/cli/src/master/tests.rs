@@ -965,6 +965,7 @@ fn record_then_replay_keeps_frames_and_timing() {
         speed: 2.0,
         repeat: false,
         on_malformed: OnMalformed::Stop,
+        max_gap: None,
     });
     assert_eq!(r.unwrap(), EXIT_OK);
     // At speed 2 the 200 ms recording takes about 100 ms.
@@ -992,6 +993,7 @@ fn record_then_replay_keeps_frames_and_timing() {
         speed: 1.0,
         repeat: false,
         on_malformed: OnMalformed::Stop,
+        max_gap: None,
     })
     .is_err());
     let _ = std::fs::remove_dir_all(&dir);
@@ -1090,6 +1092,7 @@ fn replay_skips_what_the_bus_cannot_carry() {
         speed: 0.0,
         repeat: false,
         on_malformed,
+        max_gap: None,
     };
     assert!(replay(args(OnMalformed::Stop)).is_err());
     assert!(listener.try_recv().unwrap().is_none());
@@ -1302,4 +1305,23 @@ fn load_meter_counts_bits_over_the_last_second() {
     // A second later the old frames have left the window.
     let later = m.add(t0 + Duration::from_secs(3), &f);
     assert_eq!(later.1, 1);
+}
+
+/// `--max-gap` takes off only what a pause has beyond it, the pause before the first frame
+/// included; a stamp earlier than the latest keeps its place; without it the times are the
+/// log's divided by the speed.
+#[test]
+fn max_gap_shortens_only_the_pauses_longer_than_it() {
+    let run = |speed, gap, ts: &[f64]| {
+        let mut t = Timeline::new(speed, gap);
+        ts.iter().map(|&x| t.offset(x)).collect::<Vec<f64>>()
+    };
+    let log = [0.0, 1.0, 11.0, 12.0, 11.5, 20.0];
+    assert_eq!(run(1.0, Some(2.0), &log), [0.0, 1.0, 3.0, 4.0, 3.5, 6.0]);
+    assert_eq!(run(2.0, Some(2.0), &log), [0.0, 0.5, 2.5, 3.0, 2.75, 5.0]);
+    assert_eq!(run(2.0, None, &log), [0.0, 0.5, 5.5, 6.0, 5.75, 10.0]);
+    assert_eq!(run(0.0, Some(2.0), &log), [0.0; 6]);
+    // An ASC log's first frame 100 s after the start of measurement.
+    assert_eq!(run(1.0, Some(1.0), &[100.0, 100.5]), [1.0, 1.5]);
+    assert_eq!(run(1.0, Some(0.0), &[5.0, 1e9]), [0.0, 0.0]);
 }
