@@ -1,12 +1,14 @@
 // The dashboard in a real browser (Debian's Chromium, driven by playwright-core): a TH sensor
 // on node 127 and `canpos dashboard` on free loopback ports; the page must list the node, plot
 // a motion, move the magnet (checked by another SDO client), show the missing-magnet EMCY and
-// alarm, and show a bad request's error. Run: node --test tests/dashboard/
+// alarm, and show a bad request's error; another site's page and a DNS-rebinding page change
+// nothing. Run: node --test tests/dashboard/
 import { test, after } from "node:test";
 import assert from "node:assert/strict";
 import { spawn, execFileSync } from "node:child_process";
 import { mkdtempSync, mkdirSync, rmSync } from "node:fs";
 import { createServer } from "node:net";
+import { createServer as createHttpServer } from "node:http";
 import { tmpdir } from "node:os";
 import { join, dirname, resolve } from "node:path";
 import { fileURLToPath } from "node:url";
@@ -38,7 +40,7 @@ function start(args, ready) {
   });
 }
 
-const [busPort, ctlPort, webPort] = [await freePort(), await freePort(), await freePort()];
+const [busPort, ctlPort, webPort, evilPort] = [await freePort(), await freePort(), await freePort(), await freePort()];
 const BUS = `socketcand://127.0.0.1:${busPort}/can0`;
 const URL = `http://127.0.0.1:${webPort}/`;
 await start(["run", "--node-id", "127", "--bus", BUS, "--control", `127.0.0.1:${ctlPort}`,
@@ -49,22 +51,37 @@ await start(["dashboard", "--bus", BUS, "--listen", `127.0.0.1:${webPort}`,
 const profile = join(tmp, "chromium-profile");
 mkdirSync(profile);
 // A fresh profile; without the background-networking flags Chromium's own connections are
-// refused on a closed network and slow everything down.
+// refused on a closed network and slow everything down. attacker.example resolves to the
+// dashboard, as a DNS-rebinding attacker's name would.
 const ctx = await chromium.launchPersistentContext(profile, {
   executablePath: CHROMIUM,
   headless: true,
   args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync"],
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--host-resolver-rules=MAP attacker.example 127.0.0.1"],
   viewport: { width: 1400, height: 1800 },
 });
 const page = ctx.pages()[0] ?? await ctx.newPage();
 const node = page.locator('section.node[data-node="127"]');
 
+// Another site: a page on another loopback port that posts to the dashboard.
+const evilSite = createHttpServer((req, res) => {
+  res.writeHead(200, { "content-type": "text/html" });
+  res.end("<!doctype html><title>another site</title>");
+});
+await new Promise((ok) => evilSite.listen(evilPort, "127.0.0.1", ok));
+
 after(async () => {
   await ctx.close().catch(() => {});
+  evilSite.close();
   for (const c of children) c.kill("SIGINT");
   rmSync(tmp, { recursive: true, force: true });
 });
+
+/** The sensor's state from its control interface. */
+const ctlState = () => JSON.parse(execFileSync(BIN, ["ctl", "--control", `127.0.0.1:${ctlPort}`, "state"], { encoding: "utf8" }));
+const faultsOn = () => ctlState().faults;
+const clearMessage = (p) => p.evaluate(() => { document.querySelector("#message").textContent = ""; });
 
 /** 0x6020/1 in mm, read by `canpos sdo` (another SDO client than the dashboard). */
 function sdoPositionMm() {
@@ -160,14 +177,67 @@ test("an object is written and read over SDO from the object dictionary", async 
 
 test("a bad request shows its error in the page and changes nothing", async () => {
   const r = await page.evaluate(async () => {
-    const res = await fetch("/api/nodes/99/control", { method: "POST", body: '{"cmd":"power-cycle"}' });
+    const json = { "content-type": "application/json" };
+    const res = await fetch("/api/nodes/99/control", { method: "POST", headers: json, body: '{"cmd":"power-cycle"}' });
+    // A body that is not typed JSON is refused, even from the page's own origin.
+    const plain = await fetch("/api/nodes/127/control", { method: "POST", body: '{"cmd":"power-cycle"}' });
     await api("POST", "/api/nodes/99/control", { cmd: "power-cycle" }).catch(() => {});
-    return res.status;
+    return [res.status, plain.status];
   });
-  assert.equal(r, 404);
+  assert.deepEqual(r, [404, 415]);
   assert.match(await page.locator("#message").innerText(), /unknown node 99/);
   const od = await page.evaluate(async () => (await fetch("/api/nodes/127/sdo/0x1234/0")).status);
   assert.equal(od, 404);
+});
+
+test("the scan is sent from the page", async () => {
+  await page.locator("#scan").click();
+  await page.locator("#message", { hasText: "scan sent" }).waitFor({ timeout: 10000 });
+});
+
+test("another site's page and a DNS-rebinding page change nothing", async () => {
+  assert.deepEqual(faultsOn(), []);
+  const fault = JSON.stringify({ cmd: "fault", name: "missing-magnet", on: true });
+  // Another site: a text/plain POST needs no preflight; the dashboard refuses its Origin.
+  const evil = await ctx.newPage();
+  await evil.goto(`http://127.0.0.1:${evilPort}/`);
+  const target = `http://127.0.0.1:${webPort}/api/nodes/127/control`;
+  const [resp] = await Promise.all([
+    evil.waitForResponse((r) => r.url() === target),
+    evil.evaluate(([url, body]) => fetch(url, { method: "POST", mode: "no-cors", body }), [target, fault]),
+  ]);
+  assert.equal(resp.status(), 403);
+  // A JSON one needs a preflight, which is not granted: the browser never sends the POST.
+  const refused = await evil.evaluate(([url, body]) =>
+    fetch(url, { method: "POST", headers: { "content-type": "application/json" }, body })
+      .then(() => "sent", (e) => String(e)), [target, fault]);
+  assert.match(refused, /TypeError/);
+  await evil.close();
+  // DNS rebinding: attacker.example is the dashboard, the page is its own; its Host is not.
+  const rebound = await ctx.newPage();
+  const r = await rebound.goto(`http://attacker.example:${webPort}/`);
+  assert.equal(r.status(), 200, "reads are open to any page");
+  const sec = rebound.locator('section.node[data-node="127"]');
+  await sec.locator(".fault-on").waitFor({ timeout: 10000 });
+  await sec.locator(".fault-name").selectOption("missing-magnet");
+  await sec.locator(".fault-on").click();
+  await rebound.locator("#message", { hasText: /^403: .*attacker\.example/ }).waitFor({ timeout: 10000 });
+  await clearMessage(rebound);
+  await sec.locator(".power-cycle").click();
+  await rebound.locator("#message", { hasText: /^403: .*attacker\.example/ }).waitFor({ timeout: 10000 });
+  await rebound.close();
+  const st = ctlState();
+  assert.deepEqual(st.faults, []);
+  assert.equal(st.nmt, "operational", "no power cycle (a boot leaves the node pre-operational)");
+  // The page's own origin still does (and undoes).
+  await clearMessage(page);
+  await node.locator(".fault-name").selectOption("missing-magnet");
+  await node.locator(".fault-on").click();
+  await page.locator("#message", { hasText: "node 127: fault done" }).waitFor({ timeout: 10000 });
+  assert.deepEqual(faultsOn(), ["missing-magnet"]);
+  await node.locator(".fault-off").click();
+  for (let i = 0; i < 50 && faultsOn().length; i++) await page.waitForTimeout(100);
+  assert.deepEqual(faultsOn(), []);
 });
 
 test("a browser that leaves holds no event stream", async () => {

@@ -7,12 +7,18 @@
 //! only the plot points the stream has not sent yet (points are decimated on the server to one
 //! per [`watch::SAMPLE_PERIOD`] and channel, so a 1 kHz TPDO rate costs the browser 50 points a
 //! second). The page and uPlot are compiled into the binary: nothing is fetched at run time.
+//!
+//! Only the page's own origin changes state ([`guard`]); the web side keeps to a share of the
+//! process's descriptors and times out what clients leave unfinished ([`serve`]).
 
+pub mod guard;
+pub mod serve;
 pub mod watch;
 
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -75,6 +81,7 @@ pub struct Dashboard {
     stop_tx: Vec<Sender<()>>,
     shutdown: Option<tokio::sync::oneshot::Sender<()>>,
     shared: Arc<Mutex<Shared>>,
+    connections: Arc<AtomicUsize>,
 }
 
 impl Dashboard {
@@ -96,6 +103,11 @@ impl Dashboard {
     /// Open event streams (for tests: a browser that left holds none).
     pub fn streams(&self) -> usize {
         self.shared.lock().unwrap().streams
+    }
+
+    /// Open web connections.
+    pub fn connections(&self) -> usize {
+        self.connections.load(Ordering::SeqCst)
     }
 }
 
@@ -163,6 +175,8 @@ pub fn start(
         cmds: cmd_tx,
     };
     let router = router(app);
+    let cap = serve::connection_cap();
+    let connections = Arc::new(AtomicUsize::new(0));
     let (shutdown, shutdown_rx) = tokio::sync::oneshot::channel::<()>();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -171,29 +185,26 @@ pub fn start(
         .build()?;
     std::thread::Builder::new()
         .name("canpos-web".into())
-        .spawn(move || {
-            rt.block_on(async move {
-                let l = match tokio::net::TcpListener::from_std(listener) {
-                    Ok(l) => l,
-                    Err(e) => return tracing::error!("dashboard: {e}"),
-                };
-                let r = axum::serve(l, router)
-                    .with_graceful_shutdown(async {
-                        let _ = shutdown_rx.await;
-                    })
-                    .await;
-                if let Err(e) = r {
-                    tracing::error!("dashboard: {e}");
-                }
-            });
-            // Open event streams end with the runtime.
-            rt.shutdown_timeout(Duration::from_millis(100));
+        .spawn({
+            let connections = connections.clone();
+            move || {
+                rt.block_on(async move {
+                    let l = match tokio::net::TcpListener::from_std(listener) {
+                        Ok(l) => l,
+                        Err(e) => return tracing::error!("dashboard: {e}"),
+                    };
+                    serve::run(l, router, cap, connections, shutdown_rx).await;
+                });
+                // Open connections (event streams) end with the runtime.
+                rt.shutdown_timeout(Duration::from_millis(100));
+            }
         })?;
     Ok(Dashboard {
         addr,
         stop_tx: vec![stop_bus, stop_poll],
         shutdown: Some(shutdown),
         shared,
+        connections,
     })
 }
 
@@ -271,6 +282,7 @@ fn router(app: App) -> Router {
         )
         .route("/api/nodes/{node}/control", post(node_control))
         .fallback(|| async { fail(StatusCode::NOT_FOUND, "no such page or API".into()) })
+        .layer(axum::middleware::from_fn(guard::guard))
         .with_state(app)
 }
 

@@ -71,16 +71,35 @@ fn rig() -> Rig {
     r
 }
 
-/// One HTTP/1.1 request; (status, JSON body).
+/// One HTTP/1.1 request as a script sends it (the dashboard's address in `Host`, a JSON body,
+/// no `Origin`); (status, JSON body).
 fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
+    let host = format!("Host: {addr}");
+    http_with(
+        addr,
+        method,
+        path,
+        &[&host, "Content-Type: application/json"],
+        body,
+    )
+}
+
+/// One HTTP/1.1 request with the header lines given; (status, JSON body).
+fn http_with(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[&str],
+    body: &str,
+) -> (u16, Value) {
     let mut s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    write!(
-        s,
-        "{method} {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
-        body.len()
-    )
-    .unwrap();
+    let mut head = format!("{method} {path} HTTP/1.1\r\nConnection: close\r\n");
+    for h in headers {
+        head.push_str(h);
+        head.push_str("\r\n");
+    }
+    write!(s, "{head}Content-Length: {}\r\n\r\n{body}", body.len()).unwrap();
     let mut text = String::new();
     s.read_to_string(&mut text).unwrap();
     let code = text[9..12].parse().unwrap();
@@ -349,4 +368,353 @@ fn web_flags_serve_the_dashboard_of_the_process() {
     assert!(page.contains("uPlot.iife.min.js"));
     assert_eq!(demo.wait_exit(Duration::from_secs(20)), Some(0));
     assert!(demo.output().contains("TPDOs"), "{}", demo.output());
+}
+
+/// A fault's name as the control state lists it.
+fn faults(r: &Rig) -> Vec<String> {
+    state(r)["faults"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            f.as_str()
+                .map(str::to_string)
+                .unwrap_or_else(|| f.to_string())
+        })
+        .collect()
+}
+
+/// Issue 35 item 4: a page of another origin (a `text/plain` POST needs no CORS preflight) and
+/// a DNS-rebinding page (`Host: attacker.example`) change nothing; the page's own origin and a
+/// script without `Origin` still do. Reads stay open to any client.
+#[test]
+fn only_the_pages_own_origin_changes_state() {
+    let r = rig();
+    let a = r.web.local_addr();
+    let host = format!("Host: {a}");
+    let own = format!("Origin: http://{a}");
+    let fault = r#"{"cmd":"fault","name":"missing-magnet","on":true}"#;
+
+    // Another site's page: a simple cross-origin request, as a form or fetch sends it.
+    let (code, v) = http_with(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        &[
+            &host,
+            "Origin: http://evil.example",
+            "Content-Type: text/plain",
+        ],
+        fault,
+    );
+    assert_eq!(code, 403, "{v}");
+    assert!(error_of(&v).contains("evil.example"), "{v}");
+    // Even as JSON (a browser would have needed a preflight the dashboard never grants).
+    let (code, v) = http_with(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        &[
+            &host,
+            "Origin: http://evil.example",
+            "Content-Type: application/json",
+        ],
+        fault,
+    );
+    assert_eq!(code, 403, "{v}");
+    // The right origin, the wrong type; no origin, the wrong type.
+    for h in [
+        vec![&host[..], &own[..], "Content-Type: text/plain"],
+        vec![&host[..]],
+    ] {
+        let (code, v) = http_with(a, "POST", "/api/nodes/127/control", &h, fault);
+        assert_eq!(code, 415, "{h:?}: {v}");
+        assert!(error_of(&v).contains("application/json"), "{v}");
+    }
+    // An opaque origin (a sandboxed frame, a file) is no origin of the page.
+    let (code, v) = http_with(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        &[&host, "Origin: null", "Content-Type: application/json"],
+        fault,
+    );
+    assert_eq!(code, 403, "{v}");
+    assert!(faults(&r).is_empty(), "{:?}", faults(&r));
+
+    // The page's own origin: the NMT start and a heartbeat time that a power cycle would undo.
+    let json = "Content-Type: application/json";
+    let (code, v) = http_with(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        &[&host, &own, json],
+        r#"{"cmd":"nmt","command":"start"}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+    let (code, v) = http_with(
+        a,
+        "PUT",
+        "/api/nodes/127/sdo/0x1017/0",
+        &[&host, &own, json],
+        r#"{"value":"250"}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+
+    // DNS rebinding: attacker.example resolves to the dashboard, so the page is "same origin"
+    // with itself; its Host names it.
+    let port = a.port();
+    let evil_host = format!("Host: attacker.example:{port}");
+    let evil_origin = format!("Origin: http://attacker.example:{port}");
+    for (method, path, body) in [
+        ("PUT", "/api/nodes/127/sdo/0x1017/0", r#"{"value":"700"}"#),
+        ("POST", "/api/nodes/127/control", r#"{"cmd":"power-cycle"}"#),
+        ("POST", "/api/nodes/127/control", fault),
+        ("POST", "/api/scan", "{}"),
+    ] {
+        for h in [
+            vec![&evil_host[..], &evil_origin[..], json],
+            vec![&evil_host[..], json],
+        ] {
+            let (code, v) = http_with(a, method, path, &h, body);
+            assert_eq!(code, 403, "{method} {path} {h:?}: {v}");
+            assert!(error_of(&v).contains("attacker.example"), "{v}");
+        }
+    }
+    // The right host on another port, or an origin that is not the Host's.
+    let other_port = format!("Host: 127.0.0.1:{}", port.wrapping_add(1).max(1));
+    let localhost_origin = format!("Origin: http://localhost:{port}");
+    for h in [
+        vec![&other_port[..], json],
+        vec![&host[..], &localhost_origin[..], json],
+    ] {
+        let (code, v) = http_with(
+            a,
+            "POST",
+            "/api/nodes/127/control",
+            &h,
+            r#"{"cmd":"power-cycle"}"#,
+        );
+        assert_eq!(code, 403, "{h:?}: {v}");
+    }
+    // Reads stay open, whatever the Host: 0x1017 holds the page's value (no write, and no power
+    // cycle, which would have restored the stored one), the node is still operational.
+    let (code, v) = http_with(a, "GET", "/api/nodes/127/sdo/0x1017/0", &[&evil_host], "");
+    assert_eq!(code, 200, "{v}");
+    assert!(v["value"].as_str().unwrap().starts_with("250 "), "{v}");
+    let st = state(&r);
+    assert_eq!(st["nmt"], "operational", "{st}");
+    assert_eq!(st["powered"], true, "{st}");
+    assert!(faults(&r).is_empty(), "{st}");
+
+    // The page on localhost, and a script without Origin: both work.
+    let lh = format!("Host: localhost:{port}");
+    let (code, v) = http_with(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        &[&lh, &localhost_origin, json],
+        fault,
+    );
+    assert_eq!(code, 200, "{v}");
+    assert_eq!(faults(&r), ["missing-magnet"]);
+    let (code, v) = http(
+        a,
+        "POST",
+        "/api/nodes/127/control",
+        r#"{"cmd":"fault","name":"missing-magnet","on":false}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+    assert!(faults(&r).is_empty());
+}
+
+/// Issue 35 item 5: 1,100 unfinished requests against a sensor's `--web` dashboard under the
+/// usual 1,024 descriptors. The web side keeps to its share: a save over SDO (0x1010/1 "save")
+/// succeeds meanwhile, the log does not fill with accept errors, and every hanging connection
+/// is closed (at once beyond the cap, by the header timeout below it).
+#[test]
+fn hanging_requests_leave_the_sensor_its_descriptors() {
+    use std::os::unix::process::CommandExt;
+    use std::process::{Command, Stdio};
+
+    const HANGING: usize = 1_100;
+    let dir = tempfile::tempdir().unwrap();
+    let (hub, web) = (common::free_port(), common::free_port());
+    let state = dir.path().join("state");
+    let log = dir.path().join("sensor.log");
+    let bus = format!("socketcand://127.0.0.1:{hub}/can0");
+    let mut cmd = Command::new(common::BIN);
+    cmd.args(["run", "--node-id", "127", "--bus", &bus, "--hub", "always"])
+        .args(["--state-dir", state.to_str().unwrap()])
+        .args(["--web", &format!("127.0.0.1:{web}")])
+        .stdin(Stdio::null())
+        .stdout(std::fs::File::create(dir.path().join("sensor.out")).unwrap())
+        .stderr(std::fs::File::create(&log).unwrap());
+    // SAFETY: setrlimit is async-signal-safe and only touches the child's own limits.
+    unsafe {
+        cmd.pre_exec(|| {
+            let lim = libc::rlimit {
+                rlim_cur: 1024,
+                rlim_max: 1024,
+            };
+            if libc::setrlimit(libc::RLIMIT_NOFILE, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    struct Kill(std::process::Child);
+    impl Drop for Kill {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let _sensor = Kill(cmd.spawn().unwrap());
+    let logged = || std::fs::read_to_string(&log).unwrap_or_default();
+    let until = Instant::now() + Duration::from_secs(20);
+    while !logged().contains("dashboard on") {
+        assert!(Instant::now() < until, "no dashboard: {}", logged());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let addr: SocketAddr = format!("127.0.0.1:{web}").parse().unwrap();
+
+    // Each connects and sends half a request head, then waits.
+    let mut hanging = Vec::with_capacity(HANGING);
+    // A connect waits while the listen backlog is full (SYN retries after 1, 3, 7 s); a server
+    // that stopped accepting fails the test after a few, not after 1,100 waits.
+    let mut unreachable = 0;
+    for _ in 0..HANGING {
+        if unreachable >= 3 {
+            break;
+        }
+        match TcpStream::connect_timeout(&addr, Duration::from_secs(10)) {
+            Ok(mut s) => {
+                let _ = write!(s, "GET /api/status HTTP/1.1\r\nHost: 127.0.0.1:{web}\r\n");
+                s.set_nonblocking(true).unwrap();
+                hanging.push(s);
+            }
+            Err(_) => unreachable += 1,
+        }
+    }
+
+    // The save goes through the hub in the same process, to storage in the same process.
+    let save = common::run_in(
+        dir.path(),
+        &[
+            "sdo",
+            "--bus",
+            &bus,
+            "--timeout",
+            "5000",
+            "write",
+            "127",
+            "0x1010",
+            "1",
+            "0x65766173",
+            "--type",
+            "u32",
+        ],
+        Duration::from_secs(60),
+    );
+    assert_eq!(
+        save.status.code(),
+        Some(0),
+        "save: {}\nsensor: {}",
+        common::text(&save),
+        logged()
+    );
+
+    // Every hanging connection ends: the server closes it (EOF or reset, after a 503 for those
+    // beyond the cap). Generous bound: the header timeout is seconds, not minutes.
+    let until = Instant::now() + Duration::from_secs(120);
+    let mut buf = [0u8; 512];
+    loop {
+        hanging.retain_mut(|s| loop {
+            match s.read(&mut buf) {
+                Ok(0) => return false,
+                Ok(_) => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return true,
+                Err(_) => return false,
+            }
+        });
+        if hanging.is_empty() {
+            break;
+        }
+        assert!(
+            Instant::now() < until,
+            "{} of {HANGING} connections still open ({unreachable} could not connect); sensor: {}",
+            hanging.len(),
+            logged()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(unreachable, 0, "{}", logged());
+    let text = logged();
+    assert!(!text.contains("Too many open files"), "{text}");
+    assert!(!text.contains("panicked"), "{text}");
+    // A refusal is logged, not every one: 1st, 2nd, 4th, 8th…
+    let refusals = text.matches("web connection refused").count();
+    assert!(
+        (1..=12).contains(&refusals),
+        "{refusals} refusals logged: {text}"
+    );
+    // And the dashboard serves again.
+    let (code, v) = http(addr, "GET", "/api/status", "");
+    assert_eq!(code, 200, "{v}");
+}
+
+/// Issue 35 item 5: a request whose body never arrives is answered 408 and closed, and changes
+/// nothing; the connection's slot is given back. Heads and bodies have a size bound too.
+#[test]
+fn a_body_that_never_arrives_times_out() {
+    let r = rig();
+    let a = r.web.local_addr();
+    // A head of 64 KiB with no end yet: refused, all of it read (so the close is clean).
+    let mut s = TcpStream::connect(a).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let start = format!("GET /api/status HTTP/1.1\r\nHost: {a}\r\nX-Big: ");
+    let head = format!("{start}{}", "a".repeat(64 * 1024 - start.len()));
+    s.write_all(head.as_bytes()).unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 431"), "{text}");
+    // A body that grows past 64 KiB: refused once its 65,537th byte is in (no more is sent, so
+    // the server's close leaves nothing unread that would reset the connection).
+    let mut s = TcpStream::connect(a).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    write!(
+        s,
+        "PUT /api/nodes/127/sdo/0x1008/0 HTTP/1.1\r\nHost: {a}\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n{}",
+        "a".repeat(64 * 1024 + 1)
+    )
+    .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 413"), "{text}");
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 200, "{v}");
+    let before = v["value"].clone();
+    let mut s = TcpStream::connect(a).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(60))).unwrap();
+    write!(
+        s,
+        "PUT /api/nodes/127/sdo/0x1017/0 HTTP/1.1\r\nHost: {a}\r\nContent-Type: application/json\r\nContent-Length: 40\r\n\r\n{{\"value\":"
+    )
+    .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 408"), "{text}");
+    assert!(text.contains("did not arrive"), "{text}");
+    let (_, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(v["value"], before);
+    let until = Instant::now() + Duration::from_secs(10);
+    while r.web.connections() != 0 {
+        assert!(
+            Instant::now() < until,
+            "{} connections",
+            r.web.connections()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }

@@ -32,8 +32,10 @@ function show(text, kind = "error") {
 
 async function api(method, url, body) {
   const opts = { method, headers: {} };
-  if (body !== undefined) {
-    opts.body = JSON.stringify(body);
+  // The dashboard takes state changes only as JSON (docs/DASHBOARD.md): every request that is
+  // not a read carries a JSON body, an empty object where there is nothing to say.
+  if (method !== "GET" && method !== "HEAD") {
+    opts.body = JSON.stringify(body ?? {});
     opts.headers["content-type"] = "application/json";
   }
   let r, j;
