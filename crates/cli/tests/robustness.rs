@@ -199,6 +199,8 @@ fn absurd_values_on_the_control_interface_are_refused_and_change_nothing() {
         r#"{"cmd":"fault","name":"over-temperature","on":true,"value":-300}"#,
         r#"{"cmd":"fault","name":"missing-magnet","on":true,"channel":4}"#,
         r#"{"cmd":"motion","spec":"sine:center=1,amp=1,period=1e-300"}"#,
+        // Issue 35: a misspelt key was ignored and the magnet jumped.
+        r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#,
     ] {
         let a = c.request(bad);
         assert_eq!(a["ok"], false, "{bad} → {a}");

@@ -43,9 +43,10 @@ pub const MAX_CELSIUS: f64 = 1000.0;
 pub const MAX_SUPPLY_V: f64 = 1000.0;
 
 /// A control request. `sensor` selects the sensor of a multi-sensor runtime (0-based, default
-/// 0).
+/// 0). A key a request does not know is refused with its name (`deny_unknown_fields` on every
+/// variant): a misspelt `velocty` must not turn a move into a jump.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "cmd", rename_all = "kebab-case")]
+#[serde(tag = "cmd", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum Request {
     /// Moves magnet `index` (0-based) to `mm`; `null` takes it off the rod. `velocity` (mm/s)
     /// limits the speed of the move (jump when absent).
@@ -124,8 +125,10 @@ pub enum Request {
         on: Option<bool>,
     },
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
-    /// so a measurement covers a chosen window, not the start-up.
-    ResetLateness,
+    /// so a measurement covers a chosen window, not the start-up. A struct variant without
+    /// fields, not a unit variant: serde lets an internally tagged unit variant take any
+    /// fields, and a field this request does not know must be refused like every other's.
+    ResetLateness {},
     /// Hands the sensor an NMT command as if a master had sent it, without putting a frame on
     /// the bus (a scenario's `nmt = "operational"`, or a timed NMT event).
     Nmt {
@@ -219,7 +222,7 @@ impl fmt::Display for Request {
             Request::PowerCycle { .. } => f.write_str("power-cycle"),
             Request::Ambient { celsius, .. } => write!(f, "ambient {celsius} °C"),
             Request::State { .. } => f.write_str("state"),
-            Request::ResetLateness => f.write_str("reset-lateness"),
+            Request::ResetLateness {} => f.write_str("reset-lateness"),
             Request::Nmt { command, .. } => write!(f, "nmt {command}"),
             Request::Timing {
                 sdo_delay_ms,
@@ -270,7 +273,7 @@ impl Request {
             | Request::Nmt { sensor, .. }
             | Request::Timing { sensor, .. }
             | Request::BusFault { sensor, .. } => *sensor,
-            Request::ResetLateness => None,
+            Request::ResetLateness {} => None,
         }
     }
 
@@ -366,7 +369,9 @@ impl Request {
             Request::BusFault {
                 kind, value, on, ..
             } => bus_disturbance(kind, *value, *on).map(|_| ()),
-            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness => Ok(()),
+            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness {} => {
+                Ok(())
+            }
         }
     }
 }
@@ -566,11 +571,72 @@ impl FromStr for Fault {
     }
 }
 
-/// Parses one request line into a request, or the error answer to send back.
+/// The `cmd` names of [`Request`], for messages.
+pub const COMMANDS: [&str; 10] = [
+    "magnet",
+    "motion",
+    "fault",
+    "power-cycle",
+    "ambient",
+    "state",
+    "bus-fault",
+    "reset-lateness",
+    "nmt",
+    "timing",
+];
+
+/// Parses one request line into a request, or the error answer to send back. A key the
+/// request does not know is refused with its name and the request's own keys, e.g. ``unknown
+/// field `velocty` in a `magnet` request, expected one of `sensor`, `index`, `mm`,
+/// `velocity` ``; nothing of a refused line runs.
 pub fn parse_request(line: &str) -> Result<Request, Value> {
+    // serde would also take an array, its fields by position (`["magnet",null,0,250]`): a form
+    // nobody documents, with no names to check.
+    if !line.trim_start().starts_with('{') {
+        return Err(json!({"ok": false, "error": format!(
+            "bad request: a request is one JSON object, e.g. {{\"cmd\":\"state\"}} (cmds: {})",
+            COMMANDS.join(", ")
+        )}));
+    }
     serde_json::from_str::<Request>(line).map_err(|e| {
-        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, nmt, state)")})
+        let msg = e.to_string();
+        let error = match msg.strip_prefix("unknown field ") {
+            // Only on this error path: which request it was, read again for the message.
+            Some(rest) => {
+                #[derive(Deserialize)]
+                struct Cmd {
+                    cmd: String,
+                }
+                match serde_json::from_str::<Cmd>(line) {
+                    Ok(Cmd { cmd }) => format!("unknown field {}", with_cmd(rest, &cmd)),
+                    Err(_) => msg,
+                }
+            }
+            None => format!(
+                "bad request: {msg}; expected e.g. {{\"cmd\":\"state\"}} (cmds: {})",
+                COMMANDS.join(", ")
+            ),
+        };
+        json!({"ok": false, "error": error})
     })
+}
+
+/// Puts ``in a `cmd` request`` after the field's name in the rest of serde's ``unknown field
+/// `x`, expected …`` (or ``…, there are no fields``) after `unknown field `.
+fn with_cmd(rest: &str, cmd: &str) -> String {
+    // The last of these marks: the name itself may hold any character.
+    let end = ["`, expected ", "`, there are no fields"]
+        .iter()
+        .filter_map(|m| rest.rfind(m))
+        .max();
+    match end {
+        Some(end) => {
+            let (name, tail) = rest.split_at(end + 1);
+            let tail = tail.replace("there are no fields", "it takes no fields");
+            format!("{name} in a `{cmd}` request{tail}")
+        }
+        None => format!("{rest} (in a `{cmd}` request)"),
+    }
 }
 
 /// A running control server.
@@ -891,6 +957,179 @@ mod tests {
             let req = parse_request(line).unwrap();
             assert_eq!(req.validate(), Ok(()), "{line}");
         }
+    }
+
+    /// A one-channel TH on an in-process bus, running, and its control handle.
+    fn runtime(dir: &std::path::Path) -> (crate::RuntimeHandle, ControlHandle) {
+        use crate::runtime::{state_file, SensorSetup};
+        use canpos_sim::motion::{Profile, Profiles};
+        let model = canpos_core::models::by_name("th").unwrap();
+        let cfg = model.default_config;
+        let setup = SensorSetup {
+            name: "th-control".into(),
+            model,
+            cfg,
+            spec: canpos_sim::SensorSpec::th(f64::from(cfg.stroke_mm), 1).unwrap(),
+            seed: 1,
+            ideal: true,
+            motion: Box::new(Profiles(vec![Profile::Static { pos_mm: 250.0 }])),
+            storage: crate::FileStorage::new(state_file(dir, "th", cfg.serial)),
+        };
+        let bus = crate::mem::MemBus::new();
+        let mut rt = crate::runtime::Runtime::new(Box::new(bus.attach()), None);
+        rt.add(setup);
+        let h = rt.spawn().unwrap();
+        let c = h.control();
+        (h, c)
+    }
+
+    /// Every variant with every optional field given: what `canpos ctl`, a scenario and the
+    /// dashboard send (they serialize these).
+    fn every_request() -> Vec<Request> {
+        vec![
+            Request::Magnet {
+                sensor: Some(0),
+                index: 0,
+                mm: Some(1.0),
+                velocity: Some(2.0),
+            },
+            Request::Motion {
+                sensor: Some(0),
+                spec: "static:1".into(),
+            },
+            Request::Fault {
+                sensor: Some(0),
+                name: "stall".into(),
+                on: true,
+                value: Some(1.0),
+                channel: Some(0),
+            },
+            Request::PowerCycle { sensor: Some(0) },
+            Request::Ambient {
+                sensor: Some(0),
+                celsius: 20.0,
+            },
+            Request::State { sensor: Some(0) },
+            Request::BusFault {
+                sensor: Some(0),
+                kind: "transceiver".into(),
+                value: Some(1.0),
+                on: Some(true),
+            },
+            Request::ResetLateness {},
+            Request::Nmt {
+                sensor: Some(0),
+                command: "start".into(),
+            },
+            Request::Timing {
+                sensor: Some(0),
+                sdo_delay_ms: Some(1.0),
+                sdo_jitter_ms: Some(1.0),
+                boot_delay_ms: Some(1.0),
+                reset_boot_delay_ms: Some(1.0),
+            },
+        ]
+    }
+
+    /// Issue 35 item 9: `{"cmd":"magnet","index":0,"mm":700,"velocty":100}` answered ok and
+    /// the magnet jumped. Every request with an unknown key is refused with the key's name.
+    #[test]
+    fn unknown_fields_are_refused_with_their_name() {
+        let e = parse_request(r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#).unwrap_err();
+        assert_eq!(e["ok"], false);
+        assert_eq!(
+            e["error"],
+            "unknown field `velocty` in a `magnet` request, expected one of `sensor`, `index`, `mm`, `velocity`"
+        );
+        let reqs = every_request();
+        assert_eq!(reqs.len(), COMMANDS.len(), "a request missing here");
+        for req in reqs {
+            let mut v = serde_json::to_value(&req).unwrap();
+            let cmd = v["cmd"].as_str().unwrap().to_string();
+            assert!(COMMANDS.contains(&cmd.as_str()), "{cmd} not in COMMANDS");
+            // Serialized as the tools send it, it parses back the same.
+            assert_eq!(parse_request(&v.to_string()).unwrap(), req, "{v}");
+            // The key last, first, or a near miss of a real one (a unit variant used to take
+            // anything).
+            for key in ["velocty", "Sensor", "a`b, expected x"] {
+                v[key] = json!(1);
+                let e = parse_request(&v.to_string()).unwrap_err();
+                let msg = e["error"].as_str().unwrap();
+                assert!(
+                    msg.starts_with(&format!("unknown field `{key}` in a `{cmd}` request")),
+                    "{v}: {msg}"
+                );
+                v.as_object_mut().unwrap().remove(key);
+            }
+        }
+        assert_eq!(
+            parse_request(r#"{"cmd":"reset-lateness","x":1}"#).unwrap_err()["error"],
+            "unknown field `x` in a `reset-lateness` request, it takes no fields"
+        );
+        // Still refused with the cmd's name when the cmd comes last.
+        let e = parse_request(r#"{"velocty":1,"cmd":"state"}"#).unwrap_err();
+        assert!(
+            e["error"]
+                .as_str()
+                .unwrap()
+                .starts_with("unknown field `velocty` in a `state` request"),
+            "{e}"
+        );
+        // Fields by position, with no names to check, are no request either.
+        for line in [
+            r#"["state"]"#,
+            r#"["magnet",null,0,250.0,null]"#,
+            " [\"reset-lateness\"]",
+        ] {
+            let e = parse_request(line).unwrap_err();
+            assert!(
+                e["error"].as_str().unwrap().contains("one JSON object"),
+                "{line}: {e}"
+            );
+        }
+    }
+
+    /// Each request of docs/CONTROL.md's table parses as written there, and the table shows
+    /// every command.
+    #[test]
+    fn the_documented_requests_parse() {
+        let doc = include_str!("../../../docs/CONTROL.md");
+        let mut seen = std::collections::BTreeSet::new();
+        for row in doc.lines().filter(|l| l.starts_with("| `{\"cmd\":")) {
+            let line = &row[3..row[3..].find('`').unwrap() + 3];
+            let req =
+                parse_request(line).unwrap_or_else(|e| panic!("docs/CONTROL.md: {line}: {e}"));
+            let v = serde_json::to_value(&req).unwrap();
+            seen.insert(v["cmd"].as_str().unwrap().to_string());
+        }
+        for cmd in COMMANDS {
+            assert!(
+                seen.contains(cmd),
+                "docs/CONTROL.md's table shows no `{cmd}`"
+            );
+        }
+    }
+
+    /// The misspelt key of the issue, on a running sensor: refused, and the magnet stays.
+    #[test]
+    fn a_misspelt_key_moves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let before = c.request(Request::State { sensor: None });
+        assert_eq!(before["true_mm"], json!([250.0]), "{before}");
+        let a = answer_line(r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#, &c);
+        assert_eq!(a["ok"], false, "{a}");
+        assert!(a["error"].as_str().unwrap().contains("`velocty`"), "{a}");
+        // A request accepted after the refused one: once it shows, the refused one would
+        // have shown too.
+        let a = answer_line(r#"{"cmd":"ambient","celsius":21}"#, &c);
+        assert_eq!(a["ok"], true, "{a}");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(
+            (&st["true_mm"], &st["ambient_c"]),
+            (&json!([250.0]), &json!(21.0))
+        );
+        h.stop().unwrap();
     }
 
     #[test]

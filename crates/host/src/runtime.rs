@@ -1129,7 +1129,7 @@ impl Runtime {
                 r?;
                 Ok(json!({"ok": true}))
             }
-            Request::ResetLateness => {
+            Request::ResetLateness {} => {
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
             }
