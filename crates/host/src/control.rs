@@ -652,9 +652,41 @@ impl ControlServer {
     }
 }
 
-/// Serves the control interface on `addr`, answering through `handle`. Each connection gets a
-/// thread (clients are test harnesses: few, long-lived). Warns when `addr` is not loopback:
-/// the interface has no authentication.
+/// How long a control connection may stay without a complete request before it is closed
+/// (and how long an answer may wait for its client to take it). Clients keep a connection
+/// only while they use it, or reconnect: the dashboard and `canpos ctl` connect per request,
+/// the Python client reconnects when it finds its connection closed.
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Longest answer line [`call`] reads (a `state` answer is a few KiB): a server that sends
+/// an endless line gets an error, not all of the client's memory.
+pub const MAX_ANSWER: usize = 1024 * 1024;
+
+/// Limits of a control server ([`serve_with`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ServeOptions {
+    /// A connection is closed, without a word, when no complete request line arrives within
+    /// this time after it opened or after its last answer; it is also closed when an answer
+    /// cannot be handed to the socket within this time (its client does not read). Default
+    /// [`IDLE_TIMEOUT`]; at least 1 ms is used.
+    pub idle_timeout: Duration,
+    /// Connections served at once; one more gets one error line and is closed. Default
+    /// [`MAX_CONNECTIONS`].
+    pub max_connections: usize,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        ServeOptions {
+            idle_timeout: IDLE_TIMEOUT,
+            max_connections: MAX_CONNECTIONS,
+        }
+    }
+}
+
+/// Serves the control interface on `addr`, answering through `handle`, with the default
+/// [`ServeOptions`]. Each connection gets a thread (clients are test harnesses: few). Warns
+/// when `addr` is not loopback: the interface has no authentication.
 pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<ControlServer> {
     serve_on(TcpListener::bind(addr)?, handle)
 }
@@ -663,6 +695,22 @@ pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<Cont
 /// client that saw the boot-up can connect at once (connections wait in the backlog until
 /// the runtime is up).
 pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<ControlServer> {
+    serve_with(listener, handle, ServeOptions::default())
+}
+
+/// [`serve_on`] with other limits (a short idle timeout in a test, say).
+///
+/// What a connection can hold: one request line (at most [`MAX_LINE`] bytes) and one answer
+/// at a time. Answers are written straight to the socket, never queued here: a client that
+/// sends requests and never reads fills the kernel's socket buffers, then the server stops
+/// reading its requests (TCP holds the client back), and after `idle_timeout` without
+/// progress the connection is closed. So every connection costs at most a line, an answer and
+/// its thread, for at most `idle_timeout` past its last request.
+pub fn serve_with(
+    listener: TcpListener,
+    handle: ControlHandle,
+    options: ServeOptions,
+) -> io::Result<ControlServer> {
     let addr = listener.local_addr()?;
     crate::warn_if_exposed(addr, "the control interface");
     let open = Arc::new(AtomicUsize::new(0));
@@ -670,16 +718,19 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
         .name("canpos-control".into())
         .spawn(move || {
             for conn in listener.incoming() {
-                let Ok(mut stream) = conn else { continue };
-                if open.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
+                let stream = match conn {
+                    Ok(s) => s,
+                    Err(e) => {
+                        // Out of descriptors, say: retrying at once would spin; the connection
+                        // waits in the backlog meanwhile.
+                        tracing::warn!(error = %e, "control interface: accept failed");
+                        std::thread::sleep(Duration::from_millis(100));
+                        continue;
+                    }
+                };
+                if open.fetch_add(1, Ordering::SeqCst) >= options.max_connections {
                     open.fetch_sub(1, Ordering::SeqCst);
-                    let _ = stream.write_all(
-                        format!(
-                            "{}\n",
-                            json!({"ok": false, "error": format!("too many control connections (at most {MAX_CONNECTIONS})")})
-                        )
-                        .as_bytes(),
-                    );
+                    refuse(stream, options.max_connections);
                     continue;
                 }
                 let h = handle.clone();
@@ -687,8 +738,17 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
                 let spawned = std::thread::Builder::new()
                     .name("canpos-control-conn".into())
                     .spawn(move || {
-                        if let Err(e) = serve_conn(stream, h) {
-                            tracing::debug!(error = %e, "control connection ended");
+                        match serve_conn(stream, h, options.idle_timeout) {
+                            Ok(End::Closed) => {}
+                            Ok(End::Idle) => tracing::debug!(
+                                timeout_s = options.idle_timeout.as_secs_f64(),
+                                "control connection closed: idle"
+                            ),
+                            Ok(End::NotReading) => tracing::warn!(
+                                timeout_s = options.idle_timeout.as_secs_f64(),
+                                "control connection closed: its client takes no answers"
+                            ),
+                            Err(e) => tracing::debug!(error = %e, "control connection ended"),
                         }
                         count.fetch_sub(1, Ordering::SeqCst);
                     });
@@ -701,6 +761,18 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
         addr,
         _thread: thread,
     })
+}
+
+/// Answers a connection beyond the limit with one error line and closes it, at once: the
+/// accept loop never waits on that client (a fresh socket's buffer takes the line whole).
+fn refuse(stream: TcpStream, max: usize) {
+    let line = format!(
+        "{}\n",
+        json!({"ok": false, "error": format!("too many control connections (at most {max}); idle ones are closed after their timeout, try again")})
+    );
+    let _ = stream.set_nonblocking(true);
+    let _ = (&stream).write_all(line.as_bytes());
+    let _ = stream.shutdown(std::net::Shutdown::Write);
 }
 
 /// One line read by [`read_line_limited`].
@@ -765,33 +837,96 @@ pub fn answer_line(line: &str, handle: &ControlHandle) -> Value {
     }
 }
 
-fn serve_conn(stream: TcpStream, handle: ControlHandle) -> io::Result<()> {
+/// How a connection ended without an error.
+enum End {
+    /// The client closed it.
+    Closed,
+    /// No request within the idle timeout.
+    Idle,
+    /// An answer not taken within the idle timeout: the client does not read.
+    NotReading,
+}
+
+/// A connection's reading side with a deadline for the whole of the next request line: a
+/// client that sends nothing, or a byte now and then, is closed all the same.
+struct Deadline {
+    stream: TcpStream,
+    at: std::time::Instant,
+}
+
+impl io::Read for Deadline {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let left = self.at.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Err(io::ErrorKind::TimedOut.into());
+        }
+        self.stream.set_read_timeout(Some(left))?;
+        self.stream.read(buf)
+    }
+}
+
+/// Now plus `d`, or a year from now when `d` is beyond what the clock can add.
+fn deadline_after(d: Duration) -> std::time::Instant {
+    let now = std::time::Instant::now();
+    now.checked_add(d)
+        .unwrap_or_else(|| now + Duration::from_secs(365 * 24 * 3600))
+}
+
+fn serve_conn(stream: TcpStream, handle: ControlHandle, idle: Duration) -> io::Result<End> {
+    // A socket timeout of zero is refused by the OS (and would mean none).
+    let idle = idle.max(Duration::from_millis(1));
     stream.set_nodelay(true)?;
+    // An answer the client does not take within the idle time ends the connection.
+    stream.set_write_timeout(Some(idle))?;
     let mut out = stream.try_clone()?;
-    let mut reader = BufReader::new(stream);
+    let mut reader = BufReader::new(Deadline {
+        stream,
+        at: deadline_after(idle),
+    });
     loop {
-        let answer = match read_line_limited(&mut reader, MAX_LINE)? {
-            Line::Eof => return Ok(()),
+        let line = match read_line_limited(&mut reader, MAX_LINE) {
+            Ok(l) => l,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) =>
+            {
+                return Ok(End::Idle)
+            }
+            Err(e) => return Err(e),
+        };
+        let answer = match line {
+            Line::Eof => return Ok(End::Closed),
             Line::TooLong => json!({
                 "ok": false,
                 "error": format!("request line longer than {MAX_LINE} bytes; discarded up to its newline")
             }),
-            Line::Text(bytes) => {
-                let Ok(text) = std::str::from_utf8(&bytes) else {
-                    let e = json!({"ok": false, "error": "request line is not UTF-8"});
-                    out.write_all(format!("{e}\n").as_bytes())?;
-                    continue;
-                };
-                let text = text.trim();
-                if text.is_empty() {
-                    continue;
+            Line::Text(bytes) => match std::str::from_utf8(&bytes) {
+                Err(_) => json!({"ok": false, "error": "request line is not UTF-8"}),
+                Ok(text) => {
+                    let text = text.trim();
+                    if text.is_empty() {
+                        continue;
+                    }
+                    answer_line(text, &handle)
                 }
-                answer_line(text, &handle)
-            }
+            },
         };
         let mut s = answer.to_string();
         s.push('\n');
-        out.write_all(s.as_bytes())?;
+        match out.write_all(s.as_bytes()) {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) =>
+            {
+                return Ok(End::NotReading)
+            }
+            r => r?,
+        }
+        reader.get_mut().at = deadline_after(idle);
     }
 }
 
@@ -801,13 +936,32 @@ pub fn call(addr: impl ToSocketAddrs, req: &Request, timeout: Duration) -> io::R
     for a in addr.to_socket_addrs()? {
         match TcpStream::connect_timeout(&a, timeout) {
             Ok(mut s) => {
-                s.set_read_timeout(Some(timeout))?;
+                s.set_write_timeout(Some(timeout))?;
                 let mut line = serde_json::to_string(req).map_err(io::Error::other)?;
                 line.push('\n');
                 s.write_all(line.as_bytes())?;
-                let mut reply = String::new();
-                BufReader::new(s).read_line(&mut reply)?;
-                return serde_json::from_str(reply.trim()).map_err(|e| {
+                // The whole answer within `timeout`, not each read: a server that trickles
+                // bytes cannot hold the caller longer.
+                let mut r = BufReader::new(Deadline {
+                    stream: s,
+                    at: deadline_after(timeout),
+                });
+                let reply = match read_line_limited(&mut r, MAX_ANSWER)? {
+                    Line::Text(t) => t,
+                    Line::TooLong => {
+                        return Err(io::Error::new(
+                            io::ErrorKind::InvalidData,
+                            format!("answer longer than {MAX_ANSWER} bytes"),
+                        ))
+                    }
+                    Line::Eof => {
+                        return Err(io::Error::new(
+                            io::ErrorKind::UnexpectedEof,
+                            "the control interface closed the connection without an answer",
+                        ))
+                    }
+                };
+                return serde_json::from_slice(&reply).map_err(|e| {
                     io::Error::new(io::ErrorKind::InvalidData, format!("bad answer: {e}"))
                 });
             }
@@ -1129,6 +1283,145 @@ mod tests {
             (&st["true_mm"], &st["ambient_c"]),
             (&json!([250.0]), &json!(21.0))
         );
+        h.stop().unwrap();
+    }
+
+    /// Connects and sends `state`; the answer line (or the error that ended the read).
+    fn ask_state(addr: SocketAddr, timeout: Duration) -> io::Result<Value> {
+        call(addr, &Request::State { sensor: None }, timeout)
+    }
+
+    /// Issue 35 item 6: 32 idle connections used to lock the control interface out for good.
+    /// Now a refused client hears so at once, idle connections are closed after the timeout,
+    /// and a new client is answered within it.
+    #[test]
+    fn idle_connections_are_closed_and_a_new_client_gets_in() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let idle = Duration::from_secs(2);
+        let srv = serve_with(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            c,
+            ServeOptions {
+                idle_timeout: idle,
+                ..ServeOptions::default()
+            },
+        )
+        .unwrap();
+        let addr = srv.local_addr();
+        // 32 clients that ask once (so each is surely being served) and then say nothing.
+        let mut quiet = Vec::new();
+        for _ in 0..MAX_CONNECTIONS {
+            let mut s = TcpStream::connect(addr).unwrap();
+            s.write_all(b"{\"cmd\":\"state\"}\n").unwrap();
+            let mut r = BufReader::new(s.try_clone().unwrap());
+            let mut line = String::new();
+            r.read_line(&mut line).unwrap();
+            assert!(line.contains("\"ok\":true"), "{line}");
+            quiet.push(r);
+        }
+        let start = std::time::Instant::now();
+        // One more is refused with a reason, promptly (not after its own timeout).
+        let a = ask_state(addr, Duration::from_secs(10)).unwrap();
+        if start.elapsed() < idle {
+            assert_eq!(a["ok"], false, "{a}");
+            assert!(a["error"].as_str().unwrap().contains("too many"), "{a}");
+        }
+        // A client that tries again is answered once the idle ones are gone.
+        let bound = idle + Duration::from_secs(20);
+        let answered = loop {
+            let a = ask_state(addr, Duration::from_secs(10)).unwrap();
+            if a["ok"] == true {
+                break start.elapsed();
+            }
+            assert!(
+                start.elapsed() < bound,
+                "still locked out after {bound:?}: {a}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(answered < bound, "{answered:?}");
+        // The idle ones were closed by the server: each reads the end of the stream.
+        for r in &mut quiet {
+            r.get_ref().set_read_timeout(Some(bound)).unwrap();
+            let mut line = String::new();
+            assert_eq!(r.read_line(&mut line).unwrap(), 0, "{line}");
+        }
+        h.stop().unwrap();
+    }
+
+    /// A client that sends requests and reads no answer: the server stops taking its requests
+    /// once the socket buffers are full (no answers pile up in memory) and closes it after the
+    /// timeout, while others are served.
+    #[test]
+    fn a_client_that_never_reads_is_held_back_and_closed() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let idle = Duration::from_secs(1);
+        let srv = serve_with(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            c,
+            ServeOptions {
+                idle_timeout: idle,
+                ..ServeOptions::default()
+            },
+        )
+        .unwrap();
+        let addr = srv.local_addr();
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.set_write_timeout(Some(Duration::from_millis(500)))
+            .unwrap();
+        // Each `state` answer is ~100 times its request. The socket buffers hold some MiB of
+        // requests and answers; a server that took every request would take all 64 MiB (and
+        // owe GiBs of answers).
+        let chunk = b"{\"cmd\":\"state\"}\n".repeat(4096);
+        let mut sent = 0usize;
+        let start = std::time::Instant::now();
+        let held_back = loop {
+            match s.write(&chunk) {
+                Ok(n) => sent += n,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    break true
+                }
+                // Closed by the server (after it stopped reading): held back too.
+                Err(_) => break true,
+            }
+            if sent > 64 << 20 || start.elapsed() > Duration::from_secs(60) {
+                break false;
+            }
+        };
+        assert!(
+            held_back,
+            "the server took {sent} bytes of requests nobody reads answers to"
+        );
+        // Another client is served meanwhile, and the stuck one is closed after the timeout.
+        assert_eq!(
+            ask_state(addr, Duration::from_secs(10)).unwrap()["ok"],
+            true
+        );
+        // Closed by the server: with requests of ours unread there, it resets the connection,
+        // and our next write fails (reading instead would free the server to go on).
+        let end = std::time::Instant::now() + Duration::from_secs(30);
+        let closed = loop {
+            match s.write(b"\n") {
+                Err(e)
+                    if !matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    break true
+                }
+                _ if std::time::Instant::now() > end => break false,
+                _ => {}
+            }
+        };
+        assert!(closed, "the stuck connection stays open");
         h.stop().unwrap();
     }
 
