@@ -6,12 +6,18 @@
 //! non-empty `error`; an over-long line is one refusal; the runtime keeps answering; a refused
 //! request changes nothing (the state before and after a refusal is the same, apart from the
 //! clock-driven fields).
+//!
+//! Unknown fields (issue 35): a line whose object holds a key its `cmd` does not know (the
+//! table [`FIELDS`], written from docs/CONTROL.md, not from the parser) never parses; an
+//! accepted request holds only known keys. Every line that parses gets a structured twin
+//! with one more key made from the input (a near miss of a real one, or the input's own
+//! bytes), which must be refused with that key's name and change nothing.
 #![no_main]
 
 use std::io::BufReader;
 use std::sync::OnceLock;
 
-use canpos_host::control::{answer_line, read_line_limited, Line};
+use canpos_host::control::{answer_line, parse_request, read_line_limited, Line};
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::{state_file, Runtime, SensorSetup};
 use canpos_host::{ControlHandle, FileStorage, RuntimeHandle};
@@ -21,6 +27,66 @@ use serde_json::Value;
 
 /// Longest line in this target (the server's is 64 KiB; shorter keeps runs fast).
 const LIMIT: usize = 4096;
+
+/// The keys each request takes besides `cmd` (docs/CONTROL.md): the oracle for unknown fields.
+const FIELDS: [(&str, &[&str]); 10] = [
+    ("magnet", &["sensor", "index", "mm", "velocity"]),
+    ("motion", &["sensor", "spec"]),
+    ("fault", &["sensor", "name", "on", "value", "channel"]),
+    ("power-cycle", &["sensor"]),
+    ("ambient", &["sensor", "celsius"]),
+    ("state", &["sensor"]),
+    ("bus-fault", &["sensor", "kind", "value", "on"]),
+    ("reset-lateness", &[]),
+    ("nmt", &["sensor", "command"]),
+    (
+        "timing",
+        &[
+            "sensor",
+            "sdo_delay_ms",
+            "sdo_jitter_ms",
+            "boot_delay_ms",
+            "reset_boot_delay_ms",
+        ],
+    ),
+];
+
+/// Near misses of real keys: what a typing human sends.
+const NEAR_MISSES: [&str; 6] = ["velocty", "Sensor", "mm ", "channle", "value_", "cmd2"];
+
+/// The keys of a JSON object line that its `cmd` does not take (`None`: not an object with a
+/// known `cmd`).
+fn unknown_keys(text: &str) -> Option<Vec<String>> {
+    let Ok(Value::Object(obj)) = serde_json::from_str::<Value>(text) else {
+        return None;
+    };
+    let cmd = obj.get("cmd")?.as_str()?;
+    let (_, known) = FIELDS.iter().find(|(c, _)| *c == cmd)?;
+    Some(
+        obj.keys()
+            .filter(|k| *k != "cmd" && !known.contains(&k.as_str()))
+            .cloned()
+            .collect(),
+    )
+}
+
+/// An accepted line with one key more that its `cmd` does not take, made from `seed`.
+fn with_unknown_key(text: &str, seed: &[u8]) -> Option<(String, String)> {
+    let Ok(Value::Object(mut obj)) = serde_json::from_str::<Value>(text) else {
+        return None;
+    };
+    let cmd = obj.get("cmd")?.as_str()?.to_string();
+    let (_, known) = FIELDS.iter().find(|(c, _)| *c == cmd)?;
+    let key = match seed.first() {
+        Some(&b) if usize::from(b) < NEAR_MISSES.len() => NEAR_MISSES[usize::from(b)].to_string(),
+        _ => String::from_utf8_lossy(&seed[..seed.len().min(24)]).into_owned(),
+    };
+    if key == "cmd" || known.contains(&key.as_str()) || obj.contains_key(&key) {
+        return None;
+    }
+    obj.insert(key.clone(), Value::from(seed.len()));
+    Some((Value::Object(obj).to_string(), key))
+}
 
 fn runtime() -> &'static (RuntimeHandle, ControlHandle) {
     static RT: OnceLock<(RuntimeHandle, ControlHandle)> = OnceLock::new();
@@ -75,6 +141,19 @@ fn settled(st: &Value) -> Value {
     )
 }
 
+/// Sends `line`, which must be refused, and checks that the state did not change.
+fn refused_changes_nothing(control: &ControlHandle, line: &str) {
+    let before = control.request(canpos_host::control::Request::State { sensor: None });
+    let answer = answer_line(line, control);
+    assert_eq!(answer["ok"], false, "{line:?} accepted: {answer}");
+    let after = control.request(canpos_host::control::Request::State { sensor: None });
+    assert_eq!(
+        settled(&before),
+        settled(&after),
+        "{line:?} was refused ({answer}) but changed the state"
+    );
+}
+
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {
     let (_, control) = runtime();
     let mut r = BufReader::with_capacity(64, data);
@@ -90,6 +169,24 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         let text = text.trim();
         if text.is_empty() {
             continue;
+        }
+        let parsed = parse_request(text);
+        if let Some(unknown) = unknown_keys(text) {
+            assert!(
+                unknown.is_empty() || parsed.is_err(),
+                "{text:?} parsed with unknown key(s) {unknown:?}: {parsed:?}"
+            );
+        }
+        if parsed.is_ok() {
+            if let Some((twin, key)) = with_unknown_key(text, data) {
+                let e = parse_request(&twin).expect_err(&twin);
+                let msg = e["error"].as_str().unwrap_or_default();
+                assert!(
+                    msg.starts_with("unknown field `") && msg.contains(&key),
+                    "{twin:?} refused without naming `{key}`: {e}"
+                );
+                refused_changes_nothing(control, &twin);
+            }
         }
         let before = control.request(canpos_host::control::Request::State { sensor: None });
         let answer = answer_line(text, control);

@@ -41,6 +41,16 @@ def test_control_client_moves_the_magnet_and_refuses_bad_requests(canpos_sensor)
     assert s.control.timing()["cycle_us"] > 0
 
 
+def test_control_client_reconnects_after_the_idle_timeout(canpos_sensor):
+    # The sensor closes control connections idle past the timeout (docs/CONTROL.md); the
+    # client's next request goes on a new connection, once, transparently.
+    s = canpos_sensor(model="th", node_id=6, ideal=True, magnet=100, control_idle_timeout=0.3)
+    assert s.state()["node_id"] == 6
+    time.sleep(1.0)
+    s.control.magnet(0, 321.0)
+    assert wait_for(lambda: abs(s.control.positions()[0] - 321.0) < 0.01)
+
+
 def test_sdo_and_tpdo_through_python_canopen(canpos_bus, canpos_sensor):
     s = canpos_sensor(model="th", node_id=127, ideal=True, magnet=300)
     net = network_on(canpos_bus)

@@ -629,7 +629,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
         Ok((total, last))
     };
     let (missed0, _) = missed(&control)?;
-    let r = control.request(canpos_host::control::Request::ResetLateness);
+    let r = control.request(canpos_host::control::Request::ResetLateness {});
     ensure!(r["ok"] == true, "reset-lateness: {r}");
     let f0 = frames_now(&hub);
     let o0 = observed.load(std::sync::atomic::Ordering::Relaxed);

@@ -620,6 +620,10 @@ pub struct RunArgs {
     /// Serve the JSON-lines control interface on ADDR (e.g. 127.0.0.1:29600).
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
+    /// Close a control connection that sends no complete request for S seconds (default 30;
+    /// see docs/CONTROL.md).
+    #[arg(long, value_name = "S", requires = "control", value_parser = crate::limits::parse_positive_seconds)]
+    pub control_idle_timeout: Option<f64>,
     /// Serve a plain CiA 301 device described by this EDS file instead of a sensor (see
     /// docs/EDS_DEVICE.md).
     #[arg(long, value_name = "FILE", conflicts_with_all = EDS_CONFLICTS)]
@@ -746,12 +750,18 @@ fn bind_control(addr: Option<&str>) -> Result<Option<std::net::TcpListener>> {
 fn start_control(
     listener: Option<std::net::TcpListener>,
     rt: &RuntimeHandle,
+    idle_timeout_s: Option<f64>,
 ) -> Result<Option<control::ControlServer>> {
     let Some(listener) = listener else {
         return Ok(None);
     };
-    let srv =
-        control::serve_on(listener, rt.control()).context("cannot serve the control interface")?;
+    let mut options = control::ServeOptions::default();
+    if let Some(s) = idle_timeout_s {
+        // Checked by the value parser: finite, > 0, at most 1e9 s.
+        options.idle_timeout = Duration::from_secs_f64(s);
+    }
+    let srv = control::serve_with(listener, rt.control(), options)
+        .context("cannot serve the control interface")?;
     eprintln!("canpos: control interface on {}", srv.local_addr());
     Ok(Some(srv))
 }
@@ -881,7 +891,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     let handle = rt.spawn()?;
     banner(&handle, 1, &desc)?;
     start_nodes(&handle, &[built.nmt])?;
-    let _ctl = start_control(listener, &handle)?;
+    let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
     let _web = start_web(a.web.as_deref(), &a.bus, &handle, 1)?;
     supervise(handle, &stop)
 }
@@ -1082,6 +1092,10 @@ pub struct ScenarioArgs {
     /// Override the file's control address.
     #[arg(long, value_name = "ADDR")]
     pub control: Option<String>,
+    /// Close a control connection that sends no complete request for S seconds (default 30;
+    /// see docs/CONTROL.md).
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
+    pub control_idle_timeout: Option<f64>,
     /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
     #[arg(long, value_name = "ADDR")]
     pub web: Option<String>,
@@ -1130,7 +1144,7 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
         }
     }
     start_nodes(&handle, &nmt)?;
-    let _ctl = start_control(listener, &handle)?;
+    let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
     let _web = start_web(a.web.as_deref(), &url, &handle, count)?;
     // Timed events on their own thread, on absolute times from the start.
     let ctl = handle.control();

@@ -199,6 +199,8 @@ fn absurd_values_on_the_control_interface_are_refused_and_change_nothing() {
         r#"{"cmd":"fault","name":"over-temperature","on":true,"value":-300}"#,
         r#"{"cmd":"fault","name":"missing-magnet","on":true,"channel":4}"#,
         r#"{"cmd":"motion","spec":"sine:center=1,amp=1,period=1e-300"}"#,
+        // Issue 35: a misspelt key was ignored and the magnet jumped.
+        r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#,
     ] {
         let a = c.request(bad);
         assert_eq!(a["ok"], false, "{bad} → {a}");
@@ -391,6 +393,54 @@ fn control_connections_are_limited() {
         );
         std::thread::sleep(Duration::from_millis(10));
     }
+}
+
+/// Issue 35 item 6: 32 idle control connections locked the interface out for good (and
+/// `canpos ctl` and the dashboard's `--control` link with it). Idle ones are closed after
+/// `--control-idle-timeout`; a refused client hears why at once.
+#[test]
+fn idle_control_connections_are_closed_after_the_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let ctl = format!("127.0.0.1:{port}");
+    let mut p = Proc::start(
+        dir.path(),
+        &[
+            "run",
+            "--bus",
+            "mem://r",
+            "--control",
+            &ctl,
+            "--control-idle-timeout",
+            "2",
+            "--state-dir",
+            "state",
+        ],
+    );
+    p.wait_for("control interface on", SHORT);
+    let mut idle: Vec<Ctl> = (0..32).map(|_| Ctl::connect(port)).collect();
+    for c in &mut idle {
+        assert_eq!(c.request(r#"{"cmd":"state"}"#)["ok"], true);
+    }
+    let start = std::time::Instant::now();
+    let o = canpos(&["ctl", "--control", &ctl, "state"]);
+    if start.elapsed() < Duration::from_secs(2) {
+        assert_fails(&o, 1, "too many control connections");
+    }
+    let bound = Duration::from_secs(2) + SHORT;
+    loop {
+        let o = canpos(&["ctl", "--control", &ctl, "state"]);
+        if o.status.success() {
+            break;
+        }
+        assert!(
+            start.elapsed() < bound,
+            "still locked out after {bound:?}: {}",
+            text(&o)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    drop(idle);
 }
 
 // ------------------------------------------------------------------------ scenario / CLI

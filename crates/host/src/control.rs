@@ -43,9 +43,10 @@ pub const MAX_CELSIUS: f64 = 1000.0;
 pub const MAX_SUPPLY_V: f64 = 1000.0;
 
 /// A control request. `sensor` selects the sensor of a multi-sensor runtime (0-based, default
-/// 0).
+/// 0). A key a request does not know is refused with its name (`deny_unknown_fields` on every
+/// variant): a misspelt `velocty` must not turn a move into a jump.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "cmd", rename_all = "kebab-case")]
+#[serde(tag = "cmd", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum Request {
     /// Moves magnet `index` (0-based) to `mm`; `null` takes it off the rod. `velocity` (mm/s)
     /// limits the speed of the move (jump when absent).
@@ -124,8 +125,10 @@ pub enum Request {
         on: Option<bool>,
     },
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
-    /// so a measurement covers a chosen window, not the start-up.
-    ResetLateness,
+    /// so a measurement covers a chosen window, not the start-up. A struct variant without
+    /// fields, not a unit variant: serde lets an internally tagged unit variant take any
+    /// fields, and a field this request does not know must be refused like every other's.
+    ResetLateness {},
     /// Hands the sensor an NMT command as if a master had sent it, without putting a frame on
     /// the bus (a scenario's `nmt = "operational"`, or a timed NMT event).
     Nmt {
@@ -219,7 +222,7 @@ impl fmt::Display for Request {
             Request::PowerCycle { .. } => f.write_str("power-cycle"),
             Request::Ambient { celsius, .. } => write!(f, "ambient {celsius} °C"),
             Request::State { .. } => f.write_str("state"),
-            Request::ResetLateness => f.write_str("reset-lateness"),
+            Request::ResetLateness {} => f.write_str("reset-lateness"),
             Request::Nmt { command, .. } => write!(f, "nmt {command}"),
             Request::Timing {
                 sdo_delay_ms,
@@ -270,7 +273,7 @@ impl Request {
             | Request::Nmt { sensor, .. }
             | Request::Timing { sensor, .. }
             | Request::BusFault { sensor, .. } => *sensor,
-            Request::ResetLateness => None,
+            Request::ResetLateness {} => None,
         }
     }
 
@@ -366,7 +369,9 @@ impl Request {
             Request::BusFault {
                 kind, value, on, ..
             } => bus_disturbance(kind, *value, *on).map(|_| ()),
-            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness => Ok(()),
+            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness {} => {
+                Ok(())
+            }
         }
     }
 }
@@ -566,11 +571,72 @@ impl FromStr for Fault {
     }
 }
 
-/// Parses one request line into a request, or the error answer to send back.
+/// The `cmd` names of [`Request`], for messages.
+pub const COMMANDS: [&str; 10] = [
+    "magnet",
+    "motion",
+    "fault",
+    "power-cycle",
+    "ambient",
+    "state",
+    "bus-fault",
+    "reset-lateness",
+    "nmt",
+    "timing",
+];
+
+/// Parses one request line into a request, or the error answer to send back. A key the
+/// request does not know is refused with its name and the request's own keys, e.g. ``unknown
+/// field `velocty` in a `magnet` request, expected one of `sensor`, `index`, `mm`,
+/// `velocity` ``; nothing of a refused line runs.
 pub fn parse_request(line: &str) -> Result<Request, Value> {
+    // serde would also take an array, its fields by position (`["magnet",null,0,250]`): a form
+    // nobody documents, with no names to check.
+    if !line.trim_start().starts_with('{') {
+        return Err(json!({"ok": false, "error": format!(
+            "bad request: a request is one JSON object, e.g. {{\"cmd\":\"state\"}} (cmds: {})",
+            COMMANDS.join(", ")
+        )}));
+    }
     serde_json::from_str::<Request>(line).map_err(|e| {
-        json!({"ok": false, "error": format!("bad request: {e}; expected e.g. {{\"cmd\":\"state\"}} (cmds: magnet, motion, fault, power-cycle, ambient, nmt, state)")})
+        let msg = e.to_string();
+        let error = match msg.strip_prefix("unknown field ") {
+            // Only on this error path: which request it was, read again for the message.
+            Some(rest) => {
+                #[derive(Deserialize)]
+                struct Cmd {
+                    cmd: String,
+                }
+                match serde_json::from_str::<Cmd>(line) {
+                    Ok(Cmd { cmd }) => format!("unknown field {}", with_cmd(rest, &cmd)),
+                    Err(_) => msg,
+                }
+            }
+            None => format!(
+                "bad request: {msg}; expected e.g. {{\"cmd\":\"state\"}} (cmds: {})",
+                COMMANDS.join(", ")
+            ),
+        };
+        json!({"ok": false, "error": error})
     })
+}
+
+/// Puts ``in a `cmd` request`` after the field's name in the rest of serde's ``unknown field
+/// `x`, expected …`` (or ``…, there are no fields``) after `unknown field `.
+fn with_cmd(rest: &str, cmd: &str) -> String {
+    // The last of these marks: the name itself may hold any character.
+    let end = ["`, expected ", "`, there are no fields"]
+        .iter()
+        .filter_map(|m| rest.rfind(m))
+        .max();
+    match end {
+        Some(end) => {
+            let (name, tail) = rest.split_at(end + 1);
+            let tail = tail.replace("there are no fields", "it takes no fields");
+            format!("{name} in a `{cmd}` request{tail}")
+        }
+        None => format!("{rest} (in a `{cmd}` request)"),
+    }
 }
 
 /// A running control server.
@@ -586,9 +652,41 @@ impl ControlServer {
     }
 }
 
-/// Serves the control interface on `addr`, answering through `handle`. Each connection gets a
-/// thread (clients are test harnesses: few, long-lived). Warns when `addr` is not loopback:
-/// the interface has no authentication.
+/// How long a control connection may stay without a complete request before it is closed
+/// (and how long an answer may wait for its client to take it). Clients keep a connection
+/// only while they use it, or reconnect: the dashboard and `canpos ctl` connect per request,
+/// the Python client reconnects when it finds its connection closed.
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Longest answer line [`call`] reads (a `state` answer is a few KiB): a server that sends
+/// an endless line gets an error, not all of the client's memory.
+pub const MAX_ANSWER: usize = 1024 * 1024;
+
+/// Limits of a control server ([`serve_with`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ServeOptions {
+    /// A connection is closed, without a word, when no complete request line arrives within
+    /// this time after it opened or after its last answer; it is also closed when an answer
+    /// cannot be handed to the socket within this time (its client does not read). Default
+    /// [`IDLE_TIMEOUT`]; at least 1 ms is used.
+    pub idle_timeout: Duration,
+    /// Connections served at once; one more gets one error line and is closed. Default
+    /// [`MAX_CONNECTIONS`].
+    pub max_connections: usize,
+}
+
+impl Default for ServeOptions {
+    fn default() -> Self {
+        ServeOptions {
+            idle_timeout: IDLE_TIMEOUT,
+            max_connections: MAX_CONNECTIONS,
+        }
+    }
+}
+
+/// Serves the control interface on `addr`, answering through `handle`, with the default
+/// [`ServeOptions`]. Each connection gets a thread (clients are test harnesses: few). Warns
+/// when `addr` is not loopback: the interface has no authentication.
 pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<ControlServer> {
     serve_on(TcpListener::bind(addr)?, handle)
 }
@@ -597,6 +695,22 @@ pub fn serve(addr: impl ToSocketAddrs, handle: ControlHandle) -> io::Result<Cont
 /// client that saw the boot-up can connect at once (connections wait in the backlog until
 /// the runtime is up).
 pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<ControlServer> {
+    serve_with(listener, handle, ServeOptions::default())
+}
+
+/// [`serve_on`] with other limits (a short idle timeout in a test, say).
+///
+/// What a connection can hold: one request line (at most [`MAX_LINE`] bytes) and one answer
+/// at a time. Answers are written straight to the socket, never queued here: a client that
+/// sends requests and never reads fills the kernel's socket buffers, then the server stops
+/// reading its requests (TCP holds the client back), and after `idle_timeout` without
+/// progress the connection is closed. So every connection costs at most a line, an answer and
+/// its thread, for at most `idle_timeout` past its last request.
+pub fn serve_with(
+    listener: TcpListener,
+    handle: ControlHandle,
+    options: ServeOptions,
+) -> io::Result<ControlServer> {
     let addr = listener.local_addr()?;
     crate::warn_if_exposed(addr, "the control interface");
     let open = Arc::new(AtomicUsize::new(0));
@@ -604,16 +718,19 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
         .name("canpos-control".into())
         .spawn(move || {
             for conn in listener.incoming() {
-                let Ok(mut stream) = conn else { continue };
-                if open.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
+                let stream = match conn {
+                    Ok(s) => s,
+                    Err(e) => {
+                        // Out of descriptors, say: retrying at once would spin; the connection
+                        // waits in the backlog meanwhile.
+                        tracing::warn!(error = %e, "control interface: accept failed");
+                        std::thread::sleep(Duration::from_millis(100));
+                        continue;
+                    }
+                };
+                if open.fetch_add(1, Ordering::SeqCst) >= options.max_connections {
                     open.fetch_sub(1, Ordering::SeqCst);
-                    let _ = stream.write_all(
-                        format!(
-                            "{}\n",
-                            json!({"ok": false, "error": format!("too many control connections (at most {MAX_CONNECTIONS})")})
-                        )
-                        .as_bytes(),
-                    );
+                    refuse(stream, options.max_connections);
                     continue;
                 }
                 let h = handle.clone();
@@ -621,8 +738,17 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
                 let spawned = std::thread::Builder::new()
                     .name("canpos-control-conn".into())
                     .spawn(move || {
-                        if let Err(e) = serve_conn(stream, h) {
-                            tracing::debug!(error = %e, "control connection ended");
+                        match serve_conn(stream, h, options.idle_timeout) {
+                            Ok(End::Closed) => {}
+                            Ok(End::Idle) => tracing::debug!(
+                                timeout_s = options.idle_timeout.as_secs_f64(),
+                                "control connection closed: idle"
+                            ),
+                            Ok(End::NotReading) => tracing::warn!(
+                                timeout_s = options.idle_timeout.as_secs_f64(),
+                                "control connection closed: its client takes no answers"
+                            ),
+                            Err(e) => tracing::debug!(error = %e, "control connection ended"),
                         }
                         count.fetch_sub(1, Ordering::SeqCst);
                     });
@@ -635,6 +761,18 @@ pub fn serve_on(listener: TcpListener, handle: ControlHandle) -> io::Result<Cont
         addr,
         _thread: thread,
     })
+}
+
+/// Answers a connection beyond the limit with one error line and closes it, at once: the
+/// accept loop never waits on that client (a fresh socket's buffer takes the line whole).
+fn refuse(stream: TcpStream, max: usize) {
+    let line = format!(
+        "{}\n",
+        json!({"ok": false, "error": format!("too many control connections (at most {max}); idle ones are closed after their timeout, try again")})
+    );
+    let _ = stream.set_nonblocking(true);
+    let _ = (&stream).write_all(line.as_bytes());
+    let _ = stream.shutdown(std::net::Shutdown::Write);
 }
 
 /// One line read by [`read_line_limited`].
@@ -699,33 +837,96 @@ pub fn answer_line(line: &str, handle: &ControlHandle) -> Value {
     }
 }
 
-fn serve_conn(stream: TcpStream, handle: ControlHandle) -> io::Result<()> {
+/// How a connection ended without an error.
+enum End {
+    /// The client closed it.
+    Closed,
+    /// No request within the idle timeout.
+    Idle,
+    /// An answer not taken within the idle timeout: the client does not read.
+    NotReading,
+}
+
+/// A connection's reading side with a deadline for the whole of the next request line: a
+/// client that sends nothing, or a byte now and then, is closed all the same.
+struct Deadline {
+    stream: TcpStream,
+    at: std::time::Instant,
+}
+
+impl io::Read for Deadline {
+    fn read(&mut self, buf: &mut [u8]) -> io::Result<usize> {
+        let left = self.at.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return Err(io::ErrorKind::TimedOut.into());
+        }
+        self.stream.set_read_timeout(Some(left))?;
+        self.stream.read(buf)
+    }
+}
+
+/// Now plus `d`, or a year from now when `d` is beyond what the clock can add.
+fn deadline_after(d: Duration) -> std::time::Instant {
+    let now = std::time::Instant::now();
+    now.checked_add(d)
+        .unwrap_or_else(|| now + Duration::from_secs(365 * 24 * 3600))
+}
+
+fn serve_conn(stream: TcpStream, handle: ControlHandle, idle: Duration) -> io::Result<End> {
+    // A socket timeout of zero is refused by the OS (and would mean none).
+    let idle = idle.max(Duration::from_millis(1));
     stream.set_nodelay(true)?;
+    // An answer the client does not take within the idle time ends the connection.
+    stream.set_write_timeout(Some(idle))?;
     let mut out = stream.try_clone()?;
-    let mut reader = BufReader::new(stream);
+    let mut reader = BufReader::new(Deadline {
+        stream,
+        at: deadline_after(idle),
+    });
     loop {
-        let answer = match read_line_limited(&mut reader, MAX_LINE)? {
-            Line::Eof => return Ok(()),
+        let line = match read_line_limited(&mut reader, MAX_LINE) {
+            Ok(l) => l,
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) =>
+            {
+                return Ok(End::Idle)
+            }
+            Err(e) => return Err(e),
+        };
+        let answer = match line {
+            Line::Eof => return Ok(End::Closed),
             Line::TooLong => json!({
                 "ok": false,
                 "error": format!("request line longer than {MAX_LINE} bytes; discarded up to its newline")
             }),
-            Line::Text(bytes) => {
-                let Ok(text) = std::str::from_utf8(&bytes) else {
-                    let e = json!({"ok": false, "error": "request line is not UTF-8"});
-                    out.write_all(format!("{e}\n").as_bytes())?;
-                    continue;
-                };
-                let text = text.trim();
-                if text.is_empty() {
-                    continue;
+            Line::Text(bytes) => match std::str::from_utf8(&bytes) {
+                Err(_) => json!({"ok": false, "error": "request line is not UTF-8"}),
+                Ok(text) => {
+                    let text = text.trim();
+                    if text.is_empty() {
+                        continue;
+                    }
+                    answer_line(text, &handle)
                 }
-                answer_line(text, &handle)
-            }
+            },
         };
         let mut s = answer.to_string();
         s.push('\n');
-        out.write_all(s.as_bytes())?;
+        match out.write_all(s.as_bytes()) {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock
+                ) =>
+            {
+                return Ok(End::NotReading)
+            }
+            r => r?,
+        }
+        reader.get_mut().at = deadline_after(idle);
     }
 }
 
@@ -735,13 +936,32 @@ pub fn call(addr: impl ToSocketAddrs, req: &Request, timeout: Duration) -> io::R
     for a in addr.to_socket_addrs()? {
         match TcpStream::connect_timeout(&a, timeout) {
             Ok(mut s) => {
-                s.set_read_timeout(Some(timeout))?;
+                s.set_write_timeout(Some(timeout))?;
                 let mut line = serde_json::to_string(req).map_err(io::Error::other)?;
                 line.push('\n');
                 s.write_all(line.as_bytes())?;
-                let mut reply = String::new();
-                BufReader::new(s).read_line(&mut reply)?;
-                return serde_json::from_str(reply.trim()).map_err(|e| {
+                // The whole answer within `timeout`, not each read: a server that trickles
+                // bytes cannot hold the caller longer.
+                let mut r = BufReader::new(Deadline {
+                    stream: s,
+                    at: deadline_after(timeout),
+                });
+                let reply = match read_line_limited(&mut r, MAX_ANSWER)? {
+                    Line::Text(t) => t,
+                    Line::TooLong => {
+                        return Err(io::Error::new(
+                            io::ErrorKind::InvalidData,
+                            format!("answer longer than {MAX_ANSWER} bytes"),
+                        ))
+                    }
+                    Line::Eof => {
+                        return Err(io::Error::new(
+                            io::ErrorKind::UnexpectedEof,
+                            "the control interface closed the connection without an answer",
+                        ))
+                    }
+                };
+                return serde_json::from_slice(&reply).map_err(|e| {
                     io::Error::new(io::ErrorKind::InvalidData, format!("bad answer: {e}"))
                 });
             }
@@ -891,6 +1111,318 @@ mod tests {
             let req = parse_request(line).unwrap();
             assert_eq!(req.validate(), Ok(()), "{line}");
         }
+    }
+
+    /// A one-channel TH on an in-process bus, running, and its control handle.
+    fn runtime(dir: &std::path::Path) -> (crate::RuntimeHandle, ControlHandle) {
+        use crate::runtime::{state_file, SensorSetup};
+        use canpos_sim::motion::{Profile, Profiles};
+        let model = canpos_core::models::by_name("th").unwrap();
+        let cfg = model.default_config;
+        let setup = SensorSetup {
+            name: "th-control".into(),
+            model,
+            cfg,
+            spec: canpos_sim::SensorSpec::th(f64::from(cfg.stroke_mm), 1).unwrap(),
+            seed: 1,
+            ideal: true,
+            motion: Box::new(Profiles(vec![Profile::Static { pos_mm: 250.0 }])),
+            storage: crate::FileStorage::new(state_file(dir, "th", cfg.serial)),
+        };
+        let bus = crate::mem::MemBus::new();
+        let mut rt = crate::runtime::Runtime::new(Box::new(bus.attach()), None);
+        rt.add(setup);
+        let h = rt.spawn().unwrap();
+        let c = h.control();
+        (h, c)
+    }
+
+    /// Every variant with every optional field given: what `canpos ctl`, a scenario and the
+    /// dashboard send (they serialize these).
+    fn every_request() -> Vec<Request> {
+        vec![
+            Request::Magnet {
+                sensor: Some(0),
+                index: 0,
+                mm: Some(1.0),
+                velocity: Some(2.0),
+            },
+            Request::Motion {
+                sensor: Some(0),
+                spec: "static:1".into(),
+            },
+            Request::Fault {
+                sensor: Some(0),
+                name: "stall".into(),
+                on: true,
+                value: Some(1.0),
+                channel: Some(0),
+            },
+            Request::PowerCycle { sensor: Some(0) },
+            Request::Ambient {
+                sensor: Some(0),
+                celsius: 20.0,
+            },
+            Request::State { sensor: Some(0) },
+            Request::BusFault {
+                sensor: Some(0),
+                kind: "transceiver".into(),
+                value: Some(1.0),
+                on: Some(true),
+            },
+            Request::ResetLateness {},
+            Request::Nmt {
+                sensor: Some(0),
+                command: "start".into(),
+            },
+            Request::Timing {
+                sensor: Some(0),
+                sdo_delay_ms: Some(1.0),
+                sdo_jitter_ms: Some(1.0),
+                boot_delay_ms: Some(1.0),
+                reset_boot_delay_ms: Some(1.0),
+            },
+        ]
+    }
+
+    /// Issue 35 item 9: `{"cmd":"magnet","index":0,"mm":700,"velocty":100}` answered ok and
+    /// the magnet jumped. Every request with an unknown key is refused with the key's name.
+    #[test]
+    fn unknown_fields_are_refused_with_their_name() {
+        let e = parse_request(r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#).unwrap_err();
+        assert_eq!(e["ok"], false);
+        assert_eq!(
+            e["error"],
+            "unknown field `velocty` in a `magnet` request, expected one of `sensor`, `index`, `mm`, `velocity`"
+        );
+        let reqs = every_request();
+        assert_eq!(reqs.len(), COMMANDS.len(), "a request missing here");
+        for req in reqs {
+            let mut v = serde_json::to_value(&req).unwrap();
+            let cmd = v["cmd"].as_str().unwrap().to_string();
+            assert!(COMMANDS.contains(&cmd.as_str()), "{cmd} not in COMMANDS");
+            // Serialized as the tools send it, it parses back the same.
+            assert_eq!(parse_request(&v.to_string()).unwrap(), req, "{v}");
+            // The key last, first, or a near miss of a real one (a unit variant used to take
+            // anything).
+            for key in ["velocty", "Sensor", "a`b, expected x"] {
+                v[key] = json!(1);
+                let e = parse_request(&v.to_string()).unwrap_err();
+                let msg = e["error"].as_str().unwrap();
+                assert!(
+                    msg.starts_with(&format!("unknown field `{key}` in a `{cmd}` request")),
+                    "{v}: {msg}"
+                );
+                v.as_object_mut().unwrap().remove(key);
+            }
+        }
+        assert_eq!(
+            parse_request(r#"{"cmd":"reset-lateness","x":1}"#).unwrap_err()["error"],
+            "unknown field `x` in a `reset-lateness` request, it takes no fields"
+        );
+        // Still refused with the cmd's name when the cmd comes last.
+        let e = parse_request(r#"{"velocty":1,"cmd":"state"}"#).unwrap_err();
+        assert!(
+            e["error"]
+                .as_str()
+                .unwrap()
+                .starts_with("unknown field `velocty` in a `state` request"),
+            "{e}"
+        );
+        // Fields by position, with no names to check, are no request either.
+        for line in [
+            r#"["state"]"#,
+            r#"["magnet",null,0,250.0,null]"#,
+            " [\"reset-lateness\"]",
+        ] {
+            let e = parse_request(line).unwrap_err();
+            assert!(
+                e["error"].as_str().unwrap().contains("one JSON object"),
+                "{line}: {e}"
+            );
+        }
+    }
+
+    /// Each request of docs/CONTROL.md's table parses as written there, and the table shows
+    /// every command.
+    #[test]
+    fn the_documented_requests_parse() {
+        let doc = include_str!("../../../docs/CONTROL.md");
+        let mut seen = std::collections::BTreeSet::new();
+        for row in doc.lines().filter(|l| l.starts_with("| `{\"cmd\":")) {
+            let line = &row[3..row[3..].find('`').unwrap() + 3];
+            let req =
+                parse_request(line).unwrap_or_else(|e| panic!("docs/CONTROL.md: {line}: {e}"));
+            let v = serde_json::to_value(&req).unwrap();
+            seen.insert(v["cmd"].as_str().unwrap().to_string());
+        }
+        for cmd in COMMANDS {
+            assert!(
+                seen.contains(cmd),
+                "docs/CONTROL.md's table shows no `{cmd}`"
+            );
+        }
+    }
+
+    /// The misspelt key of the issue, on a running sensor: refused, and the magnet stays.
+    #[test]
+    fn a_misspelt_key_moves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let before = c.request(Request::State { sensor: None });
+        assert_eq!(before["true_mm"], json!([250.0]), "{before}");
+        let a = answer_line(r#"{"cmd":"magnet","index":0,"mm":700,"velocty":100}"#, &c);
+        assert_eq!(a["ok"], false, "{a}");
+        assert!(a["error"].as_str().unwrap().contains("`velocty`"), "{a}");
+        // A request accepted after the refused one: once it shows, the refused one would
+        // have shown too.
+        let a = answer_line(r#"{"cmd":"ambient","celsius":21}"#, &c);
+        assert_eq!(a["ok"], true, "{a}");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(
+            (&st["true_mm"], &st["ambient_c"]),
+            (&json!([250.0]), &json!(21.0))
+        );
+        h.stop().unwrap();
+    }
+
+    /// Connects and sends `state`; the answer line (or the error that ended the read).
+    fn ask_state(addr: SocketAddr, timeout: Duration) -> io::Result<Value> {
+        call(addr, &Request::State { sensor: None }, timeout)
+    }
+
+    /// Issue 35 item 6: 32 idle connections used to lock the control interface out for good.
+    /// Now a refused client hears so at once, idle connections are closed after the timeout,
+    /// and a new client is answered within it.
+    #[test]
+    fn idle_connections_are_closed_and_a_new_client_gets_in() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let idle = Duration::from_secs(2);
+        let srv = serve_with(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            c,
+            ServeOptions {
+                idle_timeout: idle,
+                ..ServeOptions::default()
+            },
+        )
+        .unwrap();
+        let addr = srv.local_addr();
+        // 32 clients that ask once (so each is surely being served) and then say nothing.
+        let mut quiet = Vec::new();
+        for _ in 0..MAX_CONNECTIONS {
+            let mut s = TcpStream::connect(addr).unwrap();
+            s.write_all(b"{\"cmd\":\"state\"}\n").unwrap();
+            let mut r = BufReader::new(s.try_clone().unwrap());
+            let mut line = String::new();
+            r.read_line(&mut line).unwrap();
+            assert!(line.contains("\"ok\":true"), "{line}");
+            quiet.push(r);
+        }
+        let start = std::time::Instant::now();
+        // One more is refused with a reason, promptly (not after its own timeout).
+        let a = ask_state(addr, Duration::from_secs(10)).unwrap();
+        if start.elapsed() < idle {
+            assert_eq!(a["ok"], false, "{a}");
+            assert!(a["error"].as_str().unwrap().contains("too many"), "{a}");
+        }
+        // A client that tries again is answered once the idle ones are gone.
+        let bound = idle + Duration::from_secs(20);
+        let answered = loop {
+            let a = ask_state(addr, Duration::from_secs(10)).unwrap();
+            if a["ok"] == true {
+                break start.elapsed();
+            }
+            assert!(
+                start.elapsed() < bound,
+                "still locked out after {bound:?}: {a}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        assert!(answered < bound, "{answered:?}");
+        // The idle ones were closed by the server: each reads the end of the stream.
+        for r in &mut quiet {
+            r.get_ref().set_read_timeout(Some(bound)).unwrap();
+            let mut line = String::new();
+            assert_eq!(r.read_line(&mut line).unwrap(), 0, "{line}");
+        }
+        h.stop().unwrap();
+    }
+
+    /// A client that sends requests and reads no answer: the server stops taking its requests
+    /// once the socket buffers are full (no answers pile up in memory) and closes it after the
+    /// timeout, while others are served.
+    #[test]
+    fn a_client_that_never_reads_is_held_back_and_closed() {
+        let dir = tempfile::tempdir().unwrap();
+        let (h, c) = runtime(dir.path());
+        let idle = Duration::from_secs(1);
+        let srv = serve_with(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            c,
+            ServeOptions {
+                idle_timeout: idle,
+                ..ServeOptions::default()
+            },
+        )
+        .unwrap();
+        let addr = srv.local_addr();
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.set_write_timeout(Some(Duration::from_millis(500)))
+            .unwrap();
+        // Each `state` answer is ~100 times its request. The socket buffers hold some MiB of
+        // requests and answers; a server that took every request would take all 64 MiB (and
+        // owe GiBs of answers).
+        let chunk = b"{\"cmd\":\"state\"}\n".repeat(4096);
+        let mut sent = 0usize;
+        let start = std::time::Instant::now();
+        let held_back = loop {
+            match s.write(&chunk) {
+                Ok(n) => sent += n,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    break true
+                }
+                // Closed by the server (after it stopped reading): held back too.
+                Err(_) => break true,
+            }
+            if sent > 64 << 20 || start.elapsed() > Duration::from_secs(60) {
+                break false;
+            }
+        };
+        assert!(
+            held_back,
+            "the server took {sent} bytes of requests nobody reads answers to"
+        );
+        // Another client is served meanwhile, and the stuck one is closed after the timeout.
+        assert_eq!(
+            ask_state(addr, Duration::from_secs(10)).unwrap()["ok"],
+            true
+        );
+        // Closed by the server: with requests of ours unread there, it resets the connection,
+        // and our next write fails (reading instead would free the server to go on).
+        let end = std::time::Instant::now() + Duration::from_secs(30);
+        let closed = loop {
+            match s.write(b"\n") {
+                Err(e)
+                    if !matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    break true
+                }
+                _ if std::time::Instant::now() > end => break false,
+                _ => {}
+            }
+        };
+        assert!(closed, "the stuck connection stays open");
+        h.stop().unwrap();
     }
 
     #[test]

@@ -1097,6 +1097,13 @@ impl Runtime {
             }
             Request::PowerCycle { sensor } => {
                 let i = self.sensor_index(sensor)?;
+                // The fault is the supply held off: a power cycle cannot bring the power back
+                // while it holds (state would show a powered sensor with its supply off).
+                if self.devices[i].faults.contains(&Fault::PowerCycle) {
+                    return Err(format!(
+                        "sensor {i} is held powered off by the `power-cycle` fault; turn the fault off to power it on"
+                    ));
+                }
                 self.power_off(i);
                 self.devices[i].sensor.power_cycle();
                 self.power_on(i, now);
@@ -1129,7 +1136,7 @@ impl Runtime {
                 r?;
                 Ok(json!({"ok": true}))
             }
-            Request::ResetLateness => {
+            Request::ResetLateness {} => {
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
             }
@@ -1292,7 +1299,8 @@ impl Runtime {
             Fault::PowerCycle => {
                 if on {
                     self.power_off(i);
-                } else if !self.powered[i] {
+                } else if !self.powered[i] && self.devices[i].power_on_at.is_none() {
+                    // Off and not already booting (a boot delay runs): power back on.
                     self.devices[i].sensor.power_cycle();
                     self.power_on(i, now);
                 }
@@ -2012,6 +2020,56 @@ mod tests {
         });
         let f = recv_id(&mut master, 0x88, Duration::from_secs(2)).expect("EMCY clear");
         assert_eq!(&f.data()[..3], &[0, 0, 0], "{f:?}");
+        h.stop().unwrap();
+    }
+
+    /// Issue 35 item 9: `fault power-cycle on` holds the supply off; a `power-cycle` request
+    /// then used to answer ok and show `powered: true` with the fault still listed.
+    #[test]
+    fn power_cycle_is_refused_while_the_power_cycle_fault_holds() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        rt.add(th_setup(dir.path(), 6, 6));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x706, Duration::from_secs(2)).expect("boot-up");
+        let c = h.control();
+        let fault = |on| Request::Fault {
+            sensor: None,
+            name: "power-cycle".into(),
+            on,
+            value: None,
+            channel: None,
+        };
+        let a = c.request(fault(true));
+        assert_eq!(a["faults"], json!(["power-cycle"]), "{a}");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(
+            (&st["powered"], &st["faults"]),
+            (&json!(false), &json!(["power-cycle"]))
+        );
+
+        let a = c.request(Request::PowerCycle { sensor: None });
+        assert_eq!(a["ok"], false, "{a}");
+        let e = a["error"].as_str().unwrap();
+        assert!(e.contains("`power-cycle` fault"), "{e}");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!(
+            (&st["powered"], &st["faults"]),
+            (&json!(false), &json!(["power-cycle"])),
+            "a refused power-cycle changes nothing: {st}"
+        );
+
+        // The fault off is the power back: boot-up, and then a power cycle works again.
+        let a = c.request(fault(false));
+        assert_eq!(a["faults"], json!([]), "{a}");
+        recv_id(&mut master, 0x706, Duration::from_secs(2)).expect("boot-up after the fault");
+        let st = c.request(Request::State { sensor: None });
+        assert_eq!((&st["powered"], &st["faults"]), (&json!(true), &json!([])));
+        let a = c.request(Request::PowerCycle { sensor: None });
+        assert_eq!(a["ok"], true, "{a}");
+        recv_id(&mut master, 0x706, Duration::from_secs(2)).expect("boot-up after power-cycle");
         h.stop().unwrap();
     }
 

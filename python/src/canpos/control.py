@@ -14,17 +14,25 @@ class ControlClient:
     """One connection to ``canpos run --control HOST:PORT`` (or a scenario's control).
 
     ``sensor`` selects the sensor of a scenario (0-based) for every request unless a method
-    is given another."""
+    is given another. The sensor closes a connection idle past its timeout (30 s by default,
+    ``--control-idle-timeout``); the client then connects again for its next request."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 29600, sensor: Optional[int] = None,
                  timeout: float = 10.0):
         self.address = (host, port)
         self.sensor = sensor
-        self._sock = socket.create_connection(self.address, timeout=timeout)
+        self._timeout = timeout
+        self._connect()
+
+    def _connect(self) -> None:
+        self._sock = socket.create_connection(self.address, timeout=self._timeout)
         self._file = self._sock.makefile("rw", encoding="utf-8", newline="\n")
 
     def close(self) -> None:
-        self._file.close()
+        try:
+            self._file.close()
+        except OSError:
+            pass  # the sensor closed it first; nothing buffered matters any more
         self._sock.close()
 
     def __enter__(self):
@@ -43,15 +51,29 @@ class ControlClient:
         s = self.sensor if sensor is None else sensor
         if s is not None:
             req["sensor"] = s
-        self._file.write(json.dumps(req) + "\n")
-        self._file.flush()
-        line = self._file.readline()
-        if not line:
-            raise ConnectionError(f"control interface {self.address} closed the connection")
+        line = self._exchange(json.dumps(req) + "\n")
         answer = json.loads(line)
         if not answer.get("ok"):
             raise ControlError(answer.get("error", "request refused"))
         return answer
+
+    def _exchange(self, request: str) -> str:
+        """Sends one request line and reads its answer line. A connection the sensor closed
+        as idle ran nothing of the request (a request that arrives whole is always answered
+        before a close), so the request goes once more on a new connection."""
+        for attempt in range(2):
+            try:
+                self._file.write(request)
+                self._file.flush()
+                line = self._file.readline()
+            except (BrokenPipeError, ConnectionResetError):
+                line = ""
+            if line:
+                return line
+            if attempt == 0:
+                self.close()
+                self._connect()
+        raise ConnectionError(f"control interface {self.address} closed the connection")
 
     # --- magnets and motion
     def magnet(self, index: int, mm: Optional[float], velocity: Optional[float] = None,
