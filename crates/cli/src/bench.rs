@@ -509,20 +509,12 @@ fn rss_kib() -> u64 {
         .unwrap_or(0)
 }
 
-/// A fresh directory for the sensors' state files, removed when dropped.
-struct TempDir(std::path::PathBuf);
+/// A fresh private directory for the sensors' state files, removed when dropped.
+struct TempDir(tempfile::TempDir);
 
 impl TempDir {
     fn new(tag: &str) -> Result<TempDir> {
-        let p = std::env::temp_dir().join(format!("canpos-bench-{tag}-{}", std::process::id()));
-        std::fs::create_dir_all(&p).with_context(|| format!("cannot create {}", p.display()))?;
-        Ok(TempDir(p))
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
+        crate::private_state_dir(&format!("bench-{tag}")).map(TempDir)
     }
 }
 
@@ -580,7 +572,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
             magnets: vec![250.0],
             ..Default::default()
         };
-        rt.add(build_setup(&opts, &dir.0)?.setup);
+        rt.add(build_setup(&opts, dir.0.path())?.setup);
     }
     let handle = rt.spawn()?;
     wait_boot(&mut *master, nodes as usize, Duration::from_secs(10))?;
@@ -629,7 +621,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
         Ok((total, last))
     };
     let (missed0, _) = missed(&control)?;
-    let r = control.request(canpos_host::control::Request::ResetLateness {});
+    let r = control.request(canpos_host::control::Request::ResetLateness { sensor: None });
     ensure!(r["ok"] == true, "reset-lateness: {r}");
     let f0 = frames_now(&hub);
     let o0 = observed.load(std::sync::atomic::Ordering::Relaxed);
@@ -772,7 +764,7 @@ fn boot(a: BootArgs) -> Result<i32> {
     let exe = std::env::current_exe()?;
     let mut ms = Vec::new();
     for run in 0..a.runs {
-        let state = dir.0.join(format!("run{run}"));
+        let state = dir.0.path().join(format!("run{run}"));
         let t0 = StdInstant::now();
         let mut child = std::process::Command::new(&exe)
             .args([

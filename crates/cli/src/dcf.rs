@@ -13,6 +13,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use canpos_core::eds::{Commissioning, DcfValue, EdsInfo};
 use canpos_core::models::{self, DeviceConfig, Model};
 use canpos_core::od::{DataType, Default as OdDefault, Entry};
+use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
 use canpos_core::{Frame, Instant, Node};
 use canpos_host::ini::Ini;
 use canpos_host::FileStorage;
@@ -70,8 +71,18 @@ fn read_state(
     model: &'static Model,
     mut cfg: DeviceConfig,
 ) -> Result<(DeviceConfig, Values)> {
-    if !path.exists() {
-        bail!("{}: no such state file", path.display());
+    // The file is loaded once before the node does it, so that one that cannot be used (a
+    // link, a FIFO, a failed check) is an error here, not a DCF of the defaults.
+    let mut probe = FileStorage::new(path).for_model(model);
+    let mut image = [0u8; IMAGE_MAX];
+    match probe.load(&mut image) {
+        Ok(_) => {}
+        Err(StorageError::Empty) => bail!("{}: no such state file", path.display()),
+        Err(_) => bail!(
+            "{}: not a usable state file: {}",
+            path.display(),
+            probe.problem().unwrap_or("it cannot be read")
+        ),
     }
     // Unlocked: the unit may be running on it; this node only reads (it stores nothing unless
     // told by 0x1010, which nobody sends it).

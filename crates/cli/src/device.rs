@@ -1254,7 +1254,8 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     let mut mon = hub.attach("can0");
     let web_port = a.web.as_ref().map(|_| hub.attach("can0"));
     let hub = hub.spawn()?;
-    let state_dir = std::env::temp_dir().join(format!("canpos-demo-{}", std::process::id()));
+    let state = crate::private_state_dir("demo")?;
+    let state_dir = state.path().to_path_buf();
     let opts = SensorOpts {
         motion: Some(a.motion.clone()),
         ideal: false,
@@ -1296,7 +1297,7 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     println!();
     let _ = handle.stop();
     let _ = hub.shutdown();
-    let _ = std::fs::remove_dir_all(&state_dir);
+    drop(state);
     result.map(|()| 0)
 }
 

@@ -1340,6 +1340,10 @@ pub const REPLAY_HELD_MAX: usize = 2_000_000;
 /// A wait for the next frame longer than this (seconds) is announced on stderr first.
 pub const REPLAY_LONG_WAIT: f64 = 10.0;
 
+/// Malformed lines `--on-malformed stop` reports before it stops reading: the first one already
+/// means nothing is sent, so an endless input of them (`yes | canpos replay -`) ends here.
+pub const REPLAY_MALFORMED_MAX: u64 = 100;
+
 /// What replay does with a record: a frame it sends, or a kind it counts.
 #[derive(Clone, Copy)]
 enum Play {
@@ -1361,6 +1365,7 @@ impl From<canpos_host::candump::Record> for Play {
 
 /// Each record's time of replay (seconds from the start): its log time divided by `--speed`,
 /// less what `--max-gap` took off the pauses before it.
+#[derive(Clone, Copy)]
 struct Timeline {
     speed: f64,
     max_gap: Option<f64>,
@@ -1377,6 +1382,12 @@ impl Timeline {
             latest: 0.0,
             cut: 0.0,
         }
+    }
+
+    /// What [`offset`](Self::offset) would give for `t`, without taking `t` in.
+    fn peek(&self, t: f64) -> f64 {
+        let mut probe = *self;
+        probe.offset(t)
     }
 
     fn offset(&mut self, t: f64) -> f64 {
@@ -1443,8 +1454,13 @@ impl Player {
                 if due > now {
                     let wait = due - now;
                     if wait.as_secs_f64() > REPLAY_LONG_WAIT {
+                        let hint = if self.timeline.max_gap.is_none() {
+                            " (--max-gap shortens such pauses)"
+                        } else {
+                            ""
+                        };
                         eprintln!(
-                            "{}:{line}: this frame comes {} after the one before: waiting (--max-gap shortens such pauses)",
+                            "{}:{line}: this frame comes {} after the one before: waiting{hint}",
                             self.file,
                             show_wait(pause.max(wait.as_secs_f64()))
                         );
@@ -1513,14 +1529,24 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
     let (mut malformed, mut records) = (0u64, 0u64);
     let mut timeline = Timeline::new(a.speed, a.max_gap);
     let mut span = 0.0f64;
+    // The last line checked: a file that grows after the check (a log still being recorded)
+    // is played as far as it was checked, never further.
+    let mut checked = 0usize;
     for item in items(open_log(&a.file)?)? {
         match item.map_err(|e| log_error(&name, e))? {
             LogItem::Malformed { line, why } => {
                 eprintln!("{name}:{line}: {why}");
                 malformed += 1;
+                checked = line;
+                if a.on_malformed == OnMalformed::Stop && malformed >= REPLAY_MALFORMED_MAX {
+                    bail!(
+                        "{name}: {malformed} malformed lines, and the rest not read; nothing sent (--on-malformed skip plays the rest)"
+                    );
+                }
             }
             LogItem::Record { line, t, record } => {
                 records += 1;
+                checked = line;
                 let play = Play::from(record);
                 if matches!(play, Play::Frame(_)) {
                     span = span.max(timeline.offset(t));
@@ -1570,11 +1596,28 @@ pub fn replay(a: ReplayArgs) -> Result<i32> {
                 }
             }
             None => {
+                // The file is read again: what the check found must still hold, or it changed
+                // in between and is not played on.
+                let changed = |line: usize, what: &str| {
+                    anyhow!("{name}:{line}: {what} since replay checked the file; stopping")
+                };
                 for item in items(open_log(&a.file)?)? {
                     match item.map_err(|e| log_error(&name, e))? {
-                        // Reported when the log was checked.
-                        LogItem::Malformed { .. } => {}
-                        LogItem::Record { line, t, record } => p.play(line, t, record.into())?,
+                        LogItem::Malformed { line, .. } if line > checked => break,
+                        LogItem::Record { line, .. } if line > checked => break,
+                        // Reported when the log was checked (and skipped by the user's choice).
+                        LogItem::Malformed { line, why } => {
+                            if a.on_malformed == OnMalformed::Stop {
+                                return Err(changed(line, &format!("malformed ({why})")));
+                            }
+                        }
+                        LogItem::Record { line, t, record } => {
+                            let play = Play::from(record);
+                            if matches!(play, Play::Frame(_)) && p.timeline.peek(t) > span {
+                                return Err(changed(line, "a frame later than any checked"));
+                            }
+                            p.play(line, t, play)?;
+                        }
                     }
                 }
             }

@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::{anyhow, bail, Result};
 use canpos_core::Frame;
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
@@ -94,9 +94,8 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let run_for = Duration::from_secs_f64(a.minutes * 60.0);
 
     // State files go to a private directory: the soak must not touch the user's units.
-    let state_dir = std::env::temp_dir().join(format!("canpos-soak-{}", std::process::id()));
-    std::fs::create_dir_all(&state_dir)
-        .with_context(|| format!("cannot create {}", state_dir.display()))?;
+    let state = crate::private_state_dir("soak")?;
+    let state_dir = state.path().to_path_buf();
 
     // The soak measures the runtime's timing, not the bus: the instant bus (127 × 1 ms is more
     // than any CAN bit rate carries).
@@ -201,7 +200,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let lateness = handle.stop();
     stop.store(true, Ordering::SeqCst);
     let _ = obs_thread.join();
-    let _ = std::fs::remove_dir_all(&state_dir);
+    drop(state);
 
     // Final line: the runtime's own lateness histogram is only available after it stopped.
     let mut failures: Vec<String> = Vec::new();

@@ -239,6 +239,87 @@ fn a_state_file_of_unused_records_is_reported_and_saves_still_work() {
     assert!(recs.iter().any(|r| r.0 == 0x0010_1700), "{recs:?}");
 }
 
+/// `canpos dcf --state` of a file it cannot use (a link, a FIFO, a failed check) exported the
+/// unit's defaults and exited 0; now it is an error naming the file and the reason, and the
+/// real file through no link still exports its stored values.
+#[test]
+fn dcf_of_a_state_file_it_cannot_use_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let real = dir.path().join("th-11.bin");
+    std::fs::write(&real, th_image(&[(0x0010_1700, 250)])).unwrap();
+    let links = dir.path().join("links");
+    std::fs::create_dir(&links).unwrap();
+    std::os::unix::fs::symlink(&real, links.join("th-11.bin")).unwrap();
+    let fifos = dir.path().join("fifos");
+    std::fs::create_dir(&fifos).unwrap();
+    let fifo = fifos.join("th-11.bin");
+    let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    let bad = dir.path().join("bad");
+    std::fs::create_dir(&bad).unwrap();
+    let mut flipped = th_image(&[(0x0010_1700, 250)]);
+    flipped[10] ^= 0x10;
+    std::fs::write(bad.join("th-11.bin"), &flipped).unwrap();
+    for (file, why) in [
+        ("links/th-11.bin", "symbolic link"),
+        ("fifos/th-11.bin", "FIFO"),
+        ("bad/th-11.bin", "CRC mismatch"),
+    ] {
+        let o = run_in(
+            dir.path(),
+            &["dcf", "--state", file, "--output", "out.dcf"],
+            SHORT,
+        );
+        assert_fails(&o, 1, &format!("{file}: not a usable state file"));
+        assert!(text(&o).contains(why), "{file}: {}", text(&o));
+        assert!(!dir.path().join("out.dcf").exists(), "{file}");
+    }
+    let o = run_in(
+        dir.path(),
+        &["dcf", "--state", "th-11.bin", "--output", "out.dcf"],
+        SHORT,
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let dcf = std::fs::read_to_string(dir.path().join("out.dcf")).unwrap();
+    assert!(dcf.contains("ParameterValue=0x00FA"), "{dcf}");
+}
+
+/// The demo kept its sensor's state in `$TMPDIR/canpos-demo-<pid>`, a name anyone could
+/// plant a link (or a directory of their own) at ahead: the state and lock files went into the
+/// link's target. Now the directory has a random name, created exclusively.
+#[test]
+fn the_demo_writes_nothing_through_a_link_at_its_old_predictable_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let victim = dir.path().join("victim");
+    std::fs::create_dir(&victim).unwrap();
+    let tmp = dir.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "ln -s {} \"$TMPDIR/canpos-demo-$$\" && exec {BIN} demo --listen 127.0.0.1:0 --duration 1",
+            victim.display()
+        ))
+        .env("TMPDIR", &tmp)
+        .current_dir(dir.path())
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    assert_eq!(
+        std::fs::read_dir(&victim).unwrap().count(),
+        0,
+        "the demo wrote through the planted link"
+    );
+    // Its own directory is gone again; only the planted link is left.
+    let left: Vec<_> = std::fs::read_dir(&tmp)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(left.len(), 1, "{left:?}");
+}
+
 // ------------------------------------------------------------------------ replay input
 
 /// Peak resident memory a replay may reach before the watch below kills it.
@@ -356,6 +437,86 @@ fn assert_refused_at_line_one(w: &Watched, file: &str, rss_kb: u64) {
     );
     assert!(!w.out.contains("panicked"), "{}", w.out);
     assert!(w.max_rss_kb < rss_kb, "peak RSS {} kB", w.max_rss_kb);
+}
+
+/// A regular file is read twice, checked and then played, and only the first read was
+/// checked: lines added to a log still being written, between the check and the play (a
+/// malformed one, a frame 63 years on), were played or waited for without a word. Now the play
+/// takes the file as far as it was checked.
+#[test]
+fn replay_plays_a_growing_file_only_as_far_as_it_was_checked() {
+    use canpos_host::transport::Transport;
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("grow.log");
+    std::fs::write(&log, "(1.0) can0 123#11\n(5.0) can0 124#22\n").unwrap();
+    let hub = canpos_host::Hub::bind("127.0.0.1:0")
+        .unwrap()
+        .spawn()
+        .unwrap();
+    let mut port = hub.attach("can0");
+    let mut p = Proc::start(
+        dir.path(),
+        &[
+            "replay",
+            "grow.log",
+            "--bus",
+            &format!("socketcand://{}/can0", hub.local_addr()),
+        ],
+    );
+    // The first frame on the bus: the check is over and the play waits 4 s for the second.
+    let first = port
+        .recv_deadline(Instant::now() + SHORT)
+        .unwrap()
+        .expect("the first frame");
+    assert_eq!(first.frame.data(), [0x11]);
+    let mut f = std::fs::OpenOptions::new().append(true).open(&log).unwrap();
+    std::io::Write::write_all(
+        &mut f,
+        b"garbage line here\n(6.0) can0 125#33\n(2000000000.0) can0 126#44\n",
+    )
+    .unwrap();
+    drop(f);
+    assert_eq!(p.wait_exit(SHORT + SHORT), Some(0), "{}", p.output());
+    let out = p.output();
+    assert!(out.contains("replayed 2 frames"), "{out}");
+    assert!(!out.contains("years"), "{out}");
+    let mut seen = vec![first.frame.data().to_vec()];
+    while let Ok(Some(rx)) = port.recv_deadline(Instant::now() + Duration::from_millis(200)) {
+        seen.push(rx.frame.data().to_vec());
+    }
+    assert_eq!(seen, [vec![0x11], vec![0x22]]);
+}
+
+/// `--on-malformed stop` (the default) reported every malformed line of an endless input
+/// (`yes | canpos replay -`) and never ended; it stops after the first 100.
+#[test]
+fn replay_stops_reading_an_endless_input_of_malformed_lines() {
+    let dir = tempfile::tempdir().unwrap();
+    let w = run_watched(
+        dir.path(),
+        &["replay", "-", "--bus", "mem://r"],
+        Some(Box::new(YesLines)),
+    );
+    assert_eq!(w.killed, None, "killed: {}", w.out);
+    assert_eq!(w.code, Some(1), "{}", w.out);
+    assert!(
+        w.out
+            .contains("-: 100 malformed lines, and the rest not read; nothing sent"),
+        "{}",
+        w.out
+    );
+}
+
+/// `yes`: endless `y` lines.
+struct YesLines;
+
+impl Read for YesLines {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        for pair in buf.chunks_exact_mut(2) {
+            pair.copy_from_slice(b"y\n");
+        }
+        Ok(buf.len() & !1)
+    }
 }
 
 /// Issue 35 item 7: `canpos replay /dev/zero` reached 4.2 GB in 15 s. Now it ends at the line

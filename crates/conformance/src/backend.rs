@@ -136,18 +136,10 @@ pub struct SocketcandDut {
     // Dropped in this order: the runtime stops before the hub goes away.
     _runtime: RuntimeHandle,
     _hub: HubHandle,
-    _state: StateDir,
+    _state: tempfile::TempDir,
 }
 
 /// A per-run state directory for the runtime's file storage, removed on drop.
-struct StateDir(std::path::PathBuf);
-
-impl Drop for StateDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 impl SocketcandDut {
     /// Starts hub and device and waits for the device's boot-up message.
     pub fn start(model: &'static Model) -> std::io::Result<SocketcandDut> {
@@ -163,13 +155,11 @@ impl SocketcandDut {
             _ => canpos_sim::SensorSpec::tmi(stroke, 1),
         }
         .map_err(|e| std::io::Error::other(e.to_string()))?;
-        let state = std::env::temp_dir().join(format!(
-            "canpos-conformance-{}-{}-{:?}",
-            model.name,
-            std::process::id(),
-            std::thread::current().id()
-        ));
-        std::fs::create_dir_all(&state)?;
+        // A private directory (random name, created exclusively), removed with the DUT.
+        let state_dir = tempfile::Builder::new()
+            .prefix(&format!("canpos-conformance-{}-", model.name))
+            .tempdir()?;
+        let state = state_dir.path().to_path_buf();
         let mut rt = Runtime::new(Box::new(dev_tx), None);
         rt.add(SensorSetup {
             name: format!("conformance-{}", model.name),
@@ -193,7 +183,7 @@ impl SocketcandDut {
             epoch,
             _runtime: runtime,
             _hub: hub,
-            _state: StateDir(state),
+            _state: state_dir,
         };
         // The runtime may power on before the harness client's subscription is complete, so
         // the boot-up is not awaited; a reset node gives a defined start instead.

@@ -139,7 +139,7 @@ pub enum LogError {
     Io(#[from] io::Error),
 }
 
-/// Longest line a log reader takes, newline included: a candump line of a 64-byte CAN FD frame
+/// Longest line a log reader takes, its newline not counted: a candump line of a 64-byte CAN FD frame
 /// is under 200 bytes and an ASC line under 400, so this leaves room for any real one while a
 /// line without end (`/dev/zero`, a file without newlines) is found after 4 KiB, not after all
 /// of it is read.
@@ -157,7 +157,7 @@ pub enum LineRead {
 }
 
 /// Reads the next line of `input` into `line` (cleared first, newline dropped), taking no more
-/// than `max` bytes: the memory a line costs is bounded whatever the input.
+/// than `max` bytes besides the newline: the memory a line costs is bounded whatever the input.
 pub fn read_line_bounded(
     input: &mut dyn BufRead,
     line: &mut Vec<u8>,
@@ -181,7 +181,7 @@ pub fn read_line_bounded(
             Some(i) => (i, true),
             None => (buf.len(), false),
         };
-        if line.len() + take + usize::from(done) > max {
+        if line.len() + take > max {
             let room = max.saturating_sub(line.len());
             line.extend_from_slice(&buf[..room.min(take)]);
             return Ok(LineRead::TooLong);
@@ -667,13 +667,19 @@ mod tests {
                     (LineRead::End, b""),
                 ],
             ),
-            // Exactly `max` bytes with the newline fit; one more does not.
+            // Exactly `max` bytes fit, with their newline or without one at the end; one
+            // more does not.
             (
-                b"abc\n",
+                b"abcd\n",
                 4,
-                vec![(LineRead::Line, &b"abc"[..]), (LineRead::End, b"")],
+                vec![(LineRead::Line, &b"abcd"[..]), (LineRead::End, b"")],
             ),
-            (b"abcd\n", 4, vec![(LineRead::TooLong, &b"abcd"[..])]),
+            (
+                b"abcd",
+                4,
+                vec![(LineRead::Line, &b"abcd"[..]), (LineRead::End, b"")],
+            ),
+            (b"abcde\n", 4, vec![(LineRead::TooLong, &b"abcd"[..])]),
             (b"abcdef", 4, vec![(LineRead::TooLong, &b"abcd"[..])]),
         ] {
             // One byte at a time too: the limit holds across buffer refills.

@@ -125,10 +125,16 @@ pub enum Request {
         on: Option<bool>,
     },
     /// Restarts the runtime's wake-up lateness statistics (`wake_lateness_us` of the state),
-    /// so a measurement covers a chosen window, not the start-up. A struct variant without
-    /// fields, not a unit variant: serde lets an internally tagged unit variant take any
-    /// fields, and a field this request does not know must be refused like every other's.
-    ResetLateness {},
+    /// so a measurement covers a chosen window, not the start-up. All sensors of a runtime
+    /// share the statistics; `sensor` is taken as on every request (and must name one), so a
+    /// client that adds it to every request is served. A struct variant, not a unit variant:
+    /// serde lets an internally tagged unit variant take any fields, and a field this request
+    /// does not know must be refused like every other's.
+    ResetLateness {
+        /// Sensor index (checked; the statistics are the runtime's).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+    },
     /// Hands the sensor an NMT command as if a master had sent it, without putting a frame on
     /// the bus (a scenario's `nmt = "operational"`, or a timed NMT event).
     Nmt {
@@ -222,7 +228,7 @@ impl fmt::Display for Request {
             Request::PowerCycle { .. } => f.write_str("power-cycle"),
             Request::Ambient { celsius, .. } => write!(f, "ambient {celsius} °C"),
             Request::State { .. } => f.write_str("state"),
-            Request::ResetLateness {} => f.write_str("reset-lateness"),
+            Request::ResetLateness { .. } => f.write_str("reset-lateness"),
             Request::Nmt { command, .. } => write!(f, "nmt {command}"),
             Request::Timing {
                 sdo_delay_ms,
@@ -261,7 +267,7 @@ impl fmt::Display for Request {
 }
 
 impl Request {
-    /// The sensor it addresses (`None` = sensor 0, or none for [`Request::ResetLateness`]).
+    /// The sensor it addresses (`None` = sensor 0).
     pub fn sensor(&self) -> Option<usize> {
         match self {
             Request::Magnet { sensor, .. }
@@ -272,8 +278,8 @@ impl Request {
             | Request::State { sensor }
             | Request::Nmt { sensor, .. }
             | Request::Timing { sensor, .. }
-            | Request::BusFault { sensor, .. } => *sensor,
-            Request::ResetLateness {} => None,
+            | Request::BusFault { sensor, .. }
+            | Request::ResetLateness { sensor } => *sensor,
         }
     }
 
@@ -369,7 +375,7 @@ impl Request {
             Request::BusFault {
                 kind, value, on, ..
             } => bus_disturbance(kind, *value, *on).map(|_| ()),
-            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness {} => {
+            Request::PowerCycle { .. } | Request::State { .. } | Request::ResetLateness { .. } => {
                 Ok(())
             }
         }
@@ -1170,7 +1176,7 @@ mod tests {
                 value: Some(1.0),
                 on: Some(true),
             },
-            Request::ResetLateness {},
+            Request::ResetLateness { sensor: Some(0) },
             Request::Nmt {
                 sensor: Some(0),
                 command: "start".into(),
@@ -1218,8 +1224,15 @@ mod tests {
         }
         assert_eq!(
             parse_request(r#"{"cmd":"reset-lateness","x":1}"#).unwrap_err()["error"],
-            "unknown field `x` in a `reset-lateness` request, it takes no fields"
+            "unknown field `x` in a `reset-lateness` request, expected `sensor`"
         );
+        // docs/CONTROL.md: every request may carry `"sensor": N` (the Python client adds it to
+        // each one), `reset-lateness` included.
+        for req in every_request() {
+            let mut v = serde_json::to_value(&req).unwrap();
+            v["sensor"] = json!(1);
+            assert!(parse_request(&v.to_string()).is_ok(), "{v}");
+        }
         // Still refused with the cmd's name when the cmd comes last.
         let e = parse_request(r#"{"velocty":1,"cmd":"state"}"#).unwrap_err();
         assert!(

@@ -140,6 +140,9 @@ fn kind_name(ft: FileType) -> &'static str {
     }
 }
 
+/// Bytes read of a held lock file for its holder's pid (a `u32` in decimal and a newline fit).
+const PID_TEXT_MAX: u64 = 16;
+
 /// Temporary names a save tries before it gives up: each is created only if no file of that
 /// name exists, so a taken name (a planted link, say) costs one more try.
 const TEMP_TRIES: usize = 16;
@@ -348,11 +351,16 @@ impl FileStorage {
         match lock.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
+                // A pid and its newline: a few bytes. The file is someone else's while they
+                // hold it, so no more than that is read, whatever its length.
                 let mut text = String::new();
-                let _ = lock.read_to_string(&mut text);
+                let _ = (&mut lock).take(PID_TEXT_MAX).read_to_string(&mut text);
                 return Err(OpenError::InUse {
                     path: s.path.clone(),
-                    holder: text.trim().parse().ok(),
+                    holder: text
+                        .split(|c: char| !c.is_ascii_digit())
+                        .next()
+                        .and_then(|pid| pid.parse().ok()),
                 });
             }
             Err(TryLockError::Error(e)) => return Err(unwritable(e)),
@@ -585,6 +593,12 @@ impl FileStorage {
                 "the stored image cannot be used; starting on defaults");
             self.reported = Some(why);
         }
+    }
+
+    /// What the last load found wrong with the file (a link, not a regular file, unreadable, a
+    /// failed check, records dropped), in words; `None` after a clean load or none yet.
+    pub fn problem(&self) -> Option<&str> {
+        self.reported.as_deref()
     }
 
     /// Fault injection (stored-data corruption): flips one bit in the middle of the stored
@@ -944,6 +958,29 @@ mod tests {
         assert!(e.to_string().contains("--serial"), "{e}");
         drop(clone);
         FileStorage::open(&path).unwrap();
+    }
+
+    /// Review of issue 35: the holder's pid was read with no bound, so a held lock file of
+    /// 1 GiB (sparse: no disk needed) cost the second process 1 GiB of memory. Only the pid's
+    /// few bytes are read now.
+    #[test]
+    fn a_huge_held_lock_file_is_read_no_further_than_its_pid() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("th-1.bin");
+        let a = FileStorage::open(&path).unwrap();
+        let lock = dir.path().join("th-1.bin.lock");
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&lock)
+            .unwrap()
+            .set_len(256 << 20)
+            .unwrap();
+        let e = FileStorage::open(&path).unwrap_err();
+        assert!(
+            matches!(e, OpenError::InUse { holder: Some(p), .. } if p == std::process::id()),
+            "{e}"
+        );
+        drop(a);
     }
 
     /// Issue 35 item 1: a link at `<file>.lock` to a file outside the state directory used to

@@ -1136,7 +1136,8 @@ impl Runtime {
                 r?;
                 Ok(json!({"ok": true}))
             }
-            Request::ResetLateness {} => {
+            Request::ResetLateness { sensor } => {
+                self.sensor_index(sensor)?;
                 self.lateness = Lateness::default();
                 Ok(json!({"ok": true}))
             }
