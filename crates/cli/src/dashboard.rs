@@ -24,7 +24,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
-use axum::http::{header, StatusCode};
+use axum::http::{header, Method, StatusCode, Uri};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -40,7 +40,7 @@ use serde_json::{json, Value};
 
 use crate::master::decode;
 use crate::master::sdo::{format_auto, hex_string, ValueType};
-use watch::{BusCmd, Controller, Link, Shared};
+use watch::{BusCmd, BusQueue, Controller, Link, Outcome, Pending, Refused, Shared};
 
 /// Default address of `canpos dashboard`.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29080";
@@ -157,7 +157,7 @@ pub fn start(
         window_s,
         controllers,
     )));
-    let (cmd_tx, cmd_rx) = canpos_host::crossbeam_channel::unbounded();
+    let (cmd_tx, cmd_rx) = watch::bus_queue(watch::QUEUE);
     let (stop_bus, stop_bus_rx) = canpos_host::crossbeam_channel::bounded(1);
     let (stop_poll, stop_poll_rx) = canpos_host::crossbeam_channel::bounded(1);
     {
@@ -172,7 +172,7 @@ pub fn start(
     }
     let app = App {
         shared: shared.clone(),
-        cmds: cmd_tx,
+        cmds: Arc::new(cmd_tx),
     };
     let router = router(app);
     let cap = serve::connection_cap();
@@ -255,7 +255,7 @@ pub fn start_for_runtime(
 #[derive(Clone)]
 struct App {
     shared: Arc<Mutex<Shared>>,
-    cmds: Sender<BusCmd>,
+    cmds: Arc<BusQueue>,
 }
 
 fn router(app: App) -> Router {
@@ -281,6 +281,17 @@ fn router(app: App) -> Router {
             get(sdo_read).put(sdo_write),
         )
         .route("/api/nodes/{node}/control", post(node_control))
+        // axum answers a known path's other methods 405 with an empty body; the API's errors
+        // are JSON (axum still adds `Allow`).
+        .method_not_allowed_fallback(|method: Method, uri: Uri| async move {
+            fail(
+                StatusCode::METHOD_NOT_ALLOWED,
+                format!(
+                    "{method} is not allowed on {} (the Allow header lists what is)",
+                    uri.path()
+                ),
+            )
+        })
         .fallback(|| async { fail(StatusCode::NOT_FOUND, "no such page or API".into()) })
         .layer(axum::middleware::from_fn(guard::guard))
         .with_state(app)
@@ -325,9 +336,9 @@ async fn status(State(app): State<App>) -> Json<Value> {
     }))
 }
 
-async fn scan(State(app): State<App>) -> Json<Value> {
-    let _ = app.cmds.send(BusCmd::Scan);
-    Json(json!({"ok": true}))
+async fn scan(State(app): State<App>) -> Answer {
+    app.cmds.scan().map_err(|r| refused(&app, r))?;
+    Ok(Json(json!({"ok": true})))
 }
 
 /// Counts an open event stream for as long as it lives.
@@ -649,11 +660,60 @@ fn object(
     Ok((id, entry))
 }
 
-async fn wait<T: Send + 'static>(rx: canpos_host::crossbeam_channel::Receiver<T>) -> Option<T> {
-    tokio::task::spawn_blocking(move || rx.recv_timeout(Duration::from_secs(5)).ok())
-        .await
-        .ok()
-        .flatten()
+/// How long a request waits for its command to start on the bus: with [`watch::QUEUE`]
+/// commands ahead, each a 300 ms SDO timeout at worst, it starts well within.
+const BUS_PATIENCE: Duration = Duration::from_secs(5);
+/// How long a request waits for a command that has started to end. An expedited transfer
+/// ends within its 300 ms timeout; only a long segmented one with a node that answers each
+/// segment late takes longer, and it is then reported as unfinished, its effect unknown.
+const BUS_RUN_LIMIT: Duration = Duration::from_secs(30);
+
+/// The answer to a command the queue did not take.
+fn refused(app: &App, r: Refused) -> ApiError {
+    match r {
+        Refused::Busy => fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!(
+                "the bus is busy: {} requests already wait for it; nothing was sent, try again",
+                watch::QUEUE
+            ),
+        ),
+        Refused::Gone => gone(app),
+    }
+}
+
+fn gone(app: &App) -> ApiError {
+    let why = app.shared.lock().unwrap().bus_error.clone();
+    fail(
+        StatusCode::SERVICE_UNAVAILABLE,
+        match why {
+            Some(why) => format!("the bus connection is gone: {why}"),
+            None => "the bus connection is gone".into(),
+        },
+    )
+}
+
+/// Waits for a queued command of node `id`: its result, or an error that says what happened.
+async fn bus_result<T>(app: &App, id: u8, p: Pending<Result<T, String>>) -> Result<T, ApiError> {
+    match p.outcome(BUS_PATIENCE, BUS_RUN_LIMIT).await {
+        Outcome::Done(Ok(v)) => Ok(v),
+        Outcome::Done(Err(why)) => Err(fail(StatusCode::BAD_GATEWAY, format!("node {id}: {why}"))),
+        Outcome::TimedOut { ahead } => Err(fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!(
+                "timed out waiting for the bus: {ahead} requests ahead after {} s; nothing was sent",
+                BUS_PATIENCE.as_secs()
+            ),
+        )),
+        Outcome::Unfinished => Err(fail(
+            StatusCode::GATEWAY_TIMEOUT,
+            format!(
+                "node {id}: the transfer started but has not ended after {} s; whether it took effect is unknown",
+                BUS_RUN_LIMIT.as_secs()
+            ),
+        )),
+        Outcome::Gone => Err(gone(app)),
+    }
 }
 
 async fn sdo_read(
@@ -661,24 +721,18 @@ async fn sdo_read(
     Path((node, index, sub)): Path<(String, String, String)>,
 ) -> Answer {
     let (id, e) = object(&app, &node, &index, &sub)?;
-    let (tx, rx) = canpos_host::crossbeam_channel::bounded(1);
-    let _ = app.cmds.send(BusCmd::Read(id, e.index, e.sub, tx));
-    match wait(rx).await {
-        Some(Ok(d)) => {
-            let value = value_type(e.ty)
-                .decode(&d)
-                .unwrap_or_else(|_| format_auto(&d));
-            Ok(Json(json!({
-                "ok": true, "node": id, "index": format!("0x{:04X}", e.index), "sub": e.sub,
-                "name": e.name, "type": type_name(e.ty), "value": value, "hex": hex_string(&d),
-            })))
-        }
-        Some(Err(why)) => Err(fail(StatusCode::BAD_GATEWAY, format!("node {id}: {why}"))),
-        None => Err(fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "the bus connection is gone".into(),
-        )),
-    }
+    let p = app
+        .cmds
+        .submit(|job| BusCmd::Read(id, e.index, e.sub, job))
+        .map_err(|r| refused(&app, r))?;
+    let d = bus_result(&app, id, p).await?;
+    let value = value_type(e.ty)
+        .decode(&d)
+        .unwrap_or_else(|_| format_auto(&d));
+    Ok(Json(json!({
+        "ok": true, "node": id, "index": format!("0x{:04X}", e.index), "sub": e.sub,
+        "name": e.name, "type": type_name(e.ty), "value": value, "hex": hex_string(&d),
+    })))
 }
 
 async fn sdo_write(
@@ -721,20 +775,14 @@ async fn sdo_write(
             format!("value for {} ({}): {why}", e.name, type_name(e.ty)),
         )
     })?;
-    let (tx, rx) = canpos_host::crossbeam_channel::bounded(1);
-    let _ = app
+    let p = app
         .cmds
-        .send(BusCmd::Write(id, e.index, e.sub, data.clone(), tx));
-    match wait(rx).await {
-        Some(Ok(())) => Ok(Json(
-            json!({"ok": true, "node": id, "hex": hex_string(&data)}),
-        )),
-        Some(Err(why)) => Err(fail(StatusCode::BAD_GATEWAY, format!("node {id}: {why}"))),
-        None => Err(fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "the bus connection is gone".into(),
-        )),
-    }
+        .submit(|job| BusCmd::Write(id, e.index, e.sub, data.clone(), job))
+        .map_err(|r| refused(&app, r))?;
+    bus_result(&app, id, p).await?;
+    Ok(Json(
+        json!({"ok": true, "node": id, "hex": hex_string(&data)}),
+    ))
 }
 
 /// The commands the page may send (`state` and `reset-lateness` are the poller's).

@@ -718,3 +718,115 @@ fn a_body_that_never_arrives_times_out() {
         std::thread::sleep(Duration::from_millis(20));
     }
 }
+
+/// Sends one control request to the rig's sensor; panics unless it is answered ok.
+fn control(r: &Rig, line: &str) {
+    let req = canpos_host::control::parse_request(line).unwrap();
+    let v = r.rt.as_ref().unwrap().control().request(req);
+    assert_eq!(v["ok"], true, "{line}: {v}");
+}
+
+/// The review of issue 35: reads that anyone may send (an `<img>` on any site) queued without
+/// a bound while a powered-off node let each time out, a write behind them was answered 503
+/// "the bus connection is gone" after 5 s, and was still done 0.5 s later. Now the queue is
+/// bounded, a request whose client gave up never goes on the bus, and the answer says what
+/// happened: a write that is refused changes nothing.
+#[test]
+fn a_write_refused_by_a_busy_bus_is_never_done() {
+    let r = rig();
+    let a = r.web.local_addr();
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 200, "{v}");
+    let before = v["value"].clone();
+    assert!(!before.as_str().unwrap().starts_with("777 "), "{v}");
+
+    // A node that answers nothing: each read takes the dashboard's whole SDO timeout.
+    control(&r, r#"{"cmd":"fault","name":"power-cycle","on":true}"#);
+    for _ in 0..40 {
+        let mut s = TcpStream::connect(a).unwrap();
+        write!(
+            s,
+            "GET /api/nodes/127/sdo/1018/1 HTTP/1.1\r\nHost: x\r\n\r\n"
+        )
+        .unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let (code, put) = http(a, "PUT", "/api/nodes/127/sdo/0x1017/0", r#"{"value":777}"#);
+    eprintln!("the write: {code} {put}");
+    control(&r, r#"{"cmd":"fault","name":"power-cycle","on":false}"#);
+    // The node is powered: no SDO of it can go on the bus unanswered, and the queue is FIFO,
+    // so once a read is answered the write (queued before it) was either done or dropped.
+    let until = Instant::now() + Duration::from_secs(30);
+    let after = loop {
+        let (c, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+        if c == 200 {
+            break v;
+        }
+        assert!(Instant::now() < until, "no read answered: {c} {v}");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    if code == 200 {
+        // The write got its turn while the node was powered (a loaded machine): it was done.
+        assert!(
+            after["value"].as_str().unwrap().starts_with("777 "),
+            "{after}"
+        );
+        return;
+    }
+    assert_eq!(
+        after["value"], before,
+        "a refused write ({code} {put}) was done: {after}"
+    );
+    let why = error_of(&put);
+    assert!(
+        !why.contains("gone"),
+        "the bus connection is not gone: {code} {put}"
+    );
+    assert!(
+        (code == 503 && (why.contains("busy") || why.contains("timed out waiting for the bus")))
+            || (code == 502 && why.contains("node 127")),
+        "{code} {put}"
+    );
+}
+
+/// A method a path does not take is answered 405 with its `Allow` header and, as every error
+/// of the API, a JSON body (it was empty).
+#[test]
+fn a_method_a_path_does_not_take_is_refused_in_json() {
+    let r = rig();
+    let a = r.web.local_addr();
+    let before = state(&r);
+    for (method, path, allow) in [
+        ("PUT", "/api/nodes/127/control", "POST"),
+        ("PATCH", "/api/nodes/127/control", "POST"),
+        ("GET", "/api/nodes/127/control", "POST"),
+        ("DELETE", "/api/nodes/127/sdo/0x1017/0", "GET,HEAD,PUT"),
+    ] {
+        let mut s = TcpStream::connect(a).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let body = r#"{"cmd":"power-cycle"}"#;
+        write!(
+            s,
+            "{method} {path} HTTP/1.1\r\nHost: {a}\r\nConnection: close\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        )
+        .unwrap();
+        let mut text = String::new();
+        s.read_to_string(&mut text).unwrap();
+        let (head, json) = text.split_once("\r\n\r\n").unwrap();
+        assert!(head.starts_with("HTTP/1.1 405"), "{method} {path}: {text}");
+        let head = head.to_ascii_lowercase();
+        assert!(
+            head.contains(&format!("\r\nallow: {}", allow.to_ascii_lowercase())),
+            "{text}"
+        );
+        assert!(head.contains("content-type: application/json"), "{text}");
+        let v: Value = serde_json::from_str(json).unwrap();
+        assert!(
+            error_of(&v).contains(&format!("{method} is not allowed on {path}")),
+            "{v}"
+        );
+    }
+    let after = state(&r);
+    assert_eq!(before["powered"], after["powered"]);
+}

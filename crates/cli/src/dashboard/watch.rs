@@ -2,8 +2,11 @@
 //! TPDOs, answers to its scan), their process data decimated for the plots, and the state the
 //! control interfaces report. One thread owns the bus connection; it also runs the SDO
 //! transfers the page asks for, so that the dashboard is one SDO client, never two at once.
+//! They come through a bounded queue ([`bus_queue`]); a command whose requester has given up
+//! is never started, and one that has started is always answered with its outcome.
 
 use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -11,9 +14,10 @@ use canpos_core::models::{self, Model};
 use canpos_core::od::Default as OdDefault;
 use canpos_core::Frame;
 use canpos_host::control::{self, Request};
-use canpos_host::crossbeam_channel::{Receiver, Sender};
+use canpos_host::crossbeam_channel::{self, Receiver, Sender, TrySendError};
 use canpos_host::{ControlHandle, RxFrame, Transport};
 use serde_json::{json, Value};
+use tokio::sync::oneshot;
 
 use crate::master::decode::{self, NodeInfo};
 use crate::master::sdo::{abort_meaning, SdoClient, SdoError};
@@ -350,14 +354,245 @@ pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Mod
     })
 }
 
+/// Commands that may wait for the bus thread at once; one more is refused at once (the HTTP
+/// side answers 503 "busy") and changes nothing. Reads are open to any client (an `<img>` of
+/// any site), so the queue must not grow with them, and a few are all a page has in flight.
+pub const QUEUE: usize = 8;
+
 /// A request from the HTTP side to the bus thread.
 pub enum BusCmd {
     /// SDO upload.
-    Read(u8, u16, u8, Sender<Result<Vec<u8>, String>>),
+    Read(u8, u16, u8, Job<Result<Vec<u8>, String>>),
     /// SDO download.
-    Write(u8, u16, u8, Vec<u8>, Sender<Result<(), String>>),
+    Write(u8, u16, u8, Vec<u8>, Job<Result<(), String>>),
     /// Ask every node-id for 0x1000 (answers are noted as frames).
     Scan,
+}
+
+// The life of a queued command: the bus thread moves it from QUEUED to STARTED, its requester
+// from QUEUED to ABANDONED; whichever comes first decides, so a command is either run and
+// answered or never run.
+const QUEUED: u8 = 0;
+const STARTED: u8 = 1;
+const ABANDONED: u8 = 2;
+
+/// The bus thread's side of a queued command: claim it, then answer it.
+pub struct Job<T> {
+    claim: Arc<AtomicU8>,
+    reply: oneshot::Sender<T>,
+}
+
+impl<T> Job<T> {
+    /// Claims the command for the bus: false when its requester has given up (its wait ended
+    /// or it went away), and then it must not be run.
+    pub fn start(&self) -> bool {
+        self.claim
+            .compare_exchange(QUEUED, STARTED, Ordering::SeqCst, Ordering::SeqCst)
+            .is_ok()
+    }
+
+    /// The outcome of a started command.
+    pub fn answer(self, v: T) {
+        let _ = self.reply.send(v);
+    }
+}
+
+/// What became of a queued command, as its requester learns it.
+#[derive(Debug, PartialEq)]
+pub enum Outcome<T> {
+    /// It ran; this is its result.
+    Done(T),
+    /// It never started (and never will): the wait ended with this many commands ahead of it
+    /// (queued or running).
+    TimedOut {
+        /// Commands before it not yet finished.
+        ahead: u64,
+    },
+    /// It started but had not ended when the requester stopped waiting: its effect is unknown.
+    Unfinished,
+    /// The bus thread ended (the bus connection is gone) before it ran.
+    Gone,
+}
+
+/// The requester's side of a queued command. Dropping it (the client went away) gives the
+/// command up unless it has started.
+pub struct Pending<T> {
+    ticket: u64,
+    claim: Arc<AtomicU8>,
+    reply: oneshot::Receiver<T>,
+    finished: Arc<AtomicU64>,
+}
+
+impl<T> Pending<T> {
+    /// Gives the command up: true when it had not started (it never will), false when it has
+    /// (its answer will come).
+    pub fn abandon(&self) -> bool {
+        match self
+            .claim
+            .compare_exchange(QUEUED, ABANDONED, Ordering::SeqCst, Ordering::SeqCst)
+        {
+            Ok(_) => true,
+            Err(state) => state == ABANDONED,
+        }
+    }
+
+    /// Commands before this one that the bus thread has not finished.
+    pub fn ahead(&self) -> u64 {
+        self.ticket
+            .saturating_sub(self.finished.load(Ordering::SeqCst))
+    }
+
+    /// Waits up to `patience` for the command to start; one that started by then is waited
+    /// for until it ends, or `limit` more (an SDO transfer segment by segment can last long
+    /// with a node that answers each segment late).
+    pub async fn outcome(mut self, patience: Duration, limit: Duration) -> Outcome<T> {
+        match tokio::time::timeout(patience, &mut self.reply).await {
+            Ok(Ok(v)) => return Outcome::Done(v),
+            Ok(Err(_)) => return Outcome::Gone,
+            Err(_) => {}
+        }
+        if self.abandon() {
+            return Outcome::TimedOut {
+                ahead: self.ahead(),
+            };
+        }
+        match tokio::time::timeout(limit, &mut self.reply).await {
+            Ok(Ok(v)) => Outcome::Done(v),
+            Ok(Err(_)) => Outcome::Gone,
+            Err(_) => Outcome::Unfinished,
+        }
+    }
+}
+
+impl<T> Drop for Pending<T> {
+    fn drop(&mut self) {
+        self.abandon();
+    }
+}
+
+/// Why a command was not queued.
+#[derive(Debug, PartialEq)]
+pub enum Refused {
+    /// [`QUEUE`] commands wait already.
+    Busy,
+    /// The bus thread has ended.
+    Gone,
+}
+
+/// The HTTP side of the bounded queue to the bus thread.
+pub struct BusQueue {
+    tx: Sender<(u64, BusCmd)>,
+    /// Number of the next command; held while it is queued, so numbers follow queue order.
+    next: Mutex<u64>,
+    finished: Arc<AtomicU64>,
+}
+
+/// The bus thread's side of the queue.
+pub struct BusInbox {
+    rx: Receiver<(u64, BusCmd)>,
+    finished: Arc<AtomicU64>,
+}
+
+/// A queue of at most `capacity` commands to the bus thread.
+pub fn bus_queue(capacity: usize) -> (BusQueue, BusInbox) {
+    let (tx, rx) = crossbeam_channel::bounded(capacity);
+    let finished = Arc::new(AtomicU64::new(0));
+    (
+        BusQueue {
+            tx,
+            next: Mutex::new(0),
+            finished: finished.clone(),
+        },
+        BusInbox { rx, finished },
+    )
+}
+
+impl BusQueue {
+    /// Queues the command `make` builds around its [`Job`] at once, or refuses it: nothing
+    /// waits for room.
+    pub fn submit<T>(&self, make: impl FnOnce(Job<T>) -> BusCmd) -> Result<Pending<T>, Refused> {
+        let (reply_tx, reply) = oneshot::channel();
+        let claim = Arc::new(AtomicU8::new(QUEUED));
+        let cmd = make(Job {
+            claim: claim.clone(),
+            reply: reply_tx,
+        });
+        let mut next = self.next.lock().unwrap();
+        self.send(*next, cmd)?;
+        let ticket = *next;
+        *next += 1;
+        Ok(Pending {
+            ticket,
+            claim,
+            reply,
+            finished: self.finished.clone(),
+        })
+    }
+
+    /// Queues a scan (nobody waits for its answer).
+    pub fn scan(&self) -> Result<(), Refused> {
+        let mut next = self.next.lock().unwrap();
+        self.send(*next, BusCmd::Scan)?;
+        *next += 1;
+        Ok(())
+    }
+
+    fn send(&self, ticket: u64, cmd: BusCmd) -> Result<(), Refused> {
+        self.tx.try_send((ticket, cmd)).map_err(|e| match e {
+            TrySendError::Full(_) => Refused::Busy,
+            TrySendError::Disconnected(_) => Refused::Gone,
+        })
+    }
+}
+
+impl BusInbox {
+    /// The next command, if one waits.
+    fn next(&self) -> Option<(u64, BusCmd)> {
+        self.rx.try_recv().ok()
+    }
+
+    /// Command `ticket` is done with (run or skipped).
+    fn finished(&self, ticket: u64) {
+        self.finished.store(ticket + 1, Ordering::SeqCst);
+    }
+}
+
+impl Drop for BusInbox {
+    /// The bus thread has ended: the commands still queued are dropped, so that their
+    /// requesters learn at once that the bus is gone (a channel keeps its messages while a
+    /// sender lives).
+    fn drop(&mut self) {
+        while self.rx.try_recv().is_ok() {}
+    }
+}
+
+/// Runs one command on the bus, unless its requester has given up on it. Frames of others
+/// heard meanwhile go to `backlog`.
+fn run_cmd(
+    bus: &mut dyn Transport,
+    cmd: BusCmd,
+    backlog: &mut Vec<RxFrame>,
+) -> std::io::Result<()> {
+    match cmd {
+        BusCmd::Read(node, index, sub, job) => {
+            if job.start() {
+                let mut c = SdoClient::new(bus, node, SDO_TIMEOUT).keep_other_frames();
+                let r = c.upload(index, sub).map_err(sdo_text);
+                backlog.extend(c.take_other_frames());
+                job.answer(r);
+            }
+        }
+        BusCmd::Write(node, index, sub, data, job) => {
+            if job.start() {
+                let mut c = SdoClient::new(bus, node, SDO_TIMEOUT).keep_other_frames();
+                let r = c.download(index, sub, &data).map_err(sdo_text);
+                backlog.extend(c.take_other_frames());
+                job.answer(r);
+            }
+        }
+        BusCmd::Scan => scan(bus)?,
+    }
+    Ok(())
 }
 
 fn sdo_text(e: SdoError) -> String {
@@ -372,7 +607,7 @@ fn sdo_text(e: SdoError) -> String {
 pub fn run_bus(
     mut bus: Box<dyn Transport>,
     shared: Arc<Mutex<Shared>>,
-    cmds: Receiver<BusCmd>,
+    cmds: BusInbox,
     stop: Receiver<()>,
 ) {
     let mut backlog: Vec<RxFrame> = Vec::new();
@@ -407,24 +642,10 @@ pub fn run_bus(
             if let Some(id) = ask {
                 identify(&mut *bus, id, &shared, &mut backlog);
             }
-            while let Ok(cmd) = cmds.try_recv() {
-                match cmd {
-                    BusCmd::Read(node, index, sub, reply) => {
-                        let mut c =
-                            SdoClient::new(&mut *bus, node, SDO_TIMEOUT).keep_other_frames();
-                        let r = c.upload(index, sub).map_err(sdo_text);
-                        backlog.extend(c.take_other_frames());
-                        let _ = reply.send(r);
-                    }
-                    BusCmd::Write(node, index, sub, data, reply) => {
-                        let mut c =
-                            SdoClient::new(&mut *bus, node, SDO_TIMEOUT).keep_other_frames();
-                        let r = c.download(index, sub, &data).map_err(sdo_text);
-                        backlog.extend(c.take_other_frames());
-                        let _ = reply.send(r);
-                    }
-                    BusCmd::Scan => scan(&mut *bus)?,
-                }
+            while let Some((ticket, cmd)) = cmds.next() {
+                let r = run_cmd(&mut *bus, cmd, &mut backlog);
+                cmds.finished(ticket);
+                r?;
             }
         }
     })();
@@ -562,4 +783,122 @@ pub fn probe(addr: &str) -> Vec<Controller> {
 /// Names of the NMT state byte, with "unknown" for nothing heard.
 pub fn nmt_name(b: Option<u8>) -> &'static str {
     b.map_or("unknown", decode::nmt_state_name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use canpos_host::MemBus;
+
+    fn read(q: &BusQueue) -> Result<Pending<Result<Vec<u8>, String>>, Refused> {
+        q.submit(|job| BusCmd::Read(5, 0x1018, 1, job))
+    }
+
+    fn frames(port: &mut dyn Transport) -> usize {
+        std::iter::from_fn(|| port.try_recv().unwrap()).count()
+    }
+
+    #[test]
+    fn a_full_queue_refuses_at_once_and_a_gone_bus_says_so() {
+        let (q, inbox) = bus_queue(QUEUE);
+        let waiting: Vec<_> = (0..QUEUE).map(|_| read(&q).unwrap()).collect();
+        assert_eq!(read(&q).err(), Some(Refused::Busy));
+        assert_eq!(q.scan(), Err(Refused::Busy));
+        let write = q.submit(|job| BusCmd::Write(5, 0x1017, 0, vec![9, 3], job));
+        assert_eq!(write.err(), Some(Refused::Busy));
+        // Nothing refused was queued: the eight are all there is, in order.
+        assert_eq!(inbox.rx.len(), QUEUE);
+        assert_eq!(waiting[QUEUE - 1].ahead(), QUEUE as u64 - 1);
+        let (ticket, _) = inbox.next().unwrap();
+        assert_eq!(ticket, 0);
+        inbox.finished(ticket);
+        assert_eq!(waiting[QUEUE - 1].ahead(), QUEUE as u64 - 2);
+        // Room for one again.
+        assert!(q.scan().is_ok());
+        assert_eq!(read(&q).err(), Some(Refused::Busy));
+        drop(inbox);
+        assert_eq!(read(&q).err(), Some(Refused::Gone));
+    }
+
+    #[test]
+    fn a_command_given_up_never_goes_on_the_bus() {
+        let bus = MemBus::instant();
+        let mut port = bus.attach();
+        let mut peer = bus.attach();
+        let (q, inbox) = bus_queue(QUEUE);
+        // A client that went away (its request's future dropped), one whose wait ended, and a
+        // write given up: none of them is started.
+        drop(read(&q).unwrap());
+        let timed_out = read(&q).unwrap();
+        assert!(timed_out.abandon());
+        let write = q
+            .submit(|job| BusCmd::Write(5, 0x1017, 0, vec![9, 3], job))
+            .unwrap();
+        assert!(write.abandon());
+        q.scan().unwrap();
+        let mut backlog = Vec::new();
+        for n in 0..3 {
+            let (ticket, cmd) = inbox.next().unwrap();
+            assert_eq!(ticket, n);
+            run_cmd(&mut port, cmd, &mut backlog).unwrap();
+            inbox.finished(ticket);
+        }
+        assert_eq!(frames(&mut peer), 0, "a command given up went on the bus");
+        // The port does reach the peer: the scan behind them asks all 127 node-ids.
+        let (ticket, cmd) = inbox.next().unwrap();
+        run_cmd(&mut port, cmd, &mut backlog).unwrap();
+        inbox.finished(ticket);
+        assert_eq!(frames(&mut peer), 127);
+        assert_eq!(timed_out.ahead(), 0);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_started_command_is_answered_with_its_outcome() {
+        let patience = Duration::from_secs(5);
+        let limit = Duration::from_secs(30);
+        let (q, inbox) = bus_queue(QUEUE);
+
+        // Never taken off the queue: given up when the wait ends, with one command ahead.
+        q.scan().unwrap();
+        let p = read(&q).unwrap();
+        assert_eq!(
+            p.outcome(patience, limit).await,
+            Outcome::TimedOut { ahead: 1 }
+        );
+        let _scan = inbox.next().unwrap();
+        let Some((_, BusCmd::Read(.., job))) = inbox.next() else {
+            panic!("the read is queued")
+        };
+        assert!(!job.start(), "a command given up was started");
+
+        // Started before the wait ended, answered after it: the requester gets the answer.
+        let p = read(&q).unwrap();
+        let Some((_, BusCmd::Read(.., job))) = inbox.next() else {
+            panic!("the read is queued")
+        };
+        assert!(job.start());
+        assert!(!p.abandon(), "a started command cannot be given up");
+        tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_secs(12)).await;
+            job.answer(Ok(vec![1, 2]));
+        });
+        assert_eq!(
+            p.outcome(patience, limit).await,
+            Outcome::Done(Ok(vec![1, 2]))
+        );
+
+        // Started and never ending within the limit: unfinished, never "timed out, not sent".
+        let p = read(&q).unwrap();
+        let Some((_, BusCmd::Read(.., job))) = inbox.next() else {
+            panic!("the read is queued")
+        };
+        assert!(job.start());
+        assert_eq!(p.outcome(patience, limit).await, Outcome::Unfinished);
+        drop(job);
+
+        // The bus thread ends with a command queued: gone.
+        let p = read(&q).unwrap();
+        drop(inbox);
+        assert_eq!(p.outcome(patience, limit).await, Outcome::Gone);
+    }
 }
