@@ -5,7 +5,11 @@
 //! forwards, and writes. Each raw-mode client has a bounded queue that the channel's senders
 //! (other clients, in-process [`MemPort`]s on any thread) only ever `try_send` into, waking the
 //! I/O thread; a client that reads slowly or not at all loses frames (counted) and never stalls
-//! the others. Its socket is written without blocking, with at most [`OUT_LIMIT`] bytes waiting.
+//! the others. Its socket is written without blocking, with at most [`HubConfig::out_limit`]
+//! bytes of frames waiting; replies may add as much again, then the hub stops reading from the
+//! client until it reads them (backpressure). A client whose socket and output are full costs
+//! nothing per frame: its frames are dropped (counted) by their sender, and its socket is not
+//! tried again before it is writable.
 //!
 //! Limits: at most [`HubConfig::max_clients`] connections at once; one more is told
 //! `< error too many clients >` and closed. Threads do not grow with clients at all. A client
@@ -16,7 +20,7 @@
 use std::collections::HashMap;
 use std::io::{self, Read, Write};
 use std::net::{SocketAddr, TcpListener, ToSocketAddrs};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
@@ -25,15 +29,15 @@ use crossbeam_channel::{Receiver, TryRecvError};
 use mio::net::{TcpListener as MioListener, TcpStream};
 use mio::{Events, Interest, Poll, Token, Waker};
 
-use super::codec::{self, Decoder, Element, ErrorFrame};
+use super::codec::{self, Decoder, Element, ErrorFrame, Piece};
 use super::session::{Effect, Session};
 use crate::mem::{BusCore, MemBus, MemPort, Sink};
-use crate::transport::RxFrame;
+use crate::transport::{BusState, RxFrame};
 
 /// The default listen address: loopback only.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
 
-/// Bytes that may wait for a client's socket before its queue is left to fill (and drop).
+/// Default of [`HubConfig::out_limit`].
 pub const OUT_LIMIT: usize = 64 * 1024;
 
 const LISTENER: Token = Token(usize::MAX - 1);
@@ -48,19 +52,56 @@ pub(crate) struct Wake {
     token: usize,
     /// Set while the token is in the ready list, so a burst wakes the thread once.
     pending: AtomicBool,
+    /// The client cannot take frames: its socket refused more and [`HubConfig::out_limit`] bytes wait
+    /// for it. Senders then drop its frames (counted) without queueing them or waking the I/O
+    /// thread, until the socket is writable again: such a client costs nothing per frame.
+    blocked: AtomicBool,
+    /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
+    /// reported to it as socketcand reports its interface's state.
+    ctl_state: AtomicU8,
     ready: Arc<Mutex<Vec<usize>>>,
     waker: Arc<Waker>,
 }
 
 impl Wake {
+    /// Whether frames for the client are to be dropped at once (see `blocked`).
+    pub(crate) fn is_blocked(&self) -> bool {
+        self.blocked.load(Ordering::Relaxed)
+    }
+
     pub(crate) fn notify(&self) {
         if !self.pending.swap(true, Ordering::AcqRel) {
-            self.ready
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .push(self.token);
-            let _ = self.waker.wake();
+            let mut ready = self.ready.lock().unwrap_or_else(|e| e.into_inner());
+            let first = ready.is_empty();
+            ready.push(self.token);
+            drop(ready);
+            // The I/O thread takes the whole list per wake-up: whoever made it non-empty has
+            // woken it (one eventfd write per burst, not one per client).
+            if first {
+                let _ = self.waker.wake();
+            }
         }
+    }
+
+    /// The state [`Wake::controller_state`] left, if not yet reported; taken.
+    fn take_state(&self) -> Option<BusState> {
+        match self.ctl_state.swap(0, Ordering::AcqRel) {
+            1 => Some(BusState::ErrorActive),
+            2 => Some(BusState::ErrorPassive),
+            3 => Some(BusState::BusOff),
+            _ => None,
+        }
+    }
+
+    /// Its controller's error state changed (on the bus's driver thread).
+    pub(crate) fn controller_state(&self, s: BusState) {
+        let code = match s {
+            BusState::ErrorActive => 1,
+            BusState::ErrorPassive => 2,
+            BusState::BusOff => 3,
+        };
+        self.ctl_state.store(code, Ordering::Release);
+        self.notify();
     }
 }
 
@@ -92,6 +133,14 @@ pub struct HubConfig {
     /// How each channel delivers frames: paced at a bit rate (default
     /// [`DEFAULT_BITRATE_KBPS`](crate::bus::DEFAULT_BITRATE_KBPS)) or instant.
     pub pacing: crate::bus::Pacing,
+    /// Bytes that may wait in the hub for a client's socket (default [`OUT_LIMIT`]). Frames,
+    /// bus errors and statistics lines are added only below it (beyond, the client loses them,
+    /// counted for frames). Replies to its commands (`< ok >`, `< echo >`, `< error … >`) may
+    /// take as much again; with twice this waiting the hub reads nothing more from the client
+    /// until it has read its answers (backpressure through TCP, as a socketcand process
+    /// blocked in `send` does). A client thus never holds more than twice this (and one reply)
+    /// in the hub, plus the input read but not yet handled (< 4 KiB).
+    pub out_limit: usize,
 }
 
 impl Default for HubConfig {
@@ -107,6 +156,7 @@ impl Default for HubConfig {
             idle_timeout: None,
             error_frames: false,
             pacing: crate::bus::Pacing::default(),
+            out_limit: OUT_LIMIT,
         }
     }
 }
@@ -128,6 +178,9 @@ pub struct HubStats {
     pub unencodable: u64,
     /// Connections refused because [`HubConfig::max_clients`] were connected.
     pub refused: u64,
+    /// Most bytes that ever waited in the hub for one client (bounded by twice
+    /// [`HubConfig::out_limit`] and one reply).
+    pub out_peak: usize,
 }
 
 struct Shared {
@@ -144,6 +197,7 @@ struct Shared {
     dropped: Arc<AtomicU64>,
     unencodable: AtomicU64,
     refused: AtomicU64,
+    out_peak: AtomicUsize,
     /// Bus errors waiting for the I/O thread, by channel.
     errors: Arc<ErrorQueue>,
 }
@@ -186,6 +240,7 @@ impl Shared {
             dropped: self.dropped.load(Ordering::Relaxed),
             unencodable: self.unencodable.load(Ordering::Relaxed),
             refused: self.refused.load(Ordering::Relaxed),
+            out_peak: self.out_peak.load(Ordering::Relaxed),
         }
     }
 
@@ -288,6 +343,7 @@ impl Hub {
     /// Binds with explicit tuning.
     pub fn bind_with(addr: impl ToSocketAddrs, mut config: HubConfig) -> io::Result<Hub> {
         config.queue_len = config.queue_len.max(1);
+        config.out_limit = config.out_limit.max(64);
         config.max_clients = config.max_clients.min(open_file_budget()).max(1);
         let listener = TcpListener::bind(addr)?;
         listener.set_nonblocking(true)?;
@@ -310,6 +366,7 @@ impl Hub {
                 dropped: Arc::new(AtomicU64::new(0)),
                 unencodable: AtomicU64::new(0),
                 refused: AtomicU64::new(0),
+                out_peak: AtomicUsize::new(0),
                 errors: Arc::new(Mutex::new(Vec::new())),
             }),
         })
@@ -463,6 +520,11 @@ struct Conn {
     out_pos: usize,
     /// Whether WRITABLE interest is registered (only while bytes wait).
     writable: bool,
+    /// The socket refused bytes (WouldBlock): no write is tried until it reports WRITABLE.
+    sock_full: bool,
+    /// Input read but not yet handled: the client's output was full ([`HubConfig::out_limit`]); handled,
+    /// and reading resumed, once the client has read its answers.
+    rest: Vec<u8>,
     handshake_end: Instant,
     last_rx: Instant,
     closed: bool,
@@ -482,7 +544,10 @@ impl Conn {
                     return;
                 }
                 Ok(n) => self.out_pos += n,
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    self.sock_full = true;
+                    break;
+                }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(_) => {
                     self.closed = true;
@@ -517,7 +582,17 @@ impl Conn {
         }
         // Cleared before draining: a frame sent meanwhile wakes the loop again.
         wake.pending.store(false, Ordering::Release);
-        while self.out.len() - self.out_pos < OUT_LIMIT {
+        // Its own controller's state, as a SocketCAN interface reports it (only to a client
+        // that takes errors); it waits while the output is full.
+        let limit = shared.config.out_limit;
+        if self.out.len() - self.out_pos < limit {
+            if let Some(s) = wake.take_state() {
+                let e = ErrorFrame::for_state(s, std::time::SystemTime::now());
+                self.session
+                    .error_frame(&e, shared.config.error_frames, &mut self.out);
+            }
+        }
+        while self.out.len() - self.out_pos < limit {
             match rx.try_recv() {
                 Ok(f) => {
                     if !self
@@ -639,6 +714,11 @@ impl EventLoop {
                         self.post_errors(&mut touched);
                     }
                     Token(t) => {
+                        if ev.is_writable() {
+                            if let Some(c) = self.conns.get_mut(&t) {
+                                c.sock_full = false;
+                            }
+                        }
                         if ev.is_readable() || ev.is_read_closed() || ev.is_error() {
                             self.read(t, now);
                         }
@@ -763,6 +843,8 @@ impl EventLoop {
                 out: codec::HI.to_vec(),
                 out_pos: 0,
                 writable: false,
+                sock_full: false,
+                rest: Vec::new(),
                 handshake_end: now + self.shared.config.handshake_timeout,
                 last_rx: now,
                 closed: false,
@@ -789,39 +871,6 @@ impl EventLoop {
         let Some(c) = self.conns.get_mut(&t) else {
             return;
         };
-        let mut buf = [0u8; 4096];
-        let mut elements = Vec::new();
-        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
-        // turn.
-        let mut drained = false;
-        for _ in 0..16 {
-            match c.stream.read(&mut buf) {
-                Ok(0) => {
-                    c.closed = true;
-                    drained = true;
-                    break;
-                }
-                Ok(n) => {
-                    quickack(&c.stream);
-                    c.last_rx = now;
-                    c.decoder
-                        .feed(&buf[..n], |body| elements.push(Element::parse(body)));
-                }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    drained = true;
-                    break;
-                }
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-                Err(_) => {
-                    c.closed = true;
-                    drained = true;
-                    break;
-                }
-            }
-        }
-        if !drained {
-            self.again.push(t);
-        }
         let was_joined = matches!(c.state, State::Raw { .. });
         let was_holding = matches!(
             c.state,
@@ -830,11 +879,58 @@ impl EventLoop {
                 ..
             }
         );
-        for el in elements {
-            if !handle_element(el, c, &self.shared, t, now) {
-                c.closed = true;
-                break;
+        // Input left over from a full output first; while the output stays full, nothing more
+        // is read (the kernel's buffers fill, then the client's sends block).
+        let mut stalled = false;
+        if !c.rest.is_empty() {
+            let rest = std::mem::take(&mut c.rest);
+            let used = consume(c, &rest, &self.shared, t, now);
+            if used < rest.len() && !c.closed {
+                c.rest = rest[used..].to_vec();
+                stalled = true;
             }
+        }
+        let mut buf = [0u8; 4096];
+        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
+        // turn.
+        let mut drained = stalled || c.closed;
+        if !drained {
+            for _ in 0..16 {
+                match c.stream.read(&mut buf) {
+                    Ok(0) => {
+                        c.closed = true;
+                        drained = true;
+                        break;
+                    }
+                    Ok(n) => {
+                        quickack(&c.stream);
+                        c.last_rx = now;
+                        let used = consume(c, &buf[..n], &self.shared, t, now);
+                        if c.closed {
+                            drained = true;
+                            break;
+                        }
+                        if used < n {
+                            c.rest = buf[used..n].to_vec();
+                            drained = true;
+                            break;
+                        }
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                        drained = true;
+                        break;
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                    Err(_) => {
+                        c.closed = true;
+                        drained = true;
+                        break;
+                    }
+                }
+            }
+        }
+        if !drained {
+            self.again.push(t);
         }
         let mut due = None;
         if let State::Raw { hold_until, .. } = &c.state {
@@ -880,7 +976,13 @@ impl EventLoop {
                 continue;
             };
             frames.clear();
-            c.session.poll(now, &mut c.out, &mut frames);
+            // A statistics line only while the output has room: a client that does not read
+            // them loses them (the next one has the current counters); its send jobs go on.
+            let mut stat = Vec::new();
+            c.session.poll(now, &mut stat, &mut frames);
+            if c.pending() < self.shared.config.out_limit {
+                c.out.extend_from_slice(&stat);
+            }
             if let State::Raw { bus, id, .. } = &c.state {
                 for f in &frames {
                     bus.transmit(*id, *f);
@@ -899,6 +1001,10 @@ impl EventLoop {
         for (channel, e, from) in errors {
             for (t, c) in &mut self.conns {
                 if Some(*t) == from {
+                    continue;
+                }
+                // A client whose output is full loses bus errors as it loses frames.
+                if c.pending() >= self.shared.config.out_limit {
                     continue;
                 }
                 if matches!(&c.state, State::Raw { channel: ch, .. } if *ch == channel) {
@@ -924,7 +1030,20 @@ impl EventLoop {
         };
         if !c.closed {
             c.fill(now, &self.shared);
-            c.flush();
+            // What reading, the timers and the queue added is all there is before the flush.
+            self.shared
+                .out_peak
+                .fetch_max(c.pending(), Ordering::Relaxed);
+            // A socket that refused bytes is not tried again before it reports WRITABLE.
+            if !c.sock_full {
+                c.flush();
+            }
+            if let State::Raw { wake, .. } = &c.state {
+                let blocked = c.sock_full && c.pending() >= self.shared.config.out_limit;
+                if wake.is_blocked() != blocked {
+                    wake.blocked.store(blocked, Ordering::Relaxed);
+                }
+            }
         }
         if c.closed {
             let mut c = self.conns.remove(&t).expect("present");
@@ -935,6 +1054,10 @@ impl EventLoop {
                 .clients
                 .store(self.conns.len(), Ordering::Relaxed);
             return;
+        }
+        // Input waits for room for its replies: the room is there, handle it next turn.
+        if !c.rest.is_empty() && c.pending() < 2 * self.shared.config.out_limit {
+            self.again.push(t);
         }
         // Queue not drained (output full): come back when the socket takes more.
         let backlog = matches!(&c.state, State::Raw { rx, hold_until: None, .. } if !rx.is_empty());
@@ -959,6 +1082,30 @@ impl EventLoop {
             }
         }
     }
+}
+
+/// Decodes and handles the elements of `input` while the client's output has room for replies
+/// ([`HubConfig::out_limit`]); returns how many bytes it took (all, unless the output filled up or the
+/// connection is to be closed).
+fn consume(c: &mut Conn, input: &[u8], shared: &Arc<Shared>, token: usize, now: Instant) -> usize {
+    let mut used = 0;
+    while used < input.len() {
+        if c.pending() >= 2 * shared.config.out_limit {
+            break;
+        }
+        let (n, piece) = c.decoder.next(&input[used..]);
+        used += n;
+        let el = match piece {
+            Some(Piece::Body(body)) => Element::parse(body),
+            Some(Piece::TooLong) => Element::TooLong,
+            None => continue,
+        };
+        if !handle_element(el, c, shared, token, now) {
+            c.closed = true;
+            break;
+        }
+    }
+    used
 }
 
 /// Returns false when the connection should be closed.
@@ -992,6 +1139,8 @@ fn handle_element(
                     cap: shared.config.queue_len,
                     token,
                     pending: AtomicBool::new(false),
+                    blocked: AtomicBool::new(false),
+                    ctl_state: AtomicU8::new(0),
                     ready: shared.ready.clone(),
                     waker: shared.waker.clone(),
                 });
@@ -1021,9 +1170,18 @@ fn handle_element(
                 }
                 tracing::debug!(peer = %c.peer, "client in raw mode");
             }
-            Effect::PostError(e) => {
-                if let State::Raw { channel, .. } = &c.state {
-                    shared.post_error_from(channel, e, Some(token));
+            Effect::ErrorFlag(e) => {
+                if let State::Raw {
+                    channel, bus, id, ..
+                } = &c.state
+                {
+                    // On a paced channel an error frame on the bus timeline (which reports it
+                    // to the clients that take errors, the client too, as a controller
+                    // reports the error frames on its bus); an instant channel has no bus
+                    // timeline: the report goes to the others as it came.
+                    if bus.error_flag(*id).is_none() {
+                        shared.post_error_from(channel, e, Some(token));
+                    }
                 }
             }
             Effect::Close => {
