@@ -26,6 +26,10 @@ ap.add_argument("--load", type=float, default=1000.0)
 ap.add_argument("--warmup", type=int, default=20000)
 ap.add_argument("--count", type=int, default=2000)
 ap.add_argument("--port", type=int, default=0)
+ap.add_argument("--settle", type=float, default=60.0,
+                help="after the warm-up, wait up to this many seconds for the hub to be idle "
+                     "but for the load (its CPU below 30 %% of a core over 1 s): the other "
+                     "clients' sockets are full, or their backlog written")
 args = ap.parse_args()
 
 # 12,000 sockets and more: raise the soft limit to the hard one (the hub inherits it).
@@ -138,8 +142,20 @@ warm.wait()
 time.sleep(0.5)
 print(f"warm-up of {args.warmup} frames done; hub RSS {rss(hub.pid)} KiB", flush=True)
 
+def cpu(pid):
+    f = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+t_settle = time.time()
+while time.time() - t_settle < args.settle:
+    c0 = cpu(hub.pid)
+    time.sleep(1)
+    if cpu(hub.pid) - c0 < 0.3:
+        break
+print(f"settled after {time.time() - t_settle:.1f} s; hub RSS {rss(hub.pid)} KiB", flush=True)
+
 receiver.settimeout(2)
-lat, lost, buf = [], 0, b""
+lat, lost, buf, series = [], 0, b"", []
 for seq in range(args.count):
     tag = f"{seq & 0xFFFFFFFF:08X}"
     data = " ".join(tag[i:i + 2] for i in range(0, 8, 2))
@@ -173,6 +189,7 @@ for seq in range(args.count):
         buf += chunk
     if got:
         lat.append((time.perf_counter() - t) * 1000)
+        series.append((seq, lat[-1]))
     else:
         lost += 1
     time.sleep(0.005)
@@ -187,6 +204,13 @@ try:
     hub.wait(10)
 except subprocess.TimeoutExpired:
     hub.kill()
+worst = sorted(series, key=lambda x: -x[1])[:8]
+print("worst (frame #, ms):", ", ".join(f"#{i} {ms:.1f}" for i, ms in worst), flush=True)
+later = sorted(ms for i, ms in series if i >= 50)
+if later:
+    print(f"from frame #50 on: p50 {later[len(later) // 2]:.2f} ms, "
+          f"p99 {later[min(len(later) - 1, int(0.99 * len(later)))]:.2f} ms, max {later[-1]:.2f} ms",
+          flush=True)
 lat.sort()
 q = lambda p: lat[min(len(lat) - 1, int(p * len(lat)))] if lat else float("nan")
 print(f"bad={args.bad} mode={args.mode} load={args.load:g}/s count={args.count}: "

@@ -316,7 +316,7 @@ impl BusCore {
                 Sink::Remote(tx, wake) if wake.is_blocked() || tx.len() >= wake.cap => true,
                 Sink::Remote(tx, wake) => {
                     if tx.send(rx).is_ok() {
-                        wake.notify();
+                        wake.queued();
                     }
                     false
                 }

@@ -178,3 +178,54 @@ fn statistics_and_replies_wait_for_room() {
     }
     assert_eq!(answers, sent / 3);
 }
+
+#[test]
+fn a_client_that_stops_reading_gets_frames_again_when_it_reads() {
+    // It stops reading: the kernel's buffers and its 64 KiB fill, it is written in batches,
+    // then not at all (its frames are dropped by the sender, counted); once it reads, it is
+    // written again: nothing is stuck.
+    let hub = hub_with(HubConfig {
+        pacing: canpos_host::bus::Pacing::Instant,
+        ..HubConfig::default()
+    });
+    let mut s = opened(hub.local_addr(), b"< rawmode >");
+    s.write_all(b"< echo >").unwrap();
+    expect(&mut s, b"< echo >");
+    let mut port = hub.attach("can0");
+    use canpos_host::transport::Transport;
+    let f = canpos_core::Frame::new(0x181, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
+    let end = Instant::now() + WAIT;
+    while hub.stats().dropped < 10_000 {
+        assert!(Instant::now() < end, "{:?}", hub.stats());
+        for _ in 0..1000 {
+            port.send(&f).unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    // It reads everything there is, then a marker frame reaches it.
+    s.set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
+    let mut buf = vec![0u8; 1 << 16];
+    let mut tail = Vec::new();
+    loop {
+        match s.read(&mut buf) {
+            Ok(n) if n > 0 => {
+                tail.extend_from_slice(&buf[..n]);
+                let keep = tail.len().saturating_sub(64);
+                tail.drain(..keep);
+            }
+            _ => break,
+        }
+    }
+    let marker = canpos_core::Frame::new(0x7E0, &[0xAA]).unwrap();
+    port.send(&marker).unwrap();
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    let mut got = Vec::new();
+    while !got.windows(5).any(|w| w == b" AA >") {
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0);
+        got.extend_from_slice(&buf[..n]);
+        let keep = got.len().saturating_sub(64);
+        got.drain(..keep);
+    }
+}

@@ -571,17 +571,42 @@ fn since_epoch(ts: SystemTime) -> Duration {
     ts.duration_since(UNIX_EPOCH).unwrap_or_default()
 }
 
+const HEX: &[u8; 16] = b"0123456789ABCDEF";
+
+/// Appends the low `digits` hex digits of `v`, upper case (the hub formats every frame for
+/// every client: no `fmt` machinery on that path).
+fn put_hex(out: &mut Vec<u8>, v: u32, digits: u32) {
+    for i in (0..digits).rev() {
+        out.push(HEX[((v >> (4 * i)) & 0xF) as usize]);
+    }
+}
+
+/// Appends `v` in decimal, at least `width` digits (zero-padded).
+fn put_dec(out: &mut Vec<u8>, mut v: u64, width: usize) {
+    let mut buf = [0u8; 20];
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = b'0' + (v % 10) as u8;
+        v /= 10;
+        if v == 0 && buf.len() - i >= width {
+            break;
+        }
+    }
+    out.extend_from_slice(&buf[i..]);
+}
+
 fn write_id(out: &mut Vec<u8>, frame_id: u32, extended: bool) {
-    let _ = if extended {
-        write!(out, "{frame_id:08X} ")
-    } else {
-        write!(out, "{frame_id:03X} ")
-    };
+    put_hex(out, frame_id, if extended { 8 } else { 3 });
+    out.push(b' ');
 }
 
 fn write_ts(out: &mut Vec<u8>, timestamp: SystemTime) {
     let t = since_epoch(timestamp);
-    let _ = write!(out, "{}.{:06} ", t.as_secs(), t.subsec_micros());
+    put_dec(out, t.as_secs(), 1);
+    out.push(b'.');
+    put_dec(out, u64::from(t.subsec_micros()), 6);
+    out.push(b' ');
 }
 
 /// Appends `< frame ID SEC.USEC DATA >` (server → client, raw mode).
@@ -595,8 +620,8 @@ pub fn write_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) -> b
     out.extend_from_slice(b"< frame ");
     write_id(out, frame.id(), frame.is_extended());
     write_ts(out, timestamp);
-    for b in frame.data() {
-        let _ = write!(out, "{b:02X}");
+    for &b in frame.data() {
+        put_hex(out, b.into(), 2);
     }
     // Always a space before `>`: an empty frame gets the two spaces python-can requires.
     out.extend_from_slice(b" >");
@@ -625,8 +650,9 @@ pub fn write_bcm_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) 
     out.extend_from_slice(b"< frame ");
     write_id(out, frame.id(), frame.is_extended());
     write_ts(out, timestamp);
-    for b in frame.data() {
-        let _ = write!(out, "{b:02X} ");
+    for &b in frame.data() {
+        put_hex(out, b.into(), 2);
+        out.push(b' ');
     }
     out.extend_from_slice(b" >");
     true
@@ -1080,6 +1106,23 @@ mod tests {
                 let _ = d.feed_parse(c);
                 prop_assert!(d.buf.len() <= MAX_ELEMENT);
             }
+        }
+
+        /// The hand-written formatting is `format!`'s, byte for byte.
+        #[test]
+        fn frame_text_is_formats(id in 0u32..0x2000_0000, ext in any::<bool>(), data in proptest::collection::vec(any::<u8>(), 0..=8), s in 0u64..u64::MAX / 2, us in 0u32..1_000_000) {
+            let id = if ext { id } else { id & 0x7FF };
+            let f = Frame::with_id(id, ext, &data).unwrap();
+            let ts = UNIX_EPOCH + Duration::new(s, us * 1000);
+            let idt = if ext { format!("{id:08X}") } else { format!("{id:03X}") };
+            let hex: String = data.iter().map(|b| format!("{b:02X}")).collect();
+            let bcm: String = data.iter().map(|b| format!("{b:02X} ")).collect();
+            let mut out = Vec::new();
+            write_frame(&mut out, &f, ts);
+            prop_assert_eq!(String::from_utf8(out).unwrap(), format!("< frame {idt} {s}.{us:06} {hex} >"));
+            let mut out = Vec::new();
+            write_bcm_frame(&mut out, &f, ts);
+            prop_assert_eq!(String::from_utf8(out).unwrap(), format!("< frame {idt} {s}.{us:06} {bcm} >"));
         }
 
         /// Formatted frames and sends parse back to the same frame.

@@ -45,6 +45,19 @@ const LISTENER: Token = Token(usize::MAX - 1);
 const ACCEPT_SLICE: usize = 64;
 const WAKER: Token = Token(usize::MAX - 2);
 
+/// Bytes written to a client between two looks at how much of it the client has not read.
+const CHECK_EVERY: usize = 4 * 1024;
+/// A client that has this much not read (its receive window shrunk by it, or our send queue
+/// waiting for it) does not read as fast as frames come: it is written in batches, at most
+/// every [`SLOW_PERIOD`], instead of once per frame.
+const SLOW_QUEUE: usize = 16 * 1024;
+/// Below this it keeps up again.
+const FAST_QUEUE: usize = 4 * 1024;
+/// How often a slow client is written (its frames wait in its queue meanwhile).
+const SLOW_PERIOD: Duration = Duration::from_millis(100);
+/// Slow clients are written a share at a time, every [`SLOW_PERIOD`] / this.
+const SLOW_SLICES: u32 = 10;
+
 /// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
 pub(crate) struct Wake {
     /// Frames the client's queue may hold; more are dropped (and counted).
@@ -56,6 +69,9 @@ pub(crate) struct Wake {
     /// for it. Senders then drop its frames (counted) without queueing them or waking the I/O
     /// thread, until the socket is writable again: such a client costs nothing per frame.
     blocked: AtomicBool,
+    /// The client is slow (see [`SLOW_QUEUE`]): its frames are queued without waking the I/O
+    /// thread, which writes it on its own schedule.
+    quiet: AtomicBool,
     /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
     /// reported to it as socketcand reports its interface's state.
     ctl_state: AtomicU8,
@@ -67,6 +83,13 @@ impl Wake {
     /// Whether frames for the client are to be dropped at once (see `blocked`).
     pub(crate) fn is_blocked(&self) -> bool {
         self.blocked.load(Ordering::Relaxed)
+    }
+
+    /// A frame was queued for the client: wakes the I/O thread unless the client is slow.
+    pub(crate) fn queued(&self) {
+        if !self.quiet.load(Ordering::Relaxed) {
+            self.notify();
+        }
     }
 
     pub(crate) fn notify(&self) {
@@ -312,6 +335,44 @@ fn quickack(stream: &TcpStream) {
     }
 }
 
+/// About how many bytes written to a peer it has not read yet: what our send queue holds for it
+/// (`SIOCOUTQ`) and how far its advertised receive window shrank below the largest it
+/// advertised (`tcpi_snd_wnd`, Linux 5.19 and later; without it only the send queue, which
+/// grows once the window is closed). A peer that reads keeps its window open.
+fn unread(stream: &TcpStream, peak: &mut u32) -> usize {
+    use std::os::fd::AsRawFd;
+    let fd = stream.as_raw_fd();
+    let mut queued: libc::c_int = 0;
+    // SAFETY: the ioctl writes one c_int we own, on a socket we own.
+    if unsafe { libc::ioctl(fd, libc::TIOCOUTQ, &mut queued) } != 0 {
+        queued = 0;
+    }
+    // struct tcp_info up to tcpi_snd_wnd (offset 228, `linux/tcp.h`); libc's copy of the
+    // struct ends before it.
+    const SND_WND: usize = 228;
+    let mut info = [0u8; 256];
+    let mut len = info.len() as libc::socklen_t;
+    // SAFETY: getsockopt writes at most `len` bytes into the buffer we own, and sets `len`.
+    let r = unsafe {
+        libc::getsockopt(
+            fd,
+            libc::IPPROTO_TCP,
+            libc::TCP_INFO,
+            info.as_mut_ptr().cast(),
+            &mut len,
+        )
+    };
+    let mut shrunk = 0;
+    if r == 0 && len as usize >= SND_WND + 4 {
+        let mut w = [0u8; 4];
+        w.copy_from_slice(&info[SND_WND..SND_WND + 4]);
+        let window = u32::from_ne_bytes(w);
+        *peak = (*peak).max(window);
+        shrunk = (*peak - window) as usize;
+    }
+    usize::try_from(queued).unwrap_or(0) + shrunk
+}
+
 /// Descriptors the hub may use for clients: the soft limit of open files less 64.
 fn open_file_budget() -> usize {
     let mut lim = libc::rlimit {
@@ -492,6 +553,44 @@ impl Drop for HubHandle {
     }
 }
 
+/// The plain raw-mode text of recent frames: every raw client of a channel gets the same frame
+/// with the same timestamp, so it is formatted once, not once per client. Direct-mapped by the
+/// frame's time; a miss formats it again.
+struct TextCache {
+    slots: Vec<Option<Cached>>,
+}
+
+/// A frame and its text (`None`: not writable in the plain form).
+type Cached = (RxFrame, Option<Box<[u8]>>);
+
+impl TextCache {
+    const SLOTS: usize = 1024;
+
+    fn new() -> TextCache {
+        TextCache {
+            slots: vec![None; Self::SLOTS],
+        }
+    }
+
+    /// The text of `rx` for a plain raw client (`None`: it cannot be written in that form).
+    fn text(&mut self, rx: &RxFrame) -> Option<&[u8]> {
+        let t = rx
+            .timestamp
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        let h = (t.subsec_nanos() as usize ^ t.as_secs() as usize ^ rx.frame.id() as usize)
+            % Self::SLOTS;
+        let slot = &mut self.slots[h];
+        if !matches!(slot, Some((f, _)) if f == rx) {
+            let mut out = Vec::with_capacity(48);
+            let text = codec::write_frame(&mut out, &rx.frame, rx.timestamp)
+                .then(|| out.into_boxed_slice());
+            *slot = Some((*rx, text));
+        }
+        slot.as_ref().and_then(|(_, t)| t.as_deref())
+    }
+}
+
 enum State {
     /// Greeted, no channel yet.
     Opening,
@@ -522,6 +621,14 @@ struct Conn {
     writable: bool,
     /// The socket refused bytes (WouldBlock): no write is tried until it reports WRITABLE.
     sock_full: bool,
+    /// It had much not read at the last look ([`SLOW_QUEUE`]): written in batches.
+    slow: bool,
+    /// Bytes written since the last look at what it has not read.
+    written: usize,
+    /// Its token is in the event loop's list of slow clients.
+    listed: bool,
+    /// The largest receive window the client advertised.
+    peak_window: u32,
     /// Input read but not yet handled: the client's output was full ([`HubConfig::out_limit`]); handled,
     /// and reading resumed, once the client has read its answers.
     rest: Vec<u8>,
@@ -543,7 +650,10 @@ impl Conn {
                     self.closed = true;
                     return;
                 }
-                Ok(n) => self.out_pos += n,
+                Ok(n) => {
+                    self.out_pos += n;
+                    self.written += n;
+                }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
                     self.sock_full = true;
                     break;
@@ -564,8 +674,29 @@ impl Conn {
         }
     }
 
+    /// Looks at how much the client has not read every [`CHECK_EVERY`] bytes written (and at
+    /// every write while slow): true when it changed between keeping up and not.
+    fn check_pace(&mut self) -> bool {
+        if self.written < CHECK_EVERY && !self.slow {
+            return false;
+        }
+        self.written = 0;
+        let queued = unread(&self.stream, &mut self.peak_window);
+        let slow = if self.slow {
+            queued >= FAST_QUEUE
+        } else {
+            queued >= SLOW_QUEUE
+        };
+        let changed = slow != self.slow;
+        self.slow = slow;
+        if let State::Raw { wake, .. } = &self.state {
+            wake.quiet.store(slow, Ordering::Relaxed);
+        }
+        changed
+    }
+
     /// Moves queued frames into the output, as long as the output has room.
-    fn fill(&mut self, now: Instant, shared: &Shared) {
+    fn fill(&mut self, now: Instant, shared: &Shared, cache: &mut TextCache) {
         let State::Raw {
             rx,
             wake,
@@ -592,8 +723,18 @@ impl Conn {
                     .error_frame(&e, shared.config.error_frames, &mut self.out);
             }
         }
+        let plain = self.session.takes_plain_raw();
         while self.out.len() - self.out_pos < limit {
             match rx.try_recv() {
+                Ok(f) if plain => {
+                    self.session.count_rx(&f.frame);
+                    match cache.text(&f) {
+                        Some(text) => self.out.extend_from_slice(text),
+                        None => {
+                            shared.unencodable.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                }
                 Ok(f) => {
                     if !self
                         .session
@@ -638,6 +779,14 @@ struct EventLoop {
     /// read than one turn takes, or their queue more than the output took while the socket
     /// still had room. Readiness is edge-triggered: no new event would come for either.
     again: Vec<usize>,
+    /// Frames formatted once for all plain raw clients.
+    cache: TextCache,
+    /// Slow clients (may hold tokens of clients no longer slow or gone: dropped when met), and
+    /// where the next slice of them starts.
+    slow: Vec<usize>,
+    slow_pos: usize,
+    /// When the next slice of slow clients is written.
+    slow_next: Instant,
 }
 
 impl EventLoop {
@@ -657,6 +806,10 @@ impl EventLoop {
             accept_more: false,
             again: Vec::new(),
             timed: HashMap::new(),
+            cache: TextCache::new(),
+            slow: Vec::new(),
+            slow_pos: 0,
+            slow_next: Instant::now(),
         })
     }
 
@@ -682,6 +835,10 @@ impl EventLoop {
                     Duration::from_millis(10)
                 };
                 timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
+            }
+            if !self.slow.is_empty() {
+                let left = self.slow_next.saturating_duration_since(Instant::now());
+                timeout = Some(timeout.map_or(left, |t| t.min(left)));
             }
             if let Some(d) = self.timed.values().min() {
                 let left = d.saturating_duration_since(Instant::now());
@@ -733,6 +890,10 @@ impl EventLoop {
                 next_scan = now + SCAN_EVERY;
             }
             self.run_timed(now, &mut touched);
+            if !self.slow.is_empty() && now >= self.slow_next {
+                self.slow_slice(&mut touched);
+                self.slow_next = now + SLOW_PERIOD / SLOW_SLICES;
+            }
             touched.sort_unstable();
             touched.dedup();
             for t in touched {
@@ -844,6 +1005,10 @@ impl EventLoop {
                 out_pos: 0,
                 writable: false,
                 sock_full: false,
+                slow: false,
+                written: 0,
+                listed: false,
+                peak_window: 0,
                 rest: Vec::new(),
                 handshake_end: now + self.shared.config.handshake_timeout,
                 last_rx: now,
@@ -884,7 +1049,7 @@ impl EventLoop {
         let mut stalled = false;
         if !c.rest.is_empty() {
             let rest = std::mem::take(&mut c.rest);
-            let used = consume(c, &rest, &self.shared, t, now);
+            let used = consume(c, &rest, &self.shared, &mut self.cache, t, now);
             if used < rest.len() && !c.closed {
                 c.rest = rest[used..].to_vec();
                 stalled = true;
@@ -905,7 +1070,7 @@ impl EventLoop {
                     Ok(n) => {
                         quickack(&c.stream);
                         c.last_rx = now;
-                        let used = consume(c, &buf[..n], &self.shared, t, now);
+                        let used = consume(c, &buf[..n], &self.shared, &mut self.cache, t, now);
                         if c.closed {
                             drained = true;
                             break;
@@ -1019,6 +1184,31 @@ impl EventLoop {
         }
     }
 
+    /// The next share of the slow clients, to be written this turn.
+    fn slow_slice(&mut self, touched: &mut Vec<usize>) {
+        let n = self.slow.len().div_ceil(SLOW_SLICES as usize);
+        let mut taken = 0;
+        while taken < n && !self.slow.is_empty() {
+            if self.slow_pos >= self.slow.len() {
+                self.slow_pos = 0;
+            }
+            let t = self.slow[self.slow_pos];
+            match self.conns.get_mut(&t) {
+                Some(c) if c.slow => {
+                    touched.push(t);
+                    self.slow_pos += 1;
+                }
+                other => {
+                    if let Some(c) = other {
+                        c.listed = false;
+                    }
+                    self.slow.swap_remove(self.slow_pos);
+                }
+            }
+            taken += 1;
+        }
+    }
+
     fn note_deadline(&mut self, d: Instant) {
         self.earliest = Some(self.earliest.map_or(d, |e| e.min(d)));
     }
@@ -1029,7 +1219,7 @@ impl EventLoop {
             return;
         };
         if !c.closed {
-            c.fill(now, &self.shared);
+            c.fill(now, &self.shared, &mut self.cache);
             // What reading, the timers and the queue added is all there is before the flush.
             self.shared
                 .out_peak
@@ -1037,6 +1227,10 @@ impl EventLoop {
             // A socket that refused bytes is not tried again before it reports WRITABLE.
             if !c.sock_full {
                 c.flush();
+                if c.check_pace() && c.slow && !c.listed {
+                    c.listed = true;
+                    self.slow.push(t);
+                }
             }
             if let State::Raw { wake, .. } = &c.state {
                 let blocked = c.sock_full && c.pending() >= self.shared.config.out_limit;
@@ -1087,7 +1281,14 @@ impl EventLoop {
 /// Decodes and handles the elements of `input` while the client's output has room for replies
 /// ([`HubConfig::out_limit`]); returns how many bytes it took (all, unless the output filled up or the
 /// connection is to be closed).
-fn consume(c: &mut Conn, input: &[u8], shared: &Arc<Shared>, token: usize, now: Instant) -> usize {
+fn consume(
+    c: &mut Conn,
+    input: &[u8],
+    shared: &Arc<Shared>,
+    cache: &mut TextCache,
+    token: usize,
+    now: Instant,
+) -> usize {
     let mut used = 0;
     while used < input.len() {
         if c.pending() >= 2 * shared.config.out_limit {
@@ -1100,7 +1301,7 @@ fn consume(c: &mut Conn, input: &[u8], shared: &Arc<Shared>, token: usize, now: 
             Some(Piece::TooLong) => Element::TooLong,
             None => continue,
         };
-        if !handle_element(el, c, shared, token, now) {
+        if !handle_element(el, c, shared, cache, token, now) {
             c.closed = true;
             break;
         }
@@ -1113,6 +1314,7 @@ fn handle_element(
     el: Element,
     c: &mut Conn,
     shared: &Arc<Shared>,
+    cache: &mut TextCache,
     token: usize,
     now: Instant,
 ) -> bool {
@@ -1125,7 +1327,7 @@ fn handle_element(
     // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
     // over) before its answer.
     if matches!(el, Element::Echo | Element::Mode(_)) {
-        c.fill(now, shared);
+        c.fill(now, shared, cache);
     }
     if let Element::Other(text) = &el {
         tracing::trace!(peer = %c.peer, "unknown command {text:?}");
@@ -1140,6 +1342,7 @@ fn handle_element(
                     token,
                     pending: AtomicBool::new(false),
                     blocked: AtomicBool::new(false),
+                    quiet: AtomicBool::new(false),
                     ctl_state: AtomicU8::new(0),
                     ready: shared.ready.clone(),
                     waker: shared.waker.clone(),

@@ -274,6 +274,19 @@ impl Session {
         }
     }
 
+    /// Whether frames go to this client in the plain raw form ([`codec::write_frame`]), the same
+    /// text for every such client: the hub formats a frame once for all of them.
+    pub fn takes_plain_raw(&self) -> bool {
+        self.mode == Some(Mode::Raw) && !self.rtr
+    }
+
+    /// Counts a frame given to the client in an already formatted form (see
+    /// [`Session::takes_plain_raw`]).
+    pub fn count_rx(&mut self, frame: &Frame) {
+        self.rx.0 += frame.data().len() as u64;
+        self.rx.1 += 1;
+    }
+
     /// Writes a frame from the bus for the client as its mode wants it; `false` when the frame
     /// could not be written in raw mode (a remote frame with DLC > 0 for a client without the
     /// RTR extension).
