@@ -56,7 +56,7 @@ const FAST_QUEUE: usize = 4 * 1024;
 /// How often a slow client is written (its frames wait in its queue meanwhile).
 const SLOW_PERIOD: Duration = Duration::from_millis(100);
 /// Slow clients are written a share at a time, every [`SLOW_PERIOD`] / this.
-const SLOW_SLICES: u32 = 10;
+const SLOW_SLICES: u32 = 50;
 
 /// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
 pub(crate) struct Wake {
@@ -1232,10 +1232,24 @@ impl EventLoop {
                     self.slow.push(t);
                 }
             }
-            if let State::Raw { wake, .. } = &c.state {
+            if let State::Raw {
+                wake, rx, dropped, ..
+            } = &c.state
+            {
                 let blocked = c.sock_full && c.pending() >= self.shared.config.out_limit;
                 if wake.is_blocked() != blocked {
                     wake.blocked.store(blocked, Ordering::Relaxed);
+                    if blocked {
+                        // What waits in its queue is behind more than its socket and output
+                        // hold already: lost now (counted), not kept for a client that may
+                        // never read.
+                        let mut n = 0;
+                        while rx.try_recv().is_ok() {
+                            n += 1;
+                        }
+                        dropped.fetch_add(n, Ordering::Relaxed);
+                        self.shared.dropped.fetch_add(n, Ordering::Relaxed);
+                    }
                 }
             }
         }
