@@ -19,10 +19,10 @@ secs=${FUZZ_SECONDS:-45}
 # and durations from loaded smoke runs after the merge of main: about 220 and 23,000-90,000
 # executions/s). A smoke run, so that the test command stays under 30 minutes; longer runs are
 # FUZZ_RUNS / FUZZ_SECONDS.
-declare -A default_runs=([node_frames]=8000 [socketcand_stream]=100000 [state_file]=18000
+declare -A default_runs=([node_frames]=8000 [socketcand_stream]=100000 [socketcand_session]=50000 [state_file]=18000
   [text_parsers]=65000 [control_requests]=3000 [durations]=225000)
 seed=${FUZZ_SEED:-1}
-targets=${FUZZ_TARGETS:-"node_frames socketcand_stream state_file text_parsers control_requests durations"}
+targets=${FUZZ_TARGETS:-"node_frames socketcand_stream socketcand_session state_file text_parsers control_requests durations"}
 
 if ! cargo +nightly --version >/dev/null 2>&1; then
   echo "!!! NOTE: no nightly toolchain: the fuzz smoke runs were SKIPPED (rustup toolchain install nightly)" >&2

@@ -9,11 +9,10 @@
 
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, SystemTime};
+use std::time::Duration;
 
 use crossbeam_channel::Select;
 
-use crate::socketcand::codec::ErrorFrame;
 use crate::transport::{BusState, Transport};
 
 /// Counters of a bridge.
@@ -67,15 +66,13 @@ pub fn run(
         }
         let now = (a.bus_state(), b.bus_state());
         if now != states {
-            // A controller state change on one side reaches the other side's listeners as an
-            // error frame where that transport can carry one (a canpos hub).
+            // Each side's controller confines its own errors (ISO 11898-1): a state change on
+            // one side is logged, and is no part of the other side's nodes' state.
             if now.0 != states.0 {
                 log_state("first", now.0);
-                b.send_error_frame(&ErrorFrame::for_state(now.0, SystemTime::now()))?;
             }
             if now.1 != states.1 {
                 log_state("second", now.1);
-                a.send_error_frame(&ErrorFrame::for_state(now.1, SystemTime::now()))?;
             }
             states = now;
         }

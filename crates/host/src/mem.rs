@@ -252,6 +252,21 @@ impl BusCore {
             .and_then(|m| m.ctl)
     }
 
+    /// Member `from`'s controller sends an error flag now ([`Timeline::error_flag`]):
+    /// `Some(false)` when the bus refused it (another is pending, or the controller is
+    /// bus-off), `None` on an instant bus (no timeline, no error confinement).
+    pub(crate) fn error_flag(&self, from: u64) -> Option<bool> {
+        let p = self.pacer.as_ref()?;
+        let ctl = self.ctl_of(from)?;
+        let now = p.now();
+        let mut st = lock(&p.state);
+        self.pump(p, &mut st, now);
+        let ok = st.timeline.error_flag(ctl, now);
+        drop(st);
+        let _ = p.kick.try_send(());
+        Some(ok)
+    }
+
     /// Puts `frame` from member `from` on the bus: paced, into its controller's transmit queue
     /// (losses counted there); instant, to everyone at once.
     pub(crate) fn transmit(&self, from: u64, frame: Frame) {
@@ -296,10 +311,12 @@ impl BusCore {
                 Sink::Local(tx) => matches!(tx.try_send(rx), Err(TrySendError::Full(_))),
                 // Unbounded underneath, capped here: memory grows with the backlog, not with
                 // the number of clients (a bounded channel allocates its capacity up front).
-                Sink::Remote(tx, wake) if tx.len() >= wake.cap => true,
+                // A client that cannot take frames (its socket and output full) costs nothing
+                // per frame: dropped here, without queueing or waking the hub's I/O thread.
+                Sink::Remote(tx, wake) if wake.is_blocked() || tx.len() >= wake.cap => true,
                 Sink::Remote(tx, wake) => {
                     if tx.send(rx).is_ok() {
-                        wake.notify();
+                        wake.queued();
                     }
                     false
                 }
@@ -334,6 +351,17 @@ impl BusCore {
         }
         let members = self.members.read().unwrap_or_else(|e| e.into_inner());
         for ev in events.drain(..) {
+            // A hub client's controller changed state: it is told, as SocketCAN tells the
+            // owner of an interface (in-process ports read their counters instead).
+            if let BusEvent::State { member, state, .. } = &ev {
+                if let Some(Member {
+                    sink: Sink::Remote(_, wake),
+                    ..
+                }) = members.iter().find(|m| m.ctl == Some(*member))
+                {
+                    wake.controller_state(*state);
+                }
+            }
             if let BusEvent::Error(e) = &ev {
                 let ef = crate::bus::ErrorFrame {
                     timestamp: p.epoch_wall + Duration::from_nanos(e.at),

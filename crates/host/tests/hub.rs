@@ -246,7 +246,8 @@ fn garbage_and_split_elements_are_tolerated() {
         got.push(port.recv_timeout(Some(WAIT)).unwrap().expect("frame").frame);
     }
     assert_eq!(got, vec![f(0x123, &[1]), f(0x124, &[2]), f(0x125, &[])]);
-    // Answered as socketcand does: the unknown command and the two malformed sends.
+    // Answered as socketcand does: the unknown command and the two malformed sends; the
+    // over-long element gets its own answer (issue 35).
     s.write_all(b"< echo >").unwrap();
     let mut got = Vec::new();
     let mut buf = [0u8; 256];
@@ -258,7 +259,7 @@ fn garbage_and_split_elements_are_tolerated() {
     assert_eq!(
         String::from_utf8_lossy(&got),
         "< error unknown command >< error syntax error in send command >\
-         < error syntax error in send command >< echo >"
+         < error syntax error in send command >< error element longer than 256 bytes >< echo >"
     );
 }
 

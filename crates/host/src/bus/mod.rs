@@ -47,7 +47,8 @@ impl ErrorFrame {
     /// The Linux SocketCAN error frame for it (`linux/can/error.h`): CAN ID with
     /// `CAN_ERR_FLAG` and the error class, and the 8 data bytes. Collision: a bit error
     /// (`CAN_ERR_PROT`, `data[2]` = `CAN_ERR_PROT_BIT`); corrupted: a form error
-    /// (`CAN_ERR_PROT_FORM`); stuck dominant: `CAN_ERR_PROT_BIT0` ("unable to send recessive
+    /// (`CAN_ERR_PROT_FORM`); another node's error flag: a stuff error (`CAN_ERR_PROT_STUFF`);
+    /// stuck dominant: `CAN_ERR_PROT_BIT0` ("unable to send recessive
     /// bit") with `CAN_ERR_BUSERROR`.
     pub fn to_socketcan(&self) -> (u32, [u8; 8]) {
         const CAN_ERR_FLAG: u32 = 0x2000_0000;
@@ -55,6 +56,7 @@ impl ErrorFrame {
         const CAN_ERR_BUSERROR: u32 = 0x0000_0080;
         const PROT_BIT: u8 = 0x01;
         const PROT_FORM: u8 = 0x02;
+        const PROT_STUFF: u8 = 0x04;
         const PROT_BIT0: u8 = 0x08;
         let mut data = [0u8; 8];
         let id = match self.kind {
@@ -64,6 +66,10 @@ impl ErrorFrame {
             }
             BusErrorKind::Corrupted => {
                 data[2] = PROT_FORM;
+                CAN_ERR_FLAG | CAN_ERR_PROT
+            }
+            BusErrorKind::ErrorFlag => {
+                data[2] = PROT_STUFF;
                 CAN_ERR_FLAG | CAN_ERR_PROT
             }
             BusErrorKind::StuckDominant { .. } => {

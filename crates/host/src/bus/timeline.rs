@@ -51,6 +51,9 @@ pub enum BusErrorKind {
         /// Length of the dominant interval in bit times.
         bits: u64,
     },
+    /// A member sent an active error flag ([`Timeline::error_flag`]): the other controllers
+    /// see six dominant bits, a stuff error.
+    ErrorFlag,
 }
 
 /// An error frame on the bus, as the timeline reports it.
@@ -265,6 +268,10 @@ pub struct Timeline {
     rng: u64,
     /// A pending stuck-dominant interval.
     stuck: Option<(Nanos, Nanos)>,
+    /// The pending interval is an error flag of this member, not a disturbance.
+    flag: Option<MemberId>,
+    /// Error flags refused because one was still pending.
+    flags_refused: u64,
     /// Some member's REC may be above 0.
     rec_raised: bool,
 }
@@ -309,6 +316,8 @@ impl Timeline {
             corrupt_ppm: 0,
             rng: 0x9E37_79B9_7F4A_7C15,
             stuck: None,
+            flag: None,
+            flags_refused: 0,
             rec_raised: false,
         })
     }
@@ -480,13 +489,42 @@ impl Timeline {
                 self.bit_ns
             )));
         }
-        if self.stuck.is_some() {
+        // A pending error flag is lost in the dominant interval.
+        if self.stuck.is_some() && self.flag.take().is_none() {
             return Err(BadDisturbance(
                 "a stuck-dominant interval is already pending".into(),
             ));
         }
         self.stuck = Some((from, from + duration));
         Ok(())
+    }
+
+    /// Member `id` sends an active error flag at `at` (a host that reports an error it saw:
+    /// a socketcand client's `< error … >`). It destroys the frame on the wire at that time (its
+    /// transmitters' TEC + 8, retransmitted) and every other member detects an error: REC + 1
+    /// (ISO 11898-1 fault confinement rules 1 and 3), as does the member itself, which detected
+    /// the error first. One error frame at a time: a flag while another (or a stuck-dominant
+    /// interval) is pending is refused (`false`, counted), so a flood of them is bounded by
+    /// the bus time each takes. A member that is bus-off sends none.
+    pub fn error_flag(&mut self, id: MemberId, at: Nanos) -> bool {
+        let live = self
+            .member(id)
+            .is_some_and(|m| m.state != BusState::BusOff && !m.transceiver_failed);
+        if !live || self.stuck.is_some() {
+            self.flags_refused += 1;
+            return false;
+        }
+        // Not before the bus is free after what already happened (the flag of a member that
+        // reports late still comes after the frames before it).
+        let at = at.max(self.free_at);
+        self.stuck = Some((at, at + 6 * self.bit_ns));
+        self.flag = Some(id);
+        true
+    }
+
+    /// Error flags [`Timeline::error_flag`] refused.
+    pub fn error_flags_refused(&self) -> u64 {
+        self.flags_refused
     }
 
     /// Makes a member's transceiver fail (its frames never reach the bus; every attempt is a
@@ -1023,6 +1061,7 @@ impl Timeline {
         let Some((a, b)) = self.stuck.take() else {
             return;
         };
+        let flag = self.flag.take().is_some();
         let bits = (b - a) / self.bit_ns;
         let steps = if bits >= 14 { 1 + (bits - 14) / 8 } else { 0 };
         let cur = self.current.take();
@@ -1041,10 +1080,15 @@ impl Timeline {
         }
         self.note_bus_activity(a);
         self.error_frames += 1;
-        self.record(b, bits, false);
+        // An error flag is followed by its 8-bit delimiter on the wire.
+        self.record(b, if flag { bits + 8 } else { bits }, false);
         out.push(BusEvent::Error(BusError {
             at: b,
-            kind: BusErrorKind::StuckDominant { bits },
+            kind: if flag {
+                BusErrorKind::ErrorFlag
+            } else {
+                BusErrorKind::StuckDominant { bits }
+            },
             id: cur.as_ref().map(|c| c.frame.id()),
             transmitters: senders.clone(),
         }));

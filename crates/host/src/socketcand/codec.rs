@@ -40,9 +40,25 @@ impl Decoder {
         Self::default()
     }
 
-    /// Feeds bytes; calls `on_element` with each complete element body, in order.
-    pub fn feed(&mut self, input: &[u8], mut on_element: impl FnMut(&[u8])) {
-        for &b in input {
+    /// Feeds bytes; calls `on_element` with each complete element body, in order (over-long
+    /// elements are skipped: see [`Decoder::next`] to hear of them).
+    pub fn feed(&mut self, mut input: &[u8], mut on_element: impl FnMut(&[u8])) {
+        while !input.is_empty() {
+            let (n, piece) = self.next(input);
+            input = &input[n..];
+            if let Some(Piece::Body(body)) = piece {
+                on_element(body);
+            }
+        }
+    }
+
+    /// Consumes bytes of `input` up to the end of the next element (or all of it): returns how
+    /// many it took and the element, if one ended. Lets a caller stop between two elements (the
+    /// hub does when a client's output is full) and hears of over-long elements, which are
+    /// dropped (bounded: only [`MAX_ELEMENT`] bytes are kept) but reported, so that the client
+    /// gets an answer.
+    pub fn next<'a>(&'a mut self, input: &[u8]) -> (usize, Option<Piece<'a>>) {
+        for (i, &b) in input.iter().enumerate() {
             if !self.in_element {
                 if b == b'<' {
                     self.in_element = true;
@@ -55,24 +71,29 @@ impl Decoder {
             }
             match b {
                 b'>' => {
+                    self.in_element = false;
                     if self.overflow {
                         self.skipped += 1;
-                    } else {
-                        on_element(&self.buf);
+                        return (i + 1, Some(Piece::TooLong));
                     }
-                    self.in_element = false;
-                    self.buf.clear();
+                    return (i + 1, Some(Piece::Body(&self.buf)));
                 }
                 b'<' => {
                     // An unterminated element followed by a new one: drop the broken part.
                     self.skipped += self.buf.len() as u64 + 1;
                     self.buf.clear();
-                    self.overflow = false;
+                    if std::mem::take(&mut self.overflow) {
+                        return (i + 1, Some(Piece::TooLong));
+                    }
                 }
                 _ if self.buf.len() < MAX_ELEMENT => self.buf.push(b),
-                _ => self.overflow = true,
+                _ => {
+                    self.overflow = true;
+                    self.skipped += 1;
+                }
             }
         }
+        (input.len(), None)
     }
 
     /// Feeds bytes and returns the parsed elements.
@@ -91,6 +112,15 @@ impl Decoder {
     pub fn is_partial(&self) -> bool {
         self.in_element
     }
+}
+
+/// What [`Decoder::next`] found at the end of an element.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Piece<'a> {
+    /// A complete element body (without the angle brackets).
+    Body(&'a [u8]),
+    /// An element longer than [`MAX_ELEMENT`] ended (its bytes were dropped).
+    TooLong,
 }
 
 /// One parsed element.
@@ -155,6 +185,9 @@ pub enum Element {
     Malformed(&'static str),
     /// Anything else (kept for logs and for `< error unknown command >`).
     Other(String),
+    /// An element longer than [`MAX_ELEMENT`] (never from [`Element::parse`]: the decoder
+    /// reports it, [`Piece::TooLong`]).
+    TooLong,
 }
 
 /// A CAN identifier and its format.
@@ -209,6 +242,15 @@ pub mod err_class {
     pub const BUSOFF: u32 = 0x0040;
     /// Controller restarted (back to error active after bus-off).
     pub const RESTARTED: u32 = 0x0100;
+    /// Protocol violation (an error frame on the wire; data bytes 2 and 3 say which).
+    pub const PROT: u32 = 0x0008;
+    /// No acknowledgement on transmission (the transmitter's ACK error).
+    pub const ACK: u32 = 0x0020;
+    /// Bus error (may flood: the controller reports every error frame).
+    pub const BUSERROR: u32 = 0x0080;
+    /// The classes that stand for an error frame on the bus; the others report one
+    /// controller's own condition (its state, its transceiver, a lost arbitration, a timeout).
+    pub const ON_THE_WIRE: u32 = PROT | ACK | BUSERROR;
     /// Data byte 1 of [`CRTL`]: receive error counter reached the passive level.
     pub const CRTL_RX_PASSIVE: u8 = 0x10;
     /// Data byte 1 of [`CRTL`]: transmit error counter reached the passive level.
@@ -529,17 +571,42 @@ fn since_epoch(ts: SystemTime) -> Duration {
     ts.duration_since(UNIX_EPOCH).unwrap_or_default()
 }
 
+const HEX: &[u8; 16] = b"0123456789ABCDEF";
+
+/// Appends the low `digits` hex digits of `v`, upper case (the hub formats every frame for
+/// every client: no `fmt` machinery on that path).
+fn put_hex(out: &mut Vec<u8>, v: u32, digits: u32) {
+    for i in (0..digits).rev() {
+        out.push(HEX[((v >> (4 * i)) & 0xF) as usize]);
+    }
+}
+
+/// Appends `v` in decimal, at least `width` digits (zero-padded).
+fn put_dec(out: &mut Vec<u8>, mut v: u64, width: usize) {
+    let mut buf = [0u8; 20];
+    let mut i = buf.len();
+    loop {
+        i -= 1;
+        buf[i] = b'0' + (v % 10) as u8;
+        v /= 10;
+        if v == 0 && buf.len() - i >= width {
+            break;
+        }
+    }
+    out.extend_from_slice(&buf[i..]);
+}
+
 fn write_id(out: &mut Vec<u8>, frame_id: u32, extended: bool) {
-    let _ = if extended {
-        write!(out, "{frame_id:08X} ")
-    } else {
-        write!(out, "{frame_id:03X} ")
-    };
+    put_hex(out, frame_id, if extended { 8 } else { 3 });
+    out.push(b' ');
 }
 
 fn write_ts(out: &mut Vec<u8>, timestamp: SystemTime) {
     let t = since_epoch(timestamp);
-    let _ = write!(out, "{}.{:06} ", t.as_secs(), t.subsec_micros());
+    put_dec(out, t.as_secs(), 1);
+    out.push(b'.');
+    put_dec(out, u64::from(t.subsec_micros()), 6);
+    out.push(b' ');
 }
 
 /// Appends `< frame ID SEC.USEC DATA >` (server → client, raw mode).
@@ -553,8 +620,8 @@ pub fn write_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) -> b
     out.extend_from_slice(b"< frame ");
     write_id(out, frame.id(), frame.is_extended());
     write_ts(out, timestamp);
-    for b in frame.data() {
-        let _ = write!(out, "{b:02X}");
+    for &b in frame.data() {
+        put_hex(out, b.into(), 2);
     }
     // Always a space before `>`: an empty frame gets the two spaces python-can requires.
     out.extend_from_slice(b" >");
@@ -583,8 +650,9 @@ pub fn write_bcm_frame(out: &mut Vec<u8>, frame: &Frame, timestamp: SystemTime) 
     out.extend_from_slice(b"< frame ");
     write_id(out, frame.id(), frame.is_extended());
     write_ts(out, timestamp);
-    for b in frame.data() {
-        let _ = write!(out, "{b:02X} ");
+    for &b in frame.data() {
+        put_hex(out, b.into(), 2);
+        out.push(b' ');
     }
     out.extend_from_slice(b" >");
     true
@@ -972,6 +1040,46 @@ mod tests {
         assert!(d.buf.capacity() <= 2 * MAX_ELEMENT);
     }
 
+    #[test]
+    fn decoder_reports_overlong_elements_once_each() {
+        // 1 MB in one element, closed by `>`, then one broken by a `<`: two reports, the
+        // elements after them intact, the buffer bounded.
+        let mut d = Decoder::new();
+        let mut input = vec![b'<'];
+        input.extend(std::iter::repeat_n(b'x', 1 << 20));
+        input.extend_from_slice(b"><echo><");
+        input.extend(std::iter::repeat_n(b'y', 2 * MAX_ELEMENT));
+        input.extend_from_slice(b"<ok>");
+        let mut got = Vec::new();
+        let mut rest = &input[..];
+        while !rest.is_empty() {
+            let (n, p) = d.next(rest);
+            rest = &rest[n..];
+            match p {
+                Some(Piece::Body(b)) => got.push(Element::parse(b)),
+                Some(Piece::TooLong) => got.push(Element::TooLong),
+                None => {}
+            }
+            assert!(d.buf.len() <= MAX_ELEMENT);
+        }
+        assert_eq!(
+            got,
+            vec![
+                Element::TooLong,
+                Element::Echo,
+                Element::TooLong,
+                Element::Ok
+            ]
+        );
+        // A body of exactly the bound is an element, not an over-long one.
+        let mut exact = vec![b'<'];
+        exact.extend(std::iter::repeat_n(b'z', MAX_ELEMENT));
+        exact.push(b'>');
+        assert!(
+            matches!(Decoder::new().next(&exact).1, Some(Piece::Body(b)) if b.len() == MAX_ELEMENT)
+        );
+    }
+
     proptest! {
         /// Any split of a valid stream decodes to the same elements.
         #[test]
@@ -998,6 +1106,23 @@ mod tests {
                 let _ = d.feed_parse(c);
                 prop_assert!(d.buf.len() <= MAX_ELEMENT);
             }
+        }
+
+        /// The hand-written formatting is `format!`'s, byte for byte.
+        #[test]
+        fn frame_text_is_formats(id in 0u32..0x2000_0000, ext in any::<bool>(), data in proptest::collection::vec(any::<u8>(), 0..=8), s in 0u64..u64::MAX / 2, us in 0u32..1_000_000) {
+            let id = if ext { id } else { id & 0x7FF };
+            let f = Frame::with_id(id, ext, &data).unwrap();
+            let ts = UNIX_EPOCH + Duration::new(s, us * 1000);
+            let idt = if ext { format!("{id:08X}") } else { format!("{id:03X}") };
+            let hex: String = data.iter().map(|b| format!("{b:02X}")).collect();
+            let bcm: String = data.iter().map(|b| format!("{b:02X} ")).collect();
+            let mut out = Vec::new();
+            write_frame(&mut out, &f, ts);
+            prop_assert_eq!(String::from_utf8(out).unwrap(), format!("< frame {idt} {s}.{us:06} {hex} >"));
+            let mut out = Vec::new();
+            write_bcm_frame(&mut out, &f, ts);
+            prop_assert_eq!(String::from_utf8(out).unwrap(), format!("< frame {idt} {s}.{us:06} {bcm} >"));
         }
 
         /// Formatted frames and sends parse back to the same frame.

@@ -5,7 +5,11 @@
 //! forwards, and writes. Each raw-mode client has a bounded queue that the channel's senders
 //! (other clients, in-process [`MemPort`]s on any thread) only ever `try_send` into, waking the
 //! I/O thread; a client that reads slowly or not at all loses frames (counted) and never stalls
-//! the others. Its socket is written without blocking, with at most [`OUT_LIMIT`] bytes waiting.
+//! the others. Its socket is written without blocking, with at most [`HubConfig::out_limit`]
+//! bytes of frames waiting; replies may add as much again, then the hub stops reading from the
+//! client until it reads them (backpressure). A client whose socket and output are full costs
+//! nothing per frame: its frames are dropped (counted) by their sender, and its socket is not
+//! tried again before it is writable.
 //!
 //! Limits: at most [`HubConfig::max_clients`] connections at once; one more is told
 //! `< error too many clients >` and closed. Threads do not grow with clients at all. A client
@@ -16,7 +20,7 @@
 use std::collections::HashMap;
 use std::io::{self, Read, Write};
 use std::net::{SocketAddr, TcpListener, ToSocketAddrs};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
@@ -25,21 +29,34 @@ use crossbeam_channel::{Receiver, TryRecvError};
 use mio::net::{TcpListener as MioListener, TcpStream};
 use mio::{Events, Interest, Poll, Token, Waker};
 
-use super::codec::{self, Decoder, Element, ErrorFrame};
+use super::codec::{self, Decoder, Element, ErrorFrame, Piece};
 use super::session::{Effect, Session};
 use crate::mem::{BusCore, MemBus, MemPort, Sink};
-use crate::transport::RxFrame;
+use crate::transport::{BusState, RxFrame};
 
 /// The default listen address: loopback only.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
 
-/// Bytes that may wait for a client's socket before its queue is left to fill (and drop).
+/// Default of [`HubConfig::out_limit`].
 pub const OUT_LIMIT: usize = 64 * 1024;
 
 const LISTENER: Token = Token(usize::MAX - 1);
 /// Connections accepted per turn of the event loop.
 const ACCEPT_SLICE: usize = 64;
 const WAKER: Token = Token(usize::MAX - 2);
+
+/// Bytes written to a client between two looks at how much of it the client has not read.
+const CHECK_EVERY: usize = 4 * 1024;
+/// A client that has this much not read (its receive window shrunk by it, or our send queue
+/// waiting for it) does not read as fast as frames come: it is written in batches, at most
+/// every [`SLOW_PERIOD`], instead of once per frame.
+const SLOW_QUEUE: usize = 16 * 1024;
+/// Below this it keeps up again.
+const FAST_QUEUE: usize = 4 * 1024;
+/// How often a slow client is written (its frames wait in its queue meanwhile).
+const SLOW_PERIOD: Duration = Duration::from_millis(100);
+/// Slow clients are written a share at a time, every [`SLOW_PERIOD`] / this.
+const SLOW_SLICES: u32 = 50;
 
 /// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
 pub(crate) struct Wake {
@@ -48,19 +65,66 @@ pub(crate) struct Wake {
     token: usize,
     /// Set while the token is in the ready list, so a burst wakes the thread once.
     pending: AtomicBool,
+    /// The client cannot take frames: its socket refused more and [`HubConfig::out_limit`] bytes wait
+    /// for it. Senders then drop its frames (counted) without queueing them or waking the I/O
+    /// thread, until the socket is writable again: such a client costs nothing per frame.
+    blocked: AtomicBool,
+    /// The client is slow (see [`SLOW_QUEUE`]): its frames are queued without waking the I/O
+    /// thread, which writes it on its own schedule.
+    quiet: AtomicBool,
+    /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
+    /// reported to it as socketcand reports its interface's state.
+    ctl_state: AtomicU8,
     ready: Arc<Mutex<Vec<usize>>>,
     waker: Arc<Waker>,
 }
 
 impl Wake {
+    /// Whether frames for the client are to be dropped at once (see `blocked`).
+    pub(crate) fn is_blocked(&self) -> bool {
+        self.blocked.load(Ordering::Relaxed)
+    }
+
+    /// A frame was queued for the client: wakes the I/O thread unless the client is slow.
+    pub(crate) fn queued(&self) {
+        if !self.quiet.load(Ordering::Relaxed) {
+            self.notify();
+        }
+    }
+
     pub(crate) fn notify(&self) {
         if !self.pending.swap(true, Ordering::AcqRel) {
-            self.ready
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .push(self.token);
-            let _ = self.waker.wake();
+            let mut ready = self.ready.lock().unwrap_or_else(|e| e.into_inner());
+            let first = ready.is_empty();
+            ready.push(self.token);
+            drop(ready);
+            // The I/O thread takes the whole list per wake-up: whoever made it non-empty has
+            // woken it (one eventfd write per burst, not one per client).
+            if first {
+                let _ = self.waker.wake();
+            }
         }
+    }
+
+    /// The state [`Wake::controller_state`] left, if not yet reported; taken.
+    fn take_state(&self) -> Option<BusState> {
+        match self.ctl_state.swap(0, Ordering::AcqRel) {
+            1 => Some(BusState::ErrorActive),
+            2 => Some(BusState::ErrorPassive),
+            3 => Some(BusState::BusOff),
+            _ => None,
+        }
+    }
+
+    /// Its controller's error state changed (on the bus's driver thread).
+    pub(crate) fn controller_state(&self, s: BusState) {
+        let code = match s {
+            BusState::ErrorActive => 1,
+            BusState::ErrorPassive => 2,
+            BusState::BusOff => 3,
+        };
+        self.ctl_state.store(code, Ordering::Release);
+        self.notify();
     }
 }
 
@@ -92,6 +156,14 @@ pub struct HubConfig {
     /// How each channel delivers frames: paced at a bit rate (default
     /// [`DEFAULT_BITRATE_KBPS`](crate::bus::DEFAULT_BITRATE_KBPS)) or instant.
     pub pacing: crate::bus::Pacing,
+    /// Bytes that may wait in the hub for a client's socket (default [`OUT_LIMIT`]). Frames,
+    /// bus errors and statistics lines are added only below it (beyond, the client loses them,
+    /// counted for frames). Replies to its commands (`< ok >`, `< echo >`, `< error … >`) may
+    /// take as much again; with twice this waiting the hub reads nothing more from the client
+    /// until it has read its answers (backpressure through TCP, as a socketcand process
+    /// blocked in `send` does). A client thus never holds more than twice this (and one reply)
+    /// in the hub, plus the input read but not yet handled (< 4 KiB).
+    pub out_limit: usize,
 }
 
 impl Default for HubConfig {
@@ -107,6 +179,7 @@ impl Default for HubConfig {
             idle_timeout: None,
             error_frames: false,
             pacing: crate::bus::Pacing::default(),
+            out_limit: OUT_LIMIT,
         }
     }
 }
@@ -128,6 +201,9 @@ pub struct HubStats {
     pub unencodable: u64,
     /// Connections refused because [`HubConfig::max_clients`] were connected.
     pub refused: u64,
+    /// Most bytes that ever waited in the hub for one client (bounded by twice
+    /// [`HubConfig::out_limit`] and one reply).
+    pub out_peak: usize,
 }
 
 struct Shared {
@@ -144,6 +220,7 @@ struct Shared {
     dropped: Arc<AtomicU64>,
     unencodable: AtomicU64,
     refused: AtomicU64,
+    out_peak: AtomicUsize,
     /// Bus errors waiting for the I/O thread, by channel.
     errors: Arc<ErrorQueue>,
 }
@@ -186,6 +263,7 @@ impl Shared {
             dropped: self.dropped.load(Ordering::Relaxed),
             unencodable: self.unencodable.load(Ordering::Relaxed),
             refused: self.refused.load(Ordering::Relaxed),
+            out_peak: self.out_peak.load(Ordering::Relaxed),
         }
     }
 
@@ -257,6 +335,44 @@ fn quickack(stream: &TcpStream) {
     }
 }
 
+/// About how many bytes written to a peer it has not read yet: what our send queue holds for it
+/// (`SIOCOUTQ`) and how far its advertised receive window shrank below the largest it
+/// advertised (`tcpi_snd_wnd`, Linux 5.19 and later; without it only the send queue, which
+/// grows once the window is closed). A peer that reads keeps its window open.
+fn unread(stream: &TcpStream, peak: &mut u32) -> usize {
+    use std::os::fd::AsRawFd;
+    let fd = stream.as_raw_fd();
+    let mut queued: libc::c_int = 0;
+    // SAFETY: the ioctl writes one c_int we own, on a socket we own.
+    if unsafe { libc::ioctl(fd, libc::TIOCOUTQ, &mut queued) } != 0 {
+        queued = 0;
+    }
+    // struct tcp_info up to tcpi_snd_wnd (offset 228, `linux/tcp.h`); libc's copy of the
+    // struct ends before it.
+    const SND_WND: usize = 228;
+    let mut info = [0u8; 256];
+    let mut len = info.len() as libc::socklen_t;
+    // SAFETY: getsockopt writes at most `len` bytes into the buffer we own, and sets `len`.
+    let r = unsafe {
+        libc::getsockopt(
+            fd,
+            libc::IPPROTO_TCP,
+            libc::TCP_INFO,
+            info.as_mut_ptr().cast(),
+            &mut len,
+        )
+    };
+    let mut shrunk = 0;
+    if r == 0 && len as usize >= SND_WND + 4 {
+        let mut w = [0u8; 4];
+        w.copy_from_slice(&info[SND_WND..SND_WND + 4]);
+        let window = u32::from_ne_bytes(w);
+        *peak = (*peak).max(window);
+        shrunk = (*peak - window) as usize;
+    }
+    usize::try_from(queued).unwrap_or(0) + shrunk
+}
+
 /// Descriptors the hub may use for clients: the soft limit of open files less 64.
 fn open_file_budget() -> usize {
     let mut lim = libc::rlimit {
@@ -288,6 +404,7 @@ impl Hub {
     /// Binds with explicit tuning.
     pub fn bind_with(addr: impl ToSocketAddrs, mut config: HubConfig) -> io::Result<Hub> {
         config.queue_len = config.queue_len.max(1);
+        config.out_limit = config.out_limit.max(64);
         config.max_clients = config.max_clients.min(open_file_budget()).max(1);
         let listener = TcpListener::bind(addr)?;
         listener.set_nonblocking(true)?;
@@ -310,6 +427,7 @@ impl Hub {
                 dropped: Arc::new(AtomicU64::new(0)),
                 unencodable: AtomicU64::new(0),
                 refused: AtomicU64::new(0),
+                out_peak: AtomicUsize::new(0),
                 errors: Arc::new(Mutex::new(Vec::new())),
             }),
         })
@@ -435,6 +553,44 @@ impl Drop for HubHandle {
     }
 }
 
+/// The plain raw-mode text of recent frames: every raw client of a channel gets the same frame
+/// with the same timestamp, so it is formatted once, not once per client. Direct-mapped by the
+/// frame's time; a miss formats it again.
+struct TextCache {
+    slots: Vec<Option<Cached>>,
+}
+
+/// A frame and its text (`None`: not writable in the plain form).
+type Cached = (RxFrame, Option<Box<[u8]>>);
+
+impl TextCache {
+    const SLOTS: usize = 1024;
+
+    fn new() -> TextCache {
+        TextCache {
+            slots: vec![None; Self::SLOTS],
+        }
+    }
+
+    /// The text of `rx` for a plain raw client (`None`: it cannot be written in that form).
+    fn text(&mut self, rx: &RxFrame) -> Option<&[u8]> {
+        let t = rx
+            .timestamp
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        let h = (t.subsec_nanos() as usize ^ t.as_secs() as usize ^ rx.frame.id() as usize)
+            % Self::SLOTS;
+        let slot = &mut self.slots[h];
+        if !matches!(slot, Some((f, _)) if f == rx) {
+            let mut out = Vec::with_capacity(48);
+            let text = codec::write_frame(&mut out, &rx.frame, rx.timestamp)
+                .then(|| out.into_boxed_slice());
+            *slot = Some((*rx, text));
+        }
+        slot.as_ref().and_then(|(_, t)| t.as_deref())
+    }
+}
+
 enum State {
     /// Greeted, no channel yet.
     Opening,
@@ -463,6 +619,19 @@ struct Conn {
     out_pos: usize,
     /// Whether WRITABLE interest is registered (only while bytes wait).
     writable: bool,
+    /// The socket refused bytes (WouldBlock): no write is tried until it reports WRITABLE.
+    sock_full: bool,
+    /// It had much not read at the last look ([`SLOW_QUEUE`]): written in batches.
+    slow: bool,
+    /// Bytes written since the last look at what it has not read.
+    written: usize,
+    /// Its token is in the event loop's list of slow clients.
+    listed: bool,
+    /// The largest receive window the client advertised.
+    peak_window: u32,
+    /// Input read but not yet handled: the client's output was full ([`HubConfig::out_limit`]); handled,
+    /// and reading resumed, once the client has read its answers.
+    rest: Vec<u8>,
     handshake_end: Instant,
     last_rx: Instant,
     closed: bool,
@@ -481,8 +650,14 @@ impl Conn {
                     self.closed = true;
                     return;
                 }
-                Ok(n) => self.out_pos += n,
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Ok(n) => {
+                    self.out_pos += n;
+                    self.written += n;
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    self.sock_full = true;
+                    break;
+                }
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(_) => {
                     self.closed = true;
@@ -499,8 +674,29 @@ impl Conn {
         }
     }
 
+    /// Looks at how much the client has not read every [`CHECK_EVERY`] bytes written (and at
+    /// every write while slow): true when it changed between keeping up and not.
+    fn check_pace(&mut self) -> bool {
+        if self.written < CHECK_EVERY && !self.slow {
+            return false;
+        }
+        self.written = 0;
+        let queued = unread(&self.stream, &mut self.peak_window);
+        let slow = if self.slow {
+            queued >= FAST_QUEUE
+        } else {
+            queued >= SLOW_QUEUE
+        };
+        let changed = slow != self.slow;
+        self.slow = slow;
+        if let State::Raw { wake, .. } = &self.state {
+            wake.quiet.store(slow, Ordering::Relaxed);
+        }
+        changed
+    }
+
     /// Moves queued frames into the output, as long as the output has room.
-    fn fill(&mut self, now: Instant, shared: &Shared) {
+    fn fill(&mut self, now: Instant, shared: &Shared, cache: &mut TextCache) {
         let State::Raw {
             rx,
             wake,
@@ -517,8 +713,28 @@ impl Conn {
         }
         // Cleared before draining: a frame sent meanwhile wakes the loop again.
         wake.pending.store(false, Ordering::Release);
-        while self.out.len() - self.out_pos < OUT_LIMIT {
+        // Its own controller's state, as a SocketCAN interface reports it (only to a client
+        // that takes errors); it waits while the output is full.
+        let limit = shared.config.out_limit;
+        if self.out.len() - self.out_pos < limit {
+            if let Some(s) = wake.take_state() {
+                let e = ErrorFrame::for_state(s, std::time::SystemTime::now());
+                self.session
+                    .error_frame(&e, shared.config.error_frames, &mut self.out);
+            }
+        }
+        let plain = self.session.takes_plain_raw();
+        while self.out.len() - self.out_pos < limit {
             match rx.try_recv() {
+                Ok(f) if plain => {
+                    self.session.count_rx(&f.frame);
+                    match cache.text(&f) {
+                        Some(text) => self.out.extend_from_slice(text),
+                        None => {
+                            shared.unencodable.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                }
                 Ok(f) => {
                     if !self
                         .session
@@ -563,6 +779,14 @@ struct EventLoop {
     /// read than one turn takes, or their queue more than the output took while the socket
     /// still had room. Readiness is edge-triggered: no new event would come for either.
     again: Vec<usize>,
+    /// Frames formatted once for all plain raw clients.
+    cache: TextCache,
+    /// Slow clients (may hold tokens of clients no longer slow or gone: dropped when met), and
+    /// where the next slice of them starts.
+    slow: Vec<usize>,
+    slow_pos: usize,
+    /// When the next slice of slow clients is written.
+    slow_next: Instant,
 }
 
 impl EventLoop {
@@ -582,6 +806,10 @@ impl EventLoop {
             accept_more: false,
             again: Vec::new(),
             timed: HashMap::new(),
+            cache: TextCache::new(),
+            slow: Vec::new(),
+            slow_pos: 0,
+            slow_next: Instant::now(),
         })
     }
 
@@ -607,6 +835,10 @@ impl EventLoop {
                     Duration::from_millis(10)
                 };
                 timeout = Some(timeout.map_or(retry, |t| t.min(retry)));
+            }
+            if !self.slow.is_empty() {
+                let left = self.slow_next.saturating_duration_since(Instant::now());
+                timeout = Some(timeout.map_or(left, |t| t.min(left)));
             }
             if let Some(d) = self.timed.values().min() {
                 let left = d.saturating_duration_since(Instant::now());
@@ -639,6 +871,11 @@ impl EventLoop {
                         self.post_errors(&mut touched);
                     }
                     Token(t) => {
+                        if ev.is_writable() {
+                            if let Some(c) = self.conns.get_mut(&t) {
+                                c.sock_full = false;
+                            }
+                        }
                         if ev.is_readable() || ev.is_read_closed() || ev.is_error() {
                             self.read(t, now);
                         }
@@ -653,6 +890,10 @@ impl EventLoop {
                 next_scan = now + SCAN_EVERY;
             }
             self.run_timed(now, &mut touched);
+            if !self.slow.is_empty() && now >= self.slow_next {
+                self.slow_slice(&mut touched);
+                self.slow_next = now + SLOW_PERIOD / SLOW_SLICES;
+            }
             touched.sort_unstable();
             touched.dedup();
             for t in touched {
@@ -763,6 +1004,12 @@ impl EventLoop {
                 out: codec::HI.to_vec(),
                 out_pos: 0,
                 writable: false,
+                sock_full: false,
+                slow: false,
+                written: 0,
+                listed: false,
+                peak_window: 0,
+                rest: Vec::new(),
                 handshake_end: now + self.shared.config.handshake_timeout,
                 last_rx: now,
                 closed: false,
@@ -789,39 +1036,6 @@ impl EventLoop {
         let Some(c) = self.conns.get_mut(&t) else {
             return;
         };
-        let mut buf = [0u8; 4096];
-        let mut elements = Vec::new();
-        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
-        // turn.
-        let mut drained = false;
-        for _ in 0..16 {
-            match c.stream.read(&mut buf) {
-                Ok(0) => {
-                    c.closed = true;
-                    drained = true;
-                    break;
-                }
-                Ok(n) => {
-                    quickack(&c.stream);
-                    c.last_rx = now;
-                    c.decoder
-                        .feed(&buf[..n], |body| elements.push(Element::parse(body)));
-                }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    drained = true;
-                    break;
-                }
-                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-                Err(_) => {
-                    c.closed = true;
-                    drained = true;
-                    break;
-                }
-            }
-        }
-        if !drained {
-            self.again.push(t);
-        }
         let was_joined = matches!(c.state, State::Raw { .. });
         let was_holding = matches!(
             c.state,
@@ -830,11 +1044,58 @@ impl EventLoop {
                 ..
             }
         );
-        for el in elements {
-            if !handle_element(el, c, &self.shared, t, now) {
-                c.closed = true;
-                break;
+        // Input left over from a full output first; while the output stays full, nothing more
+        // is read (the kernel's buffers fill, then the client's sends block).
+        let mut stalled = false;
+        if !c.rest.is_empty() {
+            let rest = std::mem::take(&mut c.rest);
+            let used = consume(c, &rest, &self.shared, &mut self.cache, t, now);
+            if used < rest.len() && !c.closed {
+                c.rest = rest[used..].to_vec();
+                stalled = true;
             }
+        }
+        let mut buf = [0u8; 4096];
+        // At most 64 KiB per turn, so one fast sender cannot starve the others; the rest next
+        // turn.
+        let mut drained = stalled || c.closed;
+        if !drained {
+            for _ in 0..16 {
+                match c.stream.read(&mut buf) {
+                    Ok(0) => {
+                        c.closed = true;
+                        drained = true;
+                        break;
+                    }
+                    Ok(n) => {
+                        quickack(&c.stream);
+                        c.last_rx = now;
+                        let used = consume(c, &buf[..n], &self.shared, &mut self.cache, t, now);
+                        if c.closed {
+                            drained = true;
+                            break;
+                        }
+                        if used < n {
+                            c.rest = buf[used..n].to_vec();
+                            drained = true;
+                            break;
+                        }
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                        drained = true;
+                        break;
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                    Err(_) => {
+                        c.closed = true;
+                        drained = true;
+                        break;
+                    }
+                }
+            }
+        }
+        if !drained {
+            self.again.push(t);
         }
         let mut due = None;
         if let State::Raw { hold_until, .. } = &c.state {
@@ -880,7 +1141,13 @@ impl EventLoop {
                 continue;
             };
             frames.clear();
-            c.session.poll(now, &mut c.out, &mut frames);
+            // A statistics line only while the output has room: a client that does not read
+            // them loses them (the next one has the current counters); its send jobs go on.
+            let mut stat = Vec::new();
+            c.session.poll(now, &mut stat, &mut frames);
+            if c.pending() < self.shared.config.out_limit {
+                c.out.extend_from_slice(&stat);
+            }
             if let State::Raw { bus, id, .. } = &c.state {
                 for f in &frames {
                     bus.transmit(*id, *f);
@@ -901,6 +1168,10 @@ impl EventLoop {
                 if Some(*t) == from {
                     continue;
                 }
+                // A client whose output is full loses bus errors as it loses frames.
+                if c.pending() >= self.shared.config.out_limit {
+                    continue;
+                }
                 if matches!(&c.state, State::Raw { channel: ch, .. } if *ch == channel) {
                     let before = c.out.len();
                     c.session
@@ -910,6 +1181,31 @@ impl EventLoop {
                     }
                 }
             }
+        }
+    }
+
+    /// The next share of the slow clients, to be written this turn.
+    fn slow_slice(&mut self, touched: &mut Vec<usize>) {
+        let n = self.slow.len().div_ceil(SLOW_SLICES as usize);
+        let mut taken = 0;
+        while taken < n && !self.slow.is_empty() {
+            if self.slow_pos >= self.slow.len() {
+                self.slow_pos = 0;
+            }
+            let t = self.slow[self.slow_pos];
+            match self.conns.get_mut(&t) {
+                Some(c) if c.slow => {
+                    touched.push(t);
+                    self.slow_pos += 1;
+                }
+                other => {
+                    if let Some(c) = other {
+                        c.listed = false;
+                    }
+                    self.slow.swap_remove(self.slow_pos);
+                }
+            }
+            taken += 1;
         }
     }
 
@@ -923,8 +1219,39 @@ impl EventLoop {
             return;
         };
         if !c.closed {
-            c.fill(now, &self.shared);
-            c.flush();
+            c.fill(now, &self.shared, &mut self.cache);
+            // What reading, the timers and the queue added is all there is before the flush.
+            self.shared
+                .out_peak
+                .fetch_max(c.pending(), Ordering::Relaxed);
+            // A socket that refused bytes is not tried again before it reports WRITABLE.
+            if !c.sock_full {
+                c.flush();
+                if c.check_pace() && c.slow && !c.listed {
+                    c.listed = true;
+                    self.slow.push(t);
+                }
+            }
+            if let State::Raw {
+                wake, rx, dropped, ..
+            } = &c.state
+            {
+                let blocked = c.sock_full && c.pending() >= self.shared.config.out_limit;
+                if wake.is_blocked() != blocked {
+                    wake.blocked.store(blocked, Ordering::Relaxed);
+                    if blocked {
+                        // What waits in its queue is behind more than its socket and output
+                        // hold already: lost now (counted), not kept for a client that may
+                        // never read.
+                        let mut n = 0;
+                        while rx.try_recv().is_ok() {
+                            n += 1;
+                        }
+                        dropped.fetch_add(n, Ordering::Relaxed);
+                        self.shared.dropped.fetch_add(n, Ordering::Relaxed);
+                    }
+                }
+            }
         }
         if c.closed {
             let mut c = self.conns.remove(&t).expect("present");
@@ -935,6 +1262,10 @@ impl EventLoop {
                 .clients
                 .store(self.conns.len(), Ordering::Relaxed);
             return;
+        }
+        // Input waits for room for its replies: the room is there, handle it next turn.
+        if !c.rest.is_empty() && c.pending() < 2 * self.shared.config.out_limit {
+            self.again.push(t);
         }
         // Queue not drained (output full): come back when the socket takes more.
         let backlog = matches!(&c.state, State::Raw { rx, hold_until: None, .. } if !rx.is_empty());
@@ -961,11 +1292,43 @@ impl EventLoop {
     }
 }
 
+/// Decodes and handles the elements of `input` while the client's output has room for replies
+/// ([`HubConfig::out_limit`]); returns how many bytes it took (all, unless the output filled up or the
+/// connection is to be closed).
+fn consume(
+    c: &mut Conn,
+    input: &[u8],
+    shared: &Arc<Shared>,
+    cache: &mut TextCache,
+    token: usize,
+    now: Instant,
+) -> usize {
+    let mut used = 0;
+    while used < input.len() {
+        if c.pending() >= 2 * shared.config.out_limit {
+            break;
+        }
+        let (n, piece) = c.decoder.next(&input[used..]);
+        used += n;
+        let el = match piece {
+            Some(Piece::Body(body)) => Element::parse(body),
+            Some(Piece::TooLong) => Element::TooLong,
+            None => continue,
+        };
+        if !handle_element(el, c, shared, cache, token, now) {
+            c.closed = true;
+            break;
+        }
+    }
+    used
+}
+
 /// Returns false when the connection should be closed.
 fn handle_element(
     el: Element,
     c: &mut Conn,
     shared: &Arc<Shared>,
+    cache: &mut TextCache,
     token: usize,
     now: Instant,
 ) -> bool {
@@ -978,7 +1341,7 @@ fn handle_element(
     // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
     // over) before its answer.
     if matches!(el, Element::Echo | Element::Mode(_)) {
-        c.fill(now, shared);
+        c.fill(now, shared, cache);
     }
     if let Element::Other(text) = &el {
         tracing::trace!(peer = %c.peer, "unknown command {text:?}");
@@ -992,6 +1355,9 @@ fn handle_element(
                     cap: shared.config.queue_len,
                     token,
                     pending: AtomicBool::new(false),
+                    blocked: AtomicBool::new(false),
+                    quiet: AtomicBool::new(false),
+                    ctl_state: AtomicU8::new(0),
                     ready: shared.ready.clone(),
                     waker: shared.waker.clone(),
                 });
@@ -1021,9 +1387,18 @@ fn handle_element(
                 }
                 tracing::debug!(peer = %c.peer, "client in raw mode");
             }
-            Effect::PostError(e) => {
-                if let State::Raw { channel, .. } = &c.state {
-                    shared.post_error_from(channel, e, Some(token));
+            Effect::ErrorFlag(e) => {
+                if let State::Raw {
+                    channel, bus, id, ..
+                } = &c.state
+                {
+                    // On a paced channel an error frame on the bus timeline (which reports it
+                    // to the clients that take errors, the client too, as a controller
+                    // reports the error frames on its bus); an instant channel has no bus
+                    // timeline: the report goes to the others as it came.
+                    if bus.error_flag(*id).is_none() {
+                        shared.post_error_from(channel, e, Some(token));
+                    }
                 }
             }
             Effect::Close => {

@@ -28,9 +28,10 @@ pub enum Effect {
     Send(Frame),
     /// Raw mode began: hold frames back for the hub's hold-back time.
     RawStarted,
-    /// Give this bus error to the channel's other clients that take errors (a bridge reporting
-    /// its other bus's controller state).
-    PostError(ErrorFrame),
+    /// The client's controller signalled an error on the bus (an `< error … >` of a bus-error
+    /// class: protocol violation, missing ACK, bus error): an error frame goes on the channel's
+    /// bus, and every controller's counters change as ISO 11898-1 says.
+    ErrorFlag(ErrorFrame),
     /// Close the connection (a channel name the hub refuses).
     Close,
 }
@@ -133,7 +134,11 @@ impl Session {
                 out.extend_from_slice(codec::OK);
             }
             (Element::ErrorFrame(e), Some(Mode::Raw | Mode::Bcm)) if self.errors => {
-                fx.push(Effect::PostError(e))
+                // Only what is seen on the wire is the bus's business; a report of the client's
+                // own controller (error passive, bus-off, restarted) is no other node's state.
+                if e.class & codec::err_class::ON_THE_WIRE != 0 {
+                    fx.push(Effect::ErrorFlag(e));
+                }
             }
             (Element::Send(f), Some(Mode::Raw | Mode::Bcm)) => {
                 self.count_tx(&f);
@@ -201,6 +206,10 @@ impl Session {
             (Element::Malformed(name), Some(_)) => {
                 codec::write_error_text(out, &format!("syntax error in {name} command"))
             }
+            (Element::TooLong, _) => codec::write_error_text(
+                out,
+                &format!("element longer than {} bytes", codec::MAX_ELEMENT),
+            ),
             (_, _) => unknown(out),
         }
         fx
@@ -263,6 +272,19 @@ impl Session {
                 *t = (*t + *every).max(now);
             }
         }
+    }
+
+    /// Whether frames go to this client in the plain raw form ([`codec::write_frame`]), the same
+    /// text for every such client: the hub formats a frame once for all of them.
+    pub fn takes_plain_raw(&self) -> bool {
+        self.mode == Some(Mode::Raw) && !self.rtr
+    }
+
+    /// Counts a frame given to the client in an already formatted form (see
+    /// [`Session::takes_plain_raw`]).
+    pub fn count_rx(&mut self, frame: &Frame) {
+        self.rx.0 += frame.data().len() as u64;
+        self.rx.1 += 1;
     }
 
     /// Writes a frame from the bus for the client as its mode wants it; `false` when the frame
@@ -387,6 +409,32 @@ mod tests {
         assert_eq!(
             (o.as_str(), fx),
             ("< echo >", vec![Effect::Send(f(0x123, &[0xAA]))])
+        );
+    }
+
+    #[test]
+    fn an_overlong_element_is_answered_in_every_state() {
+        let t = Instant::now();
+        let mut long = b"< send 123 1 ".to_vec();
+        long.extend(std::iter::repeat_n(b'0', 1 << 20));
+        long.extend_from_slice(b" >< echo >");
+        let mut out = Vec::new();
+        let mut s = Session::new();
+        let mut d = Decoder::new();
+        let mut rest = &long[..];
+        while !rest.is_empty() {
+            let (n, p) = d.next(rest);
+            rest = &rest[n..];
+            let el = match p {
+                Some(codec::Piece::Body(b)) => Element::parse(b),
+                Some(codec::Piece::TooLong) => Element::TooLong,
+                None => continue,
+            };
+            assert!(s.handle(el, t, &mut out, |_| true).is_empty());
+        }
+        assert_eq!(
+            String::from_utf8(out).unwrap(),
+            "< error element longer than 256 bytes >< echo >"
         );
     }
 
@@ -539,9 +587,19 @@ mod tests {
         s.error_frame(&e, false, &mut out);
         let one = "< error 040 2.000000 00 00 00 00 00 00 00 00 >";
         assert_eq!(String::from_utf8(out).unwrap(), format!("{one}{one}"));
-        // A client that takes errors may also report one for the channel; others may not.
+        // A client that takes errors may signal one on the bus (a protocol error: an error
+        // flag); its report of its own controller's state changes nothing; others may not.
         let (o, fx) = run(&mut s, one.as_bytes(), t);
-        assert_eq!((o.as_str(), fx), ("", vec![Effect::PostError(e)]));
+        assert_eq!((o.as_str(), fx), ("", vec![]));
+        let passive = "< error 004 2.000000 00 30 00 00 00 00 00 00 >";
+        assert_eq!(run(&mut s, passive.as_bytes(), t), (String::new(), vec![]));
+        let prot = "< error 008 2.000000 00 00 04 00 00 00 00 00 >";
+        let (o, fx) = run(&mut s, prot.as_bytes(), t);
+        assert_eq!(o, "");
+        assert!(
+            matches!(&fx[..], [Effect::ErrorFlag(e)] if e.class == 0x008),
+            "{fx:?}"
+        );
         let mut plain = Session::new();
         run(&mut plain, b"< open can0 >< rawmode >", t);
         assert_eq!(

@@ -388,3 +388,66 @@ fn receive_counter_decrements_after_good_frames() {
     assert_eq!(t.stats(a).unwrap().tec, 8 * errors - 1);
     assert_eq!(t.stats(a).unwrap().sent, 1);
 }
+
+#[test]
+fn an_error_flag_raises_every_receive_counter_and_no_state_latches() {
+    // ISO 11898-1: every controller detects the flag (a stuff error), REC + 1 each; the flagging
+    // member detected the error first (REC + 1 too). No transmit counter moves on an idle bus.
+    let mut t = bus(1000);
+    let (flagger, a, b) = (t.join(4), t.join(4), t.join(4));
+    let mut out = Vec::new();
+    assert!(t.error_flag(flagger, 0));
+    assert!(!t.error_flag(a, 0), "one error frame at a time");
+    assert_eq!(t.error_flags_refused(), 1);
+    t.advance(100 * US, &mut out);
+    assert!(out.iter().any(|e| matches!(
+        e,
+        BusEvent::Error(BusError {
+            kind: BusErrorKind::ErrorFlag,
+            id: None,
+            ..
+        })
+    )));
+    for m in [flagger, a, b] {
+        let s = t.stats(m).unwrap();
+        assert_eq!((s.tec, s.rec, s.state), (0, 1, BusState::ErrorActive));
+    }
+    // 127 more: every receiver error passive at REC 128, none bus-off (a receive counter never
+    // takes a controller off the bus).
+    let mut now = 100 * US;
+    for _ in 0..127 {
+        assert!(t.error_flag(flagger, now));
+        now += 100 * US;
+        t.advance(now, &mut out);
+    }
+    for m in [a, b] {
+        let s = t.stats(m).unwrap();
+        assert_eq!((s.rec, s.state), (128, BusState::ErrorPassive));
+    }
+    assert_eq!(t.error_frames(), 128);
+    // Good frames bring them back (REC above 127 → 119: error active): nothing latched.
+    t.submit(a, Frame::new(0x181, &[1]).unwrap(), now).unwrap();
+    t.advance(now + 1_000 * US, &mut out);
+    assert_eq!(t.stats(b).unwrap().state, BusState::ErrorActive);
+    assert_eq!(t.stats(b).unwrap().rec, 119);
+    // A flag that hits a frame on the wire destroys it: its transmitter TEC + 8, retransmitted.
+    let mut t = bus(1000);
+    let (flagger, a, r) = (t.join(4), t.join(4), t.join(4));
+    t.submit(a, Frame::new(0x181, &[0; 8]).unwrap(), 0).unwrap();
+    let mut out = Vec::new();
+    t.advance(10 * US, &mut out);
+    assert!(t.error_flag(flagger, 10 * US));
+    t.advance(1_000 * US, &mut out);
+    assert_eq!(t.stats(a).unwrap().tx_errors, 1);
+    assert_eq!(
+        t.stats(r).unwrap().rec,
+        0,
+        "1 for the flag, − 1 for the retransmission"
+    );
+    assert_eq!(frames(&out).len(), 1, "the frame went out again");
+    // A member whose transceiver failed sends no flag (nor does a bus-off one).
+    let mut t = bus(1000);
+    let m = t.join(1);
+    t.set_transceiver_failed(m, true, 0);
+    assert!(!t.error_flag(m, 0));
+}
