@@ -41,6 +41,8 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
 pub const OUT_LIMIT: usize = 64 * 1024;
 
 const LISTENER: Token = Token(usize::MAX - 1);
+/// Least time between two warnings of failing accepts.
+const ACCEPT_WARN_EVERY: Duration = Duration::from_secs(60);
 /// Connections accepted per turn of the event loop.
 const ACCEPT_SLICE: usize = 64;
 const WAKER: Token = Token(usize::MAX - 2);
@@ -771,6 +773,10 @@ struct EventLoop {
     /// Accepting failed (e.g. out of descriptors) with connections left in the backlog: the
     /// listener is edge-triggered and will not report them again, so retry on a timer.
     accept_retry: bool,
+    /// Accepts that failed since the last one that worked, and when that was last logged: a
+    /// process out of descriptors retries every 10 ms, and must not log 100 lines a second.
+    accept_failures: u64,
+    accept_warned: Option<Instant>,
     /// An accept slice ended before the backlog did.
     accept_more: bool,
     /// Connections whose session has timed work (BCM send jobs, statistics): when it is due.
@@ -803,6 +809,8 @@ impl EventLoop {
             next_token: 0,
             earliest: None,
             accept_retry: false,
+            accept_failures: 0,
+            accept_warned: None,
             accept_more: false,
             again: Vec::new(),
             timed: HashMap::new(),
@@ -963,11 +971,27 @@ impl EventLoop {
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
                 Err(e) => {
                     // E.g. out of file descriptors: leave the rest in the backlog for now.
-                    tracing::warn!("accept failed: {e}");
+                    self.accept_failures += 1;
+                    if self
+                        .accept_warned
+                        .is_none_or(|t| now.saturating_duration_since(t) >= ACCEPT_WARN_EVERY)
+                    {
+                        tracing::warn!(failures = self.accept_failures,
+                            "accept failed: {e}; retrying every 10 ms (logged at most once a minute)");
+                        self.accept_warned = Some(now);
+                    }
                     self.accept_retry = true;
                     return;
                 }
             };
+            if self.accept_failures > 0 {
+                tracing::info!(
+                    failures = self.accept_failures,
+                    "accepting connections again"
+                );
+                self.accept_failures = 0;
+                self.accept_warned = None;
+            }
             self.shared.accepted.fetch_add(1, Ordering::Relaxed);
             if self.conns.len() >= self.shared.config.max_clients {
                 let refused = self.shared.refused.fetch_add(1, Ordering::Relaxed);
