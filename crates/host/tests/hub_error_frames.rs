@@ -83,31 +83,44 @@ fn error_frames_raise_every_other_controllers_receive_counter() {
     let sensor = Client::connect(h.local_addr(), "can0").unwrap();
     let mut attacker = erring(h.local_addr());
     let rec = || port.bus_stats().unwrap().controller.unwrap().rec;
+    const FLAG: &[u8] = b"< error 008 1.000000 00 00 04 00 00 00 00 00 >";
     // Protocol errors (a stuff error seen on the wire): one error frame each on the bus, one
-    // at a time (a flag while one is pending is refused), REC + 1 for every controller.
-    for k in 1..=128u16 {
-        attacker
-            .write_all(b"< error 008 1.000000 00 00 04 00 00 00 00 00 >")
-            .unwrap();
+    // at a time (a flag while one is pending is refused), REC + 1 for every controller. The
+    // attacker's own controller counts + 9 a flag (ISO 11898-1 rules 1 and 2): after 15 it is
+    // error passive, and its flags are passive: nobody else sees them.
+    for k in 1..=15u16 {
+        attacker.write_all(FLAG).unwrap();
         // The bus carries one error frame at a time: wait for it before the next.
         wait_until("the receive counter", || rec() == k);
     }
-    assert_eq!(h.channel_stats()[0].1.error_frames, 128);
-    // REC 128: error passive, by the controllers' own counters; the TCP sensor hears it from
-    // the hub as its interface's state.
-    assert_eq!(
-        port.bus_stats().unwrap().controller.unwrap().state,
-        BusState::ErrorPassive
-    );
-    wait_until("the sensor's error-passive state", || {
-        sensor.bus_state() == BusState::ErrorPassive
-    });
     // The attacker got the bus's error frames too (as a controller reports them: a stuff
-    // error), and its own controller's state (its REC is 128 too).
+    // error), and its own controller's state: error passive (REC 135).
     let got = read_until(&mut attacker, b"00 30 00 00 00 00 00 00 >");
     let got = String::from_utf8_lossy(&got);
     assert!(got.contains(" 00 00 04 00 00 00 00 00 >"), "{got}");
     assert!(got.starts_with("< error 008 "), "{got}");
+    for _ in 0..100 {
+        attacker.write_all(FLAG).unwrap();
+    }
+    // Other clients' flags still count, one each (so the 100 passive ones counted nothing):
+    // 113 more make every controller error passive at REC 128, by their own counters.
+    let mut others = Vec::new();
+    for k in 16..=128u16 {
+        let mut c = erring(h.local_addr());
+        c.write_all(FLAG).unwrap();
+        wait_until("the receive counter", || rec() >= k);
+        assert_eq!(rec(), k, "a passive flag was seen on the bus");
+        others.push(c);
+    }
+    assert_eq!(h.channel_stats()[0].1.error_frames, 128);
+    assert_eq!(
+        port.bus_stats().unwrap().controller.unwrap().state,
+        BusState::ErrorPassive
+    );
+    // The TCP sensor hears it from the hub as its interface's state.
+    wait_until("the sensor's error-passive state", || {
+        sensor.bus_state() == BusState::ErrorPassive
+    });
     // Good frames bring every receiver back (REC above 127 → 119): nothing latched.
     let mut tx = h.attach("can0");
     tx.send(&Frame::new(0x181, &[1]).unwrap()).unwrap();
@@ -115,4 +128,64 @@ fn error_frames_raise_every_other_controllers_receive_counter() {
         sensor.bus_state() == BusState::ErrorActive
     });
     assert_eq!(rec(), 119);
+}
+
+/// What a raw client read, in order: (is an error, bus time in s) of each frame and error.
+fn stamps(text: &str) -> Vec<(bool, f64)> {
+    text.split('<')
+        .filter_map(|el| {
+            let mut t = el.split_whitespace();
+            let kind = t.next()?;
+            let stamp = t.nth(1)?.parse().ok()?;
+            matches!(kind, "frame" | "error").then_some((kind == "error", stamp))
+        })
+        .collect()
+}
+
+#[test]
+fn error_frames_reach_a_client_after_the_frames_before_them() {
+    // A review found `< error … >` passing frames that ended before it on the bus: the errors
+    // went straight to the client's output while its frames still waited in its queue.
+    let h = hub();
+    let mut reader = erring(h.local_addr());
+    let mut attacker = erring(h.local_addr());
+    let mut tx = h.attach("can0");
+    let flags = std::thread::spawn(move || {
+        // One flag a frame time or so: the attacker is error active again after each good
+        // frame it receives (REC → 119), so about every other frame is destroyed (and its
+        // transmitter may go bus-off, as on a wire).
+        for _ in 0..1000 {
+            attacker
+                .write_all(b"< error 008 1.000000 00 00 04 00 00 00 00 00 >")
+                .unwrap();
+            std::thread::sleep(Duration::from_micros(200));
+        }
+    });
+    // The reader reads nothing until the end: about 40 KB wait for it, so the hub takes it for
+    // a slow client and writes it in batches (where errors passed a whole batch of frames).
+    for i in 0..1000u16 {
+        tx.send(&Frame::new(0x181, &i.to_le_bytes()).unwrap())
+            .unwrap();
+    }
+    flags.join().unwrap();
+    // A last frame from a controller of its own marks the end.
+    let mut end = h.attach("can0");
+    end.send(&Frame::new(0x7FF, &[0xEE]).unwrap()).unwrap();
+    let got = read_until(&mut reader, b"frame 7FF");
+    let got = String::from_utf8_lossy(&got);
+    let seen = stamps(&got);
+    let errors = seen.iter().filter(|s| s.0).count();
+    assert!(errors > 0, "no error reached the reader: {got}");
+    assert!(seen.len() - errors > 1, "{got}");
+    let mut latest_error = f64::MIN;
+    for &(is_error, t) in &seen {
+        if is_error {
+            latest_error = latest_error.max(t);
+        } else {
+            assert!(
+                t >= latest_error,
+                "a frame of {t} s after an error of {latest_error} s: {got}"
+            );
+        }
+    }
 }

@@ -499,18 +499,35 @@ impl Timeline {
         Ok(())
     }
 
-    /// Member `id` sends an active error flag at `at` (a host that reports an error it saw:
-    /// a socketcand client's `< error … >`). It destroys the frame on the wire at that time (its
-    /// transmitters' TEC + 8, retransmitted) and every other member detects an error: REC + 1
-    /// (ISO 11898-1 fault confinement rules 1 and 3), as does the member itself, which detected
-    /// the error first. One error frame at a time: a flag while another (or a stuck-dominant
-    /// interval) is pending is refused (`false`, counted), so a flood of them is bounded by
-    /// the bus time each takes. A member that is bus-off sends none.
+    /// Member `id` reports an error it detected at `at` (a socketcand client's `< error … >`),
+    /// and signals it as ISO 11898-1 says its controller would:
+    ///
+    /// - **error active**: an active (dominant) error flag. It destroys the frame on the wire at
+    ///   that time (its transmitters' TEC + 8, retransmitted) and every other member detects an
+    ///   error: REC + 1 (fault confinement rule 1). The member itself counts the error it
+    ///   detected (+ 1) and the others' flags that follow its own (the dominant bit after its
+    ///   flag, rule 2: + 8), so a member that keeps flagging is error passive after 15 flags.
+    /// - **error passive**: a passive (recessive) flag, which nobody else sees: it destroys
+    ///   nothing and moves no other counter; the member's own REC + 1.
+    ///
+    /// One error frame at a time: an active flag while another (or a stuck-dominant interval) is
+    /// pending is refused (`false`, counted), so a flood of them is bounded by the bus time each
+    /// takes. A member that is bus-off, or whose transceiver failed, sends none.
     pub fn error_flag(&mut self, id: MemberId, at: Nanos) -> bool {
         let live = self
             .member(id)
             .is_some_and(|m| m.state != BusState::BusOff && !m.transceiver_failed);
-        if !live || self.stuck.is_some() {
+        if !live {
+            self.flags_refused += 1;
+            return false;
+        }
+        let m = &mut self.members[id.0 as usize];
+        if m.state == BusState::ErrorPassive {
+            // Recessive: the bus does not change. Already passive, so no state to report.
+            m.rec = (m.rec + 1).min(255);
+            return true;
+        }
+        if self.stuck.is_some() {
             self.flags_refused += 1;
             return false;
         }
@@ -1061,7 +1078,8 @@ impl Timeline {
         let Some((a, b)) = self.stuck.take() else {
             return;
         };
-        let flag = self.flag.take().is_some();
+        let flagger = self.flag.take();
+        let flag = flagger.is_some();
         let bits = (b - a) / self.bit_ns;
         let steps = if bits >= 14 { 1 + (bits - 14) / 8 } else { 0 };
         let cur = self.current.take();
@@ -1099,6 +1117,15 @@ impl Timeline {
         }
         // Receivers: the error they detect (+1), then +8 per step.
         self.receivers_error(&senders, (1 + 8 * steps).min(255) as u16, b, out);
+        // The flagger (not a transmitter) sees the others' flags right after its own: + 8
+        // (rule 2). A transmitter that flagged was counted as one above.
+        if let Some(f) = flagger.filter(|f| !senders.contains(f)) {
+            let m = &mut self.members[f.0 as usize];
+            if m.live && m.state != BusState::BusOff {
+                m.rec = (m.rec + 8).min(255);
+                self.update_state(f, b, out);
+            }
+        }
         // Bus integration: 11 recessive bits before anyone may start.
         self.free_at = b + u64::from(RECESSIVE_SEQUENCE_BITS) * self.bit_ns;
         self.note_bus_idle(b + 8 * self.bit_ns);

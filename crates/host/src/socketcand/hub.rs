@@ -715,16 +715,7 @@ impl Conn {
         }
         // Cleared before draining: a frame sent meanwhile wakes the loop again.
         wake.pending.store(false, Ordering::Release);
-        // Its own controller's state, as a SocketCAN interface reports it (only to a client
-        // that takes errors); it waits while the output is full.
         let limit = shared.config.out_limit;
-        if self.out.len() - self.out_pos < limit {
-            if let Some(s) = wake.take_state() {
-                let e = ErrorFrame::for_state(s, std::time::SystemTime::now());
-                self.session
-                    .error_frame(&e, shared.config.error_frames, &mut self.out);
-            }
-        }
         let plain = self.session.takes_plain_raw();
         while self.out.len() - self.out_pos < limit {
             match rx.try_recv() {
@@ -746,6 +737,16 @@ impl Conn {
                     }
                 }
                 Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
+            }
+        }
+        // Its own controller's state, as a SocketCAN interface reports it (only to a client
+        // that takes errors), after the frames that were on the bus before it was taken; it
+        // waits while the output is full.
+        if self.out.len() - self.out_pos < limit {
+            if let Some(s) = wake.take_state() {
+                let e = ErrorFrame::for_state(s, std::time::SystemTime::now());
+                self.session
+                    .error_frame(&e, shared.config.error_frames, &mut self.out);
             }
         }
     }
@@ -1187,10 +1188,16 @@ impl EventLoop {
     fn post_errors(&mut self, touched: &mut Vec<usize>) {
         let errors =
             std::mem::take(&mut *self.shared.errors.lock().unwrap_or_else(|e| e.into_inner()));
+        let now = Instant::now();
         for (channel, e, from) in errors {
             for (t, c) in &mut self.conns {
                 if Some(*t) == from {
                     continue;
+                }
+                // The frames the bus delivered before this error go out before it: they wait
+                // in the client's queue, the error would otherwise pass them in its output.
+                if c.session.takes_errors(self.shared.config.error_frames) {
+                    c.fill(now, &self.shared, &mut self.cache);
                 }
                 // A client whose output is full loses bus errors as it loses frames.
                 if c.pending() >= self.shared.config.out_limit {

@@ -344,10 +344,15 @@ impl Session {
         }
     }
 
+    /// Whether [`error_frame`](Self::error_frame) writes bus errors for this client.
+    pub fn takes_errors(&self, all: bool) -> bool {
+        (self.errors || all) && matches!(self.mode, Some(Mode::Raw | Mode::Bcm))
+    }
+
     /// Writes a bus error for the client if it asked for them (`< errors on >`) or the hub
     /// serves them to everyone (`all`), in raw or BCM mode.
     pub fn error_frame(&self, e: &ErrorFrame, all: bool, out: &mut Vec<u8>) {
-        if (self.errors || all) && matches!(self.mode, Some(Mode::Raw | Mode::Bcm)) {
+        if self.takes_errors(all) {
             codec::write_error_frame(out, e);
         }
     }

@@ -392,7 +392,8 @@ fn receive_counter_decrements_after_good_frames() {
 #[test]
 fn an_error_flag_raises_every_receive_counter_and_no_state_latches() {
     // ISO 11898-1: every controller detects the flag (a stuff error), REC + 1 each; the flagging
-    // member detected the error first (REC + 1 too). No transmit counter moves on an idle bus.
+    // member detected the error first (+ 1) and sees their flags after its own (+ 8). No
+    // transmit counter moves on an idle bus.
     let mut t = bus(1000);
     let (flagger, a, b) = (t.join(4), t.join(4), t.join(4));
     let mut out = Vec::new();
@@ -408,15 +409,42 @@ fn an_error_flag_raises_every_receive_counter_and_no_state_latches() {
             ..
         })
     )));
-    for m in [flagger, a, b] {
+    for m in [a, b] {
         let s = t.stats(m).unwrap();
         assert_eq!((s.tec, s.rec, s.state), (0, 1, BusState::ErrorActive));
     }
-    // 127 more: every receiver error passive at REC 128, none bus-off (a receive counter never
-    // takes a controller off the bus).
+    let s = t.stats(flagger).unwrap();
+    assert_eq!((s.tec, s.rec, s.state), (0, 9, BusState::ErrorActive));
+    // 14 more active flags make the flagger error passive at REC 135 (fault confinement does
+    // what it is for: the member that keeps seeing errors goes passive first); the others are
+    // at 15. From then on its flags are passive: nobody else sees them.
     let mut now = 100 * US;
-    for _ in 0..127 {
+    for _ in 0..14 {
         assert!(t.error_flag(flagger, now));
+        now += 100 * US;
+        t.advance(now, &mut out);
+    }
+    let s = t.stats(flagger).unwrap();
+    assert_eq!((s.rec, s.state), (135, BusState::ErrorPassive));
+    for _ in 0..1000 {
+        assert!(t.error_flag(flagger, now), "a passive flag is no refusal");
+        now += 100 * US;
+        t.advance(now, &mut out);
+    }
+    for m in [a, b] {
+        let s = t.stats(m).unwrap();
+        assert_eq!((s.rec, s.state), (15, BusState::ErrorActive), "{m:?}");
+    }
+    assert_eq!(t.error_frames(), 15);
+    assert_eq!(t.stats(flagger).unwrap().rec, 255);
+    // Many flaggers, each flagging once: every receiver error passive at REC 128, none
+    // bus-off (a receive counter never takes a controller off the bus).
+    let mut t = bus(1000);
+    let (a, b) = (t.join(4), t.join(4));
+    let flaggers: Vec<_> = (0..128).map(|_| t.join(4)).collect();
+    let mut now = 0;
+    for &f in &flaggers {
+        assert!(t.error_flag(f, now));
         now += 100 * US;
         t.advance(now, &mut out);
     }
