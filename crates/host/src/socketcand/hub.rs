@@ -89,6 +89,10 @@ impl Wake {
 
     /// A frame was queued for the client: wakes the I/O thread unless the client is slow.
     pub(crate) fn queued(&self) {
+        // Pairs with the fence in `Conn::check_pace`: either this sees `quiet` cleared, or the
+        // I/O thread sees this frame in the queue after clearing it (store-load both ways: a
+        // frame must not wait in the queue of a client nobody will serve).
+        std::sync::atomic::fence(Ordering::SeqCst);
         if !self.quiet.load(Ordering::Relaxed) {
             self.notify();
         }
@@ -693,6 +697,8 @@ impl Conn {
         self.slow = slow;
         if let State::Raw { wake, .. } = &self.state {
             wake.quiet.store(slow, Ordering::Relaxed);
+            // Before the queue is looked at again (`service`'s backlog): see `Wake::queued`.
+            std::sync::atomic::fence(Ordering::SeqCst);
         }
         changed
     }
