@@ -37,7 +37,7 @@ const FIELDS: [(&str, &[&str]); 10] = [
     ("ambient", &["sensor", "celsius"]),
     ("state", &["sensor"]),
     ("bus-fault", &["sensor", "kind", "value", "on"]),
-    ("reset-lateness", &[]),
+    ("reset-lateness", &["sensor"]),
     ("nmt", &["sensor", "command"]),
     (
         "timing",
