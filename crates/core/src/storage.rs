@@ -16,6 +16,9 @@ use crate::od::{Entry, Group};
 /// Largest image any model produces (header + records + CRC).
 pub const IMAGE_MAX: usize = 8 + 8 * RECORDS_MAX + 4;
 
+/// Bytes of an image without records: the header (mark, version, model tag, count) and the CRC.
+pub const IMAGE_MIN: usize = 8 + 4;
+
 /// Most records an image holds: 240 on a host (any device an EDS may describe), else the
 /// stored entries of the largest model built in (at least 32, for a firmware's own small
 /// dictionary) plus the three LSS / node-id records.
@@ -254,25 +257,77 @@ pub fn parse_image(
     parse_records(image, model_tag)
 }
 
-/// [`parse_image`], its records as they lie in the image.
-fn parse_records(image: &[u8], model_tag: u8) -> Result<Records<'_>, StorageError> {
-    if image.len() < 12 || &image[..4] != MAGIC || image[4] != VERSION || image[5] != model_tag {
-        return Err(StorageError::Corrupt);
+/// Why an image fails its check ([`check_image`]), in the order the checks are made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageFault {
+    /// Shorter than an image without records (this many bytes).
+    TooShort(usize),
+    /// No `CPOS` mark: not a state image.
+    NotAnImage,
+    /// An image format this build does not read (its version).
+    Version(u8),
+    /// An image of another model (its tag).
+    OtherModel(u8),
+    /// Its length does not match the record count in its header.
+    Length {
+        /// The image's length.
+        len: usize,
+        /// The header's record count.
+        count: usize,
+    },
+    /// The CRC does not match: torn or altered.
+    Crc {
+        /// The CRC stored in the image.
+        stored: u32,
+        /// The CRC of its bytes.
+        computed: u32,
+    },
+}
+
+impl ImageFault {
+    /// The image format version this build reads and writes.
+    pub const VERSION: u8 = VERSION;
+}
+
+/// Checks an image for a model with `model_tag`: its length, mark, version, tag, record count
+/// and CRC. `Ok` holds the length of the header and records (the CRC follows them).
+pub fn check_image(image: &[u8], model_tag: u8) -> Result<usize, ImageFault> {
+    if image.len() < IMAGE_MIN {
+        return Err(ImageFault::TooShort(image.len()));
+    }
+    if &image[..4] != MAGIC {
+        return Err(ImageFault::NotAnImage);
+    }
+    if image[4] != VERSION {
+        return Err(ImageFault::Version(image[4]));
+    }
+    if image[5] != model_tag {
+        return Err(ImageFault::OtherModel(image[5]));
     }
     let count = u16::from_le_bytes([image[6], image[7]]) as usize;
     let body = 8 + count * 8;
     if image.len() != body + 4 {
-        return Err(StorageError::Corrupt);
+        return Err(ImageFault::Length {
+            len: image.len(),
+            count,
+        });
     }
-    let crc = u32::from_le_bytes([
+    let stored = u32::from_le_bytes([
         image[body],
         image[body + 1],
         image[body + 2],
         image[body + 3],
     ]);
-    if crc != crc32(&image[..body]) {
-        return Err(StorageError::Corrupt);
+    let computed = crc32(&image[..body]);
+    if stored != computed {
+        return Err(ImageFault::Crc { stored, computed });
     }
+    Ok(body)
+}
+
+/// [`parse_image`], its records as they lie in the image.
+fn parse_records(image: &[u8], model_tag: u8) -> Result<Records<'_>, StorageError> {
+    let body = check_image(image, model_tag).map_err(|_| StorageError::Corrupt)?;
     Ok(Records(&image[8..body]))
 }
 
@@ -458,6 +513,71 @@ mod tests {
             assert!(parse_image(&b[..n], 3).is_err(), "flip at {i} not detected");
         }
         assert!(parse_image(&buf[..n - 1], 3).is_err(), "torn");
+    }
+
+    /// `check_image` names each fault, in the order of its checks, with the values found.
+    #[test]
+    fn check_image_names_each_fault() {
+        let mut buf = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut buf, 3);
+        assert!(w.push(0x0010_1700, 100));
+        let n = w.finish();
+        assert_eq!(n, IMAGE_MIN + 8);
+        assert_eq!(check_image(&buf[..n], 3), Ok(n - 4));
+        let empty = {
+            let mut b = [0u8; IMAGE_MAX];
+            let m = ImageWriter::new(&mut b, 3).finish();
+            (b, m)
+        };
+        assert_eq!(empty.1, IMAGE_MIN);
+        assert_eq!(check_image(&empty.0[..IMAGE_MIN], 3), Ok(8));
+        assert_eq!(
+            check_image(&empty.0[..IMAGE_MIN - 1], 3),
+            Err(ImageFault::TooShort(IMAGE_MIN - 1))
+        );
+        // Each header field changed (the CRC resealed, so the header is what fails).
+        let reseal = |at: usize, v: u8| {
+            let mut b = buf;
+            b[at] = v;
+            let crc = crc32(&b[..n - 4]).to_le_bytes();
+            b[n - 4..n].copy_from_slice(&crc);
+            b
+        };
+        assert_eq!(
+            check_image(&reseal(0, b'X')[..n], 3),
+            Err(ImageFault::NotAnImage)
+        );
+        assert_eq!(
+            check_image(&reseal(3, b'X')[..n], 3),
+            Err(ImageFault::NotAnImage)
+        );
+        assert_eq!(
+            check_image(&reseal(4, 2)[..n], 3),
+            Err(ImageFault::Version(2))
+        );
+        assert_eq!(ImageFault::VERSION, 1);
+        assert_eq!(check_image(&buf[..n], 4), Err(ImageFault::OtherModel(3)));
+        assert_eq!(
+            check_image(&reseal(6, 2)[..n], 3),
+            Err(ImageFault::Length { len: n, count: 2 })
+        );
+        assert_eq!(
+            check_image(&buf[..n + 1], 3),
+            Err(ImageFault::Length {
+                len: n + 1,
+                count: 1
+            })
+        );
+        let mut flipped = buf;
+        flipped[10] ^= 0x10;
+        let stored = u32::from_le_bytes([buf[n - 4], buf[n - 3], buf[n - 2], buf[n - 1]]);
+        assert_eq!(
+            check_image(&flipped[..n], 3),
+            Err(ImageFault::Crc {
+                stored,
+                computed: crc32(&flipped[..n - 4])
+            })
+        );
     }
 
     /// An image whose CRC is right but whose header names another format (magic), another

@@ -44,8 +44,8 @@ use std::sync::Arc;
 
 use canpos_core::od::{Group, Hook};
 use canpos_core::storage::{
-    crc32, is_object_key, parse_image, ImageWriter, Storage, StorageError, IMAGE_MAX,
-    KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
+    check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage, StorageError,
+    IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
 use canpos_core::Model;
 use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
@@ -239,51 +239,29 @@ fn record_used(model: &Model, key: u32) -> bool {
     }
 }
 
-/// Why an image does not pass the core's check for a model with `tag`, in words (the header
-/// fields compared with the ones the core writes itself).
+/// Why an image does not pass the core's check for a model with `tag`, in words.
 fn image_problem(image: &[u8], tag: u8) -> String {
-    let mut hdr = [0u8; IMAGE_MAX];
-    let empty = ImageWriter::new(&mut hdr, tag).finish();
-    if image.len() < empty {
-        return format!("{} bytes, shorter than any image ({empty})", image.len());
+    match check_image(image, tag) {
+        Err(ImageFault::TooShort(len)) => {
+            format!("{len} bytes, shorter than any image ({IMAGE_MIN})")
+        }
+        Err(ImageFault::NotAnImage) => "not a canpos state image (no CPOS mark)".into(),
+        Err(ImageFault::Version(v)) => format!(
+            "format version {v}, this canpos reads version {}",
+            ImageFault::VERSION
+        ),
+        Err(ImageFault::OtherModel(t)) => {
+            format!("an image of another model (tag {t}, this model's is {tag})")
+        }
+        Err(ImageFault::Length { len, count }) => format!(
+            "{len} bytes, but its header's {count} records make {}",
+            IMAGE_MIN + 8 * count
+        ),
+        Err(ImageFault::Crc { stored, computed }) => {
+            format!("CRC mismatch (stored {stored:08X}, computed {computed:08X}): torn or altered")
+        }
+        Ok(_) => "refused by the image check".into(),
     }
-    if image[..4] != hdr[..4] {
-        return "not a canpos state image (no CPOS mark)".into();
-    }
-    if image[4] != hdr[4] {
-        return format!(
-            "format version {}, this canpos reads version {}",
-            image[4], hdr[4]
-        );
-    }
-    if image[5] != tag {
-        return format!(
-            "an image of another model (tag {}, this model's is {tag})",
-            image[5]
-        );
-    }
-    let count = u16::from_le_bytes([image[6], image[7]]) as usize;
-    let want = empty + 8 * count;
-    if image.len() != want {
-        return format!(
-            "{} bytes, but its header's {count} records make {want}",
-            image.len()
-        );
-    }
-    let body = image.len() - 4;
-    let stored = u32::from_le_bytes([
-        image[body],
-        image[body + 1],
-        image[body + 2],
-        image[body + 3],
-    ]);
-    let computed = crc32(&image[..body]);
-    if stored != computed {
-        return format!(
-            "CRC mismatch (stored {stored:08X}, computed {computed:08X}): torn or altered"
-        );
-    }
-    "refused by the image check".into()
 }
 
 impl FileStorage {
@@ -871,7 +849,7 @@ mod tests {
         let reseal = |at: usize, v: u8| {
             let mut b = good.clone();
             b[at] = v;
-            let crc = crc32(&b[..n - 4]).to_le_bytes();
+            let crc = canpos_core::storage::crc32(&b[..n - 4]).to_le_bytes();
             b[n - 4..].copy_from_slice(&crc);
             b
         };
