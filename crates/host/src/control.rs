@@ -1304,6 +1304,19 @@ mod tests {
         call(addr, &Request::State { sensor: None }, timeout)
     }
 
+    /// A control server on a free loopback port that closes connections idle for `idle`.
+    fn serve_idle(c: ControlHandle, idle: Duration) -> ControlServer {
+        serve_with(
+            TcpListener::bind("127.0.0.1:0").unwrap(),
+            c,
+            ServeOptions {
+                idle_timeout: idle,
+                ..ServeOptions::default()
+            },
+        )
+        .unwrap()
+    }
+
     /// Issue 35 item 6: 32 idle connections used to lock the control interface out for good.
     /// Now a refused client hears so at once, idle connections are closed after the timeout,
     /// and a new client is answered within it.
@@ -1312,15 +1325,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (h, c) = runtime(dir.path());
         let idle = Duration::from_secs(2);
-        let srv = serve_with(
-            TcpListener::bind("127.0.0.1:0").unwrap(),
-            c,
-            ServeOptions {
-                idle_timeout: idle,
-                ..ServeOptions::default()
-            },
-        )
-        .unwrap();
+        let srv = serve_idle(c, idle);
         let addr = srv.local_addr();
         // 32 clients that ask once (so each is surely being served) and then say nothing.
         let mut quiet = Vec::new();
@@ -1371,15 +1376,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (h, c) = runtime(dir.path());
         let idle = Duration::from_secs(1);
-        let srv = serve_with(
-            TcpListener::bind("127.0.0.1:0").unwrap(),
-            c,
-            ServeOptions {
-                idle_timeout: idle,
-                ..ServeOptions::default()
-            },
-        )
-        .unwrap();
+        let srv = serve_idle(c, idle);
         let addr = srv.local_addr();
         let mut s = TcpStream::connect(addr).unwrap();
         s.set_write_timeout(Some(Duration::from_millis(500)))
