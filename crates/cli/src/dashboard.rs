@@ -139,6 +139,16 @@ pub fn start(
 ) -> Result<Dashboard> {
     let listener = std::net::TcpListener::bind(listen)
         .with_context(|| format!("cannot serve the dashboard on {listen}"))?;
+    start_on(bus, listener, controls, window_s)
+}
+
+/// [`start`] on a listener already bound.
+pub fn start_on(
+    bus: Box<dyn Transport>,
+    listener: std::net::TcpListener,
+    controls: Controls,
+    window_s: f64,
+) -> Result<Dashboard> {
     listener.set_nonblocking(true)?;
     let addr = listener.local_addr()?;
     canpos_host::warn_if_exposed(addr, "the dashboard");
