@@ -1009,6 +1009,45 @@ async fn node_control(State(app): State<App>, Path(node): Path<String>, body: St
 mod tests {
     use super::*;
 
+    /// A node's name (0x1008) is the device's text: on the served page it stays text, in the
+    /// table and in the embedded snapshot (a `</script>` in it does not end the script).
+    #[test]
+    fn the_served_page_keeps_a_devices_text_as_text() {
+        let evil = "</script><script>alert(1)</script><b>&'\"";
+        let snap = json!({
+            "t": 1.25, "seq": 7, "bus": "mem://<x>",
+            "nodes": [{
+                "node": 5, "name": evil, "product": "P", "model": "th", "serial": 1,
+                "nmt": "operational", "positions": [250.0, null], "positions_from": "TPDO",
+                "error_register": 0, "error_register_text": "none",
+            }],
+        });
+        let page = render_page(&snap);
+        assert!(!page.contains("<script>alert"), "{page}");
+        assert!(!page.contains("<b>"), "{page}");
+        assert!(page.contains(r#"<td class="name">&lt;/script&gt;&lt;script&gt;alert(1)&lt;/script&gt;&lt;b&gt;&amp;&#39;&quot;</td>"#), "{page}");
+        assert!(
+            page.contains(r#"<td class="pos">250.000 mm · no position</td>"#),
+            "{page}"
+        );
+        assert!(page.contains("bus mem://&lt;x&gt;"), "{page}");
+        // The embedded JSON reads back as the snapshot.
+        let start = page
+            .find(r#"<script id="initial" type="application/json">"#)
+            .unwrap();
+        let body = &page[start..];
+        let body = &body[body.find('>').unwrap() + 1..body.find("</script>").unwrap()];
+        assert_eq!(serde_json::from_str::<Value>(body).unwrap(), snap);
+        for p in [
+            "<!--BUS-->",
+            "<!--LINK-->",
+            "<!--ROWS-->",
+            "<!--SNAPSHOT-->",
+        ] {
+            assert!(!page.contains(p), "{p} left: {page}");
+        }
+    }
+
     #[test]
     fn labels_name_the_bits() {
         assert_eq!(cam_labels(0b101), ["cam 1 active", "cam 3 active"]);
