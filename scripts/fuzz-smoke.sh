@@ -2,7 +2,8 @@
 # Short runs of every cargo-fuzz target (fuzz/), part of scripts/test.sh.
 #
 # Needs the nightly toolchain (libFuzzer instrumentation). Without nightly this prints a loud NOTE
-# and exits 0: the rest of CI must not depend on it. cargo-fuzz is installed when missing.
+# and exits 0: the rest of CI must not depend on it. cargo-fuzz is installed when missing
+# (into target/tools, scripts/tools.sh).
 # A crash in any target fails (exit 1); its input is left in fuzz/artifacts/TARGET/.
 #
 # Every run uses a fixed seed, a fresh scratch corpus seeded from the committed one and a
@@ -28,9 +29,11 @@ if ! cargo +nightly --version >/dev/null 2>&1; then
   echo "!!! NOTE: no nightly toolchain: the fuzz smoke runs were SKIPPED (rustup toolchain install nightly)" >&2
   exit 0
 fi
+# shellcheck source=scripts/tools.sh
+. scripts/tools.sh
 if ! cargo +nightly fuzz --version >/dev/null 2>&1; then
-  echo "installing cargo-fuzz"
-  if ! cargo install --locked cargo-fuzz; then
+  echo "installing cargo-fuzz 0.13.2 into target/tools"
+  if ! install_tool cargo-fuzz 0.13.2; then
     echo "!!! NOTE: cargo-fuzz could not be installed: the fuzz smoke runs were SKIPPED" >&2
     exit 0
   fi

@@ -20,9 +20,11 @@ cd "$(dirname "$0")/.."
 VERSION=27.1.0
 JOBS=${MUTANTS_JOBS:-2}
 
+# shellcheck source=scripts/tools.sh
+. scripts/tools.sh
 if [ "$(cargo mutants --version 2>/dev/null || true)" != "cargo-mutants $VERSION" ]; then
-  echo "mutants: installing cargo-mutants $VERSION" >&2
-  cargo install --locked --quiet cargo-mutants --version "$VERSION"
+  echo "mutants: installing cargo-mutants $VERSION into target/tools" >&2
+  install_tool cargo-mutants "$VERSION"
 fi
 
 # The property tests take nearly all of the suite's 2.3 s; with 32 cases each instead of 256 a

@@ -4,7 +4,9 @@
 # python-canopen interop suite in a venv it creates itself.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-step() { printf '\n=== %s ===\n' "$*"; }
+# Each step says when it started (seconds since the start), so the README's figures of how
+# long the command takes can be read off a run's log.
+step() { printf '\n=== %s (at %d:%02d) ===\n' "$*" $((SECONDS / 60)) $((SECONDS % 60)); }
 
 step "Debian packages the suites need"
 scripts/deps.sh
@@ -112,3 +114,5 @@ else
   echo "mutants: no previous commit in this clone (shallow?): only the fixed set runs"
 fi
 scripts/mutants.sh --check --file crates/core/src/errctl.rs
+
+echo "test command: done in $((SECONDS / 60)) min $((SECONDS % 60)) s"

@@ -139,6 +139,16 @@ pub fn start(
 ) -> Result<Dashboard> {
     let listener = std::net::TcpListener::bind(listen)
         .with_context(|| format!("cannot serve the dashboard on {listen}"))?;
+    start_on(bus, listener, controls, window_s)
+}
+
+/// [`start`] on a listener already bound.
+pub fn start_on(
+    bus: Box<dyn Transport>,
+    listener: std::net::TcpListener,
+    controls: Controls,
+    window_s: f64,
+) -> Result<Dashboard> {
     listener.set_nonblocking(true)?;
     let addr = listener.local_addr()?;
     canpos_host::warn_if_exposed(addr, "the dashboard");
@@ -260,7 +270,7 @@ struct App {
 
 fn router(app: App) -> Router {
     Router::new()
-        .route("/", get(|| asset("text/html; charset=utf-8", PAGE)))
+        .route("/", get(page))
         .route("/app.js", get(|| asset("text/javascript", APP_JS)))
         .route("/style.css", get(|| asset("text/css", STYLE)))
         .route(
@@ -273,6 +283,7 @@ fn router(app: App) -> Router {
             get(|| asset("text/plain; charset=utf-8", UPLOT_LICENSE)),
         )
         .route("/api/status", get(status))
+        .route("/api/snapshot", get(snapshot_get))
         .route("/api/events", get(events))
         .route("/api/scan", post(scan))
         .route("/api/nodes/{node}/od", get(od))
@@ -308,6 +319,118 @@ async fn asset(ty: &'static str, body: &'static str) -> Response {
     ([(header::CONTENT_TYPE, ty)], body).into_response()
 }
 
+/// The page with the bus as it is now: the node table filled in and the whole snapshot
+/// embedded for the script. A client that runs no script (curl, a text browser) or takes its
+/// screenshot at the load event (headless Chromium's `--screenshot`) sees the nodes without a
+/// second request; the script then polls [`snapshot_get`] for what is new.
+async fn page(State(app): State<App>) -> Response {
+    let snap = snapshot(&app.shared.lock().unwrap(), 0);
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            // The page is a snapshot: a reload must fetch a new one.
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        render_page(&snap),
+    )
+        .into_response()
+}
+
+/// [`PAGE`] with the snapshot `snap` filled in.
+fn render_page(snap: &Value) -> String {
+    let rows: String = snap["nodes"]
+        .as_array()
+        .map(|ns| ns.iter().map(node_row_html).collect())
+        .unwrap_or_default();
+    let link = format!(
+        "snapshot at {:.1} s; updates need JavaScript (reload for new values)",
+        snap["t"].as_f64().unwrap_or(0.0)
+    );
+    PAGE.replacen("<!--ROWS-->", &rows, 1)
+        .replacen("<!--LINK-->", &html_escape(&link), 1)
+        .replacen(
+            "<!--BUS-->",
+            &html_escape(&format!("bus {}", snap["bus"].as_str().unwrap_or(""))),
+            1,
+        )
+        .replacen("<!--SNAPSHOT-->", &script_json(snap), 1)
+}
+
+/// One row of the node table, as the page's script (`nodeRow` in app.js) writes it.
+fn node_row_html(n: &Value) -> String {
+    let text = |v: &Value| match v {
+        Value::Null => "–".to_string(),
+        Value::String(s) => s.clone(),
+        v => v.to_string(),
+    };
+    let model = match (n["product"].as_str(), n["model"].as_str()) {
+        (Some(p), Some(m)) => format!("{p} ({m})"),
+        _ => "unknown".into(),
+    };
+    let errreg = match n["error_register"].as_u64() {
+        Some(r) => format!("0x{r:02X} ({})", text(&n["error_register_text"])),
+        None => "–".into(),
+    };
+    let cells = [
+        ("node", text(&n["node"])),
+        ("model", model),
+        ("name", text(&n["name"])),
+        ("serial", text(&n["serial"])),
+        ("nmt", text(&n["nmt"])),
+        ("pos", positions_text(n)),
+        ("errreg", errreg),
+    ];
+    let mut out = format!("<tr data-node=\"{}\">", n["node"]);
+    for (class, t) in cells {
+        out.push_str(&format!("<td class=\"{class}\">{}</td>", html_escape(&t)));
+    }
+    out.push_str("</tr>");
+    out
+}
+
+/// The node table's position cell: each channel's position in mm (as `positionsText` in
+/// app.js writes it).
+fn positions_text(n: &Value) -> String {
+    let Some(ps) = n["positions"].as_array().filter(|p| !p.is_empty()) else {
+        return "–".into();
+    };
+    let mut out: Vec<String> = ps
+        .iter()
+        .map(|p| match p.as_f64() {
+            Some(mm) => format!("{mm:.3} mm"),
+            None => "no position".into(),
+        })
+        .collect();
+    if n["positions_from"] == "control" {
+        out.push("(control state; no TPDO)".into());
+    }
+    out.join(" · ")
+}
+
+fn html_escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// JSON to embed in a `<script>` element: `<`, `>` and `&` only occur inside JSON strings,
+/// where their `\u` escapes mean the same, so no `</script>` a device name carries ends it.
+fn script_json(v: &Value) -> String {
+    v.to_string()
+        .replace('<', "\\u003c")
+        .replace('>', "\\u003e")
+        .replace('&', "\\u0026")
+}
+
 /// An error answer: the status says what kind, the body why (the page shows `error`).
 struct ApiError(StatusCode, String);
 
@@ -334,6 +457,22 @@ async fn status(State(app): State<App>) -> Json<Value> {
         "streams": s.streams,
         "bus_error": s.bus_error,
     }))
+}
+
+/// `GET /api/snapshot?since=SEQ`: the page's view of the bus as one plain JSON answer, with the
+/// plot points newer than `SEQ` (all of them without it) and `seq` to ask from next time. The
+/// page polls it; a client that cannot hold a stream open gets everything from it.
+async fn snapshot_get(
+    State(app): State<App>,
+    axum::extract::Query(q): axum::extract::Query<SnapshotQuery>,
+) -> Json<Value> {
+    Json(snapshot(&app.shared.lock().unwrap(), q.since.unwrap_or(0)))
+}
+
+/// The query of [`snapshot_get`].
+#[derive(serde::Deserialize)]
+struct SnapshotQuery {
+    since: Option<u64>,
 }
 
 async fn scan(State(app): State<App>) -> Answer {
@@ -493,8 +632,23 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                     })
                 })
                 .collect();
+            // The table's positions: the TPDO's, else what the control interface reports (a
+            // pre-operational sensor sends no TPDO).
+            let tpdo: Vec<Option<f64>> = n.channels.iter().map(|c| c.pos).collect();
+            let (positions, from) = if tpdo.iter().any(Option::is_some) {
+                (tpdo, Some("TPDO"))
+            } else {
+                match st.and_then(|st| st["reported_mm"].as_array()) {
+                    Some(r) if !r.is_empty() => {
+                        (r.iter().map(Value::as_f64).collect(), Some("control"))
+                    }
+                    _ => (Vec::new(), None),
+                }
+            };
             json!({
                 "node": id,
+                "positions": positions,
+                "positions_from": from,
                 "model": n.model.map(|m| m.name),
                 "product": n.model.map(|m| m.product),
                 "name": n.name,
@@ -528,6 +682,8 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
         .filter_map(|c| c.state.as_ref())
         .find_map(bus_load);
     json!({
+        // Ask for points after this one next time.
+        "seq": s.seq - 1,
         "t": s.start.elapsed().as_secs_f64(),
         "window_s": s.window_s,
         "bus": s.bus,
@@ -852,6 +1008,45 @@ async fn node_control(State(app): State<App>, Path(node): Path<String>, body: St
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A node's name (0x1008) is the device's text: on the served page it stays text, in the
+    /// table and in the embedded snapshot (a `</script>` in it does not end the script).
+    #[test]
+    fn the_served_page_keeps_a_devices_text_as_text() {
+        let evil = "</script><script>alert(1)</script><b>&'\"";
+        let snap = json!({
+            "t": 1.25, "seq": 7, "bus": "mem://<x>",
+            "nodes": [{
+                "node": 5, "name": evil, "product": "P", "model": "th", "serial": 1,
+                "nmt": "operational", "positions": [250.0, null], "positions_from": "TPDO",
+                "error_register": 0, "error_register_text": "none",
+            }],
+        });
+        let page = render_page(&snap);
+        assert!(!page.contains("<script>alert"), "{page}");
+        assert!(!page.contains("<b>"), "{page}");
+        assert!(page.contains(r#"<td class="name">&lt;/script&gt;&lt;script&gt;alert(1)&lt;/script&gt;&lt;b&gt;&amp;&#39;&quot;</td>"#), "{page}");
+        assert!(
+            page.contains(r#"<td class="pos">250.000 mm · no position</td>"#),
+            "{page}"
+        );
+        assert!(page.contains("bus mem://&lt;x&gt;"), "{page}");
+        // The embedded JSON reads back as the snapshot.
+        let start = page
+            .find(r#"<script id="initial" type="application/json">"#)
+            .unwrap();
+        let body = &page[start..];
+        let body = &body[body.find('>').unwrap() + 1..body.find("</script>").unwrap()];
+        assert_eq!(serde_json::from_str::<Value>(body).unwrap(), snap);
+        for p in [
+            "<!--BUS-->",
+            "<!--LINK-->",
+            "<!--ROWS-->",
+            "<!--SNAPSHOT-->",
+        ] {
+            assert!(!page.contains(p), "{p} left: {page}");
+        }
+    }
 
     #[test]
     fn labels_name_the_bits() {

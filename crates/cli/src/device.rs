@@ -1196,7 +1196,7 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
 // ---------------------------------------------------------------------------------------------
 // demo
 
-/// Options of the demo (`canpos` with no arguments, or `canpos demo`).
+/// Options of the demo (`canpos` with no arguments, `canpos [OPTIONS]`, or `canpos demo`).
 #[derive(Debug, Args, Default)]
 pub struct DemoArgs {
     /// Hub address (default 127.0.0.1:29536, or a free port when that one is taken).
@@ -1212,9 +1212,42 @@ pub struct DemoArgs {
     /// Stop after this many seconds (default: until Ctrl-C).
     #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
     pub duration: Option<f64>,
-    /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
-    #[arg(long, value_name = "ADDR")]
+    /// Serve the web dashboard on ADDR (default 127.0.0.1:29080, or a free port when that one
+    /// is taken; docs/DASHBOARD.md).
+    #[arg(long, value_name = "ADDR", conflicts_with = "no_web")]
     pub web: Option<String>,
+    /// No web dashboard.
+    #[arg(long)]
+    pub no_web: bool,
+    /// Serve the sensor's control interface on ADDR, for `canpos ctl --control ADDR …`
+    /// (default 127.0.0.1:29600, or a free port when that one is taken; docs/CONTROL.md).
+    #[arg(long, value_name = "ADDR", conflicts_with = "no_control")]
+    pub control: Option<String>,
+    /// No control interface.
+    #[arg(long)]
+    pub no_control: bool,
+}
+
+/// Default address of the demo's control interface (the README's `canpos ctl` examples).
+pub const DEMO_CONTROL: &str = "127.0.0.1:29600";
+
+/// Binds `asked` when given (its failure is an error: the user named it), else `default`, else
+/// a free loopback port: a demo started twice, or beside another program on the default
+/// port, still starts, and says where it went.
+fn bind_or_free(asked: Option<&str>, default: &str, what: &str) -> Result<std::net::TcpListener> {
+    if let Some(a) = asked {
+        return std::net::TcpListener::bind(a)
+            .with_context(|| format!("cannot serve the {what} on {a}"));
+    }
+    std::net::TcpListener::bind(default).or_else(|e| {
+        let l = std::net::TcpListener::bind("127.0.0.1:0")
+            .with_context(|| format!("cannot serve the {what} on a free loopback port"))?;
+        eprintln!(
+            "canpos: {default} is taken ({e}): the {what} is on {} instead",
+            l.local_addr()?
+        );
+        Ok(l)
+    })
 }
 
 fn sdo_upload(port: &mut dyn Transport, node: u8, index: u16, sub: u8) -> Result<u32> {
@@ -1244,16 +1277,34 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     let stop = stop_signal()?;
     let hub = match &a.listen {
         Some(l) => Hub::bind(l.as_str()).with_context(|| format!("cannot listen on {l}"))?,
-        None => Hub::bind(DEFAULT_LISTEN)
-            .or_else(|_| Hub::bind("127.0.0.1:0"))
-            .context("cannot start the hub")?,
+        None => Hub::bind(DEFAULT_LISTEN).or_else(|e| {
+            let hub = Hub::bind("127.0.0.1:0").context("cannot start the hub")?;
+            eprintln!(
+                "canpos: {DEFAULT_LISTEN} is taken ({e}): the hub is on {} instead",
+                hub.local_addr()
+            );
+            anyhow::Ok(hub)
+        })?,
     };
     let addr: SocketAddr = hub.local_addr();
     warn_if_exposed(addr, "the bus");
     let node_port = hub.attach("can0");
     let mut mon = hub.attach("can0");
-    let web_port = a.web.as_ref().map(|_| hub.attach("can0"));
+    let web_port = (!a.no_web).then(|| hub.attach("can0"));
     let hub = hub.spawn()?;
+    // Bound before the sensor boots, as on `run`: whoever sees the boot-up can connect.
+    let web_listener = (!a.no_web)
+        .then(|| {
+            bind_or_free(
+                a.web.as_deref(),
+                crate::dashboard::DEFAULT_LISTEN,
+                "dashboard",
+            )
+        })
+        .transpose()?;
+    let control_listener = (!a.no_control)
+        .then(|| bind_or_free(a.control.as_deref(), DEMO_CONTROL, "control interface"))
+        .transpose()?;
     let state = crate::private_state_dir("demo")?;
     let state_dir = state.path().to_path_buf();
     let opts = SensorOpts {
@@ -1269,32 +1320,69 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     rt.add(setup);
     rt.power_on_all();
     let handle = rt.spawn()?;
-    println!(
+    // A closed stdout (`canpos | head`) ends the demo, as it ends `monitor`.
+    let mut o = std::io::stdout();
+    writeln!(
+        o,
         "canpos demo: a Temposonics TH (node-id {node}) moving on {}",
         a.motion
-    );
-    println!(
+    )?;
+    writeln!(
+        o,
         "  virtual bus: socketcand hub on {addr}, channel can0 — python-can: \
          can.Bus(interface=\"socketcand\", host=\"{}\", port={}, channel=\"can0\")",
         addr.ip(),
         addr.port()
-    );
-    let _web = match (&a.web, web_port) {
-        (Some(w), Some(port)) => {
-            let d = crate::dashboard::start(
+    )?;
+    let _web = match (web_listener, web_port) {
+        (Some(l), Some(port)) => {
+            let d = crate::dashboard::start_on(
                 Box::new(port),
-                w,
+                l,
                 crate::dashboard::Controls::Local(handle.control(), 1),
                 30.0,
             )?;
-            println!("  dashboard: {}", d.url());
+            writeln!(o, "  dashboard: {}", d.url())?;
             Some(d)
         }
         _ => None,
     };
-    println!("  Ctrl-C to stop.");
+    let ctl = match control_listener {
+        Some(l) => {
+            let srv = control::serve_with(l, handle.control(), control::ServeOptions::default())
+                .context("cannot serve the control interface")?;
+            writeln!(
+                o,
+                "  control: {} (JSON lines, docs/CONTROL.md)",
+                srv.local_addr()
+            )?;
+            Some(srv)
+        }
+        None => None,
+    };
+    // The next commands, with this demo's addresses: they reach its sensor as written.
+    let bus_arg = if addr.to_string() == DEFAULT_LISTEN {
+        String::new()
+    } else {
+        format!(" --bus socketcand://{addr}/can0")
+    };
+    writeln!(o, "  Try, in another terminal:")?;
+    if let Some(srv) = &ctl {
+        let c = srv.local_addr();
+        writeln!(o, "    canpos ctl --control {c} state")?;
+        writeln!(o, "    canpos ctl --control {c} fault missing-magnet on")?;
+        writeln!(o, "    canpos ctl --control {c} fault missing-magnet off")?;
+        writeln!(
+            o,
+            "    canpos ctl --control {c} motion sine:center=300,amp=100,period=2"
+        )?;
+    }
+    writeln!(o, "    canpos sdo read {node} 0x6020 1{bus_arg}")?;
+    writeln!(o, "    canpos monitor --node {node} --duration 2{bus_arg}")?;
+    writeln!(o, "  Ctrl-C to stop.")?;
     let result = demo_view(&mut mon, node, &handle, &stop, a.duration);
-    println!();
+    writeln!(o)?;
+    drop(ctl);
     let _ = handle.stop();
     let _ = hub.shutdown();
     drop(state);
@@ -1351,11 +1439,12 @@ fn demo_view(
             _ => (f64::NAN, f64::NAN, 0),
         };
         let wa = st["work_area"][0].as_u64().unwrap_or(0);
-        print!(
+        write!(
+            std::io::stdout(),
             "\r  {:<16} pos {pos:9.3} mm   vel {vel:+9.2} mm/s   cams {cam:04b}   work area {wa:03b}   TPDOs {count:<7}",
             st["nmt"].as_str().unwrap_or("?"),
-        );
-        let _ = std::io::stdout().flush();
+        )?;
+        std::io::stdout().flush()?;
     }
 }
 

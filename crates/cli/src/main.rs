@@ -9,12 +9,13 @@ use canpos_cli::{bench, dashboard, dcf, device, master, soak};
 
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// A software twin of CANopen magnetostrictive position sensors (Temposonics TH, E-Series,
 /// Novotechnik TMI).
 ///
-/// Without a command, runs the demo: a virtual bus, a TH sensor moving on a sine and a live view.
+/// Without a command, runs the demo: a virtual bus, a TH sensor moving on a sine, its web
+/// dashboard and its control interface (the demo's options below apply).
 #[derive(Debug, Parser)]
 #[command(name = "canpos", version, propagate_version = true)]
 struct Cli {
@@ -31,6 +32,9 @@ struct Cli {
     rt_priority: Option<u8>,
     #[command(subcommand)]
     cmd: Option<Cmd>,
+    /// Without a command: the demo's options (`canpos --web ADDR` = `canpos demo --web ADDR`).
+    #[command(flatten)]
+    demo: device::DemoArgs,
 }
 
 #[derive(Debug, Subcommand)]
@@ -108,8 +112,35 @@ fn raise_open_file_limit() {
     }
 }
 
+/// Parses the command line. The demo's options are the top level's (`canpos --web ADDR`), so a
+/// command given beside one of them is refused: `canpos --web A run` would drop it silently.
+fn parse() -> Cli {
+    let matches = Cli::command().get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    if let Some((name, _)) = matches.subcommand() {
+        let demo = <device::DemoArgs as clap::Args>::augment_args(clap::Command::new("demo"));
+        let given = demo.get_arguments().find(|a| {
+            matches.value_source(a.get_id().as_str())
+                == Some(clap::parser::ValueSource::CommandLine)
+        });
+        if let Some(a) = given {
+            let flag = a.get_long().unwrap_or_default();
+            Cli::command()
+                .error(
+                    clap::error::ErrorKind::ArgumentConflict,
+                    format!(
+                        "--{flag} before a command is an option of the demo (`canpos --{flag} …` \
+                         or `canpos demo --{flag} …`); an option of `{name}` goes after its name"
+                    ),
+                )
+                .exit();
+        }
+    }
+    cli
+}
+
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = parse();
     init_logging(cli.verbose, cli.quiet);
     raise_open_file_limit();
     if let Some(p) = cli.rt_priority {
@@ -121,10 +152,7 @@ fn main() -> ExitCode {
         tracing::info!(priority = p, "running under SCHED_FIFO, memory locked");
     }
     let result = match cli.cmd {
-        None => device::demo(device::DemoArgs {
-            motion: "sine:center=500,amp=300,period=4".into(),
-            ..Default::default()
-        }),
+        None => device::demo(cli.demo),
         Some(Cmd::Bus(device::BusCmd::Serve(a))) => device::bus_serve(a),
         Some(Cmd::Bus(device::BusCmd::Bridge(a))) => device::bus_bridge(a),
         Some(Cmd::Run(a)) => device::run(*a),

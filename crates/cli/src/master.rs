@@ -278,7 +278,9 @@ pub enum SdoCmd {
         node: String,
         /// Object index, hex (0x1018 or 1018).
         index: String,
-        /// Sub-index, decimal or 0x-hex.
+        /// Sub-index, decimal or 0x-hex (0 when left out: a variable's value, a record's or
+        /// array's number of entries).
+        #[arg(default_value = "0")]
         sub: String,
         /// How to show the value (default: number for ≤ 4 bytes, else text or hex).
         #[arg(long = "type", short = 't', value_enum)]
@@ -776,6 +778,9 @@ pub fn scan(a: ScanArgs) -> Result<i32> {
 
 // ------------------------------------------------------------------------------------ monitor
 
+/// How long `monitor --count N` waits for a frame to print before it gives up.
+pub const DEFAULT_MONITOR_IDLE_S: f64 = 5.0;
+
 /// `canpos monitor`: print decoded bus traffic.
 #[derive(Args, Debug, Clone)]
 pub struct MonitorArgs {
@@ -785,9 +790,13 @@ pub struct MonitorArgs {
     /// Only traffic of this node (NMT and SYNC are always shown).
     #[arg(long)]
     pub node: Option<String>,
-    /// Stop after this many frames printed.
+    /// Stop after this many frames printed (or when none came for the `--idle` time).
     #[arg(long)]
     pub count: Option<u64>,
+    /// Stop when no frame to print came for S seconds: with `--count` 5 s unless given, which
+    /// then exits 4 (fewer frames than counted); without `--count` only when given (exit 0).
+    #[arg(long, value_name = "S", value_parser = crate::limits::parse_positive_seconds)]
+    pub idle: Option<f64>,
     /// Stop after this many seconds.
     #[arg(long, value_name = "S", value_parser = crate::limits::parse_seconds)]
     pub duration: Option<f64>,
@@ -982,6 +991,12 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
     let end = a
         .duration
         .and_then(|d| crate::limits::deadline(Instant::now(), d));
+    // A counted monitor of a silent node ends (a script's `--count 1` must not hang).
+    let idle = a
+        .idle
+        .or(a.count.map(|_| DEFAULT_MONITOR_IDLE_S))
+        .map(Duration::from_secs_f64);
+    let mut last_printed = Instant::now();
     let mut mon = Monitor::new();
     let mut pending: VecDeque<RxFrame> = VecDeque::new();
     let mut printed = 0u64;
@@ -1002,12 +1017,28 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
         let rx = match pending.pop_front() {
             Some(rx) => rx,
             None => {
-                let r = match end {
-                    Some(e) => bus.recv_deadline(e)?,
-                    None => bus.recv_timeout(None)?,
+                let quiet_end = idle.and_then(|i| last_printed.checked_add(i));
+                let r = match (end, quiet_end) {
+                    (Some(e), Some(q)) => bus.recv_deadline(e.min(q))?,
+                    (Some(e), None) | (None, Some(e)) => bus.recv_deadline(e)?,
+                    (None, None) => bus.recv_timeout(None)?,
                 };
                 match r {
                     Some(rx) => rx,
+                    None if quiet_end.is_some_and(|q| Instant::now() >= q) => {
+                        out.flush()?;
+                        let what = only.map_or("the bus".to_string(), |n| format!("node {n}"));
+                        let waited = idle.unwrap_or_default().as_secs_f64();
+                        return Ok(match a.count {
+                            Some(c) => {
+                                eprintln!(
+                                    "monitor: {what} silent for {waited} s: {printed} of {c} frames"
+                                );
+                                EXIT_TIMEOUT
+                            }
+                            None => EXIT_OK,
+                        });
+                    }
                     None => break,
                 }
             }
@@ -1048,6 +1079,7 @@ pub fn monitor(a: MonitorArgs) -> Result<i32> {
         }
         writeln!(out, "[{t:10.6}] {}", mon.describe(&f))?;
         printed += 1;
+        last_printed = Instant::now();
     }
     out.flush()?;
     Ok(EXIT_OK)

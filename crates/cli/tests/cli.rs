@@ -350,6 +350,44 @@ fn demo_runs_and_shows_positions() {
     assert!(t.contains(" mm/s"), "{t}");
 }
 
+/// Issue 36 item 9: `canpos --web ADDR` (the demo's option without `demo`) runs the demo with
+/// its dashboard there; before, it was refused. Before a command the demo's options are a
+/// usage error that names the command, not silently dropped.
+#[test]
+fn the_demos_options_work_without_the_word_demo() {
+    let (hub, web) = (free_port(), free_port());
+    let o = canpos(&[
+        "--listen",
+        &format!("127.0.0.1:{hub}"),
+        "--web",
+        &format!("127.0.0.1:{web}"),
+        "--no-control",
+        "--duration",
+        "1",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains(&format!("dashboard: http://127.0.0.1:{web}/")),
+        "{t}"
+    );
+    assert!(!t.contains("control: "), "{t}");
+    let o = canpos(&[
+        "--web",
+        &format!("127.0.0.1:{web}"),
+        "scan",
+        "--bus",
+        "mem://x",
+    ]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("--web before a command is an option of the demo"),
+        "{t}"
+    );
+    assert!(t.contains("an option of `scan` goes after its name"), "{t}");
+}
+
 #[test]
 fn scenario_runs_two_sensors_with_events() {
     let port = free_port();

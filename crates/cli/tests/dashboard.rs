@@ -830,3 +830,243 @@ fn a_method_a_path_does_not_take_is_refused_in_json() {
     let after = state(&r);
     assert_eq!(before["powered"], after["powered"]);
 }
+
+/// Debian's Chromium (`scripts/deps.sh` installs it for the test command), or `None` with a
+/// note outside CI.
+fn chromium() -> Option<String> {
+    for name in ["chromium", "chromium-browser"] {
+        let found = std::env::var_os("PATH")
+            .is_some_and(|p| std::env::split_paths(&p).any(|d| d.join(name).is_file()));
+        if found {
+            return Some(name.to_string());
+        }
+    }
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "no chromium on PATH: scripts/deps.sh installs it"
+    );
+    eprintln!("skipped: no chromium on PATH (scripts/deps.sh installs it)");
+    None
+}
+
+/// Runs headless Chromium on `url` with `extra` flags, writing a 1200×900 screenshot to `png`
+/// and returning the DOM it dumps (the same run); `None` when it has not finished after
+/// `limit` (its process group is killed then).
+fn headless(
+    browser: &str,
+    url: &str,
+    png: &Path,
+    extra: &[&str],
+    limit: Duration,
+) -> Option<String> {
+    use std::os::unix::process::CommandExt;
+    let profile = tempfile::tempdir().unwrap();
+    let mut cmd = std::process::Command::new(browser);
+    cmd.args([
+        "--headless",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        "--window-size=1200,900",
+    ])
+    .arg(format!("--user-data-dir={}", profile.path().display()))
+    .arg(format!("--screenshot={}", png.display()))
+    .arg("--dump-dom")
+    .args(extra)
+    .arg(url)
+    .stdin(std::process::Stdio::null())
+    .stdout(std::process::Stdio::piped())
+    .stderr(std::process::Stdio::null())
+    // Its own process group, so that the renderers go with it.
+    .process_group(0);
+    // SAFETY: geteuid only reads the process's credentials.
+    if unsafe { libc::geteuid() } == 0 {
+        // Chromium's sandbox refuses to run as root.
+        cmd.arg("--no-sandbox");
+    }
+    let mut child = cmd.spawn().expect("start chromium");
+    let mut stdout = child.stdout.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stdout.read_to_string(&mut s);
+        s
+    });
+    let end = Instant::now() + limit;
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            return Some(reader.join().unwrap());
+        }
+        if Instant::now() > end {
+            // SAFETY: kills the process group this test started (its id is the child's pid).
+            unsafe { libc::kill(-(child.id() as i32), libc::SIGKILL) };
+            let _ = child.wait();
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Width, height and size of the image data (IDAT) of a PNG file.
+fn png_facts(png: &Path) -> (u32, u32, usize) {
+    let b = std::fs::read(png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
+    assert_eq!(&b[..8], b"\x89PNG\r\n\x1a\n", "{} is no PNG", png.display());
+    let (mut at, mut dims, mut idat) = (8, (0, 0), 0);
+    while at + 8 <= b.len() {
+        let len = u32::from_be_bytes(b[at..at + 4].try_into().unwrap()) as usize;
+        let kind = &b[at + 4..at + 8];
+        let data = &b[at + 8..(at + 8 + len).min(b.len())];
+        match kind {
+            b"IHDR" => {
+                dims = (
+                    u32::from_be_bytes(data[0..4].try_into().unwrap()),
+                    u32::from_be_bytes(data[4..8].try_into().unwrap()),
+                )
+            }
+            b"IDAT" => idat += data.len(),
+            _ => {}
+        }
+        at += 12 + len;
+    }
+    (dims.0, dims.1, idat)
+}
+
+/// Issue 36 item 8: a browser that just loads the page of a running TH's `--web` — headless
+/// Chromium's own `--screenshot`, no script driving the page — shows node 127 with a position;
+/// with a virtual-time budget it finishes (the updates keep no request open) and goes live;
+/// plain GETs of the page and of its data answer with the node. Before: the screenshot showed
+/// "connecting…" and an empty table, and a virtual-time budget never ended.
+#[test]
+fn a_headless_screenshot_of_the_page_shows_the_node_and_its_position() {
+    let Some(browser) = chromium() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let web = common::free_port();
+    // The README's TH example with --web.
+    let mut run = common::Proc::start(
+        dir.path(),
+        &[
+            "run",
+            "--model",
+            "th",
+            "--node-id",
+            "127",
+            "--magnet",
+            "250",
+            "--bus",
+            "mem://item8",
+            "--state-dir",
+            "./state",
+            "--web",
+            &format!("127.0.0.1:{web}"),
+        ],
+    );
+    run.wait_for("dashboard on http://", Duration::from_secs(20));
+    let a: SocketAddr = format!("127.0.0.1:{web}").parse().unwrap();
+    let url = format!("http://{a}/");
+    // The dashboard has met the node (its scan's answer) and read its identity.
+    let until = Instant::now() + Duration::from_secs(10);
+    let snap = loop {
+        let (code, v) = http(a, "GET", "/api/snapshot", "");
+        let node = v["nodes"]
+            .as_array()
+            .and_then(|ns| ns.iter().find(|n| n["node"] == 127));
+        if code == 200 && node.is_some_and(|n| n["model"] == "th" && n["positions"][0].is_number())
+        {
+            break v;
+        }
+        assert!(
+            Instant::now() < until,
+            "no node 127 in /api/snapshot: {code} {v}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(snap["seq"].is_u64(), "{snap}");
+    // The page itself, as curl gets it: the node's row with its position.
+    let mut s = TcpStream::connect(a).unwrap();
+    write!(
+        s,
+        "GET / HTTP/1.1\r\nHost: {a}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut page = String::new();
+    s.read_to_string(&mut page).unwrap();
+    let row = table_row(&page, 127).unwrap_or_else(|| panic!("no row of node 127: {page}"));
+    assert!(has_position(&row), "no position in {row}");
+
+    // The screenshot at the load event, and with a virtual-time budget (which polls run in).
+    let blank = dir.path().join("blank.png");
+    headless(
+        &browser,
+        "about:blank",
+        &blank,
+        &[],
+        Duration::from_secs(60),
+    )
+    .expect("chromium on about:blank did not finish within 60 s");
+    let blank_idat = png_facts(&blank).2;
+    for extra in [&[][..], &["--virtual-time-budget=3000"][..]] {
+        let png = dir.path().join("shot.png");
+        let _ = std::fs::remove_file(&png);
+        let dom =
+            headless(&browser, &url, &png, extra, Duration::from_secs(60)).unwrap_or_else(|| {
+                panic!(
+                    "chromium {extra:?} {url} did not finish within 60 s (the page kept it busy)"
+                )
+            });
+        let row = table_row(&dom, 127)
+            .unwrap_or_else(|| panic!("chromium {extra:?}: no row of node 127 in the DOM: {dom}"));
+        assert!(
+            has_position(&row),
+            "chromium {extra:?}: no position in {row}"
+        );
+        assert!(row.contains("Temposonics TH"), "{row}");
+        let (w, h, idat) = png_facts(&png);
+        assert_eq!((w, h), (1200, 900), "{}", png.display());
+        // A page with a table and a panel compresses far worse than an empty white one.
+        assert!(
+            idat > 4 * blank_idat,
+            "screenshot looks blank: {idat} B of image data, a blank page {blank_idat} B"
+        );
+        if !extra.is_empty() {
+            // Within the budget the page's updates arrived.
+            assert!(
+                dom.contains(r#"<span id="link">live</span>"#),
+                "chromium {extra:?}: not live: {dom}"
+            );
+        }
+    }
+    let _ = std::fs::copy(
+        dir.path().join("shot.png"),
+        Path::new(env!("CARGO_TARGET_TMPDIR")).join("dashboard-screenshot.png"),
+    );
+    run.stop();
+}
+
+/// The `<tr data-node="N">…</tr>` of a page's node table, its tags stripped.
+fn table_row(html: &str, node: u8) -> Option<String> {
+    let start = html.find(&format!(r#"<tr data-node="{node}">"#))?;
+    let end = start + html[start..].find("</tr>")?;
+    let mut text = String::new();
+    let mut in_tag = false;
+    for c in html[start..end].chars() {
+        match c {
+            '<' => in_tag = true,
+            '>' => {
+                in_tag = false;
+                text.push(' ');
+            }
+            c if !in_tag => text.push(c),
+            _ => {}
+        }
+    }
+    Some(text)
+}
+
+/// Whether a text holds a position in mm: digits, a point, three digits, " mm".
+fn has_position(t: &str) -> bool {
+    t.match_indices(" mm").any(|(i, _)| {
+        let b = &t.as_bytes()[..i];
+        b.len() >= 5
+            && b[b.len() - 3..].iter().all(u8::is_ascii_digit)
+            && b[b.len() - 4] == b'.'
+            && b[b.len() - 5].is_ascii_digit()
+    })
+}

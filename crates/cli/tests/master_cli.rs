@@ -2,6 +2,8 @@
 //! Each process gets its own in-process bus (`mem://`), so nothing answers: these tests pin the
 //! no-answer and usage-error paths; the protocol paths are unit-tested in `src/master/tests.rs`.
 
+mod common;
+
 use std::process::{Command, Output};
 
 fn canpos(args: &[&str]) -> Output {
@@ -102,4 +104,104 @@ fn record_and_replay_files() {
     let o = canpos(&["replay", log.to_str().unwrap(), "--bus", "mem://t"]);
     assert_eq!(o.status.code(), Some(0), "{}", stderr(&o));
     assert!(stderr(&o).contains("replayed 2 frames"), "{}", stderr(&o));
+}
+
+/// Runs `canpos ARGS` to its end, failing when it takes longer than `limit` (a hang is the
+/// defect these tests catch); (exit code, stderr, time taken).
+fn bounded(
+    args: &[&str],
+    limit: std::time::Duration,
+) -> (Option<i32>, String, std::time::Duration) {
+    use std::time::Instant;
+    let t0 = Instant::now();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_canpos"))
+        .args(args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run canpos");
+    loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut err).unwrap();
+            return (s.code(), err, t0.elapsed());
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("canpos {args:?} still ran after {limit:?}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// Issue 36 item 9: `monitor --count N` of a silent node ends when nothing came for its idle
+/// time (5 s unless `--idle` says), exit 4 with how many frames came; before, it waited forever.
+#[test]
+fn monitor_count_of_a_silent_node_ends_at_its_idle_time() {
+    use std::time::Duration;
+    // The default idle time of a counted monitor (before: no end at all).
+    let (code, err, took) = bounded(
+        &["monitor", "--node", "5", "--count", "1", "--bus", "mem://t"],
+        Duration::from_secs(60),
+    );
+    assert_eq!(code, Some(4), "{err}");
+    assert!(err.contains("silent for 5 s: 0 of 1 frames"), "{err}");
+    assert!(took >= Duration::from_secs(5), "{took:?}");
+    // --idle S sets it.
+    let (code, err, took) = bounded(
+        &[
+            "monitor", "--node", "5", "--count", "3", "--idle", "0.5", "--bus", "mem://t",
+        ],
+        Duration::from_secs(30),
+    );
+    assert_eq!(code, Some(4), "{err}");
+    assert!(
+        err.contains("monitor: node 5 silent for 0.5 s: 0 of 3 frames"),
+        "{err}"
+    );
+    assert!(took >= Duration::from_millis(500), "{took:?}");
+    // Without --count, an idle time given ends it as a plain stop.
+    let (code, err, _) = bounded(
+        &["monitor", "--idle", "0.3", "--bus", "mem://t"],
+        Duration::from_secs(30),
+    );
+    assert_eq!(code, Some(0), "{err}");
+}
+
+/// Issue 36 item 9: `sdo read NODE INDEX` reads sub-index 0 (the request on the bus names it);
+/// before, the sub-index was a required argument.
+#[test]
+fn sdo_read_without_a_sub_index_reads_sub_0() {
+    use std::time::Duration;
+    let hub = common::free_port();
+    let dir = tempfile::tempdir().unwrap();
+    let _bus = common::Proc::start(
+        dir.path(),
+        &["bus", "serve", "--listen", &format!("127.0.0.1:{hub}")],
+    );
+    common::wait_port(hub);
+    let url = format!("socketcand://127.0.0.1:{hub}/can0");
+    let mut mon = common::Proc::start(
+        dir.path(),
+        &["monitor", "--raw", "--passive", "--bus", &url],
+    );
+    mon.wait_for("bus load at", Duration::from_secs(20));
+    let (code, err, _) = bounded(
+        &[
+            "sdo",
+            "read",
+            "5",
+            "0x1018",
+            "--bus",
+            &url,
+            "--timeout",
+            "100",
+        ],
+        Duration::from_secs(30),
+    );
+    // Nobody answers: the timeout's exit, not a usage error.
+    assert_eq!(code, Some(4), "{err}");
+    // The upload request: 0x40, index 0x1018 little-endian, sub-index 0.
+    mon.wait_for("605#4018100000000000", Duration::from_secs(20));
 }
