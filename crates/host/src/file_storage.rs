@@ -44,8 +44,8 @@ use std::sync::Arc;
 
 use canpos_core::od::{Group, Hook};
 use canpos_core::storage::{
-    check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage, StorageError,
-    IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
+    app_record, check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage,
+    StorageError, IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
 use canpos_core::Model;
 use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
@@ -223,10 +223,13 @@ fn type_at(dir: &OwnedFd, name: &OsStr) -> io::Result<Option<(FileType, u64)>> {
 
 /// Whether the core reads or keeps a record of `key` for `model` (node.rs: `stored_entry`,
 /// `load_values`, `stored_lss_config`, `change_stored`): the LSS and node-id records, and
-/// objects of the model that are stored (or hold the pending node-id or bit rate).
+/// the preset offsets a TMI keeps with 0x6010, and objects of the model that are stored (or
+/// hold the pending node-id or bit rate).
 fn record_used(model: &Model, key: u32) -> bool {
     match key {
         KEY_LSS_NODE_ID | KEY_LSS_BITRATE | KEY_SAVED_NODE_ID => true,
+        // The preset offsets a TMI keeps with 0x6010 (no object holds them).
+        k if app_record(k).is_some() => model.features.preset_offset_internal,
         k if is_object_key(k) => model
             .search(k)
             .ok()
@@ -1271,6 +1274,9 @@ mod tests {
             (KEY_SAVED_NODE_ID, 5),
             (0x0020_0000, 5),
             (0x0010_1700, 100),
+            // The TMI's preset offsets, kept with 0x6010 (issue 36 item 5).
+            (canpos_core::storage::app_key(0), -299_000i32 as u32),
+            (canpos_core::storage::app_key(1), 7),
         ] {
             w.push(k, v);
         }
