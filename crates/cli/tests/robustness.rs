@@ -173,7 +173,7 @@ fn absurd_values_on_the_control_interface_are_refused_and_change_nothing() {
             "--bus",
             "mem://r",
             "--order-code",
-            "THS7620MNF11GNNC304321Z04",
+            "THS7620MNF11ENNC304321Z04",
             "--magnet",
             "100",
             "--magnet",

@@ -99,6 +99,19 @@ pub trait Application {
     /// Brings a value the application derives (hook `h`) up to date before it is read.
     fn refresh(&self, _h: u8, _od: &mut Dictionary, _nmt: NmtState) {}
 
+    /// The application's value `k` (< [`crate::storage::APP_RECORDS`]) that is no object but is
+    /// stored with the application parameters: a "save" of them (0x1010 sub 1 or 3) stores it,
+    /// a "load" forgets it, and reset node gives it back through [`Application::load_stored`].
+    /// `None`: nothing to store (CiA 406's preset offset of a device without an offset object,
+    /// the TMI, is the one user).
+    fn stored_value(&self, _k: usize) -> Option<u32> {
+        None
+    }
+
+    /// Reset node and power-on, after [`Application::reset`]: the stored value `k` (see
+    /// [`Application::stored_value`]); not called for a value that is not stored.
+    fn load_stored(&mut self, _k: usize, _v: u32) {}
+
     /// Whether values of the automatically stored group changed since the last call (the node
     /// then persists them).
     fn take_auto_dirty(&mut self) -> bool {

@@ -454,12 +454,13 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.bitrate = d.pending_bitrate;
         d.cfg.node_id = d.node_id;
         d.cfg.bitrate_kbps = d.bitrate;
-        d.load_values(application);
-        d.emcy.reset();
-        d.errctl.reset();
+        // The application forgets first: reset node then gives it its stored values back.
         if application {
             d.app.reset();
         }
+        d.load_values(application);
+        d.emcy.reset();
+        d.errctl.reset();
         d.apply_comm_config(now);
         d.pdo.set_active(false, now);
         if d.node_id == UNCONFIGURED {
@@ -1115,6 +1116,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             .and_then(|(_, v)| stored_node_id(v));
         for (k, v) in recs {
             let Some((slot, e)) = stored_entry(&self.od, k) else {
+                if let Some(n) = storage::app_record(k).filter(|_| application) {
+                    self.app.load_stored(n, v);
+                }
                 continue;
             };
             if e.group != crate::od::Group::Volatile && reloads(e) {
@@ -1351,8 +1355,14 @@ impl<A: Application, S: Storage> Device<A, S> {
             }
             // A "save" replaces the saved node-id (the automatic store, of no COB-ID, keeps
             // it: D15); a "load" forgets the records of objects this model does not have too.
-            (None, Change::Save(scope)) => scope != Scope::Auto && k == storage::KEY_SAVED_NODE_ID,
-            (None, Change::Forget(_)) => storage::is_object_key(k),
+            (None, Change::Save(scope)) => {
+                scope != Scope::Auto && k == storage::KEY_SAVED_NODE_ID
+                    || scope.covers_app_values() && storage::app_record(k).is_some()
+            }
+            (None, Change::Forget(scope)) => {
+                storage::is_object_key(k)
+                    || scope.covers_app_values() && storage::app_record(k).is_some()
+            }
             (None, Change::Lss) => k == storage::KEY_LSS_NODE_ID || k == storage::KEY_LSS_BITRATE,
         };
         // The value `change` stores for `e` in `slot`, if any.
@@ -1366,6 +1376,7 @@ impl<A: Application, S: Storage> Device<A, S> {
             },
         };
         let node = self.node_id as u32;
+        let app = &self.app;
         let put = &mut |w: &mut storage::ImageWriter<'_>| {
             (change != Change::Lss
                 || w.push(storage::KEY_LSS_NODE_ID, id as u32)
@@ -1377,6 +1388,11 @@ impl<A: Application, S: Storage> Device<A, S> {
                 && match change {
                     Change::Save(scope) if scope != Scope::Auto => {
                         w.push(storage::KEY_SAVED_NODE_ID, node)
+                            && (!scope.covers_app_values()
+                                || (0..storage::APP_RECORDS).all(|k| {
+                                    app.stored_value(k)
+                                        .is_none_or(|v| w.push(storage::app_key(k), v))
+                                }))
                     }
                     _ => true,
                 }

@@ -6,7 +6,7 @@
 //!
 //! ```text
 //! magic "CPOS" · version u8 · model tag u8 · record count u16 · records · CRC-32 of all before
-//! record = key u32 (index << 8 | sub, or an LSS key) · value u32
+//! record = key u32 (index << 8 | sub, an LSS or bookkeeping key, or an application key) · value u32
 //! ```
 //!
 //! A torn or corrupt image fails its CRC and is never loaded.
@@ -40,7 +40,7 @@ const fn firmware_records_max() -> usize {
     let models = if models > tmi { models } else { tmi };
     // The three LSS / node-id records come on top.
     let least = if models > 32 { models } else { 32 };
-    least + 3
+    least + 3 + APP_RECORDS
 }
 
 const MAGIC: &[u8; 4] = b"CPOS";
@@ -55,6 +55,29 @@ pub const KEY_LSS_BITRATE: u32 = 0xFF00_0002;
 /// power-on under another node-id re-derives exactly the COB-IDs that were the pre-defined
 /// ones for it (D15).
 pub const KEY_SAVED_NODE_ID: u32 = 0xFF00_0003;
+
+/// Record key of the application's first value of its own ([`app_key`]).
+pub const KEY_APP: u32 = 0xFF00_0100;
+
+/// Most values of its own an application stores beside the dictionary (one per position
+/// channel: CiA 406's preset offset on a device without an offset object, TMI).
+pub const APP_RECORDS: usize = 4;
+
+/// Record key of the application's value `k` (< [`APP_RECORDS`]): stored with the application
+/// parameters ([`crate::app::Application::stored_value`]).
+pub const fn app_key(k: usize) -> u32 {
+    KEY_APP + k as u32
+}
+
+/// The application value a record key names, if it names one.
+pub const fn app_record(key: u32) -> Option<usize> {
+    let k = key.wrapping_sub(KEY_APP) as usize;
+    if k < APP_RECORDS {
+        Some(k)
+    } else {
+        None
+    }
+}
 
 /// Whether a record key names an object (`index << 8 | sub`) rather than an LSS or
 /// bookkeeping value.
@@ -98,6 +121,12 @@ impl Scope {
     /// Whether `e`'s value belongs to this scope.
     pub const fn covers(self, e: &Entry) -> bool {
         self as u32 & group_bit(e.group) != 0
+    }
+
+    /// Whether this scope covers the application's values of its own ([`app_key`]), which
+    /// belong to the application parameters.
+    pub const fn covers_app_values(self) -> bool {
+        self as u32 & group_bit(Group::App) != 0
     }
 }
 

@@ -672,7 +672,7 @@ impl Builder<'_> {
             store_preop_only: false,
             kill_signature: false,
             preset_clear: false,
-            preset_zero_shift: false,
+            preset_offset_internal: false,
             tmi_error_reactions: false,
             window_cams: false,
             power_on_emcy: false,

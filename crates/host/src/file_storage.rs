@@ -44,8 +44,8 @@ use std::sync::Arc;
 
 use canpos_core::od::{Group, Hook};
 use canpos_core::storage::{
-    check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage, StorageError,
-    IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
+    app_record, check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage,
+    StorageError, IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
 use canpos_core::Model;
 use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
@@ -223,10 +223,13 @@ fn type_at(dir: &OwnedFd, name: &OsStr) -> io::Result<Option<(FileType, u64)>> {
 
 /// Whether the core reads or keeps a record of `key` for `model` (node.rs: `stored_entry`,
 /// `load_values`, `stored_lss_config`, `change_stored`): the LSS and node-id records, and
-/// objects of the model that are stored (or hold the pending node-id or bit rate).
+/// the preset offsets a TMI keeps with 0x6010, and objects of the model that are stored (or
+/// hold the pending node-id or bit rate).
 fn record_used(model: &Model, key: u32) -> bool {
     match key {
         KEY_LSS_NODE_ID | KEY_LSS_BITRATE | KEY_SAVED_NODE_ID => true,
+        // The preset offsets a TMI keeps with 0x6010 (no object holds them).
+        k if app_record(k).is_some() => model.features.preset_offset_internal,
         k if is_object_key(k) => model
             .search(k)
             .ok()
@@ -1258,6 +1261,68 @@ mod tests {
         assert_eq!(a[0], 0x60, "second save answered {a:02X?}");
     }
 
+    /// A TMI's preset, saved to its state file, gives the same magnet position the same
+    /// reading in the next process (the offset is kept with 0x6010, issue 36 item 5).
+    #[test]
+    fn a_tmi_preset_survives_a_restart_through_the_state_file() {
+        use canpos_core::encoder::Sample;
+        use canpos_core::{Duration, Frame, Instant, Node};
+        let tmi = canpos_core::models::by_name("tmi").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tmi-1.bin");
+        let mut s = Sample::default();
+        s.positions_nm[0] = Some(300_000_000);
+        let mut now = Instant::ZERO;
+        let mut sdo = |node: &mut Node<_, FileStorage>, req: [u8; 8]| {
+            now += Duration::from_millis(1);
+            node.update_sample(&s, now);
+            node.handle_frame(&Frame::std8(0x67F, req), now);
+            for _ in 0..100 {
+                while let Some(f) = node.poll(now) {
+                    if f.std_id() == Some(0x5FF) {
+                        return *f.raw();
+                    }
+                }
+                now += Duration::from_millis(10);
+            }
+            panic!("no SDO answer");
+        };
+        let read = |a: [u8; 8]| i32::from_le_bytes([a[4], a[5], a[6], a[7]]);
+        let save = u32::from_le_bytes(*b"save").to_le_bytes();
+        let position = [0x40, 0x20, 0x60, 1, 0, 0, 0, 0];
+        {
+            let storage = FileStorage::new(&path).for_model(tmi);
+            let mut node = Node::new(tmi, tmi.default_config, storage);
+            node.power_on(Instant::ZERO);
+            assert_eq!(read(sdo(&mut node, position)), 300_000);
+            // Preset 1000 (0x3E8), then "save".
+            assert_eq!(
+                sdo(&mut node, [0x23, 0x10, 0x60, 1, 0xE8, 0x03, 0, 0])[0],
+                0x60
+            );
+            assert_eq!(read(sdo(&mut node, position)), 1000);
+            let a = sdo(
+                &mut node,
+                [0x23, 0x10, 0x10, 1, save[0], save[1], save[2], save[3]],
+            );
+            assert_eq!(a[0], 0x60, "save answered {a:02X?}");
+        }
+        let storage = FileStorage::new(&path).for_model(tmi);
+        let mut node = Node::new(tmi, tmi.default_config, storage);
+        // A new process: its own clock.
+        node.power_on(Instant::ZERO);
+        assert_eq!(
+            read(sdo(&mut node, position)),
+            1000,
+            "same magnet, same reading"
+        );
+        assert_eq!(
+            read(sdo(&mut node, [0x40, 0x10, 0x60, 1, 0, 0, 0, 0])),
+            1000
+        );
+        assert_eq!(node.storage_mut().reported, None);
+    }
+
     /// The records the core uses are kept, every one (the LSS ones included), and in order.
     #[test]
     fn an_image_of_used_records_loads_unchanged() {
@@ -1271,6 +1336,9 @@ mod tests {
             (KEY_SAVED_NODE_ID, 5),
             (0x0020_0000, 5),
             (0x0010_1700, 100),
+            // The TMI's preset offsets, kept with 0x6010 (issue 36 item 5).
+            (canpos_core::storage::app_key(0), -299_000i32 as u32),
+            (canpos_core::storage::app_key(1), 7),
         ] {
             w.push(k, v);
         }

@@ -133,9 +133,11 @@ proptest! {
         let _ = parse_order_code(&s);
     }
 
-    /// Every TH code built from the boxes parses back to its fields.
+    /// Every TH code built from the boxes parses back to its fields (strokes in the 5 mm
+    /// increments of 000 §3.1).
     #[test]
-    fn th_order_codes(stroke in 25u32..=7620, baud in 1u32..=4, res in 1u32..=2, z in 1usize..=4) {
+    fn th_order_codes(step in 5u32..=1524, baud in 1u32..=4, res in 1u32..=2, z in 1usize..=4) {
+        let stroke = step * 5;
         let zs = if z == 1 { String::new() } else { format!("Z0{z}") };
         let code = format!("THM{stroke:04}MC011DNNC304{baud}{res}1{zs}");
         let c = parse_order_code(&code).unwrap();

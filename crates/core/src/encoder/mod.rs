@@ -11,7 +11,8 @@
 //! ```text
 //! steps    = round(measured_nm / 0x6005/1)            (to nearest, halves up; from the range start)
 //! steps'   = max_steps − steps   if 0x6000 bit 0 (counts decrease away from the head)
-//! position = steps' + offset_n                       (offset from the last preset, 0x650C/n)
+//! position = steps' + offset_n                       (offset from the last preset: 0x650C/n,
+//!                                                     or kept inside the device on a TMI)
 //! velocity = Δnm / Δt in 0x6005/2 units (0.01 mm/s), rounded, sign flipped with bit 0
 //! ```
 
@@ -225,6 +226,11 @@ pub struct Encoder {
     temp_life_loaded: bool,
     /// Auto-stored values changed: the node should persist them.
     auto_dirty: bool,
+    /// The offset each channel's last preset produced, on a model that keeps it inside the
+    /// device ([`crate::models::Features::preset_offset_internal`], TMI): stored with 0x6010
+    /// (the application parameters) and given back at reset node. `None`: no preset since the
+    /// defaults, the position is the measured one.
+    offsets: [Option<i32>; MAX_CHANNELS],
 }
 
 impl Encoder {
@@ -359,25 +365,18 @@ impl Encoder {
         }
     }
 
-    /// The offset added to channel `ch`'s steps: the one the last preset produced (0x650C/n),
-    /// or on a model whose preset is a zero-point shift the preset itself (TMI, see
-    /// [`crate::models::Features::preset_zero_shift`]).
+    /// The offset added to channel `ch`'s steps: the one the last preset produced, in 0x650C/n
+    /// or kept inside the device (TMI, see [`crate::models::Features::preset_offset_internal`]).
     fn offset(&self, ch: usize, cx: &AppCtx<'_>) -> i64 {
-        let sub = ch as u8 + 1;
-        let index = if features(cx.model).preset_zero_shift {
-            0x6010
-        } else {
-            0x650C
-        };
-        cx.od.value(index, sub).unwrap_or(0) as i32 as i64
+        if features(cx.model).preset_offset_internal {
+            return self.offsets[ch].unwrap_or(0) as i64;
+        }
+        cx.od.value(0x650C, ch as u8 + 1).unwrap_or(0) as i32 as i64
     }
 
-    /// Writing a preset makes the current position read it (SPEC §10); E-Series clears the
-    /// preset with 0xFFFFFFFF. On a zero-shift model the preset is the offset itself.
+    /// Writing a preset makes the current position read it (SPEC §10, CiA 406): the device
+    /// keeps the offset between the two; E-Series clears the preset with 0xFFFFFFFF.
     fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
-        if features(cx.model).preset_zero_shift {
-            return;
-        }
         let sub = ch as u8 + 1;
         let offset = if features(cx.model).preset_clear && raw == 0xFFFF_FFFF {
             cx.od.set_value(0x6010, sub, 0);
@@ -387,6 +386,10 @@ impl Encoder {
             let base = self.ch[ch].nm.map_or(0, |nm| self.base_steps(nm, cx));
             (raw as i32 as i64 - base).clamp(i32::MIN as i64, i32::MAX as i64)
         };
+        if features(cx.model).preset_offset_internal {
+            self.offsets[ch] = Some(offset as i32);
+            return;
+        }
         cx.od.set_value(0x650C, sub, offset as i32 as u32);
         if ch == 0 {
             cx.od.set_value(0x6509, 0, offset as i32 as u32);
@@ -431,21 +434,25 @@ impl Encoder {
     }
 
     /// Work-area state of one channel: bit 2 below the low limit, bit 1 above the high limit,
-    /// bit 0 outside the measuring range (TMI §1.11.2 with its inclusive bounds).
+    /// bit 0 outside the measuring range (TH / E-Series) or at or below the preset or at or
+    /// past the sensor length (TMI §1.11.2 with its inclusive bounds).
     fn work_area(&mut self, ch: usize, pos: i64, nm: i64, cx: &mut AppCtx<'_>) {
         let sub = ch as u8 + 1;
         let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
         let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
         let end = cx.cfg.stroke_mm as i64 * 1_000_000;
-        let out = if features(cx.model).preset_zero_shift {
-            // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length" (the
-            // length in position steps).
+        let out = if features(cx.model).preset_offset_internal {
+            // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length", both in
+            // the preset's coordinates as the limits are ("regard the preset"): the length in
+            // position steps, shifted by the preset's offset.
             let step = cx
                 .od
                 .value(0x6005, 1)
                 .unwrap_or(cx.cfg.position_step_nm)
                 .max(1) as i64;
-            pos <= self.offset(ch, cx) || pos >= div::div(end as u64, step as u64) as i64
+            let preset = cx.od.value(0x6010, sub).unwrap_or(0) as i32 as i64;
+            let length = div::div(end as u64, step as u64) as i64 + self.offset(ch, cx);
+            pos <= preset || pos >= length
         } else {
             nm < 0 || nm > end
         };
@@ -789,6 +796,18 @@ impl Application for Encoder {
                 od.set_value(0x1002, 0, self.status(nmt));
             }
             _ => {}
+        }
+    }
+
+    /// The preset offsets a model without an offset object keeps (TMI): stored with 0x6010.
+    fn stored_value(&self, k: usize) -> Option<u32> {
+        self.offsets.get(k).copied().flatten().map(|o| o as u32)
+    }
+
+    /// A stored preset offset back at reset node.
+    fn load_stored(&mut self, k: usize, v: u32) {
+        if let Some(o) = self.offsets.get_mut(k) {
+            *o = Some(v as i32);
         }
     }
 

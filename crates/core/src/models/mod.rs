@@ -52,12 +52,10 @@ pub struct Features {
     pub kill_signature: bool,
     /// E-Series: writing 0xFFFFFFFF to a preset clears it.
     pub preset_clear: bool,
-    /// The preset (0x6010/n) is the position value at the start of the measuring range, added
-    /// to every measurement, rather than the value the current position takes when it is
-    /// written (TMI: it has no 0x650C offset object, and its work-area bit 0 is set at
-    /// "Position <= Preset Value", 002 §1.11.2, which only this reading makes the start of the
-    /// range; DECISIONS.md).
-    pub preset_zero_shift: bool,
+    /// The offset a preset (0x6010/n) produces is kept inside the device and stored with the
+    /// preset, not shown in 0x650C (TMI: it has no offset object). The preset itself is CiA
+    /// 406's on every model: the value the current position takes when it is written.
+    pub preset_offset_internal: bool,
     /// The TMI's EMCY table and error reactions (002 §1.13 / §1.14): manufacturer bytes per
     /// code, EMCY 0x9080 / 0x9090 on cam / work-area changes, the system-data errors with their
     /// lock-out, process values frozen on a sensor error, 0x1002 status, corrupt storage in

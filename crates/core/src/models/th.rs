@@ -216,7 +216,7 @@ pub static TH: Model = Model {
         store_preop_only: false,
         kill_signature: false,
         preset_clear: false,
-        preset_zero_shift: false,
+        preset_offset_internal: false,
         tmi_error_reactions: false,
         window_cams: false,
         power_on_emcy: true,

@@ -246,7 +246,7 @@ pub static TMI: Model = Model {
         store_preop_only: true,
         kill_signature: true,
         preset_clear: false,
-        preset_zero_shift: true,
+        preset_offset_internal: true,
         tmi_error_reactions: true,
         window_cams: true,
         power_on_emcy: false,

@@ -8,7 +8,7 @@ use canpos_core::models::th::TH;
 use canpos_core::models::tmi::TMI;
 use canpos_core::models::Features;
 use canpos_core::nmt::NmtState;
-use canpos_core::storage::RamStorage;
+use canpos_core::storage::{self, RamStorage};
 use canpos_core::Application;
 use canpos_core::{Instant, Node, Plain};
 
@@ -56,6 +56,34 @@ fn default_application_stores_nothing_by_itself() {
         n.update_sample(&(), Instant::from_millis(10 + k));
     }
     assert_eq!(n.storage_mut().saves, 0);
+}
+
+/// A "save" of all parameters stores the dictionary's values and no value of the
+/// application's own: it has none (`Application::stored_value`).
+#[test]
+fn default_application_saves_no_value_of_its_own() {
+    let mut n = Node::with_app(&TH, TH.default_config, Quiet, RamStorage::default());
+    n.power_on(Instant::ZERO);
+    let save = canpos_core::Frame::new(
+        0x600 + n.device().node_id() as u16,
+        &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e'],
+    )
+    .unwrap();
+    n.handle_frame(&save, Instant::from_millis(5));
+    while n.poll_transmit().is_some() {}
+    assert_eq!(n.storage_mut().saves, 1);
+    let mut buf = [0u8; storage::IMAGE_MAX];
+    let recs: Vec<_> = storage::load_image(n.storage_mut(), TH.features.tag, &mut buf)
+        .unwrap()
+        .collect();
+    assert!(
+        recs.iter().any(|&(k, _)| k == 0x0060_1001),
+        "0x6010/1 stored: {recs:?}"
+    );
+    assert!(
+        recs.iter().all(|&(k, _)| storage::app_record(k).is_none()),
+        "{recs:?}"
+    );
 }
 
 #[test]

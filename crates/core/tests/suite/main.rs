@@ -54,5 +54,6 @@ mod spec11_fault_conditions;
 mod storage_image_format;
 mod storage_roundtrip;
 mod tmi_emcy_and_status;
+mod tmi_preset_cia406;
 mod tmi_r27_event_timer;
 mod tmi_storage;

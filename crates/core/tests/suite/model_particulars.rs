@@ -107,13 +107,13 @@ fn tmi_reports_supply_and_temperature_as_its_sensor_error() {
 }
 
 /// TMI 002 §1.11.2: work-area bit 0 is set at "Position <= Preset Value" or "Position >= Sensor
-/// length".
+/// length" (both in the preset's coordinates; tmi_preset_cia406.rs has the full set).
 #[test]
 fn tmi_work_area_bit_0_at_the_preset_and_the_length() {
     let mut r = booted("tmi");
     let step = r.node.device().config().position_step_nm as i64;
     let stroke_nm = r.node.device().config().stroke_mm as i64 * 1_000_000;
-    // A preset of 500 steps: the start of the range reads 500.
+    // A preset of 500 steps before any measurement: the start of the range reads 500.
     r.send(0x67F, &[0x23, 0x10, 0x60, 0x01, 0xF4, 0x01, 0, 0]);
     measure(&mut r, 10 * step);
     assert_eq!(r.read(0x6020, 1), 510);
@@ -121,8 +121,11 @@ fn tmi_work_area_bit_0_at_the_preset_and_the_length() {
     measure(&mut r, 0);
     assert_eq!(r.read(0x6020, 1), 500);
     assert_eq!(r.read(0x6400, 1) & 1, 1, "position <= preset");
-    // Position >= sensor length (in steps): the preset moves the position there early.
-    measure(&mut r, stroke_nm - 400 * step);
+    // Position >= sensor length: the end of the range, where the position reads length + 500.
+    measure(&mut r, stroke_nm - step);
+    assert_eq!(r.read(0x6400, 1) & 1, 0, "one step before the length");
+    measure(&mut r, stroke_nm);
+    assert_eq!(r.read(0x6020, 1) as i64, stroke_nm / step + 500);
     assert_eq!(r.read(0x6400, 1) & 1, 1, "position >= length");
     measure(&mut r, stroke_nm / 2);
     assert_eq!(r.read(0x6400, 1) & 1, 0);

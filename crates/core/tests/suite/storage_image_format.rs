@@ -6,8 +6,8 @@
 use canpos_core::od::{Access, DataType, Default, Entry, Group, Range};
 use canpos_core::storage::update_image;
 use canpos_core::storage::{
-    crc32, is_object_key, load_image, parse_image, ImageWriter, IMAGE_MAX, KEY_LSS_BITRATE,
-    KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
+    app_key, app_record, crc32, is_object_key, load_image, parse_image, ImageWriter, APP_RECORDS,
+    IMAGE_MAX, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
 use canpos_core::{NoStorage, RamStorage, Scope, Storage, StorageError};
 
@@ -88,6 +88,28 @@ fn record_keys_of_objects_and_of_lss_values_do_not_overlap() {
         u32::MAX,
     ] {
         assert!(!is_object_key(k), "{k:#X}");
+    }
+}
+
+/// The application's values of its own (TMI preset offsets) have keys of their own, one per
+/// value, none of them an object's or an LSS value's.
+#[test]
+fn application_record_keys_name_exactly_their_values() {
+    for k in 0..APP_RECORDS {
+        assert_eq!(app_record(app_key(k)), Some(k));
+        assert!(!is_object_key(app_key(k)));
+    }
+    for key in [
+        app_key(APP_RECORDS),
+        app_key(0) - 1,
+        KEY_LSS_NODE_ID,
+        KEY_LSS_BITRATE,
+        KEY_SAVED_NODE_ID,
+        0x0060_1001,
+        0,
+        u32::MAX,
+    ] {
+        assert_eq!(app_record(key), None, "{key:#X}");
     }
 }
 
