@@ -48,6 +48,9 @@ struct Member {
     /// A timed participant's horizon (its group's, docs/CLOCK.md): its frames are stamped
     /// with it, and a frame delivered to it holds the clock until taken.
     horizon: Option<Weak<Slot>>,
+    /// The standard identifiers whose delivery holds the clock (remote frames always do);
+    /// `None`: every frame. From [`Transport::set_rx_filter`]: what its nodes may answer.
+    hold_ids: Option<Vec<u16>>,
 }
 
 /// Delivery lateness of a paced bus against its timeline: 1 µs buckets up to 10 ms.
@@ -248,6 +251,7 @@ impl BusCore {
             dropped: dropped.clone(),
             ctl,
             horizon,
+            hold_ids: None,
         });
         (id, dropped)
     }
@@ -282,6 +286,19 @@ impl BusCore {
             m.horizon = Some(h.slot());
         }
         Some(h)
+    }
+
+    /// Only frames with these standard identifiers (and remote frames) delivered to member
+    /// `id` hold the clock: the others cannot make its nodes answer, so the bus need not wait
+    /// for them to be taken (they are still delivered).
+    pub(crate) fn set_hold_filter(&self, id: u64, ids: &[u16]) {
+        let mut ids = ids.to_vec();
+        ids.sort_unstable();
+        ids.dedup();
+        let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(m) = m.iter_mut().find(|m| m.id == id) {
+            m.hold_ids = Some(ids);
+        }
     }
 
     /// Runs the bus to its clock's `now()`, delivering what is due (a timed participant does
@@ -386,8 +403,14 @@ impl BusCore {
             let full = match &m.sink {
                 Sink::Local(tx) => match tx.try_send(rx) {
                     Ok(()) => {
-                        if let (Some(end), Some(slot)) =
-                            (end, m.horizon.as_ref().and_then(Weak::upgrade))
+                        let answerable = rx.frame.is_remote()
+                            || m.hold_ids.as_ref().is_none_or(|ids| {
+                                rx.frame
+                                    .std_id()
+                                    .is_some_and(|id| ids.binary_search(&id).is_ok())
+                            });
+                        if let (Some(end), Some(slot), true) =
+                            (end, m.horizon.as_ref().and_then(Weak::upgrade), answerable)
                         {
                             slot.delivered(end);
                             held = true;
@@ -886,6 +909,13 @@ impl Transport for MemPort {
 
     fn sync_bus(&self) {
         self.core.sync();
+    }
+
+    /// Delivers every frame still (an in-process bus does not filter); only the frames with
+    /// these identifiers hold a timed participant's clock (docs/CLOCK.md).
+    fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+        self.core.set_hold_filter(self.id, std_ids);
+        Ok(false)
     }
 
     fn describe(&self) -> String {

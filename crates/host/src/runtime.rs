@@ -737,7 +737,11 @@ impl Runtime {
             self.power_on_all();
         }
         let result = self.run_loop();
-        tracing::info!(lateness = %self.lateness, "runtime stopped");
+        // How late the host ran the simulation (its frames kept their times): docs/CLOCK.md.
+        tracing::info!(lateness = %self.lateness, events = self.events_late.count,
+            events_late_max_us = self.events_late.max_us,
+            events_late_over_1ms = self.events_late.over_1ms,
+            frames_late_max_us = self.frames_late.max_us, "runtime stopped");
         result.map(|()| self.lateness)
     }
 
@@ -2188,6 +2192,9 @@ mod tests {
         }
         fn sync_bus(&self) {
             self.port.sync_bus()
+        }
+        fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+            self.port.set_rx_filter(std_ids)
         }
         fn describe(&self) -> String {
             self.port.describe()
