@@ -1098,6 +1098,79 @@ mod tests {
         assert!(a.bus_stats().unwrap().controller.unwrap().tx_errors >= 1);
     }
 
+    /// The bus waits for a timed participant that is behind, but not forever: one that never
+    /// moves (deadlocked, stopped) holds it no longer than the clock's stall bound, then the
+    /// others' frames flow again, late by about that bound.
+    #[test]
+    fn a_stopped_participant_holds_the_bus_no_longer_than_the_stall_bound() {
+        let bound = Duration::from_millis(100);
+        let bus = MemBus::with_clock(1000, SimClock::wall_with_stall_bound(bound));
+        let mut stuck = bus.attach();
+        let _horizon = stuck.join_clock().expect("a paced bus has a clock");
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        let sent = std::time::Instant::now();
+        a.send(&f(1)).unwrap();
+        let got = b
+            .recv_timeout(Some(Duration::from_secs(10)))
+            .unwrap()
+            .expect("delivered once the stopped participant stopped holding");
+        assert_eq!(got.frame, f(1));
+        // Held while the stuck horizon was within the bound (a lower bound only: the machine
+        // may be late, never early).
+        assert!(sent.elapsed() >= bound, "{:?}", sent.elapsed());
+        // Stale, it holds nothing: the next frame goes through at once (generous bound).
+        let sent = std::time::Instant::now();
+        a.send(&f(2)).unwrap();
+        assert_eq!(
+            b.recv_timeout(Some(Duration::from_secs(10)))
+                .unwrap()
+                .unwrap()
+                .frame,
+            f(2)
+        );
+        assert!(sent.elapsed() < Duration::from_secs(5));
+        // The stuck one got both (its queue holds them; it never took them).
+        assert_eq!(stuck.try_recv().unwrap().unwrap().frame, f(1));
+    }
+
+    /// A frame delivered to a timed participant holds the clock at its end of frame until the
+    /// participant takes it: its answer, stamped at that time, still goes out before anything
+    /// submitted later (stepped clock: deterministic).
+    #[test]
+    fn a_delivered_frame_holds_the_clock_until_taken() {
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(1000, clock.clone());
+        let mut rt = bus.attach();
+        let h = rt.join_clock().unwrap();
+        h.set(u64::MAX);
+        let mut master = bus.attach();
+        master.send(&f(0x601)).unwrap();
+        clock.step_to(1_000_000).unwrap();
+        rt.sync_bus();
+        let rx = rt
+            .try_recv()
+            .unwrap()
+            .expect("delivered at its end of frame");
+        let end = clock.nanos_of(rx.timestamp).unwrap();
+        assert!(end < 1_000_000);
+        assert_eq!(clock.now(), end, "held at the frame until taken");
+        // The answer at the frame's own time, then taken: the bus goes on.
+        h.set(end);
+        rt.send(&f(0x581)).unwrap();
+        h.taken(end);
+        h.set(u64::MAX);
+        master.sync_bus();
+        let answer = master.try_recv().unwrap().expect("the answer");
+        let bits = u64::from(crate::bus::bits::frame_length(&answer.frame).total);
+        // Ready at `end`, it starts after the intermission (3 bits) and lasts its bits less
+        // the intermission: end of frame = end + bits × 1 µs.
+        assert_eq!(
+            clock.nanos_of(answer.timestamp).unwrap(),
+            end + bits * 1_000
+        );
+    }
+
     #[test]
     fn disturbances_out_of_range_change_nothing() {
         let bus = MemBus::new();

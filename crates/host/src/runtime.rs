@@ -2305,6 +2305,39 @@ mod tests {
         assert_eq!(st["clock"]["driver"], "wall", "{st}");
     }
 
+    /// Past the stall bound the runtime no longer holds the bus, and when it comes back it
+    /// skips to the wall clock instead of replaying what it missed (counted in
+    /// `cycles_skipped`): a suspended machine does not flood the bus with its past.
+    #[test]
+    fn a_stall_past_the_bound_skips_ahead_and_counts_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let clock = SimClock::wall_with_stall_bound(Duration::from_millis(100));
+        let bus = MemBus::with_clock(1000, clock);
+        let mut master = bus.attach();
+        let stall_ms = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let port = Stalling {
+            port: bus.attach(),
+            stall_ms: stall_ms.clone(),
+        };
+        let mut rt = Runtime::new(Box::new(port), None);
+        rt.add(th_setup(dir.path(), 1, 7));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x701, Duration::from_secs(5)).expect("boot-up");
+        stall_ms.store(400, Ordering::SeqCst);
+        // The bus goes on for the others while the runtime is stopped past the bound.
+        std::thread::sleep(Duration::from_millis(250));
+        let sent = std::time::Instant::now();
+        let mut other = bus.attach();
+        master.send(&Frame::new(0x123, &[1]).unwrap()).unwrap();
+        recv_id(&mut other, 0x123, Duration::from_secs(5)).expect("the bus is not frozen");
+        assert!(sent.elapsed() < Duration::from_secs(5));
+        let st = state_when(&h.control(), |st| st["cycles_skipped"].as_u64() > Some(0));
+        h.stop().unwrap();
+        let skipped = st["cycles_skipped"].as_u64().unwrap();
+        // About 400 ms of 1 ms cycles, less what it ran before the bound was passed.
+        assert!((100..=1000).contains(&skipped), "{st}");
+    }
+
     /// One stepped run: a TH with noise and a moving magnet, set to a 1 ms event timer and
     /// started by a master, stepped by 500 µs for 150 ms; every frame the master saw, with its
     /// end of frame in ns.
