@@ -449,6 +449,9 @@ pub struct Runtime {
     stash: Option<crate::transport::RxFrame>,
     /// Frames were received since the transport was last looked at (receive filter).
     received: bool,
+    /// When the sensors' own controllers are looked at next (every [`CONTROLLER_POLL_US`],
+    /// not at every event: each look runs the bus and reads its counters).
+    next_controller_look: Instant,
     /// How late (wall − simulation time) own events were processed (wall-driven clocks).
     events_late: Lateness,
     /// How late (wall − end of frame) received frames were handled (wall-driven clocks).
@@ -579,6 +582,7 @@ impl Runtime {
             reached,
             stash: None,
             received: false,
+            next_controller_look: reached,
             events_late: Lateness::default(),
             frames_late: Lateness::default(),
             bus_bitrate,
@@ -1037,7 +1041,7 @@ impl Runtime {
             .chain(self.devices.iter().filter_map(|d| d.overflow_until))
             .chain(self.devices.iter().any(|d| d.port.is_some()).then(|| {
                 // Controller counters are looked at every few ms while sensors have their own.
-                Instant::from_micros(self.reached.micros() + CONTROLLER_POLL_US)
+                self.next_controller_look
             }))
             .min()
     }
@@ -1097,9 +1101,24 @@ impl Runtime {
             // The outage's bus-off ended with it; the fresh nodes start error-active.
             self.bus_state = self.transport.bus_state();
         }
-        self.watch_controllers(now);
-        let state = self.transport.bus_state();
-        if state != self.bus_state && self.devices.iter().all(|d| d.port.is_none()) {
+        if now >= self.next_controller_look
+            || self
+                .devices
+                .iter()
+                .any(|d| d.overflow_until.is_some_and(|t| t <= now))
+        {
+            self.watch_controllers(now);
+            self.next_controller_look = Instant::from_micros(now.micros() + CONTROLLER_POLL_US);
+        }
+        // Sensors with their own controllers report through them (above); the transport's
+        // state is only asked for otherwise (on an in-process bus it runs the bus).
+        let shared = self.devices.iter().all(|d| d.port.is_none());
+        let state = if shared {
+            self.transport.bus_state()
+        } else {
+            self.bus_state
+        };
+        if state != self.bus_state && shared {
             let old = std::mem::replace(&mut self.bus_state, state);
             tracing::warn!(from = ?old, to = ?state, "CAN controller state");
             for d in &mut self.devices {
