@@ -1039,10 +1039,13 @@ impl Runtime {
             .flatten()
             .chain(self.overrun_until)
             .chain(self.devices.iter().filter_map(|d| d.overflow_until))
-            .chain(self.devices.iter().any(|d| d.port.is_some()).then(|| {
-                // Controller counters are looked at every few ms while sensors have their own.
-                self.next_controller_look
-            }))
+            // Controller counters are looked at every few ms while sensors have their own.
+            .chain(
+                self.devices
+                    .iter()
+                    .any(|d| d.port.is_some())
+                    .then_some(self.next_controller_look),
+            )
             .min()
     }
 
