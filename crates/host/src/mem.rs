@@ -1106,10 +1106,11 @@ mod tests {
         let bound = Duration::from_millis(100);
         let bus = MemBus::with_clock(1000, SimClock::wall_with_stall_bound(bound));
         let mut stuck = bus.attach();
-        let _horizon = stuck.join_clock().expect("a paced bus has a clock");
         let mut a = bus.attach();
         let mut b = bus.attach();
+        // Before the horizon is taken: it stands at the clock's time then, at or after this.
         let sent = std::time::Instant::now();
+        let _horizon = stuck.join_clock().expect("a paced bus has a clock");
         a.send(&f(1)).unwrap();
         let got = b
             .recv_timeout(Some(Duration::from_secs(10)))
