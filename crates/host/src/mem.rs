@@ -347,7 +347,7 @@ impl BusCore {
         let now = p.now();
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
-        let at = at.unwrap_or(now).max(st.reached);
+        let at = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
         let ok = st.timeline.error_flag(ctl, at);
         drop(st);
         let _ = p.kick.try_send(());
@@ -367,11 +367,12 @@ impl BusCore {
         let now = p.now();
         // The bus runs up to now before the frame joins its queue: the queue is as full as
         // the timeline says, however late the driver thread is. A timed participant's frame is
-        // stamped with its own time (its horizon), an untimed member's with the clock's; never
-        // before the time the bus already reached.
+        // stamped with its own time (its horizon); an untimed member's (a tool, a TCP client)
+        // with the limit, the wall time it sent it at, so that a runtime that is behind cannot
+        // answer it before it was sent; never before the time the bus already reached.
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
-        let at = at.unwrap_or(now).max(st.reached);
+        let at = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
         let r = st.timeline.submit(ctl, frame, at);
         drop(st);
         match r {
