@@ -671,6 +671,8 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                     "bus_off": st["bus_off"],
                     // The controller's error state, where the state reports one.
                     "bus_state": st.get("bus_state").or_else(|| st.get("error_state")),
+                    // The simulation clock: how late the host made it (docs/CLOCK.md).
+                    "clock": st.get("clock"),
                 })),
             })
         })

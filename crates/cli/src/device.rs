@@ -1439,9 +1439,11 @@ fn demo_view(
             _ => (f64::NAN, f64::NAN, 0),
         };
         let wa = st["work_area"][0].as_u64().unwrap_or(0);
+        // How late the host ran the twin (its frames kept their times on the bus).
+        let late_ms = st["clock"]["events_late_us"]["max"].as_f64().unwrap_or(0.0) / 1e3;
         write!(
             std::io::stdout(),
-            "\r  {:<16} pos {pos:9.3} mm   vel {vel:+9.2} mm/s   cams {cam:04b}   work area {wa:03b}   TPDOs {count:<7}",
+            "\r  {:<16} pos {pos:9.3} mm   vel {vel:+9.2} mm/s   cams {cam:04b}   work area {wa:03b}   TPDOs {count:<7} host late ≤ {late_ms:.1} ms ",
             st["nmt"].as_str().unwrap_or("?"),
         )?;
         std::io::stdout().flush()?;

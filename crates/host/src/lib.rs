@@ -3,6 +3,7 @@
 //! - [`transport`]: the [`Transport`] trait the runtime drives nodes through, bus URLs, [`open`].
 //! - [`socketcand`]: the socketcand TCP protocol: codec, a hub server, a client transport.
 //! - [`bus`]: the physical bus model (bit timing, arbitration, load, error confinement).
+//! - [`clock`]: the simulation clock a bus and its runtimes share (wall, stepped).
 //! - [`mem`]: an in-process bus.
 //! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
 //! - [`candump`]: candump `-L` log lines.
@@ -16,6 +17,7 @@
 pub mod bridge;
 pub mod bus;
 pub mod candump;
+pub mod clock;
 pub mod control;
 pub mod eds_device;
 pub mod file_storage;

@@ -12,14 +12,14 @@
 
 use std::collections::HashMap;
 use std::io;
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
-use std::time::{Duration, Instant, SystemTime};
 
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use crate::bus::{BusEvent, MemberId, MemberStats, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};
+use crate::clock::{Driver, Horizon, SimClock, Slot};
 use crate::socketcand::hub::Wake;
 use crate::transport::{BusState, BusStats, Disturbance, RxFrame, Transport};
 
@@ -45,6 +45,12 @@ struct Member {
     dropped: Arc<AtomicU64>,
     /// Its controller on the timeline (paced buses).
     ctl: Option<MemberId>,
+    /// A timed participant's horizon (its group's, docs/CLOCK.md): its frames are stamped
+    /// with it, and a frame delivered to it holds the clock until taken.
+    horizon: Option<Weak<Slot>>,
+    /// The standard identifiers whose delivery holds the clock (remote frames always do);
+    /// `None`: every frame. From [`Transport::set_rx_filter`]: what its nodes may answer.
+    hold_ids: Option<Vec<u16>>,
 }
 
 /// Delivery lateness of a paced bus against its timeline: 1 µs buckets up to 10 ms.
@@ -102,19 +108,25 @@ struct PaceState {
     timeline: Timeline,
     events: Vec<BusEvent>,
     lateness: LatenessHistogram,
+    /// How far the timeline ran: nothing is submitted earlier (simulation time, ns).
+    reached: Nanos,
 }
 
 /// The timeline of a paced bus and the clock it runs on.
 struct Pacer {
     state: Mutex<PaceState>,
-    epoch: Instant,
-    epoch_wall: SystemTime,
+    /// The simulation clock (docs/CLOCK.md): the bus runs to its `now()`, never past a timed
+    /// participant's horizon.
+    clock: SimClock,
     kick: Sender<()>,
+    /// Receiving members with a horizon: while there are any, the bus runs event by event and
+    /// stops at each frame delivered to one of them.
+    timed: AtomicUsize,
 }
 
 impl Pacer {
     fn now(&self) -> Nanos {
-        self.epoch.elapsed().as_nanos() as Nanos
+        self.clock.now()
     }
 }
 
@@ -151,9 +163,21 @@ impl BusCore {
     }
 
     /// A bus whose drops are counted in `dropped` (shared with other buses), with its driver
-    /// thread when paced.
+    /// thread when paced, on a wall clock of its own.
     pub(crate) fn create(pacing: Pacing, dropped: Arc<AtomicU64>) -> Arc<BusCore> {
+        Self::create_with_clock(pacing, dropped, SimClock::wall())
+    }
+
+    /// [`BusCore::create`] on `clock` (shared with other buses or a co-simulation master).
+    pub(crate) fn create_with_clock(
+        pacing: Pacing,
+        dropped: Arc<AtomicU64>,
+        clock: SimClock,
+    ) -> Arc<BusCore> {
         let (kick, kicked) = crossbeam_channel::bounded(1);
+        if matches!(pacing, Pacing::Paced(_)) {
+            clock.subscribe_with(kick.clone());
+        }
         let pacer = match pacing {
             Pacing::Instant => None,
             Pacing::Paced(kbps) => Some(Pacer {
@@ -164,10 +188,11 @@ impl BusCore {
                     }),
                     events: Vec::new(),
                     lateness: LatenessHistogram::default(),
+                    reached: 0,
                 }),
-                epoch: Instant::now(),
-                epoch_wall: SystemTime::now(),
+                clock,
                 kick,
+                timed: AtomicUsize::new(0),
             }),
         };
         let paced = pacer.is_some();
@@ -214,12 +239,19 @@ impl BusCore {
             .as_ref()
             .map(|p| lock(&p.state).timeline.join_with(DEFAULT_TX_DEPTH, order));
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
+        // A controller of a timed participant's group sends at that participant's time.
+        let horizon = m
+            .iter()
+            .find(|m| m.group == group && m.horizon.is_some())
+            .and_then(|m| m.horizon.clone());
         m.push(Member {
             id,
             group,
             sink,
             dropped: dropped.clone(),
             ctl,
+            horizon,
+            hold_ids: None,
         });
         (id, dropped)
     }
@@ -231,7 +263,61 @@ impl BusCore {
             lock(&p.state).timeline.leave(ctl);
         }
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
+        if let (Some(p), Some(gone)) = (&self.pacer, m.iter().find(|m| m.id == id)) {
+            if gone.horizon.is_some() && matches!(gone.sink, Sink::Local(_)) {
+                p.timed.fetch_sub(1, Ordering::Relaxed);
+            }
+        }
         m.retain(|m| m.id != id);
+    }
+
+    /// Makes member `id` a timed participant of the bus's clock: it and the other controllers
+    /// of its group send at its horizon, and frames delivered to it hold the clock until it
+    /// takes them (docs/CLOCK.md). `None` on an instant bus.
+    pub(crate) fn join_clock(&self, id: u64) -> Option<Horizon> {
+        let p = self.pacer.as_ref()?;
+        let h = p.clock.participant(&format!("in-process bus port {id}"));
+        let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
+        let group = m.iter().find(|m| m.id == id)?.group;
+        for m in m.iter_mut().filter(|m| m.group == group) {
+            if m.horizon.is_none() && matches!(m.sink, Sink::Local(_)) {
+                p.timed.fetch_add(1, Ordering::Relaxed);
+            }
+            m.horizon = Some(h.slot());
+        }
+        Some(h)
+    }
+
+    /// Only frames with these standard identifiers (and remote frames) delivered to member
+    /// `id` hold the clock: the others cannot make its nodes answer, so the bus need not wait
+    /// for them to be taken (they are still delivered).
+    pub(crate) fn set_hold_filter(&self, id: u64, ids: &[u16]) {
+        let mut ids = ids.to_vec();
+        ids.sort_unstable();
+        ids.dedup();
+        let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(m) = m.iter_mut().find(|m| m.id == id) {
+            m.hold_ids = Some(ids);
+        }
+    }
+
+    /// Runs the bus to its clock's `now()`, delivering what is due (a timed participant does
+    /// this before it takes its frames, instead of waiting for the driver thread).
+    pub(crate) fn sync(&self) {
+        if let Some(p) = &self.pacer {
+            let now = p.now();
+            let mut st = lock(&p.state);
+            self.pump(p, &mut st, now);
+        }
+    }
+
+    /// The controller of member `id` and the time its frames are stamped with (its group's
+    /// horizon; `None`: the clock's `now()`).
+    fn ctl_and_time(&self, id: u64) -> Option<(MemberId, Option<Nanos>)> {
+        let m = self.members.read().unwrap_or_else(|e| e.into_inner());
+        let m = m.iter().find(|m| m.id == id)?;
+        let at = m.horizon.as_ref().and_then(Weak::upgrade).map(|s| s.at());
+        Some((m.ctl?, at))
     }
 
     pub(crate) fn member_count(&self) -> usize {
@@ -257,11 +343,12 @@ impl BusCore {
     /// bus-off), `None` on an instant bus (no timeline, no error confinement).
     pub(crate) fn error_flag(&self, from: u64) -> Option<bool> {
         let p = self.pacer.as_ref()?;
-        let ctl = self.ctl_of(from)?;
+        let (ctl, at) = self.ctl_and_time(from)?;
         let now = p.now();
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
-        let ok = st.timeline.error_flag(ctl, now);
+        let at = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
+        let ok = st.timeline.error_flag(ctl, at);
         drop(st);
         let _ = p.kick.try_send(());
         Some(ok)
@@ -274,15 +361,19 @@ impl BusCore {
             self.broadcast(from, RxFrame::now(frame));
             return;
         };
-        let Some(ctl) = self.ctl_of(from) else {
+        let Some((ctl, at)) = self.ctl_and_time(from) else {
             return;
         };
         let now = p.now();
         // The bus runs up to now before the frame joins its queue: the queue is as full as
-        // the timeline says, however late the driver thread is.
+        // the timeline says, however late the driver thread is. A timed participant's frame is
+        // stamped with its own time (its horizon); an untimed member's (a tool, a TCP client)
+        // with the limit, the wall time it sent it at, so that a runtime that is behind cannot
+        // answer it before it was sent; never before the time the bus already reached.
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
-        let r = st.timeline.submit(ctl, frame, now);
+        let at = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
+        let r = st.timeline.submit(ctl, frame, at);
         drop(st);
         match r {
             Ok(crate::bus::timeline::Accepted::Queued) => {}
@@ -301,14 +392,34 @@ impl BusCore {
             .iter()
             .find(|m| m.id == from)
             .map_or(from, |m| m.group);
-        self.deliver(&members, &[group], rx);
+        self.deliver(&members, &[group], rx, None);
     }
 
-    fn deliver(&self, members: &[Member], groups: &[u64], rx: RxFrame) {
+    /// Delivers `rx` to the members outside `groups`; `end` is its time on a paced bus, which
+    /// a timed receiver's horizon remembers until it takes the frame. True when one did.
+    fn deliver(&self, members: &[Member], groups: &[u64], rx: RxFrame, end: Option<Nanos>) -> bool {
         self.frames.fetch_add(1, Ordering::Relaxed);
+        let mut held = false;
         for m in members.iter().filter(|m| !groups.contains(&m.group)) {
             let full = match &m.sink {
-                Sink::Local(tx) => matches!(tx.try_send(rx), Err(TrySendError::Full(_))),
+                Sink::Local(tx) => match tx.try_send(rx) {
+                    Ok(()) => {
+                        let answerable = rx.frame.is_remote()
+                            || m.hold_ids.as_ref().is_none_or(|ids| {
+                                rx.frame
+                                    .std_id()
+                                    .is_some_and(|id| ids.binary_search(&id).is_ok())
+                            });
+                        if let (Some(end), Some(slot), true) =
+                            (end, m.horizon.as_ref().and_then(Weak::upgrade), answerable)
+                        {
+                            slot.delivered(end);
+                            held = true;
+                        }
+                        false
+                    }
+                    Err(e) => matches!(e, TrySendError::Full(_)),
+                },
                 // Unbounded underneath, capped here: memory grows with the backlog, not with
                 // the number of clients (a bounded channel allocates its capacity up front).
                 // A client that cannot take frames (its socket and output full) costs nothing
@@ -328,27 +439,47 @@ impl BusCore {
                 self.dropped.fetch_add(1, Ordering::Relaxed);
             }
         }
+        held
     }
 
-    /// Runs the timeline up to `now` and delivers what it produced, under the timeline's lock
-    /// (so deliveries from any thread go out in timeline order).
-    fn pump(&self, p: &Pacer, st: &mut PaceState, now: Nanos) {
-        let mut events = std::mem::take(&mut st.events);
-        st.timeline.advance(now, &mut events);
-        for e in &events {
-            if let BusEvent::Frame { end, .. } = e {
-                st.lateness.record(now.saturating_sub(*end));
+    /// Runs the timeline up to `target` and delivers what it produced, under the timeline's
+    /// lock (so deliveries from any thread go out in timeline order). With timed participants
+    /// it runs event by event and stops at a frame delivered to one of them: the clock waits
+    /// there until that participant took it (and answered at its time).
+    fn pump(&self, p: &Pacer, st: &mut PaceState, target: Nanos) {
+        let by_event = p.timed.load(Ordering::Relaxed) > 0;
+        // Delivery lateness is against the wall clock; a stepped bus has none.
+        let wall = (p.clock.driver() == Driver::Wall).then(|| p.clock.wall_elapsed());
+        while target > st.reached {
+            let upto = match st.timeline.next_event() {
+                Some(n) if by_event && n <= target => n.max(st.reached),
+                _ => target,
+            };
+            let mut events = std::mem::take(&mut st.events);
+            st.timeline.advance(upto, &mut events);
+            st.reached = st.reached.max(upto);
+            if let Some(w) = wall {
+                for e in &events {
+                    if let BusEvent::Frame { end, .. } = e {
+                        st.lateness.record(w.saturating_sub(*end));
+                    }
+                }
+            }
+            let held = self.dispatch(p, &mut events);
+            st.events = events;
+            if held || upto >= target {
+                break;
             }
         }
-        self.dispatch(p, &mut events);
-        st.events = events;
     }
 
-    /// Hands what the timeline produced to the members.
-    fn dispatch(&self, p: &Pacer, events: &mut Vec<BusEvent>) {
+    /// Hands what the timeline produced to the members; true when a timed participant received
+    /// a frame (it holds the clock).
+    fn dispatch(&self, p: &Pacer, events: &mut Vec<BusEvent>) -> bool {
         if events.is_empty() {
-            return;
+            return false;
         }
+        let mut held = false;
         let members = self.members.read().unwrap_or_else(|e| e.into_inner());
         for ev in events.drain(..) {
             // A hub client's controller changed state: it is told, as SocketCAN tells the
@@ -364,7 +495,7 @@ impl BusCore {
             }
             if let BusEvent::Error(e) = &ev {
                 let ef = crate::bus::ErrorFrame {
-                    timestamp: p.epoch_wall + Duration::from_nanos(e.at),
+                    timestamp: p.clock.system_time_of(e.at),
                     kind: e.kind,
                     id: e.id,
                 };
@@ -389,11 +520,12 @@ impl BusCore {
                 groups.extend(co_senders.into_iter().filter_map(group_of));
                 let rx = RxFrame {
                     frame,
-                    timestamp: p.epoch_wall + Duration::from_nanos(end),
+                    timestamp: p.clock.system_time_of(end),
                 };
-                self.deliver(&members, &groups, rx);
+                held |= self.deliver(&members, &groups, rx, Some(end));
             }
         }
+        held
     }
 
     pub(crate) fn frames(&self) -> u64 {
@@ -418,6 +550,7 @@ impl BusCore {
         let now = p.now();
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
+        let now = now.max(st.reached);
         let (load, fps) = st.timeline.load(now);
         Some(BusStats {
             bitrate_kbps: st.timeline.bitrate_kbps(),
@@ -442,6 +575,7 @@ impl BusCore {
         };
         let now = p.now();
         let mut st = lock(&p.state);
+        let now = now.max(st.reached);
         let r = match d {
             Disturbance::CorruptedFrames { per_million } => {
                 st.timeline.set_corruption(per_million).map_err(|e| e.0)
@@ -482,13 +616,39 @@ fn drive(core: Weak<BusCore>, kicked: Receiver<()>) {
             c.pump(p, &mut st, now);
             st.timeline.next_event()
         };
-        let deadline = next.map(|t| p.epoch + Duration::from_nanos(t));
+        let clock = p.clock.clone();
         drop(c);
-        let r = match deadline {
-            Some(d) => kicked.recv_deadline(d).map_err(|e| e.is_disconnected()),
-            None => kicked.recv().map_err(|_| true),
+        let limit = clock.limit();
+        let mut held = false;
+        let deadline = match next {
+            // Due, and the clock allows it (a pump that stopped at a delivery goes on).
+            Some(n) if n <= clock.now() => continue,
+            // Due by the limit, but a timed participant is behind: wait for its horizon to
+            // move (it tells the clock's listeners while one waits), at most until it falls
+            // behind the stall bound.
+            Some(n) if n <= limit => {
+                clock.waiting(true);
+                let h = clock.now();
+                if h >= n {
+                    clock.waiting(false);
+                    continue;
+                }
+                held = true;
+                (clock.driver() == Driver::Wall)
+                    .then(|| clock.instant_of(h + clock.stall_bound() + 1_000_000))
+            }
+            Some(n) if clock.driver() == Driver::Wall => Some(clock.instant_of(n)),
+            // Stepped: the next step (the clock tells its listeners).
+            _ => None,
         };
-        if r == Err(true) {
+        // Without a deadline it still looks again now and then: the bus may be gone.
+        let deadline = deadline
+            .unwrap_or_else(|| std::time::Instant::now() + std::time::Duration::from_secs(1));
+        let r = kicked.recv_deadline(deadline);
+        if held {
+            clock.waiting(false);
+        }
+        if matches!(r, Err(crossbeam_channel::RecvTimeoutError::Disconnected)) {
             return;
         }
     }
@@ -522,6 +682,24 @@ impl MemBus {
             core: BusCore::create(pacing, Arc::new(AtomicU64::new(0))),
             queue_len: DEFAULT_QUEUE_LEN,
         }
+    }
+
+    /// A new bus paced at `kbps` on `clock`: a stepped clock a co-simulation master moves on,
+    /// or a clock shared with other buses (docs/CLOCK.md).
+    pub fn with_clock(kbps: u32, clock: SimClock) -> Self {
+        MemBus {
+            core: BusCore::create_with_clock(
+                Pacing::Paced(kbps),
+                Arc::new(AtomicU64::new(0)),
+                clock,
+            ),
+            queue_len: DEFAULT_QUEUE_LEN,
+        }
+    }
+
+    /// The simulation clock of a paced bus (`None`: an instant bus).
+    pub fn clock(&self) -> Option<SimClock> {
+        self.core.pacer.as_ref().map(|p| p.clock.clone())
     }
 
     /// Today's instant bus: every frame delivered at once, no bit time, no limit (benchmarks).
@@ -726,6 +904,21 @@ impl Transport for MemPort {
         self.core.disturb(Some(self.id), d)
     }
 
+    fn join_clock(&mut self) -> Option<Horizon> {
+        self.core.join_clock(self.id)
+    }
+
+    fn sync_bus(&self) {
+        self.core.sync();
+    }
+
+    /// Delivers every frame still (an in-process bus does not filter); only the frames with
+    /// these identifiers hold a timed participant's clock (docs/CLOCK.md).
+    fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+        self.core.set_hold_filter(self.id, std_ids);
+        Ok(false)
+    }
+
     fn describe(&self) -> String {
         format!("in-process bus port {}", self.id)
     }
@@ -904,6 +1097,80 @@ mod tests {
             .unwrap();
         assert_eq!(f.frame.id(), 0x181);
         assert!(a.bus_stats().unwrap().controller.unwrap().tx_errors >= 1);
+    }
+
+    /// The bus waits for a timed participant that is behind, but not forever: one that never
+    /// moves (deadlocked, stopped) holds it no longer than the clock's stall bound, then the
+    /// others' frames flow again, late by about that bound.
+    #[test]
+    fn a_stopped_participant_holds_the_bus_no_longer_than_the_stall_bound() {
+        let bound = Duration::from_millis(100);
+        let bus = MemBus::with_clock(1000, SimClock::wall_with_stall_bound(bound));
+        let mut stuck = bus.attach();
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        // Before the horizon is taken: it stands at the clock's time then, at or after this.
+        let sent = std::time::Instant::now();
+        let _horizon = stuck.join_clock().expect("a paced bus has a clock");
+        a.send(&f(1)).unwrap();
+        let got = b
+            .recv_timeout(Some(Duration::from_secs(10)))
+            .unwrap()
+            .expect("delivered once the stopped participant stopped holding");
+        assert_eq!(got.frame, f(1));
+        // Held while the stuck horizon was within the bound (a lower bound only: the machine
+        // may be late, never early).
+        assert!(sent.elapsed() >= bound, "{:?}", sent.elapsed());
+        // Stale, it holds nothing: the next frame goes through at once (generous bound).
+        let sent = std::time::Instant::now();
+        a.send(&f(2)).unwrap();
+        assert_eq!(
+            b.recv_timeout(Some(Duration::from_secs(10)))
+                .unwrap()
+                .unwrap()
+                .frame,
+            f(2)
+        );
+        assert!(sent.elapsed() < Duration::from_secs(5));
+        // The stuck one got both (its queue holds them; it never took them).
+        assert_eq!(stuck.try_recv().unwrap().unwrap().frame, f(1));
+    }
+
+    /// A frame delivered to a timed participant holds the clock at its end of frame until the
+    /// participant takes it: its answer, stamped at that time, still goes out before anything
+    /// submitted later (stepped clock: deterministic).
+    #[test]
+    fn a_delivered_frame_holds_the_clock_until_taken() {
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(1000, clock.clone());
+        let mut rt = bus.attach();
+        let h = rt.join_clock().unwrap();
+        h.set(u64::MAX);
+        let mut master = bus.attach();
+        master.send(&f(0x601)).unwrap();
+        clock.step_to(1_000_000).unwrap();
+        rt.sync_bus();
+        let rx = rt
+            .try_recv()
+            .unwrap()
+            .expect("delivered at its end of frame");
+        let end = clock.nanos_of(rx.timestamp).unwrap();
+        assert!(end < 1_000_000);
+        assert_eq!(clock.now(), end, "held at the frame until taken");
+        // The answer at the frame's own time, then taken: the bus goes on.
+        h.set(end);
+        rt.send(&f(0x581)).unwrap();
+        h.taken(end);
+        h.set(u64::MAX);
+        master.sync_bus();
+        let answer = master.try_recv().unwrap().expect("the answer");
+        let bits = u64::from(crate::bus::bits::frame_length(&answer.frame).total);
+        // Ready at `end`, it starts after the intermission (3 bits) and lasts its bits less
+        // the intermission: end of frame = end + bits × 1 µs.
+        assert_eq!(
+            clock.nanos_of(answer.timestamp).unwrap(),
+            end + bits * 1_000
+        );
     }
 
     #[test]

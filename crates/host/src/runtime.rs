@@ -45,6 +45,7 @@ use canpos_sim::{Faults, Sensor, SensorSpec};
 use crossbeam_channel::{Receiver, Select, Sender};
 use serde_json::{json, Value};
 
+use crate::clock::{Driver, Horizon, SimClock};
 use crate::control::{Fault, Request};
 use crate::file_storage::FileStorage;
 use crate::timing::{DeviceTiming, Jitter};
@@ -141,6 +142,9 @@ struct SimDevice {
     seen: Option<crate::bus::MemberStats>,
     /// While its transmit queue overflows: when the overflow reaction ends.
     overflow_until: Option<Instant>,
+    /// Measurement cycles never run because the runtime was stopped longer than the clock's
+    /// stall bound ([`crate::clock::STALL_BOUND`]); shorter stalls skip none.
+    cycles_skipped: u64,
     /// No further collision report before then.
     collision_quiet_until: Option<Instant>,
 }
@@ -176,6 +180,7 @@ impl SimDevice {
             seen: None,
             overflow_until: None,
             collision_quiet_until: None,
+            cycles_skipped: 0,
         }
     }
 
@@ -247,16 +252,9 @@ impl SimDevice {
         .min()
     }
 
-    /// Runs every measurement cycle due at `now` (only called while powered).
-    /// Runs the measurement cycles due at `now`; returns how many were skipped after a stall.
-    fn run_cycles(&mut self, now: Instant) -> u64 {
-        // After a long stall (suspend, debugger) skip ahead instead of bursting.
-        let mut missed = 0;
-        if now.micros() > self.next_cycle.micros() + 100 * self.cycle_us {
-            missed = (now.micros() - self.next_cycle.micros()) / self.cycle_us;
-            self.next_cycle =
-                Instant::from_micros(self.next_cycle.micros() + missed * self.cycle_us);
-        }
+    /// Runs the measurement cycles due at `now` (only called while powered). The runtime calls
+    /// it at each cycle's own time, in order, however late the host is (docs/CLOCK.md).
+    fn run_cycles(&mut self, now: Instant) {
         while self.next_cycle <= now {
             let at = self.next_cycle;
             let t_s = at.micros().saturating_sub(self.t0.micros()) as f64 / 1e6;
@@ -275,6 +273,17 @@ impl SimDevice {
             self.sync_temperature();
             self.next_cycle = Instant::from_micros(at.micros() + self.cycle_us);
         }
+    }
+
+    /// Skips the cycles before `now` (the runtime was stopped past the stall bound); returns
+    /// how many.
+    fn skip_cycles(&mut self, now: Instant) -> u64 {
+        if self.next_cycle >= now {
+            return 0;
+        }
+        let missed = (now.micros() - self.next_cycle.micros()) / self.cycle_us;
+        self.next_cycle = Instant::from_micros(self.next_cycle.micros() + missed * self.cycle_us);
+        self.cycles_skipped += missed;
         missed
     }
 
@@ -324,6 +333,8 @@ pub struct Lateness {
     pub over_50us: u64,
     /// Wake-ups later than 200 µs.
     pub over_200us: u64,
+    /// Later than 1 ms.
+    pub over_1ms: u64,
 }
 
 impl Default for Lateness {
@@ -335,6 +346,7 @@ impl Default for Lateness {
             max_us: 0,
             over_50us: 0,
             over_200us: 0,
+            over_1ms: 0,
         }
     }
 }
@@ -347,6 +359,7 @@ impl Lateness {
         self.max_us = self.max_us.max(us);
         self.over_50us += u64::from(us > 50);
         self.over_200us += u64::from(us > 200);
+        self.over_1ms += u64::from(us > 1000);
     }
 
     /// The lateness (µs) that fraction `q` (0…1) of the wake-ups did not exceed; capped at
@@ -425,7 +438,24 @@ pub struct Runtime {
     transport: Box<dyn Transport>,
     devices: Vec<SimDevice>,
     powered: Vec<bool>,
-    epoch: std::time::Instant,
+    /// The simulation clock: the bus's when the transport has one (an in-process bus), else
+    /// a wall clock of the runtime's own (docs/CLOCK.md).
+    clock: SimClock,
+    /// This runtime's horizon on the bus's clock (`None`: the clock is the runtime's own).
+    horizon: Option<Horizon>,
+    /// The simulation time the runtime has processed every event up to.
+    reached: Instant,
+    /// A received frame stamped later than the time being processed, kept for its time.
+    stash: Option<crate::transport::RxFrame>,
+    /// Frames were received since the transport was last looked at (receive filter).
+    received: bool,
+    /// When the sensors' own controllers are looked at next (every [`CONTROLLER_POLL_US`],
+    /// not at every event: each look runs the bus and reads its counters).
+    next_controller_look: Instant,
+    /// How late (wall − simulation time) own events were processed (wall-driven clocks).
+    events_late: Lateness,
+    /// How late (wall − end of frame) received frames were handled (wall-driven clocks).
+    frames_late: Lateness,
     bus_bitrate: Option<u16>,
     rx: Receiver<Msg>,
     tx: Sender<Msg>,
@@ -525,16 +555,36 @@ impl Runtime {
     /// A runtime on `transport`. `bus_bitrate_kbps` overrides the transport's own notion of the
     /// bus bit rate (a socketcand bus has none): nodes configured for another bit rate fall
     /// silent (SPEC §9).
-    pub fn new(transport: Box<dyn Transport>, bus_bitrate_kbps: Option<u32>) -> Runtime {
+    ///
+    /// On a transport with a simulation clock (an in-process bus, a hub channel in this
+    /// process) the runtime joins that clock as a timed participant; elsewhere it keeps a wall
+    /// clock of its own (docs/CLOCK.md).
+    pub fn new(mut transport: Box<dyn Transport>, bus_bitrate_kbps: Option<u32>) -> Runtime {
         let (tx, rx) = crossbeam_channel::bounded(64);
         let bus_bitrate = bus_bitrate_kbps
             .or_else(|| transport.bus_bitrate())
             .map(|b| b.min(u32::from(u16::MAX)) as u16);
+        let horizon = transport.join_clock();
+        // Holding nothing until it runs (power-on sets it to the runtime's time).
+        if let Some(h) = &horizon {
+            h.set(u64::MAX);
+        }
+        let clock = horizon
+            .as_ref()
+            .map_or_else(SimClock::wall, |h| h.clock().clone());
+        let reached = Instant::from_micros(clock.limit() / 1000);
         Runtime {
             transport,
             devices: Vec::new(),
             powered: Vec::new(),
-            epoch: std::time::Instant::now(),
+            clock,
+            horizon,
+            reached,
+            stash: None,
+            received: false,
+            next_controller_look: reached,
+            events_late: Lateness::default(),
+            frames_late: Lateness::default(),
             bus_bitrate,
             rx,
             tx,
@@ -555,13 +605,40 @@ impl Runtime {
         self.kernel_filter = on;
     }
 
-    /// The core's clock: µs since the runtime was created.
+    /// The limit of the simulation clock in the core's µs (since the clock's epoch): the wall
+    /// time elapsed, or a stepped clock's target. The runtime processes its events up to it.
     pub fn now(&self) -> Instant {
-        Instant::from_micros(self.epoch.elapsed().as_micros() as u64)
+        Instant::from_micros(self.clock.limit() / 1000)
+    }
+
+    /// The simulation clock the runtime runs on.
+    pub fn clock(&self) -> &SimClock {
+        &self.clock
+    }
+
+    /// The simulation time up to which every event was processed.
+    pub fn reached(&self) -> Instant {
+        self.reached
     }
 
     fn to_std(&self, t: Instant) -> std::time::Instant {
-        self.epoch + Duration::from_micros(t.micros())
+        self.clock.instant_of(t.micros().saturating_mul(1000))
+    }
+
+    /// Sets the horizon (ns): the time of what the runtime sends now, and nothing earlier.
+    fn hold_at(&self, ns: u64) {
+        if let Some(h) = &self.horizon {
+            h.set(ns);
+        }
+    }
+
+    /// The horizon while waiting: the next own deadline (frames delivered meanwhile hold the
+    /// bus at their own times).
+    fn hold_next(&self) {
+        let next = self.deadline().map_or(u64::MAX, |t| {
+            t.max(self.reached).micros().saturating_mul(1000)
+        });
+        self.hold_at(next);
     }
 
     /// Adds a sensor (powered off until [`Runtime::power_on_all`] or the start of
@@ -597,12 +674,15 @@ impl Runtime {
 
     /// Powers every sensor on now: each sends its boot-up at once.
     pub fn power_on_all(&mut self) {
-        let now = self.now();
+        let now = self.now().max(self.reached);
+        self.reached = now;
+        self.hold_at(now.micros() * 1000);
         for i in 0..self.devices.len() {
             self.power_on(i, now);
         }
         self.route(now);
         self.started = true;
+        self.hold_next();
     }
 
     /// Powers sensor `i` on: at once, or after its boot delay ([`DeviceTiming::boot_delay`]).
@@ -661,7 +741,11 @@ impl Runtime {
             self.power_on_all();
         }
         let result = self.run_loop();
-        tracing::info!(lateness = %self.lateness, "runtime stopped");
+        // How late the host ran the simulation (its frames kept their times): docs/CLOCK.md.
+        tracing::info!(lateness = %self.lateness, events = self.events_late.count,
+            events_late_max_us = self.events_late.max_us,
+            events_late_over_1ms = self.events_late.over_1ms,
+            frames_late_max_us = self.frames_late.max_us, "runtime stopped");
         result.map(|()| self.lateness)
     }
 
@@ -672,9 +756,10 @@ impl Runtime {
     }
 
     fn run_loop(&mut self) -> io::Result<()> {
+        // A stepped clock's runtime wakes when the clock is stepped.
+        let stepped = (self.clock.driver() == Driver::Stepped).then(|| self.clock.subscribe());
         loop {
-            let now = self.now();
-            self.turn(now)?;
+            self.advance(self.now())?;
             // Control requests.
             loop {
                 match self.rx.try_recv() {
@@ -682,8 +767,8 @@ impl Runtime {
                     Ok(Msg::Request(req, reply)) => {
                         // What was due before the request happens first: a measurement cycle
                         // that began before a magnet moved must not see the new position. The
-                        // request is handled at the time that turn reached, never earlier.
-                        let now = match self.turn(self.now()) {
+                        // request is handled at the time that reached, never earlier.
+                        let now = match self.advance(self.now()) {
                             Ok(now) => now,
                             Err(e) => {
                                 let _ = reply
@@ -691,31 +776,182 @@ impl Runtime {
                                 return Err(e);
                             }
                         };
+                        self.hold_at(now.micros() * 1000);
                         let answer = self.handle_request(req, now);
                         self.route(now);
+                        self.hold_next();
                         let _ = reply.send(answer);
                     }
                     Err(_) => break,
                 }
             }
-            let deadline = self.deadline();
-            self.wait(deadline)?;
+            match &stepped {
+                Some(steps) => {
+                    if self.stash.is_none() {
+                        wait_stepped(self.transport.receiver(), &self.rx, steps);
+                    } else {
+                        wait_stepped(&crossbeam_channel::never(), &self.rx, steps);
+                    }
+                }
+                None => {
+                    let deadline = self.deadline();
+                    // A frame kept for its later time is due then, like a timer.
+                    let deadline = match (&self.stash, deadline) {
+                        (Some(rx), d) => {
+                            let t = self.frame_time(rx);
+                            Some(d.map_or(t, |d| d.min(t)))
+                        }
+                        (None, d) => d,
+                    };
+                    self.wait(deadline)?;
+                }
+            }
         }
     }
 
-    /// One turn: frames in, cycles, timers, frames out. Returns the time the turn reached (each
-    /// received frame is handled at its own time, so later than `now` when frames came in).
-    fn turn(&mut self, mut now: Instant) -> io::Result<Instant> {
-        let mut received = false;
-        while let Some(rx) = self.transport.try_recv()? {
-            received = true;
-            // Each frame at the time it is handled, not the time the turn began: a request that
-            // waited behind others (or behind a slow store) would otherwise be answered early
-            // by its own clock (the D7 store time counts from the request).
-            now = self.now().max(now);
-            self.deliver(&rx.frame, None, now);
-            self.route(now);
+    /// Runs every event up to simulation time `t` on the caller's thread, in time order,
+    /// without sleeping: the co-simulation entry point (FMI `doStep`, SIL Kit; docs/CLOCK.md).
+    /// A stepped clock is moved on to `t` first; powers the sensors on at the first call if
+    /// nobody did. Control requests waiting are answered at `t`. Two runs with the same inputs
+    /// give the same frames at the same times.
+    pub fn advance_to(&mut self, t: Instant) -> io::Result<()> {
+        if self.clock.driver() == Driver::Stepped {
+            self.clock
+                .step_to(t.micros().saturating_mul(1000))
+                .map_err(io::Error::other)?;
         }
+        if !self.started {
+            self.power_on_all();
+        }
+        let now = self.advance(t)?;
+        while let Ok(msg) = self.rx.try_recv() {
+            if let Msg::Request(req, reply) = msg {
+                self.hold_at(now.micros() * 1000);
+                let answer = self.handle_request(req, now);
+                self.route(now);
+                self.hold_next();
+                let _ = reply.send(answer);
+            }
+        }
+        Ok(())
+    }
+
+    /// Processes every event up to `limit` in time order: for each own deadline `e`, the bus
+    /// runs to `e` and the frames it delivered up to then are handled each at its own time,
+    /// then the cycles and timers due at `e` run and what the nodes send is stamped `e`
+    /// (docs/CLOCK.md). Returns the time reached (`limit`, or later if already there).
+    fn advance(&mut self, limit: Instant) -> io::Result<Instant> {
+        let limit = limit.max(self.reached);
+        self.skip_after_long_stall(limit);
+        // The same deadline again and again would be a bug (a timer that does not move on);
+        // bounded so that it cannot hang the runtime.
+        let (mut last, mut repeats) = (None, 0u32);
+        loop {
+            let due = self.deadline().filter(|&e| e <= limit);
+            let step = due.map_or(limit, |e| e.max(self.reached));
+            self.hold_at(step.micros() * 1000);
+            self.take_frames(step)?;
+            let Some(_) = due else { break };
+            if last == Some(step) {
+                repeats += 1;
+                if repeats > 1000 {
+                    tracing::warn!(at = ?step, "a deadline did not move on; the runtime goes on");
+                    break;
+                }
+            } else {
+                (last, repeats) = (Some(step), 0);
+            }
+            self.reached = step;
+            self.hold_at(step.micros() * 1000);
+            if self.clock.driver() == Driver::Wall {
+                let wall = self.clock.wall_elapsed() / 1000;
+                self.events_late.record(wall.saturating_sub(step.micros()));
+            }
+            self.turn(step);
+        }
+        self.reached = limit.max(self.reached);
+        self.hold_next();
+        Ok(self.reached)
+    }
+
+    /// The simulation time of a received frame: its end of frame on a bus with this clock,
+    /// else when it was received (wall clock; a peer's clock ahead of ours counts as now),
+    /// never before the time already reached.
+    fn frame_time(&self, rx: &crate::transport::RxFrame) -> Instant {
+        let ns = self.clock.nanos_of(rx.timestamp).unwrap_or(0);
+        Instant::from_micros(ns / 1000)
+            .min(self.now())
+            .max(self.reached)
+    }
+
+    /// Lets the bus run to `upto` and handles the frames it delivered up to then, each at its
+    /// own time; a later one is kept for its time.
+    fn take_frames(&mut self, upto: Instant) -> io::Result<()> {
+        loop {
+            let rx = match self.stash.take() {
+                Some(rx) => rx,
+                None => {
+                    self.transport.sync_bus();
+                    match self.transport.try_recv()? {
+                        Some(rx) => rx,
+                        None => return Ok(()),
+                    }
+                }
+            };
+            let t = self.frame_time(&rx);
+            if t > upto {
+                self.stash = Some(rx);
+                return Ok(());
+            }
+            self.received = true;
+            let stamp = self.clock.nanos_of(rx.timestamp).unwrap_or(0);
+            if self.clock.driver() == Driver::Wall {
+                let wall = self.clock.wall_elapsed();
+                self.frames_late.record(wall.saturating_sub(stamp) / 1000);
+            }
+            self.reached = t;
+            // An answer leaves at the frame's own time (the bus waits there for it).
+            self.hold_at(stamp.max(t.micros() * 1000));
+            self.deliver(&rx.frame, None, t);
+            self.route(t);
+            if let Some(h) = &self.horizon {
+                h.taken(stamp);
+            }
+            self.hold_at(upto.micros() * 1000);
+        }
+    }
+
+    /// A runtime stopped for longer than the clock's stall bound (a suspended machine, a
+    /// debugger) no longer holds the bus, which went on without it: it does not replay what it
+    /// missed but skips to `limit`, counting the measurement cycles never made.
+    fn skip_after_long_stall(&mut self, limit: Instant) {
+        if self.clock.driver() != Driver::Wall {
+            return;
+        }
+        let bound = self.clock.stall_bound() / 1000;
+        if limit.micros() <= self.reached.micros().saturating_add(bound) {
+            return;
+        }
+        let behind_ms = (limit.micros() - self.reached.micros()) / 1000;
+        let mut missed_max = 0;
+        for i in 0..self.devices.len() {
+            if self.powered[i] {
+                missed_max = missed_max.max(self.devices[i].skip_cycles(limit));
+            }
+        }
+        tracing::warn!(
+            behind_ms,
+            bound_ms = bound / 1000,
+            missed = missed_max,
+            "the runtime was stopped longer than the stall bound: measurement cycles skipped"
+        );
+        self.reached = limit;
+    }
+
+    /// The own events due at `now`: the transport's reports, power-on, the end of stalls,
+    /// measurement cycles and node timers; what the nodes send goes out stamped `now`.
+    fn turn(&mut self, now: Instant) {
+        let received = std::mem::take(&mut self.received);
         self.watch_transport(now, received);
         for i in 0..self.devices.len() {
             let d = &mut self.devices[i];
@@ -729,16 +965,10 @@ impl Runtime {
                 tracing::info!(sensor = %d.name, "stall over");
             }
         }
-        // One warning per stall for the whole runtime, not one per sensor.
-        let (mut stalled, mut missed_max) = (0usize, 0u64);
         for i in 0..self.devices.len() {
             if self.powered[i] {
                 // The node's timers run in `route` (`Node::poll`), after every cycle's values.
-                let missed = self.devices[i].run_cycles(now);
-                if missed > 0 {
-                    stalled += 1;
-                    missed_max = missed_max.max(missed);
-                }
+                self.devices[i].run_cycles(now);
             } else {
                 let d = &mut self.devices[i];
                 while d.next_cycle <= now {
@@ -746,15 +976,7 @@ impl Runtime {
                 }
             }
         }
-        if stalled > 0 {
-            tracing::warn!(
-                sensors = stalled,
-                missed = missed_max,
-                "measurement cycles skipped after a stall (the runtime ran late)"
-            );
-        }
         self.route(now);
-        Ok(now)
     }
 
     /// Hands a frame to every node except `from`.
@@ -817,10 +1039,13 @@ impl Runtime {
             .flatten()
             .chain(self.overrun_until)
             .chain(self.devices.iter().filter_map(|d| d.overflow_until))
-            .chain(self.devices.iter().any(|d| d.port.is_some()).then(|| {
-                // Controller counters are looked at every few ms while sensors have their own.
-                Instant::from_micros(self.now().micros() + CONTROLLER_POLL_US)
-            }))
+            // Controller counters are looked at every few ms while sensors have their own.
+            .chain(
+                self.devices
+                    .iter()
+                    .any(|d| d.port.is_some())
+                    .then_some(self.next_controller_look),
+            )
             .min()
     }
 
@@ -879,9 +1104,24 @@ impl Runtime {
             // The outage's bus-off ended with it; the fresh nodes start error-active.
             self.bus_state = self.transport.bus_state();
         }
-        self.watch_controllers(now);
-        let state = self.transport.bus_state();
-        if state != self.bus_state && self.devices.iter().all(|d| d.port.is_none()) {
+        if now >= self.next_controller_look
+            || self
+                .devices
+                .iter()
+                .any(|d| d.overflow_until.is_some_and(|t| t <= now))
+        {
+            self.watch_controllers(now);
+            self.next_controller_look = Instant::from_micros(now.micros() + CONTROLLER_POLL_US);
+        }
+        // Sensors with their own controllers report through them (above); the transport's
+        // state is only asked for otherwise (on an in-process bus it runs the bus).
+        let shared = self.devices.iter().all(|d| d.port.is_none());
+        let state = if shared {
+            self.transport.bus_state()
+        } else {
+            self.bus_state
+        };
+        if state != self.bus_state && shared {
             let old = std::mem::replace(&mut self.bus_state, state);
             tracing::warn!(from = ?old, to = ?state, "CAN controller state");
             for d in &mut self.devices {
@@ -1139,6 +1379,8 @@ impl Runtime {
             Request::ResetLateness { sensor } => {
                 self.sensor_index(sensor)?;
                 self.lateness = Lateness::default();
+                self.events_late = Lateness::default();
+                self.frames_late = Lateness::default();
                 Ok(json!({"ok": true}))
             }
             Request::Timing {
@@ -1319,6 +1561,31 @@ impl Runtime {
         Ok(())
     }
 
+    /// The `clock` part of a state: the driver, the simulation time reached, and how late
+    /// (wall − simulation time) events and received frames were processed (docs/CLOCK.md).
+    fn clock_json(&self) -> Value {
+        let late = |l: &Lateness| {
+            json!({
+                "median": l.quantile_us(0.5),
+                "p99": l.quantile_us(0.99),
+                "mean": (l.mean_us() * 10.0).round() / 10.0,
+                "max": l.max_us,
+                "count": l.count,
+                "over_1ms": l.over_1ms,
+            })
+        };
+        let wall = self.clock.driver() == Driver::Wall;
+        json!({
+            "driver": if wall { "wall" } else { "stepped" },
+            "shared_with_bus": self.horizon.is_some(),
+            "sim_time_us": self.reached.micros(),
+            // How far the simulation is behind the wall clock right now.
+            "behind_us": wall.then(|| (self.clock.wall_elapsed() / 1000).saturating_sub(self.reached.micros())),
+            "events_late_us": late(&self.events_late),
+            "frames_late_us": late(&self.frames_late),
+        })
+    }
+
     /// The `state` answer of sensor `i`.
     fn state(&mut self, i: usize) -> Value {
         // The transport's view (a socketcand server away = bus-off), beside the injected fault.
@@ -1327,6 +1594,7 @@ impl Runtime {
         let powered = self.powered[i];
         let bus = self.bus_bitrate;
         let lateness = self.lateness;
+        let clock = self.clock_json();
         let names = self.fault_names(i);
         let d = &mut self.devices[i];
         let dev = d.node.device();
@@ -1433,6 +1701,9 @@ impl Runtime {
                 "max": lateness.max_us,
                 "count": lateness.count,
             },
+            // Measurements never made: only after a stop longer than the stall bound.
+            "cycles_skipped": d.cycles_skipped,
+            "clock": clock,
         });
         v["bus_state"] = json!(match bus_state {
             BusState::ErrorActive => "error-active",
@@ -1479,6 +1750,21 @@ pub fn bus_json(s: Option<&BusStats>) -> Value {
         "rx_dropped": s.rx_dropped,
         "controller": ctl,
     })
+}
+
+/// Waits for a received frame, a message or a step of a stepped clock.
+fn wait_stepped<T>(
+    frames: &Receiver<crate::transport::RxFrame>,
+    msgs: &Receiver<T>,
+    steps: &Receiver<()>,
+) {
+    let mut sel = Select::new();
+    sel.recv(frames);
+    sel.recv(msgs);
+    sel.recv(steps);
+    // Readiness only: the loop takes frames and messages itself.
+    let _ = sel.ready();
+    let _ = steps.try_recv();
 }
 
 /// Waits for a received frame on `frames`, a message on `msgs`, or the absolute `target`: the
@@ -1885,6 +2171,280 @@ mod tests {
         let late = h.stop().unwrap();
         eprintln!("TPDOs in 1 s: {n}; {late}");
         assert!((700..=1300).contains(&n), "{n} TPDOs in 1 s");
+    }
+
+    /// A real [`MemPort`](crate::mem::MemPort) whose owner's thread blocks in its next
+    /// `try_recv` for as long as the test asks: the runtime thread stalls as under a busy host.
+    struct Stalling {
+        port: crate::mem::MemPort,
+        stall_ms: Arc<std::sync::atomic::AtomicU64>,
+    }
+
+    impl Transport for Stalling {
+        fn send(&mut self, frame: &Frame) -> io::Result<()> {
+            self.port.send(frame)
+        }
+        fn try_recv(&mut self) -> io::Result<Option<crate::transport::RxFrame>> {
+            let ms = self.stall_ms.swap(0, Ordering::SeqCst);
+            if ms > 0 {
+                std::thread::sleep(Duration::from_millis(ms));
+            }
+            self.port.try_recv()
+        }
+        fn receiver(&self) -> &Receiver<crate::transport::RxFrame> {
+            self.port.receiver()
+        }
+        fn bus_bitrate(&self) -> Option<u32> {
+            self.port.bus_bitrate()
+        }
+        fn dropped(&self) -> u64 {
+            Transport::dropped(&self.port)
+        }
+        fn bus_state(&self) -> BusState {
+            self.port.bus_state()
+        }
+        fn bus_stats(&self) -> Option<BusStats> {
+            self.port.bus_stats()
+        }
+        fn controller(&self) -> Option<Box<dyn Transport>> {
+            self.port.controller()
+        }
+        fn join_clock(&mut self) -> Option<crate::clock::Horizon> {
+            self.port.join_clock()
+        }
+        fn sync_bus(&self) {
+            self.port.sync_bus()
+        }
+        fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
+            self.port.set_rx_filter(std_ids)
+        }
+        fn describe(&self) -> String {
+            self.port.describe()
+        }
+    }
+
+    /// Issue 36 item 1: the runtime thread blocked for 200 ms, 20 times, while its TH sends a
+    /// TPDO every 1 ms. Before, every stall skipped ~200 measurement cycles and TPDO periods
+    /// (a 200 ms hole on the bus) and could overflow queues (EMCY 0x8110). Now every TPDO
+    /// leaves at its own time on the bus timeline (start of frame exactly 1 ms apart), none is
+    /// skipped, no EMCY, and the lateness shows in `state`.
+    #[test]
+    fn a_stalled_runtime_keeps_every_tpdo_at_its_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let bus = MemBus::new().with_queue_len(8192);
+        let mut master = bus.attach();
+        let stall_ms = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let port = Stalling {
+            port: bus.attach(),
+            stall_ms: stall_ms.clone(),
+        };
+        let mut rt = Runtime::new(Box::new(port), None);
+        rt.add(th_setup(dir.path(), 1, 3));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x701, Duration::from_secs(5)).expect("boot-up");
+        // 0x1800/5 event timer = 1 ms, then NMT start.
+        master
+            .send(&Frame::new(0x601, &[0x2B, 0x00, 0x18, 0x05, 1, 0, 0, 0]).unwrap())
+            .unwrap();
+        let r = recv_id(&mut master, 0x581, Duration::from_secs(5)).expect("SDO answer");
+        assert_eq!(r.data()[0], 0x60, "{r:?}");
+        master.send(&Frame::new(0, &[0x01, 1]).unwrap()).unwrap();
+        recv_id(&mut master, 0x181, Duration::from_secs(5)).expect("first TPDO");
+        let mut tpdos = Vec::new();
+        let mut emcys = Vec::new();
+        let mut take = |master: &mut crate::mem::MemPort, until: std::time::Instant| {
+            while let Ok(Some(rx)) = master.recv_deadline(until) {
+                match rx.frame.std_id() {
+                    Some(0x181) => tpdos.push(rx),
+                    Some(0x081) => emcys.push(rx.frame),
+                    _ => {}
+                }
+            }
+        };
+        for _ in 0..20 {
+            stall_ms.store(200, Ordering::SeqCst);
+            take(
+                &mut master,
+                std::time::Instant::now() + Duration::from_millis(300),
+            );
+        }
+        // The runtime answers once it has caught up with the wall clock (it processes what was
+        // due first); then the bus delivers the rest (the queue holds 8192 frames meanwhile).
+        let st = h.control().request(Request::State { sensor: None });
+        assert_eq!(st["ok"], true, "{st}");
+        take(
+            &mut master,
+            std::time::Instant::now() + Duration::from_millis(200),
+        );
+        h.stop().unwrap();
+        eprintln!(
+            "{} TPDOs, {} EMCYs; clock {}; skipped {}, tpdo_missed {}",
+            tpdos.len(),
+            emcys.len(),
+            st["clock"],
+            st["cycles_skipped"],
+            st["tpdo_missed"]
+        );
+
+        assert!(
+            !emcys.iter().any(|f| f.data()[..2] == [0x10, 0x81]),
+            "EMCY 0x8110 after a host stall: {emcys:?}"
+        );
+        // 20 stalls of 200 ms and the time between them: at least 5 s of TPDOs.
+        assert!(tpdos.len() > 5_000, "{} TPDOs", tpdos.len());
+        // Start of frame = end of frame − the frame's bits (intermission excluded) at 1 µs a
+        // bit: exactly the 1 ms schedule, the bus being idle at each due time.
+        let bit_ns = 1_000u64;
+        let t0 = tpdos[0].timestamp - Duration::from_millis(1);
+        let start = |rx: &crate::transport::RxFrame| {
+            let end = rx.timestamp.duration_since(t0).unwrap().as_nanos() as u64;
+            let bits = u64::from(crate::bus::bits::frame_length(&rx.frame).total)
+                - u64::from(crate::bus::bits::INTERMISSION_BITS);
+            end - bits * bit_ns
+        };
+        let bad: Vec<(usize, i64)> = tpdos
+            .windows(2)
+            .enumerate()
+            .map(|(i, w)| (i, start(&w[1]) as i64 - start(&w[0]) as i64))
+            .filter(|&(_, d)| d != 1_000_000)
+            .collect();
+        assert!(
+            bad.is_empty(),
+            "{} of {} TPDO periods are not 1 ms on the bus timeline: {:?}",
+            bad.len(),
+            tpdos.len() - 1,
+            &bad[..bad.len().min(10)]
+        );
+        assert_eq!(st["cycles_skipped"], 0, "{st}");
+        assert_eq!(st["tpdo_missed"], 0, "{st}");
+        assert_eq!(st["bus"]["controller"]["lost_overflow"], 0, "{st}");
+        assert_eq!(st["bus"]["rx_dropped"], 0, "{st}");
+        // Each stall shows as lateness: events processed up to 200 ms after their time.
+        let late = &st["clock"]["events_late_us"];
+        assert!(late["max"].as_u64().unwrap() >= 150_000, "{st}");
+        assert!(late["over_1ms"].as_u64().unwrap() >= 20, "{st}");
+        assert!(
+            st["clock"]["frames_late_us"]["count"].as_u64().unwrap() >= 2,
+            "{st}"
+        );
+        assert_eq!(st["clock"]["driver"], "wall", "{st}");
+    }
+
+    /// Past the stall bound the runtime no longer holds the bus, and when it comes back it
+    /// skips to the wall clock instead of replaying what it missed (counted in
+    /// `cycles_skipped`): a suspended machine does not flood the bus with its past.
+    #[test]
+    fn a_stall_past_the_bound_skips_ahead_and_counts_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let clock = SimClock::wall_with_stall_bound(Duration::from_millis(100));
+        let bus = MemBus::with_clock(1000, clock);
+        let mut master = bus.attach();
+        let stall_ms = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let port = Stalling {
+            port: bus.attach(),
+            stall_ms: stall_ms.clone(),
+        };
+        let mut rt = Runtime::new(Box::new(port), None);
+        rt.add(th_setup(dir.path(), 1, 7));
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x701, Duration::from_secs(5)).expect("boot-up");
+        stall_ms.store(400, Ordering::SeqCst);
+        // The bus goes on for the others while the runtime is stopped past the bound.
+        std::thread::sleep(Duration::from_millis(250));
+        let sent = std::time::Instant::now();
+        let mut other = bus.attach();
+        master.send(&Frame::new(0x123, &[1]).unwrap()).unwrap();
+        recv_id(&mut other, 0x123, Duration::from_secs(5)).expect("the bus is not frozen");
+        assert!(sent.elapsed() < Duration::from_secs(5));
+        let st = state_when(&h.control(), |st| st["cycles_skipped"].as_u64() > Some(0));
+        h.stop().unwrap();
+        let skipped = st["cycles_skipped"].as_u64().unwrap();
+        // About 400 ms of 1 ms cycles, less what it ran before the bound was passed.
+        assert!((100..=1000).contains(&skipped), "{st}");
+    }
+
+    /// One stepped run: a TH with noise and a moving magnet, set to a 1 ms event timer and
+    /// started by a master, stepped by 500 µs for 150 ms; every frame the master saw, with its
+    /// end of frame in ns.
+    fn stepped_run() -> Vec<(u32, Vec<u8>, u64)> {
+        let dir = tempfile::tempdir().unwrap();
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(250, clock.clone());
+        let mut master = bus.attach();
+        let mut rt = Runtime::new(Box::new(bus.attach()), None);
+        let mut s = th_setup(dir.path(), 1, 3);
+        s.ideal = false;
+        s.seed = 42;
+        s.motion = Box::new(Profiles(vec![Profile::Sine {
+            center_mm: 400.0,
+            amplitude_mm: 100.0,
+            period_s: 0.05,
+            phase_deg: 0.0,
+        }]));
+        rt.add(s);
+        rt.set_timing(
+            0,
+            DeviceTiming {
+                sdo_delay: Duration::from_micros(700),
+                sdo_jitter: Duration::from_micros(300),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let mut log = Vec::new();
+        for k in 0..=300u64 {
+            match k {
+                10 => master
+                    .send(&Frame::new(0x601, &[0x2B, 0x00, 0x18, 0x05, 1, 0, 0, 0]).unwrap())
+                    .unwrap(),
+                20 => master.send(&Frame::new(0, &[0x01, 1]).unwrap()).unwrap(),
+                _ => {}
+            }
+            rt.advance_to(Instant::from_micros(k * 500)).unwrap();
+            // Everything due by the clock reached the master.
+            master.sync_bus();
+            while let Some(rx) = master.try_recv().unwrap() {
+                let id = rx.frame.id();
+                log.push((
+                    id,
+                    rx.frame.data().to_vec(),
+                    clock.nanos_of(rx.timestamp).unwrap(),
+                ));
+            }
+        }
+        assert_eq!(rt.reached(), Instant::from_micros(150_000));
+        log
+    }
+
+    /// The stepped driver (FMI `doStep`, SIL Kit): the same inputs give the same frames at the
+    /// same times, however the host scheduled the bus's thread.
+    #[test]
+    fn stepped_runs_are_identical() {
+        let a = stepped_run();
+        let b = stepped_run();
+        let tpdos = a.iter().filter(|f| f.0 == 0x181).count();
+        // 1 ms event timer from ~10 ms on: well over 100 TPDOs, and the SDO answer.
+        assert!(tpdos > 100, "{tpdos} TPDOs: {a:?}");
+        assert!(a.iter().any(|f| f.0 == 0x581), "{a:?}");
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(&b) {
+            assert_eq!(x, y);
+        }
+        // TPDO starts 1 ms apart on a bus at 250 kbit/s (4 µs a bit).
+        let starts: Vec<u64> = a
+            .iter()
+            .filter(|f| f.0 == 0x181)
+            .map(|(id, data, end)| {
+                let f = Frame::new(*id as u16, data).unwrap();
+                end - (u64::from(crate::bus::bits::frame_length(&f).total)
+                    - u64::from(crate::bus::bits::INTERMISSION_BITS))
+                    * 4_000
+            })
+            .collect();
+        assert!(
+            starts.windows(2).all(|w| w[1] - w[0] == 1_000_000),
+            "{starts:?}"
+        );
     }
 
     /// Polls the state of sensor 0 until `pred` holds (bounded; the runtime answers between

@@ -230,6 +230,20 @@ pub trait Transport: Send {
         Ok(false)
     }
 
+    /// Joins the bus's simulation clock as a timed participant (docs/CLOCK.md): the bus runs
+    /// no further than the returned horizon, stamps this transport's frames (and those of its
+    /// [`controller`](Transport::controller)s) with it, and waits at each frame it delivered
+    /// here until [`Horizon::taken`](crate::clock::Horizon::taken). `None` where the bus has no
+    /// simulation clock (a SocketCAN interface, a TCP connection: their time is the wall
+    /// clock's).
+    fn join_clock(&mut self) -> Option<crate::clock::Horizon> {
+        None
+    }
+
+    /// Runs an in-process bus to its clock's time on the caller's thread, delivering what is
+    /// due (a timed participant does this before it takes its frames); nothing elsewhere.
+    fn sync_bus(&self) {}
+
     /// A short description for logs, e.g. the URL.
     fn describe(&self) -> String;
 }
@@ -282,6 +296,12 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn disturb(&self, d: Disturbance) -> Result<(), String> {
         (**self).disturb(d)
+    }
+    fn join_clock(&mut self) -> Option<crate::clock::Horizon> {
+        (**self).join_clock()
+    }
+    fn sync_bus(&self) {
+        (**self).sync_bus()
     }
     fn describe(&self) -> String {
         (**self).describe()

@@ -232,7 +232,9 @@ function update(s) {
     const ctl = $(".controls", sec);
     ctl.hidden = !n.control;
     if (n.control) {
-      const bus = [n.control.bus_off ? "bus-off" : null, n.control.bus_state ? `CAN ${JSON.stringify(n.control.bus_state)}` : null].filter(Boolean);
+      const late = n.control.clock && n.control.clock.events_late_us;
+      const bus = [n.control.bus_off ? "bus-off" : null, n.control.bus_state ? `CAN ${JSON.stringify(n.control.bus_state)}` : null,
+        late && late.max > 1000 ? `host late: max ${(late.max / 1000).toFixed(1)} ms (frames kept their times)` : null].filter(Boolean);
       $(".faults", ctl).textContent = (bus.length ? `${bus.join(", ")} · ` : "") + `faults on: ${(n.control.faults || []).map((f) => (typeof f === "string" ? f : JSON.stringify(f))).join(", ") || "none"}`;
       const slider = $(".magnet", ctl);
       const mm = n.control.true_mm && n.control.true_mm[0];
