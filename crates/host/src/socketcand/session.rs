@@ -26,7 +26,8 @@ pub enum Effect {
     Join(String),
     /// Put this frame on the bus.
     Send(Frame),
-    /// Raw mode began: hold frames back for the hub's hold-back time.
+    /// Raw mode began (its `< ok >` is the last thing written): the hub marks the end of the
+    /// client's read there.
     RawStarted,
     /// The client's controller signalled an error on the bus (an `< error … >` of a bus-error
     /// class: protocol violation, missing ACK, bus error): an error frame goes on the channel's
