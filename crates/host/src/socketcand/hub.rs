@@ -643,6 +643,8 @@ struct Conn {
     /// Bytes not yet written, from `out_pos` on.
     out: Vec<u8>,
     out_pos: usize,
+    /// Frames of this read not yet on the bus: they enter it together ([`Conn::submit`]).
+    sends: Vec<canpos_core::Frame>,
     /// An urgent byte is sent once `out` is written up to here: right after a rawmode
     /// `< ok >` ([`send_urgent`]).
     urgent_at: Option<usize>,
@@ -669,6 +671,19 @@ struct Conn {
 impl Conn {
     fn pending(&self) -> usize {
         self.out.len() - self.out_pos + usize::from(self.urgent_at.is_some())
+    }
+
+    /// Puts the frames the client sent since the last call on the bus together, at one time:
+    /// frames that arrived together (one read of its socket) go out back to back, as a burst
+    /// a host writes to its controller does, without gaps from the hub's own scheduling.
+    fn submit(&mut self) {
+        if self.sends.is_empty() {
+            return;
+        }
+        if let State::Raw { bus, id, .. } = &self.state {
+            bus.transmit_all(*id, &self.sends);
+        }
+        self.sends.clear();
     }
 
     /// Writes what waits, without blocking.
@@ -1056,6 +1071,7 @@ impl EventLoop {
                 decoder: Decoder::new(),
                 out: codec::HI.to_vec(),
                 out_pos: 0,
+                sends: Vec::new(),
                 urgent_at: None,
                 writable: false,
                 sock_full: false,
@@ -1141,6 +1157,8 @@ impl EventLoop {
                 }
             }
         }
+        // What this turn read enters the bus together.
+        c.submit();
         if !drained {
             self.again.push(t);
         }
@@ -1193,9 +1211,7 @@ impl EventLoop {
                 c.out.extend_from_slice(&stat);
             }
             if let State::Raw { bus, id, .. } = &c.state {
-                for f in &frames {
-                    bus.transmit(*id, *f);
-                }
+                bus.transmit_all(*id, &frames);
             }
             let next = c.session.next_deadline();
             self.set_timed(t, next);
@@ -1391,6 +1407,10 @@ fn handle_element(
         tracing::trace!(peer = %c.peer, "unknown command {text:?}");
     }
     for effect in c.session.handle(el, now, &mut c.out, valid_channel) {
+        // The frames before anything else that touches the bus (or the channel) go first.
+        if !matches!(effect, Effect::Send(_)) {
+            c.submit();
+        }
         match effect {
             Effect::Join(ch) => {
                 let bus = shared.channel(&ch);
@@ -1417,9 +1437,9 @@ fn handle_element(
                 };
             }
             Effect::Send(frame) => {
-                if let State::Raw { bus, id, .. } = &c.state {
+                if let State::Raw { .. } = &c.state {
                     shared.frames_in.fetch_add(1, Ordering::Relaxed);
-                    bus.transmit(*id, frame);
+                    c.sends.push(frame);
                 }
             }
             Effect::RawStarted => {
