@@ -676,14 +676,34 @@ impl Conn {
     /// Puts the frames the client sent since the last call on the bus together, at one time:
     /// frames that arrived together (one read of its socket) go out back to back, as a burst
     /// a host writes to its controller does, without gaps from the hub's own scheduling.
-    fn submit(&mut self) {
+    fn submit(&mut self, now: Instant, shared: &Shared, cache: &mut TextCache) {
         if self.sends.is_empty() {
             return;
         }
-        if let State::Raw { bus, id, .. } = &self.state {
-            bus.transmit_all(*id, &self.sends);
-        }
+        let lost = match &self.state {
+            State::Raw { bus, id, .. } => bus.transmit_all(*id, &self.sends),
+            State::Opening => 0,
+        };
         self.sends.clear();
+        self.tx_overflow(lost, now, shared, cache);
+    }
+
+    /// Its transmit queue on the bus lost `lost` frames (full, the bus busier than it can
+    /// take): a client that takes bus errors is told with a controller-problem error frame
+    /// with the TX-overflow bit, as SocketCAN reports an overflow to a host, so that a sensor
+    /// behind the hub reacts as on the wire (issue 36 item 7). One report per submission.
+    fn tx_overflow(&mut self, lost: usize, now: Instant, shared: &Shared, cache: &mut TextCache) {
+        let all = shared.config.error_frames;
+        if lost == 0 || !self.session.takes_errors(all) {
+            return;
+        }
+        // The frames the bus delivered before go out before it.
+        self.fill(now, shared, cache);
+        if self.pending() >= shared.config.out_limit {
+            return;
+        }
+        let e = codec::ErrorFrame::tx_overflow(std::time::SystemTime::now());
+        self.session.error_frame(&e, all, &mut self.out);
     }
 
     /// Writes what waits, without blocking.
@@ -1158,7 +1178,7 @@ impl EventLoop {
             }
         }
         // What this turn read enters the bus together.
-        c.submit();
+        c.submit(now, &self.shared, &mut self.cache);
         if !drained {
             self.again.push(t);
         }
@@ -1210,9 +1230,11 @@ impl EventLoop {
             if c.pending() < self.shared.config.out_limit {
                 c.out.extend_from_slice(&stat);
             }
-            if let State::Raw { bus, id, .. } = &c.state {
-                bus.transmit_all(*id, &frames);
-            }
+            let lost = match &c.state {
+                State::Raw { bus, id, .. } => bus.transmit_all(*id, &frames),
+                State::Opening => 0,
+            };
+            c.tx_overflow(lost, now, &self.shared, &mut self.cache);
             let next = c.session.next_deadline();
             self.set_timed(t, next);
             touched.push(t);
@@ -1409,7 +1431,7 @@ fn handle_element(
     for effect in c.session.handle(el, now, &mut c.out, valid_channel) {
         // The frames before anything else that touches the bus (or the channel) go first.
         if !matches!(effect, Effect::Send(_)) {
-            c.submit();
+            c.submit(now, shared, cache);
         }
         match effect {
             Effect::Join(ch) => {
@@ -1440,6 +1462,11 @@ fn handle_element(
                 if let State::Raw { .. } = &c.state {
                     shared.frames_in.fetch_add(1, Ordering::Relaxed);
                     c.sends.push(frame);
+                }
+            }
+            Effect::TxOrder(order) => {
+                if let State::Raw { bus, id, .. } = &c.state {
+                    bus.set_tx_order(*id, order);
                 }
             }
             Effect::RawStarted => {

@@ -26,6 +26,8 @@ pub enum Effect {
     Join(String),
     /// Put this frame on the bus.
     Send(Frame),
+    /// The client's transmit queue on the bus goes out in this order from now on.
+    TxOrder(crate::bus::TxOrder),
     /// Raw mode began (its `< ok >` is the last thing written): the hub marks the end of the
     /// client's read there.
     RawStarted,
@@ -133,6 +135,10 @@ impl Session {
             (Element::ErrorsOption(on), Some(_)) => {
                 self.errors = on;
                 out.extend_from_slice(codec::OK);
+            }
+            (Element::TxOrderOption(order), Some(_)) => {
+                out.extend_from_slice(codec::OK);
+                fx.push(Effect::TxOrder(order));
             }
             (Element::ErrorFrame(e), Some(Mode::Raw | Mode::Bcm)) if self.errors => {
                 // Only what is seen on the wire is the bus's business; a report of the client's
