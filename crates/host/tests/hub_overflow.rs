@@ -115,3 +115,59 @@ fn the_canpos_client_counts_the_overflows_of_its_queue() {
         std::thread::sleep(Duration::from_millis(5));
     }
 }
+
+/// End to end: a TH runtime behind the hub (its own socketcand transport, not an in-process
+/// controller) at 1 ms TPDOs on a 10 kbit/s bus loses frames in its queue in the hub and reacts
+/// as its model says: EMCY 0x8110, which overtakes its queued TPDOs.
+#[test]
+fn a_sensor_behind_the_hub_sends_its_overflow_emcy() {
+    use canpos_host::runtime::{Runtime, SensorSetup};
+    use canpos_host::transport::HubPolicy;
+    use canpos_host::FileStorage;
+    use canpos_sim::motion::{Profile, Profiles};
+    use canpos_sim::SensorSpec;
+
+    let dir = tempfile::tempdir().unwrap();
+    let h = slow_hub();
+    let url = format!("socketcand://{}/can0", h.local_addr());
+    let (t, embedded) = canpos_host::open_device_bus(&url, HubPolicy::Never).unwrap();
+    assert!(embedded.is_none());
+    let model = canpos_core::models::by_name("th").unwrap();
+    let mut cfg = model.default_config;
+    cfg.node_id = 9;
+    cfg.serial = 78;
+    let mut rt = Runtime::new(t, None);
+    rt.add(SensorSetup {
+        name: "th-78".into(),
+        model,
+        cfg,
+        spec: SensorSpec::th(f64::from(cfg.stroke_mm), 1).unwrap(),
+        seed: 1,
+        ideal: true,
+        motion: Box::new(Profiles(vec![Profile::Static { pos_mm: 250.0 }])),
+        storage: FileStorage::new(canpos_host::runtime::state_file(dir.path(), "th", 78)),
+    });
+    let mut master = Client::connect(h.local_addr(), "can0").unwrap();
+    let rt = rt.spawn().unwrap();
+    let end = Instant::now() + WAIT;
+    let next = |master: &mut Client, what: &str| {
+        let rx = master.recv_deadline(end).unwrap();
+        rx.unwrap_or_else(|| panic!("no {what}")).frame
+    };
+    while next(&mut master, "boot-up") != Frame::new(0x709, &[0]).unwrap() {}
+    // TPDO1 event timer 1 ms (0x1800:5), then Operational.
+    master
+        .send(&Frame::new(0x609, &[0x2B, 0x00, 0x18, 0x05, 1, 0, 0, 0]).unwrap())
+        .unwrap();
+    while next(&mut master, "SDO answer").std_id() != Some(0x589) {}
+    master
+        .send(&Frame::new(0x000, &[0x01, 9]).unwrap())
+        .unwrap();
+    loop {
+        let f = next(&mut master, "EMCY 0x8110");
+        if f.std_id() == Some(0x89) && f.data()[..2] == [0x10, 0x81] {
+            break;
+        }
+    }
+    rt.stop().unwrap();
+}
