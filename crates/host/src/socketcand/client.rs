@@ -1,5 +1,5 @@
 //! socketcand client transport: connects, performs the raw-mode handshake, asks for canpos's
-//! protocol extensions (`< rtr on >`, `< errors on >`, `< txorder priority >`;
+//! protocol extensions (`< rtr on >`, `< errors on >`, and for a device `< txorder priority >`;
 //! docs/SOCKETCAND.md), then a reader thread turns `< frame ... >` elements into [`RxFrame`]s
 //! and `< error ... >` bus errors into the [`BusState`] and the transmit-queue overflows the
 //! runtime reacts to.
@@ -78,11 +78,33 @@ impl Client {
         Err(last.unwrap_or_else(|| io::Error::new(io::ErrorKind::NotFound, "no address")))
     }
 
-    /// Connects and completes the handshake within `timeout`.
+    /// Connects and completes the handshake within `timeout`. Its frames go on the bus in the
+    /// order sent, as a host's (a master, a replayed log).
     pub fn connect_timeout(
         addr: SocketAddr,
         channel: &str,
         timeout: Duration,
+    ) -> io::Result<Client> {
+        Self::connect_as(addr, channel, timeout, false)
+    }
+
+    /// [`connect_timeout`](Self::connect_timeout) for a device (a sensor's runtime): it also
+    /// asks a canpos hub for `< txorder priority >`, so that its transmit queue on the bus goes
+    /// out most important frame first, as a device's CAN controller sends (its EMCY overtakes
+    /// its queued PDOs).
+    pub fn connect_device_timeout(
+        addr: SocketAddr,
+        channel: &str,
+        timeout: Duration,
+    ) -> io::Result<Client> {
+        Self::connect_as(addr, channel, timeout, true)
+    }
+
+    fn connect_as(
+        addr: SocketAddr,
+        channel: &str,
+        timeout: Duration,
+        device: bool,
     ) -> io::Result<Client> {
         if channel.is_empty()
             || !channel
@@ -129,9 +151,10 @@ impl Client {
             "< ok > to rawmode",
             |e| matches!(e, Element::Ok),
         )?;
-        // A canpos client stands for a device's CAN controller: its transmit queue on the hub's
-        // bus goes out most important frame first, as a microcontroller's transmit buffers do.
-        stream.write_all(b"< rtr on >< errors on >< txorder priority >")?;
+        stream.write_all(b"< rtr on >< errors on >")?;
+        if device {
+            stream.write_all(b"< txorder priority >")?;
+        }
         let ext_deadline = deadline.min(Instant::now() + EXTENSION_TIMEOUT);
         let rtr = extension(&mut stream, &mut decoder, &mut pending, ext_deadline, "rtr")?;
         let errors = extension(
@@ -141,13 +164,14 @@ impl Client {
             ext_deadline,
             "errors",
         )?;
-        let by_priority = extension(
-            &mut stream,
-            &mut decoder,
-            &mut pending,
-            ext_deadline,
-            "txorder",
-        )?;
+        let by_priority = device
+            && extension(
+                &mut stream,
+                &mut decoder,
+                &mut pending,
+                ext_deadline,
+                "txorder",
+            )?;
         tracing::debug!(%addr, rtr, errors, by_priority, "socketcand extensions");
         stream.set_read_timeout(None)?;
 

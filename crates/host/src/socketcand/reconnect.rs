@@ -101,7 +101,7 @@ impl Reconnecting {
 fn connect_any(host: &str, port: u16, channel: &str) -> io::Result<Client> {
     let mut last = None;
     for a in (host, port).to_socket_addrs()? {
-        match Client::connect_timeout(a, channel, CONNECT_TIMEOUT) {
+        match Client::connect_device_timeout(a, channel, CONNECT_TIMEOUT) {
             Ok(c) => return Ok(c),
             Err(e) => last = Some(e),
         }
