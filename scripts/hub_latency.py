@@ -73,7 +73,7 @@ def connect(channel="lat", rcvbuf=None):
         while b">" not in buf:
             buf += s.recv(64)
         buf = buf[buf.index(b">") + 1:]
-    # Anything sent after rawmode ends the hub's hold-back at once.
+    # Its answer says the hub has handled the handshake.
     s.sendall(b"< echo >")
     return s
 

@@ -240,3 +240,53 @@ def test_duplicate_node_id_surfaces_as_a_collision(tmp_path):
     c = state["bus"]["controller"]
     assert c["collisions"] > 0 and c["tx_errors"] > 0, state["bus"]
     assert state["bus"]["error_frames"] > 0, state["bus"]
+
+
+def test_overload_across_bus_serve_reaches_each_sensor_process(tmp_path):
+    """Issue 36 item 7: three TH processes and a TMI, each its own `canpos run`, on
+    `canpos bus serve --bitrate 125`, every TPDO1 at 1 ms. Node 1's TPDO wins every arbitration;
+    the others' transmit queues in the hub overflow, the hub tells each process (a TX-overflow
+    error frame), and each reacts as its model says, as on an in-process bus: the losing THs
+    send EMCY 0x8110, the TMI EMCY 0x6000 1/0/0 ("TPDO1 sending will occur partially"). Before,
+    no process heard of its losses and none of these EMCYs came."""
+    port = free_port()
+    url = f"socketcand://127.0.0.1:{port}/can0"
+    procs = [Proc(["bus", "serve", "--listen", f"127.0.0.1:{port}", "--bitrate", "125"],
+                  tmp_path / "serve.log")]
+    nodes = [(1, "th"), (2, "th"), (3, "th"), (4, "tmi")]
+    emcy = {n: [] for n, _ in nodes}
+    try:
+        wait_port(port)
+        for n, model in nodes:
+            procs.append(Proc(["run", "--model", model, "--node-id", str(n), "--serial",
+                               str(300 + n), "--ideal", "--magnet", "250", "--bus", url,
+                               "--state-dir", str(tmp_path / "state")], tmp_path / f"run-{n}.log"))
+        net = connect(port)
+        try:
+            for n, _ in nodes:
+                net.subscribe(0x80 + n, lambda c, d, t: emcy[c - 0x80].append(bytes(d)))
+                end = time.monotonic() + 10
+                while True:  # the process starts and boots
+                    try:
+                        set_event_timer(net, n, 1)
+                        break
+                    except canopen.SdoCommunicationError:
+                        assert time.monotonic() < end, f"node {n} never answered"
+            net.nmt.state = "OPERATIONAL"
+
+            def seen():
+                th = all(any(d[:2] == b"\x10\x81" for d in emcy[n]) for n in (2, 3))
+                tmi = any(d[:2] == b"\x00\x60" and d[3] == 1 for d in emcy[4])
+                return th and tmi
+
+            end = time.monotonic() + 10
+            while time.monotonic() < end and not seen():
+                time.sleep(0.05)
+        finally:
+            net.disconnect()
+    finally:
+        for p in reversed(procs):
+            p.stop()
+    for n in (2, 3):
+        assert any(d[:2] == b"\x10\x81" for d in emcy[n]), f"node {n}: {emcy[n]}"
+    assert any(d[:2] == b"\x00\x60" and d[3] == 1 for d in emcy[4]), f"TMI: {emcy[4]}"

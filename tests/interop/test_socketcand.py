@@ -3,9 +3,12 @@ client (unchanged behaviour: remote frames reach it as zero-length data frames, 
 extensions), and a client written here from docs/SOCKETCAND.md that opts into remote frames and
 guards a canpos sensor with true RTR frames through the hub."""
 import socket
+import struct
+import threading
 import time
 
 import can
+import canopen
 import pytest
 
 
@@ -196,3 +199,40 @@ def test_canpos_guard_through_the_hub(hub, sensors):
         assert not [m for m in seen if m.is_remote_frame], seen
     finally:
         observer.shutdown()
+
+
+def test_python_canopen_connects_and_reads_at_once(hub, sensors):
+    """Issue 36 item 4: a script that connects and reads at once, 20 times in a row. Each fresh
+    connection first only listens: a TPDO (every 10 ms) arrives within python-canopen's default
+    SDO timeout (0.3 s; the hub used to hold a new client's frames back for up to 500 ms until it
+    spoke); then an SDO read with that default timeout answers."""
+    sensors(model="th", node_id=5)
+    setup = canopen.Network()
+    setup.connect(interface="socketcand", host="127.0.0.1", port=hub, channel="can0")
+    try:
+        node = canopen.RemoteNode(5, canopen.ObjectDictionary())
+        setup.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = 2.0
+        end = time.monotonic() + 10
+        while True:  # the sensor boots
+            try:
+                node.sdo.download(0x1800, 5, struct.pack("<H", 10))
+                break
+            except canopen.SdoCommunicationError:
+                assert time.monotonic() < end, "node 5 never answered"
+        setup.nmt.state = "OPERATIONAL"
+    finally:
+        setup.disconnect()
+    for i in range(20):
+        net = canopen.Network()
+        net.connect(interface="socketcand", host="127.0.0.1", port=hub, channel="can0")
+        try:
+            tpdo = threading.Event()
+            net.subscribe(0x185, lambda *_: tpdo.set())
+            assert tpdo.wait(0.3), f"connection {i}: no TPDO within 0.3 s of connecting"
+            node = canopen.RemoteNode(5, canopen.ObjectDictionary())
+            net.add_node(node)
+            assert node.sdo.RESPONSE_TIMEOUT == 0.3  # python-canopen's default, kept
+            assert node.sdo.upload(0x1000, 0) == bytes.fromhex("96010800"), i
+        finally:
+            net.disconnect()

@@ -384,6 +384,55 @@ impl BusCore {
         let _ = p.kick.try_send(());
     }
 
+    /// Puts `frames` from member `from` on the bus together, as a host hands a burst to its
+    /// controller in one write: paced, all into its transmit queue at one time (a nanosecond
+    /// apart, in order), so that they go out back to back with nothing but their bit times
+    /// between them however late the caller gets to the last one (a hub client's frames of one socket read, issue 36 item 2);
+    /// instant, each to everyone at once. Returns how many frames its full transmit queue lost
+    /// (a new one refused, or an earlier one pushed out by priority).
+    pub(crate) fn transmit_all(&self, from: u64, frames: &[Frame]) -> usize {
+        let Some(p) = &self.pacer else {
+            for f in frames {
+                self.broadcast(from, RxFrame::now(*f));
+            }
+            return 0;
+        };
+        let Some(ctl) = self.ctl_of(from) else {
+            return 0;
+        };
+        let now = p.now();
+        let mut st = lock(&p.state);
+        self.pump(p, &mut st, now);
+        let mut overflow = 0;
+        // Each a nanosecond after the one before: a controller that sends by priority (a
+        // device's: `< txorder priority >`) starts the first one on an idle bus, as it would
+        // the frame its firmware handed it first (a boot-up before the EMCY queued with it);
+        // the others are queued while it is on the wire and still go out back to back.
+        for (i, f) in frames.iter().enumerate() {
+            match st.timeline.submit(ctl, *f, now + i as Nanos) {
+                Ok(crate::bus::timeline::Accepted::Queued) => {}
+                Ok(crate::bus::timeline::Accepted::Evicted(_))
+                | Err(crate::bus::timeline::Rejected::QueueFull) => {
+                    overflow += 1;
+                    self.tx_lost.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(_) => {
+                    self.tx_lost.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+        drop(st);
+        let _ = p.kick.try_send(());
+        overflow
+    }
+
+    /// Member `from`'s transmit queue goes out in `order` from now on (paced buses).
+    pub(crate) fn set_tx_order(&self, from: u64, order: crate::bus::TxOrder) {
+        if let (Some(p), Some(ctl)) = (&self.pacer, self.ctl_of(from)) {
+            lock(&p.state).timeline.set_order(ctl, order);
+        }
+    }
+
     /// Delivers `rx` to every member but `from` (and its group). Never blocks: a full queue
     /// drops the frame for that member only.
     pub(crate) fn broadcast(&self, from: u64, rx: RxFrame) {

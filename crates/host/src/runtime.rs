@@ -1150,13 +1150,18 @@ impl Runtime {
     /// identifier (CAN-ID collision), and its error state (error passive, bus-off, recovery).
     fn watch_controllers(&mut self, now: Instant) {
         use canpos_core::encoder::Fault as Core;
+        // Sensors without their own controller share the transport's (one TCP connection to a
+        // hub): its transmit-queue overflows, as the server reports them (issue 36 item 7).
+        let shared_lost = self.transport.tx_overflows();
         for (i, d) in self.devices.iter_mut().enumerate() {
-            let Some(c) = d
-                .port
-                .as_ref()
-                .and_then(|p| p.bus_stats())
-                .and_then(|s| s.controller)
-            else {
+            let c = match &d.port {
+                Some(p) => p.bus_stats().and_then(|s| s.controller),
+                None => (shared_lost > 0).then(|| crate::bus::MemberStats {
+                    lost_overflow: shared_lost,
+                    ..Default::default()
+                }),
+            };
+            let Some(c) = c else {
                 continue;
             };
             let old = d.seen.unwrap_or_default();

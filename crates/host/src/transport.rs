@@ -176,6 +176,14 @@ pub trait Transport: Send {
         BusState::ErrorActive
     }
 
+    /// Times the server reported frames lost in this transport's own full transmit queue on the
+    /// bus (a canpos hub's TX-overflow error frames: the bus could not take what this process
+    /// sends); the runtime reacts as a sensor's controller does. 0 where the transport cannot
+    /// know ([`Transport::bus_stats`] gives in-process ports their controller's counters).
+    fn tx_overflows(&self) -> u64 {
+        0
+    }
+
     /// Puts a bus error on the bus for its other listeners, where the transport can (a canpos
     /// hub that accepted `< errors on >`: docs/SOCKETCAND.md); `Ok(false)` where it cannot.
     fn send_error_frame(&mut self, e: &crate::socketcand::codec::ErrorFrame) -> io::Result<bool> {
@@ -275,6 +283,9 @@ impl<T: Transport + ?Sized> Transport for Box<T> {
     }
     fn bus_state(&self) -> BusState {
         (**self).bus_state()
+    }
+    fn tx_overflows(&self) -> u64 {
+        (**self).tx_overflows()
     }
     fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
         (**self).set_rx_filter(std_ids)

@@ -92,8 +92,6 @@ fn frames_go_to_others_on_the_same_channel_only() {
     let mut a = raw(h.local_addr(), "can0");
     let mut b = raw(h.local_addr(), "can0");
     let mut other = raw(h.local_addr(), "can1");
-    // Wait out the hold-back so the first frame is not delayed.
-    std::thread::sleep(Duration::from_millis(25));
     a.write_all(b"< send 601 8 40 0 10 0 0 0 0 0 >< send 77F 0  >")
         .unwrap();
     let mut d = Decoder::new();
@@ -124,8 +122,10 @@ fn empty_frames_use_two_spaces_on_the_wire() {
     expect_read(&mut b, b"< frame 080 1795332392.674281  >");
 }
 
+/// The rawmode `< ok >` comes alone in its own read under traffic, even read late (the urgent
+/// byte after it ends the read), and the frames follow without a hold-back.
 #[test]
-fn frames_are_held_back_after_rawmode_ok() {
+fn rawmode_ok_comes_alone_under_traffic() {
     let h = hub();
     let port = h.attach("can0");
     // Traffic on the channel all the time, like a node sending its boot-up and heartbeats.
@@ -138,24 +138,19 @@ fn frames_are_held_back_after_rawmode_ok() {
             std::thread::sleep(Duration::from_micros(500));
         }
     });
-    for _ in 0..3 {
+    for late in [0, 20, 50] {
         let mut s = TcpStream::connect(h.local_addr()).unwrap();
         s.set_read_timeout(Some(WAIT)).unwrap();
         expect_read(&mut s, b"< hi >");
         s.write_all(b"< open can0 >").unwrap();
         expect_read(&mut s, b"< ok >");
         s.write_all(b"< rawmode >").unwrap();
+        std::thread::sleep(Duration::from_millis(late));
         // The ok comes alone, in its own read.
         expect_read(&mut s, b"< ok >");
-        let t0 = Instant::now();
         let mut buf = [0u8; 64];
         let n = s.read(&mut buf).unwrap();
-        assert!(
-            t0.elapsed() >= Duration::from_millis(15),
-            "{:?}",
-            t0.elapsed()
-        );
-        assert!(buf[..n].starts_with(b"< frame 701 "));
+        assert!(buf[..n].starts_with(b"< frame 701 "), "{late} ms");
     }
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     sender.join().unwrap();

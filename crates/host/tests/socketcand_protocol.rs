@@ -7,6 +7,7 @@ use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::time::{Duration, Instant, SystemTime};
 
 use canpos_core::Frame;
+use canpos_host::bus::Pacing;
 use canpos_host::socketcand::codec::ErrorFrame;
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::transport::{BusState, Transport};
@@ -258,7 +259,6 @@ fn timeline_error_frames_reach_clients_that_take_errors() {
     assert_eq!(read_until(&mut s, b">"), "< ok >");
     s.write_all(b"< errors on >").unwrap();
     assert_eq!(read_until(&mut s, b">"), "< ok >");
-    std::thread::sleep(Duration::from_millis(100)); // the raw-mode hold-back
     port.disturb(canpos_host::transport::Disturbance::CorruptedFrames {
         per_million: 1_000_000,
     })
@@ -274,51 +274,58 @@ fn timeline_error_frames_reach_clients_that_take_errors() {
 
 /// After the rawmode `< ok >` the hub holds frames back (python-can reads that `< ok >` with one
 /// `recv` and fails on anything after it) until the client speaks, which proves it read it.
+/// Issue 36 item 4: two raw clients; one that opened a second earlier sends a frame 0.1 s
+/// after the other opened, and the other gets it within 50 ms, on a paced and on an instant
+/// bus (it came about 450 ms late while the hub held frames back after the rawmode `< ok >`
+/// until the client spoke, for at most 500 ms).
 #[test]
-fn frames_wait_after_rawmode_until_the_client_speaks() {
+fn a_fresh_raw_client_gets_frames_at_once() {
+    for pacing in [Pacing::Paced(1000), Pacing::Instant] {
+        let h = hub_with(HubConfig {
+            pacing,
+            ..HubConfig::default()
+        });
+        let raw = |s: &mut TcpStream| {
+            s.write_all(b"< rawmode >").unwrap();
+            assert_eq!(read_until(s, b">"), "< ok >");
+        };
+        let mut first = opened(h.local_addr(), "can0");
+        raw(&mut first);
+        std::thread::sleep(Duration::from_secs(1));
+        let mut second = opened(h.local_addr(), "can0");
+        raw(&mut second);
+        std::thread::sleep(Duration::from_millis(100));
+        let sent = Instant::now();
+        first.write_all(b"< send 123 4 de ad be ef >").unwrap();
+        let got = read_until(&mut second, b">");
+        let took = sent.elapsed();
+        assert!(got.starts_with("< frame 123 "), "{got}");
+        assert!(got.ends_with(" DEADBEEF >"), "{got}");
+        assert!(took < Duration::from_millis(50), "{pacing:?}: {took:?}");
+    }
+}
+
+/// What the hold-back protected: python-can reads the rawmode `< ok >` with one `recv(256)` and
+/// compares it exactly. A client that reads it only 200 ms later, while frames flow, still
+/// reads `< ok >` alone (the urgent mark after it ends the read), then the frames, in order
+/// and none lost.
+#[test]
+fn the_rawmode_ok_is_read_alone_however_late_the_client_reads() {
     let h = hub_with(HubConfig::default());
     let mut port = h.attach("can0");
     let mut s = opened(h.local_addr(), "can0");
     s.write_all(b"< rawmode >").unwrap();
-    assert_eq!(read_until(&mut s, b">"), "< ok >");
-    port.send(&Frame::new(0x181, &[1]).unwrap()).unwrap();
-    // Held: nothing arrives while the client is silent.
-    s.set_read_timeout(Some(Duration::from_millis(150)))
-        .unwrap();
-    let mut buf = [0u8; 64];
-    assert!(
-        s.read(&mut buf).is_err(),
-        "a frame came during the hold-back"
-    );
-    s.write_all(b"< echo >").unwrap();
-    let got = read_until(&mut s, b"< echo >");
-    assert!(got.starts_with("< frame 181 "), "{got}");
-}
-
-/// A client that never speaks after `< rawmode >` (a listen-only python-can bus) gets its frames
-/// once the hold-back ends, in order and none lost.
-#[test]
-fn a_silent_client_gets_its_frames_when_the_hold_back_ends() {
-    let h = hub_with(HubConfig {
-        hold_back: Duration::from_millis(50),
-        ..HubConfig::default()
-    });
-    let mut port = h.attach("can0");
-    let mut s = opened(h.local_addr(), "can0");
-    // Before the hold-back begins (the hub starts it on this request).
-    let asked = std::time::Instant::now();
-    s.write_all(b"< rawmode >").unwrap();
-    assert_eq!(read_until(&mut s, b">"), "< ok >");
+    // The `< ok >` is on its way; the hub's `< ok >` and the frames all arrive before the read.
+    std::thread::sleep(Duration::from_millis(50));
     for i in 0..3u8 {
         port.send(&Frame::new(0x181, &[i]).unwrap()).unwrap();
     }
+    std::thread::sleep(Duration::from_millis(150));
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    let mut buf = [0u8; 256];
+    let n = s.read(&mut buf).unwrap();
+    assert_eq!(String::from_utf8_lossy(&buf[..n]), "< ok >");
     let got = read_until(&mut s, b" 02 >");
-    // A lower bound only: held back for the whole 50 ms, however late the hub wakes after.
-    assert!(
-        asked.elapsed() >= Duration::from_millis(50),
-        "{:?}",
-        asked.elapsed()
-    );
     let frames: Vec<&str> = got.split_inclusive('>').map(str::trim).collect();
     assert_eq!(frames.len(), 3, "{got}");
     for (i, f) in frames.iter().enumerate() {

@@ -363,6 +363,14 @@ impl Timeline {
         }
     }
 
+    /// Changes the order in which member `id`'s transmit queue goes out (what is queued
+    /// stays; the next arbitration takes its frame by the new order).
+    pub fn set_order(&mut self, id: MemberId, order: TxOrder) {
+        if let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) {
+            m.order = order;
+        }
+    }
+
     /// Removes a controller once what it queued has gone out (as frames handed to a
     /// SocketCAN socket still go out after it is closed); at once when nothing is queued or it
     /// cannot send (bus-off, failed transceiver).

@@ -1,7 +1,8 @@
 //! socketcand client transport: connects, performs the raw-mode handshake, asks for canpos's
-//! protocol extensions (`< rtr on >`, `< errors on >`; docs/SOCKETCAND.md), then a reader thread
-//! turns `< frame ... >` elements into [`RxFrame`]s and `< error ... >` bus errors into the
-//! [`BusState`] the runtime reacts to.
+//! protocol extensions (`< rtr on >`, `< errors on >`, and for a device `< txorder priority >`;
+//! docs/SOCKETCAND.md), then a reader thread turns `< frame ... >` elements into [`RxFrame`]s
+//! and `< error ... >` bus errors into the [`BusState`] and the transmit-queue overflows the
+//! runtime reacts to.
 //!
 //! Against a server without the extensions (the reference socketcand answers them with
 //! `< error unknown command >`) the client speaks the plain protocol: remote frames with DLC 0
@@ -10,7 +11,7 @@
 use std::io::{self, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpStream, ToSocketAddrs};
 use std::os::linux::net::TcpStreamExt;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
@@ -48,6 +49,8 @@ pub struct Client {
     state: Arc<AtomicU8>,
     /// The server's error frames ([`Transport::error_frames`]).
     error_rx: Receiver<codec::ErrorFrame>,
+    /// Transmit-queue overflows the server reported ([`Transport::tx_overflows`]).
+    tx_overflows: Arc<AtomicU64>,
 }
 
 fn state_to_u8(s: BusState) -> u8 {
@@ -75,11 +78,33 @@ impl Client {
         Err(last.unwrap_or_else(|| io::Error::new(io::ErrorKind::NotFound, "no address")))
     }
 
-    /// Connects and completes the handshake within `timeout`.
+    /// Connects and completes the handshake within `timeout`. Its frames go on the bus in the
+    /// order sent, as a host's (a master, a replayed log).
     pub fn connect_timeout(
         addr: SocketAddr,
         channel: &str,
         timeout: Duration,
+    ) -> io::Result<Client> {
+        Self::connect_as(addr, channel, timeout, false)
+    }
+
+    /// [`connect_timeout`](Self::connect_timeout) for a device (a sensor's runtime): it also
+    /// asks a canpos hub for `< txorder priority >`, so that its transmit queue on the bus goes
+    /// out most important frame first, as a device's CAN controller sends (its EMCY overtakes
+    /// its queued PDOs).
+    pub fn connect_device_timeout(
+        addr: SocketAddr,
+        channel: &str,
+        timeout: Duration,
+    ) -> io::Result<Client> {
+        Self::connect_as(addr, channel, timeout, true)
+    }
+
+    fn connect_as(
+        addr: SocketAddr,
+        channel: &str,
+        timeout: Duration,
+        device: bool,
     ) -> io::Result<Client> {
         if channel.is_empty()
             || !channel
@@ -127,6 +152,9 @@ impl Client {
             |e| matches!(e, Element::Ok),
         )?;
         stream.write_all(b"< rtr on >< errors on >")?;
+        if device {
+            stream.write_all(b"< txorder priority >")?;
+        }
         let ext_deadline = deadline.min(Instant::now() + EXTENSION_TIMEOUT);
         let rtr = extension(&mut stream, &mut decoder, &mut pending, ext_deadline, "rtr")?;
         let errors = extension(
@@ -136,20 +164,34 @@ impl Client {
             ext_deadline,
             "errors",
         )?;
-        tracing::debug!(%addr, rtr, errors, "socketcand extensions");
+        let by_priority = device
+            && extension(
+                &mut stream,
+                &mut decoder,
+                &mut pending,
+                ext_deadline,
+                "txorder",
+            )?;
+        tracing::debug!(%addr, rtr, errors, by_priority, "socketcand extensions");
         stream.set_read_timeout(None)?;
 
         let (tx, rx) = crossbeam_channel::bounded(CLIENT_QUEUE_LEN);
         let (error_tx, error_rx) = crossbeam_channel::bounded(ERROR_QUEUE_LEN);
         let error = Arc::new(Mutex::new(None));
         let state = Arc::new(AtomicU8::new(0));
+        let tx_overflows = Arc::new(AtomicU64::new(0));
         let reader_stream = stream.try_clone()?;
         let err = error.clone();
         let st = state.clone();
+        let overflows = tx_overflows.clone();
         thread::Builder::new()
             .name(format!("socketcand client {addr}"))
             .spawn(move || {
-                let e = reader(reader_stream, decoder, pending, &tx, &error_tx, &st);
+                let to = Reported {
+                    state: &st,
+                    tx_overflows: &overflows,
+                };
+                let e = reader(reader_stream, decoder, pending, &tx, &error_tx, to);
                 *err.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
             })?;
         Ok(Client {
@@ -163,6 +205,7 @@ impl Client {
             errors,
             state,
             error_rx,
+            tx_overflows,
         })
     }
 
@@ -280,6 +323,14 @@ fn extension(
     }
 }
 
+/// What the reader keeps up to date from the server's error frames.
+struct Reported<'a> {
+    /// [`BusState`] as u8.
+    state: &'a AtomicU8,
+    /// Transmit-queue overflows.
+    tx_overflows: &'a AtomicU64,
+}
+
 /// Runs until the connection ends or the client is dropped; returns why it ended.
 fn reader(
     mut stream: TcpStream,
@@ -287,7 +338,7 @@ fn reader(
     pending: Vec<Element>,
     tx: &Sender<RxFrame>,
     error_tx: &Sender<codec::ErrorFrame>,
-    state: &AtomicU8,
+    to: Reported<'_>,
 ) -> io::Error {
     let mut elements = pending;
     let mut buf = [0u8; 4096];
@@ -303,7 +354,10 @@ fn reader(
                 Element::ErrorFrame(e) => {
                     tracing::debug!(class = format_args!("{:#05x}", e.class), data = ?e.data, "socketcand bus error");
                     if let Some(s) = e.bus_state() {
-                        state.store(state_to_u8(s), Ordering::Relaxed);
+                        to.state.store(state_to_u8(s), Ordering::Relaxed);
+                    }
+                    if e.is_tx_overflow() {
+                        to.tx_overflows.fetch_add(1, Ordering::Relaxed);
                     }
                     // For a recorder; nobody reading it must not stall the frames.
                     let _ = error_tx.try_send(e);
@@ -386,6 +440,12 @@ impl Transport for Client {
 
     fn error_frames(&self) -> Option<Receiver<codec::ErrorFrame>> {
         Some(self.error_rx.clone())
+    }
+
+    /// Overflows of its transmit queue on the bus, as a canpos hub reports them (after
+    /// `< errors on >`).
+    fn tx_overflows(&self) -> u64 {
+        self.tx_overflows.load(Ordering::Relaxed)
     }
 
     fn bus_state(&self) -> BusState {

@@ -177,6 +177,10 @@ pub enum Element {
     RtrOption(bool),
     /// The extension `< errors on >` / `< errors off >`: receive `< error … >` bus error elements.
     ErrorsOption(bool),
+    /// The extension `< txorder priority >` / `< txorder fifo >`: the order in which the
+    /// client's transmit queue on the bus goes out (a device's CAN controller sends its most
+    /// important frame first; a host's SocketCAN interface in submission order, the default).
+    TxOrderOption(crate::bus::TxOrder),
     /// `< error CLASS SEC.USEC [D0 .. D7] >`: a CAN error frame from a server.
     ErrorFrame(ErrorFrame),
     /// `< error TEXT >`: a server's answer to a failed command.
@@ -257,6 +261,9 @@ pub mod err_class {
     pub const CRTL_TX_PASSIVE: u8 = 0x20;
     /// Data byte 1 of [`CRTL`]: back to error active.
     pub const CRTL_ACTIVE: u8 = 0x40;
+    /// Data byte 1 of [`CRTL`]: a frame was lost in the full transmit queue
+    /// (`CAN_ERR_CRTL_TX_OVERFLOW`).
+    pub const CRTL_TX_OVERFLOW: u8 = 0x02;
 }
 
 /// A CAN error frame as socketcand carries it: the error class (the identifier of a Linux error
@@ -288,6 +295,26 @@ impl ErrorFrame {
             data: Some(data),
             timestamp,
         }
+    }
+
+    /// The controller-problem frame of a transmit queue that overflowed (frames lost in it),
+    /// as a canpos hub reports it to the client whose queue it is.
+    pub fn tx_overflow(timestamp: SystemTime) -> ErrorFrame {
+        let mut data = [0u8; 8];
+        data[1] = err_class::CRTL_TX_OVERFLOW;
+        ErrorFrame {
+            class: err_class::CRTL,
+            data: Some(data),
+            timestamp,
+        }
+    }
+
+    /// Whether it reports frames lost in the controller's full transmit queue.
+    pub fn is_tx_overflow(&self) -> bool {
+        self.class & err_class::CRTL != 0
+            && self
+                .data
+                .is_some_and(|d| d[1] & err_class::CRTL_TX_OVERFLOW != 0)
     }
 
     /// The controller state the frame announces, if any: bus-off, restart / back to active, or
@@ -359,6 +386,11 @@ impl Element {
                 ["on"] => Element::ErrorsOption(true),
                 ["off"] => Element::ErrorsOption(false),
                 _ => malformed("errors"),
+            },
+            "txorder" => match tok[..] {
+                ["priority"] => Element::TxOrderOption(crate::bus::TxOrder::Priority),
+                ["fifo"] => Element::TxOrderOption(crate::bus::TxOrder::Fifo),
+                _ => malformed("txorder"),
             },
             "add" => parse_interval(&tok)
                 .and_then(|iv| Some((iv, parse_send(&tok[2..])?)))
@@ -967,6 +999,42 @@ mod tests {
             Element::parse(b" errors off "),
             Element::ErrorsOption(false)
         );
+        assert_eq!(
+            Element::parse(b" txorder priority "),
+            Element::TxOrderOption(crate::bus::TxOrder::Priority)
+        );
+        assert_eq!(
+            Element::parse(b" txorder fifo "),
+            Element::TxOrderOption(crate::bus::TxOrder::Fifo)
+        );
+        for bad in [&b" txorder "[..], b" txorder lifo ", b" txorder fifo fifo "] {
+            assert_eq!(Element::parse(bad), Element::Malformed("txorder"));
+        }
+    }
+
+    /// A transmit-queue overflow goes as a controller problem with `CAN_ERR_CRTL_TX_OVERFLOW`
+    /// and comes back as one; it is no change of the controller's state.
+    #[test]
+    fn a_tx_overflow_error_frame_round_trips() {
+        let e = ErrorFrame::tx_overflow(ts(3, 4));
+        let mut v = Vec::new();
+        write_error_frame(&mut v, &e);
+        assert_eq!(v, b"< error 004 3.000004 00 02 00 00 00 00 00 00 >");
+        let back = match Decoder::new().feed_parse(&v)[..] {
+            [Element::ErrorFrame(back)] => back,
+            ref other => panic!("{other:?}"),
+        };
+        assert_eq!(back, e);
+        assert!(back.is_tx_overflow());
+        assert_eq!(back.bus_state(), None);
+        // Error passive (data byte 1 = 0x30) and a class-only report are not overflows.
+        assert!(!ErrorFrame::for_state(BusState::ErrorPassive, ts(0, 0)).is_tx_overflow());
+        assert!(!ErrorFrame {
+            class: err_class::CRTL,
+            data: None,
+            timestamp: ts(0, 0),
+        }
+        .is_tx_overflow());
     }
 
     #[test]

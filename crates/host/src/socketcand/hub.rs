@@ -139,10 +139,6 @@ impl Wake {
 pub struct HubConfig {
     /// Frames queued per TCP client before further frames to it are dropped.
     pub queue_len: usize,
-    /// How long frames are held back after the rawmode `< ok >` at most (python-can reads that
-    /// reply with one `recv` and fails if a frame shares it). The hold ends earlier when the
-    /// client sends anything: then it has read its `< ok >`.
-    pub hold_back: Duration,
     /// `SO_SNDBUF` for client sockets (`None`: kernel autotuning). A fixed, modest buffer makes a
     /// stuck client start losing frames after a bounded backlog instead of megabytes.
     pub send_buffer: Option<usize>,
@@ -176,9 +172,6 @@ impl Default for HubConfig {
     fn default() -> Self {
         HubConfig {
             queue_len: 4096,
-            // Long enough for a python-can process that is descheduled for a while under load
-            // (20 ms were not: one failure in a CI run with a UML guest beside it).
-            hold_back: Duration::from_millis(500),
             send_buffer: Some(256 * 1024),
             max_clients: 10_000,
             handshake_timeout: Duration::from_secs(10),
@@ -377,6 +370,35 @@ fn unread(stream: &TcpStream, peak: &mut u32) -> usize {
         shrunk = (*peak - window) as usize;
     }
     usize::try_from(queued).unwrap_or(0) + shrunk
+}
+
+/// Sends one TCP urgent byte (a space, `MSG_OOB`) to end the client's first read in raw mode at
+/// the `< ok >` before it.
+///
+/// python-can reads the rawmode `< ok >` with one `recv(256)` and compares it exactly, so a frame
+/// that arrives before that `recv` runs (the client descheduled, frames flowing) failed its
+/// handshake. A receive stops at the urgent mark (BSD sockets, Linux `tcp_recvmsg`), so that
+/// read returns `< ok >` alone whenever it runs; the next read skips the byte (it is out of
+/// band) and returns the frames. A client with `SO_OOBINLINE` reads a space between two
+/// elements, which every socketcand parser skips. Before, the hub held frames back for up to
+/// 500 ms after the `< ok >`, until the client spoke: a listen-only client got its first frames
+/// late (issue 36 item 4).
+fn send_urgent(stream: &TcpStream) -> io::Result<()> {
+    use std::os::fd::AsRawFd;
+    // SAFETY: sends one byte from a static buffer on a socket we own.
+    let n = unsafe {
+        libc::send(
+            stream.as_raw_fd(),
+            b" ".as_ptr().cast(),
+            1,
+            libc::MSG_OOB | libc::MSG_NOSIGNAL,
+        )
+    };
+    match n {
+        1 => Ok(()),
+        0 => Err(io::Error::from(io::ErrorKind::WouldBlock)),
+        _ => Err(io::Error::last_os_error()),
+    }
 }
 
 /// Descriptors the hub may use for clients: the soft limit of open files less 64.
@@ -608,8 +630,6 @@ enum State {
         rx: Receiver<RxFrame>,
         wake: Arc<Wake>,
         dropped: Arc<AtomicU64>,
-        /// Frames are held back until then after the rawmode `< ok >` (`None`: over).
-        hold_until: Option<Instant>,
     },
 }
 
@@ -623,6 +643,11 @@ struct Conn {
     /// Bytes not yet written, from `out_pos` on.
     out: Vec<u8>,
     out_pos: usize,
+    /// Frames of this read not yet on the bus: they enter it together ([`Conn::submit`]).
+    sends: Vec<canpos_core::Frame>,
+    /// An urgent byte is sent once `out` is written up to here: right after a rawmode
+    /// `< ok >` ([`send_urgent`]).
+    urgent_at: Option<usize>,
     /// Whether WRITABLE interest is registered (only while bytes wait).
     writable: bool,
     /// The socket refused bytes (WouldBlock): no write is tried until it reports WRITABLE.
@@ -645,13 +670,65 @@ struct Conn {
 
 impl Conn {
     fn pending(&self) -> usize {
-        self.out.len() - self.out_pos
+        self.out.len() - self.out_pos + usize::from(self.urgent_at.is_some())
+    }
+
+    /// Puts the frames the client sent since the last call on the bus together, at one time:
+    /// frames that arrived together (one read of its socket) go out back to back, as a burst
+    /// a host writes to its controller does, without gaps from the hub's own scheduling.
+    fn submit(&mut self, now: Instant, shared: &Shared, cache: &mut TextCache) {
+        if self.sends.is_empty() {
+            return;
+        }
+        let lost = match &self.state {
+            State::Raw { bus, id, .. } => bus.transmit_all(*id, &self.sends),
+            State::Opening => 0,
+        };
+        self.sends.clear();
+        self.tx_overflow(lost, now, shared, cache);
+    }
+
+    /// Its transmit queue on the bus lost `lost` frames (full, the bus busier than it can
+    /// take): a client that takes bus errors is told with a controller-problem error frame
+    /// with the TX-overflow bit, as SocketCAN reports an overflow to a host, so that a sensor
+    /// behind the hub reacts as on the wire (issue 36 item 7). One report per submission.
+    fn tx_overflow(&mut self, lost: usize, now: Instant, shared: &Shared, cache: &mut TextCache) {
+        let all = shared.config.error_frames;
+        if lost == 0 || !self.session.takes_errors(all) {
+            return;
+        }
+        // The frames the bus delivered before go out before it.
+        self.fill(now, shared, cache);
+        if self.pending() >= shared.config.out_limit {
+            return;
+        }
+        let e = codec::ErrorFrame::tx_overflow(std::time::SystemTime::now());
+        self.session.error_frame(&e, all, &mut self.out);
     }
 
     /// Writes what waits, without blocking.
     fn flush(&mut self) {
-        while self.out_pos < self.out.len() {
-            match self.stream.write(&self.out[self.out_pos..]) {
+        while self.out_pos < self.out.len() || self.urgent_at == Some(self.out_pos) {
+            if self.urgent_at == Some(self.out_pos) {
+                match send_urgent(&self.stream) {
+                    Ok(()) => self.urgent_at = None,
+                    Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                        self.sock_full = true;
+                        break;
+                    }
+                    Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                    Err(_) => {
+                        self.closed = true;
+                        return;
+                    }
+                }
+                continue;
+            }
+            let end = match self.urgent_at {
+                Some(u) if u > self.out_pos => u,
+                _ => self.out.len(),
+            };
+            match self.stream.write(&self.out[self.out_pos..end]) {
                 Ok(0) => {
                     self.closed = true;
                     return;
@@ -671,11 +748,12 @@ impl Conn {
                 }
             }
         }
-        if self.out_pos == self.out.len() {
+        if self.out_pos == self.out.len() && self.urgent_at.is_none() {
             self.out.clear();
             self.out_pos = 0;
         } else if self.out_pos > OUT_LIMIT {
             self.out.drain(..self.out_pos);
+            self.urgent_at = self.urgent_at.map(|u| u - self.out_pos);
             self.out_pos = 0;
         }
     }
@@ -705,20 +783,9 @@ impl Conn {
 
     /// Moves queued frames into the output, as long as the output has room.
     fn fill(&mut self, now: Instant, shared: &Shared, cache: &mut TextCache) {
-        let State::Raw {
-            rx,
-            wake,
-            hold_until,
-            ..
-        } = &mut self.state
-        else {
+        let State::Raw { rx, wake, .. } = &mut self.state else {
             return;
         };
-        match *hold_until {
-            Some(t) if now < t => return,
-            Some(_) => *hold_until = None,
-            None => {}
-        }
         // Cleared before draining: a frame sent meanwhile wakes the loop again.
         wake.pending.store(false, Ordering::Release);
         let limit = shared.config.out_limit;
@@ -831,7 +898,7 @@ impl EventLoop {
     fn run(mut self) -> io::Result<()> {
         tracing::info!(addr = %self.shared.local_addr, "socketcand hub listening");
         let mut events = Events::with_capacity(1024);
-        // The deadlines (handshake, hold-back, idle) are scanned over all clients only when the
+        // The deadlines (handshake, idle) are scanned over all clients only when the
         // earliest is due, and at most every SCAN_EVERY: a turn costs the clients that had
         // events, not all of them.
         const SCAN_EVERY: Duration = Duration::from_millis(2);
@@ -923,38 +990,28 @@ impl EventLoop {
         Ok(())
     }
 
-    /// The earliest handshake, idle or hold-back deadline.
+    /// The earliest handshake or idle deadline.
     fn next_deadline(&self) -> Option<Instant> {
         let idle = self.shared.config.idle_timeout;
         self.conns
             .values()
             .filter_map(|c| match &c.state {
-                State::Raw { hold_until, .. } => {
-                    let idle = idle.map(|d| c.last_rx + d);
-                    match (*hold_until, idle) {
-                        (Some(h), Some(i)) => Some(h.min(i)),
-                        (h, i) => h.or(i),
-                    }
-                }
+                State::Raw { .. } => idle.map(|d| c.last_rx + d),
                 _ => Some(c.handshake_end),
             })
             .min()
     }
 
-    /// Closes timed-out clients; marks those whose hold-back ended.
+    /// Closes timed-out clients.
     fn timers(&mut self, now: Instant, touched: &mut Vec<usize>) {
         let idle = self.shared.config.idle_timeout;
         for (t, c) in &mut self.conns {
             match &c.state {
-                State::Raw { hold_until, .. } => {
-                    if idle.is_some_and(|d| now >= c.last_rx + d) {
-                        tracing::debug!(peer = %c.peer, "idle client closed");
-                        c.closed = true;
-                    }
-                    if hold_until.is_some_and(|h| now >= h) {
-                        touched.push(*t);
-                    }
+                State::Raw { .. } if idle.is_some_and(|d| now >= c.last_rx + d) => {
+                    tracing::debug!(peer = %c.peer, "idle client closed");
+                    c.closed = true;
                 }
+                State::Raw { .. } => {}
                 _ if now >= c.handshake_end => {
                     tracing::debug!(peer = %c.peer, "handshake timeout");
                     c.closed = true;
@@ -1034,6 +1091,8 @@ impl EventLoop {
                 decoder: Decoder::new(),
                 out: codec::HI.to_vec(),
                 out_pos: 0,
+                sends: Vec::new(),
+                urgent_at: None,
                 writable: false,
                 sock_full: false,
                 slow: false,
@@ -1068,13 +1127,6 @@ impl EventLoop {
             return;
         };
         let was_joined = matches!(c.state, State::Raw { .. });
-        let was_holding = matches!(
-            c.state,
-            State::Raw {
-                hold_until: Some(_),
-                ..
-            }
-        );
         // Input left over from a full output first; while the output stays full, nothing more
         // is read (the kernel's buffers fill, then the client's sends block).
         let mut stalled = false;
@@ -1125,17 +1177,16 @@ impl EventLoop {
                 }
             }
         }
+        // What this turn read enters the bus together.
+        c.submit(now, &self.shared, &mut self.cache);
         if !drained {
             self.again.push(t);
         }
         let mut due = None;
-        if let State::Raw { hold_until, .. } = &c.state {
-            // Raw mode began: its hold-back deadline; a channel was opened: the idle deadline.
-            if !was_holding {
-                due = *hold_until;
-            }
+        if let State::Raw { .. } = &c.state {
+            // A channel was opened: the idle deadline.
             if let (false, Some(d)) = (was_joined, self.shared.config.idle_timeout) {
-                due = Some(due.map_or(now + d, |h: Instant| h.min(now + d)));
+                due = Some(now + d);
             }
         }
         let timed = c.session.next_deadline();
@@ -1179,11 +1230,11 @@ impl EventLoop {
             if c.pending() < self.shared.config.out_limit {
                 c.out.extend_from_slice(&stat);
             }
-            if let State::Raw { bus, id, .. } = &c.state {
-                for f in &frames {
-                    bus.transmit(*id, *f);
-                }
-            }
+            let lost = match &c.state {
+                State::Raw { bus, id, .. } => bus.transmit_all(*id, &frames),
+                State::Opening => 0,
+            };
+            c.tx_overflow(lost, now, &self.shared, &mut self.cache);
             let next = c.session.next_deadline();
             self.set_timed(t, next);
             touched.push(t);
@@ -1305,7 +1356,7 @@ impl EventLoop {
             self.again.push(t);
         }
         // Queue not drained (output full): come back when the socket takes more.
-        let backlog = matches!(&c.state, State::Raw { rx, hold_until: None, .. } if !rx.is_empty());
+        let backlog = matches!(&c.state, State::Raw { rx, .. } if !rx.is_empty());
         if backlog && c.pending() == 0 {
             // The socket took all there was and has room: no WRITABLE edge will come.
             self.again.push(t);
@@ -1369,12 +1420,6 @@ fn handle_element(
     token: usize,
     now: Instant,
 ) -> bool {
-    // A client that speaks after raw mode began has read the `< ok >`: its hold-back ends.
-    if !matches!(el, Element::Mode(_)) {
-        if let State::Raw { hold_until, .. } = &mut c.state {
-            *hold_until = None;
-        }
-    }
     // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
     // over) before its answer.
     if matches!(el, Element::Echo | Element::Mode(_)) {
@@ -1384,6 +1429,10 @@ fn handle_element(
         tracing::trace!(peer = %c.peer, "unknown command {text:?}");
     }
     for effect in c.session.handle(el, now, &mut c.out, valid_channel) {
+        // The frames before anything else that touches the bus (or the channel) go first.
+        if !matches!(effect, Effect::Send(_)) {
+            c.submit(now, shared, cache);
+        }
         match effect {
             Effect::Join(ch) => {
                 let bus = shared.channel(&ch);
@@ -1407,21 +1456,23 @@ fn handle_element(
                     rx,
                     wake,
                     dropped,
-                    hold_until: None,
                 };
             }
             Effect::Send(frame) => {
-                if let State::Raw { bus, id, .. } = &c.state {
+                if let State::Raw { .. } = &c.state {
                     shared.frames_in.fetch_add(1, Ordering::Relaxed);
-                    bus.transmit(*id, frame);
+                    c.sends.push(frame);
+                }
+            }
+            Effect::TxOrder(order) => {
+                if let State::Raw { bus, id, .. } = &c.state {
+                    bus.set_tx_order(*id, order);
                 }
             }
             Effect::RawStarted => {
-                // The `< ok >` goes out before any frame: frames wait in the queue until the
-                // hold-back ends.
-                if let State::Raw { hold_until, .. } = &mut c.state {
-                    *hold_until = Some(now + shared.config.hold_back);
-                }
+                // The `< ok >` (the last thing in the output) is followed by an urgent byte:
+                // the client's first read ends with the `< ok >`, however many frames follow.
+                c.urgent_at = Some(c.out.len());
                 tracing::debug!(peer = %c.peer, "client in raw mode");
             }
             Effect::ErrorFlag(e) => {

@@ -56,6 +56,8 @@ struct Shared {
     /// Frames not sent because the server was away.
     unsent: AtomicU64,
     dropped: AtomicU64,
+    /// Transmit-queue overflows reported to the clients before the current one.
+    tx_overflows: AtomicU64,
     stop: AtomicBool,
 }
 
@@ -79,6 +81,7 @@ impl Reconnecting {
             reconnections: AtomicU64::new(0),
             unsent: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
+            tx_overflows: AtomicU64::new(0),
             stop: AtomicBool::new(false),
         });
         let sh = shared.clone();
@@ -98,7 +101,7 @@ impl Reconnecting {
 fn connect_any(host: &str, port: u16, channel: &str) -> io::Result<Client> {
     let mut last = None;
     for a in (host, port).to_socket_addrs()? {
-        match Client::connect_timeout(a, channel, CONNECT_TIMEOUT) {
+        match Client::connect_device_timeout(a, channel, CONNECT_TIMEOUT) {
             Ok(c) => return Ok(c),
             Err(e) => last = Some(e),
         }
@@ -138,7 +141,11 @@ fn keep(
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .take()
-            .map(|c| c.dead_error().to_string())
+            .map(|c| {
+                sh.tx_overflows
+                    .fetch_add(c.tx_overflows(), Ordering::Relaxed);
+                c.dead_error().to_string()
+            })
             .unwrap_or_default();
         sh.down.store(true, Ordering::Relaxed);
         tracing::warn!(%url, %why, "socketcand server lost: bus-off until it is back; reconnecting");
@@ -210,6 +217,17 @@ impl Transport for Reconnecting {
             .as_ref()
             .map_or(0, |c| c.dropped());
         self.shared.dropped.load(Ordering::Relaxed) + inner
+    }
+
+    fn tx_overflows(&self) -> u64 {
+        let inner = self
+            .shared
+            .client
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .as_ref()
+            .map_or(0, |c| c.tx_overflows());
+        self.shared.tx_overflows.load(Ordering::Relaxed) + inner
     }
 
     /// Bus-off while the server is away; otherwise what the server's error frames say.

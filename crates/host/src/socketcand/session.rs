@@ -26,7 +26,10 @@ pub enum Effect {
     Join(String),
     /// Put this frame on the bus.
     Send(Frame),
-    /// Raw mode began: hold frames back for the hub's hold-back time.
+    /// The client's transmit queue on the bus goes out in this order from now on.
+    TxOrder(crate::bus::TxOrder),
+    /// Raw mode began (its `< ok >` is the last thing written): the hub marks the end of the
+    /// client's read there.
     RawStarted,
     /// The client's controller signalled an error on the bus (an `< error … >` of a bus-error
     /// class: protocol violation, missing ACK, bus error): an error frame goes on the channel's
@@ -132,6 +135,10 @@ impl Session {
             (Element::ErrorsOption(on), Some(_)) => {
                 self.errors = on;
                 out.extend_from_slice(codec::OK);
+            }
+            (Element::TxOrderOption(order), Some(_)) => {
+                out.extend_from_slice(codec::OK);
+                fx.push(Effect::TxOrder(order));
             }
             (Element::ErrorFrame(e), Some(Mode::Raw | Mode::Bcm)) if self.errors => {
                 // Only what is seen on the wire is the bus's business; a report of the client's

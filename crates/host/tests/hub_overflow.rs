@@ -1,0 +1,173 @@
+//! Back-pressure across the hub (issue 36 item 7): a client whose transmit queue on the bus
+//! overflows is told so, as SocketCAN tells a host (a controller-problem error frame with the
+//! TX-overflow bit, to clients that take errors); a device's client (`< txorder priority >`)
+//! sends its most important frame first, so that its EMCY overtakes its queued PDOs; and the
+//! canpos client counts the reports for the runtime (`Transport::tx_overflows`).
+//! docs/SOCKETCAND.md, docs/BUS.md.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::{Duration, Instant};
+
+use canpos_core::Frame;
+use canpos_host::bus::Pacing;
+use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
+use canpos_host::transport::Transport;
+
+const WAIT: Duration = Duration::from_secs(10);
+/// The report of a full transmit queue: `CAN_ERR_CRTL`, data byte 1 `CAN_ERR_CRTL_TX_OVERFLOW`.
+const OVERFLOW: &str = " 00 02 00 00 00 00 00 00 >";
+
+/// A hub whose bus is slow enough (10 kbit/s, about 10 ms a frame) that a burst of 100 frames
+/// fills a client's 64-frame queue whatever the machine's load.
+fn slow_hub() -> HubHandle {
+    Hub::bind_with(
+        "127.0.0.1:0",
+        HubConfig {
+            pacing: Pacing::Paced(10),
+            ..HubConfig::default()
+        },
+    )
+    .unwrap()
+    .spawn()
+    .unwrap()
+}
+
+/// Reads until `until` was read.
+fn read_until(s: &mut TcpStream, until: &str) -> String {
+    let mut got = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&got).contains(until) {
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0, "closed: {}", String::from_utf8_lossy(&got));
+        got.extend_from_slice(&buf[..n]);
+    }
+    String::from_utf8(got).unwrap()
+}
+
+/// A raw client on `can0` that sent `extra` after `< rawmode >`.
+fn raw(addr: SocketAddr, extra: &str) -> TcpStream {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    read_until(&mut s, "< hi >");
+    s.write_all(format!("< open can0 >< rawmode >{extra}< echo >").as_bytes())
+        .unwrap();
+    read_until(&mut s, "< echo >");
+    s
+}
+
+fn burst(id: u16, n: usize) -> String {
+    (0..n)
+        .map(|i| format!("< send {id:03X} 8 {i:02X} 0 0 0 0 0 0 0 >"))
+        .collect()
+}
+
+#[test]
+fn a_full_transmit_queue_is_reported_to_a_client_that_takes_errors() {
+    let h = slow_hub();
+    let mut taker = raw(h.local_addr(), "< errors on >");
+    taker.write_all(burst(0x181, 100).as_bytes()).unwrap();
+    let got = read_until(&mut taker, OVERFLOW);
+    assert!(got.contains("< error 004 "), "{got}");
+    // A plain client loses frames the same way but hears nothing of it (socketcand without an
+    // error mask): only its echo comes back.
+    let mut plain = raw(h.local_addr(), "");
+    plain
+        .write_all(format!("{}< echo >", burst(0x182, 100)).as_bytes())
+        .unwrap();
+    let got = read_until(&mut plain, "< echo >");
+    assert!(!got.contains("< error"), "{got}");
+}
+
+#[test]
+fn a_device_client_sends_its_most_important_frame_first() {
+    let h = slow_hub();
+    let mut listener = raw(h.local_addr(), "");
+    let mut device = raw(h.local_addr(), "< txorder priority >< errors on >");
+    // 70 PDOs (the queue holds 64), then an EMCY in the same write: it takes the place of a
+    // PDO in the full queue and goes out right after the PDO already on the wire.
+    let emcy = "< send 081 8 0 0 0 0 0 0 0 0 >";
+    device
+        .write_all(format!("{}{emcy}", burst(0x181, 70)).as_bytes())
+        .unwrap();
+    let got = read_until(&mut listener, "< frame 081 ");
+    let ids: Vec<&str> = got
+        .split_inclusive('>')
+        .filter_map(|e| e.trim().strip_prefix("< frame "))
+        .map(|e| &e[..3])
+        .collect();
+    assert_eq!(ids, ["181", "081"], "{got}");
+    read_until(&mut device, OVERFLOW);
+}
+
+#[test]
+fn the_canpos_client_counts_the_overflows_of_its_queue() {
+    let h = slow_hub();
+    let mut c = Client::connect(h.local_addr(), "can0").unwrap();
+    assert_eq!(c.tx_overflows(), 0);
+    for i in 0..100u8 {
+        c.send(&Frame::new(0x181, &[i, 0, 0, 0, 0, 0, 0, 0]).unwrap())
+            .unwrap();
+    }
+    let end = Instant::now() + WAIT;
+    while c.tx_overflows() == 0 {
+        assert!(Instant::now() < end, "no overflow reported");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+/// End to end: a TH runtime behind the hub (its own socketcand transport, not an in-process
+/// controller) at 1 ms TPDOs on a 10 kbit/s bus loses frames in its queue in the hub and reacts
+/// as its model says: EMCY 0x8110, which overtakes its queued TPDOs.
+#[test]
+fn a_sensor_behind_the_hub_sends_its_overflow_emcy() {
+    use canpos_host::runtime::{Runtime, SensorSetup};
+    use canpos_host::transport::HubPolicy;
+    use canpos_host::FileStorage;
+    use canpos_sim::motion::{Profile, Profiles};
+    use canpos_sim::SensorSpec;
+
+    let dir = tempfile::tempdir().unwrap();
+    let h = slow_hub();
+    let url = format!("socketcand://{}/can0", h.local_addr());
+    let (t, embedded) = canpos_host::open_device_bus(&url, HubPolicy::Never).unwrap();
+    assert!(embedded.is_none());
+    let model = canpos_core::models::by_name("th").unwrap();
+    let mut cfg = model.default_config;
+    cfg.node_id = 9;
+    cfg.serial = 78;
+    let mut rt = Runtime::new(t, None);
+    rt.add(SensorSetup {
+        name: "th-78".into(),
+        model,
+        cfg,
+        spec: SensorSpec::th(f64::from(cfg.stroke_mm), 1).unwrap(),
+        seed: 1,
+        ideal: true,
+        motion: Box::new(Profiles(vec![Profile::Static { pos_mm: 250.0 }])),
+        storage: FileStorage::new(canpos_host::runtime::state_file(dir.path(), "th", 78)),
+    });
+    let mut master = Client::connect(h.local_addr(), "can0").unwrap();
+    let rt = rt.spawn().unwrap();
+    let end = Instant::now() + WAIT;
+    let next = |master: &mut Client, what: &str| {
+        let rx = master.recv_deadline(end).unwrap();
+        rx.unwrap_or_else(|| panic!("no {what}")).frame
+    };
+    while next(&mut master, "boot-up") != Frame::new(0x709, &[0]).unwrap() {}
+    // TPDO1 event timer 1 ms (0x1800:5), then Operational.
+    master
+        .send(&Frame::new(0x609, &[0x2B, 0x00, 0x18, 0x05, 1, 0, 0, 0]).unwrap())
+        .unwrap();
+    while next(&mut master, "SDO answer").std_id() != Some(0x589) {}
+    master
+        .send(&Frame::new(0x000, &[0x01, 9]).unwrap())
+        .unwrap();
+    loop {
+        let f = next(&mut master, "EMCY 0x8110");
+        if f.std_id() == Some(0x89) && f.data()[..2] == [0x10, 0x81] {
+            break;
+        }
+    }
+    rt.stop().unwrap();
+}
