@@ -357,37 +357,14 @@ impl BusCore {
     /// Puts `frame` from member `from` on the bus: paced, into its controller's transmit queue
     /// (losses counted there); instant, to everyone at once.
     pub(crate) fn transmit(&self, from: u64, frame: Frame) {
-        let Some(p) = &self.pacer else {
-            self.broadcast(from, RxFrame::now(frame));
-            return;
-        };
-        let Some((ctl, at)) = self.ctl_and_time(from) else {
-            return;
-        };
-        let now = p.now();
-        // The bus runs up to now before the frame joins its queue: the queue is as full as
-        // the timeline says, however late the driver thread is. A timed participant's frame is
-        // stamped with its own time (its horizon); an untimed member's (a tool, a TCP client)
-        // with the limit, the wall time it sent it at, so that a runtime that is behind cannot
-        // answer it before it was sent; never before the time the bus already reached.
-        let mut st = lock(&p.state);
-        self.pump(p, &mut st, now);
-        let at = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
-        let r = st.timeline.submit(ctl, frame, at);
-        drop(st);
-        match r {
-            Ok(crate::bus::timeline::Accepted::Queued) => {}
-            Ok(crate::bus::timeline::Accepted::Evicted(_)) | Err(_) => {
-                self.tx_lost.fetch_add(1, Ordering::Relaxed);
-            }
-        }
-        let _ = p.kick.try_send(());
+        self.transmit_all(from, std::slice::from_ref(&frame));
     }
 
     /// Puts `frames` from member `from` on the bus together, as a host hands a burst to its
     /// controller in one write: paced, all into its transmit queue at one time (a nanosecond
     /// apart, in order), so that they go out back to back with nothing but their bit times
-    /// between them however late the caller gets to the last one (a hub client's frames of one socket read, issue 36 item 2);
+    /// between them however late the caller gets to the last one (a hub client's frames of one
+    /// socket read, issue 36 item 2);
     /// instant, each to everyone at once. Returns how many frames its full transmit queue lost
     /// (a new one refused, or an earlier one pushed out by priority).
     pub(crate) fn transmit_all(&self, from: u64, frames: &[Frame]) -> usize {
@@ -397,12 +374,19 @@ impl BusCore {
             }
             return 0;
         };
-        let Some(ctl) = self.ctl_of(from) else {
+        let Some((ctl, at)) = self.ctl_and_time(from) else {
             return 0;
         };
         let now = p.now();
+        // The bus runs up to now before the frames join the queue: the queue is as full as
+        // the timeline says, however late the driver thread is. A timed participant's frames
+        // are stamped with its own time (its horizon); an untimed member's (a tool, a TCP
+        // client) with the limit, the wall time it sent them at, so that a runtime that is
+        // behind cannot answer them before they were sent; never before the time the bus
+        // already reached.
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
+        let now = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
         let mut overflow = 0;
         // Each a nanosecond after the one before: a controller that sends by priority (a
         // device's: `< txorder priority >`) starts the first one on an idle bus, as it would
