@@ -182,6 +182,19 @@ impl Emcy {
         self.queue(p);
     }
 
+    /// An error that stands while its EMCY cannot be sent yet (bus-off): active in the register
+    /// (0x1001) at once, announced later with [`Emcy::event`] and cleared with [`Emcy::clear`]
+    /// (CANopenNode reports "recovered from bus off" so: the error is set when the controller
+    /// goes bus-off, its EMCY leaves when the bus is back).
+    pub fn hold(&mut self, code: u16, reg_bits: u8) {
+        if self.is_active(code) || usize::from(self.n_active) >= ACTIVE_LEN {
+            return;
+        }
+        self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
+        self.n_active += 1;
+        self.generation = self.generation.wrapping_add(1);
+    }
+
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
     // A firmware's events share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
