@@ -220,6 +220,24 @@ pub fn all() -> [&'static Model; 3] {
     [&th::TH, &e_series::E_SERIES, &tmi::TMI]
 }
 
+/// The dictionary a unit of `model` configured as `cfg` has: the TMI's one-channel unit has
+/// its own, with channel-1 objects only (002 §1.6: a separate EDS per configuration), the
+/// two-channel unit the full one; every other model has one dictionary for all its units. A
+/// node ([`crate::Node::new`]) and an EDS ([`crate::eds::write_eds`]) of the unit use this.
+#[inline(always)]
+pub fn for_unit(model: &'static Model, cfg: &DeviceConfig) -> &'static Model {
+    #[cfg(feature = "tmi")]
+    if model.features.tag == tmi::TMI.features.tag && model.name == tmi::TMI.name {
+        return if cfg.channels <= 1 {
+            &tmi::TMI
+        } else {
+            &tmi::TMI_TWO_CHANNELS
+        };
+    }
+    let _ = cfg;
+    model
+}
+
 /// Looks a model up by its command-line name (`th`, `e-series` — also `e`, `eseries` — or
 /// `tmi`).
 #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
@@ -247,8 +265,8 @@ pub fn features_of(model: &'static Model, product_only: bool) -> &'static Featur
     match BUILT_ALONE {
         Some(m) if product_only => {
             debug_assert!(
-                core::ptr::eq(m, model),
-                "a one-model build runs its own model"
+                m.features.tag == model.features.tag,
+                "a one-model build runs its own model (in one of its configurations)"
             );
             &m.features
         }
@@ -286,7 +304,7 @@ pub(crate) const fn e_series_stored() -> usize {
 #[cfg(not(feature = "host-buffers"))]
 pub(crate) const fn tmi_stored() -> usize {
     #[cfg(feature = "tmi")]
-    return table::stored(tmi::ENTRIES);
+    return table::stored(tmi::ENTRIES_TWO_CHANNELS);
     #[cfg(not(feature = "tmi"))]
     return 0;
 }
