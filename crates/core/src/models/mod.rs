@@ -238,6 +238,12 @@ pub fn for_unit(model: &'static Model, cfg: &DeviceConfig) -> &'static Model {
     model
 }
 
+/// The dictionary of `model`'s unit with the most objects (the two-channel TMI's): what a tool
+/// that does not know the unit's configuration reads or accepts, leaving out what a unit refuses.
+pub fn widest(model: &'static Model) -> &'static Model {
+    for_unit(model, &model.default_config.with_channels(u8::MAX))
+}
+
 /// Looks a model up by its command-line name (`th`, `e-series` — also `e`, `eseries` — or
 /// `tmi`).
 #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
