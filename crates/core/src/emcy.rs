@@ -363,6 +363,26 @@ mod tests {
 
     /// CiA 301 §7.2.7: an EMCY is sent once per error event. More distinct errors than the
     /// active list holds are still sent and recorded; the list keeps the first eight.
+    /// A held error is in the register at once, sends nothing, is held once however often, and
+    /// its clearing sends the error reset; a full active list takes no more.
+    #[test]
+    fn a_held_error_marks_the_register_without_sending() {
+        let mut e = Emcy::default();
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        assert_eq!((e.register(), e.poll(Instant(0))), (0x11, None));
+        e.event(code::BUS_OFF_RECOVERED, [0; 5]);
+        assert_eq!(e.poll(Instant(0)).map(|f| f[2]), Some(0x11));
+        e.clear(code::BUS_OFF_RECOVERED);
+        assert_eq!(e.register(), 0, "held once");
+        assert_eq!(e.poll(Instant(0)), Some([0; 8]));
+        for c in 0..ACTIVE_LEN as u16 {
+            e.raise(0x1000 + c, 0, [0; 5]);
+        }
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        assert!(!e.is_active(code::BUS_OFF_RECOVERED), "the list is full");
+    }
+
     #[test]
     fn more_distinct_errors_than_the_active_list_holds_are_still_sent() {
         let mut e = Emcy::default();

@@ -227,7 +227,7 @@ pub fn all() -> [&'static Model; 3] {
 #[inline(always)]
 pub fn for_unit(model: &'static Model, cfg: &DeviceConfig) -> &'static Model {
     #[cfg(feature = "tmi")]
-    if model.features.tag == tmi::TMI.features.tag && model.name == tmi::TMI.name {
+    if core::ptr::eq(model, &tmi::TMI) || core::ptr::eq(model, &tmi::TMI_TWO_CHANNELS) {
         return if cfg.channels <= 1 {
             &tmi::TMI
         } else {
