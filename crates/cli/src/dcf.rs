@@ -92,7 +92,9 @@ fn read_state(
     cfg.bitrate_kbps = node.device().bitrate();
     let mut values = Vec::new();
     // Measurements (positions, speeds, states) have no value without a magnet: left out.
-    for e in model
+    for e in node
+        .device()
+        .model()
         .entries
         .iter()
         .filter(|e| e.access.readable() && e.default != OdDefault::Live)
@@ -152,12 +154,22 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
             cfg.bitrate_kbps = b;
         }
         let mut values: Vec<(u16, u8, Vec<u8>)> = Vec::new();
-        for e in model.entries.iter().filter(|e| e.access.readable()) {
+        // Every object the model's units may have (a one-channel TMI refuses channel 2).
+        let widest = models::widest(model);
+        for e in widest.entries.iter().filter(|e| e.access.readable()) {
             match c.upload(e.index, e.sub) {
                 Ok(d) => values.push((e.index, e.sub, d)),
                 // Refused (e.g. an object this unit's variant lacks): no ParameterValue.
                 Err(SdoError::Abort(_)) => {}
                 Err(err) => bail!("reading 0x{:04X}/{}: {err}", e.index, e.sub),
+            }
+        }
+        // A unit whose configuration has a dictionary of its own (TMI, 002 §1.6) has the
+        // channels it answers for.
+        if !std::ptr::eq(models::for_unit(model, &cfg), widest) {
+            let channels = values.iter().filter(|v| v.0 == 0x6020 && v.1 > 0).count();
+            if channels > 0 {
+                cfg.channels = channels as u8;
             }
         }
         (model, cfg, code, values)
@@ -328,6 +340,8 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
     else {
         return Ok(None);
     };
+    // Every object the model's units may have: the file says which of them this one has.
+    let model = models::widest(model);
     let at = |sec: &str, key: &str| {
         ini.section(sec)
             .and_then(|s| s.key(key))

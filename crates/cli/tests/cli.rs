@@ -442,3 +442,36 @@ on = true
     let status = run.0.wait().unwrap();
     assert!(status.success(), "{status:?}");
 }
+
+/// Issue 36 item 3, as the issue writes it: the EDS of a 5 µm one-channel TMI ("TMI 0750 101 615
+/// 252") gives the measuring step's limits the unit accepts (from 5000 nm, 002 §1.7), lists
+/// channel-1 objects only (§1.6, §1.12), and maps nothing but 0x6020 / 0x6030 / 0x6300 / 0x6400
+/// (§1.2.5). docs/OD.md §1.2 and the core's `od_rows` test check every row of every order code.
+#[test]
+fn eds_of_an_order_code_is_that_units() {
+    let o = canpos(&["eds", "--order-code", "TMI 0750 101 615 252"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let eds = String::from_utf8_lossy(&o.stdout);
+    let section = |name: &str| -> String {
+        let start = eds
+            .find(&format!("[{name}]\n"))
+            .unwrap_or_else(|| panic!("no [{name}]"));
+        let rest = &eds[start + name.len() + 3..];
+        rest[..rest.find("\n[").unwrap_or(rest.len())].to_string()
+    };
+    let step = section("6005sub1");
+    assert!(step.contains("LowLimit=0x00001388"), "{step}");
+    assert!(step.contains("HighLimit=0x000186A0"), "{step}");
+    for sub2 in [
+        "6010sub2", "6020sub2", "6030sub2", "6300sub2", "6400sub2", "6402sub2",
+    ] {
+        assert!(
+            !eds.contains(&format!("[{sub2}]")),
+            "{sub2} in a one-channel EDS"
+        );
+    }
+    assert!(section("6020sub0").contains("DefaultValue=0x01"));
+    assert!(section("1001").contains("PDOMapping=0"));
+    let two = canpos(&["eds", "--order-code", "TMI 0750 101 625 252"]);
+    assert!(String::from_utf8_lossy(&two.stdout).contains("[6020sub2]"));
+}

@@ -990,10 +990,25 @@ fn map_subs(h: &Harness, n: u16) -> u8 {
         .count() as u8
 }
 
+/// The 8-bit input the CTT maps (1001:00), or, where the manual names the mappable objects and
+/// 1001 is not among them (TMI 002 §1.2.5), the cam state of channel 1 (DECISIONS.md).
+fn input8(h: &Harness) -> u32 {
+    let mappable = h
+        .model()
+        .entries
+        .iter()
+        .any(|e| (e.index, e.sub) == (0x1001, 0) && e.pdo);
+    if mappable {
+        0x1001_0008
+    } else {
+        0x6300_0108
+    }
+}
+
 fn pdo_25(h: &mut Harness) -> Outcome {
     for n in default_tpdos(h) {
         let subs = map_subs(h, n);
-        let entries = vec![0x1001_0008; usize::from(subs)];
+        let entries = vec![input8(h); usize::from(subs)];
         let r = procedure(h, n, &entries, subs + 1);
         for (k, x) in r[..r.len() - 2].iter().enumerate() {
             assert_eq!(*x, Ok(()), "step {k}");
@@ -1036,8 +1051,13 @@ fn pdo_29(_: &mut Harness) -> Outcome {
 }
 
 fn pdo_30(h: &mut Harness) -> Outcome {
+    if input8(h) != 0x1001_0008 {
+        // The manual wins: 1001 is no mappable object of this product.
+        let r = procedure(h, 0, &[0x1001_0008], 1);
+        assert_eq!(r[2], Err(abort::NOT_MAPPABLE), "1001:00 into TPDO1");
+    }
     for n in 0..u16::from(h.model().features.tpdos) {
-        for (k, r) in procedure(h, n, &[0x1001_0008], 1).into_iter().enumerate() {
+        for (k, r) in procedure(h, n, &[input8(h)], 1).into_iter().enumerate() {
             // The last step validates the PDO; TMI's TPDO2 is only valid on two-channel units
             // but its COB-ID may still be set valid.
             assert_eq!(r, Ok(()), "TPDO{} step {k}", n + 1);
@@ -1971,12 +1991,12 @@ cases! {
     "PDO-22" pdo_22 "legal re-mapping by procedure" "";
     "PDO-23" pdo_23 "mapping write without the procedure" "";
     "PDO-24" pdo_24 "mapping write on a valid PDO" "manual wins: sub 0 = 0 on a valid PDO is accepted (TH/E Example 5); entry writes with sub 0 ≠ 0 abort 06010000";
-    "PDO-25" pdo_25 "too many entries" "TMI: 5 entries, sub 0 = 6";
+    "PDO-25" pdo_25 "too many entries" "TMI: 5 entries, sub 0 = 6; 6300:01 for 1001:00 (not mappable, 002 §1.2.5)";
     "PDO-26" pdo_26 "entries too long" "6020:01 (32 bit); TMI: 5 entries";
     "PDO-27" pdo_27 "map an output into an RPDO" "";
     "PDO-28" pdo_28 "map an input into an RPDO" "";
     "PDO-29" pdo_29 "map a non-mappable object into an RPDO" "";
-    "PDO-30" pdo_30 "map an input into a TPDO" "";
+    "PDO-30" pdo_30 "map an input into a TPDO" "manual wins: TMI maps 6300:01, 1001:00 aborts 06040041 (002 §1.2.5)";
     "PDO-31" pdo_31 "map an output into a TPDO" "";
     "PDO-32" pdo_32 "map a non-mappable object into a TPDO" "";
     "PDO-33" pdo_33 "dummy mapping" "";

@@ -155,4 +155,7 @@ object first made invalid). On TMI the segmented and block cases check the refus
   sub 1 only, so the sub-2 cases are n.a. there.
 * **PDO-25/26 on TMI.** The TMI has five mapping entries per TPDO: the cases fill five and count
   one more (PDO-25) or five 32-bit entries (PDO-26); both give 06040042.
+* **PDO-25/30 on TMI.** The CTT maps 1001:00; the TMI manual names the mappable objects (002
+  §1.2.5: 6020, 6030, 6300, 6400), so 1001:00 aborts 06040041 there and the cases map 6300:01,
+  the 8-bit input the product has.
 "#;

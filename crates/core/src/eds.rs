@@ -123,6 +123,8 @@ fn write_file(
     info: &EdsInfo<'_>,
     dcf: Option<(&Commissioning<'_>, ValueSource<'_>)>,
 ) -> fmt::Result {
+    // The unit's own dictionary: one EDS per configuration (TMI 002 §1.6).
+    let model = crate::models::for_unit(model, cfg);
     let unit = Unit { model, cfg };
     let value = |index: u16, sub: u8| -> u32 {
         model
@@ -287,7 +289,7 @@ fn write_var(
         e.access.eds()
     };
     writeln!(w, "AccessType={access}")?;
-    if let Some((lo, hi)) = limits(e) {
+    if let Some((lo, hi)) = limits(e, cfg) {
         write!(w, "LowLimit=")?;
         write_number(w, e.ty, lo)?;
         write!(w, "\nHighLimit=")?;
@@ -359,10 +361,12 @@ fn write_var(
     writeln!(w)
 }
 
-/// Declared range as EDS limits (lists of allowed values are not expressible; they get the
-/// smallest and largest member).
-fn limits(e: &Entry) -> Option<(i64, i64)> {
-    match *e.range {
+/// The values the unit `cfg` accepts as EDS limits: the table's range narrowed by the rule of
+/// the application hook of the entry for this unit (the measuring step of a 5 µm TMI starts at
+/// 5000; [`crate::encoder::limits`]). Lists of allowed values are not expressible; they get
+/// the smallest and largest member.
+fn limits(e: &Entry, cfg: &DeviceConfig) -> Option<(i64, i64)> {
+    let table = match *e.range {
         Range::Any => None,
         Range::MinMax(..) => e.limits(),
         Range::OneOf(list) => {
@@ -370,6 +374,17 @@ fn limits(e: &Entry) -> Option<(i64, i64)> {
             let hi = list.iter().map(|&v| e.ty.to_i64(v)).max()?;
             Some((lo, hi))
         }
+    };
+    // A rule limits what a write may bring: none on a read-only entry (TH 0x6005/1).
+    let rule = e
+        .hook
+        .app_number()
+        .filter(|_| e.access.writable())
+        .and_then(|h| crate::encoder::limits(h, cfg))
+        .map(|(lo, hi)| (e.ty.to_i64(lo), e.ty.to_i64(hi)));
+    match (table, rule) {
+        (Some((a, b)), Some((c, d))) => Some((a.max(c), b.min(d))),
+        (t, r) => t.or(r),
     }
 }
 

@@ -182,6 +182,19 @@ impl Emcy {
         self.queue(p);
     }
 
+    /// An error that stands while its EMCY cannot be sent yet (bus-off): active in the register
+    /// (0x1001) at once, announced later with [`Emcy::event`] and cleared with [`Emcy::clear`]
+    /// (CANopenNode reports "recovered from bus off" so: the error is set when the controller
+    /// goes bus-off, its EMCY leaves when the bus is back).
+    pub fn hold(&mut self, code: u16, reg_bits: u8) {
+        if self.is_active(code) || usize::from(self.n_active) >= ACTIVE_LEN {
+            return;
+        }
+        self.active[usize::from(self.n_active)] = u32::from(code) | u32::from(reg_bits) << 16;
+        self.n_active += 1;
+        self.generation = self.generation.wrapping_add(1);
+    }
+
     /// A one-shot event (no lasting error condition): queued and recorded, register unchanged.
     // A firmware's events share one copy.
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
@@ -350,6 +363,26 @@ mod tests {
 
     /// CiA 301 §7.2.7: an EMCY is sent once per error event. More distinct errors than the
     /// active list holds are still sent and recorded; the list keeps the first eight.
+    /// A held error is in the register at once, sends nothing, is held once however often, and
+    /// its clearing sends the error reset; a full active list takes no more.
+    #[test]
+    fn a_held_error_marks_the_register_without_sending() {
+        let mut e = Emcy::default();
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        assert_eq!((e.register(), e.poll(Instant(0))), (0x11, None));
+        e.event(code::BUS_OFF_RECOVERED, [0; 5]);
+        assert_eq!(e.poll(Instant(0)).map(|f| f[2]), Some(0x11));
+        e.clear(code::BUS_OFF_RECOVERED);
+        assert_eq!(e.register(), 0, "held once");
+        assert_eq!(e.poll(Instant(0)), Some([0; 8]));
+        for c in 0..ACTIVE_LEN as u16 {
+            e.raise(0x1000 + c, 0, [0; 5]);
+        }
+        e.hold(code::BUS_OFF_RECOVERED, reg::COMMUNICATION);
+        assert!(!e.is_active(code::BUS_OFF_RECOVERED), "the list is full");
+    }
+
     #[test]
     fn more_distinct_errors_than_the_active_list_holds_are_still_sent() {
         let mut e = Emcy::default();

@@ -285,6 +285,8 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// [`Node::power_on`].
     #[inline(always)] // as `new`
     pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
+        // The unit's own dictionary (the one-channel TMI's has channel 1 only).
+        let model = crate::models::for_unit(model, &cfg);
         let od = Dictionary::new(model);
         let hot = HotSlots::new(model);
         let f = app::features::<A>(model);

@@ -476,7 +476,7 @@ pub enum Fault {
     /// A communication error of no more specific kind → EMCY 0x8100, register 0x11 (TH,
     /// E-Series; the TMI's table has no such code).
     Communication,
-    /// One PDO not processed because of its length (`on` only, a one-shot event) → EMCY 0x8210
+    /// PDOs not processed because of their length (a condition: `off` clears it) → EMCY 0x8210
     /// (TH, E-Series; not in the TMI's table).
     PdoLength,
     /// TMI system-data errors (002 §1.14, 0x5000 with sub-codes). All but

@@ -137,12 +137,15 @@ pub enum Fault {
     /// register 0x11 (TH Table 5, E-Series EMCY table). The TMI's table has no such code: it
     /// reports nothing.
     Communication,
-    /// One PDO not processed because of its length: a one-shot EMCY 0x8210 (TH Table 5,
-    /// E-Series EMCY table; the sensors have no RPDO, so only the injected event raises it).
-    /// Not in the TMI's table: nothing. `active == false` does nothing.
+    /// PDOs not processed because of their length: EMCY 0x8210 with register 0x11 (TH /
+    /// E-Series Table 5 and Table 6: a communication error), which 0x1001 shows until the
+    /// condition is removed (then 0x0000; "Emergency objects go along with changes of the
+    /// internal error status register", §5.6.1). The sensors have no RPDO, so only the
+    /// injection raises it. Not in the TMI's table: nothing.
     PdoLength,
-    /// CAN bus-off: while active the host keeps the node off the bus (TMI 0x1002 bits 4, 3);
-    /// clearing it is the recovery, EMCY 0x8140.
+    /// CAN bus-off: while active the host keeps the node off the bus (TMI 0x1002 bits 4, 3;
+    /// TH / E-Series: 0x1001 shows the communication error, 0x11); clearing it is the
+    /// recovery, EMCY 0x8140 (TH / E-Series with register 0x11, then 0x0000).
     CanBusOff,
     /// CAN controller overrun: EMCY 0x8110 (TMI 0x8110 1/0/0, 0x1002 bit 7).
     CanOverrun,
@@ -176,6 +179,7 @@ const F_EVENT_TIMER: u16 = 1 << 7;
 const F_MISSING: u16 = 1 << 8;
 const F_COMMUNICATION: u16 = 1 << 9;
 const F_TX_OVERFLOW: u16 = 1 << 10;
+const F_PDO_LENGTH: u16 = 1 << 11;
 
 /// Per-channel memory.
 #[derive(Clone, Copy, Debug, Default)]
@@ -242,7 +246,7 @@ impl Encoder {
             Fault::OverTemperature => self.faults & F_TEMPERATURE != 0,
             Fault::CanErrorPassive => self.faults & F_PASSIVE != 0,
             Fault::Communication => self.faults & F_COMMUNICATION != 0,
-            Fault::PdoLength => false,
+            Fault::PdoLength => self.faults & F_PDO_LENGTH != 0,
             Fault::CanBusOff => self.faults & F_BUS_OFF != 0,
             Fault::CanOverrun => self.faults & F_OVERRUN != 0,
             Fault::CanBufferOverflow => self.faults & F_BUFFER != 0,
@@ -531,7 +535,14 @@ impl Encoder {
         self.hw_seen = reasons;
 
         let comm = emcy::reg::COMMUNICATION;
-        let conditions: [(u16, u16, u8, [u8; 5]); 8] = [
+        // TH / E-Series: bus-off is a communication error in 0x1001 while it lasts (Table 6;
+        // its EMCY 0x8140 leaves at the recovery, see `inject`). Held again after a reset
+        // forgot it.
+        if !tmi && self.faults & F_BUS_OFF != 0 && !cx.emcy.is_active(emcy::code::BUS_OFF_RECOVERED)
+        {
+            cx.emcy.hold(emcy::code::BUS_OFF_RECOVERED, comm);
+        }
+        let conditions: [(u16, u16, u8, [u8; 5]); 9] = [
             (
                 F_VOLTAGE,
                 emcy::code::MAIN_VOLTAGE,
@@ -555,6 +566,7 @@ impl Encoder {
                 [1, 0, 0, 0, 0],
             ),
             (F_EVENT_TIMER, emcy::code::SOFTWARE, 0, [1, 0, 0, 0, 0]),
+            (F_PDO_LENGTH, emcy::code::PDO_LENGTH, comm, [0; 5]),
         ];
         for (flag, code, reg, mfr) in conditions {
             if tmi && flag & TMI_NO_CODE != 0 {
@@ -658,20 +670,20 @@ impl Application for Encoder {
             Fault::OverTemperature => set_flag(&mut self.faults, F_TEMPERATURE, active),
             Fault::CanErrorPassive => set_flag(&mut self.faults, F_PASSIVE, active),
             Fault::Communication => set_flag(&mut self.faults, F_COMMUNICATION, active),
-            Fault::PdoLength => {
-                if active && !tmi {
-                    cx.emcy.event(emcy::code::PDO_LENGTH, [0; 5]);
-                }
-            }
+            // Not in the TMI's table: no condition there.
+            Fault::PdoLength => set_flag(&mut self.faults, F_PDO_LENGTH, active && !tmi),
             Fault::CanBusOff => {
                 let was = self.faults & F_BUS_OFF != 0;
                 set_flag(&mut self.faults, F_BUS_OFF, active);
                 if was && !active {
-                    // Recovered: a one-shot event (TH/E Table 5, TMI 0x8140 0/0/0); on the
-                    // models whose EMCYs follow every change of the error state, the error
-                    // reset follows (TMI: its table has 0x0000 only for the sensor error).
+                    // Recovered (TH/E Table 5, TMI 0x8140 0/0/0). TH / E-Series: the EMCY
+                    // carries the communication error that stood during bus-off (Table 6:
+                    // 0x11, held by `sync`), then its clearing sends the error reset. TMI: a
+                    // one-shot event (its table has 0x0000 only for the sensor error).
                     cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
-                    if features(cx.model).emcy_on_register_change {
+                    if cx.emcy.is_active(emcy::code::BUS_OFF_RECOVERED) {
+                        cx.emcy.clear(emcy::code::BUS_OFF_RECOVERED);
+                    } else if features(cx.model).emcy_on_register_change {
                         cx.emcy.reset_message();
                     }
                 }
@@ -687,7 +699,11 @@ impl Application for Encoder {
             }
             Fault::CobIdCollision => {
                 if active && !tmi {
-                    cx.emcy.event(emcy::code::COB_COLLISION, [0; 5]);
+                    // A communication error for the moment of the collision (Table 6: 0x11 in
+                    // the EMCY and in 0x1001), over with the frame: the error reset follows.
+                    cx.emcy
+                        .raise(emcy::code::COB_COLLISION, emcy::reg::COMMUNICATION, [0; 5]);
+                    cx.emcy.clear(emcy::code::COB_COLLISION);
                 }
             }
             Fault::Warning(bits) => {
@@ -718,14 +734,15 @@ impl Application for Encoder {
 
     /// The rule of application hook `h` for a write of `raw` to `sub`.
     fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+        let (lo, hi) = limits(h, cx.cfg).unwrap_or((0, u32::MAX));
         match h {
             // D2: only the code-sequence bit.
             hook::CODE_SEQUENCE if raw & !1 != 0 => Err(Abort::InvalidValue),
             // R31: whole µm, not below the variant's minimum step.
             hook::MEASURING_STEP if !raw.is_multiple_of(1000) => Err(Abort::InvalidValue),
-            hook::MEASURING_STEP if raw < cx.cfg.position_step_nm => Err(Abort::ValueTooLow),
+            hook::MEASURING_STEP if raw < lo => Err(Abort::ValueTooLow),
             // Four cams per channel: bits 4…7 name no cam.
-            hook::CAM_SWITCH if sub >= 1 && raw > 0x0F => Err(Abort::InvalidValue),
+            hook::CAM_SWITCH if sub >= 1 && raw > hi => Err(Abort::InvalidValue),
             _ => Ok(()),
         }
     }
@@ -834,11 +851,25 @@ impl Application for Encoder {
     }
 }
 
+/// The values application hook `h` accepts on a unit configured as `cfg`, as raw bounds, where
+/// its rule is a range (the table's range of the entry applies as well): what the unit's EDS
+/// gives as `LowLimit` / `HighLimit`, so that the file names what that unit accepts (a 5 µm TMI
+/// refuses a measuring step below 5000 nm).
+pub fn limits(h: u8, cfg: &crate::models::DeviceConfig) -> Option<(u32, u32)> {
+    match h {
+        // R31: from the variant's minimum step (1 µm or 5 µm), whole µm, up to 100 µm.
+        hook::MEASURING_STEP => Some((cfg.position_step_nm.div_ceil(1000) * 1000, 100_000)),
+        // Four cams per channel: bits 0…3.
+        hook::CAM_SWITCH => Some((0, 0x0F)),
+        _ => None,
+    }
+}
+
 /// Conditions the TMI's EMCY table (002 §1.14) has no code for. Supply voltage and temperature
 /// reach its electronics as an internal error of the sensing element: the TMI reports them as
 /// its "Sensor Error" (0x5000 1/1/0, with that error's reaction); a generic communication fault
 /// it does not report at all (DECISIONS.md). A transmit overflow it reports as its 0x6000 (`F_EVENT_TIMER`), not as 0x8110.
-const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION | F_TX_OVERFLOW;
+const TMI_NO_CODE: u16 = F_VOLTAGE | F_TEMPERATURE | F_COMMUNICATION | F_TX_OVERFLOW | F_PDO_LENGTH;
 
 /// The conditions that make the model's sensor error (0x5000).
 const fn sensor_error_faults(tmi: bool) -> u16 {

@@ -111,9 +111,10 @@ const DIAG: &[Entry] = &[
     entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::app(hook::OPERATING_STATUS)),
     entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
     // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
-    entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Live),
+    // Table 17: default 0x0000; the application sets bit 0 while a magnet is missing (D13).
+    entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Const(0)),
     entry!(0x6504, 0, "Supported alarms", Unsigned16, Const, Const(0x0001)),
-    entry!(0x6505, 0, "Warnings", Unsigned16, Ro, Live),
+    entry!(0x6505, 0, "Warnings", Unsigned16, Ro, Const(0)),
     entry!(0x6506, 0, "Supported warnings", Unsigned16, Const, Const(0x7000)),
     // D4 (Table 17 gives no value).
     entry!(0x6507, 0, "Profile and software version", Unsigned32, Const, Const(0x0301_0100)),

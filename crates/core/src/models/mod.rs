@@ -218,6 +218,30 @@ pub fn all() -> [&'static Model; 3] {
     [&th::TH, &e_series::E_SERIES, &tmi::TMI]
 }
 
+/// The dictionary a unit of `model` configured as `cfg` has: the TMI's one-channel unit has
+/// its own, with channel-1 objects only (002 §1.6: a separate EDS per configuration), the
+/// two-channel unit the full one; every other model has one dictionary for all its units. A
+/// node ([`crate::Node::new`]) and an EDS ([`crate::eds::write_eds`]) of the unit use this.
+#[inline(always)]
+pub fn for_unit(model: &'static Model, cfg: &DeviceConfig) -> &'static Model {
+    #[cfg(feature = "tmi")]
+    if core::ptr::eq(model, &tmi::TMI) || core::ptr::eq(model, &tmi::TMI_TWO_CHANNELS) {
+        return if cfg.channels <= 1 {
+            &tmi::TMI
+        } else {
+            &tmi::TMI_TWO_CHANNELS
+        };
+    }
+    let _ = cfg;
+    model
+}
+
+/// The dictionary of `model`'s unit with the most objects (the two-channel TMI's): what a tool
+/// that does not know the unit's configuration reads or accepts, leaving out what a unit refuses.
+pub fn widest(model: &'static Model) -> &'static Model {
+    for_unit(model, &model.default_config.with_channels(u8::MAX))
+}
+
 /// Looks a model up by its command-line name (`th`, `e-series` — also `e`, `eseries` — or
 /// `tmi`).
 #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
@@ -245,8 +269,8 @@ pub fn features_of(model: &'static Model, product_only: bool) -> &'static Featur
     match BUILT_ALONE {
         Some(m) if product_only => {
             debug_assert!(
-                core::ptr::eq(m, model),
-                "a one-model build runs its own model"
+                m.features.tag == model.features.tag,
+                "a one-model build runs its own model (in one of its configurations)"
             );
             &m.features
         }
@@ -284,7 +308,7 @@ pub(crate) const fn e_series_stored() -> usize {
 #[cfg(not(feature = "host-buffers"))]
 pub(crate) const fn tmi_stored() -> usize {
     #[cfg(feature = "tmi")]
-    return table::stored(tmi::ENTRIES);
+    return table::stored(tmi::ENTRIES_TWO_CHANNELS);
     #[cfg(not(feature = "tmi"))]
     return 0;
 }

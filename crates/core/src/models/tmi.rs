@@ -2,7 +2,9 @@
 //! as far as the manual describes it (§1.2–§1.16; the vendor EDS `TMI_TLM_CANopen.eds` it
 //! refers to is not available).
 //!
-//! Two position channels, two TPDOs of at most five entries (§1.2.5, storage table), window
+//! One or two position channels, each configuration with its own dictionary ([`TMI`] and
+//! [`TMI_TWO_CHANNELS`]; 002 §1.6 "a separate eds-file is provided for each configuration", the
+//! one-channel unit has its channel-1 objects only), two TPDOs of at most five entries (§1.2.5, storage table), window
 //! cams with high limits 0x632x and hysteresis 0x633x (D5), node-id 0x2000 / bit rate 0x2001
 //! (D16), status 0x1002, store / restore with subs 1…3 (D7), writable measuring steps 0x6005
 //! (R31). Storage groups follow the §1.16 table: objects it does not list (0x1005, 0x1014,
@@ -37,7 +39,8 @@ pub const BITRATES_2001: &[u32] = &[10, 20, 50, 125, 250, 500, 800, 1000, 0xFFFF
 #[rustfmt::skip]
 const COMM_HEAD: &[Entry] = &[
     entry!(0x1000, 0, "Device type", Unsigned32, Ro, Param(Param::DeviceType)),
-    entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live, Any, Volatile, true),
+    // Not mappable: 002 §1.2.5 names the mappable objects (0x6020, 0x6030, 0x6300, 0x6400).
+    entry!(0x1001, 0, "Error register", Unsigned8, Ro, Live),
     // §1.15: status bits, NMT state in bits 1–0.
     entry!(0x1002, 0, "Manufacturer status register", Unsigned32, Ro, Live).with_hook(Hook::app(hook::MANUFACTURER_STATUS)),
 ];
@@ -112,8 +115,6 @@ const fn map(n: u32) -> [u32; 8] {
     ]
 }
 
-const CH: usize = 3;
-
 #[rustfmt::skip]
 const MFR: &[Entry] = &[
     // D16; "save" stores them, effective after reset communication / power-up.
@@ -137,49 +138,78 @@ const DIAG: &[Entry] = &[
     entry!(0x6507, 0, "Profile and software version", Unsigned32, Const, Const(0x0301_0100)),
 ];
 
+/// The object parts of a unit with the channels `$n…` (`$ch` = sub 0 plus one per channel):
+/// 002 §1.6 gives each configuration its own EDS, and the one-channel unit has its channel-1
+/// objects only (§1.12: "Pos_ch1/Vel_ch1", one TPDO's worth).
+macro_rules! parts {
+    ($ch:literal, $map2:expr; $($n:literal),*) => {{
+        const CH: usize = $ch;
+        const P: &[&[Entry]] = &[
+            COMM_HEAD,
+            &table::ERROR_HISTORY,
+            COMM,
+            T1.0.split_at(T1.1).0,
+            T2.0.split_at(T2.1).0,
+            &table::tpdo_map::<6>(0x1A00, tpdo_map_names!(1), 4, map(1), Comm),
+            &table::tpdo_map::<6>(0x1A01, tpdo_map_names!(2), $map2.0, $map2.1, Comm),
+            MFR,
+            &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::PRESET)),
+            &channels::<CH>(0x6020, chnames!("Position value"; $($n),*), Integer32, Ro, true, Live, &Any, Volatile),
+            &channels::<CH>(0x6030, chnames!("Speed value"; $($n),*), Integer16, Ro, true, Live, &Any, Volatile),
+            &channels::<CH>(0x6300, chnames!("Cam state"; $($n),*), Unsigned8, Ro, true, Live, &Any, Volatile),
+            // Not in the §1.16 storage list.
+            &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; $($n),*), Unsigned8, Rw, false, Const(0), &Any, Volatile), Hook::app(hook::CAM_SWITCH)),
+            &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; $($n),*), Unsigned8, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_SWITCH)),
+            &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6320, chnames!("Cam1 high limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6321, chnames!("Cam2 high limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6322, chnames!("Cam3 high limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6323, chnames!("Cam4 high limit"; $($n),*), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
+            &channels::<CH>(0x6400, chnames!("Work area state"; $($n),*), Unsigned8, Ro, true, Live, &Any, Volatile),
+            &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; $($n),*), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+            &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; $($n),*), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+            DIAG,
+        ];
+        P
+    }};
+}
+
+/// Two channels: TPDO2 carries channel 2 (D21).
 #[rustfmt::skip]
-const PARTS: &[&[Entry]] = &[
-    COMM_HEAD,
-    &table::ERROR_HISTORY,
-    COMM,
-    T1.0.split_at(T1.1).0,
-    T2.0.split_at(T2.1).0,
-    &table::tpdo_map::<6>(0x1A00, tpdo_map_names!(1), 4, map(1), Comm),
-    &table::tpdo_map::<6>(0x1A01, tpdo_map_names!(2), 4, map(2), Comm),
-    MFR,
-    &table::hooked(channels::<CH>(0x6010, chnames!("Preset value"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::PRESET)),
-    &channels::<CH>(0x6020, chnames!("Position value"; 1, 2), Integer32, Ro, true, Live, &Any, Volatile),
-    &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2), Integer16, Ro, true, Live, &Any, Volatile),
-    &channels::<CH>(0x6300, chnames!("Cam state"; 1, 2), Unsigned8, Ro, true, Live, &Any, Volatile),
-    // Not in the §1.16 storage list.
-    &table::hooked(channels::<CH>(0x6301, chnames!("Cam enable"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, Volatile), Hook::app(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6302, chnames!("Cam polarity"; 1, 2), Unsigned8, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_SWITCH)),
-    &table::hooked(channels::<CH>(0x6310, chnames!("Cam1 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6311, chnames!("Cam2 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6312, chnames!("Cam3 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6313, chnames!("Cam4 low limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6320, chnames!("Cam1 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6321, chnames!("Cam2 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6322, chnames!("Cam3 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6323, chnames!("Cam4 high limit"; 1, 2), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6330, chnames!("Cam1 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6331, chnames!("Cam2 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; 1, 2), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
-    &channels::<CH>(0x6400, chnames!("Work area state"; 1, 2), Unsigned8, Ro, true, Live, &Any, Volatile),
-    &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; 1, 2), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
-    &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; 1, 2), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
-    DIAG,
-];
+const PARTS: &[&[Entry]] = parts!(3, (4, map(2)); 1, 2);
+/// One channel: TPDO2 exists (§1.12 "2 TPDOs … are provided") but has no channel of its own:
+/// invalid (D21) and empty until a user maps channel-1 objects into it.
+#[rustfmt::skip]
+const PARTS_ONE: &[&[Entry]] = parts!(2, (0, [0; 8]); 1);
 
+/// Entries of the larger (two-channel) table: what a firmware's value array and storage image
+/// are sized for.
 pub(crate) const N: usize = table::total(PARTS);
-static TABLE: [Entry; N] = table::concat(PARTS);
+static TABLE_TWO: [Entry; N] = table::concat(PARTS);
 #[cfg(feature = "inline-hot-paths")]
-static KEYS: [u32; N] = table::keys(&TABLE);
-const _: () = assert!(table::valid(&TABLE), "TMI table unsorted or too large");
+static KEYS_TWO: [u32; N] = table::keys(&TABLE_TWO);
+const _: () = assert!(table::valid(&TABLE_TWO), "TMI table unsorted or too large");
 
-/// The TMI's object dictionary.
+const N_ONE: usize = table::total(PARTS_ONE);
+static TABLE: [Entry; N_ONE] = table::concat(PARTS_ONE);
+#[cfg(feature = "inline-hot-paths")]
+static KEYS: [u32; N_ONE] = table::keys(&TABLE);
+const _: () = assert!(
+    table::valid(&TABLE),
+    "one-channel TMI table unsorted or too large"
+);
+
+/// The one-channel TMI's object dictionary: channel-1 objects only (002 §1.6, §1.12).
 pub static ENTRIES: &[Entry] = &TABLE;
+/// The two-channel TMI's object dictionary.
+pub static ENTRIES_TWO_CHANNELS: &[Entry] = &TABLE_TWO;
 
 /// §1.8: bit 31 two channels, bit 30 5 µm minimum step, bits 16…0 length in mm.
 pub fn product_code(cfg: &DeviceConfig) -> u32 {
@@ -225,7 +255,46 @@ fn derive(mut cfg: DeviceConfig) -> DeviceConfig {
     cfg
 }
 
-/// The TMI model.
+/// The TMI's behaviour switches (both configurations).
+const FEATURES: Features = Features {
+    tag: 3,
+    tpdos: 2,
+    sdo_segmented: false,
+    sdo_block: false,
+    node_guarding: false,
+    tpdo_rtr: true,
+    lss_fastscan: false,
+    lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7, 8],
+    bitrates: &[1000, 800, 500, 250, 125, 50, 20, 10],
+    store_preop_only: true,
+    kill_signature: true,
+    preset_clear: false,
+    preset_offset_internal: true,
+    tmi_error_reactions: true,
+    window_cams: true,
+    power_on_emcy: false,
+    sync_length_emcy: false,
+    emcy_on_register_change: false,
+    event_timer_above_inhibit: true,
+    lss_unconfigured_configures: true,
+};
+
+/// The manual's example unit.
+const DEFAULT_CONFIG: DeviceConfig = DeviceConfig {
+    node_id: 127,
+    bitrate_kbps: 250,
+    // A label serial in the manual's YYWWxxxx form (2009, week 05), read as decimal (G29).
+    serial: 9_050_001,
+    stroke_mm: 500,
+    position_step_nm: 1000,
+    channels: 1,
+    cycle_us: 1000,
+};
+
+/// The TMI model as the manual's example unit has it: one channel (order-code interface `61x`),
+/// channel-1 objects only. A node or EDS of a two-channel unit ([`DeviceConfig::channels`] 2,
+/// `62x`) uses [`TMI_TWO_CHANNELS`] instead ([`super::for_unit`]): 002 §1.6 provides "a
+/// separate eds-file … for each configuration".
 pub static TMI: Model = Model {
     name: "tmi",
     product: "Novotechnik TMI CANopen",
@@ -233,38 +302,22 @@ pub static TMI: Model = Model {
     entries: ENTRIES,
     #[cfg(feature = "inline-hot-paths")]
     keys: &KEYS,
-    features: Features {
-        tag: 3,
-        tpdos: 2,
-        sdo_segmented: false,
-        sdo_block: false,
-        node_guarding: false,
-        tpdo_rtr: true,
-        lss_fastscan: false,
-        lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7, 8],
-        bitrates: &[1000, 800, 500, 250, 125, 50, 20, 10],
-        store_preop_only: true,
-        kill_signature: true,
-        preset_clear: false,
-        preset_offset_internal: true,
-        tmi_error_reactions: true,
-        window_cams: true,
-        power_on_emcy: false,
-        sync_length_emcy: false,
-        emcy_on_register_change: false,
-        event_timer_above_inhibit: true,
-        lss_unconfigured_configures: true,
-    },
+    features: FEATURES,
     param,
     derive,
-    default_config: DeviceConfig {
-        node_id: 127,
-        bitrate_kbps: 250,
-        // A label serial in the manual's YYWWxxxx form (2009, week 05), read as decimal (G29).
-        serial: 9_050_001,
-        stroke_mm: 500,
-        position_step_nm: 1000,
-        channels: 1,
-        cycle_us: 1000,
-    },
+    default_config: DEFAULT_CONFIG,
+};
+
+/// The two-channel TMI: the same unit with the objects of both channels.
+pub static TMI_TWO_CHANNELS: Model = Model {
+    name: "tmi",
+    product: "Novotechnik TMI CANopen",
+    vendor: "Novotechnik Messwertaufnehmer OHG",
+    entries: ENTRIES_TWO_CHANNELS,
+    #[cfg(feature = "inline-hot-paths")]
+    keys: &KEYS_TWO,
+    features: FEATURES,
+    param,
+    derive,
+    default_config: DEFAULT_CONFIG.with_channels(2),
 };

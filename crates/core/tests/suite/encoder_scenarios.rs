@@ -256,11 +256,12 @@ fn supply_voltage_fault_matches_manual_example_3() {
     r.node.inject_fault(Fault::CanBusOff, true);
     assert!(r.take().is_empty());
     r.node.inject_fault(Fault::CanBusOff, false);
-    // Recovered, then the error reset the TH's EMCYs go along with.
+    // Recovered, with the communication error that stood during bus-off (Table 6), then the
+    // error reset the TH's EMCYs go along with.
     assert_eq!(
         emcys(&r.take()),
         vec![
-            hex("40 81 00 00 00 00 00 00"),
+            hex("40 81 11 00 00 00 00 00"),
             hex("00 00 00 00 00 00 00 00")
         ]
     );

@@ -43,6 +43,7 @@ mod model_particulars;
 mod model_tables;
 mod model_variants;
 mod node_rules;
+mod od_rows;
 mod poll_equivalence;
 mod reset_node_application;
 mod sdo_aborts;

@@ -90,8 +90,10 @@ fn other_value(e: &Entry, cur: u32) -> u32 {
         (0x6000, _) => cur ^ 1,
         (0x6301 | 0x6302, _) => 0x0F,
         (0x1A00..=0x1A03, 0) => cur,
-        // Error register ×1 is mappable (CONFORMANCE PDO-30).
-        (0x1A00..=0x1A03, _) => 0x1001_0008,
+        // Cam state of channel 1: every model maps it (the TMI no communication object, 002
+        // §1.2.5), and no default entry is it (TH's TPDO1 maps it third).
+        (0x1A00..=0x1A03, _) if cur != 0x6400_0108 => 0x6400_0108,
+        (0x1A00..=0x1A03, _) => 0x6300_0108,
         _ => match e.range {
             Range::MinMax(..) => {
                 let (lo, hi) = e.limits().unwrap();
@@ -339,7 +341,7 @@ fn storage_groups_follow_the_manuals() {
     };
     assert_eq!(g(th, 0x2101, 0), Group::App, "D19");
     assert_eq!(g(th, 0x2901, 4), Group::Auto, "D19");
-    let tmi = models::by_name("tmi").unwrap();
+    let tmi = &models::tmi::TMI_TWO_CHANNELS;
     assert_eq!(g(tmi, 0x6301, 1), Group::Volatile, "not in the §1.16 list");
     assert_eq!(g(tmi, 0x6330, 2), Group::App);
     assert_eq!(g(tmi, 0x1017, 0), Group::Comm);
@@ -400,12 +402,16 @@ fn per_node_state_fits_4_kib() {
     }
 }
 
-/// OD.md 0x6020: TH and E-Series carry up to four position channels (magnets), TMI two.
+/// OD.md 0x6020: TH and E-Series carry up to four position channels (magnets), TMI one or two,
+/// each in its own dictionary (002 §1.6).
 #[test]
 fn most_position_channels_per_model() {
     assert_eq!(models::by_name("th").unwrap().max_channels(), 4);
     assert_eq!(models::by_name("e-series").unwrap().max_channels(), 4);
-    assert_eq!(models::by_name("tmi").unwrap().max_channels(), 2);
+    let tmi = models::by_name("tmi").unwrap();
+    assert_eq!(tmi.max_channels(), 1);
+    let two = models::for_unit(tmi, &tmi.default_config.with_channels(2));
+    assert_eq!(two.max_channels(), 2);
 }
 
 /// OD.md 0x6010…0x6300 sub 0: the CiA 406 per-channel arrays carry their highest sub-index in

@@ -76,8 +76,16 @@ fn communication_and_pdo_length_codes() {
         if tmi {
             assert!(e.is_empty(), "{name}");
         } else {
-            assert_eq!(e, vec![hex("10 82 00 00 00 00 00 00")], "{name}");
+            // Table 6: a communication error, in the EMCY and in 0x1001 while it stands.
+            assert_eq!(e, vec![hex("10 82 11 00 00 00 00 00")], "{name}");
+            assert_eq!(r.read(0x1001, 0), 0x11, "{name}");
         }
+        r.node.inject_fault(Fault::PdoLength, false);
+        let e = emcys(&r.take());
+        if !tmi {
+            assert_eq!(e, vec![hex("00 00 00 00 00 00 00 00")], "{name}");
+        }
+        assert_eq!(r.read(0x1001, 0), 0, "{name}");
     }
 }
 

@@ -38,10 +38,16 @@ fn channel_arrays_sub_0_is_the_highest_sub_index() {
 
 #[test]
 fn max_channels_is_0x6020s_channel_count() {
-    for (name, n) in [("th", 4), ("e-series", 4), ("tmi", 2)] {
+    for (name, ch, n) in [
+        ("th", 1, 4),
+        ("e-series", 1, 4),
+        ("tmi", 1, 1),
+        ("tmi", 2, 2),
+    ] {
         let m = models::by_name(name).unwrap();
-        let mut r = Rig::booted(m);
-        assert_eq!(m.max_channels(), n, "{name}");
+        let cfg = m.default_config.with_channels(ch);
+        let mut r = Rig::booted_with(m, cfg);
+        assert_eq!(models::for_unit(m, &cfg).max_channels(), n, "{name}");
         assert_eq!(r.node.read_object(0x6020, 0), Ok(n as u32), "{name}");
     }
 }

@@ -1,14 +1,15 @@
 //! SPEC §11 (faults to inject): each injected condition is active exactly while it is injected,
 //! independently of the others, and the host can ask for it (`Encoder::fault_active`); events
-//! (PDO length, CAN-ID collision) are never "active". TMI system-data errors (002 §1.14) are
+//! (CAN-ID collision) are never "active". TMI system-data errors (002 §1.14) are
 //! conditions of their own on the TMI and a transducer error on TH / E-Series.
 
 use crate::common::{booted, emcys, hex, Rig};
 use canpos_core::encoder::{Fault, Sample, SystemDataError};
 
 /// The lasting conditions every model accepts (system-data errors aside).
-const LASTING: [Fault; 10] = [
+const LASTING: [Fault; 11] = [
     Fault::Transducer,
+    Fault::PdoLength,
     Fault::SupplyVoltage,
     Fault::OverTemperature,
     Fault::CanErrorPassive,
@@ -59,7 +60,8 @@ fn each_condition_is_active_exactly_while_injected() {
         for (k, &f) in LASTING.iter().enumerate() {
             r.node.inject_fault(f, true);
             let mut want = only(k, LASTING.len());
-            if name == "tmi" && matches!(f, Fault::Warning(_)) {
+            // Nor has it a PDO-length code: no condition (002 §1.14).
+            if name == "tmi" && matches!(f, Fault::Warning(_) | Fault::PdoLength) {
                 want[k] = false;
             }
             assert_eq!(active(&r).0, want, "{name}: {f:?} injected");
@@ -77,11 +79,10 @@ fn each_condition_is_active_exactly_while_injected() {
 fn events_are_never_active() {
     for name in ["th", "e-series", "tmi"] {
         let mut r = booted(name);
-        for f in [Fault::PdoLength, Fault::CobIdCollision] {
-            r.node.inject_fault(f, true);
-            assert!(!r.node.device().app().fault_active(f), "{name}: {f:?}");
-            assert_eq!(active(&r).0, vec![false; LASTING.len()], "{name}: {f:?}");
-        }
+        let f = Fault::CobIdCollision;
+        r.node.inject_fault(f, true);
+        assert!(!r.node.device().app().fault_active(f), "{name}: {f:?}");
+        assert_eq!(active(&r).0, vec![false; LASTING.len()], "{name}: {f:?}");
     }
 }
 
@@ -234,10 +235,15 @@ fn a_repeated_injection_is_not_a_new_event() {
 
 #[test]
 fn cob_id_collision_is_a_th_and_e_series_event() {
-    // TH Table 5 / E-Series: one-shot 0x8150 "CAN ID collision"; not in the TMI's table.
+    // TH Table 5 / E-Series: one-shot 0x8150 "CAN ID collision" with the communication error
+    // of Table 6, over with its frame (the error reset follows); not in the TMI's table.
+    let reset = hex("00 00 00 00 00 00 00 00");
     for (name, want) in [
-        ("th", vec![hex("50 81 00 00 00 00 00 00")]),
-        ("e-series", vec![hex("50 81 00 00 00 00 00 00")]),
+        ("th", vec![hex("50 81 11 00 00 00 00 00"), reset.clone()]),
+        (
+            "e-series",
+            vec![hex("50 81 11 00 00 00 00 00"), reset.clone()],
+        ),
         ("tmi", vec![]),
     ] {
         let mut r = booted(name);

@@ -102,15 +102,27 @@ fn write_other(r: &mut Rig, e: &Entry) -> u32 {
             if cur > 0 {
                 cur - 1
             } else {
+                // One entry counted: it must name a mappable object (a one-channel TMI's
+                // TPDO2 has none by default).
+                if read(r, e.index, 1) == 0 {
+                    write(r, e.index, 1, 4, 0x6300_0108).unwrap();
+                }
                 1
             }
         }
         (Hook::TpdoMap, _) => {
+            // An 8-bit object every model maps (TMI: 0x6020, 0x6030, 0x6300, 0x6400 only), so
+            // the PDO stays within 8 bytes.
+            let v = if cur == 0x6300_0108 {
+                0x6400_0108
+            } else {
+                0x6300_0108
+            };
             let count = read(r, e.index, 0);
             write(r, e.index, 0, 1, 0).unwrap();
-            write(r, e.index, e.sub, 4, 0x1001_0008).unwrap();
+            write(r, e.index, e.sub, 4, v).unwrap();
             write(r, e.index, 0, 1, count).unwrap();
-            return 0x1001_0008;
+            return v;
         }
         (Hook::PendingNodeId, _) => 9,
         (Hook::PendingBitRate, _) => 250,
@@ -144,9 +156,15 @@ fn write_other(r: &mut Rig, e: &Entry) -> u32 {
 
 /// The generated round trip: every stored rw object, one at a time on a fresh unit.
 fn round_trip(m: &'static Model) -> usize {
+    round_trip_with(m, m.default_config)
+}
+
+/// [`round_trip`] of a unit configured as `cfg` (its own dictionary: a two-channel TMI's).
+fn round_trip_with(m: &'static Model, cfg: canpos_core::models::DeviceConfig) -> usize {
+    let unit = canpos_core::models::for_unit(m, &cfg);
     let mut n = 0;
-    for e in stored_rw(m) {
-        let mut r = Rig::booted(m);
+    for e in stored_rw(unit) {
+        let mut r = Rig::booted_with(m, cfg);
         let v = write_other(&mut r, e);
         save(&mut r);
         r.power_cycle();
@@ -217,7 +235,10 @@ fn e_series_every_stored_object_survives_a_power_cycle() {
 
 #[test]
 fn tmi_every_stored_object_survives_a_power_cycle() {
-    assert!(round_trip(model("tmi")) > 40);
+    // One channel (the default unit) and two.
+    assert!(round_trip(model("tmi")) > 25);
+    let tmi = model("tmi");
+    assert!(round_trip_with(tmi, tmi.default_config.with_channels(2)) > 40);
 }
 
 /// TH and E-Series: the manuals list every rw parameter as stored; only the commands (0x1010,
@@ -274,7 +295,8 @@ fn tmi_stores_the_manuals_table() {
         listed.extend([(i, 1), (i, 2)]);
     }
     listed.sort();
-    let mut stored: Vec<(u16, u8)> = model("tmi")
+    // The two-channel unit (the one-channel unit has channel-1 objects only).
+    let mut stored: Vec<(u16, u8)> = canpos_core::models::tmi::TMI_TWO_CHANNELS
         .entries
         .iter()
         .filter(|e| Scope::All.covers(e))

@@ -68,6 +68,13 @@ impl Rig {
         }
     }
 
+    /// Like `with_config`, with the boot-up frames dropped.
+    pub fn booted_with(model: &'static Model, cfg: canpos_core::models::DeviceConfig) -> Rig {
+        let mut r = Rig::with_config(model, cfg);
+        r.take();
+        r
+    }
+
     /// Like `new`, with the boot-up frames dropped.
     pub fn booted(model: &'static Model) -> Rig {
         let mut r = Rig::new(model);
