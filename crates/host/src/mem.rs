@@ -275,8 +275,15 @@ impl BusCore {
     /// of its group send at its horizon, and frames delivered to it hold the clock until it
     /// takes them (docs/CLOCK.md). `None` on an instant bus.
     pub(crate) fn join_clock(&self, id: u64) -> Option<Horizon> {
+        self.join_clock_as(id, &format!("in-process bus port {id}"))
+    }
+
+    /// [`BusCore::join_clock`] with the participant's name for the clock's logs (a hub client:
+    /// its address). A hub client (`Sink::Remote`) is stamped with its horizon but frames
+    /// delivered to it do not hold the clock: it cannot say when it took them.
+    pub(crate) fn join_clock_as(&self, id: u64, name: &str) -> Option<Horizon> {
         let p = self.pacer.as_ref()?;
-        let h = p.clock.participant(&format!("in-process bus port {id}"));
+        let h = p.clock.participant(name);
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
         let group = m.iter().find(|m| m.id == id)?.group;
         for m in m.iter_mut().filter(|m| m.group == group) {
@@ -316,8 +323,24 @@ impl BusCore {
     fn ctl_and_time(&self, id: u64) -> Option<(MemberId, Option<Nanos>)> {
         let m = self.members.read().unwrap_or_else(|e| e.into_inner());
         let m = m.iter().find(|m| m.id == id)?;
-        let at = m.horizon.as_ref().and_then(Weak::upgrade).map(|s| s.at());
+        let mut at = m.horizon.as_ref().and_then(Weak::upgrade).map(|s| s.at());
+        // A hub client's horizon is what it said (`< at … >`): one ahead of the wall clock
+        // (a client that holds nothing) stamps its frames when they were sent, never in the
+        // future, where they would block its transmit queue.
+        if let (Sink::Remote(..), Some(a), Some(p)) = (&m.sink, at, &self.pacer) {
+            at = Some(a.min(p.clock.limit()));
+        }
         Some((m.ctl?, at))
+    }
+
+    /// The simulation clock of a paced bus.
+    pub(crate) fn sim_clock(&self) -> Option<&SimClock> {
+        self.pacer.as_ref().map(|p| &p.clock)
+    }
+
+    /// How far the timeline of a paced bus ran (simulation time): nothing is stamped earlier.
+    pub(crate) fn reached(&self) -> Option<Nanos> {
+        self.pacer.as_ref().map(|p| lock(&p.state).reached)
     }
 
     pub(crate) fn member_count(&self) -> usize {

@@ -241,9 +241,10 @@ pub trait Transport: Send {
     /// Joins the bus's simulation clock as a timed participant (docs/CLOCK.md): the bus runs
     /// no further than the returned horizon, stamps this transport's frames (and those of its
     /// [`controller`](Transport::controller)s) with it, and waits at each frame it delivered
-    /// here until [`Horizon::taken`](crate::clock::Horizon::taken). `None` where the bus has no
-    /// simulation clock (a SocketCAN interface, a TCP connection: their time is the wall
-    /// clock's).
+    /// here until [`Horizon::taken`](crate::clock::Horizon::taken). A sensor's connection to a
+    /// canpos hub that accepted `< clock on >` forwards the horizon to the hub as `< at … >`
+    /// instead (docs/CLOCK.md, "Behind the hub"). `None` where the bus has no simulation clock
+    /// (a SocketCAN interface, another socketcand server: their time is the wall clock's).
     fn join_clock(&mut self) -> Option<crate::clock::Horizon> {
         None
     }

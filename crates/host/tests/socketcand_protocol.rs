@@ -333,3 +333,262 @@ fn the_rawmode_ok_is_read_alone_however_late_the_client_reads() {
         assert!(f.ends_with(&format!(" 0{i} >")), "frame {i}: {got}");
     }
 }
+
+/// The next element on `s` that is not a frame (a raw client gets the others' frames between
+/// its answers).
+fn reply(s: &mut TcpStream) -> String {
+    loop {
+        let el = element(s);
+        if !el.starts_with("< frame ") {
+            return el;
+        }
+    }
+}
+
+/// The next element on `s`, read a byte at a time (nothing after it is consumed).
+fn element(s: &mut TcpStream) -> String {
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    let mut got = Vec::new();
+    let mut b = [0u8; 1];
+    while !got.ends_with(b">") {
+        assert_eq!(s.read(&mut b).unwrap(), 1, "closed after {got:?}");
+        if !(got.is_empty() && b[0] == b' ') {
+            got.push(b[0]);
+        }
+    }
+    String::from_utf8(got).unwrap()
+}
+
+/// `SEC.USEC` of a wall-clock time, as the protocol writes it.
+fn secs(t: SystemTime) -> String {
+    let d = t.duration_since(std::time::UNIX_EPOCH).unwrap();
+    format!("{}.{:06}", d.as_secs(), d.subsec_micros())
+}
+
+/// A raw-mode client on `can0`.
+fn raw_client(addr: SocketAddr) -> TcpStream {
+    let mut s = opened(addr, "can0");
+    s.write_all(b"< rawmode >").unwrap();
+    assert_eq!(read_until(&mut s, b">"), "< ok >");
+    s
+}
+
+/// Whether anything arrives on `s` within `d` (a negative check: a lower bound only).
+fn nothing_within(s: &mut TcpStream, d: Duration) -> bool {
+    s.set_read_timeout(Some(d)).unwrap();
+    let mut b = [0u8; 64];
+    let r = s.read(&mut b);
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    match r {
+        Ok(n) => {
+            // The urgent byte after the rawmode `< ok >` may be read late as nothing.
+            n == 0 || b[..n].iter().all(|&c| c == b' ')
+        }
+        Err(e) => matches!(
+            e.kind(),
+            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+        ),
+    }
+}
+
+/// The end-of-frame stamp of a `< frame … >` element, as a wall-clock time.
+fn stamp_of(el: &str) -> SystemTime {
+    let t = el.split_whitespace().nth(3).unwrap();
+    let (s, us) = t.split_once('.').unwrap();
+    std::time::UNIX_EPOCH + Duration::new(s.parse().unwrap(), us.parse::<u32>().unwrap() * 1000)
+}
+
+/// Issue 36 item 1, behind the hub: a timed client (`< clock on >`) that says where it is
+/// (`< at … >`) holds its channel's bus there: an untimed client's frame waits until the timed
+/// one moved on past its time, and the timed client's own frame is stamped with its horizon
+/// (its start of frame is the `< at >` time exactly: end of frame = it + its bits at 1 µs).
+#[test]
+fn a_timed_client_holds_the_bus_at_its_horizon_and_its_frames_carry_it() {
+    let h = hub_with(HubConfig::default());
+    let mut timed = raw_client(h.local_addr());
+    let mut other = raw_client(h.local_addr());
+    let mut listener = raw_client(h.local_addr());
+    timed.write_all(b"< clock on >").unwrap();
+    assert_eq!(reply(&mut timed), "< ok >");
+    // Before its first `< at >` it holds nothing.
+    other.write_all(b"< send 100 1 01 >").unwrap();
+    assert!(element(&mut listener).starts_with("< frame 100 "));
+    let x0 = SystemTime::now();
+    timed
+        .write_all(format!("< at {} >", secs(x0)).as_bytes())
+        .unwrap();
+    // The hub read the `< at >` (answered in order after it).
+    timed.write_all(b"< echo >").unwrap();
+    assert_eq!(reply(&mut timed), "< echo >");
+    other.write_all(b"< send 123 2 de ad >").unwrap();
+    // Held: the timed client is behind (x0) and within the stall bound (2 s).
+    assert!(
+        nothing_within(&mut listener, Duration::from_millis(300)),
+        "a frame passed a timed client that is behind"
+    );
+    // It moves on 250 ms (still behind the wall clock) and sends a frame there: the held
+    // frame, sent a few ms after x0, comes; its own frame is stamped x1 and ends after x1, so
+    // the bus does not carry it yet (it never runs past the horizon).
+    let x1 = x0 + Duration::from_millis(250);
+    timed
+        .write_all(format!("< at {} >< send 321 1 aa >", secs(x1)).as_bytes())
+        .unwrap();
+    let got = element(&mut listener);
+    assert!(got.starts_with("< frame 123 "), "{got}");
+    assert!(stamp_of(&got) < x1, "{got}");
+    assert!(
+        nothing_within(&mut listener, Duration::from_millis(100)),
+        "a frame ending after the horizon was carried"
+    );
+    // Far ahead: it holds nothing any more; its frame comes, stamped with its horizon.
+    timed
+        .write_all(
+            format!(
+                "< at {} >",
+                secs(SystemTime::now() + Duration::from_secs(3600))
+            )
+            .as_bytes(),
+        )
+        .unwrap();
+    let got = element(&mut listener);
+    assert!(got.starts_with("< frame 321 "), "{got}");
+    // On an idle bus it starts at its time and ends its bits later (the intermission after
+    // its end excluded), 1 µs a bit at 1 Mbit/s.
+    use canpos_host::bus::bits::{frame_length, INTERMISSION_BITS};
+    let bits = frame_length(&Frame::new(0x321, &[0xAA]).unwrap()).total - INTERMISSION_BITS;
+    let x1_us = stamp_of(&format!("< frame 0 {} >", secs(x1)));
+    assert_eq!(
+        stamp_of(&got),
+        x1_us + Duration::from_micros(u64::from(bits)),
+        "stamped with its horizon: start of frame = the `< at >` time, {bits} bits at 1 µs"
+    );
+    // A frame after a far-future `< at >` is stamped when it was sent, never in the future.
+    timed.write_all(b"< send 322 0  >").unwrap();
+    let got = element(&mut listener);
+    assert!(got.starts_with("< frame 322 "), "{got}");
+    assert!(stamp_of(&got) <= SystemTime::now(), "{got}");
+    // `< clock off >`: untimed again.
+    timed.write_all(b"< clock off >").unwrap();
+    assert_eq!(reply(&mut timed), "< ok >");
+}
+
+/// A timed client that stops for good (or never moves) holds its bus no longer than the
+/// clock's stall bound, then the others' frames flow again (with a WARN in the hub's log).
+#[test]
+fn a_stopped_timed_client_holds_the_bus_no_longer_than_the_stall_bound() {
+    let bound = Duration::from_millis(500);
+    let h = hub_with(HubConfig {
+        stall_bound: bound,
+        ..HubConfig::default()
+    });
+    let mut timed = raw_client(h.local_addr());
+    let mut other = raw_client(h.local_addr());
+    let mut listener = raw_client(h.local_addr());
+    timed.write_all(b"< clock on >").unwrap();
+    assert_eq!(reply(&mut timed), "< ok >");
+    let x0 = SystemTime::now();
+    timed
+        .write_all(format!("< at {} >< echo >", secs(x0)).as_bytes())
+        .unwrap();
+    assert_eq!(reply(&mut timed), "< echo >");
+    let sent = Instant::now();
+    other.write_all(b"< send 123 1 01 >").unwrap();
+    let got = element(&mut listener);
+    assert!(got.starts_with("< frame 123 "), "{got}");
+    // Held until the horizon fell behind the bound (x0 + bound; a lower bound only).
+    assert!(
+        SystemTime::now().duration_since(x0).unwrap() >= bound,
+        "delivered after {:?}",
+        sent.elapsed()
+    );
+    // Stale, it holds nothing: the next frame comes at once (generous bound).
+    let sent = Instant::now();
+    other.write_all(b"< send 124 1 02 >").unwrap();
+    assert!(element(&mut listener).starts_with("< frame 124 "));
+    assert!(
+        sent.elapsed() < Duration::from_secs(1),
+        "{:?}",
+        sent.elapsed()
+    );
+    // It catches up and holds again.
+    timed
+        .write_all(format!("< at {} >< echo >", secs(SystemTime::now())).as_bytes())
+        .unwrap();
+    assert_eq!(reply(&mut timed), "< echo >");
+    other.write_all(b"< send 125 1 03 >").unwrap();
+    assert!(nothing_within(&mut listener, Duration::from_millis(100)));
+    assert!(element(&mut listener).starts_with("< frame 125 "));
+}
+
+/// Bad `< clock … >` / `< at … >` get the hub's error element and change nothing.
+#[test]
+fn bad_clock_requests_are_refused() {
+    let h = hub_with(HubConfig::default());
+    let mut c = raw_client(h.local_addr());
+    let mut other = raw_client(h.local_addr());
+    let mut listener = raw_client(h.local_addr());
+    let now = secs(SystemTime::now());
+    for (ask, answer) in [
+        (format!("< at {now} >"), "< error at needs clock on >"),
+        (
+            "< clock >".into(),
+            "< error syntax error in clock command >",
+        ),
+        (
+            "< clock maybe >".into(),
+            "< error syntax error in clock command >",
+        ),
+        ("< at >".into(), "< error syntax error in at command >"),
+        ("< at soon >".into(), "< error syntax error in at command >"),
+        (
+            "< at 1.5 2 >".into(),
+            "< error syntax error in at command >",
+        ),
+        ("< at -1.0 >".into(), "< error syntax error in at command >"),
+        (
+            "< at 99999999999999.0 >".into(),
+            "< error syntax error in at command >",
+        ),
+    ] {
+        c.write_all(ask.as_bytes()).unwrap();
+        assert_eq!(reply(&mut c), answer, "{ask}");
+    }
+    c.write_all(b"< clock on >< clock on >").unwrap();
+    assert_eq!(reply(&mut c), "< ok >");
+    assert_eq!(reply(&mut c), "< ok >");
+    // Before the bus's time by more than the stall bound: refused, nothing held.
+    let old = secs(SystemTime::now() - Duration::from_secs(10));
+    for t in ["1.000000", "0.0", old.as_str()] {
+        c.write_all(format!("< at {t} >").as_bytes()).unwrap();
+        assert_eq!(
+            reply(&mut c),
+            "< error at is before the bus's time by more than the stall bound >",
+            "{t}"
+        );
+    }
+    // The refused ones set no horizon: the bus is not held.
+    other.write_all(b"< send 123 1 01 >").unwrap();
+    let sent = Instant::now();
+    assert!(element(&mut listener).starts_with("< frame 123 "));
+    assert!(
+        sent.elapsed() < Duration::from_secs(1),
+        "{:?}",
+        sent.elapsed()
+    );
+    // An instant channel has no clock.
+    let hi = hub_with(HubConfig {
+        pacing: Pacing::Instant,
+        ..HubConfig::default()
+    });
+    let mut c = raw_client(hi.local_addr());
+    c.write_all(b"< clock on >").unwrap();
+    assert_eq!(
+        reply(&mut c),
+        "< error this channel has no clock (instant bus) >"
+    );
+    // Not before a channel is open.
+    let mut s = TcpStream::connect(h.local_addr()).unwrap();
+    assert_eq!(read_until(&mut s, b"< hi >"), "< hi >");
+    s.write_all(b"< clock on >").unwrap();
+    assert_eq!(read_until(&mut s, b">"), "< error unknown command >");
+}

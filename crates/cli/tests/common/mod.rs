@@ -120,6 +120,11 @@ impl Proc {
         }
     }
 
+    /// Its process id (to stop and continue it with signals).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// The output so far.
     pub fn output(&self) -> String {
         self.out.lock().unwrap().clone()

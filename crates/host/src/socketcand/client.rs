@@ -20,6 +20,7 @@ use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
 use super::codec::{self, Decoder, Element};
+use crate::clock::{Horizon, Nanos, SimClock, Slot};
 use crate::transport::{BusState, RxFrame, Transport};
 
 /// How long the client waits for the answer to an extension request before taking it as
@@ -35,12 +36,18 @@ const ERROR_QUEUE_LEN: usize = 1024;
 
 /// A connection to a socketcand server in raw mode. Dropping it closes the connection.
 pub struct Client {
+    /// For shutting the connection down; writes go through `writer`.
     stream: TcpStream,
+    /// Frames and horizon messages go out through it, in order (the runtime's thread and the
+    /// horizon forwarder write).
+    writer: Arc<Mutex<Writer>>,
+    /// The server made this client a timed participant of its bus's clock (`< clock on >`
+    /// answered `< ok >`).
+    clock: bool,
     rx: Receiver<RxFrame>,
     error: Arc<Mutex<Option<io::Error>>>,
     peer: SocketAddr,
     channel: String,
-    buf: Vec<u8>,
     /// The server carries remote frames (`< rtr on >` answered `< ok >`).
     rtr: bool,
     /// The server takes and gives bus errors (`< errors on >` answered `< ok >`).
@@ -58,6 +65,80 @@ fn state_to_u8(s: BusState) -> u8 {
         BusState::ErrorActive => 0,
         BusState::ErrorPassive => 1,
         BusState::BusOff => 2,
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The writing half of a connection.
+struct Writer {
+    stream: TcpStream,
+    buf: Vec<u8>,
+    /// A runtime's horizon forwarded as `< at … >` (a timed client).
+    timed: Option<TimedLink>,
+    /// Frames and `< at … >` messages written (the rate of the horizon messages).
+    frames: u64,
+    ats: u64,
+}
+
+/// A runtime's horizon on a local wall clock (the client's [`Transport::join_clock`]): its
+/// value goes to the hub as `< at … >`, in wall-clock time, before the frames stamped with it.
+struct TimedLink {
+    clock: SimClock,
+    slot: std::sync::Weak<Slot>,
+    /// What the hub was told last.
+    told: Option<Nanos>,
+}
+
+impl Writer {
+    /// Appends `< at … >` when the horizon differs from what the hub was told (coalesced: one
+    /// message for any number of moves since); `< clock off >` once the runtime is gone.
+    fn horizon(&mut self) {
+        let Some(link) = &mut self.timed else { return };
+        match link.slot.upgrade() {
+            Some(slot) => {
+                let h = slot.at();
+                if link.told != Some(h) {
+                    link.told = Some(h);
+                    codec::write_at(&mut self.buf, link.clock.system_time_of(h));
+                    self.ats += 1;
+                }
+            }
+            None => {
+                self.timed = None;
+                self.buf.extend_from_slice(b"< clock off >");
+            }
+        }
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        let r = self.stream.write_all(&self.buf);
+        self.buf.clear();
+        r
+    }
+}
+
+/// The horizon forwarder of a timed client: wakes when the runtime's horizon moves on (its
+/// local clock tells it) and tells the hub, so that a runtime waiting for its next deadline
+/// does not hold the bus at its last frame. Ends with the client or the runtime's horizon.
+fn forward_horizon(writer: std::sync::Weak<Mutex<Writer>>, moved: Receiver<()>) {
+    loop {
+        // A bound on the wait: the client may be gone.
+        let _ = moved.recv_timeout(Duration::from_millis(500));
+        let Some(w) = writer.upgrade() else { return };
+        let mut w = lock(&w);
+        if w.timed.is_none() {
+            return;
+        }
+        w.horizon();
+        if w.buf.is_empty() {
+            continue;
+        }
+        if w.flush().is_err() {
+            return;
+        }
     }
 }
 
@@ -153,7 +234,7 @@ impl Client {
         )?;
         stream.write_all(b"< rtr on >< errors on >")?;
         if device {
-            stream.write_all(b"< txorder priority >")?;
+            stream.write_all(b"< txorder priority >< clock on >")?;
         }
         let ext_deadline = deadline.min(Instant::now() + EXTENSION_TIMEOUT);
         let rtr = extension(&mut stream, &mut decoder, &mut pending, ext_deadline, "rtr")?;
@@ -172,7 +253,15 @@ impl Client {
                 ext_deadline,
                 "txorder",
             )?;
-        tracing::debug!(%addr, rtr, errors, by_priority, "socketcand extensions");
+        let clock = device
+            && extension(
+                &mut stream,
+                &mut decoder,
+                &mut pending,
+                ext_deadline,
+                "clock",
+            )?;
+        tracing::debug!(%addr, rtr, errors, by_priority, clock, "socketcand extensions");
         stream.set_read_timeout(None)?;
 
         let (tx, rx) = crossbeam_channel::bounded(CLIENT_QUEUE_LEN);
@@ -194,13 +283,21 @@ impl Client {
                 let e = reader(reader_stream, decoder, pending, &tx, &error_tx, to);
                 *err.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
             })?;
+        let writer = Arc::new(Mutex::new(Writer {
+            stream: stream.try_clone()?,
+            buf: Vec::with_capacity(64),
+            timed: None,
+            frames: 0,
+            ats: 0,
+        }));
         Ok(Client {
             stream,
+            writer,
+            clock,
             rx,
             error,
             peer: addr,
             channel: channel.to_string(),
-            buf: Vec::with_capacity(64),
             rtr,
             errors,
             state,
@@ -218,6 +315,58 @@ impl Client {
     pub fn peer_addr(&self) -> SocketAddr {
         self.peer
     }
+
+    /// Whether the server made this client a timed participant of its bus's clock (a device
+    /// on a canpos hub: `< clock on >`, docs/CLOCK.md).
+    pub fn is_timed(&self) -> bool {
+        self.clock
+    }
+
+    /// Frames sent and `< at … >` horizon messages sent so far.
+    pub fn sent_counts(&self) -> (u64, u64) {
+        let w = lock(&self.writer);
+        (w.frames, w.ats)
+    }
+
+    /// Forwards the horizon in `slot` (on `clock`, a local wall clock) to the hub as
+    /// `< at … >`: before each frame when it changed, and when it moves on while the runtime
+    /// waits (a forwarder thread). `false` when the server has no clock for this client.
+    pub(crate) fn attach_clock(&self, clock: &SimClock, slot: std::sync::Weak<Slot>) -> bool {
+        if !self.clock {
+            return false;
+        }
+        let moved = clock.subscribe();
+        // Horizons tell the clock's listeners only while one waits: this one always does.
+        clock.waiting(true);
+        lock(&self.writer).timed = Some(TimedLink {
+            clock: clock.clone(),
+            slot,
+            told: None,
+        });
+        let writer = Arc::downgrade(&self.writer);
+        match thread::Builder::new()
+            .name(format!("socketcand horizon {}", self.peer))
+            .spawn(move || forward_horizon(writer, moved))
+        {
+            Ok(_) => true,
+            Err(e) => {
+                tracing::warn!("cannot start the horizon forwarder: {e}; the client stays untimed");
+                lock(&self.writer).timed = None;
+                false
+            }
+        }
+    }
+}
+
+/// A timed client's horizon: a participant of a local wall clock (the runtime's clock; its
+/// times map to the hub's through wall-clock time, both on one host), forwarded by `client`.
+pub(crate) fn timed_horizon(client: &Client) -> Option<Horizon> {
+    if !client.clock {
+        return None;
+    }
+    let clock = SimClock::wall();
+    let h = clock.participant("socketcand runtime");
+    client.attach_clock(&clock, h.slot()).then_some(h)
 }
 
 /// Reads until an element satisfying `want` arrives; elements after it stay in `pending`.
@@ -384,6 +533,10 @@ fn reader(
 
 impl Drop for Client {
     fn drop(&mut self) {
+        let (frames, ats) = self.sent_counts();
+        if self.clock {
+            tracing::debug!(frames, at_messages = ats, "timed socketcand client closed");
+        }
         // Wakes the reader thread, which then ends.
         let _ = self.stream.shutdown(Shutdown::Both);
     }
@@ -396,9 +549,10 @@ impl Client {
         if !self.errors {
             return Ok(false);
         }
-        self.buf.clear();
-        codec::write_error_frame(&mut self.buf, e);
-        self.stream.write_all(&self.buf)?;
+        let mut w = lock(&self.writer);
+        w.horizon();
+        codec::write_error_frame(&mut w.buf, e);
+        w.flush()?;
         Ok(true)
     }
 }
@@ -408,16 +562,28 @@ impl Transport for Client {
     /// as `< send ID DLC R >`; otherwise one with DLC 0 goes out as a zero-length data frame and
     /// one with DLC > 0 is refused (`InvalidInput`).
     fn send(&mut self, frame: &Frame) -> io::Result<()> {
-        self.buf.clear();
+        let mut w = lock(&self.writer);
+        // A timed client's frame is stamped with the horizon it is sent at: the hub is told
+        // first when that changed.
+        w.horizon();
         if self.rtr {
-            codec::write_send_rtr(&mut self.buf, frame);
-        } else if !codec::write_send(&mut self.buf, frame) {
+            codec::write_send_rtr(&mut w.buf, frame);
+        } else if !codec::write_send(&mut w.buf, frame) {
+            // The horizon alone is harmless; the frame cannot go.
+            w.flush()?;
             return Err(io::Error::new(
                 io::ErrorKind::InvalidInput,
                 "socketcand cannot carry remote frames with DLC > 0",
             ));
         }
-        self.stream.write_all(&self.buf)
+        w.frames += 1;
+        w.flush()
+    }
+
+    /// A device on a canpos hub that accepted `< clock on >`: the runtime's horizon goes to the
+    /// hub as `< at … >` (docs/CLOCK.md); `None` elsewhere (the runtime keeps its own clock).
+    fn join_clock(&mut self) -> Option<Horizon> {
+        timed_horizon(self)
     }
 
     fn receiver(&self) -> &Receiver<RxFrame> {

@@ -181,6 +181,12 @@ pub enum Element {
     /// client's transmit queue on the bus goes out (a device's CAN controller sends its most
     /// important frame first; a host's SocketCAN interface in submission order, the default).
     TxOrderOption(crate::bus::TxOrder),
+    /// The extension `< clock on >` / `< clock off >`: the client becomes (or stops being) a
+    /// timed participant of its channel bus's simulation clock (docs/CLOCK.md).
+    ClockOption(bool),
+    /// The extension `< at SEC.USEC >` of a timed client: its horizon, a wall-clock time (the
+    /// time base of the `< frame … >` stamps); its following `send`s are stamped with it.
+    At(SystemTime),
     /// `< error CLASS SEC.USEC [D0 .. D7] >`: a CAN error frame from a server.
     ErrorFrame(ErrorFrame),
     /// `< error TEXT >`: a server's answer to a failed command.
@@ -391,6 +397,17 @@ impl Element {
                 ["priority"] => Element::TxOrderOption(crate::bus::TxOrder::Priority),
                 ["fifo"] => Element::TxOrderOption(crate::bus::TxOrder::Fifo),
                 _ => malformed("txorder"),
+            },
+            "clock" => match tok[..] {
+                ["on"] => Element::ClockOption(true),
+                ["off"] => Element::ClockOption(false),
+                _ => malformed("clock"),
+            },
+            "at" => match tok[..] {
+                [t] => parse_timestamp(t)
+                    .map(Element::At)
+                    .unwrap_or(malformed("at")),
+                _ => malformed("at"),
             },
             "add" => parse_interval(&tok)
                 .and_then(|iv| Some((iv, parse_send(&tok[2..])?)))
@@ -639,6 +656,14 @@ fn write_ts(out: &mut Vec<u8>, timestamp: SystemTime) {
     out.push(b'.');
     put_dec(out, u64::from(t.subsec_micros()), 6);
     out.push(b' ');
+}
+
+/// Appends `< at SEC.USEC >` (a timed client's horizon, canpos extension; the time truncated to
+/// the microsecond like a frame's stamp).
+pub fn write_at(out: &mut Vec<u8>, t: SystemTime) {
+    out.extend_from_slice(b"< at ");
+    write_ts(out, t);
+    out.push(b'>');
 }
 
 /// Appends `< frame ID SEC.USEC DATA >` (server → client, raw mode).
@@ -1009,6 +1034,27 @@ mod tests {
         );
         for bad in [&b" txorder "[..], b" txorder lifo ", b" txorder fifo fifo "] {
             assert_eq!(Element::parse(bad), Element::Malformed("txorder"));
+        }
+        assert_eq!(Element::parse(b" clock on "), Element::ClockOption(true));
+        assert_eq!(Element::parse(b"clock off"), Element::ClockOption(false));
+        for bad in [&b" clock "[..], b" clock maybe ", b" clock on on "] {
+            assert_eq!(Element::parse(bad), Element::Malformed("clock"));
+        }
+        let t = UNIX_EPOCH + Duration::new(1_765_000_000, 123_456_000);
+        let mut v = Vec::new();
+        write_at(&mut v, t);
+        assert_eq!(v, b"< at 1765000000.123456 >");
+        assert_eq!(Element::parse(&v[1..v.len() - 1]), Element::At(t));
+        for bad in [
+            &b" at "[..],
+            b" at 1.5 2 ",
+            b" at -1.0 ",
+            b" at 1.x ",
+            b" at 1.0000000001 ",
+            b" at 9999999999999.0 ",
+            b" at now ",
+        ] {
+            assert_eq!(Element::parse(bad), Element::Malformed("at"), "{bad:?}");
         }
     }
 

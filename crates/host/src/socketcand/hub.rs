@@ -166,6 +166,9 @@ pub struct HubConfig {
     /// blocked in `send` does). A client thus never holds more than twice this (and one reply)
     /// in the hub, plus the input read but not yet handled (< 4 KiB).
     pub out_limit: usize,
+    /// How long a timed client (`< clock on >`) that is behind may hold its channel's bus
+    /// (the clock's stall bound, default [`crate::clock::STALL_BOUND`]; docs/CLOCK.md).
+    pub stall_bound: Duration,
 }
 
 impl Default for HubConfig {
@@ -179,6 +182,7 @@ impl Default for HubConfig {
             error_frames: false,
             pacing: crate::bus::Pacing::default(),
             out_limit: OUT_LIMIT,
+            stall_bound: crate::clock::STALL_BOUND,
         }
     }
 }
@@ -232,7 +236,11 @@ impl Shared {
         }
         // Forget channels nobody uses any more, so many channel names do not accumulate.
         map.retain(|_, w| w.strong_count() > 0);
-        let core = BusCore::create(self.config.pacing, self.dropped.clone());
+        let core = BusCore::create_with_clock(
+            self.config.pacing,
+            self.dropped.clone(),
+            crate::clock::SimClock::wall_with_stall_bound(self.config.stall_bound),
+        );
         // The timeline's error frames go to the channel's TCP clients that take errors.
         let (errors, waker, channel) = (self.errors.clone(), self.waker.clone(), name.to_string());
         core.set_error_hook(Box::new(move |ef| {
@@ -666,6 +674,9 @@ struct Conn {
     handshake_end: Instant,
     last_rx: Instant,
     closed: bool,
+    /// A timed client's horizon on its channel bus's clock (`< clock on >`, docs/CLOCK.md):
+    /// set by its `< at … >`, its frames stamped with it; dropped when it leaves.
+    horizon: Option<crate::clock::Horizon>,
 }
 
 impl Conn {
@@ -825,6 +836,7 @@ impl Conn {
     }
 
     fn leave(&mut self) {
+        self.horizon = None;
         if let State::Raw {
             bus, id, dropped, ..
         } = &self.state
@@ -1103,6 +1115,7 @@ impl EventLoop {
                 handshake_end: now + self.shared.config.handshake_timeout,
                 last_rx: now,
                 closed: false,
+                horizon: None,
             };
             c.flush();
             self.note_deadline(c.handshake_end);
@@ -1469,6 +1482,8 @@ fn handle_element(
                     bus.set_tx_order(*id, order);
                 }
             }
+            Effect::Clock(on) => clock_option(c, on),
+            Effect::At(t) => at(c, t),
             Effect::RawStarted => {
                 // The `< ok >` (the last thing in the output) is followed by an urgent byte:
                 // the client's first read ends with the `< ok >`, however many frames follow.
@@ -1497,6 +1512,55 @@ fn handle_element(
         }
     }
     true
+}
+
+/// `< clock on >` / `< clock off >`: joins (leaves) the channel bus's clock as a timed
+/// participant. It holds nothing until its first `< at … >`: a client that asked and never
+/// says where it is must not stop the bus for the others even for the stall bound.
+fn clock_option(c: &mut Conn, on: bool) {
+    let State::Raw { bus, id, .. } = &c.state else {
+        return;
+    };
+    if !on {
+        c.horizon = None;
+        c.out.extend_from_slice(codec::OK);
+        return;
+    }
+    if c.horizon.is_none() {
+        match bus.join_clock_as(*id, &format!("socketcand client {}", c.peer)) {
+            Some(h) => {
+                h.set(u64::MAX);
+                c.horizon = Some(h);
+            }
+            None => {
+                codec::write_error_text(&mut c.out, "this channel has no clock (instant bus)");
+                return;
+            }
+        }
+    }
+    tracing::debug!(peer = %c.peer, "timed client");
+    c.out.extend_from_slice(codec::OK);
+}
+
+/// `< at SEC.USEC >`: a timed client's horizon. A time further before the time its bus
+/// reached than the clock's stall bound is refused (nothing changes): the bus cannot go back,
+/// and such a client would not hold it anyway. A time in the future holds nothing until the
+/// bus gets there; frames are never stamped after the wall clock.
+fn at(c: &mut Conn, t: std::time::SystemTime) {
+    let (State::Raw { bus, .. }, Some(h)) = (&c.state, &c.horizon) else {
+        codec::write_error_text(&mut c.out, "at needs clock on");
+        return;
+    };
+    let (Some(clock), Some(reached)) = (bus.sim_clock(), bus.reached()) else {
+        return;
+    };
+    match clock.nanos_of(t) {
+        Some(ns) if ns.saturating_add(clock.stall_bound()) >= reached => h.set(ns),
+        _ => codec::write_error_text(
+            &mut c.out,
+            "at is before the bus's time by more than the stall bound",
+        ),
+    }
 }
 
 fn valid_channel(ch: &str) -> bool {

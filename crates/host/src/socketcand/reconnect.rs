@@ -59,6 +59,9 @@ struct Shared {
     /// Transmit-queue overflows reported to the clients before the current one.
     tx_overflows: AtomicU64,
     stop: AtomicBool,
+    /// The runtime's horizon ([`Transport::join_clock`]), forwarded by each new connection to
+    /// a hub that takes it.
+    timed: Mutex<Option<(crate::clock::SimClock, std::sync::Weak<crate::clock::Slot>)>>,
 }
 
 /// A socketcand transport that reconnects; see the [module docs](self).
@@ -83,6 +86,7 @@ impl Reconnecting {
             dropped: AtomicU64::new(0),
             tx_overflows: AtomicU64::new(0),
             stop: AtomicBool::new(false),
+            timed: Mutex::new(None),
         });
         let sh = shared.clone();
         let (host, channel, u) = (host.to_string(), channel.to_string(), url.clone());
@@ -162,6 +166,11 @@ fn keep(
             }
         };
         inner = client.receiver().clone();
+        if let Some((clock, slot)) = &*sh.timed.lock().unwrap_or_else(|e| e.into_inner()) {
+            if !client.attach_clock(clock, slot.clone()) {
+                tracing::warn!(%url, "the server is back without a clock for this client: its frames are stamped when they arrive");
+            }
+        }
         *sh.client.lock().unwrap_or_else(|e| e.into_inner()) = Some(client);
         sh.reconnections.fetch_add(1, Ordering::Relaxed);
         sh.down.store(false, Ordering::Relaxed);
@@ -254,6 +263,23 @@ impl Transport for Reconnecting {
             Some(c) => c.send_error_frame(e),
             None => Ok(false),
         }
+    }
+
+    /// On a canpos hub that made the connection a timed participant (`< clock on >`): the
+    /// runtime's horizon, forwarded as `< at … >` by this connection and the next ones.
+    fn join_clock(&mut self) -> Option<crate::clock::Horizon> {
+        let c = self.shared.client.lock().unwrap_or_else(|e| e.into_inner());
+        let c = c.as_ref()?;
+        if !c.is_timed() {
+            return None;
+        }
+        let clock = crate::clock::SimClock::wall();
+        let h = clock.participant("socketcand runtime");
+        if !c.attach_clock(&clock, h.slot()) {
+            return None;
+        }
+        *self.shared.timed.lock().unwrap_or_else(|e| e.into_inner()) = Some((clock, h.slot()));
+        Some(h)
     }
 
     fn reconnections(&self) -> u64 {

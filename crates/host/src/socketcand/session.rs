@@ -28,6 +28,13 @@ pub enum Effect {
     Send(Frame),
     /// The client's transmit queue on the bus goes out in this order from now on.
     TxOrder(crate::bus::TxOrder),
+    /// `< clock on >` (true) / `< clock off >`: the client becomes (or stops being) a timed
+    /// participant of the channel bus's clock; the hub answers (`< ok >`, or an error on a bus
+    /// without a clock).
+    Clock(bool),
+    /// `< at … >`: the timed client's horizon; the hub checks it against its bus and answers
+    /// only a refusal.
+    At(SystemTime),
     /// Raw mode began (its `< ok >` is the last thing written): the hub marks the end of the
     /// client's read there.
     RawStarted,
@@ -140,6 +147,8 @@ impl Session {
                 out.extend_from_slice(codec::OK);
                 fx.push(Effect::TxOrder(order));
             }
+            (Element::ClockOption(on), Some(_)) => fx.push(Effect::Clock(on)),
+            (Element::At(t), Some(_)) => fx.push(Effect::At(t)),
             (Element::ErrorFrame(e), Some(Mode::Raw | Mode::Bcm)) if self.errors => {
                 // Only what is seen on the wire is the bus's business; a report of the client's
                 // own controller (error passive, bus-off, restarted) is no other node's state.
