@@ -258,8 +258,62 @@ fn stored_heartbeat(path: &Path) -> Result<Option<u32>, String> {
     Ok(found)
 }
 
+/// The first frame on `id` whose data `matches`, within `within`; others are skipped.
+fn wait_for(
+    c: &mut dyn Transport,
+    id: u16,
+    within: Duration,
+    matches: impl Fn(&[u8]) -> bool,
+) -> Option<Frame> {
+    let end = Instant::now() + within;
+    while let Ok(Some(rx)) = c.recv_deadline(end) {
+        if rx.frame.std_id() == Some(id) && matches(rx.frame.data()) {
+            return Some(rx.frame);
+        }
+    }
+    None
+}
+
+/// The answer of node 9's SDO server to the request on 0x`index`:`sub` just sent, within
+/// `within`. Called after the run's boot-up: frames of the killed run went out before it on
+/// the bus, so every SDO answer now is this run's, and one to another request (a request sent
+/// to the killed run reaching this one) fails the test.
+fn sdo_answer(
+    c: &mut dyn Transport,
+    i: u32,
+    index: u16,
+    sub: u8,
+    within: Duration,
+) -> Option<[u8; 8]> {
+    let f = wait_for(c, 0x589, within, |_| true)?;
+    let a: [u8; 8] = f.data().try_into().expect("an SDO answer has 8 bytes");
+    let [lo, hi] = index.to_le_bytes();
+    assert_eq!(
+        a[1..4],
+        [lo, hi, sub],
+        "iteration {i}: an answer {a:02X?} to a request not sent to this run (expected one on {index:04X}:{sub})"
+    );
+    Some(a)
+}
+
+/// How a "save" sent just before a SIGKILL ended, as the master saw it.
+#[derive(Debug)]
+enum Store {
+    /// Confirmed (0x60): the new value must be in the file.
+    Confirmed,
+    /// Refused (an abort, e.g. 0x08000020 when the disk is full): the file must be unchanged.
+    Refused(u32),
+    /// No answer before the kill: the old value or the new one, never a third.
+    Unanswered,
+}
+
 /// SIGKILL at varying points of a store, `n` times: the state file always loads and holds the
-/// old or the new value, and a store that was answered is never lost.
+/// old or the new value, a store that was confirmed is never lost, and one that was refused
+/// changed nothing. Each run's frames are told from the killed run's by its boot-up (late
+/// frames of the killed run, a heartbeat or a store answer, come before it and are skipped),
+/// and each SDO answer must be the one to the request just sent (issue 36: a restarted run
+/// answered a "save" sent to the run killed before it, and that answer was taken for the
+/// answer to the read-back; an abort was counted as a confirmed store).
 fn kill_during_store(n: u32) {
     let port = free_port();
     let dir = tempfile::tempdir().unwrap();
@@ -268,7 +322,7 @@ fn kill_during_store(n: u32) {
     let mut c = client(port);
     let url = format!("socketcand://127.0.0.1:{port}/can0");
     let path = dir.path().join("th-17143876.bin");
-    let mut answered_stores = 0;
+    let mut confirmed = 0;
     for i in 0..n {
         let mut run = spawn(&[
             "run",
@@ -279,52 +333,66 @@ fn kill_during_store(n: u32) {
             "--state-dir",
             dir.path().to_str().unwrap(),
         ]);
-        wait_frame(&mut c, 0x709, Duration::from_secs(10)).expect("boot-up");
+        // The boot-up (data 0), not a heartbeat the killed run sent just before its end.
+        wait_for(&mut c, 0x709, Duration::from_secs(10), |d| d == [0]).expect("boot-up");
         // The value stored by an earlier run is back after the restart.
-        let r = sdo(&mut c, 9, [0x40, 0x17, 0x10, 0, 0, 0, 0, 0]).expect("read 0x1017");
+        c.send(&Frame::new(0x609, &[0x40, 0x17, 0x10, 0, 0, 0, 0, 0]).unwrap())
+            .unwrap();
+        let r = sdo_answer(&mut c, i, 0x1017, 0, Duration::from_secs(3)).expect("read 0x1017");
+        assert_eq!(r[0], 0x4B, "iteration {i}: read 0x1017 answered {r:02X?}");
         let before = stored_heartbeat(&path).unwrap();
         if let Some(v) = before {
             assert_eq!(
                 u32::from(u16::from_le_bytes([r[4], r[5]])),
                 v,
-                "iteration {i}"
+                "iteration {i}: the value read after the restart is not the stored one"
             );
         }
         let value = 1000 + i as u16;
         let [lo, hi] = value.to_le_bytes();
-        let r = sdo(&mut c, 9, [0x2B, 0x17, 0x10, 0, lo, hi, 0, 0]).expect("write 0x1017");
-        assert_eq!(r[0], 0x60, "{r:x?}");
+        c.send(&Frame::new(0x609, &[0x2B, 0x17, 0x10, 0, lo, hi, 0, 0]).unwrap())
+            .unwrap();
+        let r = sdo_answer(&mut c, i, 0x1017, 0, Duration::from_secs(3)).expect("write 0x1017");
+        assert_eq!(r[0], 0x60, "iteration {i}: write 0x1017 answered {r:02X?}");
         c.send(&Frame::new(0x609, &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e']).unwrap())
             .unwrap();
         // Kill somewhere between "before the store" and "after its answer" (≥ 20 ms).
         let delay = Duration::from_micros(u64::from(i * 7919 % 30_000));
-        let answered = wait_frame(&mut c, 0x589, delay).is_some();
+        let store = match sdo_answer(&mut c, i, 0x1010, 1, delay) {
+            None => Store::Unanswered,
+            Some(a) if a[0] == 0x60 => Store::Confirmed,
+            Some(a) if a[0] == 0x80 => Store::Refused(u32::from_le_bytes([a[4], a[5], a[6], a[7]])),
+            Some(a) => panic!("iteration {i}: \"save\" answered {a:02X?}"),
+        };
         run.0.kill().unwrap();
         run.0.wait().unwrap();
         drop(run);
         let after = stored_heartbeat(&path)
             .unwrap_or_else(|e| panic!("iteration {i}: state file does not load: {e}"));
-        assert!(
-            after == before || after == Some(u32::from(value)),
-            "iteration {i}: {after:?} is neither old {before:?} nor new {value}"
-        );
-        if answered {
-            assert_eq!(
-                after,
-                Some(u32::from(value)),
-                "iteration {i}: answered store lost"
-            );
-            answered_stores += 1;
+        let new = Some(u32::from(value));
+        match store {
+            Store::Confirmed => {
+                assert_eq!(after, new, "iteration {i}: confirmed store lost");
+                confirmed += 1;
+            }
+            Store::Refused(code) => {
+                eprintln!("iteration {i}: \"save\" refused with abort {code:08X}");
+                assert_eq!(
+                    after, before,
+                    "iteration {i}: refused store changed the file"
+                );
+            }
+            Store::Unanswered => assert!(
+                after == before || after == new,
+                "iteration {i}: {after:?} is neither old {before:?} nor new {value}"
+            ),
         }
-        // Heartbeat frames of the killed run must not confuse the next iteration.
+        // Frames of the killed run still on their way are skipped until the next boot-up.
         while let Ok(Some(_)) = c.try_recv() {}
     }
-    eprintln!("{n} kills, {answered_stores} of them after the store was answered");
+    eprintln!("{n} kills, {confirmed} of them after the store was confirmed");
     // Both sides of the race must have been exercised.
-    assert!(
-        answered_stores > 0 && answered_stores < n,
-        "{answered_stores} of {n}"
-    );
+    assert!(confirmed > 0 && confirmed < n, "{confirmed} of {n}");
 }
 
 /// The issue's 100 kills (about 4 s).

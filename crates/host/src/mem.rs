@@ -51,6 +51,9 @@ struct Member {
     /// The standard identifiers whose delivery holds the clock (remote frames always do);
     /// `None`: every frame. From [`Transport::set_rx_filter`]: what its nodes may answer.
     hold_ids: Option<Vec<u16>>,
+    /// The bus time it joined at (paced buses; 0 on an instant bus): a frame that started on
+    /// the bus before is not received by it, however late it is handed out.
+    joined: Nanos,
 }
 
 /// Delivery lateness of a paced bus against its timeline: 1 µs buckets up to 10 ms.
@@ -234,10 +237,21 @@ impl BusCore {
             Sink::Remote(..) => crate::bus::TxOrder::Fifo,
             Sink::Local(_) | Sink::None => crate::bus::TxOrder::Priority,
         };
-        let ctl = self
-            .pacer
-            .as_ref()
-            .map(|p| lock(&p.state).timeline.join_with(DEFAULT_TX_DEPTH, order));
+        // The bus runs up to now first, and its lock is held until the member is listed (the
+        // order `pump` takes them in): what ended meanwhile goes to the members that were there,
+        // and the new one receives each frame that starts from here on (every frame submitted
+        // after this: they are never stamped before the time the bus reached), none before.
+        let mut pace = self.pacer.as_ref().map(|p| (p, lock(&p.state)));
+        let (ctl, joined) = match &mut pace {
+            Some((p, st)) => {
+                self.pump(p, st, p.now());
+                (
+                    Some(st.timeline.join_with(DEFAULT_TX_DEPTH, order)),
+                    st.reached,
+                )
+            }
+            None => (None, 0),
+        };
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
         // A controller of a timed participant's group sends at that participant's time.
         let horizon = m
@@ -252,7 +266,10 @@ impl BusCore {
             ctl,
             horizon,
             hold_ids: None,
+            joined,
         });
+        drop(m);
+        drop(pace);
         (id, dropped)
     }
 
@@ -451,12 +468,29 @@ impl BusCore {
         self.deliver(&members, &[group], rx, None);
     }
 
-    /// Delivers `rx` to the members outside `groups`; `end` is its time on a paced bus, which
-    /// a timed receiver's horizon remembers until it takes the frame. True when one did.
-    fn deliver(&self, members: &[Member], groups: &[u64], rx: RxFrame, end: Option<Nanos>) -> bool {
+    /// Delivers `rx` to the members outside `groups`; on a paced bus `on_bus` is its start and
+    /// end of frame: only members that joined by its start receive it, and the end is what a
+    /// timed receiver's horizon remembers until it takes the frame. True when one did.
+    fn deliver(
+        &self,
+        members: &[Member],
+        groups: &[u64],
+        rx: RxFrame,
+        on_bus: Option<(Nanos, Nanos)>,
+    ) -> bool {
         self.frames.fetch_add(1, Ordering::Relaxed);
         let mut held = false;
-        for m in members.iter().filter(|m| !groups.contains(&m.group)) {
+        let end = on_bus.map(|(_, end)| end);
+        // A controller joining the bus first waits for it to be idle (bus integration): a
+        // frame already on the wire, or long over but handed out late, is not received by it.
+        // Otherwise a process that joins after another one was killed could act on a request
+        // sent to that one (issue 36: a "save" meant for the killed sensor was carried out,
+        // and answered, by its successor).
+        let on_bus_since = |m: &Member| on_bus.is_none_or(|(start, _)| m.joined <= start);
+        for m in members
+            .iter()
+            .filter(|m| !groups.contains(&m.group) && on_bus_since(m))
+        {
             let full = match &m.sink {
                 Sink::Local(tx) => match tx.try_send(rx) {
                     Ok(()) => {
@@ -566,8 +600,8 @@ impl BusCore {
                 from,
                 co_senders,
                 frame,
+                start,
                 end,
-                ..
             } = ev
             {
                 let group_of =
@@ -578,7 +612,7 @@ impl BusCore {
                     frame,
                     timestamp: p.clock.system_time_of(end),
                 };
-                held |= self.deliver(&members, &groups, rx, Some(end));
+                held |= self.deliver(&members, &groups, rx, Some((start, end)));
             }
         }
         held
@@ -1227,6 +1261,72 @@ mod tests {
             clock.nanos_of(answer.timestamp).unwrap(),
             end + bits * 1_000
         );
+    }
+
+    /// Issue 36 (a flaky `sigkill_during_store…`): a frame handed out late by the driver thread
+    /// reached a port that joined after the frame was on the bus, so a restarted sensor carried
+    /// out a "save" sent to the one killed before it. The driver is made late here by handing
+    /// the timeline's output over by hand: a frame that started before a port joined does not
+    /// reach it, one that started after does.
+    #[test]
+    fn a_port_does_not_receive_frames_that_started_before_it_joined() {
+        let bus = MemBus::with_pacing(Pacing::Paced(125));
+        let mut early = bus.attach();
+        let core = &bus.core;
+        let p = core.pacer.as_ref().unwrap();
+        // A frame that starts after `early` joined, and before `late` does.
+        let before = p.now();
+        while p.now() == before {
+            std::hint::spin_loop();
+        }
+        let mut late = bus.attach();
+        let joined = p.now();
+        let frame = |id, start| BusEvent::Frame {
+            // No member's controller: sent by a port that has left since.
+            from: MemberId(u32::MAX),
+            co_senders: Vec::new(),
+            frame: f(id),
+            start,
+            end: start + 1_000_000,
+        };
+        // Both handed out now, long after the first one's end of frame.
+        core.dispatch(p, &mut vec![frame(1, before), frame(2, joined)]);
+        assert_eq!(early.try_recv().unwrap().unwrap().frame, f(1));
+        assert_eq!(early.try_recv().unwrap().unwrap().frame, f(2));
+        assert_eq!(late.try_recv().unwrap().unwrap().frame, f(2));
+        assert_eq!(late.try_recv().unwrap(), None);
+    }
+
+    /// A frame still on the wire when a port joins is not received by it either (bus
+    /// integration); the ports that were there get it, and the new port gets the frames that
+    /// start after it joined (stepped clock: deterministic).
+    #[test]
+    fn a_frame_in_progress_is_not_received_by_a_port_that_joins_meanwhile() {
+        let clock = SimClock::stepped();
+        // 125 kbit/s: 8 µs a bit, an 8-byte frame about 1 ms on the wire.
+        let bus = MemBus::with_clock(125, clock.clone());
+        let mut a = bus.attach();
+        let mut there = bus.attach();
+        clock.step_to(1_000).unwrap();
+        a.send(&Frame::new(0x609, &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e']).unwrap())
+            .unwrap();
+        // 100 µs into the frame.
+        clock.step_to(101_000).unwrap();
+        let mut joined = bus.attach();
+        clock.step_to(10_000_000).unwrap();
+        joined.sync_bus();
+        let got = there
+            .try_recv()
+            .unwrap()
+            .expect("delivered at its end of frame");
+        assert_eq!(got.frame.std_id(), Some(0x609));
+        assert_eq!(joined.try_recv().unwrap(), None);
+        // A frame that starts after the join reaches it.
+        a.send(&f(0x100)).unwrap();
+        clock.step_to(20_000_000).unwrap();
+        joined.sync_bus();
+        assert_eq!(joined.try_recv().unwrap().unwrap().frame, f(0x100));
+        assert_eq!(there.try_recv().unwrap().unwrap().frame, f(0x100));
     }
 
     #[test]
