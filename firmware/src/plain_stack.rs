@@ -124,7 +124,7 @@ pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Mo
             store_preop_only: false,
             kill_signature: false,
             preset_clear: false,
-            preset_zero_shift: false,
+            preset_offset_internal: false,
             tmi_error_reactions: false,
             window_cams: false,
             power_on_emcy: true,
