@@ -462,11 +462,24 @@ async fn status(State(app): State<App>) -> Json<Value> {
 /// `GET /api/snapshot?since=SEQ`: the page's view of the bus as one plain JSON answer, with the
 /// plot points newer than `SEQ` (all of them without it) and `seq` to ask from next time. The
 /// page polls it; a client that cannot hold a stream open gets everything from it.
+/// A query that is no sequence number is refused in JSON, as every API error is.
 async fn snapshot_get(
     State(app): State<App>,
-    axum::extract::Query(q): axum::extract::Query<SnapshotQuery>,
-) -> Json<Value> {
-    Json(snapshot(&app.shared.lock().unwrap(), q.since.unwrap_or(0)))
+    q: Result<axum::extract::Query<SnapshotQuery>, axum::extract::rejection::QueryRejection>,
+) -> Answer {
+    let axum::extract::Query(q) = q.map_err(|e| {
+        fail(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "{}; expected ?since=N, N the `seq` of the last answer (0…18446744073709551615)",
+                e.body_text()
+            ),
+        )
+    })?;
+    Ok(Json(snapshot(
+        &app.shared.lock().unwrap(),
+        q.since.unwrap_or(0),
+    )))
 }
 
 /// The query of [`snapshot_get`].

@@ -831,6 +831,43 @@ fn a_method_a_path_does_not_take_is_refused_in_json() {
     assert_eq!(before["powered"], after["powered"]);
 }
 
+/// `GET /api/snapshot?since=…` with a value that is no sequence number is refused in JSON as
+/// every other API error is (the page shows `error`), naming the parameter; the largest number
+/// is a sequence number (nothing newer); other query parameters are not the endpoint's concern.
+#[test]
+fn a_snapshot_query_that_is_no_sequence_number_is_refused_in_json() {
+    let r = rig();
+    let a = r.web.local_addr();
+    for q in [
+        "since=abc",
+        "since=",
+        "since=-1",
+        "since=1.5",
+        "since=99999999999999999999999",
+        "since=1&since=2",
+        "since=%00",
+    ] {
+        let (code, v) = http(a, "GET", &format!("/api/snapshot?{q}"), "");
+        assert_eq!(code, 400, "{q}: {v}");
+        assert!(error_of(&v).contains("since"), "{q}: {v}");
+    }
+    for q in ["since=18446744073709551615", "since=0", "", "other=x"] {
+        let (code, v) = http(a, "GET", &format!("/api/snapshot?{q}"), "");
+        assert_eq!(code, 200, "{q}: {v}");
+        assert!(v["nodes"].is_array(), "{q}: {v}");
+    }
+    let (_, v) = http(a, "GET", "/api/snapshot?since=18446744073709551615", "");
+    // Nothing is newer than the largest sequence number.
+    let points = v["nodes"].as_array().unwrap().iter().flat_map(|n| {
+        n["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["t"].as_array().unwrap().len())
+    });
+    assert_eq!(points.sum::<usize>(), 0, "{v}");
+}
+
 /// Debian's Chromium (`scripts/deps.sh` installs it for the test command), or `None` with a
 /// note outside CI.
 fn chromium() -> Option<String> {
