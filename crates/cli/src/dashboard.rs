@@ -774,8 +774,12 @@ fn access_name(a: Access) -> &'static str {
     }
 }
 
+/// The object table of node `id`'s model: that of the model's widest unit (the two-channel
+/// TMI's), as the dashboard does not know the unit's configuration; an object a unit does not
+/// have is answered by the unit itself (SDO abort 0x06020000 / 0x06090011).
 fn model_of(app: &App, id: u8) -> Result<&'static Model, ApiError> {
-    app.shared.lock().unwrap().nodes[&id].model.ok_or_else(|| {
+    let model = app.shared.lock().unwrap().nodes[&id].model;
+    model.map(canpos_core::models::widest).ok_or_else(|| {
         fail(
             StatusCode::CONFLICT,
             format!("node {id}: its model is not known (not a TH, E-Series or TMI; name its EDS with --eds {id}=FILE), so there is no object table"),
