@@ -65,6 +65,36 @@ fn parse_state_name(p: &Path) -> Option<(&'static Model, u32)> {
     Some((models::by_name(model)?, serial.parse().ok()?))
 }
 
+/// The configuration of the unit whose state file `path` is, when only its model is known:
+/// the model's default unit, or its widest when the file holds a record that only the widest
+/// has (the TMI's one- and two-channel units share `tmi-SERIAL.bin`; a two-channel unit's
+/// "save" stores its channel-2 objects), so that a DCF leaves none of its configuration out.
+fn state_unit(path: &Path, model: &'static Model) -> DeviceConfig {
+    let cfg = model.default_config;
+    let (narrow, widest) = (models::for_unit(model, &cfg), models::widest(model));
+    if core::ptr::eq(narrow, widest) {
+        return cfg;
+    }
+    let mut image = [0u8; IMAGE_MAX];
+    let Ok(n) = FileStorage::new(path).for_model(model).load(&mut image) else {
+        // read_state reports the file.
+        return cfg;
+    };
+    let Ok(mut recs) = canpos_core::storage::parse_image(&image[..n], model.features.tag) else {
+        return cfg;
+    };
+    let wider = recs.any(|(k, _)| {
+        canpos_core::storage::is_object_key(k)
+            && widest.search(k).is_ok()
+            && narrow.search(k).is_err()
+    });
+    if wider {
+        widest.default_config
+    } else {
+        cfg
+    }
+}
+
 /// Reads the unit from its state file: the node runs in-process on it (nothing is written).
 fn read_state(
     path: &Path,
@@ -116,7 +146,7 @@ fn read_state(
 pub fn dcf(a: DcfArgs) -> Result<i32> {
     let (model, mut cfg, order_code, values) = if let Some(state) = &a.state {
         let (model, mut cfg, code) = match (&a.model, &a.order_code, parse_state_name(state)) {
-            (None, None, Some((m, _))) => (m, m.default_config, String::new()),
+            (None, None, Some((m, _))) => (m, state_unit(state, m), String::new()),
             (None, None, None) => {
                 return Err(anyhow::Error::new(Usage(format!(
                     "{}: not named MODEL-SERIAL.bin; give --model or --order-code",
@@ -574,6 +604,39 @@ fn read<A: canpos_core::Application, S: canpos_core::Storage>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `canpos dcf --state tmi-SERIAL.bin` of a two-channel TMI (no order code given) has its
+    /// channel-2 configuration; a one-channel unit's file gives the one-channel unit.
+    #[test]
+    fn a_two_channel_tmi_state_file_gives_a_dcf_with_channel_2() {
+        let tmi = models::by_name("tmi").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tmi-9050001.bin");
+        let write = |recs: &[(u32, u32)]| {
+            let mut buf = [0u8; IMAGE_MAX];
+            let mut w = canpos_core::storage::ImageWriter::new(&mut buf, tmi.features.tag);
+            for &(k, v) in recs {
+                assert!(w.push(k, v));
+            }
+            let n = w.finish();
+            std::fs::write(&path, &buf[..n]).unwrap();
+        };
+        // Cam 1 low limit, channel 1 and 2 (0x6310:1 / :2), as a two-channel unit saves them.
+        write(&[(0x0063_1001, 111), (0x0063_1002, 1234)]);
+        let cfg = state_unit(&path, tmi);
+        assert_eq!(cfg.channels, 2);
+        let (_, values) = read_state(&path, tmi, cfg).unwrap();
+        let val = |i: u16, s: u8| {
+            values
+                .iter()
+                .find(|x| x.0 == i && x.1 == s)
+                .map(|x| x.2.clone())
+        };
+        assert_eq!(val(0x6310, 2), Some(1234i32.to_le_bytes().to_vec()));
+        assert_eq!(val(0x6310, 1), Some(111i32.to_le_bytes().to_vec()));
+        write(&[(0x0063_1001, 111)]);
+        assert_eq!(state_unit(&path, tmi).channels, 1);
+    }
 
     fn tempdir() -> PathBuf {
         static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
