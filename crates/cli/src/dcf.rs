@@ -304,8 +304,10 @@ fn render(
         lss_serial: cfg.serial,
         last_eds: &last_eds,
     };
+    // The unit's own dictionary (a two-channel TMI's has its channel-2 objects).
+    let unit = models::for_unit(model, cfg);
     let lookup = |index: u16, sub: u8| -> Option<DcfValue<'_>> {
-        let e = model
+        let e = unit
             .entries
             .iter()
             .find(|e| e.index == index && e.sub == sub)?;
@@ -340,6 +342,10 @@ pub struct ModelDcf {
     pub serial: Option<u32>,
     /// Each `ParameterValue` of a writable object: index, sub, raw value, line.
     pub values: Vec<(u16, u8, u32, usize)>,
+    /// Without an `OrderCode`: the position channels of the unit the file's objects name, when
+    /// it names an object the model's default unit does not have (a two-channel TMI's
+    /// channel-2 objects); `None`: the default unit's.
+    pub channels: Option<u8>,
 }
 
 fn parse_num(s: &str) -> Option<i64> {
@@ -371,7 +377,7 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
         return Ok(None);
     };
     // Every object the model's units may have: the file says which of them this one has.
-    let model = models::widest(model);
+    let (base, model) = (model, models::widest(model));
     let at = |sec: &str, key: &str| {
         ini.section(sec)
             .and_then(|s| s.key(key))
@@ -439,6 +445,13 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
             .ok_or_else(|| bad(&sec, "ParameterValue", "not a value of the object's type"))?;
         values.push((e.index, e.sub, n as u32, at(&sec, "ParameterValue")));
     }
+    // The unit: the default one, unless the file configures an object only a wider unit has.
+    let narrow = models::for_unit(base, &base.default_config);
+    let wider = !core::ptr::eq(narrow, model)
+        && values
+            .iter()
+            .any(|&(i, s, _, _)| narrow.search(u32::from(i) << 8 | u32::from(s)).is_err());
+    let channels = (order_code.is_empty() && wider).then_some(model.default_config.channels);
     Ok(Some(ModelDcf {
         model,
         order_code,
@@ -446,6 +459,7 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
         bitrate_kbps,
         serial,
         values,
+        channels,
     }))
 }
 
@@ -634,8 +648,37 @@ mod tests {
         };
         assert_eq!(val(0x6310, 2), Some(1234i32.to_le_bytes().to_vec()));
         assert_eq!(val(0x6310, 1), Some(111i32.to_le_bytes().to_vec()));
+        // Its DCF (no OrderCode: none is known) starts a two-channel unit with `run --dcf`,
+        // which takes the channel-2 value.
+        let text = render(tmi, &cfg, "", None, &values).unwrap();
+        let dcf = dir.path().join("unit.dcf");
+        std::fs::write(&dcf, &text).unwrap();
+        let d = read_model_dcf(&dcf).unwrap().unwrap();
+        assert_eq!(d.channels, Some(2));
+        let opts = crate::device::SensorOpts {
+            model: Some("tmi".into()),
+            unit_channels: d.channels,
+            ..Default::default()
+        };
+        let built = crate::device::build_setup(&opts, dir.path()).unwrap();
+        assert_eq!(built.setup.cfg.channels, 2);
+        let fresh = dir.path().join("fresh.bin");
+        let refused = apply_to_state(&d, built.setup.cfg, &fresh).unwrap();
+        assert!(refused.is_empty(), "{refused:?}");
+        let (_, got) = read_state(&fresh, tmi, built.setup.cfg).unwrap();
+        let got = |i: u16, s: u8| {
+            got.iter()
+                .find(|x| x.0 == i && x.1 == s)
+                .map(|x| x.2.clone())
+        };
+        assert_eq!(got(0x6310, 2), Some(1234i32.to_le_bytes().to_vec()));
         write(&[(0x0063_1001, 111)]);
         assert_eq!(state_unit(&path, tmi).channels, 1);
+        let one = state_unit(&path, tmi);
+        let (_, values) = read_state(&path, tmi, one).unwrap();
+        let text = render(tmi, &one, "", None, &values).unwrap();
+        std::fs::write(&dcf, &text).unwrap();
+        assert_eq!(read_model_dcf(&dcf).unwrap().unwrap().channels, None);
     }
 
     fn tempdir() -> PathBuf {
