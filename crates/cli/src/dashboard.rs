@@ -462,11 +462,24 @@ async fn status(State(app): State<App>) -> Json<Value> {
 /// `GET /api/snapshot?since=SEQ`: the page's view of the bus as one plain JSON answer, with the
 /// plot points newer than `SEQ` (all of them without it) and `seq` to ask from next time. The
 /// page polls it; a client that cannot hold a stream open gets everything from it.
+/// A query that is no sequence number is refused in JSON, as every API error is.
 async fn snapshot_get(
     State(app): State<App>,
-    axum::extract::Query(q): axum::extract::Query<SnapshotQuery>,
-) -> Json<Value> {
-    Json(snapshot(&app.shared.lock().unwrap(), q.since.unwrap_or(0)))
+    q: Result<axum::extract::Query<SnapshotQuery>, axum::extract::rejection::QueryRejection>,
+) -> Answer {
+    let axum::extract::Query(q) = q.map_err(|e| {
+        fail(
+            StatusCode::BAD_REQUEST,
+            format!(
+                "{}; expected ?since=N, N the `seq` of the last answer (0…18446744073709551615)",
+                e.body_text()
+            ),
+        )
+    })?;
+    Ok(Json(snapshot(
+        &app.shared.lock().unwrap(),
+        q.since.unwrap_or(0),
+    )))
 }
 
 /// The query of [`snapshot_get`].
@@ -761,8 +774,12 @@ fn access_name(a: Access) -> &'static str {
     }
 }
 
+/// The object table of node `id`'s model: that of the model's widest unit (the two-channel
+/// TMI's), as the dashboard does not know the unit's configuration; an object a unit does not
+/// have is answered by the unit itself (SDO abort 0x06020000 / 0x06090011).
 fn model_of(app: &App, id: u8) -> Result<&'static Model, ApiError> {
-    app.shared.lock().unwrap().nodes[&id].model.ok_or_else(|| {
+    let model = app.shared.lock().unwrap().nodes[&id].model;
+    model.map(canpos_core::models::widest).ok_or_else(|| {
         fail(
             StatusCode::CONFLICT,
             format!("node {id}: its model is not known (not a TH, E-Series or TMI; name its EDS with --eds {id}=FILE), so there is no object table"),

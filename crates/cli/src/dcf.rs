@@ -65,6 +65,36 @@ fn parse_state_name(p: &Path) -> Option<(&'static Model, u32)> {
     Some((models::by_name(model)?, serial.parse().ok()?))
 }
 
+/// The configuration of the unit whose state file `path` is, when only its model is known:
+/// the model's default unit, or its widest when the file holds a record that only the widest
+/// has (the TMI's one- and two-channel units share `tmi-SERIAL.bin`; a two-channel unit's
+/// "save" stores its channel-2 objects), so that a DCF leaves none of its configuration out.
+fn state_unit(path: &Path, model: &'static Model) -> DeviceConfig {
+    let cfg = model.default_config;
+    let (narrow, widest) = (models::for_unit(model, &cfg), models::widest(model));
+    if core::ptr::eq(narrow, widest) {
+        return cfg;
+    }
+    let mut image = [0u8; IMAGE_MAX];
+    let Ok(n) = FileStorage::new(path).for_model(model).load(&mut image) else {
+        // read_state reports the file.
+        return cfg;
+    };
+    let Ok(mut recs) = canpos_core::storage::parse_image(&image[..n], model.features.tag) else {
+        return cfg;
+    };
+    let wider = recs.any(|(k, _)| {
+        canpos_core::storage::is_object_key(k)
+            && widest.search(k).is_ok()
+            && narrow.search(k).is_err()
+    });
+    if wider {
+        widest.default_config
+    } else {
+        cfg
+    }
+}
+
 /// Reads the unit from its state file: the node runs in-process on it (nothing is written).
 fn read_state(
     path: &Path,
@@ -116,7 +146,7 @@ fn read_state(
 pub fn dcf(a: DcfArgs) -> Result<i32> {
     let (model, mut cfg, order_code, values) = if let Some(state) = &a.state {
         let (model, mut cfg, code) = match (&a.model, &a.order_code, parse_state_name(state)) {
-            (None, None, Some((m, _))) => (m, m.default_config, String::new()),
+            (None, None, Some((m, _))) => (m, state_unit(state, m), String::new()),
             (None, None, None) => {
                 return Err(anyhow::Error::new(Usage(format!(
                     "{}: not named MODEL-SERIAL.bin; give --model or --order-code",
@@ -274,8 +304,10 @@ fn render(
         lss_serial: cfg.serial,
         last_eds: &last_eds,
     };
+    // The unit's own dictionary (a two-channel TMI's has its channel-2 objects).
+    let unit = models::for_unit(model, cfg);
     let lookup = |index: u16, sub: u8| -> Option<DcfValue<'_>> {
-        let e = model
+        let e = unit
             .entries
             .iter()
             .find(|e| e.index == index && e.sub == sub)?;
@@ -310,6 +342,10 @@ pub struct ModelDcf {
     pub serial: Option<u32>,
     /// Each `ParameterValue` of a writable object: index, sub, raw value, line.
     pub values: Vec<(u16, u8, u32, usize)>,
+    /// Without an `OrderCode`: the position channels of the unit the file's objects name, when
+    /// it names an object the model's default unit does not have (a two-channel TMI's
+    /// channel-2 objects); `None`: the default unit's.
+    pub channels: Option<u8>,
 }
 
 fn parse_num(s: &str) -> Option<i64> {
@@ -341,7 +377,7 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
         return Ok(None);
     };
     // Every object the model's units may have: the file says which of them this one has.
-    let model = models::widest(model);
+    let (base, model) = (model, models::widest(model));
     let at = |sec: &str, key: &str| {
         ini.section(sec)
             .and_then(|s| s.key(key))
@@ -409,6 +445,13 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
             .ok_or_else(|| bad(&sec, "ParameterValue", "not a value of the object's type"))?;
         values.push((e.index, e.sub, n as u32, at(&sec, "ParameterValue")));
     }
+    // The unit: the default one, unless the file configures an object only a wider unit has.
+    let narrow = models::for_unit(base, &base.default_config);
+    let wider = !core::ptr::eq(narrow, model)
+        && values
+            .iter()
+            .any(|&(i, s, _, _)| narrow.search(u32::from(i) << 8 | u32::from(s)).is_err());
+    let channels = (order_code.is_empty() && wider).then_some(model.default_config.channels);
     Ok(Some(ModelDcf {
         model,
         order_code,
@@ -416,6 +459,7 @@ pub fn read_model_dcf(path: &Path) -> Result<Option<ModelDcf>> {
         bitrate_kbps,
         serial,
         values,
+        channels,
     }))
 }
 
@@ -574,6 +618,68 @@ fn read<A: canpos_core::Application, S: canpos_core::Storage>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `canpos dcf --state tmi-SERIAL.bin` of a two-channel TMI (no order code given) has its
+    /// channel-2 configuration; a one-channel unit's file gives the one-channel unit.
+    #[test]
+    fn a_two_channel_tmi_state_file_gives_a_dcf_with_channel_2() {
+        let tmi = models::by_name("tmi").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tmi-9050001.bin");
+        let write = |recs: &[(u32, u32)]| {
+            let mut buf = [0u8; IMAGE_MAX];
+            let mut w = canpos_core::storage::ImageWriter::new(&mut buf, tmi.features.tag);
+            for &(k, v) in recs {
+                assert!(w.push(k, v));
+            }
+            let n = w.finish();
+            std::fs::write(&path, &buf[..n]).unwrap();
+        };
+        // Cam 1 low limit, channel 1 and 2 (0x6310:1 / :2), as a two-channel unit saves them.
+        write(&[(0x0063_1001, 111), (0x0063_1002, 1234)]);
+        let cfg = state_unit(&path, tmi);
+        assert_eq!(cfg.channels, 2);
+        let (_, values) = read_state(&path, tmi, cfg).unwrap();
+        let val = |i: u16, s: u8| {
+            values
+                .iter()
+                .find(|x| x.0 == i && x.1 == s)
+                .map(|x| x.2.clone())
+        };
+        assert_eq!(val(0x6310, 2), Some(1234i32.to_le_bytes().to_vec()));
+        assert_eq!(val(0x6310, 1), Some(111i32.to_le_bytes().to_vec()));
+        // Its DCF (no OrderCode: none is known) starts a two-channel unit with `run --dcf`,
+        // which takes the channel-2 value.
+        let text = render(tmi, &cfg, "", None, &values).unwrap();
+        let dcf = dir.path().join("unit.dcf");
+        std::fs::write(&dcf, &text).unwrap();
+        let d = read_model_dcf(&dcf).unwrap().unwrap();
+        assert_eq!(d.channels, Some(2));
+        let opts = crate::device::SensorOpts {
+            model: Some("tmi".into()),
+            unit_channels: d.channels,
+            ..Default::default()
+        };
+        let built = crate::device::build_setup(&opts, dir.path()).unwrap();
+        assert_eq!(built.setup.cfg.channels, 2);
+        let fresh = dir.path().join("fresh.bin");
+        let refused = apply_to_state(&d, built.setup.cfg, &fresh).unwrap();
+        assert!(refused.is_empty(), "{refused:?}");
+        let (_, got) = read_state(&fresh, tmi, built.setup.cfg).unwrap();
+        let got = |i: u16, s: u8| {
+            got.iter()
+                .find(|x| x.0 == i && x.1 == s)
+                .map(|x| x.2.clone())
+        };
+        assert_eq!(got(0x6310, 2), Some(1234i32.to_le_bytes().to_vec()));
+        write(&[(0x0063_1001, 111)]);
+        assert_eq!(state_unit(&path, tmi).channels, 1);
+        let one = state_unit(&path, tmi);
+        let (_, values) = read_state(&path, tmi, one).unwrap();
+        let text = render(tmi, &one, "", None, &values).unwrap();
+        std::fs::write(&dcf, &text).unwrap();
+        assert_eq!(read_model_dcf(&dcf).unwrap().unwrap().channels, None);
+    }
 
     fn tempdir() -> PathBuf {
         static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);

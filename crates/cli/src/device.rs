@@ -214,6 +214,10 @@ pub fn bus_serve(args: ServeArgs) -> Result<i32> {
 pub struct SensorOpts {
     /// `th`, `e-series` or `tmi`.
     pub model: Option<String>,
+    /// With `model`: the position channels of the unit when it is not the model's default
+    /// one (a two-channel TMI named by a DCF without `OrderCode`); not a scenario key.
+    #[serde(skip)]
+    pub unit_channels: Option<u8>,
     /// A product order code (selects model, stroke, resolution, bit rate, magnets).
     pub order_code: Option<String>,
     /// Node-id (1…127, 255 = unconfigured).
@@ -373,7 +377,11 @@ pub fn build_setup(o: &SensorOpts, state_dir: &Path) -> Result<Built, SetupError
             (m, None) => (|| {
                 let name = m.as_deref().unwrap_or("th");
                 let model = core_model(name)?;
-                let cfg = model.default_config;
+                let mut cfg = model.default_config;
+                if let Some(n) = o.unit_channels {
+                    // Only a unit the model has (the widest one's channels at most).
+                    cfg.channels = n.min(models::widest(model).default_config.channels);
+                }
                 let sm =
                     sim_model(name).ok_or_else(|| anyhow!("no measurement model for `{name}`"))?;
                 let spec =
@@ -840,6 +848,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     let opts = SensorOpts {
         model,
         order_code,
+        unit_channels: model_dcf.as_ref().and_then(|d| d.channels),
         node_id: a.node_id.or(model_dcf.as_ref().and_then(|d| d.node_id)),
         serial: a.serial.or(model_dcf.as_ref().and_then(|d| d.serial)),
         magnets: a.magnets,

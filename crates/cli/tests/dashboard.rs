@@ -30,12 +30,20 @@ impl Drop for Rig {
 }
 
 fn rig() -> Rig {
+    rig_with(
+        SensorOpts {
+            node_id: Some(127),
+            magnets: vec![100.0],
+            ..SensorOpts::default()
+        },
+        "th",
+    )
+}
+
+/// A dashboard on an in-process bus with one sensor of `opts` on node 127, once the scan has
+/// identified it as `model`.
+fn rig_with(opts: SensorOpts, model: &str) -> Rig {
     let dir = tempfile::tempdir().unwrap();
-    let opts = SensorOpts {
-        node_id: Some(127),
-        magnets: vec![100.0],
-        ..SensorOpts::default()
-    };
     let mut built = build_setup(&opts, dir.path()).unwrap();
     open_storage(&mut built.setup).unwrap();
     let bus = MemBus::new();
@@ -59,7 +67,7 @@ fn rig() -> Rig {
     let until = Instant::now() + Duration::from_secs(10);
     loop {
         let (code, od) = http(r.web.local_addr(), "GET", "/api/nodes/127/od", "");
-        if code == 200 && od["model"] == "th" {
+        if code == 200 && od["model"] == model {
             break;
         }
         assert!(
@@ -829,6 +837,77 @@ fn a_method_a_path_does_not_take_is_refused_in_json() {
     }
     let after = state(&r);
     assert_eq!(before["powered"], after["powered"]);
+}
+
+/// A two-channel TMI (order code `62x`) on the bus: the dashboard's object table lists its
+/// channel-2 objects and reads them over SDO (the model's default unit, one channel, has none:
+/// the table of the widest unit is what a tool that does not know the configuration offers).
+#[test]
+fn a_two_channel_tmi_shows_and_reads_its_channel_2_objects() {
+    let r = rig_with(
+        SensorOpts {
+            order_code: Some("TMI 1000 101 621 106".into()),
+            node_id: Some(127),
+            magnets: vec![100.0, 300.0],
+            ..SensorOpts::default()
+        },
+        "tmi",
+    );
+    let a = r.web.local_addr();
+    let (code, od) = http(a, "GET", "/api/nodes/127/od", "");
+    assert_eq!(code, 200, "{od}");
+    let listed = |ix: &str, sub: u64| {
+        od["entries"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e["index"] == ix && e["sub"] == sub)
+    };
+    for ix in ["0x6010", "0x6020", "0x6030", "0x6300", "0x6400", "0x6401"] {
+        assert!(listed(ix, 2), "{ix}/2 not in the object table: {od}");
+    }
+    // The unit answers with channel 2's preset (0) and its array's sub 0 (2 channels).
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x6010/2", "");
+    assert_eq!(code, 200, "{v}");
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x6020/0", "");
+    assert_eq!((code, &v["hex"]), (200, &serde_json::json!("02")), "{v}");
+}
+
+/// `GET /api/snapshot?since=…` with a value that is no sequence number is refused in JSON as
+/// every other API error is (the page shows `error`), naming the parameter; the largest number
+/// is a sequence number (nothing newer); other query parameters are not the endpoint's concern.
+#[test]
+fn a_snapshot_query_that_is_no_sequence_number_is_refused_in_json() {
+    let r = rig();
+    let a = r.web.local_addr();
+    for q in [
+        "since=abc",
+        "since=",
+        "since=-1",
+        "since=1.5",
+        "since=99999999999999999999999",
+        "since=1&since=2",
+        "since=%00",
+    ] {
+        let (code, v) = http(a, "GET", &format!("/api/snapshot?{q}"), "");
+        assert_eq!(code, 400, "{q}: {v}");
+        assert!(error_of(&v).contains("since"), "{q}: {v}");
+    }
+    for q in ["since=18446744073709551615", "since=0", "", "other=x"] {
+        let (code, v) = http(a, "GET", &format!("/api/snapshot?{q}"), "");
+        assert_eq!(code, 200, "{q}: {v}");
+        assert!(v["nodes"].is_array(), "{q}: {v}");
+    }
+    let (_, v) = http(a, "GET", "/api/snapshot?since=18446744073709551615", "");
+    // Nothing is newer than the largest sequence number.
+    let points = v["nodes"].as_array().unwrap().iter().flat_map(|n| {
+        n["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["t"].as_array().unwrap().len())
+    });
+    assert_eq!(points.sum::<usize>(), 0, "{v}");
 }
 
 /// Debian's Chromium (`scripts/deps.sh` installs it for the test command), or `None` with a

@@ -82,13 +82,16 @@ fn eds(h: &Harness) -> Eds {
 }
 
 /// TPDOs (0-based) whose COB-ID is valid by default and whose mapping is not empty: the only
-/// ones the CTT exercises.
+/// ones the CTT exercises; of those, the ones that may be event-driven (asynchronous by
+/// default: the two-channel TMI's TPDO2 is "synchronous; no RTR's", 002 §1.2.5, and refuses
+/// the asynchronous types the cases set up).
 fn default_tpdos(h: &mut Harness) -> Vec<u16> {
     let mut v = Vec::new();
     for n in 0..u16::from(h.model().features.tpdos) {
         let cob = ok(h.read(0x1800 + n, 1));
         let cnt = ok(h.read(0x1A00 + n, 0));
-        if cob & 0x8000_0000 == 0 && cnt > 0 {
+        let ttype = ok(h.read(0x1800 + n, 2));
+        if cob & 0x8000_0000 == 0 && cnt > 0 && ttype >= 254 {
             v.push(n);
         }
     }

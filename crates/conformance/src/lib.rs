@@ -49,12 +49,22 @@ pub fn run_virtual(id: &str, model: &'static Model) -> Outcome {
     (c.run)(&mut h)
 }
 
-/// Runs case `id` on every model; an n.a. verdict is printed with its reason.
+/// Runs case `id` on every model, and on the widest unit of a model whose units differ (the
+/// two-channel TMI beside the one-channel default); an n.a. verdict is printed with its reason.
 pub fn run_all_models(id: &str) {
     for m in canpos_core::models::all() {
-        match run_virtual(id, m) {
-            Outcome::Pass => {}
-            Outcome::Na(why) => println!("{id} {}: n.a. ({why})", m.name),
+        let widest = canpos_core::models::widest(m);
+        let units: &[&'static Model] = if core::ptr::eq(widest, m) {
+            &[m]
+        } else {
+            &[m, widest]
+        };
+        for &u in units {
+            let channels = u.default_config.channels;
+            match run_virtual(id, u) {
+                Outcome::Pass => {}
+                Outcome::Na(why) => println!("{id} {} ({channels} ch): n.a. ({why})", u.name),
+            }
         }
     }
 }

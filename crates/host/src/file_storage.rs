@@ -225,15 +225,19 @@ fn type_at(dir: &OwnedFd, name: &OsStr) -> io::Result<Option<(FileType, u64)>> {
 /// `load_values`, `stored_lss_config`, `change_stored`): the LSS and node-id records, and
 /// the preset offsets a TMI keeps with 0x6010, and objects of the model that are stored (or
 /// hold the pending node-id or bit rate).
-fn record_used(model: &Model, key: u32) -> bool {
+fn record_used(model: &'static Model, key: u32) -> bool {
+    let widest = canpos_core::models::widest(model);
     match key {
         KEY_LSS_NODE_ID | KEY_LSS_BITRATE | KEY_SAVED_NODE_ID => true,
         // The preset offsets a TMI keeps with 0x6010 (no object holds them).
         k if app_record(k).is_some() => model.features.preset_offset_internal,
-        k if is_object_key(k) => model
+        // Objects of any unit of the model: a two-channel TMI's state file keeps its channel-2
+        // records when the storage is opened for the model (whose default unit has one
+        // channel), and a one-channel unit loading it leaves them for the other.
+        k if is_object_key(k) => widest
             .search(k)
             .ok()
-            .and_then(|slot| model.entries.get(slot))
+            .and_then(|slot| widest.entries.get(slot))
             .is_some_and(|e| {
                 e.group != Group::Volatile
                     || matches!(e.hook, Hook::PendingNodeId | Hook::PendingBitRate)
@@ -1319,6 +1323,73 @@ mod tests {
         assert_eq!(
             read(sdo(&mut node, [0x40, 0x10, 0x60, 1, 0, 0, 0, 0])),
             1000
+        );
+        assert_eq!(node.storage_mut().reported, None);
+    }
+
+    /// A two-channel TMI (order code `62x`) keeps its channel-2 configuration in its state
+    /// file, although the storage is opened for the model `tmi` (whose default unit has one
+    /// channel), as `canpos run --order-code` opens it; a one-channel unit that loads and saves
+    /// the same file (both are `tmi-<serial>.bin`) loses none of it either (issue 36 item 2
+    /// review).
+    #[test]
+    fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
+        use canpos_core::{Duration, Frame, Instant, Node};
+        let tmi = canpos_core::models::by_name("tmi").unwrap();
+        let one = tmi.default_config.with_channels(1);
+        let two = tmi.default_config.with_channels(2);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tmi-1.bin");
+        let mut now = Instant::ZERO;
+        let mut sdo = |node: &mut Node<_, FileStorage>, req: [u8; 8]| {
+            now += Duration::from_millis(1);
+            node.handle_frame(&Frame::std8(0x67F, req), now);
+            for _ in 0..100 {
+                while let Some(f) = node.poll(now) {
+                    if f.std_id() == Some(0x5FF) {
+                        return *f.raw();
+                    }
+                }
+                now += Duration::from_millis(10);
+            }
+            panic!("no SDO answer");
+        };
+        let s = u32::from_le_bytes(*b"save").to_le_bytes();
+        let save = [0x23, 0x10, 0x10, 1, s[0], s[1], s[2], s[3]];
+        // Cam 1 low limit of channel 2 (0x6310:2, stored with the application parameters).
+        let read_cam2 = [0x40, 0x10, 0x63, 2, 0, 0, 0, 0];
+        let value = |a: [u8; 8]| i32::from_le_bytes([a[4], a[5], a[6], a[7]]);
+        {
+            let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+            node.power_on(Instant::ZERO);
+            let a = sdo(&mut node, [0x23, 0x10, 0x63, 2, 0xD2, 0x04, 0, 0]);
+            assert_eq!(a[0], 0x60, "write answered {a:02X?}");
+            assert_eq!(sdo(&mut node, save)[0], 0x60);
+        }
+        {
+            let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+            node.power_on(Instant::ZERO);
+            assert_eq!(
+                value(sdo(&mut node, read_cam2)),
+                1234,
+                "after a power cycle"
+            );
+        }
+        {
+            // The same file in a one-channel unit: it has no 0x6310:2, and a save of its own
+            // leaves the other unit's record alone.
+            let mut node = Node::new(tmi, one, FileStorage::new(&path).for_model(tmi));
+            node.power_on(Instant::ZERO);
+            let a = sdo(&mut node, read_cam2);
+            assert_eq!((a[0], value(a)), (0x80, 0x0609_0011), "{a:02X?}");
+            assert_eq!(sdo(&mut node, save)[0], 0x60);
+        }
+        let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+        node.power_on(Instant::ZERO);
+        assert_eq!(
+            value(sdo(&mut node, read_cam2)),
+            1234,
+            "after the one-channel unit"
         );
         assert_eq!(node.storage_mut().reported, None);
     }
