@@ -506,10 +506,18 @@ impl BusCore {
         let by_event = p.timed.load(Ordering::Relaxed) > 0;
         // Delivery lateness is against the wall clock; a stepped bus has none.
         let wall = (p.clock.driver() == Driver::Wall).then(|| p.clock.wall_elapsed());
-        while target > st.reached {
-            let upto = match st.timeline.next_event() {
+        loop {
+            let next = st.timeline.next_event();
+            // Events at the time already reached are due too: a frame submitted at that time
+            // (stamps never go below it) starts there. Left for later, the driver thread would
+            // find it due, pump nothing and look again, spinning a core until the clock moved
+            // (between two steps of a stepped clock: for ever).
+            if target <= st.reached && next.is_none_or(|n| n > st.reached) {
+                break;
+            }
+            let upto = match next {
                 Some(n) if by_event && n <= target => n.max(st.reached),
-                _ => target,
+                _ => target.max(st.reached),
             };
             let mut events = std::mem::take(&mut st.events);
             st.timeline.advance(upto, &mut events);
@@ -527,6 +535,15 @@ impl BusCore {
                 break;
             }
         }
+    }
+
+    /// Whether the timeline has an event due at or before the time it reached: never after a
+    /// pump (the driver thread would spin on it).
+    #[cfg(test)]
+    fn due_by_reached(&self) -> bool {
+        let p = self.pacer.as_ref().expect("paced");
+        let st = lock(&p.state);
+        st.timeline.next_event().is_some_and(|n| n <= st.reached)
     }
 
     /// Hands what the timeline produced to the members; true when a timed participant received
@@ -1227,6 +1244,38 @@ mod tests {
             clock.nanos_of(answer.timestamp).unwrap(),
             end + bits * 1_000
         );
+    }
+
+    /// A frame submitted at the time the bus already reached (between two steps of a stepped
+    /// clock, an untimed member's frame is stamped with the step's time) starts when the bus
+    /// is next run, even to that same time. Before, the pump skipped it (nothing to do up to
+    /// the time reached) while the driver thread found it due and looked again at once:
+    /// 100 % of a core until the next step.
+    #[test]
+    fn a_frame_at_the_time_reached_leaves_nothing_due_for_the_driver() {
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(1000, clock.clone());
+        let mut a = bus.attach();
+        let mut b = bus.attach();
+        clock.step_to(1_000_000).unwrap();
+        a.sync_bus();
+        a.send(&f(0x123)).unwrap();
+        a.sync_bus();
+        assert!(
+            !bus.core.due_by_reached(),
+            "an event at the time reached is left for the driver thread"
+        );
+        // It was started, not delivered early: it ends after its bits, at the next step.
+        assert!(b.try_recv().unwrap().is_none());
+        clock.step_to(2_000_000).unwrap();
+        b.sync_bus();
+        let rx = b
+            .try_recv()
+            .unwrap()
+            .expect("delivered at its end of frame");
+        let end = clock.nanos_of(rx.timestamp).unwrap();
+        let bits = u64::from(crate::bus::bits::frame_length(&rx.frame).total);
+        assert!(end > 1_000_000 && end <= 1_000_000 + bits * 1_000, "{end}");
     }
 
     #[test]
