@@ -79,6 +79,31 @@ fn a_full_transmit_queue_is_reported_to_a_client_that_takes_errors() {
     assert!(!got.contains("< error"), "{got}");
 }
 
+/// `< echo >` is a client's barrier: what it sent before has been handed to the bus when the
+/// echo comes back, so the overflow of those frames is reported before it (as SocketCAN's
+/// `write` fails at once on a full queue). Before, the frames of a read entered the bus after
+/// the read's echo was answered, and the report came after the echo.
+#[test]
+fn the_overflow_of_frames_sent_before_an_echo_is_reported_before_it() {
+    let h = slow_hub();
+    let mut taker = raw(h.local_addr(), "< errors on >");
+    taker
+        .write_all(format!("{}< echo >", burst(0x181, 100)).as_bytes())
+        .unwrap();
+    let mut got = String::new();
+    let mut buf = [0u8; 4096];
+    while !got.contains("< echo >") {
+        let n = taker.read(&mut buf).unwrap();
+        assert!(n > 0, "closed: {got}");
+        got += std::str::from_utf8(&buf[..n]).unwrap();
+    }
+    let echo = got.find("< echo >").unwrap();
+    assert!(
+        got[..echo].contains(OVERFLOW),
+        "the echo came before the overflow report: {got}"
+    );
+}
+
 #[test]
 fn a_device_client_sends_its_most_important_frame_first() {
     let h = slow_hub();

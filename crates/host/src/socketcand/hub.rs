@@ -1434,8 +1434,10 @@ fn handle_element(
     now: Instant,
 ) -> bool {
     // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
-    // over) before its answer.
+    // over) before its answer; the client's own frames before it enter the bus first, so that
+    // an echo is a barrier: their overflow (reported at once) comes before its answer.
     if matches!(el, Element::Echo | Element::Mode(_)) {
+        c.submit(now, shared, cache);
         c.fill(now, shared, cache);
     }
     if let Element::Other(text) = &el {
