@@ -355,8 +355,8 @@ impl BusCore {
     }
 
     /// [`BusCore::ctl_and_time`], and whether frames stamped ahead of the bus are kept for
-    /// their time (an in-process timed participant; a hub client's frames are queued at once,
-    /// so that the hub can report their overflow to it).
+    /// their time (a timed participant's: an in-process runtime, a hub client after
+    /// `< clock on >`, which is told of their losses when they join its queue).
     fn ctl_and_time_kept(&self, id: u64) -> Option<(MemberId, Option<Nanos>, bool)> {
         let m = self.members.read().unwrap_or_else(|e| e.into_inner());
         let m = m.iter().find(|m| m.id == id)?;
@@ -367,8 +367,7 @@ impl BusCore {
         if let (Sink::Remote(..), Some(a), Some(p)) = (&m.sink, at, &self.pacer) {
             at = Some(a.min(p.clock.limit()));
         }
-        let kept = at.is_some() && !matches!(m.sink, Sink::Remote(..));
-        Some((m.ctl?, at, kept))
+        Some((m.ctl?, at, at.is_some()))
     }
 
     /// The simulation clock of a paced bus.
@@ -565,7 +564,21 @@ impl BusCore {
                 match st.timeline.submit(ctl, f, t.max(st.reached)) {
                     Ok(crate::bus::timeline::Accepted::Queued)
                     | Err(crate::bus::timeline::Rejected::NoMember) => {}
-                    Ok(_) | Err(_) => {
+                    Ok(crate::bus::timeline::Accepted::Evicted(_))
+                    | Err(crate::bus::timeline::Rejected::QueueFull) => {
+                        self.tx_lost.fetch_add(1, Ordering::Relaxed);
+                        // A hub client hears of it as of an overflow at submission (issue 36
+                        // item 7); in-process ports read their controller's counters.
+                        let members = self.members.read().unwrap_or_else(|e| e.into_inner());
+                        if let Some(Member {
+                            sink: Sink::Remote(_, wake),
+                            ..
+                        }) = members.iter().find(|m| m.ctl == Some(ctl))
+                        {
+                            wake.tx_overflow();
+                        }
+                    }
+                    Err(_) => {
                         self.tx_lost.fetch_add(1, Ordering::Relaxed);
                     }
                 }
