@@ -866,8 +866,6 @@ mod tests {
         let hub = hub.expect("a hub should have been started");
         let (mut second, none) = open_or_host(&url).unwrap();
         assert!(none.is_none(), "second open must connect to the first hub");
-        // Past the 20 ms hold-back the hub applies after raw mode.
-        std::thread::sleep(Duration::from_millis(25));
         let f = Frame::new(0x1, &[2]).unwrap();
         second.send(&f).unwrap();
         let got = first

@@ -10,6 +10,7 @@ use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
 use canpos_core::Frame;
+use canpos_host::bus::bits::{frame_length, INTERMISSION_BITS};
 use canpos_host::bus::Pacing;
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::transport::Transport;
@@ -77,6 +78,31 @@ fn a_full_transmit_queue_is_reported_to_a_client_that_takes_errors() {
         .unwrap();
     let got = read_until(&mut plain, "< echo >");
     assert!(!got.contains("< error"), "{got}");
+}
+
+/// `< echo >` is a client's barrier: what it sent before has been handed to the bus when the
+/// echo comes back, so the overflow of those frames is reported before it (as SocketCAN's
+/// `write` fails at once on a full queue). Before, the frames of a read entered the bus after
+/// the read's echo was answered, and the report came after the echo.
+#[test]
+fn the_overflow_of_frames_sent_before_an_echo_is_reported_before_it() {
+    let h = slow_hub();
+    let mut taker = raw(h.local_addr(), "< errors on >");
+    taker
+        .write_all(format!("{}< echo >", burst(0x181, 100)).as_bytes())
+        .unwrap();
+    let mut got = String::new();
+    let mut buf = [0u8; 4096];
+    while !got.contains("< echo >") {
+        let n = taker.read(&mut buf).unwrap();
+        assert!(n > 0, "closed: {got}");
+        got += std::str::from_utf8(&buf[..n]).unwrap();
+    }
+    let echo = got.find("< echo >").unwrap();
+    assert!(
+        got[..echo].contains(OVERFLOW),
+        "the echo came before the overflow report: {got}"
+    );
 }
 
 #[test]
@@ -170,4 +196,103 @@ fn a_sensor_behind_the_hub_sends_its_overflow_emcy() {
         }
     }
     rt.stop().unwrap();
+}
+
+/// `SEC.USEC` of a wall-clock time, as `< at … >` takes it.
+fn secs(t: std::time::SystemTime) -> String {
+    let d = t.duration_since(std::time::UNIX_EPOCH).unwrap();
+    format!("{}.{:06}", d.as_secs(), d.subsec_micros())
+}
+
+/// Two timed sensor processes behind the hub (`< clock on >`), one stopped: the bus waits for
+/// it, and the other one's frames, sent at their own times meanwhile (1 ms apart), join its
+/// transmit queue when the bus reaches those times. None is lost, no overflow is reported, and
+/// each goes out at its time once the stopped one goes on. Before, they were queued at once
+/// while the bus stood still: 36 of 100 lost and an overflow report, on which a canpos sensor
+/// sends EMCY 0x8110 for the other process's stall.
+#[test]
+fn a_timed_client_ahead_of_the_bus_loses_nothing_while_another_is_behind() {
+    let h = Hub::bind("127.0.0.1:0").unwrap().spawn().unwrap();
+    let mut listener = raw(h.local_addr(), "");
+    let mut stopped = raw(h.local_addr(), "< clock on >");
+    // It stands at now and stays there (stopped): the bus holds at most here.
+    stopped
+        .write_all(format!("< at {} >< echo >", secs(std::time::SystemTime::now())).as_bytes())
+        .unwrap();
+    read_until(&mut stopped, "< echo >");
+    let from = std::time::SystemTime::now() + Duration::from_millis(1);
+    let mut on_time = raw(h.local_addr(), "< clock on >< errors on >");
+    // Its runtime runs on: 100 frames at their times, 1 ms apart, once the wall clock is past
+    // them (a horizon ahead of the wall clock stamps nothing later than the wall clock).
+    while std::time::SystemTime::now() < from + Duration::from_millis(110) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let mut text = String::new();
+    for k in 0..100u32 {
+        let t = from + Duration::from_millis(u64::from(k));
+        text += &format!("< at {} >< send 181 1 {:02X} >", secs(t), k % 256);
+    }
+    on_time
+        .write_all(format!("{text}< echo >").as_bytes())
+        .unwrap();
+    let got = read_until(&mut on_time, "< echo >");
+    assert!(
+        !got.contains("< error"),
+        "a loss while the other stood: {got}"
+    );
+    // The stopped one goes on (leaves the clock), the other one too: the bus runs.
+    stopped.write_all(b"< clock off >").unwrap();
+    on_time.write_all(b"< clock off >").unwrap();
+    let got = read_until(&mut listener, " 63 >");
+    // Start of frame: the end (µs) less the frame's bits without the intermission, 1 µs each.
+    let starts: Vec<u64> = got
+        .split_inclusive('>')
+        .filter_map(|e| e.trim().strip_prefix("< frame 181 "))
+        .map(|e| {
+            let mut toks = e.split_whitespace();
+            let (sec, usec) = toks.next().unwrap().split_once('.').unwrap();
+            let end = sec.parse::<u64>().unwrap() * 1_000_000 + usec.parse::<u64>().unwrap();
+            let data = u8::from_str_radix(toks.next().unwrap(), 16).unwrap();
+            let bits = frame_length(&Frame::new(0x181, &[data]).unwrap()).total - INTERMISSION_BITS;
+            end - u64::from(bits)
+        })
+        .collect();
+    assert_eq!(starts.len(), 100, "{got}");
+    for (k, w) in starts.windows(2).enumerate() {
+        assert_eq!(w[1] - w[0], 1_000, "frames {k} and {}: {got}", k + 1);
+    }
+    on_time.write_all(b"< echo >").unwrap();
+    let got = read_until(&mut on_time, "< echo >");
+    assert!(!got.contains("< error"), "{got}");
+}
+
+/// The same two timed clients on a bus too slow for the frames (10 kbit/s, about 10 ms a
+/// frame, one sent every 1 ms): the frames kept for their times overflow the queue when they
+/// join it, once the stopped one goes on, and the client is told then (issue 36 item 7 with
+/// `< clock on >`).
+#[test]
+fn kept_frames_that_overflow_when_they_join_the_queue_are_reported() {
+    let h = slow_hub();
+    let mut stopped = raw(h.local_addr(), "< clock on >");
+    stopped
+        .write_all(format!("< at {} >< echo >", secs(std::time::SystemTime::now())).as_bytes())
+        .unwrap();
+    read_until(&mut stopped, "< echo >");
+    let from = std::time::SystemTime::now() + Duration::from_millis(1);
+    let mut on_time = raw(h.local_addr(), "< clock on >< errors on >");
+    while std::time::SystemTime::now() < from + Duration::from_millis(110) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let mut text = String::new();
+    for k in 0..100u32 {
+        let t = from + Duration::from_millis(u64::from(k));
+        text += &format!("< at {} >< send 181 1 {:02X} >", secs(t), k % 256);
+    }
+    on_time
+        .write_all(format!("{text}< echo >").as_bytes())
+        .unwrap();
+    let got = read_until(&mut on_time, "< echo >");
+    assert!(!got.contains("< error"), "kept, not queued yet: {got}");
+    stopped.write_all(b"< clock off >").unwrap();
+    read_until(&mut on_time, OVERFLOW);
 }

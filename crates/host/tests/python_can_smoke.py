@@ -16,7 +16,6 @@ def main() -> int:
     b = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="can0")
     other = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel="can1")
     try:
-        time.sleep(0.05)  # past the hub's 20 ms hold-back
         sent = [
             can.Message(arbitration_id=0x601, data=[0x40, 0x00, 0x10, 0, 0, 0, 0, 0], is_extended_id=False),
             can.Message(arbitration_id=0x77F, data=[], is_extended_id=False),

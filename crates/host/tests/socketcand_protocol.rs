@@ -592,3 +592,52 @@ fn bad_clock_requests_are_refused() {
     s.write_all(b"< clock on >").unwrap();
     assert_eq!(read_until(&mut s, b">"), "< error unknown command >");
 }
+
+/// A client with `SO_OOBINLINE` reads the urgent byte after the rawmode `< ok >` as a space in
+/// the stream, between two elements, which a socketcand parser skips (docs/SOCKETCAND.md); a
+/// client that is not in raw mode (BCM after `< open >`, a mode switch back) gets no urgent byte.
+#[test]
+fn an_oobinline_client_reads_one_space_between_elements_and_only_after_rawmode() {
+    use canpos_host::socketcand::codec::{Decoder, Element};
+    use std::os::fd::AsRawFd;
+    let h = hub_with(HubConfig::default());
+    let mut port = h.attach("can0");
+    let mut s = TcpStream::connect(h.local_addr()).unwrap();
+    let on: libc::c_int = 1;
+    // SAFETY: a valid socket and an int option of the right size.
+    let r = unsafe {
+        libc::setsockopt(
+            s.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_OOBINLINE,
+            (&on as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    assert_eq!(r, 0, "{}", std::io::Error::last_os_error());
+    let mut all = read_until(&mut s, b"< hi >");
+    s.write_all(b"< open can0 >").unwrap();
+    all += &read_until(&mut s, b"< ok >");
+    // Outside raw mode (BCM after the open, then control mode): no urgent byte.
+    s.write_all(b"< controlmode >< echo >").unwrap();
+    all += &read_until(&mut s, b"< echo >");
+    assert_eq!(
+        all, "< hi >< ok >< ok >< echo >",
+        "no urgent byte outside raw mode"
+    );
+    s.write_all(b"< rawmode >").unwrap();
+    let ok = read_until(&mut s, b"< ok >");
+    assert_eq!(ok, "< ok >");
+    for i in 0..2u8 {
+        port.send(&Frame::new(0x181, &[i]).unwrap()).unwrap();
+    }
+    let rest = read_until(&mut s, b" 01 >");
+    assert!(rest.starts_with(" < frame 181 "), "{rest:?}");
+    // One space, once: the frames after it follow each other as ever.
+    assert!(rest[1..].contains(">< frame 181 "), "{rest:?}");
+    let els = Decoder::new().feed_parse(format!("{ok}{rest}").as_bytes());
+    assert!(
+        matches!(els[..], [Element::Ok, Element::Frame(_), Element::Frame(_)]),
+        "{els:?}"
+    );
+}

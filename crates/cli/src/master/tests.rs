@@ -899,7 +899,6 @@ fn record_keeps_the_error_frames_of_a_hub() {
         assert!(Instant::now() < end, "the recorder did not start");
         thread::sleep(Duration::from_millis(5));
     }
-    thread::sleep(Duration::from_millis(100)); // the raw-mode hold-back
     port.disturb(canpos_host::transport::Disturbance::CorruptedFrames {
         per_million: 1_000_000,
     })

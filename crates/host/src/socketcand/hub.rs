@@ -77,6 +77,9 @@ pub(crate) struct Wake {
     /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
     /// reported to it as socketcand reports its interface's state.
     ctl_state: AtomicU8,
+    /// Frames its transmit queue lost when they joined it at their time (a timed client's
+    /// frames kept for their stamps, docs/CLOCK.md), to be reported to it (TX overflow).
+    tx_overflowed: AtomicBool,
     ready: Arc<Mutex<Vec<usize>>>,
     waker: Arc<Waker>,
 }
@@ -110,6 +113,13 @@ impl Wake {
                 let _ = self.waker.wake();
             }
         }
+    }
+
+    /// Its transmit queue lost a frame that joined it later than it was sent (on the bus's
+    /// driver thread): reported to the client as an overflow at submission is.
+    pub(crate) fn tx_overflow(&self) {
+        self.tx_overflowed.store(true, Ordering::Release);
+        self.notify();
     }
 
     /// The state [`Wake::controller_state`] left, if not yet reported; taken.
@@ -833,6 +843,14 @@ impl Conn {
                     .error_frame(&e, shared.config.error_frames, &mut self.out);
             }
         }
+        // Losses of its frames that joined its queue at their time (one report per wake-up,
+        // as one per batch at submission).
+        if self.out.len() - self.out_pos < limit && wake.tx_overflowed.swap(false, Ordering::AcqRel)
+        {
+            let e = ErrorFrame::tx_overflow(std::time::SystemTime::now());
+            self.session
+                .error_frame(&e, shared.config.error_frames, &mut self.out);
+        }
     }
 
     fn leave(&mut self) {
@@ -1434,8 +1452,10 @@ fn handle_element(
     now: Instant,
 ) -> bool {
     // Frames queued before an echo or a mode switch go out (or, outside raw mode, are passed
-    // over) before its answer.
+    // over) before its answer; the client's own frames before it enter the bus first, so that
+    // an echo is a barrier: their overflow (reported at once) comes before its answer.
     if matches!(el, Element::Echo | Element::Mode(_)) {
+        c.submit(now, shared, cache);
         c.fill(now, shared, cache);
     }
     if let Element::Other(text) = &el {
@@ -1457,6 +1477,7 @@ fn handle_element(
                     blocked: AtomicBool::new(false),
                     quiet: AtomicBool::new(false),
                     ctl_state: AtomicU8::new(0),
+                    tx_overflowed: AtomicBool::new(false),
                     ready: shared.ready.clone(),
                     waker: shared.waker.clone(),
                 });

@@ -433,6 +433,40 @@ mod tests {
         );
     }
 
+    /// `< txorder … >` (canpos extension): refused before a channel is open and when its
+    /// argument is not `priority` / `fifo` (an error answer, no effect: the queue's order
+    /// stays); once open, each valid one is answered and applied, repeated or not.
+    #[test]
+    fn txorder_refused_requests_change_nothing() {
+        use crate::bus::TxOrder;
+        let t = Instant::now();
+        let mut s = Session::new();
+        assert_eq!(
+            run(&mut s, b"< txorder priority >", t),
+            ("< error unknown command >".into(), vec![])
+        );
+        run(&mut s, b"< open can0 >", t);
+        for bad in [
+            &b"< txorder >"[..],
+            b"< txorder lifo >",
+            b"< txorder priority fifo >",
+            b"< txorder PRIORITY >",
+        ] {
+            let (o, fx) = run(&mut s, bad, t);
+            assert!(o.starts_with("< error "), "{o}");
+            assert!(fx.is_empty(), "{fx:?}");
+        }
+        let (o, fx) = run(&mut s, b"< txorder priority >< txorder priority >", t);
+        assert_eq!(o, "< ok >< ok >");
+        assert_eq!(fx, vec![Effect::TxOrder(TxOrder::Priority); 2]);
+        run(&mut s, b"< rawmode >", t);
+        let (o, fx) = run(&mut s, b"< txorder fifo >", t);
+        assert_eq!(
+            (o.as_str(), fx),
+            ("< ok >", vec![Effect::TxOrder(TxOrder::Fifo)])
+        );
+    }
+
     #[test]
     fn an_overlong_element_is_answered_in_every_state() {
         let t = Instant::now();
