@@ -12,13 +12,15 @@
 //!   simulator for other nodes' traffic.
 //! - **Receive timestamps**: `SO_TIMESTAMP`, the time the kernel received the frame; the wall
 //!   clock at read time when the kernel gives none.
-//! - **Lost frames**: `SO_RXQ_OVFL` reports frames the kernel dropped because the socket's receive
-//!   buffer was full; together with frames the controller reported lost
-//!   (`CAN_ERR_CRTL_RX_OVERFLOW`) and frames given up after a full transmit queue they make
-//!   [`Transport::dropped`], on which the runtime raises the CAN overrun EMCY (0x8110). Frames
-//!   lost because canpos's own receive queue was full are counted (`rx_queue_dropped`) and logged but
-//!   not in `dropped`: only the runtime thread being late fills that queue (a busy host), and
-//!   the twin reports no fault of its own for the host's scheduling (docs/CLOCK.md).
+//! - **Lost frames**: frames the controller reported lost (`CAN_ERR_CRTL_RX_OVERFLOW` error
+//!   frames) and frames given up after a full transmit queue make [`Transport::dropped`], on
+//!   which the runtime raises the CAN overrun EMCY (0x8110): a real controller loses those. Frames
+//!   lost on the host are counted and logged (at most once a second) but not in `dropped`: the
+//!   kernel's (`SO_RXQ_OVFL`, `rx_kernel_dropped`: the socket's receive buffer was full because
+//!   the reader thread was not scheduled in time) and canpos's own (`rx_queue_dropped`: the
+//!   runtime thread did not take its frames in time). Both come from the host's scheduling, and
+//!   the twin reports no fault of its own for that (docs/CLOCK.md); [`SocketCanTransport::stats`]
+//!   and [`StatsHandle`] show them.
 //! - **Full transmit queue** (`ENOBUFS` from the qdisc, `EAGAIN` after the send timeout): the
 //!   frame is retried with exponential back-off ([`TX_RETRIES`] times, [`TX_BACKOFF_MAX`] total at
 //!   most), then dropped and counted; never an error that stops the node.
@@ -128,7 +130,8 @@ pub struct Stats {
     pub rx_frames: u64,
     /// Frames received while canpos's receive queue was full, dropped.
     pub rx_queue_dropped: u64,
-    /// Frames the kernel dropped because the socket's receive buffer was full (`SO_RXQ_OVFL`).
+    /// Frames the kernel dropped because the socket's receive buffer was full (`SO_RXQ_OVFL`):
+    /// the reader thread was not scheduled in time. Not in [`Stats::bus_losses`].
     pub rx_kernel_dropped: u64,
     /// Controller receive overflows reported by error frames.
     pub rx_controller_overflows: u64,
@@ -142,6 +145,28 @@ pub struct Stats {
     pub error_frames: u64,
     /// Bus-off events.
     pub bus_off: u64,
+}
+
+impl Stats {
+    /// Frames lost as a real controller loses them: its receive overflows and frames given up
+    /// after a full transmit queue ([`Transport::dropped`], the runtime's EMCY 0x8110). Frames the
+    /// host lost because a thread of canpos ran late (`rx_kernel_dropped`, `rx_queue_dropped`)
+    /// are not in it: a busy host is no fault of the sensor.
+    pub fn bus_losses(&self) -> u64 {
+        self.rx_controller_overflows + self.tx_dropped
+    }
+}
+
+/// A handle on a [`SocketCanTransport`]'s counters that outlives handing the transport over
+/// (to a [`crate::Runtime`]).
+#[derive(Clone)]
+pub struct StatsHandle(Arc<Counters>);
+
+impl StatsHandle {
+    /// The counters now.
+    pub fn get(&self) -> Stats {
+        self.0.snapshot()
+    }
 }
 
 #[derive(Default)]
@@ -322,6 +347,11 @@ impl SocketCanTransport {
     pub fn stats(&self) -> Stats {
         self.counters.snapshot()
     }
+
+    /// A handle on the transport's counters, readable after the transport was handed over.
+    pub fn stats_handle(&self) -> StatsHandle {
+        StatsHandle(self.counters.clone())
+    }
 }
 
 /// One `recvmsg` result.
@@ -413,6 +443,45 @@ fn on_error_frame(f: &libc::can_frame, c: &Counters, iface: &str) {
     }
 }
 
+/// The kernel's `SO_RXQ_OVFL` count as the reader sees it.
+#[derive(Default)]
+struct KernelOverflow {
+    /// The last count the kernel reported (cumulative, wraps at 2^32).
+    last: Option<u32>,
+    /// Last time a kernel drop was logged (rate limit).
+    last_warn: Option<std::time::Instant>,
+}
+
+impl KernelOverflow {
+    /// Takes the kernel's cumulative drop count `n` delivered with a frame: counts the frames
+    /// lost since the last one in `rx_kernel_dropped` (not in [`Transport::dropped`]: the reader
+    /// thread ran late, the bus lost nothing) and logs at most once a second.
+    fn update(&mut self, n: u32, c: &Counters, iface: &str, now: std::time::Instant) {
+        let lost = n.wrapping_sub(self.last.unwrap_or(0));
+        self.last = Some(n);
+        if lost == 0 {
+            return;
+        }
+        let total = c
+            .rx_kernel_dropped
+            .fetch_add(u64::from(lost), Ordering::Relaxed)
+            + u64::from(lost);
+        if self
+            .last_warn
+            .is_none_or(|t| now.duration_since(t) >= Duration::from_secs(1))
+        {
+            self.last_warn = Some(now);
+            tracing::warn!(
+                iface,
+                lost,
+                lost_total = total,
+                "the kernel dropped received frames (socket receive buffer full: canpos's reader \
+                 thread ran late, host busy): not reported as a CAN overrun"
+            );
+        }
+    }
+}
+
 fn reader(
     socket: &CanSocket,
     stop: &AtomicBool,
@@ -422,22 +491,12 @@ fn reader(
     iface: &str,
 ) -> Option<io::Error> {
     let fd = socket.as_raw_fd();
-    let mut last_ovfl: Option<u32> = None;
+    let mut kernel_ovfl = KernelOverflow::default();
     while !stop.load(Ordering::Relaxed) {
         match recv_raw(fd) {
             Ok(r) => {
                 if let Some(n) = r.overflow {
-                    let lost = n.wrapping_sub(last_ovfl.unwrap_or(0));
-                    if lost > 0 {
-                        c.rx_kernel_dropped
-                            .fetch_add(u64::from(lost), Ordering::Relaxed);
-                        tracing::warn!(
-                            iface,
-                            lost,
-                            "the kernel dropped received frames (socket receive buffer full)"
-                        );
-                    }
-                    last_ovfl = Some(n);
+                    kernel_ovfl.update(n, c, iface, std::time::Instant::now());
                 }
                 if r.frame.can_id & CAN_ERR_FLAG != 0 {
                     on_error_frame(&r.frame, c, iface);
@@ -603,9 +662,7 @@ impl Transport for SocketCanTransport {
     }
 
     fn dropped(&self) -> u64 {
-        // Not `rx_queue_dropped`: canpos's own queue fills only when the runtime is late.
-        let s = self.counters.snapshot();
-        s.rx_kernel_dropped + s.rx_controller_overflows + s.tx_dropped
+        self.counters.snapshot().bus_losses()
     }
 
     fn bus_state(&self) -> BusState {
@@ -705,6 +762,36 @@ mod tests {
             (4, 1, 1)
         );
         assert_eq!(c.state(), BusState::ErrorActive);
+    }
+
+    #[test]
+    fn only_what_the_bus_lost_is_dropped() {
+        let c = Counters::default();
+        let mut k = KernelOverflow::default();
+        let t0 = std::time::Instant::now();
+        // The kernel's cumulative count, as delivered with frames: 5 lost, none more, 7 more.
+        for (i, n) in [5u32, 5, 12].into_iter().enumerate() {
+            k.update(n, &c, "t", t0 + Duration::from_millis(i as u64));
+        }
+        assert_eq!(c.snapshot().rx_kernel_dropped, 12);
+        // The count wraps at 2^32.
+        k.last = Some(u32::MAX - 1);
+        k.update(2, &c, "t", t0);
+        assert_eq!(c.snapshot().rx_kernel_dropped, 16);
+        // The host's losses (kernel buffer, canpos's queue) raise no CAN overrun.
+        c.rx_queue_dropped.fetch_add(3, Ordering::Relaxed);
+        assert_eq!(c.snapshot().bus_losses(), 0);
+        // The controller's own losses and frames given up after a full transmit queue do.
+        let ovf = raw(
+            CAN_ERR_FLAG | err::CRTL,
+            &[0, err::CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0],
+        );
+        on_error_frame(&ovf, &c, "t");
+        assert_eq!(c.snapshot().bus_losses(), 1);
+        c.tx_dropped.fetch_add(1, Ordering::Relaxed);
+        assert_eq!(c.snapshot().bus_losses(), 2);
+        let s = c.snapshot();
+        assert_eq!((s.rx_kernel_dropped, s.rx_queue_dropped), (16, 3));
     }
 
     #[test]

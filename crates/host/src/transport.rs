@@ -164,8 +164,10 @@ pub trait Transport: Send {
         None
     }
 
-    /// Frames this transport lost because its receive queue was full (SocketCAN: also frames
-    /// the kernel or the controller dropped, and frames given up after a full transmit queue).
+    /// Frames this transport lost because its receive queue was full; the runtime raises the
+    /// CAN overrun EMCY on them. SocketCAN: the frames its controller reported lost and those
+    /// given up after a full transmit queue, not those the host lost by running late (the
+    /// kernel's socket buffer, canpos's own queue: `socketcan::Stats`).
     fn dropped(&self) -> u64 {
         0
     }
