@@ -113,19 +113,21 @@ struct PaceState {
     lateness: LatenessHistogram,
     /// How far the timeline ran: nothing is submitted earlier (simulation time, ns).
     reached: Nanos,
-    /// Frames of in-process timed participants stamped after `reached` (the participant is
-    /// ahead of the bus, which waits for another one that is behind), by (stamp, order of
+    /// Frames stamped after `reached` (their sender is ahead of the bus, which waits for a
+    /// timed participant that is behind), of any member, timed or not, by (stamp, order of
     /// submission): they join their controller's transmit queue when the timeline reaches
     /// their stamp, not before. Queued at once, they filled the 64-frame queue while the bus
-    /// stood still for the other participant, and a runtime that was on time raised
-    /// EMCY 0x8110 for another's stall. At most [`FUTURE_CAP`]; more are queued at once.
+    /// stood still for the other participant: a runtime that was on time raised EMCY 0x8110
+    /// for another's stall, and a hub client (python-canopen, a bridge) was told of a TX
+    /// overflow on a bus that was never overloaded. At most [`FUTURE_CAP`]; more are queued
+    /// at once.
     future: std::collections::BTreeMap<(Nanos, u64), (MemberId, Frame)>,
     /// Submission counter for `future`'s order.
     future_seq: u64,
 }
 
-/// Frames of timed participants a paced bus keeps for their stamps at most (all members): 2 s
-/// (the stall bound) of a full 1 Mbit/s bus is about 17,000 frames.
+/// Frames a paced bus keeps for their stamps at most (all members together): 2 s (the stall
+/// bound) of a full 1 Mbit/s bus is about 17,000 frames.
 const FUTURE_CAP: usize = 65_536;
 
 impl PaceState {
@@ -366,15 +368,8 @@ impl BusCore {
     }
 
     /// The controller of member `id` and the time its frames are stamped with (its group's
-    /// horizon; `None`: the clock's `now()`).
+    /// horizon; `None`: an untimed member's, stamped with the clock's limit).
     fn ctl_and_time(&self, id: u64) -> Option<(MemberId, Option<Nanos>)> {
-        self.ctl_and_time_kept(id).map(|(c, at, _)| (c, at))
-    }
-
-    /// [`BusCore::ctl_and_time`], and whether frames stamped ahead of the bus are kept for
-    /// their time (a timed participant's: an in-process runtime, a hub client after
-    /// `< clock on >`, which is told of their losses when they join its queue).
-    fn ctl_and_time_kept(&self, id: u64) -> Option<(MemberId, Option<Nanos>, bool)> {
         let m = self.members.read().unwrap_or_else(|e| e.into_inner());
         let m = m.iter().find(|m| m.id == id)?;
         let mut at = m.horizon.as_ref().and_then(Weak::upgrade).map(|s| s.at());
@@ -384,7 +379,7 @@ impl BusCore {
         if let (Sink::Remote(..), Some(a), Some(p)) = (&m.sink, at, &self.pacer) {
             at = Some(a.min(p.clock.limit()));
         }
-        Some((m.ctl?, at, at.is_some()))
+        Some((m.ctl?, at))
     }
 
     /// The simulation clock of a paced bus.
@@ -451,20 +446,25 @@ impl BusCore {
             }
             return 0;
         };
-        let Some((ctl, at, keep)) = self.ctl_and_time_kept(from) else {
+        let Some((ctl, at)) = self.ctl_and_time(from) else {
             return 0;
         };
+        // A timed participant's frames are stamped with its own time (its horizon); an untimed
+        // member's (a tool, a TCP client, a bridge) with the limit, the wall time it sent them
+        // at, so that a runtime that is behind cannot answer them before they were sent. Taken
+        // before the bus runs to `now()`: a stamp the clock lets the bus reach is reached
+        // below, and its frames join the queue at once.
+        let stamp = at.unwrap_or_else(|| p.clock.limit());
         let now = p.now();
         // The bus runs up to now before the frames join the queue: the queue is as full as
-        // the timeline says, however late the driver thread is. A timed participant's frames
-        // are stamped with its own time (its horizon); an untimed member's (a tool, a TCP
-        // client) with the limit, the wall time it sent them at, so that a runtime that is
-        // behind cannot answer them before they were sent; never before the time the bus
-        // already reached.
+        // the timeline says, however late the driver thread is. Never stamped before the time
+        // the bus already reached.
         let mut st = lock(&p.state);
         self.pump(p, &mut st, now);
-        let now = at.unwrap_or_else(|| p.clock.limit()).max(st.reached);
-        if keep && now > st.reached && st.future.len() + frames.len() <= FUTURE_CAP {
+        let now = stamp.max(st.reached);
+        // Stamped after the time the bus reached (it waits for a timed participant that is
+        // behind): kept, to join the queue when the bus gets there, whoever sent them.
+        if now > st.reached && st.future.len() + frames.len() <= FUTURE_CAP {
             for (i, f) in frames.iter().enumerate() {
                 let seq = st.future_seq;
                 st.future_seq += 1;
@@ -1511,6 +1511,51 @@ mod tests {
             ahead.bus_stats().unwrap().controller.unwrap().lost_overflow,
             0
         );
+        assert!(!bus.core.due_by_reached());
+    }
+
+    /// Issue 36 (review): the same for an untimed member (a hub TCP client such as
+    /// python-canopen, a bridge, a tool). Its frames are stamped with the wall time (the
+    /// limit) it sent them at, ahead of a bus held by a timed participant that is behind;
+    /// they are kept for their stamps as a timed participant's are, so none is lost and each
+    /// goes out at its own time once the held one moves. Before, they went straight into its
+    /// 64-frame transmit queue while the bus stood still: 86 of these 150 lost (a hub client
+    /// was sent TX-overflow reports) though the bus was never overloaded.
+    #[test]
+    fn an_untimed_member_ahead_of_the_bus_loses_nothing_while_a_participant_is_behind() {
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(1000, clock.clone());
+        let mut listener = bus.attach();
+        let mut behind = bus.attach();
+        let held = behind.join_clock().unwrap();
+        assert_eq!(held.at(), 0);
+        let mut untimed = bus.attach();
+        // 150 frames over 150 ms of limit (wall) time, one per ms, while the bus is held at 0.
+        for k in 1..=150u64 {
+            clock.step_to(k * 1_000_000).unwrap();
+            untimed.send(&f(0x601)).unwrap();
+        }
+        listener.sync_bus();
+        assert!(listener.try_recv().unwrap().is_none(), "the bus waits");
+        let c = untimed.bus_stats().unwrap().controller.unwrap();
+        assert_eq!(c.lost_overflow, 0, "{c:?}");
+        // The held participant moves on, and leaves (it would take each frame delivered to it).
+        held.set(u64::MAX);
+        drop(held);
+        clock.step_to(200_000_000).unwrap();
+        listener.sync_bus();
+        let mut ends = Vec::new();
+        while let Some(rx) = listener.try_recv().unwrap() {
+            ends.push(clock.nanos_of(rx.timestamp).unwrap());
+        }
+        assert_eq!(ends.len(), 150);
+        let bits = u64::from(crate::bus::bits::frame_length(&f(0x601)).total)
+            - u64::from(crate::bus::bits::INTERMISSION_BITS);
+        for (k, end) in ends.iter().enumerate() {
+            assert_eq!(end - bits * 1_000, (k as u64 + 1) * 1_000_000, "frame {k}");
+        }
+        let c = untimed.bus_stats().unwrap().controller.unwrap();
+        assert_eq!((c.sent, c.lost_overflow), (150, 0), "{c:?}");
         assert!(!bus.core.due_by_reached());
     }
 

@@ -296,3 +296,47 @@ fn kept_frames_that_overflow_when_they_join_the_queue_are_reported() {
     stopped.write_all(b"< clock off >").unwrap();
     read_until(&mut on_time, OVERFLOW);
 }
+
+/// An untimed client (python-canopen, a bridge, a tool: no `< clock on >`) beside a timed one
+/// that is stopped: its frames are stamped with the wall time it sent them at, ahead of the
+/// held bus, and kept for that time as a timed client's are. Two bursts of 50, sent 20 ms
+/// apart (each acknowledged by `< echo >` before the next, so the hub reads them apart): each
+/// joins the 64-frame queue at its own time, none is lost and no overflow is reported. Before,
+/// both went into the queue while the bus stood still: 36 lost and a TX-overflow report on a
+/// bus that was never overloaded.
+#[test]
+fn an_untimed_client_ahead_of_the_bus_loses_nothing_while_a_timed_one_is_behind() {
+    let h = Hub::bind("127.0.0.1:0").unwrap().spawn().unwrap();
+    let mut listener = raw(h.local_addr(), "");
+    let mut stopped = raw(h.local_addr(), "< clock on >");
+    stopped
+        .write_all(format!("< at {} >< echo >", secs(std::time::SystemTime::now())).as_bytes())
+        .unwrap();
+    read_until(&mut stopped, "< echo >");
+    let mut tool = raw(h.local_addr(), "< errors on >");
+    for _ in 0..2 {
+        // 20 ms of wall time apart: the first burst (50 × ~50 µs at 1 Mbit/s) is long gone
+        // from the queue at the second one's time.
+        std::thread::sleep(Duration::from_millis(20));
+        tool.write_all(format!("{}< echo >", burst(0x123, 50)).as_bytes())
+            .unwrap();
+        let got = read_until(&mut tool, "< echo >");
+        assert!(
+            !got.contains("< error"),
+            "a loss while the bus waited: {got}"
+        );
+    }
+    // The stopped one goes on (leaves the clock): the bus runs and carries all 100.
+    stopped.write_all(b"< clock off >").unwrap();
+    let mut got = String::new();
+    while got.matches("< frame 123 ").count() < 100 {
+        got += &read_until(&mut listener, " >");
+    }
+    assert_eq!(got.matches("< frame 123 ").count(), 100, "{got}");
+    tool.write_all(b"< echo >").unwrap();
+    let got = read_until(&mut tool, "< echo >");
+    assert!(!got.contains("< error"), "{got}");
+    for (name, s) in h.channel_stats() {
+        assert_eq!(s.tx_lost, 0, "{name}: {s:?}");
+    }
+}

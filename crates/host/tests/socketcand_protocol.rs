@@ -272,12 +272,51 @@ fn timeline_error_frames_reach_clients_that_take_errors() {
     assert!(!got.contains("frame"), "{got}");
 }
 
-/// After the rawmode `< ok >` the hub holds frames back (python-can reads that `< ok >` with one
-/// `recv` and fails on anything after it) until the client speaks, which proves it read it.
+/// How late an independent thread wakes from 1 ms sleeps while it runs: the machine's own
+/// scheduling delay during a timed window. A wall-time figure is judged against it, measured
+/// in the same run, so a loaded machine (a 2-core VM stalls ~100 ms now and then) does not
+/// fail a test that a fixed bound alone would.
+struct Sleeper {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: std::thread::JoinHandle<Duration>,
+}
+
+impl Sleeper {
+    fn start() -> Sleeper {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let step = Duration::from_millis(1);
+            let mut worst = Duration::ZERO;
+            while !flag.load(std::sync::atomic::Ordering::Relaxed) {
+                let t = Instant::now();
+                std::thread::sleep(step);
+                worst = worst.max(t.elapsed().saturating_sub(step));
+            }
+            worst
+        });
+        Sleeper { stop, thread }
+    }
+
+    /// The worst oversleep seen (its sleep in progress included).
+    fn worst(self) -> Duration {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        self.thread.join().unwrap()
+    }
+}
+
 /// Issue 36 item 4: two raw clients; one that opened a second earlier sends a frame 0.1 s
 /// after the other opened, and the other gets it within 50 ms, on a paced and on an instant
-/// bus (it came about 450 ms late while the hub held frames back after the rawmode `< ok >`
-/// until the client spoke, for at most 500 ms).
+/// bus. It came about 450 ms late while the hub held frames back after the rawmode `< ok >`
+/// until the client spoke, for at most 500 ms (python-can reads that `< ok >` with one `recv`;
+/// now an urgent byte ends that read instead).
+///
+/// 50 ms is judged against the machine: the latency may exceed it by the worst oversleep of an
+/// independent 1 ms sleeper during the same window. Three fresh clients per bus, each judged
+/// on its own window: the old hold-back (350 ms from the send) passes one only if the machine
+/// stalled 300 ms in that very window, three times in a row. No absolute bound on top: a
+/// loaded VM's stalls reach 230 ms (docs/CLOCK.md), too close to any bound that would still
+/// tell the hold-back apart.
 #[test]
 fn a_fresh_raw_client_gets_frames_at_once() {
     for pacing in [Pacing::Paced(1000), Pacing::Instant] {
@@ -292,16 +331,25 @@ fn a_fresh_raw_client_gets_frames_at_once() {
         let mut first = opened(h.local_addr(), "can0");
         raw(&mut first);
         std::thread::sleep(Duration::from_secs(1));
-        let mut second = opened(h.local_addr(), "can0");
-        raw(&mut second);
-        std::thread::sleep(Duration::from_millis(100));
-        let sent = Instant::now();
-        first.write_all(b"< send 123 4 de ad be ef >").unwrap();
-        let got = read_until(&mut second, b">");
-        let took = sent.elapsed();
-        assert!(got.starts_with("< frame 123 "), "{got}");
-        assert!(got.ends_with(" DEADBEEF >"), "{got}");
-        assert!(took < Duration::from_millis(50), "{pacing:?}: {took:?}");
+        for attempt in 0..3u8 {
+            let mut second = opened(h.local_addr(), "can0");
+            raw(&mut second);
+            std::thread::sleep(Duration::from_millis(100));
+            let sleeper = Sleeper::start();
+            let sent = Instant::now();
+            first
+                .write_all(format!("< send 123 4 de ad be {attempt:02x} >").as_bytes())
+                .unwrap();
+            let got = read_until(&mut second, b">");
+            let took = sent.elapsed();
+            let slack = sleeper.worst();
+            assert!(got.starts_with("< frame 123 "), "{got}");
+            assert!(got.ends_with(&format!(" DEADBE{attempt:02X} >")), "{got}");
+            assert!(
+                took <= Duration::from_millis(50) + slack,
+                "{pacing:?}, client {attempt}: {took:?} (an independent sleeper overslept {slack:?})"
+            );
+        }
     }
 }
 

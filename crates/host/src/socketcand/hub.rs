@@ -77,8 +77,9 @@ pub(crate) struct Wake {
     /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
     /// reported to it as socketcand reports its interface's state.
     ctl_state: AtomicU8,
-    /// Frames its transmit queue lost when they joined it at their time (a timed client's
-    /// frames kept for their stamps, docs/CLOCK.md), to be reported to it (TX overflow).
+    /// Frames its transmit queue lost when they joined it at their time (frames kept for
+    /// their stamps while the bus waited for a timed participant, docs/CLOCK.md), to be
+    /// reported to it (TX overflow).
     tx_overflowed: AtomicBool,
     ready: Arc<Mutex<Vec<usize>>>,
     waker: Arc<Waker>,
