@@ -1329,6 +1329,11 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     rt.add(setup);
     rt.power_on_all();
     let handle = rt.spawn()?;
+    // The view's SDO reads are done before the dashboard starts its scan: two SDO clients on
+    // the sensor's one default channel (0x600 + node-id) at once send the same identifier with
+    // other data, a bit error for both on a real bus, and they collided until both were error
+    // passive (17 error frames on a healthy demo bus).
+    let steps = demo_steps(&mut mon, node);
     // A closed stdout (`canpos | head`) ends the demo, as it ends `monitor`.
     let mut o = std::io::stdout();
     writeln!(
@@ -1389,7 +1394,7 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     writeln!(o, "    canpos sdo read {node} 0x6020 1{bus_arg}")?;
     writeln!(o, "    canpos monitor --node {node} --duration 2{bus_arg}")?;
     writeln!(o, "  Ctrl-C to stop.")?;
-    let result = demo_view(&mut mon, node, &handle, &stop, a.duration);
+    let result = demo_view(&mut mon, node, steps, &handle, &stop, a.duration);
     writeln!(o)?;
     drop(ctl);
     let _ = handle.stop();
@@ -1398,17 +1403,24 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
     result.map(|()| 0)
 }
 
+/// The sensor's measuring steps (0x6005: position in nm, velocity in 0.01 mm/s), which scale
+/// its PDO values; the encoder falls back to 1 µm and 1 mm/s when the dictionary has no
+/// 0x6005, so the view does the same.
+fn demo_steps(mon: &mut dyn Transport, node: u8) -> (f64, f64) {
+    (
+        f64::from(sdo_upload(mon, node, 0x6005, 1).unwrap_or(1000)),
+        f64::from(sdo_upload(mon, node, 0x6005, 2).unwrap_or(100)),
+    )
+}
+
 fn demo_view(
     mon: &mut dyn Transport,
     node: u8,
+    (step_nm, vstep): (f64, f64),
     rt: &RuntimeHandle,
     stop: &Receiver<()>,
     duration: Option<f64>,
 ) -> Result<()> {
-    // Measuring steps (0x6005) scale the PDO values; the encoder falls back to 1 µm and
-    // 1 mm/s when the dictionary has no 0x6005, so the view does the same.
-    let step_nm = f64::from(sdo_upload(mon, node, 0x6005, 1).unwrap_or(1000));
-    let vstep = f64::from(sdo_upload(mon, node, 0x6005, 2).unwrap_or(100));
     // NMT start: the TPDOs begin.
     mon.send(&Frame::new(0x000, &[0x01, node]).unwrap())?;
     let tpdo1 = 0x180 + u16::from(node);

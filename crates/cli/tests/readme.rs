@@ -420,6 +420,10 @@ fn readme_demo_prints_its_dashboard_and_control_and_both_answer() {
     let port: u16 = control.rsplit(':').next().unwrap().parse().unwrap();
     let st = Ctl::connect(port).request(r#"{"cmd":"state"}"#);
     assert_eq!(st["node_id"], 127, "{st}");
+    // A healthy virtual bus with one sensor shows no error frame, though the dashboard's scan
+    // and identify ran beside the demo's own reads of its sensor (they collided on 0x67F
+    // before: 17 error frames).
+    assert_eq!(st["bus"]["error_frames"], 0, "{st}");
     // Every command the demo suggests runs as printed.
     let tries: Vec<&str> = out
         .lines()
@@ -437,6 +441,7 @@ fn readme_demo_prints_its_dashboard_and_control_and_both_answer() {
     // The demo started its sensor (its view sends NMT start) and is still there.
     let st = Ctl::connect(port).state_when(|st| st["nmt"] == "operational");
     assert_eq!(st["nmt"], "operational", "{st}");
+    assert_eq!(st["bus"]["error_frames"], 0, "{st}");
     demo.stop();
 }
 
