@@ -190,6 +190,20 @@ impl Drop for Reconnecting {
     }
 }
 
+impl Reconnecting {
+    /// A count kept across connections plus the current connection's own.
+    fn total(&self, kept: &AtomicU64, current: fn(&Client) -> u64) -> u64 {
+        let inner = self
+            .shared
+            .client
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .as_ref()
+            .map_or(0, current);
+        kept.load(Ordering::Relaxed) + inner
+    }
+}
+
 impl Transport for Reconnecting {
     /// Sends through the current connection; while the server is away the frame is not sent
     /// (a controller in bus-off sends nothing) and counted.
@@ -218,25 +232,11 @@ impl Transport for Reconnecting {
     }
 
     fn dropped(&self) -> u64 {
-        let inner = self
-            .shared
-            .client
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .as_ref()
-            .map_or(0, |c| c.dropped());
-        self.shared.dropped.load(Ordering::Relaxed) + inner
+        self.total(&self.shared.dropped, Client::dropped)
     }
 
     fn tx_overflows(&self) -> u64 {
-        let inner = self
-            .shared
-            .client
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .as_ref()
-            .map_or(0, |c| c.tx_overflows());
-        self.shared.tx_overflows.load(Ordering::Relaxed) + inner
+        self.total(&self.shared.tx_overflows, Client::tx_overflows)
     }
 
     /// Bus-off while the server is away; otherwise what the server's error frames say.
