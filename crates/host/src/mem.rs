@@ -307,8 +307,24 @@ impl BusCore {
         // then the members'.
         if let (Some(p), Some(ctl)) = (&self.pacer, self.ctl_of(id)) {
             let mut st = lock(&p.state);
-            // Its frames kept for a later time go with it (its slot may be reused).
-            st.future.retain(|_, (c, _)| *c != ctl);
+            // Its frames kept for a later time join its queue now, in order, as the frames it
+            // had queued already do: a leaving member's queue is still sent (a tool that sends
+            // one frame and exits while the bus is held must not lose it). Its slot may be
+            // reused, so none stays behind in `future`.
+            let mine: Vec<(Nanos, u64)> = st
+                .future
+                .iter()
+                .filter(|(_, (c, _))| *c == ctl)
+                .map(|(k, _)| *k)
+                .collect();
+            let at = st.reached;
+            for (i, k) in mine.iter().enumerate() {
+                if let Some((_, f)) = st.future.remove(k) {
+                    if st.timeline.submit(ctl, f, at + i as Nanos).is_err() {
+                        self.tx_lost.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }
             st.timeline.leave(ctl);
         }
         let mut m = self.members.write().unwrap_or_else(|e| e.into_inner());
