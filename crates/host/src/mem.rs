@@ -1575,6 +1575,31 @@ mod tests {
         assert!(!bus.core.due_by_reached());
     }
 
+    /// A tool that sends one frame and exits while the bus is held (a timed participant
+    /// behind): its kept frame still goes out once the bus gets there, as the frames it had
+    /// queued do. It was dropped with the member, so `canpos lss switch-global config` was
+    /// lost beside CPU hogs (interop `test_tmi_at_20k…`).
+    #[test]
+    fn a_member_that_leaves_while_the_bus_is_held_still_sends_its_kept_frame() {
+        let clock = SimClock::stepped();
+        let bus = MemBus::with_clock(1000, clock.clone());
+        let mut listener = bus.attach();
+        let mut behind = bus.attach();
+        let held = behind.join_clock().unwrap();
+        let mut tool = bus.attach();
+        clock.step_to(5_000_000).unwrap();
+        tool.send(&f(0x7E5)).unwrap();
+        drop(tool);
+        listener.sync_bus();
+        assert!(listener.try_recv().unwrap().is_none(), "the bus waits");
+        held.set(u64::MAX);
+        drop(held);
+        clock.step_to(10_000_000).unwrap();
+        listener.sync_bus();
+        let rx = listener.try_recv().unwrap().expect("the tool's frame");
+        assert_eq!(rx.frame, f(0x7E5));
+    }
+
     #[test]
     fn disturbances_out_of_range_change_nothing() {
         let bus = MemBus::new();
