@@ -60,6 +60,7 @@
 #![deny(missing_docs)]
 
 mod app;
+pub mod config;
 mod div;
 #[cfg(feature = "names")]
 pub mod eds;

@@ -1,0 +1,14 @@
+//! Build options: every switch a build may set, in one place (the role of CANopenNode's
+//! `CO_config.h`). Service code reads these constants in plain `if`s, so both arms of every
+//! option compile in every build; the compiler drops the arm a build does not take.
+//!
+//! The features themselves are documented in `crates/core/Cargo.toml`.
+
+/// Feature `inline-hot-paths`: hot paths inlined for fewer instructions per frame (a host).
+pub const INLINE_HOT_PATHS: bool = cfg!(feature = "inline-hot-paths");
+/// Feature `simulation`: what a simulated device needs and a firmware's hardware does itself.
+pub const SIMULATION: bool = cfg!(feature = "simulation");
+/// Feature `names`: object names in the tables and the EDS export.
+pub const NAMES: bool = cfg!(feature = "names");
+/// Feature `host-buffers`: buffers sized for any device a host may run.
+pub const HOST_BUFFERS: bool = cfg!(feature = "host-buffers");
