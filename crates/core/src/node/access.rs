@@ -27,8 +27,8 @@ impl<A: Application, S: Storage> Device<A, S> {
             // The others check nothing beyond the table.
             _ => return Ok(()),
         };
-        if raw & (0x6000_0000 | pdo::COB_ID_HIGH_BITS) != 0
-            || !may_be_restricted && pdo::restricted_id(id)
+        if raw & (0x6000_0000 | cob::COB_ID_HIGH_BITS) != 0
+            || !may_be_restricted && cob::restricted_id(id)
         {
             return Err(Abort::InvalidValue);
         }

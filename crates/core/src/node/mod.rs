@@ -14,7 +14,7 @@ use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{
     self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
 };
-use crate::pdo::{self, Tpdos};
+use crate::pdo::Tpdos;
 use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
 use crate::timers::{Timer, TimerTable, NEVER};
