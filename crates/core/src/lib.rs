@@ -81,10 +81,10 @@ mod wire;
 
 pub use app::{AppCtx, AppView, Application, Plain};
 pub use encoder::{Encoder, Fault, Sample};
+pub use lss::UNCONFIGURED;
 pub use models::{DeviceConfig, Model};
 pub use node::{
     Device, Node, Stats, SIG_KILL_ASCII, SIG_KILL_MANUAL, SIG_LOAD, SIG_SAVE, STORE_TIME,
-    UNCONFIGURED,
 };
 pub use od::{Abort, Dictionary, Entry, Hook};
 pub use storage::{NoStorage, RamStorage, Scope, Storage, StorageError};

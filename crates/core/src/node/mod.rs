@@ -8,7 +8,7 @@ use crate::app::{self, AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
 use crate::encoder::Encoder;
 use crate::errctl::{ErrCtl, ErrCtlEvent};
-use crate::lss::{self, LssSlave};
+use crate::lss::{self, LssSlave, UNCONFIGURED};
 use crate::models::{DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{
@@ -29,8 +29,6 @@ mod route;
 mod services;
 mod timeout;
 
-/// Node-id of a node that has none (CiA 305).
-pub const UNCONFIGURED: u8 = 0xFF;
 /// "save" signature (0x1010).
 pub const SIG_SAVE: u32 = 0x6576_6173;
 /// "load" signature (0x1011).
