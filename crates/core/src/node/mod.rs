@@ -11,9 +11,7 @@ use crate::errctl::{ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave, UNCONFIGURED};
 use crate::models::{DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};
-use crate::od::{
-    self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
-};
+use crate::od::{self, le_u32, Abort, DataType, Dictionary, Entry, Hook, Param, ParamSource};
 use crate::pdo::Tpdos;
 use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
@@ -28,15 +26,6 @@ mod persist;
 mod route;
 mod services;
 mod timeout;
-
-/// "save" signature (0x1010).
-pub const SIG_SAVE: u32 = 0x6576_6173;
-/// "load" signature (0x1011).
-pub const SIG_LOAD: u32 = 0x6461_6F6C;
-/// "kill" as ASCII bytes on the wire (D23).
-pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
-/// "kill" as the TMI manual prints it (D23).
-pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
 
 /// Minimum time a store takes before the SDO answer (D7).
 pub const STORE_TIME: Duration = Duration::from_millis(20);

@@ -3,24 +3,7 @@
 
 use super::lss_glue::{kbps_of_object, object_of_kbps};
 use super::*;
-
-/// A stored node-id if it is one a node may have (1…127, or 0xFF = unconfigured).
-fn stored_node_id(v: u32) -> Option<u8> {
-    ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
-}
-
-/// A change of the stored image ([`Device::change_stored`]).
-#[derive(Clone, Copy, PartialEq, Eq)]
-enum Change {
-    /// "save" (0x1010) of a scope, or the automatic store ([`Scope::Auto`]).
-    Save(Scope),
-    /// "load" (0x1011) of a scope, or "kill": forgets what was stored for it (the LSS
-    /// configuration and records of entries outside the scope stay, records this model has no
-    /// entry for go); defaults apply at the next reset (D7).
-    Forget(Scope),
-    /// LSS "store configuration".
-    Lss,
-}
+use crate::storage::{follow_node_id, stored_node_id, Change};
 
 /// The slot and entry of this model's object that a stored record's `key` names, if any (an
 /// LSS or bookkeeping key names none). Out of line: every reading and writing of the image
@@ -37,30 +20,6 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
     #[cfg(feature = "inline-hot-paths")]
     let slot = od.find((key >> 8) as u16, key as u8).ok()?;
     Some((slot, od.entries().get(slot)?))
-}
-
-/// A stored value of `e` as it applies under node-id `node` (D15): a COB-ID whose CAN-ID was the
-/// pre-defined one (`base + node-id`) for the node-id it was saved under moves to this node's,
-/// keeping its other bits; any other value stays as stored. Images without the saved node-id
-/// (written before it was recorded) keep the earlier rule: a CAN-ID in the pre-defined range
-/// of another node-id follows.
-fn follow_node_id(e: &Entry, v: u32, saved: Option<u8>, node: u8) -> u32 {
-    let Default::NodeId(base) = e.default else {
-        return v;
-    };
-    // The default's flag bits (e.g. "not valid") are no part of the CAN-ID.
-    let base = base & 0x7FF;
-    let id = v & 0x7FF;
-    let ours = base + node as u32;
-    let follows = match saved {
-        Some(old) => id == base + old as u32,
-        None => id > base && id <= base + 0x7F,
-    };
-    if follows && node != UNCONFIGURED && id != ours {
-        (v & !0x7FF) | ours
-    } else {
-        v
-    }
 }
 
 struct Params<'a> {
@@ -264,27 +223,9 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[inline(never)]
     pub(super) fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         let f = self.features();
-        let scope = Scope::of_sub(e.sub);
-        // "save" stores; "load", and "kill" where the model has it, forget.
-        let change = if e.hook == Hook::StoreParameters {
-            let kill = f.kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
-            if raw != SIG_SAVE && !kill {
-                return Err(Abort::CannotStore);
-            }
-            if f.store_preop_only && self.nmt != NmtState::PreOperational {
-                return Err(Abort::WrongState);
-            }
-            if kill {
-                Change::Forget(scope)
-            } else {
-                Change::Save(scope)
-            }
-        } else {
-            if raw != SIG_LOAD {
-                return Err(Abort::CannotStore);
-            }
-            Change::Forget(scope)
-        };
+        let save = e.hook == Hook::StoreParameters;
+        let (kill, preop_only) = (f.kill_signature, f.store_preop_only);
+        let change = storage::command(save, e.sub, raw, kill, preop_only, self.nmt)?;
         self.change_stored(change).map_err(|_| Abort::CannotStore)?;
         // D7: the answer leaves no earlier than the store time after the request arrived.
         #[cfg(feature = "simulation")]
