@@ -2,7 +2,23 @@
 //! life guarding (0x100C × 0x100D, D11).
 
 use crate::nmt::NmtState;
-use crate::wire::{Duration, Instant};
+use crate::wire::{cob, Duration, Instant};
+
+/// Whether a guarding COB-ID (0x100E) value may name a restricted CAN-ID
+/// ([`crate::cob::restricted_id`]): only the pre-defined 0x700 + node-id, since guarding answers
+/// on its COB-ID's CAN-ID and has no "not valid" bit.
+#[inline(always)]
+pub(crate) fn guarding_cob_id_may_be_restricted(raw: u32, node_id: u8) -> bool {
+    raw & 0x7FF == u32::from(cob::ERRCTL) + u32::from(node_id)
+}
+
+/// Whether a SYNC (0x1005) or guarding (0x100E) COB-ID `raw` lands on `other_can_id`, the
+/// other one's CAN-ID: the two may not share one (D22), as a zero-length data frame counts as a
+/// guard request (socketcand has no RTR, D11), so every SYNC would be answered as one.
+#[inline(always)]
+pub(crate) fn sync_guarding_clash(raw: u32, other_can_id: u32) -> bool {
+    raw & 0x7FF == other_can_id
+}
 
 /// Heartbeat and node-guarding state of the slave.
 // "Off" and "none" are zero, not `Option`s: cheaper tests and stores, and the default (a

@@ -12,24 +12,18 @@ impl<A: Application, S: Storage> Device<A, S> {
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(super) fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
-        // Bit 30 (SYNC: generate; EMCY: reserved), 29-bit ids and bits 11–28 are refused, and
-        // so are the CiA 301 restricted CAN-IDs (conformance OTH-10) but for an EMCY COB-ID
-        // marked not valid and guarding's pre-defined 0x700 + node-id (guarding answers on the
-        // COB-ID's CAN-ID: it has no "not valid" bit).
-        let id = raw & 0x7FF;
+        // Each service's own rule says whether its COB-ID may name a restricted CAN-ID.
         let may_be_restricted = match e.hook {
             Hook::SyncCobId => false,
-            Hook::EmcyCobId => raw & 0x8000_0000 != 0,
-            Hook::GuardingCobId => id == 0x700 + self.node_id as u32,
+            Hook::EmcyCobId => emcy::cob_id_may_be_restricted(raw),
+            Hook::GuardingCobId => errctl::guarding_cob_id_may_be_restricted(raw, self.node_id),
             Hook::TpdoComm | Hook::TpdoMap => {
                 return Tpdos::check_value(&self.od, e.index, e.sub, raw)
             }
             // The others check nothing beyond the table.
             _ => return Ok(()),
         };
-        if raw & (0x6000_0000 | cob::COB_ID_HIGH_BITS) != 0
-            || !may_be_restricted && cob::restricted_id(id)
-        {
+        if cob::service_cob_id_refused(raw, may_be_restricted) {
             return Err(Abort::InvalidValue);
         }
         Ok(())
@@ -46,14 +40,10 @@ impl<A: Application, S: Storage> Device<A, S> {
         // One call for every other hook (`value_allowed` is a match of its own).
         self.value_allowed(e, raw)?;
         let clash = match e.hook {
-            // The CAN-ID of a valid EMCY may not change (CiA 301 7.5.2.17).
-            Hook::EmcyCobId => {
-                cur & 0x8000_0000 == 0 && raw & 0x8000_0000 == 0 && (cur ^ raw) & 0x7FF != 0
-            }
-            // Guarding and SYNC may not share a CAN-ID: a zero-length data frame counts as a
-            // guard request (D22), so every SYNC would be answered as one.
-            Hook::SyncCobId => raw & 0x7FF == u32::from(self.errctl.guarding_id()),
-            Hook::GuardingCobId => raw & 0x7FF == self.sync_can_id(),
+            Hook::EmcyCobId => emcy::cob_id_change_refused(cur, raw),
+            // D22: SYNC and guarding on different CAN-IDs.
+            Hook::SyncCobId => errctl::sync_guarding_clash(raw, self.errctl.guarding_id().into()),
+            Hook::GuardingCobId => errctl::sync_guarding_clash(raw, self.sync_can_id()),
             // The others (`Hook::None` among them) check nothing beyond their own value (or
             // act instead of storing).
             _ => false,
@@ -164,17 +154,16 @@ impl<A: Application, S: Storage> Device<A, S> {
         Ok(slot)
     }
 
-    /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors,
-    /// since sub-indices beyond them hold no data (CiA 301; the conformance tool's EMCY-03
-    /// expects the read of 1003:01 to abort when the history is empty).
+    /// Whether `slot` may be read now: readable, and (0x1003) within the recorded errors
+    /// ([`Emcy::history_readable`]).
     #[inline]
     fn readable(&self, slot: usize) -> Result<(), Abort> {
         let e = self.od.entry(slot);
         if !e.access.readable() {
             return Err(Abort::WriteOnly);
         }
-        if e.hook == Hook::ErrorHistory && e.sub as usize > self.emcy.history_len() {
-            return Err(Abort::NoData);
+        if e.hook == Hook::ErrorHistory {
+            return self.emcy.history_readable(e.sub);
         }
         Ok(())
     }

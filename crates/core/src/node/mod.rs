@@ -7,7 +7,7 @@
 use crate::app::{self, AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
 use crate::encoder::Encoder;
-use crate::errctl::{ErrCtl, ErrCtlEvent};
+use crate::errctl::{self, ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave, UNCONFIGURED};
 use crate::models::{DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};

@@ -81,7 +81,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         // guarding on SYNC's CAN-ID keeps its default (0x700 + node-id, which SYNC cannot have).
         // 0x100E:0 by its record key: slot and entry in one look-up.
         if let Some((g, e)) = stored_entry(&self.od, 0x0010_0E00) {
-            if self.od.get(g) & 0x7FF == self.sync_can_id() {
+            if errctl::sync_guarding_clash(self.od.get(g), self.sync_can_id()) {
                 self.od.set(g, crate::od::resolve_default(e, &p, node));
             }
         }

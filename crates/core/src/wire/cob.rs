@@ -24,6 +24,15 @@ pub const LSS_TX: u16 = 0x7E4;
 /// frame (CiA 301 §7.5.2.5, 7.5.2.17, 7.5.2.35: a value with them set is refused, 0x06090030).
 pub const COB_ID_HIGH_BITS: u32 = 0x1FFF_F800;
 
+/// Whether a COB-ID value of EMCY, SYNC or guarding is refused (abort 0x06090030): bit 30 (SYNC:
+/// generate, which this device does not; EMCY: reserved), bit 29 (29-bit ids, not supported),
+/// bits 11–28, or a restricted CAN-ID where the service's own rule (`may_be_restricted`) does
+/// not allow one (conformance OTH-10).
+#[inline(always)]
+pub(crate) fn service_cob_id_refused(raw: u32, may_be_restricted: bool) -> bool {
+    raw & (0x6000_0000 | COB_ID_HIGH_BITS) != 0 || !may_be_restricted && restricted_id(raw & 0x7FF)
+}
+
 /// The CiA 301 restricted CAN-IDs (Table 72): no PDO may use them, nor EMCY, SYNC or guarding but
 /// where their own rule allows it (an EMCY marked not valid, guarding's pre-defined 0x700 +
 /// node-id).
