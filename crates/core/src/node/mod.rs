@@ -397,10 +397,11 @@ impl<A: Application, S: Storage> Node<A, S> {
         if self.handle_frame_inner(f, now) {
             // A host inlines it where a request's answer waits for it; a firmware shares the
             // one out-of-line copy (about 0.4 KB of flash less).
-            #[cfg(feature = "inline-hot-paths")]
-            self.epilogue_inline();
-            #[cfg(not(feature = "inline-hot-paths"))]
-            self.epilogue();
+            if crate::config::INLINE_HOT_PATHS {
+                self.epilogue_inline();
+            } else {
+                self.epilogue();
+            }
         }
     }
 

@@ -73,8 +73,10 @@ impl<A: Application, S: Storage> Device<A, S> {
         // Runs after every frame and timer: on a host the usual "nothing to do" stays inline; a
         // firmware calls straight through (`flush_emcy_slow` checks the same), a test fewer at
         // every call site.
-        #[cfg(feature = "inline-hot-paths")]
-        if self.emcy.generation() == self.emcy_synced && !self.emcy.has_pending() {
+        if crate::config::INLINE_HOT_PATHS
+            && self.emcy.generation() == self.emcy_synced
+            && !self.emcy.has_pending()
+        {
             return;
         }
         self.flush_emcy_slow();
