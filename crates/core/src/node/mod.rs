@@ -3,6 +3,20 @@
 //! [`Node`] is the sans-IO surface: `handle_frame`, `handle_timeout`, `poll_transmit`,
 //! `poll_timeout`, `update_sample`. [`Device`] holds the state the services share; the SDO
 //! server and the LSS slave sit beside it so they can borrow it mutably while they run.
+//!
+//! Each rule lives in its service's module (`emcy`, `errctl`, `storage`, `wire::cob`, …); the
+//! node only wires them together. Its `impl`s are split by concern over this directory:
+//!
+//! | file | what |
+//! | --- | --- |
+//! | `mod.rs` | [`Node`], [`Device`], the entry points and the one epilogue |
+//! | `route.rs` | which service a received frame is for; NMT commands |
+//! | `timeout.rs` | the deadlines that passed; the TPDO-only fast path |
+//! | `access.rs` | object access for the SDO server: lookup, write rules by hook, side effects |
+//! | `persist.rs` | loading from the stored image; "save", "load" / "kill", the automatic store |
+//! | `lss_glue.rs` | what the LSS slave asks of the device; object copies of node-id and bit rate |
+//! | `services.rs` | hot object slots; the services' configuration; EMCY sending; PDO activity |
+//! | `bitrate.rs` | the talk gate, and the bus's bit rate as a simulation sees it |
 
 use crate::app::{self, AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
@@ -26,6 +40,8 @@ mod persist;
 mod route;
 mod services;
 mod timeout;
+
+use services::HotSlots;
 
 /// Minimum time a store takes before the SDO answer (D7).
 pub const STORE_TIME: Duration = Duration::from_millis(20);
@@ -90,67 +106,6 @@ pub struct Device<A: Application, S: Storage> {
     memo: (u32, usize),
     /// [`Emcy::generation`] last mirrored into 0x1001 / 0x1003.
     emcy_synced: u32,
-}
-
-/// No such object in this model's table.
-const NO_SLOT: u16 = u16::MAX;
-
-/// Slots of the objects that per-frame paths read or write, found once per node: the model
-/// table is static, so a slot never moves, and a frame then costs no dictionary search.
-#[derive(Clone, Copy, Debug)]
-struct HotSlots {
-    /// 0x1005 COB-ID SYNC.
-    sync: u16,
-    /// 0x1014 COB-ID EMCY.
-    emcy_cob: u16,
-    /// 0x1001 error register.
-    err_reg: u16,
-    /// 0x1003 sub 0.
-    hist: u16,
-    /// How many of 0x1003 sub 1…8 the table has: they follow sub 0 in the slots.
-    hist_subs: u8,
-}
-
-impl HotSlots {
-    /// From the model's table (not the dictionary, which would then have to be in memory
-    /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
-    fn new(model: &Model) -> Self {
-        // Out of line: six lookups share it (this runs once per node).
-        #[inline(never)]
-        fn find(model: &Model, index: u16, sub: u8) -> u16 {
-            model
-                .search(od::key(index, sub))
-                .map_or(NO_SLOT, |s| s as u16)
-        }
-        let slot = |index: u16, sub: u8| find(model, index, sub);
-        let hist = slot(0x1003, 0);
-        let hist_subs = (1..=emcy::HISTORY_LEN as u16)
-            .take_while(|&i| hist != NO_SLOT && slot(0x1003, i as u8) == hist + i)
-            .count() as u8;
-        HotSlots {
-            sync: slot(0x1005, 0),
-            emcy_cob: slot(0x1014, 0),
-            err_reg: slot(0x1001, 0),
-            hist,
-            hist_subs,
-        }
-    }
-}
-
-impl Dictionary {
-    /// Value of a slot from [`HotSlots`], `None` when the model lacks the object.
-    #[inline]
-    fn hot(&self, slot: u16) -> Option<u32> {
-        (slot != NO_SLOT).then(|| self.get(slot as usize))
-    }
-
-    /// Sets a slot from [`HotSlots`] if the model has the object.
-    #[inline]
-    fn set_hot(&mut self, slot: u16, raw: u32) {
-        if slot != NO_SLOT {
-            self.set(slot as usize, raw);
-        }
-    }
 }
 
 /// A CANopen position sensor node.
