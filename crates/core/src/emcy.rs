@@ -372,6 +372,37 @@ fn payload(code: u16, mfr: [u8; 5]) -> u64 {
 mod tests {
     use super::*;
 
+    /// CiA 301 7.5.2.17: a valid EMCY keeps its CAN-ID, a change goes through "not valid";
+    /// only a COB-ID marked not valid may name a restricted CAN-ID.
+    #[test]
+    fn cob_id_rules() {
+        let (valid, off) = (0x0000_0085, 0x8000_0085);
+        assert!(cob_id_change_refused(valid, 0x86));
+        assert!(!cob_id_change_refused(valid, valid));
+        assert!(!cob_id_change_refused(valid, off), "marking it not valid");
+        assert!(
+            !cob_id_change_refused(off, 0x8000_0086),
+            "moving it while not valid"
+        );
+        assert!(
+            !cob_id_change_refused(off, 0x86),
+            "valid again on a new CAN-ID"
+        );
+        assert!(cob_id_may_be_restricted(0x8000_0000));
+        assert!(!cob_id_may_be_restricted(0x0000_0001));
+    }
+
+    /// 0x1003 sub-indices past the recorded errors abort with "no data".
+    #[test]
+    fn history_reads_past_the_entries_have_no_data() {
+        let mut e = Emcy::default();
+        assert_eq!(e.history_readable(0), Ok(()));
+        assert_eq!(e.history_readable(1), Err(Abort::NoData));
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        assert_eq!(e.history_readable(1), Ok(()));
+        assert_eq!(e.history_readable(2), Err(Abort::NoData));
+    }
+
     #[test]
     fn register_history_and_clear() {
         let mut e = Emcy::default();

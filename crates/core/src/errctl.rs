@@ -166,6 +166,18 @@ impl ErrCtl {
 mod tests {
     use super::*;
 
+    /// D22: SYNC and guarding never on one CAN-ID (whatever the COB-ID's flag bits); guarding
+    /// may keep its own pre-defined 0x700 + node-id although it is restricted.
+    #[test]
+    fn sync_and_guarding_can_ids() {
+        assert!(sync_guarding_clash(0x0000_0705, 0x705));
+        assert!(sync_guarding_clash(0x8000_0705, 0x705));
+        assert!(!sync_guarding_clash(0x0000_0706, 0x705));
+        assert!(guarding_cob_id_may_be_restricted(0x705, 5));
+        assert!(!guarding_cob_id_may_be_restricted(0x706, 5));
+        assert!(!guarding_cob_id_may_be_restricted(0x77F, 5));
+    }
+
     /// A heartbeat served exactly one period late goes out once, and the schedule stays on its
     /// grid: the next one is due a period later, not at once again.
     #[test]

@@ -583,6 +583,52 @@ pub fn crc32(data: &[u8]) -> u32 {
 mod tests {
     use super::*;
 
+    /// 0x1010 / 0x1011 by signature and state: "save" stores, "load" forgets, "kill" forgets
+    /// where the model has it, and a store-in-pre-operational model refuses "save" and "kill"
+    /// elsewhere (but not "load").
+    #[test]
+    fn store_and_restore_commands_by_signature_and_state() {
+        use NmtState::{Operational as Op, PreOperational as PreOp};
+        let wrong = Err(Abort::CannotStore);
+        // (save, sub, raw, kill_signature, store_preop_only, state) → answer
+        let cases = [
+            (
+                (true, 1, SIG_SAVE, false, false, Op),
+                Ok(Change::Save(Scope::All)),
+            ),
+            (
+                (true, 2, SIG_SAVE, false, false, Op),
+                Ok(Change::Save(Scope::Comm)),
+            ),
+            ((true, 3, SIG_LOAD, false, false, PreOp), wrong),
+            ((true, 1, SIG_KILL_ASCII, false, false, PreOp), wrong),
+            (
+                (true, 3, SIG_KILL_ASCII, true, false, Op),
+                Ok(Change::Forget(Scope::App)),
+            ),
+            (
+                (true, 1, SIG_KILL_MANUAL, true, true, PreOp),
+                Ok(Change::Forget(Scope::All)),
+            ),
+            ((true, 1, SIG_SAVE, true, true, Op), Err(Abort::WrongState)),
+            (
+                (true, 1, SIG_KILL_MANUAL, true, true, Op),
+                Err(Abort::WrongState),
+            ),
+            ((true, 1, 0, true, true, Op), wrong),
+            (
+                (false, 2, SIG_LOAD, true, true, Op),
+                Ok(Change::Forget(Scope::Comm)),
+            ),
+            ((false, 1, SIG_SAVE, false, false, PreOp), wrong),
+            ((false, 1, SIG_KILL_ASCII, true, false, PreOp), wrong),
+        ];
+        for ((save, sub, raw, kill, preop, nmt), want) in cases {
+            let got = command(save, sub, raw, kill, preop, nmt);
+            assert_eq!(got, want, "{save} {sub} {raw:#X} {kill} {preop} {nmt:?}");
+        }
+    }
+
     /// The group bitsets answer as the table they replace: each scope covers exactly its
     /// groups, the volatile one is in none.
     #[test]
