@@ -381,6 +381,10 @@ mod tests {
         assert!(!cob_id_change_refused(valid, valid));
         assert!(!cob_id_change_refused(valid, off), "marking it not valid");
         assert!(
+            !cob_id_change_refused(valid, 0x8000_0086),
+            "marking it not valid on another CAN-ID"
+        );
+        assert!(
             !cob_id_change_refused(off, 0x8000_0086),
             "moving it while not valid"
         );
