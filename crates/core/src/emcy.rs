@@ -1,6 +1,7 @@
 //! EMCY producer (CiA 301 §7.2.7): error codes, the error register (0x1001), the pre-defined
 //! error field (0x1003) and the inhibit time (0x1015).
 
+use crate::od::Abort;
 use crate::wire::{Duration, Instant};
 
 /// Error register bits (0x1001, CiA 301 Table 48; TH/E Table 6).
@@ -64,6 +65,23 @@ const PENDING_LEN: usize = 8;
 // The history and the pending frames are rings (indices masked), so that nothing is shifted:
 // a shift compiles to a call of the general-purpose `memmove`, 1.6 KB of firmware.
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_two());
+
+/// Bit 31 of the COB-ID EMCY (0x1014): the EMCY is not valid, nothing is sent on it.
+const COB_ID_NOT_VALID: u32 = 0x8000_0000;
+
+/// Whether a COB-ID EMCY value may name a restricted CAN-ID ([`crate::cob::restricted_id`]):
+/// only while marked not valid, as nothing is then sent on it.
+#[inline(always)]
+pub(crate) fn cob_id_may_be_restricted(raw: u32) -> bool {
+    raw & COB_ID_NOT_VALID != 0
+}
+
+/// Whether a write of `raw` over `cur` to the COB-ID EMCY is refused: the CAN-ID of a valid
+/// EMCY may not change (CiA 301 7.5.2.17); a new CAN-ID goes in while it is marked not valid.
+#[inline(always)]
+pub(crate) fn cob_id_change_refused(cur: u32, raw: u32) -> bool {
+    cur & COB_ID_NOT_VALID == 0 && raw & COB_ID_NOT_VALID == 0 && (cur ^ raw) & 0x7FF != 0
+}
 
 /// The EMCY producer's state.
 #[derive(Clone, Debug)]
@@ -268,6 +286,16 @@ impl Emcy {
     pub fn history_len(&self) -> usize {
         usize::from(self.n_history)
     }
+    /// Whether 0x1003 sub `sub` may be read: sub-indices beyond the recorded errors hold no data
+    /// (CiA 301; the conformance tool's EMCY-03 expects the read of 1003:01 to abort when the
+    /// history is empty).
+    #[inline(always)]
+    pub(crate) fn history_readable(&self, sub: u8) -> Result<(), Abort> {
+        if usize::from(sub) > self.history_len() {
+            return Err(Abort::NoData);
+        }
+        Ok(())
+    }
     /// Clears 0x1003.
     pub fn clear_history(&mut self) {
         self.n_history = 0;
@@ -343,6 +371,41 @@ fn payload(code: u16, mfr: [u8; 5]) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// CiA 301 7.5.2.17: a valid EMCY keeps its CAN-ID, a change goes through "not valid";
+    /// only a COB-ID marked not valid may name a restricted CAN-ID.
+    #[test]
+    fn cob_id_rules() {
+        let (valid, off) = (0x0000_0085, 0x8000_0085);
+        assert!(cob_id_change_refused(valid, 0x86));
+        assert!(!cob_id_change_refused(valid, valid));
+        assert!(!cob_id_change_refused(valid, off), "marking it not valid");
+        assert!(
+            !cob_id_change_refused(valid, 0x8000_0086),
+            "marking it not valid on another CAN-ID"
+        );
+        assert!(
+            !cob_id_change_refused(off, 0x8000_0086),
+            "moving it while not valid"
+        );
+        assert!(
+            !cob_id_change_refused(off, 0x86),
+            "valid again on a new CAN-ID"
+        );
+        assert!(cob_id_may_be_restricted(0x8000_0000));
+        assert!(!cob_id_may_be_restricted(0x0000_0001));
+    }
+
+    /// 0x1003 sub-indices past the recorded errors abort with "no data".
+    #[test]
+    fn history_reads_past_the_entries_have_no_data() {
+        let mut e = Emcy::default();
+        assert_eq!(e.history_readable(0), Ok(()));
+        assert_eq!(e.history_readable(1), Err(Abort::NoData));
+        e.raise(code::HARDWARE, reg::MANUFACTURER, [0; 5]);
+        assert_eq!(e.history_readable(1), Ok(()));
+        assert_eq!(e.history_readable(2), Err(Abort::NoData));
+    }
 
     #[test]
     fn register_history_and_clear() {

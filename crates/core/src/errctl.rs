@@ -2,7 +2,23 @@
 //! life guarding (0x100C × 0x100D, D11).
 
 use crate::nmt::NmtState;
-use crate::wire::{Duration, Instant};
+use crate::wire::{cob, Duration, Instant};
+
+/// Whether a guarding COB-ID (0x100E) value may name a restricted CAN-ID
+/// ([`crate::cob::restricted_id`]): only the pre-defined 0x700 + node-id, since guarding answers
+/// on its COB-ID's CAN-ID and has no "not valid" bit.
+#[inline(always)]
+pub(crate) fn guarding_cob_id_may_be_restricted(raw: u32, node_id: u8) -> bool {
+    raw & 0x7FF == u32::from(cob::ERRCTL) + u32::from(node_id)
+}
+
+/// Whether a SYNC (0x1005) or guarding (0x100E) COB-ID `raw` lands on `other_can_id`, the
+/// other one's CAN-ID: the two may not share one (D22), as a zero-length data frame counts as a
+/// guard request (socketcand has no RTR, D11), so every SYNC would be answered as one.
+#[inline(always)]
+pub(crate) fn sync_guarding_clash(raw: u32, other_can_id: u32) -> bool {
+    raw & 0x7FF == other_can_id
+}
 
 /// Heartbeat and node-guarding state of the slave.
 // "Off" and "none" are zero, not `Option`s: cheaper tests and stores, and the default (a
@@ -122,16 +138,17 @@ impl ErrCtl {
                 let behind = crate::div::div(now.0 - t.0, p.micros());
                 t + Duration(p.micros() * (behind + 1))
             };
-            // The host skips the division when on time.
-            #[cfg(feature = "inline-hot-paths")]
-            let next = match t + p {
-                n if n > now => n,
-                _ => late(),
+            // The host skips the division when on time. A firmware always divides (on time, 0
+            // whole periods behind: the same result): less code, and one 32-bit division per
+            // heartbeat.
+            let next = if crate::config::INLINE_HOT_PATHS {
+                match t + p {
+                    n if n > now => n,
+                    _ => late(),
+                }
+            } else {
+                late()
             };
-            // A firmware always divides (on time, 0 whole periods behind: the same result):
-            // less code, and one 32-bit division per heartbeat.
-            #[cfg(not(feature = "inline-hot-paths"))]
-            let next = late();
             self.next_heartbeat = next;
             return Some(ErrCtlEvent::Heartbeat(state.code()));
         }
@@ -148,6 +165,18 @@ impl ErrCtl {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// D22: SYNC and guarding never on one CAN-ID (whatever the COB-ID's flag bits); guarding
+    /// may keep its own pre-defined 0x700 + node-id although it is restricted.
+    #[test]
+    fn sync_and_guarding_can_ids() {
+        assert!(sync_guarding_clash(0x0000_0705, 0x705));
+        assert!(sync_guarding_clash(0x8000_0705, 0x705));
+        assert!(!sync_guarding_clash(0x0000_0706, 0x705));
+        assert!(guarding_cob_id_may_be_restricted(0x705, 5));
+        assert!(!guarding_cob_id_may_be_restricted(0x706, 5));
+        assert!(!guarding_cob_id_may_be_restricted(0x77F, 5));
+    }
 
     /// A heartbeat served exactly one period late goes out once, and the schedule stays on its
     /// grid: the next one is due a period later, not at once again.

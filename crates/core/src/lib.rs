@@ -81,13 +81,14 @@ mod wire;
 
 pub use app::{AppCtx, AppView, Application, Plain};
 pub use encoder::{Encoder, Fault, Sample};
+pub use lss::UNCONFIGURED;
 pub use models::{DeviceConfig, Model};
-pub use node::{
-    Device, Node, Stats, SIG_KILL_ASCII, SIG_KILL_MANUAL, SIG_LOAD, SIG_SAVE, STORE_TIME,
-    UNCONFIGURED,
-};
+pub use node::{Device, Node, Stats, STORE_TIME};
 pub use od::{Abort, Dictionary, Entry, Hook};
-pub use storage::{NoStorage, RamStorage, Scope, Storage, StorageError};
+pub use storage::{
+    NoStorage, RamStorage, Scope, Storage, StorageError, SIG_KILL_ASCII, SIG_KILL_MANUAL, SIG_LOAD,
+    SIG_SAVE,
+};
 
 /// A position sensor: the CiA 301 / 305 stack running the CiA 406 application.
 pub type SensorNode<S> = Node<encoder::Encoder, S>;

@@ -24,8 +24,10 @@
 //! 32-bit values are little-endian in bytes 1…4, the switch delay is 16 bit LE in bytes 1…2 and
 //! covers two periods (before and after the switch), the bit-timing table is the CiA table 0.
 
-use crate::node::UNCONFIGURED;
 use crate::wire::{Duration, Instant};
+
+/// Node-id of a node that has none (CiA 305).
+pub const UNCONFIGURED: u8 = 0xFF;
 
 /// LSS command specifiers (byte 0 of every LSS frame).
 pub mod cs {

@@ -18,9 +18,8 @@ pub const COB_INVALID: u32 = 0x8000_0000;
 pub const COB_NO_RTR: u32 = 0x4000_0000;
 /// COB-ID bit 29: 29-bit identifier (not supported).
 pub const COB_EXTENDED: u32 = 0x2000_0000;
-/// COB-ID bits 11–28: part of a 29-bit identifier only, so 0 in every COB-ID of an 11-bit
-/// frame (CiA 301 §7.5.2.5, 7.5.2.17, 7.5.2.35: a value with them set is refused, 0x06090030).
-pub const COB_ID_HIGH_BITS: u32 = 0x1FFF_F800;
+// The restricted CAN-IDs and the 29-bit COB-ID bits serve every service: in `wire::cob`.
+pub use crate::wire::cob::{restricted_id, COB_ID_HIGH_BITS};
 
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
@@ -218,41 +217,6 @@ pub const fn comm_index(n: usize) -> u16 {
 pub const fn map_index(n: usize) -> u16 {
     0x1A00 + n as u16
 }
-
-/// CAN-IDs a PDO may not use (CiA 301 Table 72 restricted COB-IDs).
-#[cfg_attr(feature = "inline-hot-paths", inline)]
-#[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
-pub fn restricted_id(id: u32) -> bool {
-    // A host looks up one bit per 11-bit CAN-ID: the eight range compares cost an SDO download
-    // of a COB-ID some 30 instructions more. A firmware compares: the bitmap is 256 B of flash
-    // for a check only COB-ID writes make.
-    #[cfg(feature = "inline-hot-paths")]
-    {
-        id < 0x800 && RESTRICTED[(id >> 6) as usize] >> (id & 63) & 1 != 0
-    }
-    #[cfg(not(feature = "inline-hot-paths"))]
-    {
-        restricted_by_range(id)
-    }
-}
-
-const fn restricted_by_range(id: u32) -> bool {
-    matches!(id, 0x000 | 0x001..=0x07F | 0x101..=0x180 | 0x581..=0x5FF | 0x601..=0x67F | 0x6E0..=0x6FF | 0x701..=0x77F | 0x780..=0x7FF)
-}
-
-/// Bit `id % 64` of word `id / 64`: [`restricted_by_range`] of `id`.
-#[cfg(feature = "inline-hot-paths")]
-static RESTRICTED: [u64; 32] = {
-    let mut t = [0u64; 32];
-    let mut id = 0u32;
-    while id < 0x800 {
-        // Every CAN-ID indexes the table, without a branch: a loop bound past 0x7FF then fails
-        // to compile (index 32 is out of bounds) instead of adding an iteration that does nothing.
-        t[(id >> 6) as usize] |= (restricted_by_range(id) as u64) << (id & 63);
-        id += 1;
-    }
-    t
-};
 
 impl Tpdos {
     /// Re-reads every TPDO's configuration from the dictionary (after reset or load).
@@ -768,13 +732,6 @@ mod tests {
         for bytes in 0..=8u8 {
             let want = ((1u64 << (8 * bytes.min(4))) - 1) as u32;
             assert_eq!(byte_mask(bytes), want, "{bytes}");
-        }
-    }
-
-    #[test]
-    fn restricted_table_matches_ranges() {
-        for id in 0..0x1_0000u32 {
-            assert_eq!(restricted_id(id), restricted_by_range(id), "{id:#X}");
         }
     }
 }

@@ -11,7 +11,9 @@
 //!
 //! A torn or corrupt image fails its CRC and is never loaded.
 
-use crate::od::{Entry, Group};
+use crate::lss::UNCONFIGURED;
+use crate::nmt::NmtState;
+use crate::od::{Abort, Entry, Group};
 
 /// Largest image any model produces (header + records + CRC).
 pub const IMAGE_MAX: usize = 8 + 8 * RECORDS_MAX + 4;
@@ -127,6 +129,96 @@ impl Scope {
     /// belong to the application parameters.
     pub const fn covers_app_values(self) -> bool {
         self as u32 & group_bit(Group::App) != 0
+    }
+}
+
+/// "save" signature (0x1010).
+pub const SIG_SAVE: u32 = 0x6576_6173;
+/// "load" signature (0x1011).
+pub const SIG_LOAD: u32 = 0x6461_6F6C;
+/// "kill" as ASCII bytes on the wire (D23).
+pub const SIG_KILL_ASCII: u32 = 0x6C6C_696B;
+/// "kill" as the TMI manual prints it (D23).
+pub const SIG_KILL_MANUAL: u32 = 0x6B69_6C6C;
+
+/// A change of the stored image: what a "save", "load" or "kill" ([`command`]), the automatic
+/// store or LSS "store configuration" asks for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Change {
+    /// "save" (0x1010) of a scope, or the automatic store ([`Scope::Auto`]).
+    Save(Scope),
+    /// "load" (0x1011) of a scope, or "kill": forgets what was stored for it (the LSS
+    /// configuration and records of entries outside the scope stay, records this model has no
+    /// entry for go); defaults apply at the next reset (D7).
+    Forget(Scope),
+    /// LSS "store configuration".
+    Lss,
+}
+
+/// The change a write of `raw` to sub `sub` of 0x1010 (`save`) or 0x1011 asks for, or why it
+/// is refused: "save" stores and "load" forgets (a wrong signature: 0x08000020); "kill", where
+/// the model has it (`kill_signature`, D23), forgets through 0x1010; a model that stores in
+/// pre-operational only (`store_preop_only`, the TMI) refuses "save" and "kill" in any other
+/// state (0x08000022).
+#[inline]
+pub(crate) fn command(
+    save: bool,
+    sub: u8,
+    raw: u32,
+    kill_signature: bool,
+    store_preop_only: bool,
+    nmt: NmtState,
+) -> Result<Change, Abort> {
+    let scope = Scope::of_sub(sub);
+    if !save {
+        return if raw == SIG_LOAD {
+            Ok(Change::Forget(scope))
+        } else {
+            Err(Abort::CannotStore)
+        };
+    }
+    let kill = kill_signature && (raw == SIG_KILL_ASCII || raw == SIG_KILL_MANUAL);
+    if raw != SIG_SAVE && !kill {
+        return Err(Abort::CannotStore);
+    }
+    if store_preop_only && nmt != NmtState::PreOperational {
+        return Err(Abort::WrongState);
+    }
+    Ok(if kill {
+        Change::Forget(scope)
+    } else {
+        Change::Save(scope)
+    })
+}
+
+/// A stored node-id if it is one a node may have (1…127, or [`UNCONFIGURED`]).
+#[inline]
+pub(crate) fn stored_node_id(v: u32) -> Option<u8> {
+    ((1..=127).contains(&v) || v == u32::from(UNCONFIGURED)).then_some(v as u8)
+}
+
+/// A stored value of `e` as it applies under node-id `node` (D15): a COB-ID whose CAN-ID was the
+/// pre-defined one (`base + node-id`) for the node-id it was saved under moves to this node's,
+/// keeping its other bits; any other value stays as stored. Images without the saved node-id
+/// ([`KEY_SAVED_NODE_ID`], written before it was recorded) keep the earlier rule: a CAN-ID in
+/// the pre-defined range of another node-id follows.
+#[inline]
+pub(crate) fn follow_node_id(e: &Entry, v: u32, saved: Option<u8>, node: u8) -> u32 {
+    let crate::od::Default::NodeId(base) = e.default else {
+        return v;
+    };
+    // The default's flag bits (e.g. "not valid") are no part of the CAN-ID.
+    let base = base & 0x7FF;
+    let id = v & 0x7FF;
+    let ours = base + node as u32;
+    let follows = match saved {
+        Some(old) => id == base + old as u32,
+        None => id > base && id <= base + 0x7F,
+    };
+    if follows && node != UNCONFIGURED && id != ours {
+        (v & !0x7FF) | ours
+    } else {
+        v
     }
 }
 
@@ -490,6 +582,52 @@ pub fn crc32(data: &[u8]) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 0x1010 / 0x1011 by signature and state: "save" stores, "load" forgets, "kill" forgets
+    /// where the model has it, and a store-in-pre-operational model refuses "save" and "kill"
+    /// elsewhere (but not "load").
+    #[test]
+    fn store_and_restore_commands_by_signature_and_state() {
+        use NmtState::{Operational as Op, PreOperational as PreOp};
+        let wrong = Err(Abort::CannotStore);
+        // (save, sub, raw, kill_signature, store_preop_only, state) → answer
+        let cases = [
+            (
+                (true, 1, SIG_SAVE, false, false, Op),
+                Ok(Change::Save(Scope::All)),
+            ),
+            (
+                (true, 2, SIG_SAVE, false, false, Op),
+                Ok(Change::Save(Scope::Comm)),
+            ),
+            ((true, 3, SIG_LOAD, false, false, PreOp), wrong),
+            ((true, 1, SIG_KILL_ASCII, false, false, PreOp), wrong),
+            (
+                (true, 3, SIG_KILL_ASCII, true, false, Op),
+                Ok(Change::Forget(Scope::App)),
+            ),
+            (
+                (true, 1, SIG_KILL_MANUAL, true, true, PreOp),
+                Ok(Change::Forget(Scope::All)),
+            ),
+            ((true, 1, SIG_SAVE, true, true, Op), Err(Abort::WrongState)),
+            (
+                (true, 1, SIG_KILL_MANUAL, true, true, Op),
+                Err(Abort::WrongState),
+            ),
+            ((true, 1, 0, true, true, Op), wrong),
+            (
+                (false, 2, SIG_LOAD, true, true, Op),
+                Ok(Change::Forget(Scope::Comm)),
+            ),
+            ((false, 1, SIG_SAVE, false, false, PreOp), wrong),
+            ((false, 1, SIG_KILL_ASCII, true, false, PreOp), wrong),
+        ];
+        for ((save, sub, raw, kill, preop, nmt), want) in cases {
+            let got = command(save, sub, raw, kill, preop, nmt);
+            assert_eq!(got, want, "{save} {sub} {raw:#X} {kill} {preop} {nmt:?}");
+        }
+    }
 
     /// The group bitsets answer as the table they replace: each scope covers exactly its
     /// groups, the volatile one is in none.
