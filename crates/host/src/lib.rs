@@ -16,6 +16,7 @@
 
 pub mod bridge;
 pub mod bus;
+pub mod can;
 pub mod candump;
 pub mod clock;
 pub mod control;
@@ -29,23 +30,17 @@ pub mod runtime;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
 pub mod socketcand;
+pub mod sys;
 pub mod timing;
 pub mod transport;
+mod wake;
 
 pub use crossbeam_channel;
 pub use file_storage::FileStorage;
 pub use mem::{MemBus, MemPort};
 pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
+pub use sys::warn_if_exposed;
 pub use transport::{
     open, open_device_bus, open_or_host, BusUrl, Error, HubPolicy, RxFrame, Transport, DEFAULT_URL,
 };
-
-/// Warns when `addr` is reachable from other machines: neither the socketcand hub nor the
-/// control interface has authentication. One text for every place that binds (`what` names
-/// it, e.g. "the bus").
-pub fn warn_if_exposed(addr: std::net::SocketAddr, what: &str) {
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "{what} is reachable from the network (no authentication); bind to 127.0.0.1 unless that is intended");
-    }
-}

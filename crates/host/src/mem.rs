@@ -19,9 +19,9 @@ use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use crate::bus::{BusEvent, MemberId, MemberStats, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};
+use crate::can::{BusState, BusStats, Disturbance, ErrorFrame, RxFrame, Transport};
 use crate::clock::{Driver, Horizon, SimClock, Slot};
-use crate::socketcand::hub::Wake;
-use crate::transport::{BusState, BusStats, Disturbance, RxFrame, Transport};
+use crate::wake::Wake;
 
 /// Default receive queue length of a port, in frames (about 0.5 s of a saturated 1 Mbit/s bus).
 pub const DEFAULT_QUEUE_LEN: usize = 4096;
@@ -173,13 +173,13 @@ pub(crate) struct BusCore {
     tx_lost: AtomicU64,
     pacer: Option<Pacer>,
     /// Listeners of error frames (a bridge, a recorder); each a bounded queue.
-    error_listeners: Mutex<Vec<Sender<crate::bus::ErrorFrame>>>,
+    error_listeners: Mutex<Vec<Sender<ErrorFrame>>>,
     /// Called with every error frame on the driver thread (a hub channel: its TCP clients).
     error_hook: Mutex<Option<ErrorHook>>,
 }
 
 /// See [`BusCore::set_error_hook`].
-pub(crate) type ErrorHook = Box<dyn Fn(&crate::bus::ErrorFrame) + Send>;
+pub(crate) type ErrorHook = Box<dyn Fn(&ErrorFrame) + Send>;
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -706,11 +706,7 @@ impl BusCore {
                 }
             }
             if let BusEvent::Error(e) = &ev {
-                let ef = crate::bus::ErrorFrame {
-                    timestamp: p.clock.system_time_of(e.at),
-                    kind: e.kind,
-                    id: e.id,
-                };
+                let ef = ErrorFrame::bus_error(e.kind, e.id, p.clock.system_time_of(e.at));
                 // A listener that does not keep up loses error frames; one that left is removed.
                 lock(&self.error_listeners)
                     .retain(|tx| !matches!(tx.try_send(ef), Err(TrySendError::Disconnected(_))));
@@ -813,7 +809,7 @@ impl BusCore {
 /// The driver of a paced bus: runs the timeline at its own pace and delivers what it produced;
 /// ends with the bus.
 fn drive(core: Weak<BusCore>, kicked: Receiver<()>) {
-    crate::runtime::set_timer_slack_1ns();
+    crate::sys::set_timer_slack_1ns();
     // Frames are due at their bit times: the driver runs at the runtime's priority
     // (`--rt-priority`), where one was asked for.
     if let Err(e) = crate::realtime::runtime_thread() {
@@ -1012,7 +1008,7 @@ impl MemBus {
 
     /// Error frames on this bus from now on, in timeline order (a queue of 1024; a listener
     /// that falls behind loses the excess). An instant bus has none.
-    pub fn error_frames(&self) -> Receiver<crate::bus::ErrorFrame> {
+    pub fn error_frames(&self) -> Receiver<ErrorFrame> {
         let (tx, rx) = crossbeam_channel::bounded(1024);
         lock(&self.core.error_listeners).push(tx);
         rx
@@ -1297,9 +1293,18 @@ mod tests {
         .unwrap();
         a.send(&Frame::new(0x181, &[1]).unwrap()).unwrap();
         let e = errors.recv_timeout(Duration::from_secs(5)).unwrap();
-        assert_eq!(e.kind, crate::bus::BusErrorKind::Corrupted);
+        // A corrupted frame: a protocol form error, naming the frame.
+        assert_eq!(
+            e,
+            ErrorFrame::bus_error(
+                crate::bus::BusErrorKind::Corrupted,
+                Some(0x181),
+                e.timestamp
+            )
+        );
+        assert_eq!(e.class, crate::can::err_class::PROT);
+        assert_eq!(e.data.unwrap()[2], 0x02);
         assert_eq!(e.id, Some(0x181));
-        assert_eq!(e.to_socketcan().0 & 0x2000_0000, 0x2000_0000);
         bus.disturb(Disturbance::CorruptedFrames { per_million: 0 })
             .unwrap();
         // The retransmission gets through.

@@ -45,11 +45,12 @@ use canpos_sim::{Faults, Sensor, SensorSpec};
 use crossbeam_channel::{Receiver, Select, Sender};
 use serde_json::{json, Value};
 
+use crate::can::{BusState, BusStats, Disturbance, Transport};
 use crate::clock::{Driver, Horizon, SimClock};
-use crate::control::{Fault, Request};
+use crate::control::request::{bus_disturbance, nmt_command, Fault, Request};
 use crate::file_storage::FileStorage;
+pub use crate::sys::{set_timer_slack_1ns, sleep_until, sleep_until_precise, SPIN_TAIL};
 use crate::timing::{DeviceTiming, Jitter};
-use crate::transport::{BusState, BusStats, Disturbance, Transport};
 
 /// How long the CAN overrun EMCY (0x8110) stays active after the transport last lost a frame.
 pub const OVERRUN_HOLD: Duration = Duration::from_secs(1);
@@ -446,7 +447,7 @@ pub struct Runtime {
     /// The simulation time the runtime has processed every event up to.
     reached: Instant,
     /// A received frame stamped later than the time being processed, kept for its time.
-    stash: Option<crate::transport::RxFrame>,
+    stash: Option<crate::can::RxFrame>,
     /// Frames were received since the transport was last looked at (receive filter).
     received: bool,
     /// When the sensors' own controllers are looked at next (every [`CONTROLLER_POLL_US`],
@@ -877,7 +878,7 @@ impl Runtime {
     /// The simulation time of a received frame: its end of frame on a bus with this clock,
     /// else when it was received (wall clock; a peer's clock ahead of ours counts as now),
     /// never before the time already reached.
-    fn frame_time(&self, rx: &crate::transport::RxFrame) -> Instant {
+    fn frame_time(&self, rx: &crate::can::RxFrame) -> Instant {
         let ns = self.clock.nanos_of(rx.timestamp).unwrap_or(0);
         Instant::from_micros(ns / 1000)
             .min(self.now())
@@ -1372,7 +1373,7 @@ impl Runtime {
                 value,
                 on,
             } => {
-                let d = crate::control::bus_disturbance(&kind, value, on)?;
+                let d = bus_disturbance(&kind, value, on)?;
                 let i = self.sensor_index(sensor)?;
                 let r = match (&self.devices[i].port, d) {
                     (Some(p), Disturbance::TransceiverFailed(_)) => p.disturb(d),
@@ -1415,7 +1416,7 @@ impl Runtime {
             }
             Request::Nmt { sensor, command } => {
                 let i = self.sensor_index(sensor)?;
-                let cs = crate::control::nmt_command(&command)?;
+                let cs = nmt_command(&command)?;
                 if !self.powered[i] {
                     return Err(format!("sensor {i} is powered off"));
                 }
@@ -1759,7 +1760,7 @@ pub fn bus_json(s: Option<&BusStats>) -> Value {
 
 /// Waits for a received frame, a message or a step of a stepped clock.
 fn wait_stepped<T>(
-    frames: &Receiver<crate::transport::RxFrame>,
+    frames: &Receiver<crate::can::RxFrame>,
     msgs: &Receiver<T>,
     steps: &Receiver<()>,
 ) {
@@ -1776,7 +1777,7 @@ fn wait_stepped<T>(
 /// channel wait ends [`EARLY_WAKE`] before it and [`sleep_until_precise`] does the rest.
 /// Returns how late the wake was when it slept to `target`, `None` when a channel woke it.
 pub(crate) fn wait_until<T>(
-    frames: &Receiver<crate::transport::RxFrame>,
+    frames: &Receiver<crate::can::RxFrame>,
     msgs: &Receiver<T>,
     target: Option<std::time::Instant>,
 ) -> Option<Duration> {
@@ -1797,67 +1798,6 @@ pub(crate) fn wait_until<T>(
     let t = target?;
     sleep_until_precise(t);
     Some(std::time::Instant::now().saturating_duration_since(t))
-}
-
-/// Sets this thread's timer slack to 1 ns: without it, Linux may delay every timed wake by up
-/// to the default 50 µs slack.
-pub fn set_timer_slack_1ns() {
-    // SAFETY: prctl with PR_SET_TIMERSLACK takes one integer argument and touches no memory.
-    let r = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong, 0, 0, 0) };
-    if r != 0 {
-        tracing::debug!(error = %io::Error::last_os_error(), "PR_SET_TIMERSLACK failed");
-    }
-}
-
-/// The last stretch before a deadline that [`sleep_until_precise`] spins instead of sleeping.
-/// On the 2-core benchmark VM an absolute `clock_nanosleep` wakes 20–30 µs late (median), a
-/// spin ends within a microsecond; at 2 deadlines per ms the spin costs a few % of one core.
-pub const SPIN_TAIL: Duration = Duration::from_micros(50);
-
-/// [`sleep_until`] to [`SPIN_TAIL`] before `t`, then a spin on the monotonic clock until `t`.
-pub fn sleep_until_precise(t: std::time::Instant) {
-    if let Some(early) = t.checked_sub(SPIN_TAIL) {
-        sleep_until(early);
-    }
-    while std::time::Instant::now() < t {
-        std::hint::spin_loop();
-    }
-}
-
-/// Sleeps until `t` on the monotonic clock with an absolute deadline (no drift from computing
-/// relative timeouts, restarts after signals).
-pub fn sleep_until(t: std::time::Instant) {
-    // std::time::Instant is CLOCK_MONOTONIC on Linux; rebuild the absolute timespec from the
-    // current reading of that clock plus the remaining duration.
-    let remaining = t.saturating_duration_since(std::time::Instant::now());
-    if remaining.is_zero() {
-        return;
-    }
-    let mut now = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes one timespec into the pointer we own.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut now) };
-    let total_ns = now.tv_nsec as u128 + remaining.as_nanos();
-    let ts = libc::timespec {
-        tv_sec: now.tv_sec + (total_ns / 1_000_000_000) as libc::time_t,
-        tv_nsec: (total_ns % 1_000_000_000) as libc::c_long,
-    };
-    loop {
-        // SAFETY: `ts` is a valid timespec; the remainder pointer may be null for TIMER_ABSTIME.
-        let r = unsafe {
-            libc::clock_nanosleep(
-                libc::CLOCK_MONOTONIC,
-                libc::TIMER_ABSTIME,
-                &ts,
-                std::ptr::null_mut(),
-            )
-        };
-        if r != libc::EINTR {
-            return;
-        }
-    }
 }
 
 #[cfg(test)]
@@ -2189,14 +2129,14 @@ mod tests {
         fn send(&mut self, frame: &Frame) -> io::Result<()> {
             self.port.send(frame)
         }
-        fn try_recv(&mut self) -> io::Result<Option<crate::transport::RxFrame>> {
+        fn try_recv(&mut self) -> io::Result<Option<crate::can::RxFrame>> {
             let ms = self.stall_ms.swap(0, Ordering::SeqCst);
             if ms > 0 {
                 std::thread::sleep(Duration::from_millis(ms));
             }
             self.port.try_recv()
         }
-        fn receiver(&self) -> &Receiver<crate::transport::RxFrame> {
+        fn receiver(&self) -> &Receiver<crate::can::RxFrame> {
             self.port.receiver()
         }
         fn bus_bitrate(&self) -> Option<u32> {
@@ -2306,7 +2246,7 @@ mod tests {
         // bit: exactly the 1 ms schedule, the bus being idle at each due time.
         let bit_ns = 1_000u64;
         let t0 = tpdos[0].timestamp - Duration::from_millis(1);
-        let start = |rx: &crate::transport::RxFrame| {
+        let start = |rx: &crate::can::RxFrame| {
             let end = rx.timestamp.duration_since(t0).unwrap().as_nanos() as u64;
             let bits = u64::from(crate::bus::bits::frame_length(&rx.frame).total)
                 - u64::from(crate::bus::bits::INTERMISSION_BITS);

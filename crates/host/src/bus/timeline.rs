@@ -15,7 +15,7 @@ use super::bits::{
     arbitration_key, first_difference, frame_length, stuffed, BUS_OFF_RECOVERY_SEQUENCES,
     ERROR_FRAME_BITS, INTERMISSION_BITS, RECESSIVE_SEQUENCE_BITS, SUSPEND_BITS,
 };
-use crate::transport::BusState;
+pub use crate::can::{BusErrorKind, BusState, MemberStats};
 
 /// Time on the bus timeline: nanoseconds since the bus started.
 pub type Nanos = u64;
@@ -36,26 +36,6 @@ pub const CIA301_BITRATES: [u32; 9] = [1000, 800, 500, 250, 125, 100, 50, 20, 10
 /// One controller on the bus: an index the timeline gave out.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct MemberId(pub u32);
-
-/// What kind of error destroyed a frame (or held the bus).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BusErrorKind {
-    /// Two or more members sent the same identifier with different control or data bits in one
-    /// arbitration: each saw a bit error (a duplicate node-id shows up as this).
-    Collision,
-    /// A frame corrupted on the wire (injected disturbance): the receivers flag a CRC or form
-    /// error.
-    Corrupted,
-    /// The bus was held dominant for `bits` bit times (injected disturbance).
-    StuckDominant {
-        /// Length of the dominant interval in bit times.
-        bits: u64,
-    },
-    /// A member sent an active error flag ([`Timeline::error_flag`]): the other controllers
-    /// see six dominant bits, a stuff error.
-    ErrorFlag,
-}
-
 /// An error frame on the bus, as the timeline reports it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct BusError {
@@ -121,34 +101,6 @@ pub enum Accepted {
     /// Queued in place of a less important frame, which is lost (and counted).
     Evicted(Frame),
 }
-
-/// Counters of one member.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct MemberStats {
-    /// Frames that went on the bus successfully.
-    pub sent: u64,
-    /// Frames lost because the transmit queue was full.
-    pub lost_overflow: u64,
-    /// Frames lost because the member was (or went) bus-off.
-    pub lost_bus_off: u64,
-    /// Transmissions that ended in an error frame (retransmitted automatically).
-    pub tx_errors: u64,
-    /// Of those, collisions with another member sending the same identifier.
-    pub collisions: u64,
-    /// Time the last sent frame waited from submission to its start of frame.
-    pub last_wait: Nanos,
-    /// Longest such wait.
-    pub max_wait: Nanos,
-    /// Frames waiting in the transmit queue.
-    pub queued: usize,
-    /// Transmit error counter.
-    pub tec: u16,
-    /// Receive error counter.
-    pub rec: u16,
-    /// Error state.
-    pub state: BusState,
-}
-
 #[derive(Clone, Copy, Debug)]
 struct Queued {
     frame: Frame,

@@ -31,8 +31,9 @@ use mio::{Events, Interest, Poll, Token, Waker};
 
 use super::codec::{self, Decoder, Element, ErrorFrame, Piece};
 use super::session::{Effect, Session};
+use crate::can::RxFrame;
 use crate::mem::{BusCore, MemBus, MemPort, Sink};
-use crate::transport::{BusState, RxFrame};
+use crate::wake::Wake;
 
 /// The default listen address: loopback only.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29536";
@@ -59,91 +60,6 @@ const FAST_QUEUE: usize = 4 * 1024;
 const SLOW_PERIOD: Duration = Duration::from_millis(100);
 /// Slow clients are written a share at a time, every [`SLOW_PERIOD`] / this.
 const SLOW_SLICES: u32 = 50;
-
-/// How a bus member that is a TCP client tells the hub's I/O thread that its queue has frames.
-pub(crate) struct Wake {
-    /// Frames the client's queue may hold; more are dropped (and counted).
-    pub(crate) cap: usize,
-    token: usize,
-    /// Set while the token is in the ready list, so a burst wakes the thread once.
-    pending: AtomicBool,
-    /// The client cannot take frames: its socket refused more and [`HubConfig::out_limit`] bytes wait
-    /// for it. Senders then drop its frames (counted) without queueing them or waking the I/O
-    /// thread, until the socket is writable again: such a client costs nothing per frame.
-    blocked: AtomicBool,
-    /// The client is slow (see [`SLOW_QUEUE`]): its frames are queued without waking the I/O
-    /// thread, which writes it on its own schedule.
-    quiet: AtomicBool,
-    /// Its controller's error state changed (a [`BusState`] code + 1; 0: nothing new), to be
-    /// reported to it as socketcand reports its interface's state.
-    ctl_state: AtomicU8,
-    /// Frames its transmit queue lost when they joined it at their time (frames kept for
-    /// their stamps while the bus waited for a timed participant, docs/CLOCK.md), to be
-    /// reported to it (TX overflow).
-    tx_overflowed: AtomicBool,
-    ready: Arc<Mutex<Vec<usize>>>,
-    waker: Arc<Waker>,
-}
-
-impl Wake {
-    /// Whether frames for the client are to be dropped at once (see `blocked`).
-    pub(crate) fn is_blocked(&self) -> bool {
-        self.blocked.load(Ordering::Relaxed)
-    }
-
-    /// A frame was queued for the client: wakes the I/O thread unless the client is slow.
-    pub(crate) fn queued(&self) {
-        // Pairs with the fence in `Conn::check_pace`: either this sees `quiet` cleared, or the
-        // I/O thread sees this frame in the queue after clearing it (store-load both ways: a
-        // frame must not wait in the queue of a client nobody will serve).
-        std::sync::atomic::fence(Ordering::SeqCst);
-        if !self.quiet.load(Ordering::Relaxed) {
-            self.notify();
-        }
-    }
-
-    pub(crate) fn notify(&self) {
-        if !self.pending.swap(true, Ordering::AcqRel) {
-            let mut ready = self.ready.lock().unwrap_or_else(|e| e.into_inner());
-            let first = ready.is_empty();
-            ready.push(self.token);
-            drop(ready);
-            // The I/O thread takes the whole list per wake-up: whoever made it non-empty has
-            // woken it (one eventfd write per burst, not one per client).
-            if first {
-                let _ = self.waker.wake();
-            }
-        }
-    }
-
-    /// Its transmit queue lost a frame that joined it later than it was sent (on the bus's
-    /// driver thread): reported to the client as an overflow at submission is.
-    pub(crate) fn tx_overflow(&self) {
-        self.tx_overflowed.store(true, Ordering::Release);
-        self.notify();
-    }
-
-    /// The state [`Wake::controller_state`] left, if not yet reported; taken.
-    fn take_state(&self) -> Option<BusState> {
-        match self.ctl_state.swap(0, Ordering::AcqRel) {
-            1 => Some(BusState::ErrorActive),
-            2 => Some(BusState::ErrorPassive),
-            3 => Some(BusState::BusOff),
-            _ => None,
-        }
-    }
-
-    /// Its controller's error state changed (on the bus's driver thread).
-    pub(crate) fn controller_state(&self, s: BusState) {
-        let code = match s {
-            BusState::ErrorActive => 1,
-            BusState::ErrorPassive => 2,
-            BusState::BusOff => 3,
-        };
-        self.ctl_state.store(code, Ordering::Release);
-        self.notify();
-    }
-}
 
 /// Hub tuning.
 #[derive(Clone, Debug)]
@@ -255,13 +171,7 @@ impl Shared {
         // The timeline's error frames go to the channel's TCP clients that take errors.
         let (errors, waker, channel) = (self.errors.clone(), self.waker.clone(), name.to_string());
         core.set_error_hook(Box::new(move |ef| {
-            let (class, data) = ef.to_socketcan();
-            let e = ErrorFrame {
-                class: class & !0x2000_0000,
-                data: Some(data),
-                timestamp: ef.timestamp,
-            };
-            if push_error(&errors, (channel.clone(), e, None)) {
+            if push_error(&errors, (channel.clone(), *ef, None)) {
                 let _ = waker.wake();
             }
         }));
@@ -300,9 +210,9 @@ impl Shared {
         }
     }
 
-    fn channel_stats(&self) -> Vec<(String, crate::transport::BusStats)> {
+    fn channel_stats(&self) -> Vec<(String, crate::can::BusStats)> {
         let map = self.channels.lock().unwrap_or_else(|e| e.into_inner());
-        let mut v: Vec<(String, crate::transport::BusStats)> = map
+        let mut v: Vec<(String, crate::can::BusStats)> = map
             .iter()
             .filter_map(|(name, w)| {
                 let core = w.upgrade()?;
@@ -558,7 +468,7 @@ impl HubHandle {
     }
 
     /// Load and counters of every channel in use (paced channels), by name.
-    pub fn channel_stats(&self) -> Vec<(String, crate::transport::BusStats)> {
+    pub fn channel_stats(&self) -> Vec<(String, crate::can::BusStats)> {
         self.shutdown.shared.channel_stats()
     }
 
