@@ -142,7 +142,7 @@ pub enum BusErrorKind {
         /// Length of the dominant interval in bit times.
         bits: u64,
     },
-    /// A member sent an active error flag ([`Timeline::error_flag`]): the other controllers
+    /// A member sent an active error flag ([`Timeline::error_flag`](crate::bus::Timeline::error_flag)): the other controllers
     /// see six dominant bits, a stuff error.
     ErrorFlag,
 }

@@ -1,6 +1,6 @@
 //! In-process CAN bus: any number of [`MemPort`]s, each frame broadcast to all other ports.
 //!
-//! A bus is paced by default ([`Pacing`]): every frame goes through the bus [`Timeline`]
+//! A bus is paced by default ([`Pacing`]): every frame goes through the bus [`Timeline`](crate::bus::Timeline)
 //! (crate::bus): it waits for the bus, wins or loses arbitration, takes its bit time, and
 //! reaches the other ports at its end-of-frame time, stamped with it. One driver thread per
 //! bus delivers frames at those times. [`Pacing::Instant`] keeps the old behaviour (every

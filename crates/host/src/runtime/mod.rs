@@ -6,13 +6,13 @@
 //! One thread per bus. Each turn of its loop:
 //!
 //! 1. drains received frames and hands each to every node;
-//! 2. runs every measurement cycle that is due (motion → [`Sensor::cycle`] →
-//!    [`Node::update_sample`]); cycles are scheduled as `start + k × cycle`, never as
+//! 2. runs every measurement cycle that is due (motion → [`Sensor::cycle`](canpos_sim::Sensor::cycle) →
+//!    [`Node::update_sample`](canpos_core::Node::update_sample)); cycles are scheduled as `start + k × cycle`, never as
 //!    "now + cycle", so they do not drift. The sensor publishes each measurement at the first
 //!    cycle boundary after its pulse returned (one cycle later on every TH / E-Series stroke),
 //!    and its temperature leaving the limits raises the core's over-temperature condition
 //!    (EMCY 0x4200) by itself;
-//! 3. polls every node ([`Node::poll`]: the timers that are due — TPDO event timers,
+//! 3. polls every node ([`Node::poll`](canpos_core::Node::poll): the timers that are due — TPDO event timers,
 //!    heartbeat, SDO timeout, EMCY inhibit — then the frames it has to send) and routes what
 //!    they send: to the transport **and** to the other nodes of this runtime (they share the
 //!    bus; a transport never echoes a frame to its sender);
