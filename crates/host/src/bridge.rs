@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use crossbeam_channel::Select;
 
-use crate::transport::{BusState, Transport};
+use crate::can::{BusState, Transport};
 
 /// Counters of a bridge.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

@@ -33,6 +33,12 @@ use canpos_core::Plain;
 
 use crate::ini::{Ini, Key, Section};
 
+mod checks;
+mod values;
+
+use values::{access, data_type, raw_of};
+pub use values::{parse_int, parse_number, parse_value, section_object};
+
 /// What is wrong with an EDS / DCF file, and where.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct EdsError {
@@ -196,106 +202,6 @@ fn standard(index: u16, sub: u8) -> Option<&'static Std> {
         .find(|s| s.index.contains(&index) && s.subs.contains(&sub))
 }
 
-/// An EDS number: decimal, `0x` hex, octal with a leading 0 (CiA 306), or negative decimal.
-pub fn parse_int(s: &str) -> Option<i64> {
-    let s = s.trim();
-    let (neg, body) = match s.strip_prefix('-') {
-        Some(b) => (true, b.trim_start()),
-        None => (false, s),
-    };
-    let v = if let Some(h) = body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) {
-        i64::from_str_radix(h, 16).ok()?
-    } else if body.len() > 1 && body.starts_with('0') {
-        i64::from_str_radix(&body[1..], 8).ok()?
-    } else if body.bytes().all(|b| b.is_ascii_digit()) && !body.is_empty() {
-        body.parse().ok()?
-    } else {
-        return None;
-    };
-    Some(if neg { -v } else { v })
-}
-
-/// A number that may be relative to the node-id: `$NODEID`, `$NODEID+0x180`, `0x180+$NODEID`.
-/// Returns the number and whether `$NODEID` was in it (then the number is the offset).
-pub fn parse_value(s: &str) -> Option<(i64, bool)> {
-    let s = s.trim();
-    let up = s.to_ascii_uppercase();
-    let Some(at) = up.find("$NODEID") else {
-        return parse_int(s).map(|v| (v, false));
-    };
-    let before = s[..at].trim();
-    let after = s[at + "$NODEID".len()..].trim();
-    let offset = match (before, after) {
-        ("", "") => 0,
-        ("", a) => parse_int(a.strip_prefix('+')?)?,
-        (b, "") => parse_int(b.strip_suffix('+')?)?,
-        _ => return None,
-    };
-    Some((offset, true))
-}
-
-/// [`parse_value`] with `$NODEID` resolved for `node_id` (the conformance tool's reading).
-pub fn parse_number(s: &str, node_id: u8) -> Option<i64> {
-    let (v, rel) = parse_value(s)?;
-    Some(if rel {
-        v.saturating_add(i64::from(node_id))
-    } else {
-        v
-    })
-}
-
-fn data_type(code: i64) -> Result<DataType, String> {
-    Ok(match code {
-        0x0001 => DataType::Boolean,
-        0x0002 => DataType::Integer8,
-        0x0003 => DataType::Integer16,
-        0x0004 => DataType::Integer32,
-        0x0005 => DataType::Unsigned8,
-        0x0006 => DataType::Unsigned16,
-        0x0007 => DataType::Unsigned32,
-        0x0009 => DataType::VisibleString,
-        0x000F => return Err("DOMAIN objects are not supported by canpos-core".into()),
-        0x0008 | 0x000A | 0x000B | 0x000C | 0x000D | 0x0010..=0x001B => {
-            return Err(format!(
-                "DataType 0x{code:04X} is not supported by canpos-core (BOOLEAN, INTEGER8/16/32, \
-                 UNSIGNED8/16/32 and VISIBLE_STRING are)"
-            ))
-        }
-        _ => return Err(format!("unknown DataType 0x{code:04X}")),
-    })
-}
-
-fn access(s: &str) -> Option<Access> {
-    Some(match s.to_ascii_lowercase().as_str() {
-        "ro" => Access::Ro,
-        "wo" => Access::Wo,
-        "rw" | "rwr" | "rww" => Access::Rw,
-        "const" => Access::Const,
-        _ => return None,
-    })
-}
-
-/// The raw bits of `v` as a value of `ty`. A hex number too large for a signed type is read
-/// as its two's-complement bit pattern (how tools write negative limits in hex).
-fn raw_of(ty: DataType, v: i64, text: &str) -> Option<u32> {
-    let (lo, hi) = ty.natural_range();
-    let bits = ty.bits() as u32;
-    let hex = text.trim().to_ascii_lowercase().starts_with("0x");
-    let v = if ty.is_signed() && hex && v > hi && v < 1i64 << bits {
-        v - (1i64 << bits)
-    } else {
-        v
-    };
-    if v < lo || v > hi {
-        return None;
-    }
-    Some(if bits >= 32 {
-        v as u32
-    } else {
-        (v as u32) & ((1u32 << bits) - 1)
-    })
-}
-
 fn leak(s: &str) -> &'static str {
     Box::leak(s.to_owned().into_boxed_str())
 }
@@ -304,28 +210,6 @@ struct Builder<'a> {
     file: &'a str,
     kind: FileKind,
     warnings: Vec<String>,
-}
-
-/// A section name that is an object (`1018` → `(0x1018, None)`) or a sub-index (`1018sub4`
-/// → `(0x1018, Some(4))`), case-insensitive; `None` for every other section.
-pub fn section_object(name: &str) -> Option<(u16, Option<u8>)> {
-    let idx = name.get(..4)?;
-    if !idx.bytes().all(|b| b.is_ascii_hexdigit()) {
-        return None;
-    }
-    let index = u16::from_str_radix(idx, 16).ok()?;
-    let rest = &name[4..];
-    if rest.is_empty() {
-        return Some((index, None));
-    }
-    let sub = rest
-        .get(..3)
-        .filter(|p| p.eq_ignore_ascii_case("sub"))
-        .map(|_| &rest[3..])?;
-    if sub.is_empty() || sub.len() > 2 || !sub.bytes().all(|b| b.is_ascii_hexdigit()) {
-        return None;
-    }
-    Some((index, Some(u8::from_str_radix(sub, 16).ok()?)))
 }
 
 impl Builder<'_> {
@@ -714,74 +598,6 @@ impl Builder<'_> {
         })
     }
 
-    /// `[MandatoryObjects]` / `[OptionalObjects]` / `[ManufacturerObjects]`: counts agree,
-    /// every listed object has a section; a section nobody lists is only warned about.
-    fn check_lists(
-        &mut self,
-        ini: &Ini,
-        objects: &BTreeMap<u16, &Section>,
-    ) -> Result<(), EdsError> {
-        let mut listed: BTreeMap<u16, usize> = BTreeMap::new();
-        for name in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
-            let Some(sec) = ini.section(name) else {
-                continue;
-            };
-            let k = sec
-                .key("SupportedObjects")
-                .ok_or_else(|| self.err(sec.line, format!("[{name}] without SupportedObjects")))?;
-            let n = self.num(k)?;
-            let items: Vec<&Key> = sec
-                .keys
-                .iter()
-                .filter(|x| !x.name.eq_ignore_ascii_case("SupportedObjects"))
-                .collect();
-            if n < 0 || n as usize != items.len() {
-                return Err(self.err(
-                    k.line,
-                    format!(
-                        "SupportedObjects={} but [{name}] lists {}",
-                        k.value,
-                        items.len()
-                    ),
-                ));
-            }
-            for it in items {
-                match parse_int(&it.name) {
-                    Some(p) if (1..=n).contains(&p) => {}
-                    _ => {
-                        return Err(
-                            self.err(it.line, format!("[{name}] key `{}` is not 1…{n}", it.name))
-                        )
-                    }
-                }
-                let v = self.num(it)?;
-                let index = u16::try_from(v)
-                    .map_err(|_| self.err(it.line, format!("0x{v:X} is not an object index")))?;
-                if let Some(first) = listed.insert(index, it.line) {
-                    return Err(self.err(
-                        it.line,
-                        format!("0x{index:04X} listed again (first on line {first})"),
-                    ));
-                }
-                if !objects.contains_key(&index) {
-                    return Err(self.err(
-                        it.line,
-                        format!("0x{index:04X} is listed but has no [{index:04X}] section"),
-                    ));
-                }
-            }
-        }
-        for (index, sec) in objects {
-            if *index >= 0x1000 && !listed.contains_key(index) {
-                self.warnings.push(format!(
-                    "[{}] (line {}) is in no object list; served anyway",
-                    sec.name, sec.line
-                ));
-            }
-        }
-        Ok(())
-    }
-
     /// One VAR (an object or a sub-index) as an [`Entry`].
     fn var(
         &mut self,
@@ -981,91 +797,6 @@ impl Builder<'_> {
             group,
             hook,
         })
-    }
-
-    /// The default mapping of every TPDO names objects that exist, may be mapped, and fit.
-    fn check_mappings(
-        &self,
-        entries: &[Entry],
-        value_lines: &BTreeMap<u32, usize>,
-    ) -> Result<(), EdsError> {
-        let find = |i: u16, s: u8| entries.iter().find(|e| e.index == i && e.sub == s);
-        // The line of the entry's value (or of its section).
-        let line = |e: &Entry| value_lines.get(&e.key()).copied().unwrap_or(0);
-        for n in 0..pdo::MAX_TPDOS as u16 {
-            let Some(e0) = find(0x1A00 + n, 0) else {
-                continue;
-            };
-            let Default::Const(count) = e0.default else {
-                return Err(self.err(line(e0), "a mapping count must be a number"));
-            };
-            let have = (1..=pdo::MAX_MAP as u8)
-                .take_while(|&k| find(0x1A00 + n, k).is_some())
-                .count() as u32;
-            if count > have {
-                return Err(self.err(
-                    line(e0),
-                    format!(
-                        "0x{:04X} maps {count} objects but has no sub {}",
-                        0x1A00 + n,
-                        have + 1
-                    ),
-                ));
-            }
-            let mut bits = 0u32;
-            for k in 1..=count {
-                let Some(m) = u8::try_from(k).ok().and_then(|k| find(0x1A00 + n, k)) else {
-                    return Err(self.err(
-                        line(e0),
-                        format!(
-                            "0x{:04X} maps {count} objects but has no sub {k}",
-                            0x1A00 + n
-                        ),
-                    ));
-                };
-                let Default::Const(v) = m.default else {
-                    return Err(self.err(line(m), "a mapping entry must be a number"));
-                };
-                let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);
-                let at = line(m);
-                let Some(t) = find(ti, ts) else {
-                    return Err(self.err(
-                        at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which does not exist",
-                            0x1A00 + n
-                        ),
-                    ));
-                };
-                if !t.pdo {
-                    return Err(self.err(
-                        at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which has no PDOMapping=1",
-                            0x1A00 + n
-                        ),
-                    ));
-                }
-                if tb != u32::from(t.ty.bits()) {
-                    return Err(self.err(
-                        at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts} with {tb} bits; it has {}",
-                            0x1A00 + n,
-                            t.ty.bits()
-                        ),
-                    ));
-                }
-                bits += tb;
-            }
-            if bits > 64 {
-                return Err(self.err(
-                    line(e0),
-                    format!("TPDO {} maps {bits} bits; a CAN frame holds 64", n + 1),
-                ));
-            }
-        }
-        Ok(())
     }
 }
 

@@ -1,9 +1,31 @@
-//! canpos-host: the `std` side of canpos — CAN transports and log formats.
+//! canpos-host: the `std` side of canpos — CAN transports and log formats, the runtime that
+//! drives simulated devices on them, and its control interface.
 //!
-//! - [`transport`]: the [`Transport`] trait the runtime drives nodes through, bus URLs, [`open`].
+//! The modules stand in layers; each names only modules below it (`tests/layering.rs` fails on
+//! any import circle between the crate's files):
+//!
+//! ```text
+//!  transport (bus URLs, open)   control::server      lib.rs: curated re-exports
+//!        |                           |
+//!        |          runtime/ (loop, device wrapper, clock glue, requests, waits)
+//!        |           plain   eds_device (+ ini)
+//!        |                           |
+//!  mem/  socketcand/ (codec, session, client, reconnect, hub/)  socketcan  bridge  candump
+//!        |                           |
+//!  bus/ (bits, timeline)   wake   control::request
+//!        |                           |
+//!  can (frames, bus state and stats, Disturbance, ErrorFrame, the Transport trait)
+//!        |
+//!  clock   sys   timing   realtime   file_storage
+//! ```
+//!
+//! - [`can`]: the CAN vocabulary and the [`Transport`] trait every bus connection implements.
+//! - [`transport`]: bus URLs and [`open`], on top of every transport (re-exports [`can`]'s
+//!   names under their former paths).
 //! - [`socketcand`]: the socketcand TCP protocol: codec, a hub server, a client transport.
 //! - [`bus`]: the physical bus model (bit timing, arbitration, load, error confinement).
 //! - [`clock`]: the simulation clock a bus and its runtimes share (wall, stepped).
+//! - [`sys`]: precise sleeps, timer slack, the warning for an exposed socket.
 //! - [`mem`]: an in-process bus.
 //! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
 //! - [`candump`]: candump `-L` log lines.
@@ -11,11 +33,12 @@
 //! - [`runtime`]: drives simulated sensors on a bus on absolute deadlines.
 //! - [`plain`]: drives one plain CiA 301 device (no measurement) the same way.
 //! - [`eds_device`]: a plain device's model built from an EDS / DCF file ([`ini`] reads it).
-//! - [`control`]: the JSON-lines control interface.
+//! - [`control`]: the JSON-lines control interface (requests below the runtime, server above).
 #![deny(missing_docs)]
 
 pub mod bridge;
 pub mod bus;
+pub mod can;
 pub mod candump;
 pub mod clock;
 pub mod control;
@@ -29,23 +52,17 @@ pub mod runtime;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
 pub mod socketcand;
+pub mod sys;
 pub mod timing;
 pub mod transport;
+mod wake;
 
 pub use crossbeam_channel;
 pub use file_storage::FileStorage;
 pub use mem::{MemBus, MemPort};
 pub use runtime::{ControlHandle, Runtime, RuntimeHandle, SensorSetup};
 pub use socketcand::{Client as SocketcandClient, Hub, HubHandle};
+pub use sys::warn_if_exposed;
 pub use transport::{
     open, open_device_bus, open_or_host, BusUrl, Error, HubPolicy, RxFrame, Transport, DEFAULT_URL,
 };
-
-/// Warns when `addr` is reachable from other machines: neither the socketcand hub nor the
-/// control interface has authentication. One text for every place that binds (`what` names
-/// it, e.g. "the bus").
-pub fn warn_if_exposed(addr: std::net::SocketAddr, what: &str) {
-    if !addr.ip().is_loopback() {
-        tracing::warn!(%addr, "{what} is reachable from the network (no authentication); bind to 127.0.0.1 unless that is intended");
-    }
-}

@@ -14,9 +14,9 @@ use canpos_core::Plain;
 use canpos_core::{Instant, Node};
 use serde_json::json;
 
+use crate::can::{BusState, Transport};
 use crate::file_storage::FileStorage;
 use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle};
-use crate::transport::{BusState, Transport};
 
 /// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
 pub struct PlainRuntime {

@@ -40,7 +40,7 @@ use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use socketcan::{CanFilter, CanFrame, CanSocket, Socket, SocketOptions};
 
-use crate::transport::{BusState, RxFrame, Transport};
+use crate::can::{BusState, ErrorFrame, RxFrame, Transport};
 
 /// Receive queue length, in frames.
 pub const QUEUE_LEN: usize = 4096;
@@ -241,7 +241,7 @@ pub struct SocketCanTransport {
     iface: String,
     counters: Arc<Counters>,
     /// The bus's error frames ([`Transport::error_frames`]).
-    error_rx: Receiver<crate::socketcand::codec::ErrorFrame>,
+    error_rx: Receiver<ErrorFrame>,
     /// Last time a transmit drop was logged (rate limit).
     last_tx_warn: Option<std::time::Instant>,
 }
@@ -486,7 +486,7 @@ fn reader(
     socket: &CanSocket,
     stop: &AtomicBool,
     tx: &Sender<RxFrame>,
-    error_tx: &Sender<crate::socketcand::codec::ErrorFrame>,
+    error_tx: &Sender<ErrorFrame>,
     c: &Counters,
     iface: &str,
 ) -> Option<io::Error> {
@@ -501,10 +501,11 @@ fn reader(
                 if r.frame.can_id & CAN_ERR_FLAG != 0 {
                     on_error_frame(&r.frame, c, iface);
                     // For a recorder; nobody reading it must not stall the frames.
-                    let _ = error_tx.try_send(crate::socketcand::codec::ErrorFrame {
+                    let _ = error_tx.try_send(ErrorFrame {
                         class: r.frame.can_id & CAN_ERR_MASK,
                         data: Some(r.frame.data),
                         timestamp: r.timestamp.unwrap_or_else(SystemTime::now),
+                        id: None,
                     });
                     continue;
                 }
@@ -669,7 +670,7 @@ impl Transport for SocketCanTransport {
         self.counters.state()
     }
 
-    fn error_frames(&self) -> Option<Receiver<crate::socketcand::codec::ErrorFrame>> {
+    fn error_frames(&self) -> Option<Receiver<ErrorFrame>> {
         Some(self.error_rx.clone())
     }
 

@@ -19,9 +19,13 @@ use std::time::{Duration, Instant};
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
+/// How long [`open`](crate::transport::open) waits for a socketcand server to accept and complete
+/// the handshake.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
+
 use super::codec::{self, Decoder, Element};
+use crate::can::{BusState, RxFrame, Transport};
 use crate::clock::{Horizon, Nanos, SimClock, Slot};
-use crate::transport::{BusState, RxFrame, Transport};
 
 /// How long the client waits for the answer to an extension request before taking it as
 /// unsupported (a server that ignores unknown commands).
@@ -147,11 +151,11 @@ fn proto_err(msg: impl Into<String>) -> io::Error {
 }
 
 impl Client {
-    /// Connects to `addr` and opens `channel`, waiting at most [`crate::transport::CONNECT_TIMEOUT`].
+    /// Connects to `addr` and opens `channel`, waiting at most [`super::client::CONNECT_TIMEOUT`].
     pub fn connect(addr: impl ToSocketAddrs, channel: &str) -> io::Result<Client> {
         let mut last = None;
         for a in addr.to_socket_addrs()? {
-            match Self::connect_timeout(a, channel, crate::transport::CONNECT_TIMEOUT) {
+            match Self::connect_timeout(a, channel, super::client::CONNECT_TIMEOUT) {
                 Ok(c) => return Ok(c),
                 Err(e) => last = Some(e),
             }

@@ -10,7 +10,8 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use canpos_core::Frame;
 
-use crate::transport::{BusState, RxFrame};
+use crate::can::RxFrame;
+pub use crate::can::{err_class, ErrorFrame};
 
 /// Longest element body kept, in bytes; the longest legal one (`send` of an extended frame with
 /// 8 bytes) is about 40.
@@ -241,109 +242,6 @@ impl Mode {
             Mode::Control => "controlmode",
             Mode::Isotp => "isotpmode",
         }
-    }
-}
-
-/// Linux CAN error classes (`linux/can/error.h`), as socketcand reports them.
-pub mod err_class {
-    /// Controller problems; data byte 1 says which.
-    pub const CRTL: u32 = 0x0004;
-    /// Bus off.
-    pub const BUSOFF: u32 = 0x0040;
-    /// Controller restarted (back to error active after bus-off).
-    pub const RESTARTED: u32 = 0x0100;
-    /// Protocol violation (an error frame on the wire; data bytes 2 and 3 say which).
-    pub const PROT: u32 = 0x0008;
-    /// No acknowledgement on transmission (the transmitter's ACK error).
-    pub const ACK: u32 = 0x0020;
-    /// Bus error (may flood: the controller reports every error frame).
-    pub const BUSERROR: u32 = 0x0080;
-    /// The classes that stand for an error frame on the bus; the others report one
-    /// controller's own condition (its state, its transceiver, a lost arbitration, a timeout).
-    pub const ON_THE_WIRE: u32 = PROT | ACK | BUSERROR;
-    /// Data byte 1 of [`CRTL`]: receive error counter reached the passive level.
-    pub const CRTL_RX_PASSIVE: u8 = 0x10;
-    /// Data byte 1 of [`CRTL`]: transmit error counter reached the passive level.
-    pub const CRTL_TX_PASSIVE: u8 = 0x20;
-    /// Data byte 1 of [`CRTL`]: back to error active.
-    pub const CRTL_ACTIVE: u8 = 0x40;
-    /// Data byte 1 of [`CRTL`]: a frame was lost in the full transmit queue
-    /// (`CAN_ERR_CRTL_TX_OVERFLOW`).
-    pub const CRTL_TX_OVERFLOW: u8 = 0x02;
-}
-
-/// A CAN error frame as socketcand carries it: the error class (the identifier of a Linux error
-/// frame) and, where the server gives them, the 8 data bytes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ErrorFrame {
-    /// Error class bits ([`err_class`]).
-    pub class: u32,
-    /// The error frame's data (`None`: the server sent the class only, as socketcand's raw
-    /// mode does).
-    pub data: Option<[u8; 8]>,
-    /// When the error was seen.
-    pub timestamp: SystemTime,
-}
-
-impl ErrorFrame {
-    /// The error frame a controller reports on entering `state`.
-    pub fn for_state(state: BusState, timestamp: SystemTime) -> ErrorFrame {
-        use err_class::*;
-        let (class, ctrl) = match state {
-            BusState::BusOff => (BUSOFF, 0),
-            BusState::ErrorPassive => (CRTL, CRTL_RX_PASSIVE | CRTL_TX_PASSIVE),
-            BusState::ErrorActive => (CRTL | RESTARTED, CRTL_ACTIVE),
-        };
-        let mut data = [0u8; 8];
-        data[1] = ctrl;
-        ErrorFrame {
-            class,
-            data: Some(data),
-            timestamp,
-        }
-    }
-
-    /// The controller-problem frame of a transmit queue that overflowed (frames lost in it),
-    /// as a canpos hub reports it to the client whose queue it is.
-    pub fn tx_overflow(timestamp: SystemTime) -> ErrorFrame {
-        let mut data = [0u8; 8];
-        data[1] = err_class::CRTL_TX_OVERFLOW;
-        ErrorFrame {
-            class: err_class::CRTL,
-            data: Some(data),
-            timestamp,
-        }
-    }
-
-    /// Whether it reports frames lost in the controller's full transmit queue.
-    pub fn is_tx_overflow(&self) -> bool {
-        self.class & err_class::CRTL != 0
-            && self
-                .data
-                .is_some_and(|d| d[1] & err_class::CRTL_TX_OVERFLOW != 0)
-    }
-
-    /// The controller state the frame announces, if any: bus-off, restart / back to active, or
-    /// a passive controller. A controller-problem class without data (socketcand's raw mode
-    /// sends no data) is taken as error passive: that is the state a master must react to, and
-    /// warnings and overflows alone do not reach a client without data.
-    pub fn bus_state(&self) -> Option<BusState> {
-        use err_class::*;
-        if self.class & BUSOFF != 0 {
-            return Some(BusState::BusOff);
-        }
-        if self.class & CRTL != 0 {
-            return match self.data.map(|d| d[1]) {
-                None => Some(BusState::ErrorPassive),
-                Some(c) if c & (CRTL_RX_PASSIVE | CRTL_TX_PASSIVE) != 0 => {
-                    Some(BusState::ErrorPassive)
-                }
-                Some(c) if c & CRTL_ACTIVE != 0 => Some(BusState::ErrorActive),
-                Some(_) if self.class & RESTARTED != 0 => Some(BusState::ErrorActive),
-                Some(_) => None,
-            };
-        }
-        (self.class & RESTARTED != 0).then_some(BusState::ErrorActive)
     }
 }
 
@@ -592,6 +490,7 @@ fn parse_error_frame(tok: &[&str]) -> Option<ErrorFrame> {
         class: class & 0x1FFF_FFFF,
         data,
         timestamp,
+        id: None,
     })
 }
 
@@ -782,6 +681,7 @@ pub fn write_open(out: &mut Vec<u8>, channel: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::can::BusState;
     use proptest::prelude::*;
 
     fn ts(s: u64, us: u32) -> SystemTime {
@@ -1079,6 +979,7 @@ mod tests {
             class: err_class::CRTL,
             data: None,
             timestamp: ts(0, 0),
+            id: None,
         }
         .is_tx_overflow());
     }

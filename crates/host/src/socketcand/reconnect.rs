@@ -17,8 +17,9 @@ use std::time::Duration;
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 
+use super::client::CONNECT_TIMEOUT;
 use super::client::{Client, CLIENT_QUEUE_LEN};
-use crate::transport::{BusState, RxFrame, Transport, CONNECT_TIMEOUT};
+use crate::can::{BusState, RxFrame, Transport};
 
 /// The first wait after a connection was lost.
 pub const BACKOFF_FIRST: Duration = Duration::from_millis(100);

@@ -627,7 +627,7 @@ mod tests {
     fn error_frames_for_clients_that_asked_or_all() {
         let t = Instant::now();
         let e = ErrorFrame::for_state(
-            crate::transport::BusState::BusOff,
+            crate::can::BusState::BusOff,
             UNIX_EPOCH + Duration::from_secs(2),
         );
         let mut s = Session::new();

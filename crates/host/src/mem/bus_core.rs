@@ -1,27 +1,19 @@
-//! In-process CAN bus: any number of [`MemPort`]s, each frame broadcast to all other ports.
-//!
-//! A bus is paced by default ([`Pacing`]): every frame goes through the bus [`Timeline`]
-//! (crate::bus): it waits for the bus, wins or loses arbitration, takes its bit time, and
-//! reaches the other ports at its end-of-frame time, stamped with it. One driver thread per
-//! bus delivers frames at those times. [`Pacing::Instant`] keeps the old behaviour (every
-//! frame delivered at once, without limit) for benchmarks.
-//!
-//! Each port has a bounded receive queue; a port whose owner does not read loses frames (counted
-//! by [`MemPort::dropped`]) instead of slowing the sender or the other ports. The socketcand hub
-//! uses the same bus for each of its channels, so in-process hub participants are `MemPort`s too.
+//! The shared state of one in-process bus ([`BusCore`]): its members and where their frames go
+//! ([`Sink`]), the pacing through the bus [`Timeline`], error frames and disturbances, and the
+//! driver thread that delivers frames at their end-of-frame times. [`MemBus`](super::MemBus)
+//! and [`MemPort`](super::MemPort) are its handles; the socketcand hub attaches its TCP clients
+//! here as remote members.
 
-use std::collections::HashMap;
-use std::io;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
+use std::sync::{Arc, Mutex, RwLock, Weak};
 
 use canpos_core::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
-use crate::bus::{BusEvent, MemberId, MemberStats, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};
+use crate::bus::{BusEvent, MemberId, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};
+use crate::can::{BusStats, Disturbance, ErrorFrame, RxFrame};
 use crate::clock::{Driver, Horizon, SimClock, Slot};
-use crate::socketcand::hub::Wake;
-use crate::transport::{BusState, BusStats, Disturbance, RxFrame, Transport};
+use crate::wake::Wake;
 
 /// Default receive queue length of a port, in frames (about 0.5 s of a saturated 1 Mbit/s bus).
 pub const DEFAULT_QUEUE_LEN: usize = 4096;
@@ -32,35 +24,35 @@ pub(crate) enum Sink {
     Local(Sender<RxFrame>),
     /// A socketcand TCP client of the hub: its queue, and how to tell the hub's I/O thread.
     Remote(Sender<RxFrame>, Arc<Wake>),
-    /// A transmit-only controller (see [`Transport::controller`]).
+    /// A transmit-only controller (see [`Transport::controller`](crate::can::Transport::controller)).
     None,
 }
 
-struct Member {
-    id: u64,
+pub(super) struct Member {
+    pub(super) id: u64,
     /// Ports of one group do not receive each other's frames (one process's nodes, which
     /// route among themselves).
-    group: u64,
-    sink: Sink,
-    dropped: Arc<AtomicU64>,
+    pub(super) group: u64,
+    pub(super) sink: Sink,
+    pub(super) dropped: Arc<AtomicU64>,
     /// Its controller on the timeline (paced buses).
-    ctl: Option<MemberId>,
+    pub(super) ctl: Option<MemberId>,
     /// A timed participant's horizon (its group's, docs/CLOCK.md): its frames are stamped
     /// with it, and a frame delivered to it holds the clock until taken.
-    horizon: Option<Weak<Slot>>,
+    pub(super) horizon: Option<Weak<Slot>>,
     /// The standard identifiers whose delivery holds the clock (remote frames always do);
-    /// `None`: every frame. From [`Transport::set_rx_filter`]: what its nodes may answer.
-    hold_ids: Option<Vec<u16>>,
+    /// `None`: every frame. From [`Transport::set_rx_filter`](crate::can::Transport::set_rx_filter): what its nodes may answer.
+    pub(super) hold_ids: Option<Vec<u16>>,
     /// The bus time it joined at (paced buses; 0 on an instant bus): a frame that started on
     /// the bus before is not received by it, however late it is handed out.
-    joined: Nanos,
+    pub(super) joined: Nanos,
 }
 
 /// Delivery lateness of a paced bus against its timeline: 1 µs buckets up to 10 ms.
 #[derive(Clone, Debug)]
 pub struct LatenessHistogram {
-    buckets: Vec<u64>,
-    count: u64,
+    pub(super) buckets: Vec<u64>,
+    pub(super) count: u64,
 }
 
 impl Default for LatenessHistogram {
@@ -73,7 +65,7 @@ impl Default for LatenessHistogram {
 }
 
 impl LatenessHistogram {
-    fn record(&mut self, late: Nanos) {
+    pub(super) fn record(&mut self, late: Nanos) {
         let us = ((late / 1000) as usize).min(self.buckets.len() - 1);
         self.buckets[us] += 1;
         self.count += 1;
@@ -107,12 +99,12 @@ impl LatenessHistogram {
     }
 }
 
-struct PaceState {
-    timeline: Timeline,
-    events: Vec<BusEvent>,
-    lateness: LatenessHistogram,
+pub(super) struct PaceState {
+    pub(super) timeline: Timeline,
+    pub(super) events: Vec<BusEvent>,
+    pub(super) lateness: LatenessHistogram,
     /// How far the timeline ran: nothing is submitted earlier (simulation time, ns).
-    reached: Nanos,
+    pub(super) reached: Nanos,
     /// Frames stamped after `reached` (their sender is ahead of the bus, which waits for a
     /// timed participant that is behind), of any member, timed or not, by (stamp, order of
     /// submission): they join their controller's transmit queue when the timeline reaches
@@ -121,19 +113,19 @@ struct PaceState {
     /// for another's stall, and a hub client (python-canopen, a bridge) was told of a TX
     /// overflow on a bus that was never overloaded. At most [`FUTURE_CAP`]; more are queued
     /// at once.
-    future: std::collections::BTreeMap<(Nanos, u64), (MemberId, Frame)>,
+    pub(super) future: std::collections::BTreeMap<(Nanos, u64), (MemberId, Frame)>,
     /// Submission counter for `future`'s order.
-    future_seq: u64,
+    pub(super) future_seq: u64,
 }
 
 /// Frames a paced bus keeps for their stamps at most (all members together): 2 s (the stall
 /// bound) of a full 1 Mbit/s bus is about 17,000 frames.
-const FUTURE_CAP: usize = 65_536;
+pub(super) const FUTURE_CAP: usize = 65_536;
 
 impl PaceState {
     /// The timeline's next event, or the moment before a kept frame's stamp (when it joins
     /// its queue, so that it takes part in an arbitration at its stamp).
-    fn next_due(&self) -> Option<Nanos> {
+    pub(super) fn next_due(&self) -> Option<Nanos> {
         let kept = self.future.keys().next().map(|&(t, _)| t.saturating_sub(1));
         match (self.timeline.next_event(), kept) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -143,45 +135,45 @@ impl PaceState {
 }
 
 /// The timeline of a paced bus and the clock it runs on.
-struct Pacer {
-    state: Mutex<PaceState>,
+pub(super) struct Pacer {
+    pub(super) state: Mutex<PaceState>,
     /// The simulation clock (docs/CLOCK.md): the bus runs to its `now()`, never past a timed
     /// participant's horizon.
-    clock: SimClock,
-    kick: Sender<()>,
+    pub(super) clock: SimClock,
+    pub(super) kick: Sender<()>,
     /// Receiving members with a horizon: while there are any, the bus runs event by event and
     /// stops at each frame delivered to one of them.
-    timed: AtomicUsize,
+    pub(super) timed: AtomicUsize,
 }
 
 impl Pacer {
-    fn now(&self) -> Nanos {
+    pub(super) fn now(&self) -> Nanos {
         self.clock.now()
     }
 }
 
 /// The shared state of one virtual bus.
 pub(crate) struct BusCore {
-    members: RwLock<Vec<Member>>,
-    next_id: AtomicU64,
+    pub(super) members: RwLock<Vec<Member>>,
+    pub(super) next_id: AtomicU64,
     /// kbit/s; 0 = not declared (nodes of any rate talk).
-    bitrate: AtomicU32,
-    frames: AtomicU64,
+    pub(super) bitrate: AtomicU32,
+    pub(super) frames: AtomicU64,
     /// Shared with the hub when the bus is a hub channel, so totals survive the channel.
-    dropped: Arc<AtomicU64>,
+    pub(super) dropped: Arc<AtomicU64>,
     /// Frames lost in transmit queues (full or bus-off), all members.
-    tx_lost: AtomicU64,
-    pacer: Option<Pacer>,
+    pub(super) tx_lost: AtomicU64,
+    pub(super) pacer: Option<Pacer>,
     /// Listeners of error frames (a bridge, a recorder); each a bounded queue.
-    error_listeners: Mutex<Vec<Sender<crate::bus::ErrorFrame>>>,
+    pub(super) error_listeners: Mutex<Vec<Sender<ErrorFrame>>>,
     /// Called with every error frame on the driver thread (a hub channel: its TCP clients).
-    error_hook: Mutex<Option<ErrorHook>>,
+    pub(super) error_hook: Mutex<Option<ErrorHook>>,
 }
 
 /// See [`BusCore::set_error_hook`].
-pub(crate) type ErrorHook = Box<dyn Fn(&crate::bus::ErrorFrame) + Send>;
+pub(crate) type ErrorHook = Box<dyn Fn(&ErrorFrame) + Send>;
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+pub(super) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
@@ -256,7 +248,7 @@ impl BusCore {
         self.join_group(sink, None)
     }
 
-    fn join_group(&self, sink: Sink, group: Option<u64>) -> (u64, Arc<AtomicU64>) {
+    pub(super) fn join_group(&self, sink: Sink, group: Option<u64>) -> (u64, Arc<AtomicU64>) {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let group = group.unwrap_or(id);
         let dropped = Arc::new(AtomicU64::new(0));
@@ -385,7 +377,7 @@ impl BusCore {
 
     /// The controller of member `id` and the time its frames are stamped with (its group's
     /// horizon; `None`: an untimed member's, stamped with the clock's limit).
-    fn ctl_and_time(&self, id: u64) -> Option<(MemberId, Option<Nanos>)> {
+    pub(super) fn ctl_and_time(&self, id: u64) -> Option<(MemberId, Option<Nanos>)> {
         let m = self.members.read().unwrap_or_else(|e| e.into_inner());
         let m = m.iter().find(|m| m.id == id)?;
         let mut at = m.horizon.as_ref().and_then(Weak::upgrade).map(|s| s.at());
@@ -417,7 +409,7 @@ impl BusCore {
             .count()
     }
 
-    fn ctl_of(&self, id: u64) -> Option<MemberId> {
+    pub(super) fn ctl_of(&self, id: u64) -> Option<MemberId> {
         self.members
             .read()
             .unwrap_or_else(|e| e.into_inner())
@@ -534,7 +526,7 @@ impl BusCore {
     /// Delivers `rx` to the members outside `groups`; on a paced bus `on_bus` is its start and
     /// end of frame: only members that joined by its start receive it, and the end is what a
     /// timed receiver's horizon remembers until it takes the frame. True when one did.
-    fn deliver(
+    pub(super) fn deliver(
         &self,
         members: &[Member],
         groups: &[u64],
@@ -599,7 +591,7 @@ impl BusCore {
     /// lock (so deliveries from any thread go out in timeline order). With timed participants
     /// it runs event by event and stops at a frame delivered to one of them: the clock waits
     /// there until that participant took it (and answered at its time).
-    fn pump(&self, p: &Pacer, st: &mut PaceState, target: Nanos) {
+    pub(super) fn pump(&self, p: &Pacer, st: &mut PaceState, target: Nanos) {
         let by_event = p.timed.load(Ordering::Relaxed) > 0;
         // Delivery lateness is against the wall clock; a stepped bus has none.
         let wall = (p.clock.driver() == Driver::Wall).then(|| p.clock.wall_elapsed());
@@ -679,7 +671,7 @@ impl BusCore {
     /// Whether the timeline has an event due at or before the time it reached: never after a
     /// pump (the driver thread would spin on it).
     #[cfg(test)]
-    fn due_by_reached(&self) -> bool {
+    pub(super) fn due_by_reached(&self) -> bool {
         let p = self.pacer.as_ref().expect("paced");
         let st = lock(&p.state);
         st.next_due().is_some_and(|n| n <= st.reached)
@@ -687,7 +679,7 @@ impl BusCore {
 
     /// Hands what the timeline produced to the members; true when a timed participant received
     /// a frame (it holds the clock).
-    fn dispatch(&self, p: &Pacer, events: &mut Vec<BusEvent>) -> bool {
+    pub(super) fn dispatch(&self, p: &Pacer, events: &mut Vec<BusEvent>) -> bool {
         if events.is_empty() {
             return false;
         }
@@ -706,11 +698,7 @@ impl BusCore {
                 }
             }
             if let BusEvent::Error(e) = &ev {
-                let ef = crate::bus::ErrorFrame {
-                    timestamp: p.clock.system_time_of(e.at),
-                    kind: e.kind,
-                    id: e.id,
-                };
+                let ef = ErrorFrame::bus_error(e.kind, e.id, p.clock.system_time_of(e.at));
                 // A listener that does not keep up loses error frames; one that left is removed.
                 lock(&self.error_listeners)
                     .retain(|tx| !matches!(tx.try_send(ef), Err(TrySendError::Disconnected(_))));
@@ -744,11 +732,11 @@ impl BusCore {
         self.frames.load(Ordering::Relaxed)
     }
 
-    fn dropped(&self) -> u64 {
+    pub(super) fn dropped(&self) -> u64 {
         self.dropped.load(Ordering::Relaxed)
     }
 
-    fn bitrate(&self) -> Option<u32> {
+    pub(super) fn bitrate(&self) -> Option<u32> {
         match self.bitrate.load(Ordering::Relaxed) {
             0 => None,
             b => Some(b),
@@ -813,7 +801,7 @@ impl BusCore {
 /// The driver of a paced bus: runs the timeline at its own pace and delivers what it produced;
 /// ends with the bus.
 fn drive(core: Weak<BusCore>, kicked: Receiver<()>) {
-    crate::runtime::set_timer_slack_1ns();
+    crate::sys::set_timer_slack_1ns();
     // Frames are due at their bit times: the driver runs at the runtime's priority
     // (`--rt-priority`), where one was asked for.
     if let Err(e) = crate::realtime::runtime_thread() {
@@ -863,760 +851,5 @@ fn drive(core: Weak<BusCore>, kicked: Receiver<()>) {
         if matches!(r, Err(crossbeam_channel::RecvTimeoutError::Disconnected)) {
             return;
         }
-    }
-}
-
-/// An in-process CAN bus. Cloning gives another handle to the same bus.
-#[derive(Clone)]
-pub struct MemBus {
-    core: Arc<BusCore>,
-    queue_len: usize,
-}
-
-impl Default for MemBus {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
-impl MemBus {
-    /// A new, empty bus paced at the default bit rate
-    /// ([`DEFAULT_BITRATE_KBPS`](crate::bus::DEFAULT_BITRATE_KBPS)); no bit rate is declared to
-    /// the nodes (every node talks).
-    pub fn new() -> Self {
-        Self::with_pacing(Pacing::default())
-    }
-
-    /// A new bus with explicit pacing; a paced bus declares its bit rate to the nodes only
-    /// through [`MemBus::set_bitrate`].
-    pub fn with_pacing(pacing: Pacing) -> Self {
-        MemBus {
-            core: BusCore::create(pacing, Arc::new(AtomicU64::new(0))),
-            queue_len: DEFAULT_QUEUE_LEN,
-        }
-    }
-
-    /// A new bus paced at `kbps` on `clock`: a stepped clock a co-simulation master moves on,
-    /// or a clock shared with other buses (docs/CLOCK.md).
-    pub fn with_clock(kbps: u32, clock: SimClock) -> Self {
-        MemBus {
-            core: BusCore::create_with_clock(
-                Pacing::Paced(kbps),
-                Arc::new(AtomicU64::new(0)),
-                clock,
-            ),
-            queue_len: DEFAULT_QUEUE_LEN,
-        }
-    }
-
-    /// The simulation clock of a paced bus (`None`: an instant bus).
-    pub fn clock(&self) -> Option<SimClock> {
-        self.core.pacer.as_ref().map(|p| p.clock.clone())
-    }
-
-    /// Today's instant bus: every frame delivered at once, no bit time, no limit (benchmarks).
-    pub fn instant() -> Self {
-        Self::with_pacing(Pacing::Instant)
-    }
-
-    pub(crate) fn from_core(core: Arc<BusCore>, queue_len: usize) -> Self {
-        MemBus { core, queue_len }
-    }
-
-    /// The process-wide bus called `name` (what `mem://NAME` opens), created on first use with
-    /// `pacing` (ignored when it exists already).
-    pub fn named_with(name: &str, pacing: Pacing) -> MemBus {
-        static REGISTRY: OnceLock<Mutex<HashMap<String, MemBus>>> = OnceLock::new();
-        let mut reg = lock(REGISTRY.get_or_init(Default::default));
-        reg.entry(name.to_string())
-            .or_insert_with(|| MemBus::with_pacing(pacing))
-            .clone()
-    }
-
-    /// The process-wide bus called `name`, paced at the default rate when new.
-    pub fn named(name: &str) -> MemBus {
-        Self::named_with(name, Pacing::default())
-    }
-
-    /// Sets the receive queue length of ports attached from now on through this handle.
-    pub fn with_queue_len(mut self, len: usize) -> Self {
-        self.queue_len = len.max(1);
-        self
-    }
-
-    /// Declares the bus bit rate to the nodes in kbit/s (`None`: not declared; nodes of any
-    /// rate talk). Ports see the change at once. The pacing rate is the bus's own, set when it
-    /// was created.
-    pub fn set_bitrate(&self, kbit: Option<u32>) {
-        self.core
-            .bitrate
-            .store(kbit.unwrap_or(0), Ordering::Relaxed);
-    }
-
-    /// The bus bit rate in kbit/s, if declared.
-    pub fn bitrate(&self) -> Option<u32> {
-        self.core.bitrate()
-    }
-
-    /// Connects a new port to the bus.
-    pub fn attach(&self) -> MemPort {
-        let (tx, rx) = crossbeam_channel::bounded(self.queue_len);
-        let (id, dropped) = self.core.join(Sink::Local(tx));
-        MemPort {
-            core: self.core.clone(),
-            id,
-            rx,
-            dropped,
-            _keep: None,
-        }
-    }
-
-    /// Connects a transmit-only port: it receives nothing (no receive queue to fill), e.g. a
-    /// load generator.
-    pub fn attach_transmitter(&self) -> MemPort {
-        let (tx, rx) = crossbeam_channel::bounded(1);
-        let (id, dropped) = self.core.join_group(Sink::None, None);
-        MemPort {
-            core: self.core.clone(),
-            id,
-            rx,
-            dropped,
-            _keep: Some(tx),
-        }
-    }
-
-    /// Number of attached ports (and, for a hub channel, TCP clients).
-    pub fn port_count(&self) -> usize {
-        self.core.member_count()
-    }
-
-    /// Frames delivered on the bus so far.
-    pub fn frames(&self) -> u64 {
-        self.core.frames()
-    }
-
-    /// Deliveries dropped so far because some port's queue was full.
-    pub fn dropped(&self) -> u64 {
-        self.core.dropped()
-    }
-
-    /// Load and counters (paced buses).
-    pub fn stats(&self) -> Option<BusStats> {
-        self.core.stats(None)
-    }
-
-    /// Lateness of deliveries against the bus timeline so far (paced buses).
-    pub fn lateness(&self) -> Option<LatenessHistogram> {
-        self.core.lateness()
-    }
-
-    /// Error frames on this bus from now on, in timeline order (a queue of 1024; a listener
-    /// that falls behind loses the excess). An instant bus has none.
-    pub fn error_frames(&self) -> Receiver<crate::bus::ErrorFrame> {
-        let (tx, rx) = crossbeam_channel::bounded(1024);
-        lock(&self.core.error_listeners).push(tx);
-        rx
-    }
-
-    /// Applies a bus-level disturbance (not [`Disturbance::TransceiverFailed`]: that is a
-    /// port's, see [`Transport::disturb`]).
-    pub fn disturb(&self, d: Disturbance) -> Result<(), String> {
-        self.core.disturb(None, d)
-    }
-}
-
-/// One participant of a [`MemBus`] (or of a hub channel). Dropping it leaves the bus.
-pub struct MemPort {
-    core: Arc<BusCore>,
-    id: u64,
-    rx: Receiver<RxFrame>,
-    dropped: Arc<AtomicU64>,
-    /// A transmit-only controller keeps its (never used) queue's sender here.
-    _keep: Option<Sender<RxFrame>>,
-}
-
-impl MemPort {
-    /// Frames this port lost because its queue was full.
-    pub fn dropped(&self) -> u64 {
-        self.dropped.load(Ordering::Relaxed)
-    }
-
-    /// Sends a frame with an explicit timestamp at once, past the timeline (e.g. replaying a
-    /// log or simulated time).
-    pub fn send_at(&self, rx: RxFrame) {
-        self.core.broadcast(self.id, rx);
-    }
-
-    /// Another CAN controller on this bus in this port's group: it only transmits (its frames
-    /// do not reach this port), with its own transmit queue and error counters.
-    pub fn sibling_controller(&self) -> MemPort {
-        let (tx, rx) = crossbeam_channel::bounded(1);
-        let group = self
-            .core
-            .members
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .iter()
-            .find(|m| m.id == self.id)
-            .map_or(self.id, |m| m.group);
-        let (id, dropped) = self.core.join_group(Sink::None, Some(group));
-        MemPort {
-            core: self.core.clone(),
-            id,
-            rx,
-            dropped,
-            _keep: Some(tx),
-        }
-    }
-}
-
-impl Drop for MemPort {
-    fn drop(&mut self) {
-        self.core.leave(self.id);
-    }
-}
-
-impl Transport for MemPort {
-    fn send(&mut self, frame: &Frame) -> io::Result<()> {
-        self.core.transmit(self.id, *frame);
-        Ok(())
-    }
-
-    fn receiver(&self) -> &Receiver<RxFrame> {
-        &self.rx
-    }
-
-    fn bus_bitrate(&self) -> Option<u32> {
-        self.core.bitrate()
-    }
-
-    fn dropped(&self) -> u64 {
-        MemPort::dropped(self)
-    }
-
-    fn bus_state(&self) -> BusState {
-        self.core
-            .stats(Some(self.id))
-            .and_then(|s| s.controller)
-            .map_or(BusState::ErrorActive, |c: MemberStats| c.state)
-    }
-
-    fn bus_stats(&self) -> Option<BusStats> {
-        self.core.stats(Some(self.id))
-    }
-
-    fn controller(&self) -> Option<Box<dyn Transport>> {
-        self.core
-            .pacer
-            .is_some()
-            .then(|| Box::new(self.sibling_controller()) as Box<dyn Transport>)
-    }
-
-    fn disturb(&self, d: Disturbance) -> Result<(), String> {
-        self.core.disturb(Some(self.id), d)
-    }
-
-    fn join_clock(&mut self) -> Option<Horizon> {
-        self.core.join_clock(self.id)
-    }
-
-    fn sync_bus(&self) {
-        self.core.sync();
-    }
-
-    /// Delivers every frame still (an in-process bus does not filter); only the frames with
-    /// these identifiers hold a timed participant's clock (docs/CLOCK.md).
-    fn set_rx_filter(&mut self, std_ids: &[u16]) -> io::Result<bool> {
-        self.core.set_hold_filter(self.id, std_ids);
-        Ok(false)
-    }
-
-    fn describe(&self) -> String {
-        format!("in-process bus port {}", self.id)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use std::time::Duration;
-
-    fn f(id: u16) -> Frame {
-        Frame::new(id, &[id as u8]).unwrap()
-    }
-
-    #[test]
-    fn broadcasts_to_others_only() {
-        // About who receives what, not about time: the instant bus.
-        let bus = MemBus::instant();
-        let mut a = bus.attach();
-        let mut b = bus.attach();
-        let mut c = bus.attach();
-        a.send(&f(1)).unwrap();
-        assert_eq!(b.try_recv().unwrap().unwrap().frame, f(1));
-        assert_eq!(c.try_recv().unwrap().unwrap().frame, f(1));
-        assert_eq!(a.try_recv().unwrap(), None);
-        assert_eq!(bus.port_count(), 3);
-        drop(c);
-        assert_eq!(bus.port_count(), 2);
-        b.send(&f(2)).unwrap();
-        assert_eq!(a.recv_timeout(None).unwrap().unwrap().frame, f(2));
-        assert_eq!(bus.frames(), 2);
-    }
-
-    #[test]
-    fn full_queue_drops_for_that_port_only() {
-        let bus = MemBus::instant().with_queue_len(4);
-        let mut tx = bus.attach();
-        let slow = bus.attach();
-        let mut fast = bus.attach();
-        for i in 0..10 {
-            tx.send(&f(i)).unwrap();
-            assert_eq!(fast.try_recv().unwrap().unwrap().frame, f(i));
-        }
-        assert_eq!(slow.dropped(), 6);
-        assert_eq!(fast.dropped(), 0);
-        assert_eq!(bus.dropped(), 6);
-        // The oldest frames are the ones kept.
-        assert_eq!(slow.receiver().try_recv().unwrap().frame, f(0));
-    }
-
-    #[test]
-    fn bitrate_is_visible_to_ports() {
-        let bus = MemBus::new();
-        let p = bus.attach();
-        assert_eq!(p.bus_bitrate(), None);
-        bus.set_bitrate(Some(250));
-        assert_eq!(p.bus_bitrate(), Some(250));
-        assert_eq!(bus.bitrate(), Some(250));
-    }
-
-    #[test]
-    fn recv_deadline_times_out_precisely() {
-        let bus = MemBus::new();
-        let mut p = bus.attach();
-        let start = std::time::Instant::now();
-        let deadline = start + Duration::from_millis(5);
-        assert_eq!(p.recv_deadline(deadline).unwrap(), None);
-        assert!(std::time::Instant::now() >= deadline);
-    }
-
-    #[test]
-    fn select_over_many_ports() {
-        let bus = MemBus::new();
-        let mut tx = bus.attach();
-        let ports: Vec<MemPort> = (0..5).map(|_| bus.attach()).collect();
-        tx.send(&f(7)).unwrap();
-        let mut sel = crossbeam_channel::Select::new();
-        for p in &ports {
-            sel.recv(p.receiver());
-        }
-        let deadline = std::time::Instant::now() + Duration::from_secs(1);
-        let i = sel.ready_deadline(deadline).unwrap();
-        assert_eq!(ports[i].receiver().try_recv().unwrap().frame, f(7));
-    }
-
-    #[test]
-    fn paced_bus_delivers_one_frame_at_a_time_at_end_of_frame() {
-        // 125 kbit/s: an 8-byte frame is 111…135 bits, 888…1080 µs.
-        let bus = MemBus::with_pacing(Pacing::Paced(125));
-        let mut a = bus.attach();
-        let mut b = bus.attach();
-        let mut rx = bus.attach();
-        for i in 0..10u8 {
-            a.send(&Frame::new(0x181, &[i; 8]).unwrap()).unwrap();
-            b.send(&Frame::new(0x182, &[i; 8]).unwrap()).unwrap();
-        }
-        let mut got = Vec::new();
-        while got.len() < 20 {
-            let f = rx
-                .recv_timeout(Some(Duration::from_secs(5)))
-                .unwrap()
-                .unwrap();
-            got.push(f);
-        }
-        for w in got.windows(2) {
-            let gap = w[1].timestamp.duration_since(w[0].timestamp).unwrap();
-            // Never closer than the later frame's own time on the wire.
-            let bits = crate::bus::bits::frame_length(&w[1].frame).total;
-            assert!(gap >= Duration::from_micros(u64::from(bits) * 8), "{gap:?}");
-        }
-        // Lowest identifier first at every arbitration: once both queue, 0x181 goes first.
-        assert_eq!(got[0].frame.id(), 0x181);
-        let s = bus.stats().unwrap();
-        assert_eq!(s.frames, 20);
-        assert!(s.load > 0.0);
-        assert_eq!(a.bus_stats().unwrap().controller.unwrap().sent, 10);
-    }
-
-    #[test]
-    fn sibling_controllers_arbitrate_and_do_not_echo_to_their_group() {
-        // A long frame holds the bus (125 bits at 125 kbit/s: 1 ms) while both queue.
-        let bus = MemBus::with_pacing(Pacing::Paced(125));
-        let mut main = bus.attach();
-        let mut other = bus.attach();
-        let mut c1 = main.controller().unwrap();
-        let mut c2 = main.controller().unwrap();
-        other.send(&Frame::new(0x100, &[0; 8]).unwrap()).unwrap();
-        c1.send(&Frame::new(0x185, &[1]).unwrap()).unwrap();
-        c2.send(&Frame::new(0x185, &[2]).unwrap()).unwrap();
-        // Same identifier, different data, in one arbitration: a collision, retried.
-        let f = other
-            .recv_timeout(Some(Duration::from_secs(5)))
-            .unwrap()
-            .unwrap();
-        assert_eq!(f.frame.id(), 0x185);
-        std::thread::sleep(Duration::from_millis(20));
-        assert_eq!(
-            main.try_recv().unwrap().map(|f| f.frame.id()),
-            Some(0x100),
-            "only the other port's frame reaches the group"
-        );
-        assert_eq!(
-            main.try_recv().unwrap(),
-            None,
-            "the group's own frames do not come back"
-        );
-        let s1 = c1.bus_stats().unwrap().controller.unwrap();
-        assert!(s1.collisions >= 1, "{s1:?}");
-        assert_eq!(bus.port_count(), 2);
-    }
-
-    #[test]
-    fn listeners_see_error_frames() {
-        // At 10 kbit/s the 32 corrupted attempts that would take the sender bus-off (and lose
-        // its frame) last about 0.2 s, so lifting the disturbance after the first error frame
-        // wins that race even on a loaded machine; at the default rate it took 2 ms and lost.
-        let bus = MemBus::with_pacing(Pacing::Paced(10));
-        let errors = bus.error_frames();
-        let mut a = bus.attach();
-        let mut b = bus.attach();
-        bus.disturb(Disturbance::CorruptedFrames {
-            per_million: 1_000_000,
-        })
-        .unwrap();
-        a.send(&Frame::new(0x181, &[1]).unwrap()).unwrap();
-        let e = errors.recv_timeout(Duration::from_secs(5)).unwrap();
-        assert_eq!(e.kind, crate::bus::BusErrorKind::Corrupted);
-        assert_eq!(e.id, Some(0x181));
-        assert_eq!(e.to_socketcan().0 & 0x2000_0000, 0x2000_0000);
-        bus.disturb(Disturbance::CorruptedFrames { per_million: 0 })
-            .unwrap();
-        // The retransmission gets through.
-        let f = b
-            .recv_timeout(Some(Duration::from_secs(5)))
-            .unwrap()
-            .unwrap();
-        assert_eq!(f.frame.id(), 0x181);
-        assert!(a.bus_stats().unwrap().controller.unwrap().tx_errors >= 1);
-    }
-
-    /// The bus waits for a timed participant that is behind, but not forever: one that never
-    /// moves (deadlocked, stopped) holds it no longer than the clock's stall bound, then the
-    /// others' frames flow again, late by about that bound.
-    #[test]
-    fn a_stopped_participant_holds_the_bus_no_longer_than_the_stall_bound() {
-        let bound = Duration::from_millis(100);
-        let bus = MemBus::with_clock(1000, SimClock::wall_with_stall_bound(bound));
-        let mut stuck = bus.attach();
-        let mut a = bus.attach();
-        let mut b = bus.attach();
-        // Before the horizon is taken: it stands at the clock's time then, at or after this.
-        let sent = std::time::Instant::now();
-        let _horizon = stuck.join_clock().expect("a paced bus has a clock");
-        a.send(&f(1)).unwrap();
-        let got = b
-            .recv_timeout(Some(Duration::from_secs(10)))
-            .unwrap()
-            .expect("delivered once the stopped participant stopped holding");
-        assert_eq!(got.frame, f(1));
-        // Held while the stuck horizon was within the bound (a lower bound only: the machine
-        // may be late, never early).
-        assert!(sent.elapsed() >= bound, "{:?}", sent.elapsed());
-        // Stale, it holds nothing: the next frame goes through at once (generous bound).
-        let sent = std::time::Instant::now();
-        a.send(&f(2)).unwrap();
-        assert_eq!(
-            b.recv_timeout(Some(Duration::from_secs(10)))
-                .unwrap()
-                .unwrap()
-                .frame,
-            f(2)
-        );
-        assert!(sent.elapsed() < Duration::from_secs(5));
-        // The stuck one got both (its queue holds them; it never took them).
-        assert_eq!(stuck.try_recv().unwrap().unwrap().frame, f(1));
-    }
-
-    /// A frame delivered to a timed participant holds the clock at its end of frame until the
-    /// participant takes it: its answer, stamped at that time, still goes out before anything
-    /// submitted later (stepped clock: deterministic).
-    #[test]
-    fn a_delivered_frame_holds_the_clock_until_taken() {
-        let clock = SimClock::stepped();
-        let bus = MemBus::with_clock(1000, clock.clone());
-        let mut rt = bus.attach();
-        let h = rt.join_clock().unwrap();
-        h.set(u64::MAX);
-        let mut master = bus.attach();
-        master.send(&f(0x601)).unwrap();
-        clock.step_to(1_000_000).unwrap();
-        rt.sync_bus();
-        let rx = rt
-            .try_recv()
-            .unwrap()
-            .expect("delivered at its end of frame");
-        let end = clock.nanos_of(rx.timestamp).unwrap();
-        assert!(end < 1_000_000);
-        assert_eq!(clock.now(), end, "held at the frame until taken");
-        // The answer at the frame's own time, then taken: the bus goes on.
-        h.set(end);
-        rt.send(&f(0x581)).unwrap();
-        h.taken(end);
-        h.set(u64::MAX);
-        master.sync_bus();
-        let answer = master.try_recv().unwrap().expect("the answer");
-        let bits = u64::from(crate::bus::bits::frame_length(&answer.frame).total);
-        // Ready at `end`, it starts after the intermission (3 bits) and lasts its bits less
-        // the intermission: end of frame = end + bits × 1 µs.
-        assert_eq!(
-            clock.nanos_of(answer.timestamp).unwrap(),
-            end + bits * 1_000
-        );
-    }
-
-    /// Issue 36 (a flaky `sigkill_during_store…`): a frame handed out late by the driver thread
-    /// reached a port that joined after the frame was on the bus, so a restarted sensor carried
-    /// out a "save" sent to the one killed before it. The driver is made late here by handing
-    /// the timeline's output over by hand: a frame that started before a port joined does not
-    /// reach it, one that started after does.
-    #[test]
-    fn a_port_does_not_receive_frames_that_started_before_it_joined() {
-        let bus = MemBus::with_pacing(Pacing::Paced(125));
-        let mut early = bus.attach();
-        let core = &bus.core;
-        let p = core.pacer.as_ref().unwrap();
-        // A frame that starts after `early` joined, and before `late` does.
-        let before = p.now();
-        while p.now() == before {
-            std::hint::spin_loop();
-        }
-        let mut late = bus.attach();
-        let joined = p.now();
-        let frame = |id, start| BusEvent::Frame {
-            // No member's controller: sent by a port that has left since.
-            from: MemberId(u32::MAX),
-            co_senders: Vec::new(),
-            frame: f(id),
-            start,
-            end: start + 1_000_000,
-        };
-        // Both handed out now, long after the first one's end of frame.
-        core.dispatch(p, &mut vec![frame(1, before), frame(2, joined)]);
-        assert_eq!(early.try_recv().unwrap().unwrap().frame, f(1));
-        assert_eq!(early.try_recv().unwrap().unwrap().frame, f(2));
-        assert_eq!(late.try_recv().unwrap().unwrap().frame, f(2));
-        assert_eq!(late.try_recv().unwrap(), None);
-    }
-
-    /// A frame still on the wire when a port joins is not received by it either (bus
-    /// integration); the ports that were there get it, and the new port gets the frames that
-    /// start after it joined (stepped clock: deterministic).
-    #[test]
-    fn a_frame_in_progress_is_not_received_by_a_port_that_joins_meanwhile() {
-        let clock = SimClock::stepped();
-        // 125 kbit/s: 8 µs a bit, an 8-byte frame about 1 ms on the wire.
-        let bus = MemBus::with_clock(125, clock.clone());
-        let mut a = bus.attach();
-        let mut there = bus.attach();
-        clock.step_to(1_000).unwrap();
-        a.send(&Frame::new(0x609, &[0x23, 0x10, 0x10, 1, b's', b'a', b'v', b'e']).unwrap())
-            .unwrap();
-        // 100 µs into the frame.
-        clock.step_to(101_000).unwrap();
-        let mut joined = bus.attach();
-        clock.step_to(10_000_000).unwrap();
-        joined.sync_bus();
-        let got = there
-            .try_recv()
-            .unwrap()
-            .expect("delivered at its end of frame");
-        assert_eq!(got.frame.std_id(), Some(0x609));
-        assert_eq!(joined.try_recv().unwrap(), None);
-        // A frame that starts after the join reaches it.
-        a.send(&f(0x100)).unwrap();
-        clock.step_to(20_000_000).unwrap();
-        joined.sync_bus();
-        assert_eq!(joined.try_recv().unwrap().unwrap().frame, f(0x100));
-        assert_eq!(there.try_recv().unwrap().unwrap().frame, f(0x100));
-    }
-
-    /// A frame submitted at the time the bus already reached (between two steps of a stepped
-    /// clock, an untimed member's frame is stamped with the step's time) starts when the bus
-    /// is next run, even to that same time. Before, the pump skipped it (nothing to do up to
-    /// the time reached) while the driver thread found it due and looked again at once:
-    /// 100 % of a core until the next step.
-    #[test]
-    fn a_frame_at_the_time_reached_leaves_nothing_due_for_the_driver() {
-        let clock = SimClock::stepped();
-        let bus = MemBus::with_clock(1000, clock.clone());
-        let mut a = bus.attach();
-        let mut b = bus.attach();
-        clock.step_to(1_000_000).unwrap();
-        a.sync_bus();
-        a.send(&f(0x123)).unwrap();
-        a.sync_bus();
-        assert!(
-            !bus.core.due_by_reached(),
-            "an event at the time reached is left for the driver thread"
-        );
-        // It was started, not delivered early: it ends after its bits, at the next step.
-        assert!(b.try_recv().unwrap().is_none());
-        clock.step_to(2_000_000).unwrap();
-        b.sync_bus();
-        let rx = b
-            .try_recv()
-            .unwrap()
-            .expect("delivered at its end of frame");
-        let end = clock.nanos_of(rx.timestamp).unwrap();
-        let bits = u64::from(crate::bus::bits::frame_length(&rx.frame).total);
-        assert!(end > 1_000_000 && end <= 1_000_000 + bits * 1_000, "{end}");
-    }
-
-    /// Two timed participants on one bus, one of them behind (stopped): the bus waits for it,
-    /// and the one on time goes on producing frames at its own times. They join its transmit
-    /// queue when the bus reaches their times, so none is lost and each goes out at its time
-    /// once the other catches up. Before, they were queued at once while the bus stood still:
-    /// the 64-frame queue overflowed and a runtime on time sent EMCY 0x8110 for another
-    /// runtime's stall (two runtimes on a `mem://` bus, one stopped 200 ms: 681 TPDOs lost).
-    #[test]
-    fn a_participant_ahead_of_the_bus_loses_nothing_while_another_is_behind() {
-        let clock = SimClock::stepped();
-        let bus = MemBus::with_clock(1000, clock.clone());
-        let mut listener = bus.attach();
-        let mut behind = bus.attach();
-        let held = behind.join_clock().unwrap();
-        let mut ahead = bus.attach();
-        let h = ahead.join_clock().unwrap();
-        clock.step_to(200_000_000).unwrap();
-        // 150 frames, 1 ms apart, while the other stands at 0.
-        for k in 1..=150u64 {
-            h.set(k * 1_000_000);
-            ahead.send(&f(0x181)).unwrap();
-        }
-        listener.sync_bus();
-        assert!(listener.try_recv().unwrap().is_none(), "the bus waits");
-        let c = ahead.bus_stats().unwrap().controller.unwrap();
-        assert_eq!(c.lost_overflow, 0, "{c:?}");
-        // The one behind leaves (it would take each frame delivered to it): each goes out at
-        // its own time.
-        drop(held);
-        h.set(u64::MAX);
-        listener.sync_bus();
-        let mut ends = Vec::new();
-        while let Some(rx) = listener.try_recv().unwrap() {
-            ends.push(clock.nanos_of(rx.timestamp).unwrap());
-        }
-        assert_eq!(ends.len(), 150);
-        let bits = u64::from(crate::bus::bits::frame_length(&f(0x181)).total)
-            - u64::from(crate::bus::bits::INTERMISSION_BITS);
-        for (k, end) in ends.iter().enumerate() {
-            assert_eq!(end - bits * 1_000, (k as u64 + 1) * 1_000_000, "frame {k}");
-        }
-        assert_eq!(
-            ahead.bus_stats().unwrap().controller.unwrap().lost_overflow,
-            0
-        );
-        assert!(!bus.core.due_by_reached());
-    }
-
-    /// Issue 36 (review): the same for an untimed member (a hub TCP client such as
-    /// python-canopen, a bridge, a tool). Its frames are stamped with the wall time (the
-    /// limit) it sent them at, ahead of a bus held by a timed participant that is behind;
-    /// they are kept for their stamps as a timed participant's are, so none is lost and each
-    /// goes out at its own time once the held one moves. Before, they went straight into its
-    /// 64-frame transmit queue while the bus stood still: 86 of these 150 lost (a hub client
-    /// was sent TX-overflow reports) though the bus was never overloaded.
-    #[test]
-    fn an_untimed_member_ahead_of_the_bus_loses_nothing_while_a_participant_is_behind() {
-        let clock = SimClock::stepped();
-        let bus = MemBus::with_clock(1000, clock.clone());
-        let mut listener = bus.attach();
-        let mut behind = bus.attach();
-        let held = behind.join_clock().unwrap();
-        assert_eq!(held.at(), 0);
-        let mut untimed = bus.attach();
-        // 150 frames over 150 ms of limit (wall) time, one per ms, while the bus is held at 0.
-        for k in 1..=150u64 {
-            clock.step_to(k * 1_000_000).unwrap();
-            untimed.send(&f(0x601)).unwrap();
-        }
-        listener.sync_bus();
-        assert!(listener.try_recv().unwrap().is_none(), "the bus waits");
-        let c = untimed.bus_stats().unwrap().controller.unwrap();
-        assert_eq!(c.lost_overflow, 0, "{c:?}");
-        // The held participant moves on, and leaves (it would take each frame delivered to it).
-        held.set(u64::MAX);
-        drop(held);
-        clock.step_to(200_000_000).unwrap();
-        listener.sync_bus();
-        let mut ends = Vec::new();
-        while let Some(rx) = listener.try_recv().unwrap() {
-            ends.push(clock.nanos_of(rx.timestamp).unwrap());
-        }
-        assert_eq!(ends.len(), 150);
-        let bits = u64::from(crate::bus::bits::frame_length(&f(0x601)).total)
-            - u64::from(crate::bus::bits::INTERMISSION_BITS);
-        for (k, end) in ends.iter().enumerate() {
-            assert_eq!(end - bits * 1_000, (k as u64 + 1) * 1_000_000, "frame {k}");
-        }
-        let c = untimed.bus_stats().unwrap().controller.unwrap();
-        assert_eq!((c.sent, c.lost_overflow), (150, 0), "{c:?}");
-        assert!(!bus.core.due_by_reached());
-    }
-
-    /// A tool that sends one frame and exits while the bus is held (a timed participant
-    /// behind): its kept frame still goes out once the bus gets there, as the frames it had
-    /// queued do. It was dropped with the member, so `canpos lss switch-global config` was
-    /// lost beside CPU hogs (interop `test_tmi_at_20k…`).
-    #[test]
-    fn a_member_that_leaves_while_the_bus_is_held_still_sends_its_kept_frame() {
-        let clock = SimClock::stepped();
-        let bus = MemBus::with_clock(1000, clock.clone());
-        let mut listener = bus.attach();
-        let mut behind = bus.attach();
-        let held = behind.join_clock().unwrap();
-        let mut tool = bus.attach();
-        clock.step_to(5_000_000).unwrap();
-        tool.send(&f(0x7E5)).unwrap();
-        drop(tool);
-        listener.sync_bus();
-        assert!(listener.try_recv().unwrap().is_none(), "the bus waits");
-        held.set(u64::MAX);
-        drop(held);
-        clock.step_to(10_000_000).unwrap();
-        listener.sync_bus();
-        let rx = listener.try_recv().unwrap().expect("the tool's frame");
-        assert_eq!(rx.frame, f(0x7E5));
-    }
-
-    #[test]
-    fn disturbances_out_of_range_change_nothing() {
-        let bus = MemBus::new();
-        let p = bus.attach();
-        assert!(bus
-            .disturb(Disturbance::CorruptedFrames {
-                per_million: 2_000_000
-            })
-            .is_err());
-        assert!(p
-            .disturb(Disturbance::StuckDominant {
-                duration: Duration::from_secs(61)
-            })
-            .is_err());
-        assert!(MemBus::instant()
-            .disturb(Disturbance::CorruptedFrames { per_million: 1 })
-            .is_err());
-        assert_eq!(bus.stats().unwrap().error_frames, 0);
     }
 }

@@ -1,0 +1,159 @@
+//! The builder's whole-file checks: the object lists of `[MandatoryObjects]` … agree with the
+//! sections, and every TPDO's default mapping names objects that exist and fit.
+
+use super::*;
+
+impl Builder<'_> {
+    /// `[MandatoryObjects]` / `[OptionalObjects]` / `[ManufacturerObjects]`: counts agree,
+    /// every listed object has a section; a section nobody lists is only warned about.
+    pub(super) fn check_lists(
+        &mut self,
+        ini: &Ini,
+        objects: &BTreeMap<u16, &Section>,
+    ) -> Result<(), EdsError> {
+        let mut listed: BTreeMap<u16, usize> = BTreeMap::new();
+        for name in ["MandatoryObjects", "OptionalObjects", "ManufacturerObjects"] {
+            let Some(sec) = ini.section(name) else {
+                continue;
+            };
+            let k = sec
+                .key("SupportedObjects")
+                .ok_or_else(|| self.err(sec.line, format!("[{name}] without SupportedObjects")))?;
+            let n = self.num(k)?;
+            let items: Vec<&Key> = sec
+                .keys
+                .iter()
+                .filter(|x| !x.name.eq_ignore_ascii_case("SupportedObjects"))
+                .collect();
+            if n < 0 || n as usize != items.len() {
+                return Err(self.err(
+                    k.line,
+                    format!(
+                        "SupportedObjects={} but [{name}] lists {}",
+                        k.value,
+                        items.len()
+                    ),
+                ));
+            }
+            for it in items {
+                match parse_int(&it.name) {
+                    Some(p) if (1..=n).contains(&p) => {}
+                    _ => {
+                        return Err(
+                            self.err(it.line, format!("[{name}] key `{}` is not 1…{n}", it.name))
+                        )
+                    }
+                }
+                let v = self.num(it)?;
+                let index = u16::try_from(v)
+                    .map_err(|_| self.err(it.line, format!("0x{v:X} is not an object index")))?;
+                if let Some(first) = listed.insert(index, it.line) {
+                    return Err(self.err(
+                        it.line,
+                        format!("0x{index:04X} listed again (first on line {first})"),
+                    ));
+                }
+                if !objects.contains_key(&index) {
+                    return Err(self.err(
+                        it.line,
+                        format!("0x{index:04X} is listed but has no [{index:04X}] section"),
+                    ));
+                }
+            }
+        }
+        for (index, sec) in objects {
+            if *index >= 0x1000 && !listed.contains_key(index) {
+                self.warnings.push(format!(
+                    "[{}] (line {}) is in no object list; served anyway",
+                    sec.name, sec.line
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The default mapping of every TPDO names objects that exist, may be mapped, and fit.
+    pub(super) fn check_mappings(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        let find = |i: u16, s: u8| entries.iter().find(|e| e.index == i && e.sub == s);
+        // The line of the entry's value (or of its section).
+        let line = |e: &Entry| value_lines.get(&e.key()).copied().unwrap_or(0);
+        for n in 0..pdo::MAX_TPDOS as u16 {
+            let Some(e0) = find(0x1A00 + n, 0) else {
+                continue;
+            };
+            let Default::Const(count) = e0.default else {
+                return Err(self.err(line(e0), "a mapping count must be a number"));
+            };
+            let have = (1..=pdo::MAX_MAP as u8)
+                .take_while(|&k| find(0x1A00 + n, k).is_some())
+                .count() as u32;
+            if count > have {
+                return Err(self.err(
+                    line(e0),
+                    format!(
+                        "0x{:04X} maps {count} objects but has no sub {}",
+                        0x1A00 + n,
+                        have + 1
+                    ),
+                ));
+            }
+            let mut bits = 0u32;
+            for k in 1..=count {
+                let Some(m) = u8::try_from(k).ok().and_then(|k| find(0x1A00 + n, k)) else {
+                    return Err(self.err(
+                        line(e0),
+                        format!(
+                            "0x{:04X} maps {count} objects but has no sub {k}",
+                            0x1A00 + n
+                        ),
+                    ));
+                };
+                let Default::Const(v) = m.default else {
+                    return Err(self.err(line(m), "a mapping entry must be a number"));
+                };
+                let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);
+                let at = line(m);
+                let Some(t) = find(ti, ts) else {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which does not exist",
+                            0x1A00 + n
+                        ),
+                    ));
+                };
+                if !t.pdo {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which has no PDOMapping=1",
+                            0x1A00 + n
+                        ),
+                    ));
+                }
+                if tb != u32::from(t.ty.bits()) {
+                    return Err(self.err(
+                        at,
+                        format!(
+                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts} with {tb} bits; it has {}",
+                            0x1A00 + n,
+                            t.ty.bits()
+                        ),
+                    ));
+                }
+                bits += tb;
+            }
+            if bits > 64 {
+                return Err(self.err(
+                    line(e0),
+                    format!("TPDO {} maps {bits} bits; a CAN frame holds 64", n + 1),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
