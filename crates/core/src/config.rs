@@ -12,3 +12,11 @@ pub const SIMULATION: bool = cfg!(feature = "simulation");
 pub const NAMES: bool = cfg!(feature = "names");
 /// Feature `host-buffers`: buffers sized for any device a host may run.
 pub const HOST_BUFFERS: bool = cfg!(feature = "host-buffers");
+
+// --- Sizes ----------------------------------------------------------------------------------
+
+/// Most TPDOs a device has (0x1800… / 0x1A00…): each costs its state in RAM.
+pub const MAX_TPDOS: usize = 4;
+const _: () = assert!(MAX_TPDOS.is_power_of_two() && MAX_TPDOS <= 8);
+/// Most mapping entries per TPDO (0x1A00/1…8): eight 8-bit objects fill a frame.
+pub const MAX_MAP: usize = 8;

@@ -6,11 +6,7 @@ use crate::od::{Abort, Dictionary};
 use crate::txq::TxQueue;
 use crate::wire::{Duration, Frame, Instant};
 
-/// Most TPDOs any model has.
-pub const MAX_TPDOS: usize = 4;
-const _: () = assert!(MAX_TPDOS.is_power_of_two() && MAX_TPDOS <= 8);
-/// Most mapping entries per TPDO.
-pub const MAX_MAP: usize = 8;
+pub use crate::config::{MAX_MAP, MAX_TPDOS};
 
 /// COB-ID bit 31: PDO does not exist / is not valid.
 pub const COB_INVALID: u32 = 0x8000_0000;

@@ -26,7 +26,9 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES};
+use canpos_core::od::{
+    cia301, Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
+};
 use canpos_core::pdo;
 use canpos_core::storage::{crc32, IMAGE_MAX};
 use canpos_core::Plain;
@@ -133,60 +135,52 @@ pub fn build(text: &str, file: &str, kind: FileKind, o: &Overrides) -> Result<Ed
     .build(&ini, o)
 }
 
-/// One CiA 301 object the standard defines: the service rule that owns it and its data type.
+/// One CiA 301 object the standard defines, with the data type it must have. Its hook (the
+/// service rule that owns it) is the stack's: [`cia301::hook_of`].
 struct Std {
     index: std::ops::RangeInclusive<u16>,
     subs: std::ops::RangeInclusive<u8>,
     ty: DataType,
-    hook: Hook,
 }
 
-const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType, hook: Hook) -> Std {
+const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType) -> Std {
     Std {
         index: lo..=hi,
         subs: s0..=s1,
         ty,
-        hook,
     }
 }
 
 /// The CiA 301 objects whose meaning the core's services implement, by their standard
-/// indices: the one place that assigns [`Hook`]s to a file's objects.
+/// indices, with their data types.
 const STANDARD: &[Std] = {
     use DataType::{Unsigned16 as U16, Unsigned32 as U32, Unsigned8 as U8};
     let t = pdo::MAX_TPDOS as u16 - 1;
     &[
-        row(0x1000, 0x1000, 0, 0, U32, Hook::None),
-        row(0x1001, 0x1001, 0, 0, U8, Hook::None),
-        row(0x1003, 0x1003, 0, 0, U8, Hook::ErrorHistory),
-        row(0x1003, 0x1003, 1, 0xFE, U32, Hook::ErrorHistory),
-        row(0x1005, 0x1005, 0, 0, U32, Hook::SyncCobId),
-        row(0x100C, 0x100C, 0, 0, U16, Hook::Guarding),
-        row(0x100D, 0x100D, 0, 0, U8, Hook::Guarding),
-        row(0x100E, 0x100E, 0, 0, U32, Hook::GuardingCobId),
-        row(0x1010, 0x1010, 0, 0, U8, Hook::None),
-        row(0x1010, 0x1010, 1, 0x7F, U32, Hook::StoreParameters),
-        row(0x1011, 0x1011, 0, 0, U8, Hook::None),
-        row(0x1011, 0x1011, 1, 0x7F, U32, Hook::RestoreDefaults),
-        row(0x1014, 0x1014, 0, 0, U32, Hook::EmcyCobId),
-        row(0x1015, 0x1015, 0, 0, U16, Hook::EmcyInhibit),
-        row(0x1017, 0x1017, 0, 0, U16, Hook::Heartbeat),
-        row(0x1018, 0x1018, 0, 0, U8, Hook::None),
-        row(0x1018, 0x1018, 1, 4, U32, Hook::None),
-        row(0x1800, 0x1800 + t, 0, 0, U8, Hook::None),
-        row(0x1800, 0x1800 + t, 1, 1, U32, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 2, 2, U8, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 3, 3, U16, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 5, 5, U16, Hook::TpdoComm),
-        row(0x1A00, 0x1A00 + t, 0, 0, U8, Hook::TpdoMap),
-        row(
-            0x1A00,
-            0x1A00 + t,
-            1,
-            pdo::MAX_MAP as u8,
-            U32,
-            Hook::TpdoMap,
-        ),
+        row(0x1000, 0x1000, 0, 0, U32),
+        row(0x1001, 0x1001, 0, 0, U8),
+        row(0x1003, 0x1003, 0, 0, U8),
+        row(0x1003, 0x1003, 1, 0xFE, U32),
+        row(0x1005, 0x1005, 0, 0, U32),
+        row(0x100C, 0x100C, 0, 0, U16),
+        row(0x100D, 0x100D, 0, 0, U8),
+        row(0x100E, 0x100E, 0, 0, U32),
+        row(0x1010, 0x1010, 0, 0, U8),
+        row(0x1010, 0x1010, 1, 0x7F, U32),
+        row(0x1011, 0x1011, 0, 0, U8),
+        row(0x1011, 0x1011, 1, 0x7F, U32),
+        row(0x1014, 0x1014, 0, 0, U32),
+        row(0x1015, 0x1015, 0, 0, U16),
+        row(0x1017, 0x1017, 0, 0, U16),
+        row(0x1018, 0x1018, 0, 0, U8),
+        row(0x1018, 0x1018, 1, 4, U32),
+        row(0x1800, 0x1800 + t, 0, 0, U8),
+        row(0x1800, 0x1800 + t, 1, 1, U32),
+        row(0x1800, 0x1800 + t, 2, 2, U8),
+        row(0x1800, 0x1800 + t, 3, 3, U16),
+        row(0x1800, 0x1800 + t, 5, 5, U16),
+        row(0x1A00, 0x1A00 + t, 0, 0, U8),
+        row(0x1A00, 0x1A00 + t, 1, pdo::MAX_MAP as u8, U32),
     ]
 };
 
@@ -523,6 +517,7 @@ impl Builder<'_> {
                 ));
             }
         }
+        self.check_hooks(&entries, &value_lines)?;
         if entries.len() > MAX_ENTRIES {
             return Err(self.err(
                 0,
@@ -838,7 +833,7 @@ impl Builder<'_> {
                 ),
             ));
         }
-        let hook = std.map_or(Hook::None, |s| s.hook);
+        let hook = cia301::hook_of(index, sub);
 
         let pv = sec.key("ParameterValue");
         if pv.is_some() && !dcf {
@@ -981,6 +976,30 @@ impl Builder<'_> {
             group,
             hook,
         })
+    }
+
+    /// Every CiA 301 object of the table carries the hook of the service whose rules it
+    /// follows ([`cia301::missing_hook`]): a table without one would serve, say, a 0x1014 that
+    /// accepts any COB-ID, so it is refused with the object's line.
+    fn check_hooks(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        match cia301::missing_hook(entries) {
+            None => Ok(()),
+            Some((index, sub)) => Err(self.err(
+                value_lines
+                    .get(&canpos_core::od::key(index, sub))
+                    .copied()
+                    .unwrap_or(0),
+                format!(
+                    "0x{index:04X} sub {sub} lacks its CiA 301 rule ({:?}): the table would \
+                     accept any value there",
+                    cia301::hook_of(index, sub)
+                ),
+            )),
+        }
     }
 
     /// The default mapping of every TPDO names objects that exist, may be mapped, and fit.

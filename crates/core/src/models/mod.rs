@@ -530,7 +530,7 @@ pub(crate) mod table {
             default: c.cob,
             range: &Range::Any,
             group: c.group,
-            hook: Hook::TpdoComm,
+            hook: Hook::None, // `cia301::attach`
         };
         out[2] = Entry {
             index,
@@ -543,7 +543,7 @@ pub(crate) mod table {
             default: Default::Const(c.ttype),
             range: c.ttype_range,
             group: c.group,
-            hook: Hook::TpdoComm,
+            hook: Hook::None, // `cia301::attach`
         };
         let mut n = 3;
         if c.inhibit {
@@ -558,7 +558,7 @@ pub(crate) mod table {
                 default: Default::Const(0),
                 range: &Range::Any,
                 group: c.group,
-                hook: Hook::TpdoComm,
+                hook: Hook::None, // `cia301::attach`
             };
             n += 1;
         }
@@ -574,7 +574,7 @@ pub(crate) mod table {
                 default: Default::Const(ms),
                 range: &Range::Any,
                 group: c.group,
-                hook: Hook::TpdoComm,
+                hook: Hook::None, // `cia301::attach`
             };
             n += 1;
         }
@@ -610,7 +610,7 @@ pub(crate) mod table {
                 default: Default::Const(if i == 0 { count } else { maps[i - 1] }),
                 range: &Range::Any,
                 group,
-                hook: Hook::TpdoMap,
+                hook: Hook::None, // `cia301::attach`
             };
             i += 1;
         }
@@ -658,7 +658,7 @@ pub(crate) mod table {
                     &Range::Any
                 },
                 group: Group::Volatile,
-                hook: Hook::ErrorHistory,
+                hook: Hook::None, // `cia301::attach`
             };
             i += 1;
         }
@@ -854,5 +854,49 @@ mod tests {
         let over: [Entry; MAX_ENTRIES + 1] = core::array::from_fn(|i| e(0x2000 + i as u16, 0));
         assert!(table::valid(&over[..MAX_ENTRIES]), "exactly MAX_ENTRIES");
         assert!(!table::valid(&over), "one more than MAX_ENTRIES");
+    }
+
+    /// Every model table this build has: each CiA 301 object with the hook of the service
+    /// that owns it (the tables' compile-time asserts check the same; this names the object),
+    /// and the seven whose values a service must check present where the model has them.
+    #[test]
+    fn every_model_table_has_every_communication_profile_hook() {
+        use crate::od::cia301::{hook_of, missing_hook};
+        #[allow(unused_mut)]
+        let mut tables: [Option<(&str, &[Entry])>; 4] = [None; 4];
+        #[cfg(feature = "th")]
+        {
+            tables[0] = Some(("TH", super::th::ENTRIES));
+        }
+        #[cfg(feature = "e-series")]
+        {
+            tables[1] = Some(("E-Series", super::e_series::ENTRIES));
+        }
+        #[cfg(feature = "tmi")]
+        {
+            tables[2] = Some(("TMI", super::tmi::ENTRIES));
+            tables[3] = Some(("TMI two channels", super::tmi::ENTRIES_TWO_CHANNELS));
+        }
+        for (name, t) in tables.into_iter().flatten() {
+            assert_eq!(missing_hook(t), None, "{name}");
+            let has = |i: u16, s: u8| t.iter().find(|x| (x.index, x.sub) == (i, s));
+            for (index, sub) in [
+                (0x1005, 0),
+                (0x100E, 0),
+                (0x1010, 1),
+                (0x1011, 1),
+                (0x1014, 0),
+                (0x1015, 0),
+                (0x1017, 0),
+            ] {
+                // 0x100E is optional (the E-Series and the TMI have none).
+                if index == 0x100E && has(index, sub).is_none() {
+                    continue;
+                }
+                let e = has(index, sub).unwrap_or_else(|| panic!("{name}: 0x{index:04X}/{sub}"));
+                assert_eq!(e.hook, hook_of(index, sub), "{name}: 0x{index:04X}/{sub}");
+                assert_ne!(e.hook, Hook::None);
+            }
+        }
     }
 }

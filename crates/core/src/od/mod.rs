@@ -6,6 +6,7 @@
 //! current values live in a fixed array parallel to the table (one `u32` per entry), so a
 //! dictionary costs 4 bytes per entry of RAM and no allocation.
 
+pub mod cia301;
 mod types;
 
 pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};

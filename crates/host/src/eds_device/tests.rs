@@ -609,3 +609,34 @@ fn the_node_serves_values_limits_pdos_and_storage() {
     assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 0);
     assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -500);
 }
+
+#[test]
+fn a_table_whose_cia301_object_lacks_its_hook_is_refused() {
+    // What the loader builds carries every hook (the stack attaches them)…
+    let d = eds(IO).unwrap();
+    let b = Builder {
+        file: "x.eds",
+        kind: FileKind::Eds,
+        warnings: Vec::new(),
+    };
+    let lines = BTreeMap::from([(canpos_core::od::key(0x1014, 0), 42usize)]);
+    b.check_hooks(d.model.entries, &lines).unwrap();
+    // …and a table where one of them is missing or wrong is an error naming the object.
+    for (index, sub) in [(0x1005, 0), (0x1010, 1), (0x1014, 0), (0x1017, 0)] {
+        let mut t = d.model.entries.to_vec();
+        let at = t.iter().position(|e| (e.index, e.sub) == (index, sub));
+        let at = at.unwrap_or_else(|| panic!("io-device has 0x{index:04X}/{sub}"));
+        for wrong in [Hook::None, Hook::TpdoMap] {
+            t[at].hook = wrong;
+            let err = b.check_hooks(&t, &lines).unwrap_err();
+            assert!(
+                err.msg
+                    .starts_with(&format!("0x{index:04X} sub {sub} lacks")),
+                "{err}"
+            );
+            if index == 0x1014 {
+                assert_eq!(err.line, 42);
+            }
+        }
+    }
+}
