@@ -14,7 +14,7 @@
 
 use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
 use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{Default::*, Entry, Param};
+use canpos_core::od::{DefaultValue::*, Entry, Param};
 use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
 use core::mem::MaybeUninit;
@@ -91,7 +91,7 @@ pub const fn join<const A: usize, const B: usize, const N: usize>(
     out
 }
 
-/// The dictionary's parameters (`Default::Param`): a plain CiA 301 device, with no profile and
+/// The dictionary's parameters (`DefaultValue::Param`): a plain CiA 301 device, with no profile and
 /// no sensor (stroke, steps, channels), has its serial number and nothing else.
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
     match p {

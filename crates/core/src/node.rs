@@ -12,7 +12,7 @@ use crate::lss::{self, LssSlave};
 use crate::models::{DeviceConfig, Features, Model};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{
-    self, le_u32, Abort, DataType, Default, Dictionary, Entry, Hook, Param, ParamSource,
+    self, le_u32, Abort, DataType, DefaultValue, Dictionary, Entry, Hook, Param, ParamSource,
 };
 use crate::pdo::{self, Tpdos};
 use crate::sdo::{ObjectAccess, SdoServer};
@@ -91,7 +91,7 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
 /// (written before it was recorded) keep the earlier rule: a CAN-ID in the pre-defined range
 /// of another node-id follows.
 fn follow_node_id(e: &Entry, v: u32, saved: Option<u8>, node: u8) -> u32 {
-    let Default::NodeId(base) = e.default else {
+    let DefaultValue::NodeId(base) = e.default else {
         return v;
     };
     // The default's flag bits (e.g. "not valid") are no part of the CAN-ID.

@@ -495,7 +495,7 @@ mod tests {
     /// groups, the volatile one is in none.
     #[test]
     fn each_scope_covers_exactly_its_groups() {
-        use crate::od::{Access, DataType, Default, Range};
+        use crate::od::{Access, DataType, DefaultValue, Range};
         let groups = [Group::Volatile, Group::Comm, Group::App, Group::Auto];
         for scope in [Scope::All, Scope::Comm, Scope::App, Scope::Auto] {
             for g in groups {
@@ -506,7 +506,7 @@ mod tests {
                     DataType::Unsigned8,
                     Access::Rw,
                     false,
-                    Default::Const(0),
+                    DefaultValue::Const(0),
                     &Range::Any,
                     g,
                 );

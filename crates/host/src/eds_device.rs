@@ -27,7 +27,7 @@ use std::path::{Path, PathBuf};
 
 use canpos_core::models::{DeviceConfig, Features, Model};
 use canpos_core::od::{
-    cia301, Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
+    cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
 };
 use canpos_core::pdo;
 use canpos_core::storage::{crc32, IMAGE_MAX};
@@ -625,7 +625,7 @@ impl Builder<'_> {
                 .iter()
                 .find(|e| e.index == i && e.sub == s)
                 .and_then(|e| match e.default {
-                    Default::Const(v) => Some(v),
+                    DefaultValue::Const(v) => Some(v),
                     _ => None,
                 })
         };
@@ -634,7 +634,7 @@ impl Builder<'_> {
         let mut serial = value(0x1018, 4).unwrap_or(0);
         if let Some(s) = o.serial {
             match entries.iter_mut().find(|e| e.index == 0x1018 && e.sub == 4) {
-                Some(e) => e.default = Default::Const(s),
+                Some(e) => e.default = DefaultValue::Const(s),
                 None => self.warnings.push(
                     "--serial: the file has no 0x1018 sub 4; only names the state file".into(),
                 ),
@@ -876,7 +876,7 @@ impl Builder<'_> {
                 ty,
                 access,
                 pdo: false,
-                default: Default::Str(Box::leak(Box::new(leak(s)))),
+                default: DefaultValue::Str(Box::leak(Box::new(leak(s)))),
                 range: &Range::Any,
                 group: Group::Volatile,
                 hook,
@@ -914,7 +914,7 @@ impl Builder<'_> {
         };
 
         let default = match val {
-            None => Default::Const(0),
+            None => DefaultValue::Const(0),
             Some(k) => {
                 let (v, rel) = parse_value(&k.value).ok_or_else(|| {
                     self.err(k.line, format!("{}: `{}` is not a number", k.name, k.value))
@@ -923,7 +923,7 @@ impl Builder<'_> {
                     let base = u32::try_from(v).map_err(|_| {
                         self.err(k.line, format!("{}: offset {v} out of range", k.name))
                     })?;
-                    Default::NodeId(base)
+                    DefaultValue::NodeId(base)
                 } else {
                     let raw = raw_of(ty, v, &k.value).ok_or_else(|| {
                         self.err(
@@ -943,7 +943,7 @@ impl Builder<'_> {
                             ));
                         }
                     }
-                    Default::Const(raw)
+                    DefaultValue::Const(raw)
                 }
             }
         };
@@ -1015,7 +1015,7 @@ impl Builder<'_> {
             let Some(e0) = find(0x1A00 + n, 0) else {
                 continue;
             };
-            let Default::Const(count) = e0.default else {
+            let DefaultValue::Const(count) = e0.default else {
                 return Err(self.err(line(e0), "a mapping count must be a number"));
             };
             let have = (1..=pdo::MAX_MAP as u8)
@@ -1042,7 +1042,7 @@ impl Builder<'_> {
                         ),
                     ));
                 };
-                let Default::Const(v) = m.default else {
+                let DefaultValue::Const(v) = m.default else {
                     return Err(self.err(line(m), "a mapping entry must be a number"));
                 };
                 let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);

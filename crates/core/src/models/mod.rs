@@ -410,7 +410,7 @@ pub(crate) use tpdo_map_names;
 
 /// Compile-time table assembly.
 pub(crate) mod table {
-    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range};
+    use crate::od::{Access, DataType, DefaultValue, Entry, Group, Hook, Range};
 
     const BLANK: Entry = Entry {
         index: 0,
@@ -420,7 +420,7 @@ pub(crate) mod table {
         ty: DataType::Unsigned8,
         access: Access::Const,
         pdo: false,
-        default: Default::Const(0),
+        default: DefaultValue::Const(0),
         range: &Range::Any,
         group: Group::Volatile,
         hook: Hook::None,
@@ -435,7 +435,7 @@ pub(crate) mod table {
         ty: DataType,
         access: Access,
         pdo: bool,
-        default: Default,
+        default: DefaultValue,
         range: &'static Range,
         group: Group,
     ) -> [Entry; N] {
@@ -449,7 +449,7 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Const,
             pdo: false,
-            default: Default::Const(N as u32 - 1),
+            default: DefaultValue::Const(N as u32 - 1),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
@@ -478,7 +478,7 @@ pub(crate) mod table {
     #[derive(Clone, Copy)]
     pub struct TpdoComm {
         /// Default COB-ID (sub 1).
-        pub cob: Default,
+        pub cob: DefaultValue,
         /// Default transmission type (sub 2).
         pub ttype: u32,
         /// Transmission types the model accepts (TMI TPDO2: synchronous only).
@@ -514,7 +514,7 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Const,
             pdo: false,
-            default: Default::Const(highest),
+            default: DefaultValue::Const(highest),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
@@ -540,7 +540,7 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Rw,
             pdo: false,
-            default: Default::Const(c.ttype),
+            default: DefaultValue::Const(c.ttype),
             range: c.ttype_range,
             group: c.group,
             hook: Hook::None, // `cia301::attach`
@@ -555,7 +555,7 @@ pub(crate) mod table {
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(0),
+                default: DefaultValue::Const(0),
                 range: &Range::Any,
                 group: c.group,
                 hook: Hook::None, // `cia301::attach`
@@ -571,7 +571,7 @@ pub(crate) mod table {
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(ms),
+                default: DefaultValue::Const(ms),
                 range: &Range::Any,
                 group: c.group,
                 hook: Hook::None, // `cia301::attach`
@@ -607,7 +607,7 @@ pub(crate) mod table {
                 },
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(if i == 0 { count } else { maps[i - 1] }),
+                default: DefaultValue::Const(if i == 0 { count } else { maps[i - 1] }),
                 range: &Range::Any,
                 group,
                 hook: Hook::None, // `cia301::attach`
@@ -648,9 +648,9 @@ pub(crate) mod table {
                 access: if i == 0 { Access::Rw } else { Access::Ro },
                 pdo: false,
                 default: if i == 0 {
-                    Default::Const(0)
+                    DefaultValue::Const(0)
                 } else {
-                    Default::Live
+                    DefaultValue::Live
                 },
                 range: if i == 0 {
                     &Range::MinMax(0, 0)
@@ -789,7 +789,7 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
 #[rustfmt::skip]
 const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
     use crate::encoder::hook;
-    use crate::od::{Access::{Ro, Rw}, DataType::*, Default::*, Group::*, Hook, Param, Range::Any};
+    use crate::od::{Access::{Ro, Rw}, DataType::*, DefaultValue::*, Group::*, Hook, Param, Range::Any};
     use table::{channels, hooked};
     &[
         &channels::<5>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
@@ -813,7 +813,7 @@ pub(crate) const THRESHOLD_CAMS_AND_WORK_AREAS: [Entry; table::total(THRESHOLD_C
 #[cfg(test)]
 mod tests {
     use super::table;
-    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range, MAX_ENTRIES};
+    use crate::od::{Access, DataType, DefaultValue, Entry, Group, Hook, Range, MAX_ENTRIES};
 
     const fn e(index: u16, sub: u8) -> Entry {
         Entry {
@@ -824,7 +824,7 @@ mod tests {
             ty: DataType::Unsigned8,
             access: Access::Ro,
             pdo: false,
-            default: Default::Const(0),
+            default: DefaultValue::Const(0),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,

@@ -16,7 +16,7 @@ use crate::od::{
     cia301,
     Access::{Ro, Rw},
     DataType::*,
-    Default::*,
+    DefaultValue::*,
     Entry,
     Group::*,
     Hook, Param,

@@ -9,7 +9,7 @@
 //!
 //! ```compile_fail,E0080
 //! use canpos_core::entry;
-//! use canpos_core::od::{cia301, Default::{Const, NodeId}, Entry, Hook};
+//! use canpos_core::od::{cia301, DefaultValue::{Const, NodeId}, Entry, Hook};
 //!
 //! // 0x1014 COB-ID EMCY written without its hook (and without `cia301::attach`).
 //! const TABLE: [Entry; 2] = [
@@ -23,7 +23,7 @@
 //!
 //! ```
 //! use canpos_core::entry;
-//! use canpos_core::od::{cia301, Default::{Const, NodeId}, Entry, Hook};
+//! use canpos_core::od::{cia301, DefaultValue::{Const, NodeId}, Entry, Hook};
 //!
 //! const TABLE: [Entry; 2] = cia301::attach([
 //!     entry!(0x1005, 0, "", Unsigned32, Rw, Const(0x80), Any, Comm),
@@ -107,7 +107,7 @@ pub const fn hooks_complete(t: &[Entry]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::od::{Access, DataType, Default, Group, Range};
+    use crate::od::{Access, DataType, DefaultValue, Group, Range};
 
     const fn e(index: u16, sub: u8, hook: Hook) -> Entry {
         Entry {
@@ -118,7 +118,7 @@ mod tests {
             ty: DataType::Unsigned32,
             access: Access::Rw,
             pdo: false,
-            default: Default::Const(0),
+            default: DefaultValue::Const(0),
             range: &Range::Any,
             group: Group::Volatile,
             hook,

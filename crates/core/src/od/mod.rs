@@ -9,7 +9,7 @@
 pub mod cia301;
 mod types;
 
-pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
+pub use types::{key, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range};
 
 use crate::models::Model;
 
@@ -31,7 +31,7 @@ pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
     entries.binary_search_by_key(&key, Entry::key)
 }
 
-/// Configuration-dependent values that [`Default::Param`] entries resolve against.
+/// Configuration-dependent values that [`DefaultValue::Param`] entries resolve against.
 pub trait ParamSource {
     /// The value of `p` for this unit, as raw bits of the entry's type.
     fn param(&self, p: Param) -> u32;
@@ -191,7 +191,7 @@ impl Dictionary {
                 &le[..n.min(4)]
             }
             None => match e.default {
-                Default::Str(s) => s.as_bytes(),
+                DefaultValue::Str(s) => s.as_bytes(),
                 _ => &[],
             },
         };
@@ -210,7 +210,7 @@ impl Dictionary {
         match e.ty.size() {
             Some(n) => n,
             None => match e.default {
-                Default::Str(s) => s.len(),
+                DefaultValue::Str(s) => s.len(),
                 _ => 0,
             },
         }
@@ -220,10 +220,10 @@ impl Dictionary {
 /// Resolves the boot value of one entry.
 pub fn resolve_default(e: &Entry, params: &dyn ParamSource, node_id: u8) -> u32 {
     match e.default {
-        Default::Const(v) => v,
-        Default::NodeId(base) => base.wrapping_add(node_id as u32),
-        Default::Param(p) => params.param(p),
-        Default::Str(_) | Default::Live => 0,
+        DefaultValue::Const(v) => v,
+        DefaultValue::NodeId(base) => base.wrapping_add(node_id as u32),
+        DefaultValue::Param(p) => params.param(p),
+        DefaultValue::Str(_) | DefaultValue::Live => 0,
     }
 }
 
