@@ -19,29 +19,7 @@ pub const IMAGE_MAX: usize = 8 + 8 * RECORDS_MAX + 4;
 /// Bytes of an image without records: the header (mark, version, model tag, count) and the CRC.
 pub const IMAGE_MIN: usize = 8 + 4;
 
-/// Most records an image holds: 240 on a host (any device an EDS may describe), else the
-/// stored entries of the largest model built in (at least 32, for a firmware's own small
-/// dictionary) plus the three LSS / node-id records.
-#[cfg(feature = "host-buffers")]
-const RECORDS_MAX: usize = 240;
-#[cfg(not(feature = "host-buffers"))]
-const RECORDS_MAX: usize = firmware_records_max();
-
-/// [`RECORDS_MAX`] of a firmware build (without `host-buffers`). Nothing the default build
-/// compiles reaches it, so the mutation run leaves it out (docs/MUTANTS.md).
-#[cfg(not(feature = "host-buffers"))]
-const fn firmware_records_max() -> usize {
-    let (th, e, tmi) = (
-        crate::models::th_stored(),
-        crate::models::e_series_stored(),
-        crate::models::tmi_stored(),
-    );
-    let models = if th > e { th } else { e };
-    let models = if models > tmi { models } else { tmi };
-    // The three LSS / node-id records come on top.
-    let least = if models > 32 { models } else { 32 };
-    least + 3 + APP_RECORDS
-}
+use crate::config::RECORDS_MAX;
 
 const MAGIC: &[u8; 4] = b"CPOS";
 const VERSION: u8 = 1;
@@ -59,9 +37,7 @@ pub const KEY_SAVED_NODE_ID: u32 = 0xFF00_0003;
 /// Record key of the application's first value of its own ([`app_key`]).
 pub const KEY_APP: u32 = 0xFF00_0100;
 
-/// Most values of its own an application stores beside the dictionary (one per position
-/// channel: CiA 406's preset offset on a device without an offset object, TMI).
-pub const APP_RECORDS: usize = 4;
+pub use crate::config::APP_RECORDS;
 
 /// Record key of the application's value `k` (< [`APP_RECORDS`]): stored with the application
 /// parameters ([`crate::app::Application::stored_value`]).

@@ -159,12 +159,19 @@ const PARTS: &[&[Entry]] = &[
 pub(crate) const N: usize = table::total(PARTS);
 static TABLE: [Entry; N] = cia301::attach(table::concat(PARTS));
 const _: () = assert!(
+    table::fits_storage(&TABLE),
+    "E-Series table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
+const _: () = assert!(
     cia301::hooks_complete(&TABLE),
     "E-Series table: a CiA 301 object without its hook"
 );
 #[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
-const _: () = assert!(table::valid(&TABLE), "E-Series table unsorted or too large");
+const _: () = assert!(
+    table::valid(&TABLE),
+    "E-Series table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
+);
 
 /// The E-Series' object dictionary.
 pub static ENTRIES: &[Entry] = &TABLE;

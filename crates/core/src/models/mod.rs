@@ -289,56 +289,6 @@ const fn built_alone() -> Option<&'static Model> {
     None
 }
 
-/// Stored entries (group other than volatile) of each model built in, 0 for one left out: what
-/// sizes the storage image of a firmware build.
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn th_stored() -> usize {
-    #[cfg(feature = "th")]
-    return table::stored(th::ENTRIES);
-    #[cfg(not(feature = "th"))]
-    return 0;
-}
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn e_series_stored() -> usize {
-    #[cfg(feature = "e-series")]
-    return table::stored(e_series::ENTRIES);
-    #[cfg(not(feature = "e-series"))]
-    return 0;
-}
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn tmi_stored() -> usize {
-    #[cfg(feature = "tmi")]
-    return table::stored(tmi::ENTRIES_TWO_CHANNELS);
-    #[cfg(not(feature = "tmi"))]
-    return 0;
-}
-
-/// Entries of the largest table built in (at least 64, for a firmware's own small dictionary
-/// beside or instead of a model): the value array of a firmware build.
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn largest_table() -> usize {
-    const fn max(a: usize, b: usize) -> usize {
-        if a > b {
-            a
-        } else {
-            b
-        }
-    }
-    #[cfg(feature = "th")]
-    let th = th::N;
-    #[cfg(not(feature = "th"))]
-    let th = 0;
-    #[cfg(feature = "e-series")]
-    let e = e_series::N;
-    #[cfg(not(feature = "e-series"))]
-    let e = 0;
-    #[cfg(feature = "tmi")]
-    let tmi = tmi::N;
-    #[cfg(not(feature = "tmi"))]
-    let tmi = 0;
-    max(64, max(th, max(e, tmi)))
-}
-
 /// Builds [`Entry`] values tersely in model tables.
 #[macro_export]
 #[doc(hidden)]
@@ -720,7 +670,6 @@ pub(crate) mod table {
     }
 
     /// Number of entries of `t` that storage keeps (every group but volatile).
-    #[cfg(not(feature = "host-buffers"))]
     pub const fn stored(t: &[Entry]) -> usize {
         let mut n = 0;
         let mut i = 0;
@@ -731,6 +680,14 @@ pub(crate) mod table {
             i += 1;
         }
         n
+    }
+
+    /// Whether a storage image holds `t`'s stored entries beside the node's and the
+    /// application's records ([`crate::config::RECORDS_MAX`]; `CANPOS_MAX_STORED` in a
+    /// firmware build).
+    pub const fn fits_storage(t: &[Entry]) -> bool {
+        use crate::config::{APP_RECORDS, NODE_RECORDS, RECORDS_MAX};
+        stored(t) + NODE_RECORDS + APP_RECORDS <= RECORDS_MAX
     }
 
     /// Whether a table is strictly sorted by index and sub-index (the dictionary's binary

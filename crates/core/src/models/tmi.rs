@@ -195,15 +195,26 @@ const PARTS_ONE: &[&[Entry]] = parts!(2, (0, [0; 8]); 1);
 pub(crate) const N: usize = table::total(PARTS);
 static TABLE_TWO: [Entry; N] = cia301::attach(table::concat(PARTS));
 const _: () = assert!(
+    table::fits_storage(&TABLE_TWO),
+    "TMI table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
+const _: () = assert!(
     cia301::hooks_complete(&TABLE_TWO),
     "TMI table: a CiA 301 object without its hook"
 );
 #[cfg(feature = "inline-hot-paths")]
 static KEYS_TWO: [u32; N] = table::keys(&TABLE_TWO);
-const _: () = assert!(table::valid(&TABLE_TWO), "TMI table unsorted or too large");
+const _: () = assert!(
+    table::valid(&TABLE_TWO),
+    "TMI table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
+);
 
 const N_ONE: usize = table::total(PARTS_ONE);
 static TABLE: [Entry; N_ONE] = cia301::attach(table::concat(PARTS_ONE));
+const _: () = assert!(
+    table::fits_storage(&TABLE),
+    "TMI table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
 const _: () = assert!(
     cia301::hooks_complete(&TABLE),
     "TMI table: a CiA 301 object without its hook"
@@ -212,7 +223,7 @@ const _: () = assert!(
 static KEYS: [u32; N_ONE] = table::keys(&TABLE);
 const _: () = assert!(
     table::valid(&TABLE),
-    "one-channel TMI table unsorted or too large"
+    "one-channel TMI table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
 );
 
 /// The one-channel TMI's object dictionary: channel-1 objects only (002 §1.6, §1.12).

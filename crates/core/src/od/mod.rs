@@ -13,15 +13,7 @@ pub use types::{key, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, 
 
 use crate::models::Model;
 
-/// Most entries a model's table may have (the value array is sized for it). 256, so that a
-/// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
-/// Without the `host-buffers` feature (firmware): the largest table built in, trading that
-/// bounds check for RAM (TH: 186 entries, 280 B less).
-#[cfg(feature = "host-buffers")]
-pub const MAX_ENTRIES: usize = 256;
-/// Most entries a model's table may have: the largest table built in (firmware builds).
-#[cfg(not(feature = "host-buffers"))]
-pub const MAX_ENTRIES: usize = crate::models::largest_table();
+pub use crate::config::MAX_ENTRIES;
 
 /// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
 /// (hosts search [`Model::keys`]), one shared copy.

@@ -6,9 +6,7 @@ use crate::wire::{Duration, Instant};
 /// Time after which an unfinished segmented / block transfer is aborted (0x05040000).
 pub const SDO_TIMEOUT: Duration = Duration::from_millis(1000);
 
-/// Capacity of the server's transfer buffer: the largest value a segmented or block transfer
-/// can carry. Larger transfers are refused with 0x05040005 (out of memory).
-pub const SDO_BUF_LEN: usize = 64;
+pub use crate::config::SDO_BUF_LEN;
 
 /// Block size the server announces for block downloads (the CTT log's value). The buffer, not
 /// the block size, bounds a transfer: data beyond [`SDO_BUF_LEN`] is refused.
