@@ -157,7 +157,6 @@ impl Dictionary {
         const CAP: usize = 64;
         let e = &self.entries[slot];
         // Numbers from the start (every expedited upload): fixed-length copies, no memcpy call.
-        #[cfg(feature = "inline-hot-paths")]
         if offset == 0 {
             let le = self.values[slot].to_le_bytes();
             match (e.ty.size(), &mut *buf) {
