@@ -2,6 +2,7 @@
 //! mapping 0x1A00+n, transmission types, inhibit and event timers, and the validation rules of
 //! SPEC §5 for dynamic mapping.
 
+use crate::config;
 use crate::od::{Abort, Dictionary};
 use crate::txq::TxQueue;
 use crate::wire::{Duration, Frame, Instant};
@@ -175,7 +176,9 @@ pub struct Tpdos {
     /// masks are derived in `refresh`, which every configuration change ends in.
     sync_mask: u8,
     /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
-    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk.
+    /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk. A host's shortcut
+    /// only ([`crate::config::INLINE_HOT_PATHS`]; its figures are there): a firmware walks the
+    /// one TPDO as any other.
     single: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
@@ -267,11 +270,13 @@ impl Tpdos {
         }
         self.timer_mask = mask;
         self.sync_mask = sync;
-        self.single = if mask.is_power_of_two() {
-            mask.trailing_zeros() as u8
-        } else {
-            NO_SINGLE
-        };
+        if config::INLINE_HOT_PATHS {
+            self.single = if mask.is_power_of_two() {
+                mask.trailing_zeros() as u8
+            } else {
+                NO_SINGLE
+            };
+        }
         self.refresh_due();
     }
 
@@ -589,11 +594,14 @@ impl Tpdos {
     #[cfg_attr(feature = "inline-hot-paths", inline(always))]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
-        if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
-            // One TPDO with a timer: its own deadlines are all there is.
-            let f = p.step(od, now);
-            self.due = p.own_due();
-            return f;
+        // `single` stays `NO_SINGLE` without the option: the walk below.
+        if config::INLINE_HOT_PATHS {
+            if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
+                // One TPDO with a timer: its own deadlines are all there is.
+                let f = p.step(od, now);
+                self.due = p.own_due();
+                return f;
+            }
         }
         let mut due = NEVER;
         let mut f = None;

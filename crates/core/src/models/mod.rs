@@ -166,9 +166,9 @@ pub struct Model {
     /// The object dictionary, sorted by index and sub-index.
     pub entries: &'static [Entry],
     /// `entries[i].key()` for every entry, in the same order (`table::keys`): a host's
-    /// dictionary searches these, a dense array, rather than the entries (the upload of an
-    /// object other than the last one: 57 fewer instructions). Firmware (without
-    /// `inline-hot-paths`) searches the entries and keeps the array out of flash (TH: 744 B).
+    /// dictionary searches these, a dense array, rather than the entries (fewer instructions
+    /// per upload). Firmware (without `inline-hot-paths`) searches the entries and keeps the
+    /// array out of flash (figures: docs/FIRMWARE.md, "Build options in figures").
     #[cfg(feature = "inline-hot-paths")]
     pub keys: &'static [u32],
     /// Behaviour switches.

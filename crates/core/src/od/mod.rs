@@ -77,7 +77,7 @@ impl Dictionary {
 
     /// Finds the slot of `index`/`sub`, with the abort code CiA 301 gives when it is missing.
     /// Out of line without the `inline-hot-paths` feature: some forty call sites then share one
-    /// copy (the TH firmware: 4.9 KB less flash).
+    /// copy (figure: docs/FIRMWARE.md, "Build options in figures").
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
@@ -154,27 +154,8 @@ impl Dictionary {
     /// much as fits); returns the bytes copied.
     #[inline]
     pub fn read_at(&self, slot: usize, offset: usize, buf: &mut [u8]) -> usize {
-        const CAP: usize = 64;
+        const CAP: usize = crate::config::SDO_BUF_LEN;
         let e = &self.entries[slot];
-        // Numbers from the start (every expedited upload): fixed-length copies, no memcpy call.
-        if offset == 0 {
-            let le = self.values[slot].to_le_bytes();
-            match (e.ty.size(), &mut *buf) {
-                (Some(1), [b0, ..]) => {
-                    *b0 = le[0];
-                    return 1;
-                }
-                (Some(2), [b0, b1, ..]) => {
-                    [*b0, *b1] = [le[0], le[1]];
-                    return 2;
-                }
-                (Some(4), [b0, b1, b2, b3, ..]) => {
-                    [*b0, *b1, *b2, *b3] = le;
-                    return 4;
-                }
-                _ => {}
-            }
-        }
         let le;
         let src: &[u8] = match e.ty.size() {
             Some(n) => {

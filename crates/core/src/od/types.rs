@@ -470,7 +470,8 @@ impl Entry {
                 }
                 natural
             }
-            // Not `contains`: for integers it unrolls by 16, 60 B of flash for lists of a few.
+            // Not `contains`: for integers it unrolls by 16, flash spent on lists of a few
+            // (docs/FIRMWARE.md, "Build options in figures").
             #[allow(clippy::manual_contains)]
             Range::OneOf(list) => natural && list.iter().any(|&x| x == raw),
         };

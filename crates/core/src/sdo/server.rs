@@ -224,7 +224,8 @@ impl SdoServer {
         // configuration): a host (`inline-hot-paths`) serves them without decoding a `Request`,
         // with the same checks and answers as the general path (an upload that turns out
         // segmented takes that path), inlined into the caller. A firmware takes the general
-        // path for them too: one copy of each answer in flash (the TH: 0.5 KB less).
+        // path for them too: one copy of each answer in flash (docs/FIRMWARE.md, "Build
+        // options in figures").
         if cfg!(feature = "inline-hot-paths") && self.state == State::Idle {
             if let Ok(req) = <[u8; 8]>::try_from(data) {
                 let c = Command(req[0]);
