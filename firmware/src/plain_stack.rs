@@ -112,6 +112,8 @@ pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Mo
         product: "",
         vendor: "",
         entries,
+        // A host searches a key array; a firmware searches the entries.
+        keys: &[],
         features: Features {
             tag: 0x50,
             tpdos: 1,

@@ -10,6 +10,7 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::config;
 use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
@@ -166,7 +167,6 @@ const _: () = assert!(
     cia301::hooks_complete(&TABLE),
     "E-Series table: a CiA 301 object without its hook"
 );
-#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(
     table::valid(&TABLE),
@@ -201,8 +201,7 @@ pub static E_SERIES: Model = Model {
     product: "Temposonics E-Series CANopen",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS,
+    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
     features: Features {
         tag: 2,
         tpdos: 4,

@@ -168,8 +168,8 @@ pub struct Model {
     /// `entries[i].key()` for every entry, in the same order (`table::keys`): a host's
     /// dictionary searches these, a dense array, rather than the entries (fewer instructions
     /// per upload). Firmware (without `inline-hot-paths`) searches the entries and keeps the
-    /// array out of flash (figures: docs/FIRMWARE.md, "Build options in figures").
-    #[cfg(feature = "inline-hot-paths")]
+    /// array out of flash: empty there (figures: docs/FIRMWARE.md, "Build options in
+    /// figures").
     pub keys: &'static [u32],
     /// Behaviour switches.
     pub features: Features,
@@ -186,10 +186,11 @@ impl Model {
     /// The slot of `key` ([`crate::od::key`]) in the table, or where it would be: a host
     /// searches [`Model::keys`], firmware the entries.
     pub fn search(&self, key: u32) -> Result<usize, usize> {
-        #[cfg(feature = "inline-hot-paths")]
-        return self.keys.binary_search(&key);
-        #[cfg(not(feature = "inline-hot-paths"))]
-        crate::od::search_entries(self.entries, key)
+        if crate::config::INLINE_HOT_PATHS {
+            self.keys.binary_search(&key)
+        } else {
+            crate::od::search_entries(self.entries, key)
+        }
     }
 
     /// `cfg` made consistent with this model's rules (see [`Model::derive`]).
@@ -354,7 +355,6 @@ macro_rules! tpdo_map_names {
 }
 /// The search keys of a table, as [`Model::keys`] wants them (a device outside this crate
 /// builds them the way the models do).
-#[cfg(feature = "inline-hot-paths")]
 pub use table::keys;
 pub(crate) use tpdo_map_names;
 
@@ -629,7 +629,6 @@ pub(crate) mod table {
     }
 
     /// The search keys of a table ([`Entry::key`] of each entry, in order).
-    #[cfg(feature = "inline-hot-paths")]
     pub const fn keys<const N: usize>(t: &[Entry; N]) -> [u32; N] {
         let mut out = [0u32; N];
         let mut i = 0;

@@ -10,6 +10,7 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::config;
 use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
@@ -175,7 +176,6 @@ const _: () = assert!(
     cia301::hooks_complete(&TABLE),
     "TH table: a CiA 301 object without its hook"
 );
-#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N] = table::keys(&TABLE);
 const _: () = assert!(
     table::valid(&TABLE),
@@ -214,8 +214,7 @@ pub static TH: Model = Model {
     product: "Temposonics TH CANbus",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS,
+    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
     features: Features {
         tag: 1,
         tpdos: 4,

@@ -18,6 +18,7 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::config;
 use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
@@ -202,7 +203,6 @@ const _: () = assert!(
     cia301::hooks_complete(&TABLE_TWO),
     "TMI table: a CiA 301 object without its hook"
 );
-#[cfg(feature = "inline-hot-paths")]
 static KEYS_TWO: [u32; N] = table::keys(&TABLE_TWO);
 const _: () = assert!(
     table::valid(&TABLE_TWO),
@@ -219,7 +219,6 @@ const _: () = assert!(
     cia301::hooks_complete(&TABLE),
     "TMI table: a CiA 301 object without its hook"
 );
-#[cfg(feature = "inline-hot-paths")]
 static KEYS: [u32; N_ONE] = table::keys(&TABLE);
 const _: () = assert!(
     table::valid(&TABLE),
@@ -320,8 +319,7 @@ pub static TMI: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS,
+    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
     features: FEATURES,
     param,
     derive,
@@ -334,8 +332,11 @@ pub static TMI_TWO_CHANNELS: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES_TWO_CHANNELS,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS_TWO,
+    keys: if config::INLINE_HOT_PATHS {
+        &KEYS_TWO
+    } else {
+        &[]
+    },
     features: FEATURES,
     param,
     derive,

@@ -17,7 +17,6 @@ pub use crate::config::MAX_ENTRIES;
 
 /// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
 /// (hosts search [`Model::keys`]), one shared copy.
-#[cfg(not(feature = "inline-hot-paths"))]
 #[inline(never)]
 pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
     entries.binary_search_by_key(&key, Entry::key)
@@ -33,9 +32,8 @@ pub trait ParamSource {
 #[derive(Clone)]
 pub struct Dictionary {
     entries: &'static [Entry],
-    /// [`Model::keys`], searched by [`Dictionary::find`] (hosts; firmware searches the
-    /// entries).
-    #[cfg(feature = "inline-hot-paths")]
+    /// [`Model::keys`], searched by [`Dictionary::find`] on a host
+    /// ([`crate::config::INLINE_HOT_PATHS`]; a firmware searches the entries).
     keys: &'static [u32],
     values: [u32; MAX_ENTRIES],
 }
@@ -55,15 +53,15 @@ impl Dictionary {
             entries.windows(2).all(|w| w[0].key() < w[1].key()),
             "table not sorted"
         );
-        #[cfg(feature = "inline-hot-paths")]
-        assert!(
-            model.keys.len() == entries.len()
-                && model.keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
-            "keys do not match the table"
-        );
+        if crate::config::INLINE_HOT_PATHS {
+            assert!(
+                model.keys.len() == entries.len()
+                    && model.keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
+                "keys do not match the table"
+            );
+        }
         Dictionary {
             entries,
-            #[cfg(feature = "inline-hot-paths")]
             keys: model.keys,
             values: [0; MAX_ENTRIES],
         }
@@ -81,10 +79,11 @@ impl Dictionary {
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
-        #[cfg(feature = "inline-hot-paths")]
-        let found = self.keys.binary_search(&key(index, sub));
-        #[cfg(not(feature = "inline-hot-paths"))]
-        let found = search_entries(self.entries, key(index, sub));
+        let found = if crate::config::INLINE_HOT_PATHS {
+            self.keys.binary_search(&key(index, sub))
+        } else {
+            search_entries(self.entries, key(index, sub))
+        };
         match found {
             Ok(slot) => Ok(slot),
             Err(pos) => {

@@ -226,7 +226,7 @@ impl SdoServer {
         // segmented takes that path), inlined into the caller. A firmware takes the general
         // path for them too: one copy of each answer in flash (docs/FIRMWARE.md, "Build
         // options in figures").
-        if cfg!(feature = "inline-hot-paths") && self.state == State::Idle {
+        if crate::config::INLINE_HOT_PATHS && self.state == State::Idle {
             if let Ok(req) = <[u8; 8]>::try_from(data) {
                 let c = Command(req[0]);
                 if c.ccs() == 2 {
