@@ -14,7 +14,7 @@
 
 /// Feature `inline-hot-paths`: hot paths inlined for fewer instructions per frame (a host).
 /// Without it (firmware) the dictionary search, the TPDO timer walk and some fifteen helpers
-/// are one shared copy each: the TH firmware 26,544 B instead of 35,712 B of flash (issue 37).
+/// are one shared copy each: the TH firmware 26,560 B instead of 35,712 B of flash (issue 37).
 /// Host-only arms that remain: the SDO server's expedited fast path (−0.5 KB without it), the
 /// single-TPDO shortcut (−110 B without it; TPDO 91 instead of 113 instructions with it), the
 /// dense key array (−744 B; 57 instructions fewer per upload), the restricted CAN-ID bitmap
