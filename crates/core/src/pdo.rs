@@ -590,7 +590,7 @@ impl Tpdos {
     /// [`Tpdos::poll_due`] for a caller that knows `due` has passed (the node's timer fast
     /// path): the walk over the timers, which also recomputes `due`. Out of line without the
     /// `inline-hot-paths` feature: the node calls it from two places, and [`Tpdo::step`] is
-    /// called twice in it (the TH firmware: 1 KB less flash).
+    /// called twice in it (docs/FIRMWARE.md, "Build options in figures").
     #[cfg_attr(feature = "inline-hot-paths", inline(always))]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
