@@ -102,7 +102,8 @@ unsafe impl cortex_m::interrupt::InterruptNumber for Irq {
 
 /// The device part of the vector table (cortex-m-rt's `device` feature, the place a PAC's table
 /// goes): IRQ 0, UART0 RX, the one interrupt this firmware unmasks. Without it cortex-m-rt links
-/// all 240 ARMv7-M slots (960 B of flash); the rest stay masked, so none of them is taken.
+/// all 240 ARMv7-M slots (docs/FIRMWARE.md, "Build options in figures"); the rest stay masked,
+/// so none of them is taken.
 #[link_section = ".vector_table.interrupts"]
 #[no_mangle]
 static __INTERRUPTS: [unsafe extern "C" fn(); 1] = [uart0_rx];

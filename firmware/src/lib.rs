@@ -20,6 +20,41 @@ pub const MODEL: &Model = &models::e_series::E_SERIES;
 #[cfg(all(feature = "tmi", not(feature = "th"), not(feature = "e-series")))]
 pub const MODEL: &Model = &models::tmi::TMI;
 
+/// The widest dictionary of [`MODEL`] (the two-channel TMI's for the TMI).
+const WIDEST: &[canpos_core::Entry] = {
+    #[cfg(all(feature = "tmi", not(feature = "th"), not(feature = "e-series")))]
+    let t = models::tmi::ENTRIES_TWO_CHANNELS;
+    #[cfg(not(all(feature = "tmi", not(feature = "th"), not(feature = "e-series"))))]
+    let t = MODEL.entries;
+    t
+};
+
+/// Entries of `t` that storage keeps.
+const fn stored(t: &[canpos_core::Entry]) -> usize {
+    let (mut n, mut i) = (0, 0);
+    while i < t.len() {
+        if !matches!(t[i].group, canpos_core::od::Group::Volatile) {
+            n += 1;
+        }
+        i += 1;
+    }
+    n
+}
+
+// The core's sizes (`CANPOS_MAX_ENTRIES`, `CANPOS_MAX_STORED`: `.cargo/config.toml` sets the
+// TH's) are the model's own: a smaller value does not compile (the table's assert), a larger
+// one would leave RAM unused. Another model: `CANPOS_MAX_ENTRIES=N CANPOS_MAX_STORED=M cargo
+// build …` with its figures (docs/FIRMWARE.md).
+const _: () = assert!(
+    canpos_core::config::MAX_ENTRIES == WIDEST.len(),
+    "CANPOS_MAX_ENTRIES is not the model's number of entries (docs/FIRMWARE.md)"
+);
+const _: () = assert!(
+    canpos_core::config::RECORDS_MAX
+        == stored(WIDEST) + canpos_core::config::NODE_RECORDS + canpos_core::config::APP_RECORDS,
+    "CANPOS_MAX_STORED is not the model's number of stored entries (docs/FIRMWARE.md)"
+);
+
 /// Where the position comes from: the time-of-flight electronics on a real sensor.
 pub trait MeasurementSource {
     /// The measurement of the cycle ending at `now`.

@@ -9,11 +9,12 @@
 //! - `plain_full`: every CiA 301 / 305 service canpos has (also SDO block transfer and node
 //!   guarding with life guarding).
 //!
-//! docs/FIRMWARE.md says how the figures are taken.
+//! The parts carry no hooks: each build attaches the CiA 301 ones with `od::cia301::attach`
+//! and checks them beside its table. docs/FIRMWARE.md says how the figures are taken.
 
 use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
 use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{Default::*, Entry, Hook, Param};
+use canpos_core::od::{DefaultValue::*, Entry, Param};
 use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
 use core::mem::MaybeUninit;
@@ -24,21 +25,21 @@ use embedded_can::nb::Can;
 pub const HEAD: [Entry; 8] = [
     entry!(0x1000, 0, "", Unsigned32, Ro, Const(0)), // no device profile
     entry!(0x1001, 0, "", Unsigned8, Ro, Live),
-    entry!(0x1003, 0, "", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 1, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 2, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 3, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1003, 4, "", Unsigned32, Ro, Live).with_hook(Hook::ErrorHistory),
-    entry!(0x1005, 0, "", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
+    entry!(0x1003, 0, "", Unsigned8, Rw, Const(0), MinMax(0, 0), Volatile),
+    entry!(0x1003, 1, "", Unsigned32, Ro, Live),
+    entry!(0x1003, 2, "", Unsigned32, Ro, Live),
+    entry!(0x1003, 3, "", Unsigned32, Ro, Live),
+    entry!(0x1003, 4, "", Unsigned32, Ro, Live),
+    entry!(0x1005, 0, "", Unsigned32, Rw, Const(0x80), Any, Comm),
 ];
 
 /// Node guarding and life guarding (0x100C…0x100E).
 #[allow(dead_code)] // `plain_full`'s only
 #[rustfmt::skip]
 pub const GUARDING: [Entry; 3] = [
-    entry!(0x100C, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
-    entry!(0x100D, 0, "", Unsigned8, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
-    entry!(0x100E, 0, "", Unsigned32, Rw, NodeId(0x700), Any, Comm).with_hook(Hook::GuardingCobId),
+    entry!(0x100C, 0, "", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x100D, 0, "", Unsigned8, Rw, Const(0), Any, Comm),
+    entry!(0x100E, 0, "", Unsigned32, Rw, NodeId(0x700), Any, Comm),
 ];
 
 /// Store / restore, EMCY, heartbeat, identity object, SDO server, one TPDO, two manufacturer
@@ -46,12 +47,12 @@ pub const GUARDING: [Entry; 3] = [
 #[rustfmt::skip]
 pub const TAIL: [Entry; 27] = [
     entry!(0x1010, 0, "", Unsigned8, Const, Const(1)),
-    entry!(0x1010, 1, "", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1010, 1, "", Unsigned32, Rw, Const(1), Any, Volatile),
     entry!(0x1011, 0, "", Unsigned8, Const, Const(1)),
-    entry!(0x1011, 1, "", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
-    entry!(0x1014, 0, "", Unsigned32, Rw, NodeId(0x80), Any, Comm).with_hook(Hook::EmcyCobId),
-    entry!(0x1015, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::EmcyInhibit),
-    entry!(0x1017, 0, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
+    entry!(0x1011, 1, "", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1014, 0, "", Unsigned32, Rw, NodeId(0x80), Any, Comm),
+    entry!(0x1015, 0, "", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1017, 0, "", Unsigned16, Rw, Const(0), Any, Comm),
     entry!(0x1018, 0, "", Unsigned8, Const, Const(4)),
     entry!(0x1018, 1, "", Unsigned32, Const, Const(0)),
     entry!(0x1018, 2, "", Unsigned32, Const, Const(0)),
@@ -61,15 +62,15 @@ pub const TAIL: [Entry; 27] = [
     entry!(0x1200, 1, "", Unsigned32, Ro, NodeId(0x600)),
     entry!(0x1200, 2, "", Unsigned32, Ro, NodeId(0x580)),
     entry!(0x1800, 0, "", Unsigned8, Const, Const(5)),
-    entry!(0x1800, 1, "", Unsigned32, Rw, NodeId(0x180), Any, Comm).with_hook(Hook::TpdoComm),
-    entry!(0x1800, 2, "", Unsigned8, Rw, Const(0xFE), Any, Comm).with_hook(Hook::TpdoComm),
-    entry!(0x1800, 3, "", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoComm),
-    entry!(0x1800, 5, "", Unsigned16, Rw, Const(100), Any, Comm).with_hook(Hook::TpdoComm),
-    entry!(0x1A00, 0, "", Unsigned8, Rw, Const(1), Any, Comm).with_hook(Hook::TpdoMap),
-    entry!(0x1A00, 1, "", Unsigned32, Rw, Const(0x1001_0008), Any, Comm).with_hook(Hook::TpdoMap),
-    entry!(0x1A00, 2, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
-    entry!(0x1A00, 3, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
-    entry!(0x1A00, 4, "", Unsigned32, Rw, Const(0), Any, Comm).with_hook(Hook::TpdoMap),
+    entry!(0x1800, 1, "", Unsigned32, Rw, NodeId(0x180), Any, Comm),
+    entry!(0x1800, 2, "", Unsigned8, Rw, Const(0xFE), Any, Comm),
+    entry!(0x1800, 3, "", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1800, 5, "", Unsigned16, Rw, Const(100), Any, Comm),
+    entry!(0x1A00, 0, "", Unsigned8, Rw, Const(1), Any, Comm),
+    entry!(0x1A00, 1, "", Unsigned32, Rw, Const(0x1001_0008), Any, Comm),
+    entry!(0x1A00, 2, "", Unsigned32, Rw, Const(0), Any, Comm),
+    entry!(0x1A00, 3, "", Unsigned32, Rw, Const(0), Any, Comm),
+    entry!(0x1A00, 4, "", Unsigned32, Rw, Const(0), Any, Comm),
     // A manufacturer object to map and store.
     entry!(0x2000, 0, "", Unsigned32, Rw, Const(0), Any, App, true),
     entry!(0x2001, 0, "", Unsigned8, Rw, Const(0), Any, App, true),
@@ -90,7 +91,7 @@ pub const fn join<const A: usize, const B: usize, const N: usize>(
     out
 }
 
-/// The dictionary's parameters (`Default::Param`): a plain CiA 301 device, with no profile and
+/// The dictionary's parameters (`DefaultValue::Param`): a plain CiA 301 device, with no profile and
 /// no sensor (stroke, steps, channels), has its serial number and nothing else.
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
     match p {
@@ -111,6 +112,8 @@ pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Mo
         product: "",
         vendor: "",
         entries,
+        // A host searches a key array; a firmware searches the entries.
+        keys: &[],
         features: Features {
             tag: 0x50,
             tpdos: 1,

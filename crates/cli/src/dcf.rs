@@ -12,7 +12,7 @@ use std::time::{Duration, SystemTime};
 use anyhow::{anyhow, bail, Context, Result};
 use canpos_core::eds::{Commissioning, DcfValue, EdsInfo};
 use canpos_core::models::{self, DeviceConfig, Model};
-use canpos_core::od::{DataType, Default as OdDefault, Entry};
+use canpos_core::od::{DataType, DefaultValue, Entry};
 use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
 use canpos_core::{Frame, Instant, Node};
 use canpos_host::ini::Ini;
@@ -127,14 +127,14 @@ fn read_state(
         .model()
         .entries
         .iter()
-        .filter(|e| e.access.readable() && e.default != OdDefault::Live)
+        .filter(|e| e.access.readable() && e.default != DefaultValue::Live)
     {
         let bytes = match (e.ty.size(), e.default) {
             (Some(n), _) => match node.read_object(e.index, e.sub) {
                 Ok(raw) => raw.to_le_bytes()[..n].to_vec(),
                 Err(_) => continue,
             },
-            (None, OdDefault::Str(s)) => s.as_bytes().to_vec(),
+            (None, DefaultValue::Str(s)) => s.as_bytes().to_vec(),
             (None, _) => continue,
         };
         values.push((e.index, e.sub, bytes));
@@ -241,7 +241,7 @@ fn recognise(c: &mut SdoClient<'_>) -> Result<&'static Model> {
         .iter()
         .find(|m| {
             let named = m.entries.iter().any(|e| {
-                e.index == 0x1008 && matches!(e.default, OdDefault::Str(s) if s.as_bytes() == name)
+                e.index == 0x1008 && matches!(e.default, DefaultValue::Str(s) if s.as_bytes() == name)
             });
             named && model_vendor(m) == vendor
         })
@@ -259,7 +259,7 @@ fn model_vendor(m: &Model) -> u32 {
         .iter()
         .find(|e| e.index == 0x1018 && e.sub == 1)
         .and_then(|e| match e.default {
-            OdDefault::Const(v) => Some(v),
+            DefaultValue::Const(v) => Some(v),
             _ => None,
         })
         .unwrap_or(0)

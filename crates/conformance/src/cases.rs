@@ -1144,7 +1144,7 @@ fn defaults(h: &mut Harness, lo: u16, hi: u16) -> Outcome {
             .iter()
             .find(|t| t.index == e.index && t.sub == e.sub)
             .unwrap();
-        if matches!(t.default, canpos_core::od::Default::Live) {
+        if matches!(t.default, canpos_core::od::DefaultValue::Live) {
             assert!(
                 e.default.is_none(),
                 "{:04X}:{:02X} live with DefaultValue",

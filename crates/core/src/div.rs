@@ -1,11 +1,11 @@
 //! 64-bit division without the compiler's 64-bit division routine on a 32-bit microcontroller.
 //!
 //! A `u64` or `i64` division on a 32-bit target calls compiler-builtins' `u64_div_rem` and its
-//! `__aeabi_*divmod` wrappers: about 1.1 KB of firmware flash, linked as soon as one place
-//! divides. The core divides in 64 bits only off its per-frame paths (a late timer's catch-up,
-//! a position in nm per measurement cycle, derived parameters), so there one out-of-line
-//! shift-and-subtract loop (222 B on the TH firmware, with its 32-bit fast path) serves them
-//! all. A 64-bit host divides natively, as before.
+//! `__aeabi_*divmod` wrappers, linked as soon as one place divides. The core divides in 64 bits
+//! only off its per-frame paths (a late timer's catch-up, a position in nm per measurement
+//! cycle, derived parameters), so there one out-of-line shift-and-subtract loop, with its
+//! 32-bit fast path, serves them all, in a fraction of that flash (docs/FIRMWARE.md, "Build
+//! options in figures"). A 64-bit host divides natively, as before.
 
 /// `(n / d, n % d)`. `d` must not be 0 (every caller divides by at least 1).
 #[inline]

@@ -21,7 +21,7 @@
 use core::fmt::{self, Write};
 
 use crate::models::{DeviceConfig, Model};
-use crate::od::{resolve_default, DataType, Default, Entry, Param, ParamSource, Range};
+use crate::od::{resolve_default, DataType, DefaultValue, Entry, Param, ParamSource, Range};
 
 /// File information for [`write_eds`] (the core has no clock or file system).
 #[derive(Clone, Copy, Debug)]
@@ -297,19 +297,19 @@ fn write_var(
         writeln!(w)?;
     }
     match e.default {
-        Default::Live => {}
-        Default::Str(s) => writeln!(w, "DefaultValue={s}")?,
-        Default::NodeId(base) => {
+        DefaultValue::Live => {}
+        DefaultValue::Str(s) => writeln!(w, "DefaultValue={s}")?,
+        DefaultValue::NodeId(base) => {
             write!(w, "DefaultValue=$NODEID+")?;
             write_number(w, e.ty, base as i64)?;
             writeln!(w)?;
         }
-        Default::Const(v) => {
+        DefaultValue::Const(v) => {
             write!(w, "DefaultValue=")?;
             write_number(w, e.ty, e.ty.to_i64(v))?;
             writeln!(w)?;
         }
-        Default::Param(p) => {
+        DefaultValue::Param(p) => {
             // A value that moves with the node-id is written relative to it.
             let at = |id: u8| {
                 let c = DeviceConfig {

@@ -58,10 +58,8 @@ pub mod code {
     pub const TMI_WORK_AREA: u16 = 0x9090;
 }
 
-/// Depth of the pre-defined error field 0x1003.
-pub const HISTORY_LEN: usize = 8;
-const ACTIVE_LEN: usize = 8;
-const PENDING_LEN: usize = 8;
+pub use crate::config::HISTORY_LEN;
+use crate::config::{EMCY_ACTIVE_LEN as ACTIVE_LEN, EMCY_PENDING_LEN as PENDING_LEN};
 // The history and the pending frames are rings (indices masked), so that nothing is shifted:
 // a shift compiles to a call of the general-purpose `memmove`, 1.6 KB of firmware.
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_two());

@@ -2,15 +2,12 @@
 //! mapping 0x1A00+n, transmission types, inhibit and event timers, and the validation rules of
 //! SPEC §5 for dynamic mapping.
 
+use crate::config;
 use crate::od::{Abort, Dictionary};
 use crate::txq::TxQueue;
 use crate::wire::{Duration, Frame, Instant};
 
-/// Most TPDOs any model has.
-pub const MAX_TPDOS: usize = 4;
-const _: () = assert!(MAX_TPDOS.is_power_of_two() && MAX_TPDOS <= 8);
-/// Most mapping entries per TPDO.
-pub const MAX_MAP: usize = 8;
+pub use crate::config::{MAX_MAP, MAX_TPDOS};
 
 /// COB-ID bit 31: PDO does not exist / is not valid.
 pub const COB_INVALID: u32 = 0x8000_0000;
@@ -24,7 +21,6 @@ pub use crate::wire::cob::{restricted_id, COB_ID_HIGH_BITS};
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
 /// `Tpdos::single` when zero or several TPDOs have timers.
-#[cfg(feature = "inline-hot-paths")]
 const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
 
@@ -116,10 +112,8 @@ impl Tpdo {
             // Absolute schedule: the next period starts where this one was due.
             let per = u64::from(self.event_us);
             let mut next = t + per;
-            // A host divides only when late (an expiry on time costs it a comparison); a
-            // firmware divides at every expiry, one code path (on time: q = 0, r = now - t, the
-            // same next start).
-            if !cfg!(feature = "inline-hot-paths") || next <= now.0 {
+            // Divides only when late: an expiry on time costs a comparison.
+            if next <= now.0 {
                 // At least 1 µs, so that the division is defined whatever the period (the timer
                 // only runs when it is not 0); floored here, where it is used.
                 // `q` whole periods passed since `t` (all but the one due at `t` were missed)
@@ -153,10 +147,7 @@ impl Tpdo {
         // entries within 8 bytes in all (shift ≤ 56), each of at most 4 (values are 32-bit).
         let map = self.map.iter().take(self.n_map as usize);
         let value = |slot| od.get_u8(slot);
-        #[cfg(feature = "inline-hot-paths")]
         let data = assemble_shifted(map, value);
-        #[cfg(not(feature = "inline-hot-paths"))]
-        let data = assemble_stored(map, value);
         // `configure` keeps `len` ≤ 8; `can_id` is 11 bits.
         Frame::std_checked(self.can_id(), data, self.len)
     }
@@ -185,8 +176,8 @@ pub struct Tpdos {
     sync_mask: u8,
     /// The index of the only TPDO in `timer_mask` when there is exactly one (the usual
     /// configuration), else [`NO_SINGLE`]: the timer walk is then no walk. A host's shortcut
-    /// only (a firmware walks the one TPDO as any other).
-    #[cfg(feature = "inline-hot-paths")]
+    /// only ([`crate::config::INLINE_HOT_PATHS`]; its figures are there): a firmware walks the
+    /// one TPDO as any other.
     single: u8,
     /// The earliest deadline of any TPDO in µs (`u64::MAX`: none), kept up to date by every
     /// method that changes a timer, so that `poll_timeout` and an early `handle_timeout` cost
@@ -202,7 +193,6 @@ impl Default for Tpdos {
             active: false,
             timer_mask: 0,
             sync_mask: 0,
-            #[cfg(feature = "inline-hot-paths")]
             single: NO_SINGLE,
             due: NEVER,
         }
@@ -244,8 +234,7 @@ impl Tpdos {
         }
         self.timer_mask = mask;
         self.sync_mask = sync;
-        #[cfg(feature = "inline-hot-paths")]
-        {
+        if config::INLINE_HOT_PATHS {
             self.single = if mask.is_power_of_two() {
                 mask.trailing_zeros() as u8
             } else {
@@ -565,17 +554,18 @@ impl Tpdos {
     /// [`Tpdos::poll_due`] for a caller that knows `due` has passed (the node's timer fast
     /// path): the walk over the timers, which also recomputes `due`. Out of line without the
     /// `inline-hot-paths` feature: the node calls it from two places, and [`Tpdo::step`] is
-    /// called twice in it (the TH firmware: 1 KB less flash).
+    /// called twice in it (docs/FIRMWARE.md, "Build options in figures").
     #[cfg_attr(feature = "inline-hot-paths", inline(always))]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(crate) fn scan_due(&mut self, od: &Dictionary, now: Instant) -> Option<Frame> {
-        // A host's shortcut (a firmware walks the one TPDO as any other: 56 B less flash).
-        #[cfg(feature = "inline-hot-paths")]
-        if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
-            // One TPDO with a timer: its own deadlines are all there is.
-            let f = p.step(od, now);
-            self.due = p.own_due();
-            return f;
+        // `single` stays `NO_SINGLE` without the option: the walk below.
+        if config::INLINE_HOT_PATHS {
+            if let Some(p) = self.pdos.get_mut(usize::from(self.single)) {
+                // One TPDO with a timer: its own deadlines are all there is.
+                let f = p.step(od, now);
+                self.due = p.own_due();
+                return f;
+            }
         }
         let mut due = NEVER;
         let mut f = None;
@@ -618,8 +608,7 @@ fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
 }
 
 /// A TPDO's data from its entries (as `configure` lays them out: in order, 8 bytes in all,
-/// shift ≤ 64) and their values, in one little-endian u64 (the host's: no per-entry copies).
-#[cfg(any(test, feature = "inline-hot-paths"))]
+/// shift ≤ 64) and their values, in one little-endian u64: no per-entry copies.
 #[inline(always)]
 fn assemble_shifted<'a>(
     map: impl Iterator<Item = &'a Mapped>,
@@ -630,25 +619,6 @@ fn assemble_shifted<'a>(
         acc |= u64::from(value(m.slot) & m.mask) << (m.shift & 63);
     }
     acc.to_le_bytes()
-}
-
-/// [`assemble_shifted`] without 64-bit shifts (a firmware's): each entry's four masked bytes
-/// stored at its offset, in order. Its bytes past its length are 0 until the next entry
-/// overwrites them; an empty entry may start at byte 8, so the buffer has room past the frame.
-#[cfg(any(test, not(feature = "inline-hot-paths")))]
-#[inline(always)]
-fn assemble_stored<'a>(
-    map: impl Iterator<Item = &'a Mapped>,
-    value: impl Fn(u8) -> u32,
-) -> [u8; 8] {
-    let mut buf = [0u8; 20];
-    for m in map {
-        let at = usize::from(m.shift >> 3) & 15;
-        buf[at..at + 4].copy_from_slice(&(value(m.slot) & m.mask).to_le_bytes());
-    }
-    let mut data = [0u8; 8];
-    data.copy_from_slice(&buf[..8]);
-    data
 }
 
 /// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
@@ -696,10 +666,11 @@ mod tests {
         assert!(records >= 3, "no mapping record found");
     }
 
-    /// Both ways of assembling a TPDO give the same data for every layout `configure` makes
-    /// of up to four entries of 0…8 bytes (empty ones and ones past 4 bytes included).
+    /// A TPDO's data is its entries' low bytes one after the other, for every layout
+    /// `configure` makes of up to four entries of 0…8 bytes (empty ones and ones past 4 bytes
+    /// included: a value has 4, the rest of such an entry is 0).
     #[test]
-    fn tpdo_assembly_by_stores_matches_the_shifts() {
+    fn tpdo_assembly_lays_the_entries_end_to_end() {
         let value = |slot: u8| 0x9E37_79B9u32.wrapping_mul(u32::from(slot) + 1) | 0x0101_0101;
         let mut layouts = 0;
         for code in 0..9u32.pow(4) {
@@ -718,8 +689,14 @@ mod tests {
                 n += 1;
                 len += bytes;
             }
-            let want = assemble_shifted(map.iter().take(n), value);
-            let got = assemble_stored(map.iter().take(n), value);
+            // Each entry's value bytes (at most 4) at its byte offset; the rest 0.
+            let mut want = [0u8; 8];
+            for m in &map[..n] {
+                let (at, bytes) = (usize::from(m.shift / 8), (m.mask.count_ones() / 8) as usize);
+                let le = value(m.slot).to_le_bytes();
+                want[at..at + bytes].copy_from_slice(&le[..bytes]);
+            }
+            let got = assemble_shifted(map.iter().take(n), value);
             assert_eq!(got, want, "{:?}", &map[..n]);
             layouts += 1;
         }

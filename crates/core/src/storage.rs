@@ -21,29 +21,7 @@ pub const IMAGE_MAX: usize = 8 + 8 * RECORDS_MAX + 4;
 /// Bytes of an image without records: the header (mark, version, model tag, count) and the CRC.
 pub const IMAGE_MIN: usize = 8 + 4;
 
-/// Most records an image holds: 240 on a host (any device an EDS may describe), else the
-/// stored entries of the largest model built in (at least 32, for a firmware's own small
-/// dictionary) plus the three LSS / node-id records.
-#[cfg(feature = "host-buffers")]
-const RECORDS_MAX: usize = 240;
-#[cfg(not(feature = "host-buffers"))]
-const RECORDS_MAX: usize = firmware_records_max();
-
-/// [`RECORDS_MAX`] of a firmware build (without `host-buffers`). Nothing the default build
-/// compiles reaches it, so the mutation run leaves it out (docs/MUTANTS.md).
-#[cfg(not(feature = "host-buffers"))]
-const fn firmware_records_max() -> usize {
-    let (th, e, tmi) = (
-        crate::models::th_stored(),
-        crate::models::e_series_stored(),
-        crate::models::tmi_stored(),
-    );
-    let models = if th > e { th } else { e };
-    let models = if models > tmi { models } else { tmi };
-    // The three LSS / node-id records come on top.
-    let least = if models > 32 { models } else { 32 };
-    least + 3 + APP_RECORDS
-}
+use crate::config::RECORDS_MAX;
 
 const MAGIC: &[u8; 4] = b"CPOS";
 const VERSION: u8 = 1;
@@ -61,9 +39,7 @@ pub const KEY_SAVED_NODE_ID: u32 = 0xFF00_0003;
 /// Record key of the application's first value of its own ([`app_key`]).
 pub const KEY_APP: u32 = 0xFF00_0100;
 
-/// Most values of its own an application stores beside the dictionary (one per position
-/// channel: CiA 406's preset offset on a device without an offset object, TMI).
-pub const APP_RECORDS: usize = 4;
+pub use crate::config::APP_RECORDS;
 
 /// Record key of the application's value `k` (< [`APP_RECORDS`]): stored with the application
 /// parameters ([`crate::app::Application::stored_value`]).
@@ -204,7 +180,7 @@ pub(crate) fn stored_node_id(v: u32) -> Option<u8> {
 /// the pre-defined range of another node-id follows.
 #[inline]
 pub(crate) fn follow_node_id(e: &Entry, v: u32, saved: Option<u8>, node: u8) -> u32 {
-    let crate::od::Default::NodeId(base) = e.default else {
+    let crate::od::DefaultValue::NodeId(base) = e.default else {
         return v;
     };
     // The default's flag bits (e.g. "not valid") are no part of the CAN-ID.
@@ -633,7 +609,7 @@ mod tests {
     /// groups, the volatile one is in none.
     #[test]
     fn each_scope_covers_exactly_its_groups() {
-        use crate::od::{Access, DataType, Default, Range};
+        use crate::od::{Access, DataType, DefaultValue, Range};
         let groups = [Group::Volatile, Group::Comm, Group::App, Group::Auto];
         for scope in [Scope::All, Scope::Comm, Scope::App, Scope::Auto] {
             for g in groups {
@@ -644,7 +620,7 @@ mod tests {
                     DataType::Unsigned8,
                     Access::Rw,
                     false,
-                    Default::Const(0),
+                    DefaultValue::Const(0),
                     &Range::Any,
                     g,
                 );

@@ -2,18 +2,9 @@
 
 use crate::wire::Frame;
 
-/// Capacity of the transmit queue (firmware builds without `host-buffers`: 8, since a
-/// firmware's main loop hands the frames to the controller's mailboxes after each frame it
-/// receives: the queue holds what one frame sets off, at most a SYNC's four TPDOs, with a
-/// heartbeat or an EMCY due at the same time, beyond what the mailboxes take).
-pub const TXQ_LEN: usize = if cfg!(feature = "host-buffers") {
-    64
-} else {
-    8
-};
+pub use crate::config::TXQ_LEN;
 /// Ring index mask (the capacity is a power of two: masks instead of `%` and bounds checks).
 const MASK: usize = TXQ_LEN - 1;
-const _: () = assert!(TXQ_LEN.is_power_of_two());
 
 /// Fixed-capacity FIFO of frames; when full, new frames are dropped and counted (the CAN
 /// overrun condition a real controller reports).

@@ -26,7 +26,9 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Param, Range, MAX_ENTRIES};
+use canpos_core::od::{
+    cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
+};
 use canpos_core::pdo;
 use canpos_core::storage::{crc32, IMAGE_MAX};
 use canpos_core::Plain;
@@ -139,60 +141,52 @@ pub fn build(text: &str, file: &str, kind: FileKind, o: &Overrides) -> Result<Ed
     .build(&ini, o)
 }
 
-/// One CiA 301 object the standard defines: the service rule that owns it and its data type.
+/// One CiA 301 object the standard defines, with the data type it must have. Its hook (the
+/// service rule that owns it) is the stack's: [`cia301::hook_of`].
 struct Std {
     index: std::ops::RangeInclusive<u16>,
     subs: std::ops::RangeInclusive<u8>,
     ty: DataType,
-    hook: Hook,
 }
 
-const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType, hook: Hook) -> Std {
+const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType) -> Std {
     Std {
         index: lo..=hi,
         subs: s0..=s1,
         ty,
-        hook,
     }
 }
 
 /// The CiA 301 objects whose meaning the core's services implement, by their standard
-/// indices: the one place that assigns [`Hook`]s to a file's objects.
+/// indices, with their data types.
 const STANDARD: &[Std] = {
     use DataType::{Unsigned16 as U16, Unsigned32 as U32, Unsigned8 as U8};
     let t = pdo::MAX_TPDOS as u16 - 1;
     &[
-        row(0x1000, 0x1000, 0, 0, U32, Hook::None),
-        row(0x1001, 0x1001, 0, 0, U8, Hook::None),
-        row(0x1003, 0x1003, 0, 0, U8, Hook::ErrorHistory),
-        row(0x1003, 0x1003, 1, 0xFE, U32, Hook::ErrorHistory),
-        row(0x1005, 0x1005, 0, 0, U32, Hook::SyncCobId),
-        row(0x100C, 0x100C, 0, 0, U16, Hook::Guarding),
-        row(0x100D, 0x100D, 0, 0, U8, Hook::Guarding),
-        row(0x100E, 0x100E, 0, 0, U32, Hook::GuardingCobId),
-        row(0x1010, 0x1010, 0, 0, U8, Hook::None),
-        row(0x1010, 0x1010, 1, 0x7F, U32, Hook::StoreParameters),
-        row(0x1011, 0x1011, 0, 0, U8, Hook::None),
-        row(0x1011, 0x1011, 1, 0x7F, U32, Hook::RestoreDefaults),
-        row(0x1014, 0x1014, 0, 0, U32, Hook::EmcyCobId),
-        row(0x1015, 0x1015, 0, 0, U16, Hook::EmcyInhibit),
-        row(0x1017, 0x1017, 0, 0, U16, Hook::Heartbeat),
-        row(0x1018, 0x1018, 0, 0, U8, Hook::None),
-        row(0x1018, 0x1018, 1, 4, U32, Hook::None),
-        row(0x1800, 0x1800 + t, 0, 0, U8, Hook::None),
-        row(0x1800, 0x1800 + t, 1, 1, U32, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 2, 2, U8, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 3, 3, U16, Hook::TpdoComm),
-        row(0x1800, 0x1800 + t, 5, 5, U16, Hook::TpdoComm),
-        row(0x1A00, 0x1A00 + t, 0, 0, U8, Hook::TpdoMap),
-        row(
-            0x1A00,
-            0x1A00 + t,
-            1,
-            pdo::MAX_MAP as u8,
-            U32,
-            Hook::TpdoMap,
-        ),
+        row(0x1000, 0x1000, 0, 0, U32),
+        row(0x1001, 0x1001, 0, 0, U8),
+        row(0x1003, 0x1003, 0, 0, U8),
+        row(0x1003, 0x1003, 1, 0xFE, U32),
+        row(0x1005, 0x1005, 0, 0, U32),
+        row(0x100C, 0x100C, 0, 0, U16),
+        row(0x100D, 0x100D, 0, 0, U8),
+        row(0x100E, 0x100E, 0, 0, U32),
+        row(0x1010, 0x1010, 0, 0, U8),
+        row(0x1010, 0x1010, 1, 0x7F, U32),
+        row(0x1011, 0x1011, 0, 0, U8),
+        row(0x1011, 0x1011, 1, 0x7F, U32),
+        row(0x1014, 0x1014, 0, 0, U32),
+        row(0x1015, 0x1015, 0, 0, U16),
+        row(0x1017, 0x1017, 0, 0, U16),
+        row(0x1018, 0x1018, 0, 0, U8),
+        row(0x1018, 0x1018, 1, 4, U32),
+        row(0x1800, 0x1800 + t, 0, 0, U8),
+        row(0x1800, 0x1800 + t, 1, 1, U32),
+        row(0x1800, 0x1800 + t, 2, 2, U8),
+        row(0x1800, 0x1800 + t, 3, 3, U16),
+        row(0x1800, 0x1800 + t, 5, 5, U16),
+        row(0x1A00, 0x1A00 + t, 0, 0, U8),
+        row(0x1A00, 0x1A00 + t, 1, pdo::MAX_MAP as u8, U32),
     ]
 };
 
@@ -407,6 +401,7 @@ impl Builder<'_> {
                 ));
             }
         }
+        self.check_hooks(&entries, &value_lines)?;
         if entries.len() > MAX_ENTRIES {
             return Err(self.err(
                 0,
@@ -514,7 +509,7 @@ impl Builder<'_> {
                 .iter()
                 .find(|e| e.index == i && e.sub == s)
                 .and_then(|e| match e.default {
-                    Default::Const(v) => Some(v),
+                    DefaultValue::Const(v) => Some(v),
                     _ => None,
                 })
         };
@@ -523,7 +518,7 @@ impl Builder<'_> {
         let mut serial = value(0x1018, 4).unwrap_or(0);
         if let Some(s) = o.serial {
             match entries.iter_mut().find(|e| e.index == 0x1018 && e.sub == 4) {
-                Some(e) => e.default = Default::Const(s),
+                Some(e) => e.default = DefaultValue::Const(s),
                 None => self.warnings.push(
                     "--serial: the file has no 0x1018 sub 4; only names the state file".into(),
                 ),
@@ -654,7 +649,7 @@ impl Builder<'_> {
                 ),
             ));
         }
-        let hook = std.map_or(Hook::None, |s| s.hook);
+        let hook = cia301::hook_of(index, sub);
 
         let pv = sec.key("ParameterValue");
         if pv.is_some() && !dcf {
@@ -697,7 +692,7 @@ impl Builder<'_> {
                 ty,
                 access,
                 pdo: false,
-                default: Default::Str(Box::leak(Box::new(leak(s)))),
+                default: DefaultValue::Str(Box::leak(Box::new(leak(s)))),
                 range: &Range::Any,
                 group: Group::Volatile,
                 hook,
@@ -735,7 +730,7 @@ impl Builder<'_> {
         };
 
         let default = match val {
-            None => Default::Const(0),
+            None => DefaultValue::Const(0),
             Some(k) => {
                 let (v, rel) = parse_value(&k.value).ok_or_else(|| {
                     self.err(k.line, format!("{}: `{}` is not a number", k.name, k.value))
@@ -744,7 +739,7 @@ impl Builder<'_> {
                     let base = u32::try_from(v).map_err(|_| {
                         self.err(k.line, format!("{}: offset {v} out of range", k.name))
                     })?;
-                    Default::NodeId(base)
+                    DefaultValue::NodeId(base)
                 } else {
                     let raw = raw_of(ty, v, &k.value).ok_or_else(|| {
                         self.err(
@@ -764,7 +759,7 @@ impl Builder<'_> {
                             ));
                         }
                     }
-                    Default::Const(raw)
+                    DefaultValue::Const(raw)
                 }
             }
         };

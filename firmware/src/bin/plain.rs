@@ -11,11 +11,13 @@ mod board;
 mod plain_stack;
 
 use canpos_core::models::Model;
-use canpos_core::od::Entry;
+use canpos_core::od::{cia301, Entry};
 use panic_halt as _;
 
 /// The communication dictionary without node guarding's objects.
-static ENTRIES: [Entry; 35] = plain_stack::join(&plain_stack::HEAD, &plain_stack::TAIL);
+static ENTRIES: [Entry; 35] =
+    cia301::attach(plain_stack::join(&plain_stack::HEAD, &plain_stack::TAIL));
+const _: () = assert!(cia301::hooks_complete(&ENTRIES));
 
 static MODEL: Model = plain_stack::model(&ENTRIES, false, false);
 

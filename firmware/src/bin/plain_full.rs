@@ -10,14 +10,15 @@ mod board;
 mod plain_stack;
 
 use canpos_core::models::Model;
-use canpos_core::od::Entry;
+use canpos_core::od::{cia301, Entry};
 use panic_halt as _;
 
 /// The communication dictionary with node guarding's objects (0x100C…0x100E).
 static ENTRIES: [Entry; 38] = {
     let head: [Entry; 11] = plain_stack::join(&plain_stack::HEAD, &plain_stack::GUARDING);
-    plain_stack::join(&head, &plain_stack::TAIL)
+    cia301::attach(plain_stack::join(&head, &plain_stack::TAIL))
 };
+const _: () = assert!(cia301::hooks_complete(&ENTRIES));
 
 static MODEL: Model = plain_stack::model(&ENTRIES, true, true);
 

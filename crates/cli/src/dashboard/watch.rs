@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use canpos_core::models::{self, Model};
-use canpos_core::od::Default as OdDefault;
+use canpos_core::od::DefaultValue;
 use canpos_core::Frame;
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::{self, Receiver, Sender, TrySendError};
@@ -339,9 +339,9 @@ pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Mod
     let candidates: Vec<&'static Model> = models::all()
         .into_iter()
         .filter(|m| {
-            m.entries
-                .iter()
-                .any(|e| e.index == 0x1018 && e.sub == 1 && e.default == OdDefault::Const(vendor))
+            m.entries.iter().any(|e| {
+                e.index == 0x1018 && e.sub == 1 && e.default == DefaultValue::Const(vendor)
+            })
         })
         .collect();
     if candidates.len() == 1 {
@@ -349,7 +349,7 @@ pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Mod
     }
     candidates.into_iter().find(|m| {
         m.entries.iter().any(|e| {
-            e.index == 0x1008 && matches!(e.default, OdDefault::Str(s) if Some(*s) == name)
+            e.index == 0x1008 && matches!(e.default, DefaultValue::Str(s) if Some(*s) == name)
         })
     })
 }

@@ -1,5 +1,5 @@
 /// Highest number of position channels any model has (TH multi-position: 4 magnets).
-pub const MAX_CHANNELS: usize = 4;
+pub use crate::config::MAX_CHANNELS;
 
 /// What the sensing element delivers once per measurement cycle: the input of the CiA 406
 /// encoder application. On a host it comes from `canpos-sim`; on a microcontroller from the

@@ -166,10 +166,10 @@ pub struct Model {
     /// The object dictionary, sorted by index and sub-index.
     pub entries: &'static [Entry],
     /// `entries[i].key()` for every entry, in the same order (`table::keys`): a host's
-    /// dictionary searches these, a dense array, rather than the entries (the upload of an
-    /// object other than the last one: 57 fewer instructions). Firmware (without
-    /// `inline-hot-paths`) searches the entries and keeps the array out of flash (TH: 744 B).
-    #[cfg(feature = "inline-hot-paths")]
+    /// dictionary searches these, a dense array, rather than the entries (fewer instructions
+    /// per upload). Firmware (without `inline-hot-paths`) searches the entries and keeps the
+    /// array out of flash: empty there (figures: docs/FIRMWARE.md, "Build options in
+    /// figures").
     pub keys: &'static [u32],
     /// Behaviour switches.
     pub features: Features,
@@ -186,10 +186,11 @@ impl Model {
     /// The slot of `key` ([`crate::od::key`]) in the table, or where it would be: a host
     /// searches [`Model::keys`], firmware the entries.
     pub fn search(&self, key: u32) -> Result<usize, usize> {
-        #[cfg(feature = "inline-hot-paths")]
-        return self.keys.binary_search(&key);
-        #[cfg(not(feature = "inline-hot-paths"))]
-        crate::od::search_entries(self.entries, key)
+        if crate::config::INLINE_HOT_PATHS {
+            self.keys.binary_search(&key)
+        } else {
+            crate::od::search_entries(self.entries, key)
+        }
     }
 
     /// `cfg` made consistent with this model's rules (see [`Model::derive`]).
@@ -289,56 +290,6 @@ const fn built_alone() -> Option<&'static Model> {
     None
 }
 
-/// Stored entries (group other than volatile) of each model built in, 0 for one left out: what
-/// sizes the storage image of a firmware build.
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn th_stored() -> usize {
-    #[cfg(feature = "th")]
-    return table::stored(th::ENTRIES);
-    #[cfg(not(feature = "th"))]
-    return 0;
-}
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn e_series_stored() -> usize {
-    #[cfg(feature = "e-series")]
-    return table::stored(e_series::ENTRIES);
-    #[cfg(not(feature = "e-series"))]
-    return 0;
-}
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn tmi_stored() -> usize {
-    #[cfg(feature = "tmi")]
-    return table::stored(tmi::ENTRIES_TWO_CHANNELS);
-    #[cfg(not(feature = "tmi"))]
-    return 0;
-}
-
-/// Entries of the largest table built in (at least 64, for a firmware's own small dictionary
-/// beside or instead of a model): the value array of a firmware build.
-#[cfg(not(feature = "host-buffers"))]
-pub(crate) const fn largest_table() -> usize {
-    const fn max(a: usize, b: usize) -> usize {
-        if a > b {
-            a
-        } else {
-            b
-        }
-    }
-    #[cfg(feature = "th")]
-    let th = th::N;
-    #[cfg(not(feature = "th"))]
-    let th = 0;
-    #[cfg(feature = "e-series")]
-    let e = e_series::N;
-    #[cfg(not(feature = "e-series"))]
-    let e = 0;
-    #[cfg(feature = "tmi")]
-    let tmi = tmi::N;
-    #[cfg(not(feature = "tmi"))]
-    let tmi = 0;
-    max(64, max(th, max(e, tmi)))
-}
-
 /// Builds [`Entry`] values tersely in model tables.
 #[macro_export]
 #[doc(hidden)]
@@ -404,13 +355,12 @@ macro_rules! tpdo_map_names {
 }
 /// The search keys of a table, as [`Model::keys`] wants them (a device outside this crate
 /// builds them the way the models do).
-#[cfg(feature = "inline-hot-paths")]
 pub use table::keys;
 pub(crate) use tpdo_map_names;
 
 /// Compile-time table assembly.
 pub(crate) mod table {
-    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range};
+    use crate::od::{Access, DataType, DefaultValue, Entry, Group, Hook, Range};
 
     const BLANK: Entry = Entry {
         index: 0,
@@ -420,7 +370,7 @@ pub(crate) mod table {
         ty: DataType::Unsigned8,
         access: Access::Const,
         pdo: false,
-        default: Default::Const(0),
+        default: DefaultValue::Const(0),
         range: &Range::Any,
         group: Group::Volatile,
         hook: Hook::None,
@@ -435,7 +385,7 @@ pub(crate) mod table {
         ty: DataType,
         access: Access,
         pdo: bool,
-        default: Default,
+        default: DefaultValue,
         range: &'static Range,
         group: Group,
     ) -> [Entry; N] {
@@ -449,7 +399,7 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Const,
             pdo: false,
-            default: Default::Const(N as u32 - 1),
+            default: DefaultValue::Const(N as u32 - 1),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
@@ -478,7 +428,7 @@ pub(crate) mod table {
     #[derive(Clone, Copy)]
     pub struct TpdoComm {
         /// Default COB-ID (sub 1).
-        pub cob: Default,
+        pub cob: DefaultValue,
         /// Default transmission type (sub 2).
         pub ttype: u32,
         /// Transmission types the model accepts (TMI TPDO2: synchronous only).
@@ -514,7 +464,7 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Const,
             pdo: false,
-            default: Default::Const(highest),
+            default: DefaultValue::Const(highest),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
@@ -530,7 +480,7 @@ pub(crate) mod table {
             default: c.cob,
             range: &Range::Any,
             group: c.group,
-            hook: Hook::TpdoComm,
+            hook: Hook::None, // `cia301::attach`
         };
         out[2] = Entry {
             index,
@@ -540,10 +490,10 @@ pub(crate) mod table {
             ty: DataType::Unsigned8,
             access: Access::Rw,
             pdo: false,
-            default: Default::Const(c.ttype),
+            default: DefaultValue::Const(c.ttype),
             range: c.ttype_range,
             group: c.group,
-            hook: Hook::TpdoComm,
+            hook: Hook::None, // `cia301::attach`
         };
         let mut n = 3;
         if c.inhibit {
@@ -555,10 +505,10 @@ pub(crate) mod table {
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(0),
+                default: DefaultValue::Const(0),
                 range: &Range::Any,
                 group: c.group,
-                hook: Hook::TpdoComm,
+                hook: Hook::None, // `cia301::attach`
             };
             n += 1;
         }
@@ -571,10 +521,10 @@ pub(crate) mod table {
                 ty: DataType::Unsigned16,
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(ms),
+                default: DefaultValue::Const(ms),
                 range: &Range::Any,
                 group: c.group,
-                hook: Hook::TpdoComm,
+                hook: Hook::None, // `cia301::attach`
             };
             n += 1;
         }
@@ -607,10 +557,10 @@ pub(crate) mod table {
                 },
                 access: Access::Rw,
                 pdo: false,
-                default: Default::Const(if i == 0 { count } else { maps[i - 1] }),
+                default: DefaultValue::Const(if i == 0 { count } else { maps[i - 1] }),
                 range: &Range::Any,
                 group,
-                hook: Hook::TpdoMap,
+                hook: Hook::None, // `cia301::attach`
             };
             i += 1;
         }
@@ -648,9 +598,9 @@ pub(crate) mod table {
                 access: if i == 0 { Access::Rw } else { Access::Ro },
                 pdo: false,
                 default: if i == 0 {
-                    Default::Const(0)
+                    DefaultValue::Const(0)
                 } else {
-                    Default::Live
+                    DefaultValue::Live
                 },
                 range: if i == 0 {
                     &Range::MinMax(0, 0)
@@ -658,7 +608,7 @@ pub(crate) mod table {
                     &Range::Any
                 },
                 group: Group::Volatile,
-                hook: Hook::ErrorHistory,
+                hook: Hook::None, // `cia301::attach`
             };
             i += 1;
         }
@@ -679,7 +629,6 @@ pub(crate) mod table {
     }
 
     /// The search keys of a table ([`Entry::key`] of each entry, in order).
-    #[cfg(feature = "inline-hot-paths")]
     pub const fn keys<const N: usize>(t: &[Entry; N]) -> [u32; N] {
         let mut out = [0u32; N];
         let mut i = 0;
@@ -720,7 +669,6 @@ pub(crate) mod table {
     }
 
     /// Number of entries of `t` that storage keeps (every group but volatile).
-    #[cfg(not(feature = "host-buffers"))]
     pub const fn stored(t: &[Entry]) -> usize {
         let mut n = 0;
         let mut i = 0;
@@ -731,6 +679,14 @@ pub(crate) mod table {
             i += 1;
         }
         n
+    }
+
+    /// Whether a storage image holds `t`'s stored entries beside the node's and the
+    /// application's records ([`crate::config::RECORDS_MAX`]; `CANPOS_MAX_STORED` in a
+    /// firmware build).
+    pub const fn fits_storage(t: &[Entry]) -> bool {
+        use crate::config::{APP_RECORDS, NODE_RECORDS, RECORDS_MAX};
+        stored(t) + NODE_RECORDS + APP_RECORDS <= RECORDS_MAX
     }
 
     /// Whether a table is strictly sorted by index and sub-index (the dictionary's binary
@@ -789,7 +745,7 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
 #[rustfmt::skip]
 const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
     use crate::encoder::hook;
-    use crate::od::{Access::{Ro, Rw}, DataType::*, Default::*, Group::*, Hook, Param, Range::Any};
+    use crate::od::{Access::{Ro, Rw}, DataType::*, DefaultValue::*, Group::*, Hook, Param, Range::Any};
     use table::{channels, hooked};
     &[
         &channels::<5>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
@@ -813,7 +769,7 @@ pub(crate) const THRESHOLD_CAMS_AND_WORK_AREAS: [Entry; table::total(THRESHOLD_C
 #[cfg(test)]
 mod tests {
     use super::table;
-    use crate::od::{Access, DataType, Default, Entry, Group, Hook, Range, MAX_ENTRIES};
+    use crate::od::{Access, DataType, DefaultValue, Entry, Group, Hook, Range, MAX_ENTRIES};
 
     const fn e(index: u16, sub: u8) -> Entry {
         Entry {
@@ -824,7 +780,7 @@ mod tests {
             ty: DataType::Unsigned8,
             access: Access::Ro,
             pdo: false,
-            default: Default::Const(0),
+            default: DefaultValue::Const(0),
             range: &Range::Any,
             group: Group::Volatile,
             hook: Hook::None,
@@ -854,5 +810,49 @@ mod tests {
         let over: [Entry; MAX_ENTRIES + 1] = core::array::from_fn(|i| e(0x2000 + i as u16, 0));
         assert!(table::valid(&over[..MAX_ENTRIES]), "exactly MAX_ENTRIES");
         assert!(!table::valid(&over), "one more than MAX_ENTRIES");
+    }
+
+    /// Every model table this build has: each CiA 301 object with the hook of the service
+    /// that owns it (the tables' compile-time asserts check the same; this names the object),
+    /// and the seven whose values a service must check present where the model has them.
+    #[test]
+    fn every_model_table_has_every_communication_profile_hook() {
+        use crate::od::cia301::{hook_of, missing_hook};
+        #[allow(unused_mut)]
+        let mut tables: [Option<(&str, &[Entry])>; 4] = [None; 4];
+        #[cfg(feature = "th")]
+        {
+            tables[0] = Some(("TH", super::th::ENTRIES));
+        }
+        #[cfg(feature = "e-series")]
+        {
+            tables[1] = Some(("E-Series", super::e_series::ENTRIES));
+        }
+        #[cfg(feature = "tmi")]
+        {
+            tables[2] = Some(("TMI", super::tmi::ENTRIES));
+            tables[3] = Some(("TMI two channels", super::tmi::ENTRIES_TWO_CHANNELS));
+        }
+        for (name, t) in tables.into_iter().flatten() {
+            assert_eq!(missing_hook(t), None, "{name}");
+            let has = |i: u16, s: u8| t.iter().find(|x| (x.index, x.sub) == (i, s));
+            for (index, sub) in [
+                (0x1005, 0),
+                (0x100E, 0),
+                (0x1010, 1),
+                (0x1011, 1),
+                (0x1014, 0),
+                (0x1015, 0),
+                (0x1017, 0),
+            ] {
+                // 0x100E is optional (the E-Series and the TMI have none).
+                if index == 0x100E && has(index, sub).is_none() {
+                    continue;
+                }
+                let e = has(index, sub).unwrap_or_else(|| panic!("{name}: 0x{index:04X}/{sub}"));
+                assert_eq!(e.hook, hook_of(index, sub), "{name}: 0x{index:04X}/{sub}");
+                assert_ne!(e.hook, Hook::None);
+            }
+        }
     }
 }

@@ -10,12 +10,14 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::config;
 use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
+    cia301,
     Access::{Ro, Rw},
     DataType::*,
-    Default::*,
+    DefaultValue::*,
     Entry,
     Group::*,
     Hook, Param,
@@ -31,23 +33,23 @@ const COMM_HEAD: &[Entry] = &[
 
 #[rustfmt::skip]
 const COMM: &[Entry] = &[
-    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm).with_hook(Hook::SyncCobId),
+    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Comm),
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str(&"C304")),
     entry!(0x1009, 0, "Manufacturer hardware version", VisibleString, Const, Str(&"1.00")),
     entry!(0x100A, 0, "Manufacturer software version", VisibleString, Const, Str(&"1.01")),
     // Tracks the active node-id (Table 15 default 0x7F = the default node-id).
     entry!(0x100B, 0, "Node-ID", Unsigned32, Ro, Param(Param::NodeId)),
-    entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
-    entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm).with_hook(Hook::Guarding),
-    entry!(0x100E, 0, "COB-ID guarding protocol", Unsigned32, Rw, NodeId(0x700), Any, Comm).with_hook(Hook::GuardingCobId),
+    entry!(0x100C, 0, "Guard time", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x100D, 0, "Life time factor", Unsigned8, Rw, Const(0), Any, Comm),
+    entry!(0x100E, 0, "COB-ID guarding protocol", Unsigned32, Rw, NodeId(0x700), Any, Comm),
     entry!(0x100F, 0, "Number of SDOs supported", Unsigned32, Const, Const(1)),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(1)),
-    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile),
     entry!(0x1011, 0, "Restore default parameters: highest sub-index", Unsigned8, Const, Const(1)),
-    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
-    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Comm).with_hook(Hook::EmcyCobId),
-    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::EmcyInhibit),
-    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
+    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Comm),
+    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Comm),
+    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm),
     entry!(0x1018, 0, "Identity object: number of entries", Unsigned8, Const, Const(4)),
     entry!(0x1018, 1, "Vendor-ID", Unsigned32, Const, Const(0x0000_0040)),
     entry!(0x1018, 2, "Product code", Unsigned32, Const, Const(PRODUCT_CODE)),
@@ -165,10 +167,20 @@ const PARTS: &[&[Entry]] = &[
 ];
 
 pub(crate) const N: usize = table::total(PARTS);
-static TABLE: [Entry; N] = table::concat(PARTS);
-#[cfg(feature = "inline-hot-paths")]
+static TABLE: [Entry; N] = cia301::attach(table::concat(PARTS));
+const _: () = assert!(
+    table::fits_storage(&TABLE),
+    "TH table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
+const _: () = assert!(
+    cia301::hooks_complete(&TABLE),
+    "TH table: a CiA 301 object without its hook"
+);
 static KEYS: [u32; N] = table::keys(&TABLE);
-const _: () = assert!(table::valid(&TABLE), "TH table unsorted or too large");
+const _: () = assert!(
+    table::valid(&TABLE),
+    "TH table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
+);
 
 /// The TH's object dictionary.
 pub static ENTRIES: &[Entry] = &TABLE;
@@ -202,8 +214,7 @@ pub static TH: Model = Model {
     product: "Temposonics TH CANbus",
     vendor: "MTS Sensor Technologie GmbH & Co. KG",
     entries: ENTRIES,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS,
+    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
     features: Features {
         tag: 1,
         tpdos: 4,

@@ -18,12 +18,14 @@
 
 use super::table::{self, channels, TpdoComm};
 use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use crate::config;
 use crate::encoder::hook;
 use crate::entry;
 use crate::od::{
+    cia301,
     Access::{Ro, Rw},
     DataType::*,
-    Default::*,
+    DefaultValue::*,
     Entry,
     Group::*,
     Hook, Param,
@@ -47,20 +49,20 @@ const COMM_HEAD: &[Entry] = &[
 
 #[rustfmt::skip]
 const COMM: &[Entry] = &[
-    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile).with_hook(Hook::SyncCobId),
+    entry!(0x1005, 0, "COB-ID SYNC", Unsigned32, Rw, Const(0x80), Any, Volatile),
     // SPEC §1: the manual names no device; "TMI".
     entry!(0x1008, 0, "Manufacturer device name", VisibleString, Const, Str(&"TMI")),
     entry!(0x1010, 0, "Store parameters: highest sub-index", Unsigned8, Const, Const(3)),
-    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
-    entry!(0x1010, 2, "Store communication parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
-    entry!(0x1010, 3, "Store application parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::StoreParameters),
+    entry!(0x1010, 1, "Store all parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1010, 2, "Store communication parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1010, 3, "Store application parameters", Unsigned32, Rw, Const(1), Any, Volatile),
     entry!(0x1011, 0, "Restore default parameters: highest sub-index", Unsigned8, Const, Const(3)),
-    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
-    entry!(0x1011, 2, "Restore communication default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
-    entry!(0x1011, 3, "Restore application default parameters", Unsigned32, Rw, Const(1), Any, Volatile).with_hook(Hook::RestoreDefaults),
-    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Volatile).with_hook(Hook::EmcyCobId),
-    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::EmcyInhibit),
-    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm).with_hook(Hook::Heartbeat),
+    entry!(0x1011, 1, "Restore all default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1011, 2, "Restore communication default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1011, 3, "Restore application default parameters", Unsigned32, Rw, Const(1), Any, Volatile),
+    entry!(0x1014, 0, "COB-ID EMCY", Unsigned32, Rw, NodeId(0x80), Any, Volatile),
+    entry!(0x1015, 0, "Inhibit time EMCY", Unsigned16, Rw, Const(0), Any, Volatile),
+    entry!(0x1017, 0, "Producer heartbeat time", Unsigned16, Rw, Const(0), Any, Comm),
     entry!(0x1018, 0, "Identity object: number of entries", Unsigned8, Const, Const(4)),
     entry!(0x1018, 1, "Vendor-ID", Unsigned32, Const, Const(0x0000_0182)),
     entry!(0x1018, 2, "Product code", Unsigned32, Ro, Param(Param::ProductCode)),
@@ -192,18 +194,35 @@ const PARTS_ONE: &[&[Entry]] = parts!(2, (0, [0; 8]); 1);
 /// Entries of the larger (two-channel) table: what a firmware's value array and storage image
 /// are sized for.
 pub(crate) const N: usize = table::total(PARTS);
-static TABLE_TWO: [Entry; N] = table::concat(PARTS);
-#[cfg(feature = "inline-hot-paths")]
+static TABLE_TWO: [Entry; N] = cia301::attach(table::concat(PARTS));
+const _: () = assert!(
+    table::fits_storage(&TABLE_TWO),
+    "TMI table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
+const _: () = assert!(
+    cia301::hooks_complete(&TABLE_TWO),
+    "TMI table: a CiA 301 object without its hook"
+);
 static KEYS_TWO: [u32; N] = table::keys(&TABLE_TWO);
-const _: () = assert!(table::valid(&TABLE_TWO), "TMI table unsorted or too large");
+const _: () = assert!(
+    table::valid(&TABLE_TWO),
+    "TMI table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
+);
 
 const N_ONE: usize = table::total(PARTS_ONE);
-static TABLE: [Entry; N_ONE] = table::concat(PARTS_ONE);
-#[cfg(feature = "inline-hot-paths")]
+static TABLE: [Entry; N_ONE] = cia301::attach(table::concat(PARTS_ONE));
+const _: () = assert!(
+    table::fits_storage(&TABLE),
+    "TMI table: more stored entries than config::RECORDS_MAX holds (CANPOS_MAX_STORED)"
+);
+const _: () = assert!(
+    cia301::hooks_complete(&TABLE),
+    "TMI table: a CiA 301 object without its hook"
+);
 static KEYS: [u32; N_ONE] = table::keys(&TABLE);
 const _: () = assert!(
     table::valid(&TABLE),
-    "one-channel TMI table unsorted or too large"
+    "one-channel TMI table unsorted or larger than config::MAX_ENTRIES (CANPOS_MAX_ENTRIES)"
 );
 
 /// The one-channel TMI's object dictionary: channel-1 objects only (002 §1.6, §1.12).
@@ -300,8 +319,7 @@ pub static TMI: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS,
+    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
     features: FEATURES,
     param,
     derive,
@@ -314,8 +332,11 @@ pub static TMI_TWO_CHANNELS: Model = Model {
     product: "Novotechnik TMI CANopen",
     vendor: "Novotechnik Messwertaufnehmer OHG",
     entries: ENTRIES_TWO_CHANNELS,
-    #[cfg(feature = "inline-hot-paths")]
-    keys: &KEYS_TWO,
+    keys: if config::INLINE_HOT_PATHS {
+        &KEYS_TWO
+    } else {
+        &[]
+    },
     features: FEATURES,
     param,
     derive,

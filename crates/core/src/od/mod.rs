@@ -6,31 +6,23 @@
 //! current values live in a fixed array parallel to the table (one `u32` per entry), so a
 //! dictionary costs 4 bytes per entry of RAM and no allocation.
 
+pub mod cia301;
 mod types;
 
-pub use types::{key, Abort, Access, DataType, Default, Entry, Group, Hook, Param, Range};
+pub use types::{key, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range};
 
 use crate::models::Model;
 
-/// Most entries a model's table may have (the value array is sized for it). 256, so that a
-/// slot fits a `u8` and [`Dictionary::get_u8`] needs no bounds check (the TPDO hot path).
-/// Without the `host-buffers` feature (firmware): the largest table built in, trading that
-/// bounds check for RAM (TH: 186 entries, 280 B less).
-#[cfg(feature = "host-buffers")]
-pub const MAX_ENTRIES: usize = 256;
-/// Most entries a model's table may have: the largest table built in (firmware builds).
-#[cfg(not(feature = "host-buffers"))]
-pub const MAX_ENTRIES: usize = crate::models::largest_table();
+pub use crate::config::MAX_ENTRIES;
 
 /// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
 /// (hosts search [`Model::keys`]), one shared copy.
-#[cfg(not(feature = "inline-hot-paths"))]
 #[inline(never)]
 pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
     entries.binary_search_by_key(&key, Entry::key)
 }
 
-/// Configuration-dependent values that [`Default::Param`] entries resolve against.
+/// Configuration-dependent values that [`DefaultValue::Param`] entries resolve against.
 pub trait ParamSource {
     /// The value of `p` for this unit, as raw bits of the entry's type.
     fn param(&self, p: Param) -> u32;
@@ -40,9 +32,8 @@ pub trait ParamSource {
 #[derive(Clone)]
 pub struct Dictionary {
     entries: &'static [Entry],
-    /// [`Model::keys`], searched by [`Dictionary::find`] (hosts; firmware searches the
-    /// entries).
-    #[cfg(feature = "inline-hot-paths")]
+    /// [`Model::keys`], searched by [`Dictionary::find`] on a host
+    /// ([`crate::config::INLINE_HOT_PATHS`]; a firmware searches the entries).
     keys: &'static [u32],
     values: [u32; MAX_ENTRIES],
 }
@@ -62,15 +53,15 @@ impl Dictionary {
             entries.windows(2).all(|w| w[0].key() < w[1].key()),
             "table not sorted"
         );
-        #[cfg(feature = "inline-hot-paths")]
-        assert!(
-            model.keys.len() == entries.len()
-                && model.keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
-            "keys do not match the table"
-        );
+        if crate::config::INLINE_HOT_PATHS {
+            assert!(
+                model.keys.len() == entries.len()
+                    && model.keys.iter().zip(entries).all(|(k, e)| *k == e.key()),
+                "keys do not match the table"
+            );
+        }
         Dictionary {
             entries,
-            #[cfg(feature = "inline-hot-paths")]
             keys: model.keys,
             values: [0; MAX_ENTRIES],
         }
@@ -84,14 +75,15 @@ impl Dictionary {
 
     /// Finds the slot of `index`/`sub`, with the abort code CiA 301 gives when it is missing.
     /// Out of line without the `inline-hot-paths` feature: some forty call sites then share one
-    /// copy (the TH firmware: 4.9 KB less flash).
+    /// copy (figure: docs/FIRMWARE.md, "Build options in figures").
     #[cfg_attr(feature = "inline-hot-paths", inline)]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub fn find(&self, index: u16, sub: u8) -> Result<usize, Abort> {
-        #[cfg(feature = "inline-hot-paths")]
-        let found = self.keys.binary_search(&key(index, sub));
-        #[cfg(not(feature = "inline-hot-paths"))]
-        let found = search_entries(self.entries, key(index, sub));
+        let found = if crate::config::INLINE_HOT_PATHS {
+            self.keys.binary_search(&key(index, sub))
+        } else {
+            search_entries(self.entries, key(index, sub))
+        };
         match found {
             Ok(slot) => Ok(slot),
             Err(pos) => {
@@ -161,28 +153,8 @@ impl Dictionary {
     /// much as fits); returns the bytes copied.
     #[inline]
     pub fn read_at(&self, slot: usize, offset: usize, buf: &mut [u8]) -> usize {
-        const CAP: usize = 64;
+        const CAP: usize = crate::config::SDO_BUF_LEN;
         let e = &self.entries[slot];
-        // Numbers from the start (every expedited upload): fixed-length copies, no memcpy call.
-        #[cfg(feature = "inline-hot-paths")]
-        if offset == 0 {
-            let le = self.values[slot].to_le_bytes();
-            match (e.ty.size(), &mut *buf) {
-                (Some(1), [b0, ..]) => {
-                    *b0 = le[0];
-                    return 1;
-                }
-                (Some(2), [b0, b1, ..]) => {
-                    [*b0, *b1] = [le[0], le[1]];
-                    return 2;
-                }
-                (Some(4), [b0, b1, b2, b3, ..]) => {
-                    [*b0, *b1, *b2, *b3] = le;
-                    return 4;
-                }
-                _ => {}
-            }
-        }
         let le;
         let src: &[u8] = match e.ty.size() {
             Some(n) => {
@@ -190,7 +162,7 @@ impl Dictionary {
                 &le[..n.min(4)]
             }
             None => match e.default {
-                Default::Str(s) => s.as_bytes(),
+                DefaultValue::Str(s) => s.as_bytes(),
                 _ => &[],
             },
         };
@@ -209,7 +181,7 @@ impl Dictionary {
         match e.ty.size() {
             Some(n) => n,
             None => match e.default {
-                Default::Str(s) => s.len(),
+                DefaultValue::Str(s) => s.len(),
                 _ => 0,
             },
         }
@@ -219,10 +191,10 @@ impl Dictionary {
 /// Resolves the boot value of one entry.
 pub fn resolve_default(e: &Entry, params: &dyn ParamSource, node_id: u8) -> u32 {
     match e.default {
-        Default::Const(v) => v,
-        Default::NodeId(base) => base.wrapping_add(node_id as u32),
-        Default::Param(p) => params.param(p),
-        Default::Str(_) | Default::Live => 0,
+        DefaultValue::Const(v) => v,
+        DefaultValue::NodeId(base) => base.wrapping_add(node_id as u32),
+        DefaultValue::Param(p) => params.param(p),
+        DefaultValue::Str(_) | DefaultValue::Live => 0,
     }
 }
 

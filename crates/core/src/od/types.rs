@@ -303,7 +303,7 @@ pub enum Param {
 
 /// Where an entry's value at boot (and after a restore) comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Default {
+pub enum DefaultValue {
     /// A fixed number (raw little-endian bits, sign-extended types stored as two's complement).
     Const(u32),
     /// `base + node-id` (pre-defined connection set COB-IDs).
@@ -358,7 +358,7 @@ pub struct Entry {
     /// May be mapped into a TPDO.
     pub pdo: bool,
     /// Value at boot / after restore.
-    pub default: Default,
+    pub default: DefaultValue,
     /// Accepted values on write. Behind a reference, so that the many entries with
     /// [`Range::Any`] take one pointer (4 bytes on a 32-bit microcontroller) rather than the
     /// 12 of a range: the table's entries are 20 bytes there.
@@ -405,7 +405,7 @@ impl Entry {
         ty: DataType,
         access: Access,
         pdo: bool,
-        default: Default,
+        default: DefaultValue,
         range: &'static Range,
         group: Group,
     ) -> Entry {
@@ -470,7 +470,8 @@ impl Entry {
                 }
                 natural
             }
-            // Not `contains`: for integers it unrolls by 16, 60 B of flash for lists of a few.
+            // Not `contains`: for integers it unrolls by 16, flash spent on lists of a few
+            // (docs/FIRMWARE.md, "Build options in figures").
             #[allow(clippy::manual_contains)]
             Range::OneOf(list) => natural && list.iter().any(|&x| x == raw),
         };

@@ -6,9 +6,7 @@ use crate::wire::{Duration, Instant};
 /// Time after which an unfinished segmented / block transfer is aborted (0x05040000).
 pub const SDO_TIMEOUT: Duration = Duration::from_millis(1000);
 
-/// Capacity of the server's transfer buffer: the largest value a segmented or block transfer
-/// can carry. Larger transfers are refused with 0x05040005 (out of memory).
-pub const SDO_BUF_LEN: usize = 64;
+pub use crate::config::SDO_BUF_LEN;
 
 /// Block size the server announces for block downloads (the CTT log's value). The buffer, not
 /// the block size, bounds a transfer: data beyond [`SDO_BUF_LEN`] is refused.
@@ -226,8 +224,9 @@ impl SdoServer {
         // configuration): a host (`inline-hot-paths`) serves them without decoding a `Request`,
         // with the same checks and answers as the general path (an upload that turns out
         // segmented takes that path), inlined into the caller. A firmware takes the general
-        // path for them too: one copy of each answer in flash (the TH: 0.5 KB less).
-        if cfg!(feature = "inline-hot-paths") && self.state == State::Idle {
+        // path for them too: one copy of each answer in flash (docs/FIRMWARE.md, "Build
+        // options in figures").
+        if crate::config::INLINE_HOT_PATHS && self.state == State::Idle {
             if let Ok(req) = <[u8; 8]>::try_from(data) {
                 let c = Command(req[0]);
                 if c.ccs() == 2 {

@@ -1,7 +1,7 @@
 //! CiA 301 §7.1 basic data types (sizes, EDS codes, value ranges), the access attributes, an
 //! entry's value checks, and the SDO abort codes of §7.2.4.3.17 (Table 22) with their meanings.
 
-use canpos_core::od::{Access, DataType, Default, Entry, Group, Hook, Range};
+use canpos_core::od::{Access, DataType, DefaultValue, Entry, Group, Hook, Range};
 use canpos_core::Abort;
 
 const ALL_TYPES: [DataType; 9] = [
@@ -82,7 +82,7 @@ fn entry(index: u16, sub: u8, ty: DataType, range: Range) -> Entry {
         ty,
         Access::Rw,
         false,
-        Default::Const(0),
+        DefaultValue::Const(0),
         Box::leak(Box::new(range)),
         Group::App,
     )

@@ -16,12 +16,10 @@ fn th_without(drop: &[u16]) -> &'static Model {
         .filter(|e| !drop.contains(&e.index))
         .copied()
         .collect();
-    #[cfg(feature = "inline-hot-paths")]
     let keys: Vec<u32> = entries.iter().map(|e| e.key()).collect();
     Box::leak(Box::new(Model {
         name: "th-predefined",
         entries: Box::leak(entries.into_boxed_slice()),
-        #[cfg(feature = "inline-hot-paths")]
         keys: Box::leak(keys.into_boxed_slice()),
         ..TH
     }))

@@ -6,7 +6,7 @@
 use crate::common::{hex, Rig};
 use canpos_core::models::th::TH;
 use canpos_core::models::{Features, Model};
-use canpos_core::od::{Default, Entry};
+use canpos_core::od::{DefaultValue, Entry};
 
 /// A device name longer than four bytes: its upload needs a segmented or a block transfer.
 static NAME: &str = "canpos position sensor";
@@ -18,7 +18,7 @@ fn model(segmented: bool, block: bool) -> &'static Model {
         .iter()
         .map(|e| match (e.index, e.sub) {
             (0x1008, 0) => Entry {
-                default: Default::Str(&NAME),
+                default: DefaultValue::Str(&NAME),
                 ..*e
             },
             _ => *e,

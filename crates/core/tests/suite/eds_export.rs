@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use canpos_core::eds::{write_dcf, write_eds, Commissioning, DcfValue, EdsInfo};
 use canpos_core::models::{self, Model};
 use canpos_core::od::{
-    resolve_default, Access, DataType, Default, Entry, Group, Param, ParamSource, Range,
+    resolve_default, Access, DataType, DefaultValue, Entry, Group, Param, ParamSource, Range,
 };
 
 type Ini = BTreeMap<String, BTreeMap<String, String>>;
@@ -124,13 +124,13 @@ fn every_model_eds_parses_and_lists_every_object() {
                     assert_eq!(acc, e.access.eds(), "{what}");
                 }
                 match e.default {
-                    Default::Live => {
+                    DefaultValue::Live => {
                         assert!(
                             !sec.contains_key("DefaultValue"),
                             "{what}: live, no default"
                         )
                     }
-                    Default::NodeId(base) => {
+                    DefaultValue::NodeId(base) => {
                         let w = 2 * e.ty.size().unwrap();
                         assert_eq!(
                             sec["DefaultValue"],
@@ -138,11 +138,11 @@ fn every_model_eds_parses_and_lists_every_object() {
                             "{what}"
                         )
                     }
-                    Default::Str(s) => assert_eq!(sec["DefaultValue"], *s, "{what}"),
-                    Default::Const(v) => {
+                    DefaultValue::Str(s) => assert_eq!(sec["DefaultValue"], *s, "{what}"),
+                    DefaultValue::Const(v) => {
                         assert_eq!(num(&sec["DefaultValue"]), e.ty.to_i64(v), "{what}")
                     }
-                    Default::Param(_) => assert!(sec.contains_key("DefaultValue"), "{what}"),
+                    DefaultValue::Param(_) => assert!(sec.contains_key("DefaultValue"), "{what}"),
                 }
             }
         }
@@ -157,7 +157,7 @@ fn every_model_eds_parses_and_lists_every_object() {
                 .iter()
                 .find(|e| e.index == 0x1018 && e.sub == 1)
                 .map(|e| match e.default {
-                    Default::Const(v) => v as i64,
+                    DefaultValue::Const(v) => v as i64,
                     _ => -1,
                 })
                 .unwrap()
@@ -292,7 +292,7 @@ fn arrays_records_and_object_names() {
                 ty,
                 Access::Rw,
                 false,
-                Default::Const(0),
+                DefaultValue::Const(0),
                 &Range::Any,
                 Group::App,
             )
@@ -353,7 +353,7 @@ fn unit_dependent_defaults_are_the_units_values() {
         let ini = parse_ini(&eds_of(model));
         for (idx, subs) in &objects(model) {
             for e in subs {
-                let Default::Param(p) = e.default else {
+                let DefaultValue::Param(p) = e.default else {
                     continue;
                 };
                 let single = subs.len() == 1 && e.sub == 0;

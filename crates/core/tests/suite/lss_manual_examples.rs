@@ -20,7 +20,6 @@ fn variant(name: &'static str, features: Features) -> &'static Model {
         product: TH.product,
         vendor: TH.vendor,
         entries: TH.entries,
-        #[cfg(feature = "inline-hot-paths")]
         keys: TH.keys,
         features,
         param: TH.param,

@@ -4,7 +4,7 @@
 
 use crate::common::{booted, sample, Rig};
 use canpos_core::models::{self, DeviceConfig, Model};
-use canpos_core::od::{resolve_default, Default, Entry, Group, Param, ParamSource, Range};
+use canpos_core::od::{resolve_default, DefaultValue, Entry, Group, Param, ParamSource, Range};
 
 struct Unit<'a>(&'static Model, &'a DeviceConfig);
 impl ParamSource for Unit<'_> {
@@ -69,8 +69,8 @@ fn le(v: u32, n: usize) -> Vec<u8> {
 
 fn expected(model: &'static Model, cfg: &DeviceConfig, e: &Entry) -> Option<Vec<u8>> {
     match e.default {
-        Default::Live => None,
-        Default::Str(s) => Some(s.as_bytes().to_vec()),
+        DefaultValue::Live => None,
+        DefaultValue::Str(s) => Some(s.as_bytes().to_vec()),
         _ => {
             let v = resolve_default(e, &Unit(model, cfg), cfg.node_id);
             Some(le(v, e.ty.size().unwrap()))
@@ -122,7 +122,7 @@ fn check_model(model: &'static Model) {
         let got =
             upload(&mut r, e.index, e.sub).unwrap_or_else(|a| panic!("{what}: abort {a:08X}"));
         let size = e.ty.size().unwrap_or(match e.default {
-            Default::Str(s) => s.len(),
+            DefaultValue::Str(s) => s.len(),
             _ => 0,
         });
         assert_eq!(got.len(), size, "{what}: size");
@@ -426,7 +426,7 @@ fn constant_sub_0_is_the_highest_sub_index() {
                 .iter()
                 .filter(|x| x.index == e.index && x.sub > 0)
                 .collect();
-            let (Default::Const(n), Some(last)) = (e.default, subs.last()) else {
+            let (DefaultValue::Const(n), Some(last)) = (e.default, subs.last()) else {
                 continue;
             };
             assert_eq!(n, last.sub as u32, "{} {:04X}", m.name, e.index);

@@ -85,17 +85,21 @@ fn error_history_sub_0_counts_from_0_and_the_fields_are_recorded() {
     // CiA 301 0x1003: sub 0 "number of errors", rw, default 0 (only 0 may be written, which
     // clears the history); the standard error fields are read-only and hold what the EMCY
     // service recorded, so they have no constant default.
-    use canpos_core::od::{Access, Default, Range};
+    use canpos_core::od::{Access, DefaultValue, Range};
     for m in models::all() {
         let h: Vec<_> = m.entries.iter().filter(|e| e.index == 0x1003).collect();
         assert_eq!(h.len(), 9, "{m:?}");
         for e in h {
             if e.sub == 0 {
-                assert!(matches!(e.default, Default::Const(0)), "{m:?}");
+                assert!(matches!(e.default, DefaultValue::Const(0)), "{m:?}");
                 assert!(matches!(e.access, Access::Rw), "{m:?}");
                 assert!(matches!(e.range, Range::MinMax(0, 0)), "{m:?}");
             } else {
-                assert!(matches!(e.default, Default::Live), "{m:?} sub {}", e.sub);
+                assert!(
+                    matches!(e.default, DefaultValue::Live),
+                    "{m:?} sub {}",
+                    e.sub
+                );
                 assert!(matches!(e.access, Access::Ro), "{m:?} sub {}", e.sub);
             }
         }

@@ -3,7 +3,7 @@
 //! 0x1010 / 0x1011 sub-indices, and the contract of the reference media (`RamStorage`,
 //! `NoStorage`).
 
-use canpos_core::od::{Access, DataType, Default, Entry, Group, Range};
+use canpos_core::od::{Access, DataType, DefaultValue, Entry, Group, Range};
 use canpos_core::storage::update_image;
 use canpos_core::storage::{
     app_key, app_record, crc32, is_object_key, load_image, parse_image, ImageWriter, APP_RECORDS,
@@ -121,7 +121,7 @@ fn entry(group: Group) -> Entry {
         DataType::Unsigned8,
         Access::Rw,
         false,
-        Default::Const(0),
+        DefaultValue::Const(0),
         &Range::Any,
         group,
     )

@@ -4,6 +4,30 @@
 use super::*;
 
 impl Builder<'_> {
+    /// Every CiA 301 object of the table carries the hook of the service whose rules it
+    /// follows ([`cia301::missing_hook`]): a table without one would serve, say, a 0x1014 that
+    /// accepts any COB-ID, so it is refused with the object's line.
+    pub(super) fn check_hooks(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        match cia301::missing_hook(entries) {
+            None => Ok(()),
+            Some((index, sub)) => Err(self.err(
+                value_lines
+                    .get(&canpos_core::od::key(index, sub))
+                    .copied()
+                    .unwrap_or(0),
+                format!(
+                    "0x{index:04X} sub {sub} lacks its CiA 301 rule ({:?}): the table would \
+                     accept any value there",
+                    cia301::hook_of(index, sub)
+                ),
+            )),
+        }
+    }
+
     /// `[MandatoryObjects]` / `[OptionalObjects]` / `[ManufacturerObjects]`: counts agree,
     /// every listed object has a section; a section nobody lists is only warned about.
     pub(super) fn check_lists(
@@ -85,7 +109,7 @@ impl Builder<'_> {
             let Some(e0) = find(0x1A00 + n, 0) else {
                 continue;
             };
-            let Default::Const(count) = e0.default else {
+            let DefaultValue::Const(count) = e0.default else {
                 return Err(self.err(line(e0), "a mapping count must be a number"));
             };
             let have = (1..=pdo::MAX_MAP as u8)
@@ -112,7 +136,7 @@ impl Builder<'_> {
                         ),
                     ));
                 };
-                let Default::Const(v) = m.default else {
+                let DefaultValue::Const(v) = m.default else {
                     return Err(self.err(line(m), "a mapping entry must be a number"));
                 };
                 let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);

@@ -74,9 +74,9 @@ fn the_exported_eds_of_every_model_rebuilds_its_table() {
             {
                 assert_eq!(o.hook, e.hook, "{at}");
             }
-            if let Default::Str(s) = o.default {
-                assert_eq!(e.default, Default::Str(s), "{at}");
-            } else if o.default != Default::Live {
+            if let DefaultValue::Str(s) = o.default {
+                assert_eq!(e.default, DefaultValue::Str(s), "{at}");
+            } else if o.default != DefaultValue::Live {
                 assert_eq!(
                     resolve_default(o, &orig, 127),
                     resolve_default(e, &built, 127),
@@ -125,21 +125,27 @@ fn the_hand_written_io_device() {
     assert_eq!(find(m, 0x1800, 1).hook, Hook::TpdoComm);
     assert_eq!(find(m, 0x1800, 0).hook, Hook::None);
     assert_eq!(find(m, 0x1A01, 0).hook, Hook::TpdoMap);
-    assert_eq!(find(m, 0x1014, 0).default, Default::NodeId(0x80));
-    assert_eq!(find(m, 0x1801, 1).default, Default::NodeId(0x8000_0280));
+    assert_eq!(find(m, 0x1014, 0).default, DefaultValue::NodeId(0x80));
+    assert_eq!(
+        find(m, 0x1801, 1).default,
+        DefaultValue::NodeId(0x8000_0280)
+    );
     assert_eq!(find(m, 0x2101, 0).group, Group::App);
     assert_eq!(find(m, 0x2200, 0).group, Group::Volatile);
     assert_eq!(find(m, 0x2000, 0).group, Group::Volatile);
     // Values and limits in the type's terms.
     assert_eq!(
         find(m, 0x2001, 1).default,
-        Default::Const(-1234i16 as u16 as u32)
+        DefaultValue::Const(-1234i16 as u16 as u32)
     );
-    assert_eq!(find(m, 0x2102, 0).default, Default::Const(-500i32 as u32));
+    assert_eq!(
+        find(m, 0x2102, 0).default,
+        DefaultValue::Const(-500i32 as u32)
+    );
     assert_eq!(find(m, 0x2102, 0).limits(), Some((-100_000, 100_000)));
     assert_eq!(find(m, 0x2103, 0).limits(), Some((-10, 10)));
     assert_eq!(find(m, 0x2101, 0).limits(), Some((1, 1000)));
-    assert_eq!(find(m, 0x2300, 0).default, Default::Str(&"v1.2-io"));
+    assert_eq!(find(m, 0x2300, 0).default, DefaultValue::Str(&"v1.2-io"));
     assert_eq!(find(m, 0x1008, 0).access, Access::Const);
     assert_eq!(find(m, 0x2200, 0).access, Access::Wo);
     assert!(find(m, 0x2000, 0).pdo && !find(m, 0x2100, 0).pdo);
@@ -157,7 +163,7 @@ fn overrides_and_state_file() {
         (d.cfg.node_id, d.cfg.bitrate_kbps, d.cfg.serial),
         (5, 500, 77)
     );
-    assert_eq!(find(d.model, 0x1018, 4).default, Default::Const(77));
+    assert_eq!(find(d.model, 0x1018, 4).default, DefaultValue::Const(77));
     assert_eq!(
         d.state_file(Path::new("/s")),
         Path::new("/s/eds-00000ca7-00001234-77.bin")
@@ -173,8 +179,8 @@ fn overrides_and_state_file() {
     );
     assert!(implicit != IO && implicit2 != implicit);
     let d2 = eds(&implicit2).unwrap();
-    assert_eq!(find(d2.model, 0x2001, 2).default, Default::Const(2000));
-    assert_eq!(find(d2.model, 0x2000, 0).default, Default::Const(0x5A));
+    assert_eq!(find(d2.model, 0x2001, 2).default, DefaultValue::Const(2000));
+    assert_eq!(find(d2.model, 0x2000, 0).default, DefaultValue::Const(0x5A));
     // Another identity, another tag.
     let other = eds(&IO.replace("0x00001234", "0x00001235")).unwrap();
     assert_ne!(other.model.features.tag, d.model.features.tag);
@@ -192,7 +198,7 @@ fn a_dcf_brings_its_values_and_commissioning() {
             "[DeviceComissioning]\nNodeID=0x21\nBaudrate=500\n\n[DummyUsage]",
         );
     let d = build(&dcf, "x.dcf", FileKind::Dcf, &NONE).unwrap();
-    assert_eq!(find(d.model, 0x2101, 0).default, Default::Const(250));
+    assert_eq!(find(d.model, 0x2101, 0).default, DefaultValue::Const(250));
     assert_eq!((d.cfg.node_id, d.cfg.bitrate_kbps), (0x21, 500));
     // The command line wins.
     let o = Overrides {
@@ -204,7 +210,7 @@ fn a_dcf_brings_its_values_and_commissioning() {
     assert_eq!((d.cfg.node_id, d.cfg.bitrate_kbps), (9, 250));
     // An EDS ignores both, and says so.
     let e = eds(&dcf).unwrap();
-    assert_eq!(find(e.model, 0x2101, 0).default, Default::Const(10));
+    assert_eq!(find(e.model, 0x2101, 0).default, DefaultValue::Const(10));
     assert_eq!((e.cfg.node_id, e.cfg.bitrate_kbps), (127, 125));
     assert!(e.warnings.iter().any(|w| w.contains("ParameterValue")));
     assert!(e.warnings.iter().any(|w| w.contains("DeviceComissioning")));
@@ -608,4 +614,35 @@ fn the_node_serves_values_limits_pdos_and_storage() {
     n.power_on(Instant::from_micros(t));
     assert_eq!(upload(&mut n, &mut t, 0x1017, 0), 0);
     assert_eq!(upload(&mut n, &mut t, 0x2102, 0) as i32, -500);
+}
+
+#[test]
+fn a_table_whose_cia301_object_lacks_its_hook_is_refused() {
+    // What the loader builds carries every hook (the stack attaches them)…
+    let d = eds(IO).unwrap();
+    let b = Builder {
+        file: "x.eds",
+        kind: FileKind::Eds,
+        warnings: Vec::new(),
+    };
+    let lines = BTreeMap::from([(canpos_core::od::key(0x1014, 0), 42usize)]);
+    b.check_hooks(d.model.entries, &lines).unwrap();
+    // …and a table where one of them is missing or wrong is an error naming the object.
+    for (index, sub) in [(0x1005, 0), (0x1010, 1), (0x1014, 0), (0x1017, 0)] {
+        let mut t = d.model.entries.to_vec();
+        let at = t.iter().position(|e| (e.index, e.sub) == (index, sub));
+        let at = at.unwrap_or_else(|| panic!("io-device has 0x{index:04X}/{sub}"));
+        for wrong in [Hook::None, Hook::TpdoMap] {
+            t[at].hook = wrong;
+            let err = b.check_hooks(&t, &lines).unwrap_err();
+            assert!(
+                err.msg
+                    .starts_with(&format!("0x{index:04X} sub {sub} lacks")),
+                "{err}"
+            );
+            if index == 0x1014 {
+                assert_eq!(err.line, 42);
+            }
+        }
+    }
 }
