@@ -19,9 +19,9 @@ use canpos_host::{ControlHandle, RxFrame, Transport};
 use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
-use crate::master::decode::{self, NodeInfo};
-use crate::master::sdo::{abort_meaning, SdoClient, SdoError};
-use crate::master::Monitor;
+use crate::client::decode::{self, NodeInfo};
+use crate::client::sdo::{abort_meaning, SdoClient, SdoError};
+use crate::client::Monitor;
 
 /// Plot samples are kept at most this often per channel (the server-side decimation: a TPDO
 /// every millisecond becomes 50 points per second).

@@ -15,19 +15,18 @@
 use std::hint::black_box;
 use std::time::{Duration, Instant as StdInstant};
 
-use canpos_host::mem::MemBus;
-use canpos_host::runtime::Runtime;
-use canpos_host::transport::Transport;
-use serde_json::{json, Value};
-
-use crate::device::{build_setup, SensorOpts};
-use crate::master::SdoClient;
-
 use anyhow::{bail, ensure, Context as _, Result};
 use canpos_core::models::{self, Model};
 use canpos_core::storage::NoStorage;
 use canpos_core::{Frame, Instant, Node, SensorNode};
+use canpos_host::mem::MemBus;
+use canpos_host::runtime::Runtime;
+use canpos_host::transport::Transport;
 use clap::{Args, Subcommand, ValueEnum};
+use serde_json::{json, Value};
+
+use crate::client::SdoClient;
+use crate::sensor::{build_setup, SensorOpts};
 
 /// `canpos bench` options.
 #[derive(Debug, Args)]
@@ -73,7 +72,7 @@ struct BusesArgs {
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=256))]
     buses: u16,
     /// Bit rate of every bus, kbit/s (a CiA 301 rate).
-    #[arg(long, default_value_t = 1000, value_parser = crate::device::parse_bitrate)]
+    #[arg(long, default_value_t = 1000, value_parser = crate::common::parse_bitrate)]
     bitrate: u32,
     /// Length of the measured window in seconds (after 1 s of warm-up).
     #[arg(long, default_value_t = 5.0, value_parser = crate::limits::parse_positive_seconds)]
@@ -514,7 +513,7 @@ struct TempDir(tempfile::TempDir);
 
 impl TempDir {
     fn new(tag: &str) -> Result<TempDir> {
-        crate::private_state_dir(&format!("bench-{tag}")).map(TempDir)
+        crate::common::private_state_dir(&format!("bench-{tag}")).map(TempDir)
     }
 }
 
@@ -541,7 +540,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
     let dir = TempDir::new("scale")?;
     let nodes = a.nodes;
     // The bus: the runtime's port, a master port for the set-up, and a frame counter.
-    let pacing = crate::device::pacing(None, a.instant_bus);
+    let pacing = crate::common::pacing(None, a.instant_bus);
     let mem = MemBus::with_pacing(pacing).with_queue_len(65536);
     let mut hub = None;
     let (runtime_port, mut master): (Box<dyn Transport>, Box<dyn Transport>) = match a.bus {
@@ -684,7 +683,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
             "error: bench scale missed its expectation: {}",
             failures.join("; ")
         );
-        Ok(crate::master::EXIT_REFUSED)
+        Ok(crate::common::EXIT_REFUSED)
     }
 }
 
@@ -713,7 +712,7 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn sdo_rtt(a: RttArgs) -> Result<i32> {
-    let mut bus = crate::master::open_bus(&a.bus)?;
+    let mut bus = crate::common::open_bus(&a.bus)?;
     let mut c = SdoClient::new(&mut *bus, a.node, Duration::from_secs(1));
     // Expected answer: whatever 0x1000 holds, the same every time.
     let want = c.upload(0x1000, 0).context("first SDO upload of 0x1000")?;

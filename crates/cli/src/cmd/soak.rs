@@ -33,7 +33,7 @@ use canpos_host::transport::Transport;
 use clap::Args;
 use serde_json::{json, Value};
 
-use crate::device::{build_setup, SensorOpts};
+use crate::sensor::{build_setup, SensorOpts};
 
 /// `canpos soak` options.
 #[derive(Debug, Args)]
@@ -94,7 +94,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let run_for = Duration::from_secs_f64(a.minutes * 60.0);
 
     // State files go to a private directory: the soak must not touch the user's units.
-    let state = crate::private_state_dir("soak")?;
+    let state = crate::common::private_state_dir("soak")?;
     let state_dir = state.path().to_path_buf();
 
     // The soak measures the runtime's timing, not the bus: the instant bus (127 × 1 ms is more
@@ -250,7 +250,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     Ok(if failures.is_empty() {
         0
     } else {
-        crate::master::EXIT_REFUSED
+        crate::common::EXIT_REFUSED
     })
 }
 

@@ -13,6 +13,8 @@ use canpos_core::od::Abort;
 use canpos_core::Frame;
 use canpos_host::transport::{RxFrame, Transport};
 
+use crate::common::{parse_i64, parse_u64};
+
 /// Largest segmented upload accepted; a server that keeps sending beyond that is aborted rather
 /// than letting a broken device exhaust memory.
 pub const MAX_UPLOAD: usize = 1 << 20;
@@ -441,22 +443,4 @@ fn parse_hex_bytes(s: &str) -> Result<Vec<u8>, String> {
         .step_by(2)
         .map(|i| u8::from_str_radix(&digits[i..i + 2], 16).map_err(|e| e.to_string()))
         .collect()
-}
-
-/// Decimal, or hex with a `0x` prefix.
-pub fn parse_u64(s: &str) -> Option<u64> {
-    let s = s.trim();
-    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
-        Some(h) => u64::from_str_radix(h, 16).ok(),
-        None => s.parse().ok(),
-    }
-}
-
-/// Like [`parse_u64`] with an optional leading minus sign.
-pub fn parse_i64(s: &str) -> Option<i64> {
-    let s = s.trim();
-    match s.strip_prefix('-') {
-        Some(r) => parse_u64(r).and_then(|v| i64::try_from(v).ok()).map(|v| -v),
-        None => parse_u64(s).and_then(|v| i64::try_from(v).ok()),
-    }
 }

@@ -19,7 +19,8 @@ use canpos_host::ini::Ini;
 use canpos_host::FileStorage;
 use clap::Args;
 
-use crate::master::{open_bus, BusArg, SdoClient, SdoError, Usage};
+use crate::client::{SdoClient, SdoError};
+use crate::common::{open_bus, BusArg, Usage};
 
 /// `canpos dcf`: write the DCF of a configured unit, read from the running node over SDO or
 /// from its state file.
@@ -153,7 +154,7 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
                     state.display()
                 ))))
             }
-            (m, code, _) => crate::master::export_unit(m.as_deref(), code.as_deref())?,
+            (m, code, _) => crate::sensor::export_unit(m.as_deref(), code.as_deref())?,
         };
         if let Some((_, serial)) = parse_state_name(state) {
             cfg.serial = serial;
@@ -177,7 +178,7 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
                 let m = recognise(&mut c)?;
                 (m, m.default_config, String::new())
             }
-            (m, code) => crate::master::export_unit(m.as_deref(), code.as_deref())?,
+            (m, code) => crate::sensor::export_unit(m.as_deref(), code.as_deref())?,
         };
         cfg.node_id = node;
         if let Some(b) = a.bitrate {
@@ -655,12 +656,12 @@ mod tests {
         std::fs::write(&dcf, &text).unwrap();
         let d = read_model_dcf(&dcf).unwrap().unwrap();
         assert_eq!(d.channels, Some(2));
-        let opts = crate::device::SensorOpts {
+        let opts = crate::sensor::SensorOpts {
             model: Some("tmi".into()),
             unit_channels: d.channels,
             ..Default::default()
         };
-        let built = crate::device::build_setup(&opts, dir.path()).unwrap();
+        let built = crate::sensor::build_setup(&opts, dir.path()).unwrap();
         assert_eq!(built.setup.cfg.channels, 2);
         let fresh = dir.path().join("fresh.bin");
         let refused = apply_to_state(&d, built.setup.cfg, &fresh).unwrap();
