@@ -1,5 +1,7 @@
 //! Finding the nodes on a bus: who answers an SDO read of the identity object.
 
+use canpos_core::cob;
+use canpos_core::sdo::wire::{Mux, Request, Response};
 use std::collections::HashMap;
 use std::io::{self};
 use std::time::{Duration, Instant};
@@ -25,6 +27,12 @@ pub struct ScanResult {
     pub state: Option<u8>,
 }
 
+/// 0x1000/0, the device type: the object every CiA 301 node has.
+pub const DEVICE_TYPE: Mux = Mux {
+    index: 0x1000,
+    sub: 0,
+};
+
 /// Finds nodes: SDO upload of 0x1000 to every node-id, plus heartbeats and boot-ups heard,
 /// then reads each node's identity.
 pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<ScanResult>> {
@@ -37,15 +45,30 @@ pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<Sc
         let id = f.id() as u16;
         let node = (id & 0x7F) as u8;
         match (id & 0x780, f.data()) {
-            (0x580, [0x43, 0x00, 0x10, 0x00, a, b, c, d]) if node != 0 => {
-                let e = found.entry(node).or_default();
-                e.node = node;
-                e.device_type = Some(u32::from_le_bytes([*a, *b, *c, *d]));
+            (cob::SDO_TX, d) if node != 0 => {
+                let Ok(d) = <[u8; 8]>::try_from(d) else {
+                    return;
+                };
+                match Response::parse(&d) {
+                    Response::UploadInitiate {
+                        mux: DEVICE_TYPE,
+                        expedited: true,
+                        size: Some(4),
+                        data,
+                    } => {
+                        let e = found.entry(node).or_default();
+                        e.node = node;
+                        e.device_type = Some(u32::from_le_bytes(data));
+                    }
+                    Response::Abort {
+                        mux: DEVICE_TYPE, ..
+                    } => {
+                        found.entry(node).or_default().node = node;
+                    }
+                    _ => {}
+                }
             }
-            (0x580, [0x80, 0x00, 0x10, 0x00, ..]) if node != 0 => {
-                found.entry(node).or_default().node = node;
-            }
-            (0x700, [s]) if node != 0 => {
+            (cob::ERRCTL, [s]) if node != 0 => {
                 let e = found.entry(node).or_default();
                 e.node = node;
                 e.state = Some(*s & 0x7F);
@@ -56,9 +79,10 @@ pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<Sc
     // Requests go out in small bursts: a real adapter's transmit queue (and a slow hub client)
     // would drop frames if all 127 were queued at once.
     for node in 1..=127u8 {
+        let mux = DEVICE_TYPE;
         bus.send(&Frame::std8(
-            0x600 + node as u16,
-            [0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0],
+            cob::SDO_RX + node as u16,
+            Request::UploadInitiate { mux }.emit(),
         ))?;
         if node % 16 == 0 {
             let until = Instant::now() + ms(2);

@@ -1,5 +1,8 @@
 //! The demo (`canpos` without arguments, or `canpos demo`).
 
+use canpos_core::cob;
+use canpos_core::nmt::{NmtCommand, NmtFrame};
+use canpos_core::sdo::wire::{self, Mux, Response};
 use std::io::Write as _;
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -70,21 +73,20 @@ fn bind_or_free(asked: Option<&str>, default: &str, what: &str) -> Result<std::n
     })
 }
 
+/// One expedited SDO upload of a number, for the demo's own view (a stale or foreign answer is
+/// skipped by its multiplexer).
 fn sdo_upload(port: &mut dyn Transport, node: u8, index: u16, sub: u8) -> Result<u32> {
-    let [lo, hi] = index.to_le_bytes();
-    port.send(&Frame::new(0x600 + u16::from(node), &[0x40, lo, hi, sub, 0, 0, 0, 0]).unwrap())?;
+    let mux = Mux { index, sub };
+    let req = wire::Request::UploadInitiate { mux }.emit();
+    port.send(&Frame::std8(cob::SDO_RX + u16::from(node), req))?;
     let end = std::time::Instant::now() + Duration::from_secs(1);
     while let Some(rx) = port.recv_deadline(end)? {
-        let d = rx.frame.data();
-        if rx.frame.std_id() == Some(0x580 + u16::from(node))
-            && d.len() == 8
-            && d[1..4] == [lo, hi, sub]
-        {
-            if d[0] == 0x80 {
-                bail!(
-                    "SDO abort {:#010x} reading {index:#06x}/{sub}",
-                    u32::from_le_bytes([d[4], d[5], d[6], d[7]])
-                );
+        let Ok(d) = <[u8; 8]>::try_from(rx.frame.data()) else {
+            continue;
+        };
+        if rx.frame.std_id() == Some(cob::SDO_TX + u16::from(node)) && Mux::from_frame(&d) == mux {
+            if let Response::Abort { code, .. } = Response::parse(&d) {
+                bail!("SDO abort {code:#010x} reading {index:#06x}/{sub}");
             }
             return Ok(u32::from_le_bytes([d[4], d[5], d[6], d[7]]));
         }
@@ -233,7 +235,12 @@ fn demo_view(
     duration: Option<f64>,
 ) -> Result<()> {
     // NMT start: the TPDOs begin.
-    mon.send(&Frame::new(0x000, &[0x01, node]).unwrap())?;
+    let [c, n] = NmtFrame {
+        command: NmtCommand::Start,
+        node,
+    }
+    .emit();
+    mon.send(&Frame::std_len(cob::NMT, [c, n, 0, 0, 0, 0, 0, 0], 2))?;
     let tpdo1 = 0x180 + u16::from(node);
     let t0 = std::time::Instant::now();
     let mut next_print = t0;

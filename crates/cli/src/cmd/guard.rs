@@ -69,7 +69,7 @@ pub fn guard(a: GuardArgs) -> Result<i32> {
         println!(
             "request {}: node {node} {} (toggle {toggle})",
             i + 1,
-            decode::nmt_state_name(b & 0x7F)
+            decode::nmt_state_name(b)
         );
         if last_toggle == Some(toggle) {
             println!("the toggle bit did not alternate");

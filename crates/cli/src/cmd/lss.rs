@@ -1,6 +1,7 @@
 //! `canpos lss`: the layer setting services (CiA 305) from the master's side.
 
 use anyhow::Result;
+use canpos_core::lss::cs;
 use clap::{Args, Subcommand, ValueEnum};
 
 use crate::client::{lss, Inquire, LssAddress, LssError, LssMaster, LssStatus};
@@ -196,12 +197,12 @@ pub fn lss(a: LssArgs) -> Result<i32> {
             }
         }
         LssCmd::SetNodeId { .. } => lss_status(
-            0x11,
+            cs::CONFIGURE_NODE_ID,
             &format!("configure node-id {node_id}"),
             m.configure_node_id(node_id),
         ),
         LssCmd::SetBitrate { kbps } => lss_status(
-            0x13,
+            cs::CONFIGURE_BIT_TIMING,
             &format!("configure bit timing {kbps} kbit/s (table 0 index {bit_index})"),
             m.configure_bit_timing(bit_index),
         ),
@@ -212,7 +213,7 @@ pub fn lss(a: LssArgs) -> Result<i32> {
             println!("activate bit timing sent (switch delay {delay} ms)");
             Ok(EXIT_OK)
         }
-        LssCmd::Store => lss_status(0x17, "store configuration", m.store()),
+        LssCmd::Store => lss_status(cs::STORE_CONFIGURATION, "store configuration", m.store()),
         LssCmd::Inquire { what } => {
             let list: &[(Inquire, &str)] = match what {
                 InquireWhat::Vendor => &[(Inquire::Vendor, "vendor-id")],

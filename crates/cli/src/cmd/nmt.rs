@@ -1,7 +1,7 @@
 //! `canpos nmt`: send an NMT command.
 
 use anyhow::{Context, Result};
-use canpos_core::Frame;
+use canpos_core::{cob, nmt, Frame};
 use canpos_host::transport::Transport;
 use clap::{Args, ValueEnum};
 
@@ -24,15 +24,20 @@ pub enum NmtCommand {
 }
 
 impl NmtCommand {
+    /// The command as the stack names it.
+    pub fn wire(self) -> nmt::NmtCommand {
+        match self {
+            NmtCommand::Start => nmt::NmtCommand::Start,
+            NmtCommand::Stop => nmt::NmtCommand::Stop,
+            NmtCommand::Preop => nmt::NmtCommand::EnterPreOperational,
+            NmtCommand::Reset => nmt::NmtCommand::ResetNode,
+            NmtCommand::ResetComm => nmt::NmtCommand::ResetCommunication,
+        }
+    }
+
     /// The command specifier byte.
     pub fn byte(self) -> u8 {
-        match self {
-            NmtCommand::Start => 0x01,
-            NmtCommand::Stop => 0x02,
-            NmtCommand::Preop => 0x80,
-            NmtCommand::Reset => 0x81,
-            NmtCommand::ResetComm => 0x82,
-        }
+        self.wire().code()
     }
 }
 
@@ -53,13 +58,14 @@ pub struct NmtArgs {
 pub fn nmt(a: NmtArgs) -> Result<i32> {
     let node = parse_node(&a.node, 0)?;
     let mut bus = open_bus(&a.bus.bus)?;
-    bus.send(&Frame::std_len(
-        0x000,
-        [a.command.byte(), node, 0, 0, 0, 0, 0, 0],
-        2,
-    ))
-    .context("sending the NMT command")?;
-    let target = if node == 0 {
+    let [c, n] = nmt::NmtFrame {
+        command: a.command.wire(),
+        node,
+    }
+    .emit();
+    bus.send(&Frame::std_len(cob::NMT, [c, n, 0, 0, 0, 0, 0, 0], 2))
+        .context("sending the NMT command")?;
+    let target = if node == nmt::ALL_NODES {
         "all nodes".to_string()
     } else {
         format!("node {node}")

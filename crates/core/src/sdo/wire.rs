@@ -90,6 +90,11 @@ impl Command {
     pub const fn end_unused(self) -> u8 {
         (self.0 >> 2) & 0x07
     }
+    /// Whether the command is one of a block transfer (specifier 5 or 6, in either direction).
+    #[inline]
+    pub const fn is_block(self) -> bool {
+        matches!(self.ccs(), 5 | 6)
+    }
     /// Whether the request starts a new transfer: download, upload, block upload and block
     /// download initiates (as [`Request::is_initiate`]).
     #[inline]
