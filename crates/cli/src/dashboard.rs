@@ -11,6 +11,7 @@
 //! Only the page's own origin changes state ([`guard`]); the web side keeps to a share of the
 //! process's descriptors and times out what clients leave unfinished ([`serve`]).
 
+mod answer;
 pub mod guard;
 mod page;
 pub mod serve;
@@ -22,6 +23,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use answer::{fail, ApiError};
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
 use axum::http::{header, Method, StatusCode, Uri};
@@ -265,19 +267,6 @@ async fn page(State(app): State<App>) -> Response {
         render_page(&snap),
     )
         .into_response()
-}
-
-/// An error answer: the status says what kind, the body why (the page shows `error`).
-struct ApiError(StatusCode, String);
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        (self.0, Json(json!({"ok": false, "error": self.1}))).into_response()
-    }
-}
-
-fn fail(code: StatusCode, why: String) -> ApiError {
-    ApiError(code, why)
 }
 
 type Answer = Result<Json<Value>, ApiError>;

@@ -451,6 +451,64 @@ mod tests {
         }
     }
 
+    /// The slave reads the frames [`LssRequest::emit`] writes and answers with the bytes
+    /// [`LssResponse::emit`] writes: one vocabulary for both ends.
+    #[test]
+    fn slave_speaks_the_wire_types() {
+        let mut s = LssSlave::default();
+        let t0 = Instant::ZERO;
+        let mut ask = |r: LssRequest| s.handle(&r.emit(), t0, &Unit);
+        let mode = MODE_CONFIGURATION;
+        assert_eq!(ask(LssRequest::SwitchGlobal { mode }), Output::Silent);
+        for (part, value) in Part::ALL.into_iter().zip(1u32..) {
+            let answer = LssResponse::Identity { part, value }.emit();
+            let asked = ask(LssRequest::Inquire(Inquire::Identity(part)));
+            assert_eq!(asked, Output::Answer(answer), "{part:?}");
+        }
+        let node_id = LssResponse::NodeId(5).emit();
+        assert_eq!(
+            ask(LssRequest::Inquire(Inquire::NodeId)),
+            Output::Answer(node_id)
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureNodeId { node_id: 9 }),
+            Output::Do(Request::ConfigureNodeId(9))
+        );
+        let refused = Status {
+            code: STATUS_REFUSED,
+            spec: 0,
+        };
+        assert_eq!(
+            ask(LssRequest::ConfigureNodeId { node_id: 200 }),
+            Output::Answer(LssResponse::ConfigureNodeId(refused).emit())
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureBitTiming { table: 0, index: 2 }),
+            Output::Answer(LssResponse::ConfigureBitTiming(refused).emit())
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureBitTiming { table: 0, index: 3 }),
+            Output::Do(Request::ConfigureBitRate(250))
+        );
+        let stored = confirm(Request::StoreConfiguration, false).map(|a| LssResponse::parse(&a));
+        let error = Status {
+            code: STATUS_STORAGE_ERROR,
+            spec: 0,
+        };
+        assert_eq!(stored, Some(Some(LssResponse::StoreConfiguration(error))));
+        // Waiting again: selected by its address, the slave answers switch selective.
+        let waiting = MODE_WAITING;
+        assert_eq!(
+            ask(LssRequest::SwitchGlobal { mode: waiting }),
+            Output::Silent
+        );
+        let mut last = Output::Silent;
+        for (part, value) in Part::ALL.into_iter().zip(1u32..) {
+            last = ask(LssRequest::SwitchSelective { part, value });
+        }
+        assert_eq!(last, Output::Answer(LssResponse::SwitchSelective.emit()));
+    }
+
     #[test]
     fn sequence_restarts_and_rejects_out_of_order() {
         let mut s = Sequence::default();
