@@ -170,12 +170,13 @@ pub enum Output {
 pub fn confirm(r: Request, ok: bool) -> Option<[u8; 8]> {
     match r {
         // Only values the slave accepted become requests.
-        Request::ConfigureNodeId(_) => Some(LssResponse::ConfigureNodeId(status(OK)).emit()),
-        Request::ConfigureBitRate(_) => Some(LssResponse::ConfigureBitTiming(status(OK)).emit()),
+        Request::ConfigureNodeId(_) => Some(answer(cs::CONFIGURE_NODE_ID, OK)),
+        Request::ConfigureBitRate(_) => Some(answer(cs::CONFIGURE_BIT_TIMING, OK)),
         Request::ActivateBitRate { .. } => None,
-        Request::StoreConfiguration => Some(
-            LssResponse::StoreConfiguration(status(if ok { OK } else { STORAGE_ERROR })).emit(),
-        ),
+        Request::StoreConfiguration => Some(answer(
+            cs::STORE_CONFIGURATION,
+            if ok { OK } else { STORAGE_ERROR },
+        )),
     }
 }
 
@@ -210,21 +211,17 @@ impl LssSlave {
         let Ok(d) = <&[u8; 8]>::try_from(data) else {
             return Output::Silent;
         };
-        // Dispatched on the specifier byte rather than through `LssRequest::parse`, which costs
-        // the inquiry instructions (docs/BENCHMARKS.md "One wire vocabulary"); the arms read the
-        // fields where `LssRequest` does (`slave_speaks_the_wire_types`), and every answer is
-        // an `LssResponse`.
         let value = u32::from_le_bytes([d[1], d[2], d[3], d[4]]);
-        let answer_if = |a: Option<LssResponse>| a.map_or(Output::Silent, answer);
+        let answer_if = |a: Option<[u8; 8]>| a.map_or(Output::Silent, Output::Answer);
         match d[0] {
             cs::SWITCH_GLOBAL => {
                 match d[1] {
-                    MODE_WAITING => {
+                    0 => {
                         self.configuration = false;
                         // Leaving configuration ends any half-done selection.
                         self.selective = Sequence::default();
                     }
-                    MODE_CONFIGURATION => self.configuration = true,
+                    1 => self.configuration = true,
                     _ => {}
                 }
                 Output::Silent
@@ -236,19 +233,18 @@ impl LssSlave {
                 let matched = value == address_part(node, part);
                 if self.selective.advance(part, matched, 3) {
                     self.configuration = true;
-                    return answer(LssResponse::SwitchSelective);
+                    return Output::Answer(answer(cs::SWITCH_SEL_RESPONSE, 0));
                 }
                 Output::Silent
             }
             c @ cs::IDENTIFY_VENDOR..=cs::IDENTIFY_SERIAL_HIGH => {
-                let which = Identify::ALL[(c - cs::IDENTIFY_VENDOR) as usize];
-                answer_if(self.identify(which, value, node))
+                answer_if(self.identify(c, value, node))
             }
             cs::IDENTIFY_NON_CONFIGURED => answer_if(
                 node.unconfigured()
-                    .then_some(LssResponse::IdentifyNonConfiguredSlave),
+                    .then(|| answer(cs::IDENTIFY_NON_CONFIGURED_SLAVE, 0)),
             ),
-            cs::FASTSCAN => answer_if(self.fastscan(value, d[5], d[6], d[7], node)),
+            cs::FASTSCAN => answer_if(self.fastscan(d, value, node)),
             _ if !self.configuration => Output::Silent,
             // From here on: services of the configuration state only.
             cs::CONFIGURE_NODE_ID => {
@@ -258,7 +254,7 @@ impl LssSlave {
                     // none yet, when it is switched back to waiting: node.rs `after_lss`).
                     Output::Do(Request::ConfigureNodeId(id))
                 } else {
-                    answer(LssResponse::ConfigureNodeId(status(REFUSED)))
+                    Output::Answer(answer(cs::CONFIGURE_NODE_ID, REFUSED))
                 }
             }
             cs::CONFIGURE_BIT_TIMING => {
@@ -267,7 +263,7 @@ impl LssSlave {
                     Some(kbps) if table == 0 && node.bit_timing().contains(&index) => {
                         Output::Do(Request::ConfigureBitRate(kbps))
                     }
-                    _ => answer(LssResponse::ConfigureBitTiming(status(REFUSED))),
+                    _ => Output::Answer(answer(cs::CONFIGURE_BIT_TIMING, REFUSED)),
                 }
             }
             cs::ACTIVATE_BIT_TIMING => {
@@ -284,13 +280,12 @@ impl LssSlave {
             }
             cs::STORE_CONFIGURATION => Output::Do(Request::StoreConfiguration),
             c @ cs::INQUIRE_VENDOR..=cs::INQUIRE_SERIAL => {
-                let part = Part::from_index(c - cs::INQUIRE_VENDOR);
-                let value = address_part(node, part.index());
-                answer(LssResponse::Identity { part, value })
+                let v = address_part(node, c - cs::INQUIRE_VENDOR).to_le_bytes();
+                Output::Answer([c, v[0], v[1], v[2], v[3], 0, 0, 0])
             }
             // The manuals' example answers `5E 7F` for a node running as 127: the active
             // node-id, not a pending one (0xFF while the node has none).
-            cs::INQUIRE_NODE_ID => answer(LssResponse::NodeId(node.node_id())),
+            cs::INQUIRE_NODE_ID => Output::Answer(answer(cs::INQUIRE_NODE_ID, node.node_id())),
             _ => Output::Silent,
         }
     }
@@ -298,13 +293,8 @@ impl LssSlave {
     /// Identify remote slave (0x46…0x4B): answers 0x4F after the sixth frame if vendor and
     /// product equal the slave's and revision and serial lie within the bounds (inclusive).
     /// Valid in both LSS states (CiA 305), so a master can look for slaves at any time.
-    fn identify(
-        &mut self,
-        which: Identify,
-        value: u32,
-        node: &impl LssNode,
-    ) -> Option<LssResponse> {
-        let step = which.step();
+    fn identify(&mut self, c: u8, value: u32, node: &impl LssNode) -> Option<[u8; 8]> {
+        let step = c - cs::IDENTIFY_VENDOR;
         // Steps 2 and 4 are the low bounds of revision and serial, kept until their high bounds
         // (3, 5) arrive; vendor and product (0, 1) are a range of one value.
         let bound = step == 2 || step == 4;
@@ -316,28 +306,21 @@ impl LssSlave {
         let matched = bound || (low..=value).contains(&address_part(node, step.div_ceil(2)));
         self.identify
             .advance(step, matched, 5)
-            .then_some(LssResponse::IdentifySlave)
+            .then(|| answer(cs::IDENTIFY_SLAVE, 0))
     }
 
-    /// Fastscan (CiA 305 V2): `bit_checked` (byte 5), `sub` (lssSub, byte 6), `next`
-    /// (lssNext, byte 7). Only non-configured slaves in waiting state take part, so that
-    /// configured nodes and a slave already found (now in configuration) stay out of the next
-    /// scan.
-    fn fastscan(
-        &mut self,
-        id_number: u32,
-        bit_checked: u8,
-        sub: u8,
-        next: u8,
-        node: &impl LssNode,
-    ) -> Option<LssResponse> {
+    /// Fastscan (CiA 305 V2): byte 5 `bitChecked`, byte 6 `lssSub`, byte 7 `lssNext`. Only
+    /// non-configured slaves in waiting state take part, so that configured nodes and a slave
+    /// already found (now in configuration) stay out of the next scan.
+    fn fastscan(&mut self, d: &[u8; 8], id_number: u32, node: &impl LssNode) -> Option<[u8; 8]> {
         if !node.fastscan() || self.configuration || !node.unconfigured() {
             return None;
         }
+        let (bit_checked, sub, next) = (d[5], d[6], d[7]);
         if bit_checked == FASTSCAN_CONFIRM {
             // Reset: every participant answers and starts again with the vendor-id.
             self.fastscan_pos = 0;
-            return Some(LssResponse::IdentifySlave);
+            return Some(answer(cs::IDENTIFY_SLAVE, 0));
         }
         // `fastscan_pos` is at most 3 (it is 0 or a checked `next`), so `sub` is too.
         if bit_checked > 31 || next > 3 || sub != self.fastscan_pos {
@@ -354,7 +337,7 @@ impl LssSlave {
             self.configuration = true;
             self.fastscan_pos = 0;
         }
-        Some(LssResponse::IdentifySlave)
+        Some(answer(cs::IDENTIFY_SLAVE, 0))
     }
 
     /// Deadline of a pending bit-rate switch.
@@ -391,15 +374,9 @@ fn address_part(node: &impl LssNode, i: u8) -> u32 {
     node.address_part(i)
 }
 
-/// The output that sends `a`.
-#[inline]
-fn answer(a: LssResponse) -> Output {
-    Output::Answer(a.emit())
-}
-
-/// A configure or store answer's status with no manufacturer's error.
-const fn status(code: u8) -> Status {
-    Status { code, spec: 0 }
+/// An LSS answer frame: specifier, status / byte 1, zeros.
+const fn answer(c: u8, status: u8) -> [u8; 8] {
+    [c, status, 0, 0, 0, 0, 0, 0]
 }
 
 #[cfg(test)]

@@ -383,7 +383,6 @@ impl LssResponse {
     }
 
     /// The answer's 8 bytes.
-    #[inline(always)]
     pub const fn emit(&self) -> [u8; 8] {
         match *self {
             LssResponse::SwitchSelective => frame(cs::SWITCH_SEL_RESPONSE, [0; 4]),
