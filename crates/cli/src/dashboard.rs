@@ -11,17 +11,19 @@
 //! Only the page's own origin changes state ([`guard`]); the web side keeps to a share of the
 //! process's descriptors and times out what clients leave unfinished ([`serve`]).
 
+mod answer;
 pub mod guard;
+mod page;
 pub mod serve;
 pub mod watch;
 
 use std::convert::Infallible;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use answer::{fail, ApiError};
 use anyhow::{Context, Result};
 use axum::extract::{Path, State};
 use axum::http::{header, Method, StatusCode, Uri};
@@ -33,47 +35,16 @@ use canpos_core::models::Model;
 use canpos_core::od::{Access, DataType};
 use canpos_host::control;
 use canpos_host::crossbeam_channel::Sender;
-use canpos_host::eds_device::{self, FileKind};
 use canpos_host::Transport;
-use clap::Args;
+use page::{render_page, APP_JS, STYLE, UPLOT_CSS, UPLOT_JS, UPLOT_LICENSE};
 use serde_json::{json, Value};
-
-use crate::master::decode;
-use crate::master::sdo::{format_auto, hex_string, ValueType};
 use watch::{BusCmd, BusQueue, Controller, Link, Outcome, Pending, Refused, Shared};
+
+use crate::client::decode;
+use crate::client::sdo::{format_auto, hex_string, ValueType};
 
 /// Default address of `canpos dashboard`.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29080";
-
-/// Options of `canpos dashboard`.
-#[derive(Debug, Args)]
-pub struct DashboardArgs {
-    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME.
-    #[arg(long, value_name = "URL", default_value = canpos_host::DEFAULT_URL)]
-    pub bus: String,
-    /// Address to serve the page on (loopback unless you mean otherwise: no authentication).
-    #[arg(long, value_name = "ADDR", default_value = DEFAULT_LISTEN)]
-    pub listen: String,
-    /// A control interface of canpos sensors on the bus (their --control ADDR); repeatable.
-    /// Without one the page shows the bus but cannot drive the sensors.
-    #[arg(long = "control", value_name = "ADDR")]
-    pub controls: Vec<String>,
-    /// The object table of node N from an EDS (or DCF) file, for devices that are none of the
-    /// sensor models (`--eds 20=examples/io-device.eds`); repeatable.
-    #[arg(long = "eds", value_name = "NODE=FILE", value_parser = parse_eds_arg)]
-    pub eds: Vec<(u8, PathBuf)>,
-    /// Seconds of history in the plots.
-    #[arg(long, value_name = "S", default_value_t = 30.0, value_parser = crate::limits::parse_positive_seconds)]
-    pub window: f64,
-}
-
-fn parse_eds_arg(s: &str) -> Result<(u8, PathBuf), String> {
-    let (node, file) = s
-        .split_once('=')
-        .ok_or_else(|| format!("`{s}`: expected NODE=FILE"))?;
-    let id = crate::master::parse_node(node, 1).map_err(|e| e.to_string())?;
-    Ok((id, PathBuf::from(file)))
-}
 
 /// A running dashboard. Dropping it stops the server and its threads.
 pub struct Dashboard {
@@ -218,37 +189,6 @@ pub fn start_on(
     })
 }
 
-/// `canpos dashboard`.
-pub fn dashboard(a: DashboardArgs) -> Result<i32> {
-    let stop = crate::device::stop_signal()?;
-    // Every file is checked before anything starts.
-    let mut tables = Vec::new();
-    for (id, file) in &a.eds {
-        let kind = match file.extension().and_then(|e| e.to_str()) {
-            Some(e) if e.eq_ignore_ascii_case("dcf") => FileKind::Dcf,
-            _ => FileKind::Eds,
-        };
-        let dev = eds_device::load(
-            file,
-            kind,
-            &eds_device::Overrides {
-                node_id: Some(*id),
-                bitrate_kbps: None,
-                serial: None,
-            },
-        )?;
-        tables.push((*id, dev.model));
-    }
-    let bus = crate::master::open_bus(&a.bus)?;
-    let d = start(bus, &a.listen, Controls::Remote(a.controls), a.window)?;
-    for (id, model) in tables {
-        d.pin_model(id, model);
-    }
-    println!("canpos dashboard: {} on {}", d.url(), a.bus);
-    let _ = stop.recv();
-    Ok(0)
-}
-
 /// Starts the dashboard of `--web ADDR` for a runtime of this process (a second connection to
 /// its bus) and prints its URL.
 pub fn start_for_runtime(
@@ -308,13 +248,6 @@ fn router(app: App) -> Router {
         .with_state(app)
 }
 
-const PAGE: &str = include_str!("../assets/dashboard/index.html");
-const APP_JS: &str = include_str!("../assets/dashboard/app.js");
-const STYLE: &str = include_str!("../assets/dashboard/style.css");
-const UPLOT_JS: &str = include_str!("../assets/dashboard/uplot/uPlot.iife.min.js");
-const UPLOT_CSS: &str = include_str!("../assets/dashboard/uplot/uPlot.min.css");
-const UPLOT_LICENSE: &str = include_str!("../assets/dashboard/uplot/LICENSE");
-
 async fn asset(ty: &'static str, body: &'static str) -> Response {
     ([(header::CONTENT_TYPE, ty)], body).into_response()
 }
@@ -334,114 +267,6 @@ async fn page(State(app): State<App>) -> Response {
         render_page(&snap),
     )
         .into_response()
-}
-
-/// [`PAGE`] with the snapshot `snap` filled in.
-fn render_page(snap: &Value) -> String {
-    let rows: String = snap["nodes"]
-        .as_array()
-        .map(|ns| ns.iter().map(node_row_html).collect())
-        .unwrap_or_default();
-    let link = format!(
-        "snapshot at {:.1} s; updates need JavaScript (reload for new values)",
-        snap["t"].as_f64().unwrap_or(0.0)
-    );
-    PAGE.replacen("<!--ROWS-->", &rows, 1)
-        .replacen("<!--LINK-->", &html_escape(&link), 1)
-        .replacen(
-            "<!--BUS-->",
-            &html_escape(&format!("bus {}", snap["bus"].as_str().unwrap_or(""))),
-            1,
-        )
-        .replacen("<!--SNAPSHOT-->", &script_json(snap), 1)
-}
-
-/// One row of the node table, as the page's script (`nodeRow` in app.js) writes it.
-fn node_row_html(n: &Value) -> String {
-    let text = |v: &Value| match v {
-        Value::Null => "–".to_string(),
-        Value::String(s) => s.clone(),
-        v => v.to_string(),
-    };
-    let model = match (n["product"].as_str(), n["model"].as_str()) {
-        (Some(p), Some(m)) => format!("{p} ({m})"),
-        _ => "unknown".into(),
-    };
-    let errreg = match n["error_register"].as_u64() {
-        Some(r) => format!("0x{r:02X} ({})", text(&n["error_register_text"])),
-        None => "–".into(),
-    };
-    let cells = [
-        ("node", text(&n["node"])),
-        ("model", model),
-        ("name", text(&n["name"])),
-        ("serial", text(&n["serial"])),
-        ("nmt", text(&n["nmt"])),
-        ("pos", positions_text(n)),
-        ("errreg", errreg),
-    ];
-    let mut out = format!("<tr data-node=\"{}\">", n["node"]);
-    for (class, t) in cells {
-        out.push_str(&format!("<td class=\"{class}\">{}</td>", html_escape(&t)));
-    }
-    out.push_str("</tr>");
-    out
-}
-
-/// The node table's position cell: each channel's position in mm (as `positionsText` in
-/// app.js writes it).
-fn positions_text(n: &Value) -> String {
-    let Some(ps) = n["positions"].as_array().filter(|p| !p.is_empty()) else {
-        return "–".into();
-    };
-    let mut out: Vec<String> = ps
-        .iter()
-        .map(|p| match p.as_f64() {
-            Some(mm) => format!("{mm:.3} mm"),
-            None => "no position".into(),
-        })
-        .collect();
-    if n["positions_from"] == "control" {
-        out.push("(control state; no TPDO)".into());
-    }
-    out.join(" · ")
-}
-
-fn html_escape(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for c in s.chars() {
-        match c {
-            '&' => out.push_str("&amp;"),
-            '<' => out.push_str("&lt;"),
-            '>' => out.push_str("&gt;"),
-            '"' => out.push_str("&quot;"),
-            '\'' => out.push_str("&#39;"),
-            c => out.push(c),
-        }
-    }
-    out
-}
-
-/// JSON to embed in a `<script>` element: `<`, `>` and `&` only occur inside JSON strings,
-/// where their `\u` escapes mean the same, so no `</script>` a device name carries ends it.
-fn script_json(v: &Value) -> String {
-    v.to_string()
-        .replace('<', "\\u003c")
-        .replace('>', "\\u003e")
-        .replace('&', "\\u0026")
-}
-
-/// An error answer: the status says what kind, the body why (the page shows `error`).
-struct ApiError(StatusCode, String);
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        (self.0, Json(json!({"ok": false, "error": self.1}))).into_response()
-    }
-}
-
-fn fail(code: StatusCode, why: String) -> ApiError {
-    ApiError(code, why)
 }
 
 type Answer = Result<Json<Value>, ApiError>;
@@ -727,7 +552,7 @@ fn nan_null(v: f64) -> Value {
 
 /// A node-id from the path; it must be one the dashboard knows.
 fn known_node(app: &App, s: &str) -> Result<u8, ApiError> {
-    let id = crate::master::parse_node(s, 1)
+    let id = crate::common::parse_node(s, 1)
         .map_err(|e| fail(StatusCode::BAD_REQUEST, e.to_string()))?;
     if !app.shared.lock().unwrap().nodes.contains_key(&id) {
         return Err(fail(
@@ -815,10 +640,10 @@ fn object(
 ) -> Result<(u8, &'static canpos_core::od::Entry), ApiError> {
     let id = known_node(app, node)?;
     let model = model_of(app, id)?;
-    let ix = crate::master::parse_index(index)
+    let ix = crate::common::parse_index(index)
         .map_err(|e| fail(StatusCode::BAD_REQUEST, e.to_string()))?;
     let sb =
-        crate::master::parse_sub(sub).map_err(|e| fail(StatusCode::BAD_REQUEST, e.to_string()))?;
+        crate::common::parse_sub(sub).map_err(|e| fail(StatusCode::BAD_REQUEST, e.to_string()))?;
     let entry = model
         .entries
         .iter()

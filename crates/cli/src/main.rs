@@ -5,10 +5,13 @@
 //! command line, 3 the device refused (SDO abort, LSS error status) or nothing was found, 4 no
 //! answer within the timeout.
 
-use canpos_cli::{bench, dashboard, dcf, device, master, soak};
-
 use std::process::ExitCode;
 
+use canpos_cli::cmd::{
+    bench, bus, ctl, dashboard, dcf, demo, eds, guard, lss, monitor, nmt, record, replay, run,
+    scan, scenario, sdo, soak,
+};
+use canpos_cli::common;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// A software twin of CANopen magnetostrictive position sensors (Temposonics TH, E-Series,
@@ -34,44 +37,44 @@ struct Cli {
     cmd: Option<Cmd>,
     /// Without a command: the demo's options (`canpos --web ADDR` = `canpos demo --web ADDR`).
     #[command(flatten)]
-    demo: device::DemoArgs,
+    demo: demo::DemoArgs,
 }
 
 #[derive(Debug, Subcommand)]
 enum Cmd {
     /// Virtual CAN buses.
     #[command(subcommand)]
-    Bus(device::BusCmd),
+    Bus(bus::BusCmd),
     /// Run one simulated sensor on a bus.
-    Run(Box<device::RunArgs>),
+    Run(Box<run::RunArgs>),
     /// Run several sensors on one bus with motion profiles and timed faults (TOML file).
-    Scenario(device::ScenarioArgs),
+    Scenario(scenario::ScenarioArgs),
     /// Drive a running sensor through its control interface.
-    Ctl(device::CtlArgs),
+    Ctl(ctl::CtlArgs),
     /// The demo (also what `canpos` without arguments runs).
-    Demo(device::DemoArgs),
+    Demo(demo::DemoArgs),
     /// Send an NMT command (start, stop, preop, reset, reset-comm).
-    Nmt(master::NmtArgs),
+    Nmt(nmt::NmtArgs),
     /// Node guarding: remote frames on 0x700 + id, the answers' NMT state and toggle bit.
-    Guard(master::GuardArgs),
+    Guard(guard::GuardArgs),
     /// Read or write an object by SDO.
-    Sdo(master::SdoArgs),
+    Sdo(sdo::SdoArgs),
     /// Layer setting services: switch, set node-id / bit rate, store, inquire, fastscan.
-    Lss(master::LssArgs),
+    Lss(lss::LssArgs),
     /// Find the nodes on a bus.
-    Scan(master::ScanArgs),
+    Scan(scan::ScanArgs),
     /// Serve the web dashboard of a bus: nodes, live plots, errors, sensor control, SDO.
     Dashboard(dashboard::DashboardArgs),
     /// Show the bus traffic decoded (positions in mm, velocities in mm/s, EMCYs, heartbeats).
-    Monitor(master::MonitorArgs),
+    Monitor(monitor::MonitorArgs),
     /// Write a model's EDS (CiA 306) file.
-    Eds(master::EdsArgs),
+    Eds(eds::EdsArgs),
     /// Write a configured unit's DCF, read from the running node over SDO.
     Dcf(dcf::DcfArgs),
     /// Record the bus to pcapng, pcap, a candump -L log or Vector ASC.
-    Record(master::RecordArgs),
+    Record(record::RecordArgs),
     /// Replay a candump -L log or Vector ASC file onto a bus.
-    Replay(master::ReplayArgs),
+    Replay(replay::ReplayArgs),
     /// Performance instruments: core ops/s, scale, SDO round trip, boot time.
     Bench(bench::BenchArgs),
     /// Scale soak: N TH sensors at a 1 ms event timer; checks drift, RSS growth, deadline misses.
@@ -118,7 +121,7 @@ fn parse() -> Cli {
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     if let Some((name, _)) = matches.subcommand() {
-        let demo = <device::DemoArgs as clap::Args>::augment_args(clap::Command::new("demo"));
+        let demo = <demo::DemoArgs as clap::Args>::augment_args(clap::Command::new("demo"));
         let given = demo.get_arguments().find(|a| {
             matches.value_source(a.get_id().as_str())
                 == Some(clap::parser::ValueSource::CommandLine)
@@ -152,24 +155,24 @@ fn main() -> ExitCode {
         tracing::info!(priority = p, "running under SCHED_FIFO, memory locked");
     }
     let result = match cli.cmd {
-        None => device::demo(cli.demo),
-        Some(Cmd::Bus(device::BusCmd::Serve(a))) => device::bus_serve(a),
-        Some(Cmd::Bus(device::BusCmd::Bridge(a))) => device::bus_bridge(a),
-        Some(Cmd::Run(a)) => device::run(*a),
-        Some(Cmd::Scenario(a)) => device::scenario(a),
-        Some(Cmd::Ctl(a)) => device::ctl(a),
-        Some(Cmd::Demo(a)) => device::demo(a),
-        Some(Cmd::Nmt(a)) => master::nmt(a),
-        Some(Cmd::Sdo(a)) => master::sdo(a),
-        Some(Cmd::Guard(a)) => master::guard(a),
-        Some(Cmd::Lss(a)) => master::lss(a),
-        Some(Cmd::Scan(a)) => master::scan(a),
+        None => demo::demo(cli.demo),
+        Some(Cmd::Bus(bus::BusCmd::Serve(a))) => bus::bus_serve(a),
+        Some(Cmd::Bus(bus::BusCmd::Bridge(a))) => bus::bus_bridge(a),
+        Some(Cmd::Run(a)) => run::run(*a),
+        Some(Cmd::Scenario(a)) => scenario::scenario(a),
+        Some(Cmd::Ctl(a)) => ctl::ctl(a),
+        Some(Cmd::Demo(a)) => demo::demo(a),
+        Some(Cmd::Nmt(a)) => nmt::nmt(a),
+        Some(Cmd::Sdo(a)) => sdo::sdo(a),
+        Some(Cmd::Guard(a)) => guard::guard(a),
+        Some(Cmd::Lss(a)) => lss::lss(a),
+        Some(Cmd::Scan(a)) => scan::scan(a),
         Some(Cmd::Dashboard(a)) => dashboard::dashboard(a),
-        Some(Cmd::Monitor(a)) => master::monitor(a),
-        Some(Cmd::Eds(a)) => master::eds(a),
+        Some(Cmd::Monitor(a)) => monitor::monitor(a),
+        Some(Cmd::Eds(a)) => eds::eds(a),
         Some(Cmd::Dcf(a)) => dcf::dcf(a),
-        Some(Cmd::Record(a)) => master::record(a),
-        Some(Cmd::Replay(a)) => master::replay(a),
+        Some(Cmd::Record(a)) => record::record(a),
+        Some(Cmd::Replay(a)) => replay::replay(a),
         Some(Cmd::Bench(a)) => bench::bench(a),
         Some(Cmd::Soak(a)) => soak::soak(a),
     };
@@ -186,11 +189,11 @@ fn main() -> ExitCode {
         }
         Err(e) => {
             eprintln!("error: {}", render(&e));
-            let usage = e.chain().any(|c| c.is::<master::Usage>());
+            let usage = e.chain().any(|c| c.is::<common::Usage>());
             ExitCode::from(if usage {
-                master::EXIT_USAGE
+                common::EXIT_USAGE
             } else {
-                master::EXIT_ERROR
+                common::EXIT_ERROR
             } as u8)
         }
     }

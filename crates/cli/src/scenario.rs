@@ -9,8 +9,9 @@ use anyhow::{anyhow, Result};
 use canpos_host::control::Request;
 use serde::Deserialize;
 
-use crate::device::{self, Built, SensorOpts};
+use crate::common;
 use crate::limits;
+use crate::sensor::{self, Built, SensorOpts};
 
 /// Most nodes on one CAN bus (node-ids 1…127).
 pub const MAX_NODES: usize = 127;
@@ -183,7 +184,7 @@ pub fn check(text: &str, path: &Path, state_dir: Option<PathBuf>) -> Result<(Che
     }
     let bus_bitrate = match sc.bus_bitrate {
         Some(b) => Some(
-            device::parse_bitrate(&b.to_string())
+            common::parse_bitrate(&b.to_string())
                 .map_err(|e| anyhow!(loc.at(&[Seg::Key("bus_bitrate")], e)))?,
         ),
         None => None,
@@ -194,7 +195,7 @@ pub fn check(text: &str, path: &Path, state_dir: Option<PathBuf>) -> Result<(Che
     let mut files: HashMap<PathBuf, usize> = HashMap::new();
     for (i, s) in sc.sensors.iter().enumerate() {
         let here = |key: &'static str| [Seg::Key("sensor"), Seg::Idx(i), Seg::Key(key)];
-        let b = device::build_setup(s, &state_dir).map_err(|e| {
+        let b = sensor::build_setup(s, &state_dir).map_err(|e| {
             anyhow!(loc.at(
                 &here(e.field.unwrap_or("model")),
                 format!("sensor {i}: {e}")
@@ -296,4 +297,20 @@ pub fn check(text: &str, path: &Path, state_dir: Option<PathBuf>) -> Result<(Che
         },
         built,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    #[test]
+    fn example_scenario_parses() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/scenario.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let (checked, built) = crate::scenario::load(&p, Some(dir.path().into())).unwrap();
+        assert!(checked.scenario.sensors.len() >= 2);
+        assert!(!checked.scenario.events.is_empty());
+        assert_eq!(built.len(), checked.scenario.sensors.len());
+        assert_eq!(checked.warnings, Vec::<String>::new());
+    }
 }

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 mod common;
 
 use canpos_cli::dashboard::{self, Controls, Dashboard};
-use canpos_cli::device::{build_setup, open_storage, SensorOpts};
+use canpos_cli::sensor::{build_setup, open_storage, SensorOpts};
 use canpos_host::control::Request;
 use canpos_host::{MemBus, Runtime, RuntimeHandle};
 use serde_json::Value;

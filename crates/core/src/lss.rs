@@ -29,69 +29,18 @@ use crate::wire::{Duration, Instant};
 /// Node-id of a node that has none (CiA 305).
 pub const UNCONFIGURED: u8 = 0xFF;
 
-/// LSS command specifiers (byte 0 of every LSS frame).
-pub mod cs {
-    /// Switch state global (byte 1: 0 = waiting, 1 = configuration).
-    pub const SWITCH_GLOBAL: u8 = 0x04;
-    /// Configure node-id.
-    pub const CONFIGURE_NODE_ID: u8 = 0x11;
-    /// Configure bit timing parameters.
-    pub const CONFIGURE_BIT_TIMING: u8 = 0x13;
-    /// Activate bit timing parameters.
-    pub const ACTIVATE_BIT_TIMING: u8 = 0x15;
-    /// Store configuration.
-    pub const STORE_CONFIGURATION: u8 = 0x17;
-    /// Switch state selective: vendor-id.
-    pub const SWITCH_SEL_VENDOR: u8 = 0x40;
-    /// Switch state selective: product code.
-    pub const SWITCH_SEL_PRODUCT: u8 = 0x41;
-    /// Switch state selective: revision number.
-    pub const SWITCH_SEL_REVISION: u8 = 0x42;
-    /// Switch state selective: serial number.
-    pub const SWITCH_SEL_SERIAL: u8 = 0x43;
-    /// Switch state selective: the slave's answer.
-    pub const SWITCH_SEL_RESPONSE: u8 = 0x44;
-    /// Identify remote slave: vendor-id.
-    pub const IDENTIFY_VENDOR: u8 = 0x46;
-    /// Identify remote slave: product code.
-    pub const IDENTIFY_PRODUCT: u8 = 0x47;
-    /// Identify remote slave: revision number, low bound.
-    pub const IDENTIFY_REVISION_LOW: u8 = 0x48;
-    /// Identify remote slave: revision number, high bound.
-    pub const IDENTIFY_REVISION_HIGH: u8 = 0x49;
-    /// Identify remote slave: serial number, low bound.
-    pub const IDENTIFY_SERIAL_LOW: u8 = 0x4A;
-    /// Identify remote slave: serial number, high bound.
-    pub const IDENTIFY_SERIAL_HIGH: u8 = 0x4B;
-    /// Identify non-configured remote slave.
-    pub const IDENTIFY_NON_CONFIGURED: u8 = 0x4C;
-    /// Identify slave (answer to identify remote slave and fastscan).
-    pub const IDENTIFY_SLAVE: u8 = 0x4F;
-    /// Identify non-configured slave (answer to 0x4C).
-    pub const IDENTIFY_NON_CONFIGURED_SLAVE: u8 = 0x50;
-    /// Fastscan (DS 305 V2).
-    pub const FASTSCAN: u8 = 0x51;
-    /// Inquire identity vendor-id.
-    pub const INQUIRE_VENDOR: u8 = 0x5A;
-    /// Inquire identity product code.
-    pub const INQUIRE_PRODUCT: u8 = 0x5B;
-    /// Inquire identity revision number.
-    pub const INQUIRE_REVISION: u8 = 0x5C;
-    /// Inquire identity serial number.
-    pub const INQUIRE_SERIAL: u8 = 0x5D;
-    /// Inquire node-id.
-    pub const INQUIRE_NODE_ID: u8 = 0x5E;
-}
-
-/// Fastscan `bitChecked` value that resets every non-configured slave's scan (CiA 305).
-pub const FASTSCAN_CONFIRM: u8 = 0x80;
+pub use crate::wire::lss::{
+    cs, Identify, Inquire, LssRequest, LssResponse, Part, Status, FASTSCAN_CONFIRM,
+    MODE_CONFIGURATION, MODE_WAITING, STATUS_MANUFACTURER, STATUS_OK, STATUS_REFUSED,
+    STATUS_STORAGE_ERROR,
+};
 
 /// Status byte: service done.
-const OK: u8 = 0;
+const OK: u8 = STATUS_OK;
 /// Status byte of configure node-id / bit timing: value out of range / not supported.
-const REFUSED: u8 = 1;
+const REFUSED: u8 = STATUS_REFUSED;
 /// Status byte of store configuration: storage media access error.
-const STORAGE_ERROR: u8 = 2;
+const STORAGE_ERROR: u8 = STATUS_STORAGE_ERROR;
 
 /// Marks the reserved entry of [`BIT_TIMING_TABLE`].
 const RESERVED: u16 = u16::MAX;
@@ -500,6 +449,64 @@ mod tests {
             let out = s.handle(&[c, 0, 0, 0, 0, 0, 0, 0], t0, &Unit);
             assert_eq!(out, Output::Answer([c, v, 0, 0, 0, 0, 0, 0]), "{c:#x}");
         }
+    }
+
+    /// The slave reads the frames [`LssRequest::emit`] writes and answers with the bytes
+    /// [`LssResponse::emit`] writes: one vocabulary for both ends.
+    #[test]
+    fn slave_speaks_the_wire_types() {
+        let mut s = LssSlave::default();
+        let t0 = Instant::ZERO;
+        let mut ask = |r: LssRequest| s.handle(&r.emit(), t0, &Unit);
+        let mode = MODE_CONFIGURATION;
+        assert_eq!(ask(LssRequest::SwitchGlobal { mode }), Output::Silent);
+        for (part, value) in Part::ALL.into_iter().zip(1u32..) {
+            let answer = LssResponse::Identity { part, value }.emit();
+            let asked = ask(LssRequest::Inquire(Inquire::Identity(part)));
+            assert_eq!(asked, Output::Answer(answer), "{part:?}");
+        }
+        let node_id = LssResponse::NodeId(5).emit();
+        assert_eq!(
+            ask(LssRequest::Inquire(Inquire::NodeId)),
+            Output::Answer(node_id)
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureNodeId { node_id: 9 }),
+            Output::Do(Request::ConfigureNodeId(9))
+        );
+        let refused = Status {
+            code: STATUS_REFUSED,
+            spec: 0,
+        };
+        assert_eq!(
+            ask(LssRequest::ConfigureNodeId { node_id: 200 }),
+            Output::Answer(LssResponse::ConfigureNodeId(refused).emit())
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureBitTiming { table: 0, index: 2 }),
+            Output::Answer(LssResponse::ConfigureBitTiming(refused).emit())
+        );
+        assert_eq!(
+            ask(LssRequest::ConfigureBitTiming { table: 0, index: 3 }),
+            Output::Do(Request::ConfigureBitRate(250))
+        );
+        let stored = confirm(Request::StoreConfiguration, false).map(|a| LssResponse::parse(&a));
+        let error = Status {
+            code: STATUS_STORAGE_ERROR,
+            spec: 0,
+        };
+        assert_eq!(stored, Some(Some(LssResponse::StoreConfiguration(error))));
+        // Waiting again: selected by its address, the slave answers switch selective.
+        let waiting = MODE_WAITING;
+        assert_eq!(
+            ask(LssRequest::SwitchGlobal { mode: waiting }),
+            Output::Silent
+        );
+        let mut last = Output::Silent;
+        for (part, value) in Part::ALL.into_iter().zip(1u32..) {
+            last = ask(LssRequest::SwitchSelective { part, value });
+        }
+        assert_eq!(last, Output::Answer(LssResponse::SwitchSelective.emit()));
     }
 
     #[test]

@@ -27,42 +27,17 @@ impl NmtState {
     }
 }
 
-/// NMT node-control commands (COB-ID 0x000, 2 bytes: command, node-id or 0 for all), with
-/// their command specifiers as discriminants.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(u8)]
-pub enum NmtCommand {
-    /// 0x01 start remote node.
-    Start = 0x01,
-    /// 0x02 stop remote node.
-    Stop = 0x02,
-    /// 0x80 enter pre-operational.
-    EnterPreOperational = 0x80,
-    /// 0x81 reset node (application).
-    ResetNode = 0x81,
-    /// 0x82 reset communication.
-    ResetCommunication = 0x82,
-}
+pub use crate::wire::nmt::{NmtCommand, NmtFrame, ALL_NODES};
 
-impl NmtCommand {
-    /// The command specifier byte.
-    pub const fn code(self) -> u8 {
-        self as u8
-    }
-
-    /// Decodes an NMT frame's data for the node `node_id`. Returns `None` for frames that are
-    /// not for this node, have the wrong length (CiA 301: exactly 2 bytes) or an unknown
-    /// command.
-    pub fn parse(data: &[u8], node_id: u8) -> Option<NmtCommand> {
-        if data.len() != 2 || (data[1] != 0 && data[1] != node_id) {
-            return None;
-        }
-        Some(match data[0] {
-            0x01 => NmtCommand::Start,
-            0x02 => NmtCommand::Stop,
-            0x80 => NmtCommand::EnterPreOperational,
-            0x81 => NmtCommand::ResetNode,
-            0x82 => NmtCommand::ResetCommunication,
+impl NmtState {
+    /// The state of a heartbeat / guarding state byte (bit 7, the guarding toggle, stripped),
+    /// `None` for a byte that names no state.
+    pub const fn from_code(b: u8) -> Option<NmtState> {
+        Some(match b & 0x7F {
+            0x00 => NmtState::Initialising,
+            0x7F => NmtState::PreOperational,
+            0x05 => NmtState::Operational,
+            0x04 => NmtState::Stopped,
             _ => return None,
         })
     }
@@ -84,7 +59,10 @@ mod tests {
         ];
         for (s, code, sdo) in all {
             assert_eq!((s.code(), s.sdo_allowed()), (code, sdo), "{s:?}");
+            assert_eq!(NmtState::from_code(code), Some(s));
+            assert_eq!(NmtState::from_code(code | 0x80), Some(s), "guarding toggle");
         }
+        assert_eq!(NmtState::from_code(0x06), None);
     }
 
     /// Each command's specifier byte, and `parse` reads it back.

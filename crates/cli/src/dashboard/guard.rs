@@ -32,7 +32,7 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use futures_util::StreamExt;
 
-use super::{fail, ApiError};
+use super::answer::{fail, ApiError};
 
 /// Longest request body (an SDO value, a control request).
 pub const MAX_BODY: usize = 64 * 1024;

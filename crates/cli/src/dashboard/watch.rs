@@ -12,16 +12,18 @@ use std::time::{Duration, Instant};
 
 use canpos_core::models::{self, Model};
 use canpos_core::od::DefaultValue;
-use canpos_core::Frame;
+use canpos_core::sdo::wire;
+use canpos_core::{cob, Frame};
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::{self, Receiver, Sender, TrySendError};
 use canpos_host::{ControlHandle, RxFrame, Transport};
 use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
-use crate::master::decode::{self, NodeInfo};
-use crate::master::sdo::{abort_meaning, SdoClient, SdoError};
-use crate::master::Monitor;
+use crate::client::decode::{self, NodeInfo};
+use crate::client::scan::DEVICE_TYPE;
+use crate::client::sdo::{abort_meaning, SdoClient, SdoError};
+use crate::client::Monitor;
 
 /// Plot samples are kept at most this often per channel (the server-side decimation: a TPDO
 /// every millisecond becomes 50 points per second).
@@ -665,9 +667,10 @@ pub fn run_bus(
 /// Sends the scan's 0x1000 reads in small bursts (a slow hub client would drop a flood).
 fn scan(bus: &mut dyn Transport) -> std::io::Result<()> {
     for node in 1..=127u8 {
+        let mux = DEVICE_TYPE;
         bus.send(&Frame::std8(
-            0x600 + u16::from(node),
-            [0x40, 0x00, 0x10, 0x00, 0, 0, 0, 0],
+            cob::SDO_RX + u16::from(node),
+            wire::Request::UploadInitiate { mux }.emit(),
         ))?;
         if node % 16 == 0 {
             std::thread::sleep(Duration::from_millis(1));

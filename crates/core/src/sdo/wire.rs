@@ -90,6 +90,11 @@ impl Command {
     pub const fn end_unused(self) -> u8 {
         (self.0 >> 2) & 0x07
     }
+    /// Whether the command is one of a block transfer (specifier 5 or 6, in either direction).
+    #[inline]
+    pub const fn is_block(self) -> bool {
+        matches!(self.ccs(), 5 | 6)
+    }
     /// Whether the request starts a new transfer: download, upload, block upload and block
     /// download initiates (as [`Request::is_initiate`]).
     #[inline]
@@ -266,7 +271,140 @@ impl Request {
     }
 }
 
-fn with_mux(b0: u8, mux: Mux, tail: [u8; 4]) -> [u8; 8] {
+impl Request {
+    /// The request's 8 bytes (a client's side of [`Request::parse`]). Fields a kind does not
+    /// use are sent as zero; a segmented download initiate with its size indicated carries the
+    /// size in bytes 4…7 (its `data` is not sent), an expedited one `data`, its length in n
+    /// when `size` is `Some(1..=4)`. [`Request::Unknown`] is sent as ccs 7.
+    pub const fn emit(&self) -> [u8; 8] {
+        match *self {
+            Request::DownloadInitiate {
+                mux,
+                expedited,
+                size,
+                data,
+            } => {
+                let e = if expedited { ccs::E } else { 0 };
+                match (expedited, size) {
+                    (_, None) => with_mux(ccs::DOWNLOAD_INITIATE | e, mux, data),
+                    (true, Some(n)) => with_mux(
+                        ccs::DOWNLOAD_INITIATE | e | ccs::S | unused_of(n) << 2,
+                        mux,
+                        data,
+                    ),
+                    (false, Some(n)) => {
+                        with_mux(ccs::DOWNLOAD_INITIATE | ccs::S, mux, n.to_le_bytes())
+                    }
+                }
+            }
+            Request::DownloadSegment {
+                toggle,
+                unused,
+                last,
+                data,
+            } => {
+                let mut r = [0u8; 8];
+                r[0] = ccs::DOWNLOAD_SEGMENT | toggle_bit(toggle) | (unused & 7) << 1 | last as u8;
+                let mut i = 0;
+                while i < SEGMENT_DATA {
+                    r[1 + i] = data[i];
+                    i += 1;
+                }
+                r
+            }
+            Request::UploadInitiate { mux } => with_mux(ccs::UPLOAD_INITIATE, mux, [0; 4]),
+            Request::UploadSegment { toggle } => [
+                ccs::UPLOAD_SEGMENT | toggle_bit(toggle),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            ],
+            Request::Abort { mux, code } => with_mux(ccs::ABORT, mux, code.to_le_bytes()),
+            Request::BlockUploadInitiate {
+                mux,
+                crc,
+                blksize,
+                pst,
+            } => with_mux(
+                ccs::BLOCK_UPLOAD | (crc as u8) << 2,
+                mux,
+                [blksize, pst, 0, 0],
+            ),
+            Request::BlockUploadEnd => [ccs::BLOCK_UPLOAD | 1, 0, 0, 0, 0, 0, 0, 0],
+            Request::BlockUploadAck { ackseq, blksize } => {
+                [ccs::BLOCK_UPLOAD | 2, ackseq, blksize, 0, 0, 0, 0, 0]
+            }
+            Request::BlockUploadStart => [ccs::BLOCK_UPLOAD | 3, 0, 0, 0, 0, 0, 0, 0],
+            Request::BlockDownloadInitiate { mux, crc, size } => {
+                let (s, n) = match size {
+                    Some(n) => (1u8, n),
+                    None => (0, 0),
+                };
+                with_mux(
+                    ccs::BLOCK_DOWNLOAD | (crc as u8) << 2 | s << 1,
+                    mux,
+                    n.to_le_bytes(),
+                )
+            }
+            Request::BlockDownloadEnd { unused, crc } => {
+                let c = crc.to_le_bytes();
+                [
+                    ccs::BLOCK_DOWNLOAD | (unused & 7) << 2 | 1,
+                    c[0],
+                    c[1],
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                ]
+            }
+            Request::Unknown => [ccs::UNKNOWN, 0, 0, 0, 0, 0, 0, 0],
+        }
+    }
+}
+
+/// The command bytes of both directions with their variable bits clear (CiA 301 §7.2.4.3):
+/// the specifier in bits 5…7, and the flag bits the initiates share.
+mod ccs {
+    /// Client: download segment (ccs 0). Server: upload segment (scs 0).
+    pub const DOWNLOAD_SEGMENT: u8 = 0x00;
+    /// Client: initiate download (ccs 1). Server: download segment response (scs 1).
+    pub const DOWNLOAD_INITIATE: u8 = 0x20;
+    /// Client: initiate upload (ccs 2). Server: initiate upload response (scs 2).
+    pub const UPLOAD_INITIATE: u8 = 0x40;
+    /// Client: upload segment (ccs 3). Server: initiate download response (scs 3).
+    pub const UPLOAD_SEGMENT: u8 = 0x60;
+    /// Abort transfer (cs 4), both directions.
+    pub const ABORT: u8 = 0x80;
+    /// Client: block upload (ccs 5). Server: block download (scs 5).
+    pub const BLOCK_UPLOAD: u8 = 0xA0;
+    /// Client: block download (ccs 6). Server: block upload (scs 6).
+    pub const BLOCK_DOWNLOAD: u8 = 0xC0;
+    /// Specifier 7: no CiA 301 command.
+    pub const UNKNOWN: u8 = 0xE0;
+    /// e: expedited.
+    pub const E: u8 = 0x02;
+    /// s: size indicated.
+    pub const S: u8 = 0x01;
+}
+
+/// t in bit 4.
+const fn toggle_bit(t: bool) -> u8 {
+    (t as u8) << 4
+}
+
+/// n of an expedited transfer of `len` (1…4) bytes: the bytes of 4…7 that carry no data (a
+/// length outside 1…4 is sent modulo the two-bit field).
+const fn unused_of(len: u32) -> u8 {
+    (4u32.wrapping_sub(len) & 3) as u8
+}
+
+const fn with_mux(b0: u8, mux: Mux, tail: [u8; 4]) -> [u8; 8] {
     let i = mux.index.to_le_bytes();
     [b0, i[0], i[1], mux.sub, tail[0], tail[1], tail[2], tail[3]]
 }
@@ -339,6 +477,243 @@ pub fn block_upload_end(unused: u8, crc: u16) -> [u8; 8] {
     [0xC1 | ((unused & 0x07) << 2), c[0], c[1], 0, 0, 0, 0, 0]
 }
 
+/// A server response, the client's view of the bytes the functions above build (CiA 301
+/// §7.2.4.3). Block-upload sub-block segments are not decodable without the client's state
+/// (their first byte is `c | seqno`, see [`block_segment`]), so a client reads those raw.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Response {
+    /// scs 2: initiate upload response. `expedited`: the data is in bytes 4…7 and `size` (if
+    /// indicated) is its length; otherwise `size` is the indicated total of a segmented
+    /// transfer.
+    UploadInitiate {
+        /// Source object.
+        mux: Mux,
+        /// e bit.
+        expedited: bool,
+        /// Data length (expedited, s = 1) or total size (segmented, s = 1).
+        size: Option<u32>,
+        /// Bytes 4…7.
+        data: [u8; 4],
+    },
+    /// scs 0: upload segment response.
+    UploadSegment {
+        /// t bit.
+        toggle: bool,
+        /// n: bytes at the end of `data` that carry no data.
+        unused: u8,
+        /// c bit: last segment.
+        last: bool,
+        /// Bytes 1…7.
+        data: [u8; 7],
+    },
+    /// scs 3: initiate download response.
+    DownloadInitiate {
+        /// Target object.
+        mux: Mux,
+    },
+    /// scs 1: download segment response.
+    DownloadSegment {
+        /// t bit, echoing the segment's.
+        toggle: bool,
+    },
+    /// cs 4: abort transfer.
+    Abort {
+        /// Object of the aborted transfer.
+        mux: Mux,
+        /// Abort code.
+        code: u32,
+    },
+    /// scs 5, ss 0: initiate block download response.
+    BlockDownloadInitiate {
+        /// Target object.
+        mux: Mux,
+        /// sc bit: the server takes part in the CRC.
+        crc: bool,
+        /// Segments per block.
+        blksize: u8,
+    },
+    /// scs 5, ss 1: end of block download response.
+    BlockDownloadEnd,
+    /// scs 5, ss 2: block download acknowledgement.
+    BlockDownloadAck {
+        /// Last segment received in sequence.
+        ackseq: u8,
+        /// Segments per block for the next block.
+        blksize: u8,
+    },
+    /// scs 6, ss 0: initiate block upload response.
+    BlockUploadInitiate {
+        /// Source object.
+        mux: Mux,
+        /// sc bit: the server will send a CRC.
+        crc: bool,
+        /// Indicated total size.
+        size: Option<u32>,
+    },
+    /// scs 6, ss 1: end of block upload.
+    BlockUploadEnd {
+        /// n: bytes of the last segment that carried no data.
+        unused: u8,
+        /// CRC of the data.
+        crc: u16,
+    },
+    /// scs 7, or scs 5 with ss 3: not a CiA 301 response.
+    Unknown,
+}
+
+impl Response {
+    /// Decodes a response frame (outside a block-upload sub-block).
+    pub fn parse(f: &[u8; 8]) -> Response {
+        let c = Command(f[0]);
+        let mux = Mux::from_frame(f);
+        let le32 = u32::from_le_bytes([f[4], f[5], f[6], f[7]]);
+        match c.ccs() {
+            0 => {
+                let mut data = [0u8; 7];
+                data.copy_from_slice(&f[1..8]);
+                Response::UploadSegment {
+                    toggle: c.toggle(),
+                    unused: c.segment_unused(),
+                    last: c.last(),
+                    data,
+                }
+            }
+            1 => Response::DownloadSegment { toggle: c.toggle() },
+            2 => {
+                let expedited = c.expedited();
+                let size = match (expedited, c.size_indicated()) {
+                    (_, false) => None,
+                    (true, true) => Some(c.expedited_len()),
+                    (false, true) => Some(le32),
+                };
+                Response::UploadInitiate {
+                    mux,
+                    expedited,
+                    size,
+                    data: [f[4], f[5], f[6], f[7]],
+                }
+            }
+            3 => Response::DownloadInitiate { mux },
+            4 => Response::Abort { mux, code: le32 },
+            5 => match c.block_cs() {
+                0 => Response::BlockDownloadInitiate {
+                    mux,
+                    crc: c.crc(),
+                    blksize: f[4],
+                },
+                1 => Response::BlockDownloadEnd,
+                2 => Response::BlockDownloadAck {
+                    ackseq: f[1],
+                    blksize: f[2],
+                },
+                _ => Response::Unknown,
+            },
+            6 => {
+                if c.block_cs() & 0x01 == 0 {
+                    Response::BlockUploadInitiate {
+                        mux,
+                        crc: c.crc(),
+                        size: c.block_size_indicated().then_some(le32),
+                    }
+                } else {
+                    Response::BlockUploadEnd {
+                        unused: c.end_unused(),
+                        crc: u16::from_le_bytes([f[1], f[2]]),
+                    }
+                }
+            }
+            _ => Response::Unknown,
+        }
+    }
+
+    /// The response's 8 bytes, as the server's builders above send them (a segmented upload
+    /// initiate with its size indicated carries the size in bytes 4…7, not `data`).
+    pub const fn emit(&self) -> [u8; 8] {
+        match *self {
+            Response::UploadInitiate {
+                mux,
+                expedited,
+                size,
+                data,
+            } => {
+                let e = if expedited { ccs::E } else { 0 };
+                match (expedited, size) {
+                    (_, None) => with_mux(ccs::UPLOAD_INITIATE | e, mux, data),
+                    (true, Some(n)) => with_mux(
+                        ccs::UPLOAD_INITIATE | e | ccs::S | unused_of(n) << 2,
+                        mux,
+                        data,
+                    ),
+                    (false, Some(n)) => {
+                        with_mux(ccs::UPLOAD_INITIATE | ccs::S, mux, n.to_le_bytes())
+                    }
+                }
+            }
+            Response::UploadSegment {
+                toggle,
+                unused,
+                last,
+                data,
+            } => {
+                let mut r = [0u8; 8];
+                r[0] = ccs::DOWNLOAD_SEGMENT | toggle_bit(toggle) | (unused & 7) << 1 | last as u8;
+                let mut i = 0;
+                while i < SEGMENT_DATA {
+                    r[1 + i] = data[i];
+                    i += 1;
+                }
+                r
+            }
+            Response::DownloadInitiate { mux } => with_mux(ccs::UPLOAD_SEGMENT, mux, [0; 4]),
+            Response::DownloadSegment { toggle } => [
+                ccs::DOWNLOAD_INITIATE | toggle_bit(toggle),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            ],
+            Response::Abort { mux, code } => with_mux(ccs::ABORT, mux, code.to_le_bytes()),
+            Response::BlockDownloadInitiate { mux, crc, blksize } => with_mux(
+                ccs::BLOCK_UPLOAD | (crc as u8) << 2,
+                mux,
+                [blksize, 0, 0, 0],
+            ),
+            Response::BlockDownloadEnd => [ccs::BLOCK_UPLOAD | 1, 0, 0, 0, 0, 0, 0, 0],
+            Response::BlockDownloadAck { ackseq, blksize } => {
+                [ccs::BLOCK_UPLOAD | 2, ackseq, blksize, 0, 0, 0, 0, 0]
+            }
+            Response::BlockUploadInitiate { mux, crc, size } => {
+                let (s, n) = match size {
+                    Some(n) => (1u8, n),
+                    None => (0, 0),
+                };
+                with_mux(
+                    ccs::BLOCK_DOWNLOAD | (crc as u8) << 2 | s << 1,
+                    mux,
+                    n.to_le_bytes(),
+                )
+            }
+            Response::BlockUploadEnd { unused, crc } => {
+                let c = crc.to_le_bytes();
+                [
+                    ccs::BLOCK_DOWNLOAD | (unused & 7) << 2 | 1,
+                    c[0],
+                    c[1],
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                ]
+            }
+            Response::Unknown => [ccs::UNKNOWN, 0, 0, 0, 0, 0, 0, 0],
+        }
+    }
+}
+
 /// CRC-16 of block transfers: CCITT polynomial 0x1021, initial value 0, no reflection (the
 /// XMODEM variant CiA 301 specifies).
 #[inline(never)] // block uploads and downloads share one copy
@@ -390,5 +765,255 @@ mod tests {
         assert_eq!(block_upload_end(3, 0)[0], 0xCD);
         assert_eq!(block_upload_end(5, 0)[0], 0xD5);
         assert_eq!(upload_segment(true, &[1, 2], true)[0], 0x1B);
+    }
+
+    use proptest::prelude::*;
+    // `prop_oneof!` builds its list with `vec!`: the tests have std.
+    extern crate std;
+    use std::vec;
+
+    fn mux() -> impl Strategy<Value = Mux> {
+        (any::<u16>(), any::<u8>()).prop_map(|(index, sub)| Mux { index, sub })
+    }
+
+    /// (expedited, size, data) as a transfer of either kind can carry them: an expedited one
+    /// with or without its length 1…4, a segmented one with no size (bytes 4…7 as sent) or
+    /// with its size (which then is bytes 4…7).
+    fn initiate() -> impl Strategy<Value = (bool, Option<u32>, [u8; 4])> {
+        prop_oneof![
+            (proptest::option::of(1u32..=4), any::<[u8; 4]>()).prop_map(|(n, d)| (true, n, d)),
+            any::<[u8; 4]>().prop_map(|d| (false, None, d)),
+            any::<u32>().prop_map(|n| (false, Some(n), n.to_le_bytes())),
+        ]
+    }
+
+    /// Every request kind with any field values.
+    fn request() -> impl Strategy<Value = Request> {
+        prop_oneof![
+            (mux(), initiate()).prop_map(|(mux, (expedited, size, data))| {
+                Request::DownloadInitiate {
+                    mux,
+                    expedited,
+                    size,
+                    data,
+                }
+            }),
+            (any::<bool>(), 0u8..8, any::<bool>(), any::<[u8; 7]>()).prop_map(
+                |(toggle, unused, last, data)| Request::DownloadSegment {
+                    toggle,
+                    unused,
+                    last,
+                    data
+                }
+            ),
+            mux().prop_map(|mux| Request::UploadInitiate { mux }),
+            any::<bool>().prop_map(|toggle| Request::UploadSegment { toggle }),
+            (mux(), any::<u32>()).prop_map(|(mux, code)| Request::Abort { mux, code }),
+            (mux(), any::<bool>(), any::<u8>(), any::<u8>()).prop_map(
+                |(mux, crc, blksize, pst)| Request::BlockUploadInitiate {
+                    mux,
+                    crc,
+                    blksize,
+                    pst
+                }
+            ),
+            Just(Request::BlockUploadEnd),
+            (any::<u8>(), any::<u8>())
+                .prop_map(|(ackseq, blksize)| Request::BlockUploadAck { ackseq, blksize }),
+            Just(Request::BlockUploadStart),
+            (mux(), any::<bool>(), proptest::option::of(any::<u32>()))
+                .prop_map(|(mux, crc, size)| Request::BlockDownloadInitiate { mux, crc, size }),
+            (0u8..8, any::<u16>())
+                .prop_map(|(unused, crc)| Request::BlockDownloadEnd { unused, crc }),
+            Just(Request::Unknown),
+        ]
+    }
+
+    /// Every response kind with any field values.
+    fn response() -> impl Strategy<Value = Response> {
+        prop_oneof![
+            (mux(), initiate()).prop_map(|(mux, (expedited, size, data))| {
+                Response::UploadInitiate {
+                    mux,
+                    expedited,
+                    size,
+                    data,
+                }
+            }),
+            (any::<bool>(), 0u8..8, any::<bool>(), any::<[u8; 7]>()).prop_map(
+                |(toggle, unused, last, data)| Response::UploadSegment {
+                    toggle,
+                    unused,
+                    last,
+                    data
+                }
+            ),
+            mux().prop_map(|mux| Response::DownloadInitiate { mux }),
+            any::<bool>().prop_map(|toggle| Response::DownloadSegment { toggle }),
+            (mux(), any::<u32>()).prop_map(|(mux, code)| Response::Abort { mux, code }),
+            (mux(), any::<bool>(), any::<u8>()).prop_map(|(mux, crc, blksize)| {
+                Response::BlockDownloadInitiate { mux, crc, blksize }
+            }),
+            Just(Response::BlockDownloadEnd),
+            (any::<u8>(), any::<u8>())
+                .prop_map(|(ackseq, blksize)| Response::BlockDownloadAck { ackseq, blksize }),
+            (mux(), any::<bool>(), proptest::option::of(any::<u32>()))
+                .prop_map(|(mux, crc, size)| Response::BlockUploadInitiate { mux, crc, size }),
+            (0u8..8, any::<u16>())
+                .prop_map(|(unused, crc)| Response::BlockUploadEnd { unused, crc }),
+            Just(Response::Unknown),
+        ]
+    }
+
+    proptest! {
+        /// Emit then parse gives the request back, for every kind.
+        #[test]
+        fn request_round_trip(r in request()) {
+            prop_assert_eq!(Request::parse(&r.emit()), r);
+        }
+
+        /// Emit then parse gives the response back, for every kind.
+        #[test]
+        fn response_round_trip(r in response()) {
+            prop_assert_eq!(Response::parse(&r.emit()), r);
+        }
+
+        /// Parse, emit, parse: any 8 bytes read as a request or a response mean the same once
+        /// written back (the emitters drop only bits no field carries).
+        #[test]
+        fn parse_emit_is_stable(d in any::<[u8; 8]>()) {
+            let q = Request::parse(&d);
+            prop_assert_eq!(Request::parse(&q.emit()), q);
+            let r = Response::parse(&d);
+            prop_assert_eq!(Response::parse(&r.emit()), r);
+        }
+
+        /// The server's builders and [`Response::emit`] write the same bytes: one vocabulary.
+        #[test]
+        fn server_builders_are_response_emit(
+            m in mux(),
+            data in proptest::collection::vec(any::<u8>(), 1..=4),
+            seg in proptest::collection::vec(any::<u8>(), 0..=7),
+            t in any::<bool>(),
+            last in any::<bool>(),
+            size in any::<u32>(),
+            crc in any::<bool>(),
+            blksize in any::<u8>(),
+            unused in 0u8..8,
+            crc16v in any::<u16>(),
+        ) {
+            let mut d4 = [0u8; 4];
+            d4[..data.len()].copy_from_slice(&data);
+            let exp = Response::UploadInitiate {
+                mux: m,
+                expedited: true,
+                size: Some(data.len() as u32),
+                data: d4,
+            };
+            prop_assert_eq!(expedited_upload(m, &data), exp.emit());
+            let segd = Response::UploadInitiate {
+                mux: m,
+                expedited: false,
+                size: Some(size),
+                data: size.to_le_bytes(),
+            };
+            prop_assert_eq!(upload_initiate_segmented(m, size), segd.emit());
+            let mut d7 = [0u8; 7];
+            d7[..seg.len()].copy_from_slice(&seg);
+            let us = Response::UploadSegment {
+                toggle: t,
+                unused: (7 - seg.len()) as u8,
+                last,
+                data: d7,
+            };
+            prop_assert_eq!(upload_segment(t, &seg, last), us.emit());
+            prop_assert_eq!(download_initiate_ack(m), Response::DownloadInitiate { mux: m }.emit());
+            prop_assert_eq!(download_segment_ack(t), Response::DownloadSegment { toggle: t }.emit());
+            prop_assert_eq!(
+                block_download_initiate_ack(m, crc, blksize),
+                Response::BlockDownloadInitiate { mux: m, crc, blksize }.emit()
+            );
+            prop_assert_eq!(
+                block_download_ack(blksize, size as u8),
+                Response::BlockDownloadAck { ackseq: blksize, blksize: size as u8 }.emit()
+            );
+            prop_assert_eq!(block_download_end_ack(), Response::BlockDownloadEnd.emit());
+            prop_assert_eq!(
+                block_upload_initiate(m, crc, size),
+                Response::BlockUploadInitiate { mux: m, crc, size: Some(size) }.emit()
+            );
+            prop_assert_eq!(
+                block_upload_end(unused, crc16v),
+                Response::BlockUploadEnd { unused, crc: crc16v }.emit()
+            );
+        }
+    }
+
+    /// Client command bytes as CiA 301 and the manuals' SDO examples write them: upload
+    /// `40 18 10 01`, expedited downloads `2F` (1 byte), `2B` (2), `23` (4), a segmented
+    /// download initiate `21` with the size, segments `00` / `10` toggling, the last with n,
+    /// abort `80` with the code little-endian.
+    #[test]
+    fn client_bytes_byte_exact() {
+        let m = Mux {
+            index: 0x1018,
+            sub: 1,
+        };
+        assert_eq!(
+            Request::UploadInitiate { mux: m }.emit(),
+            [0x40, 0x18, 0x10, 0x01, 0, 0, 0, 0]
+        );
+        let dl = |n: u32| {
+            Request::DownloadInitiate {
+                mux: m,
+                expedited: true,
+                size: Some(n),
+                data: [1, 2, 3, 4],
+            }
+            .emit()[0]
+        };
+        assert_eq!((dl(1), dl(2), dl(3), dl(4)), (0x2F, 0x2B, 0x27, 0x23));
+        assert_eq!(
+            Request::DownloadInitiate {
+                mux: m,
+                expedited: false,
+                size: Some(10),
+                data: [0; 4],
+            }
+            .emit(),
+            [0x21, 0x18, 0x10, 0x01, 10, 0, 0, 0]
+        );
+        assert_eq!(Request::UploadSegment { toggle: false }.emit()[0], 0x60);
+        assert_eq!(Request::UploadSegment { toggle: true }.emit()[0], 0x70);
+        let seg = |toggle, unused, last| {
+            Request::DownloadSegment {
+                toggle,
+                unused,
+                last,
+                data: [0; 7],
+            }
+            .emit()[0]
+        };
+        assert_eq!((seg(false, 0, false), seg(true, 4, true)), (0x00, 0x19));
+        assert_eq!(
+            Request::Abort {
+                mux: m,
+                code: 0x0504_0000
+            }
+            .emit(),
+            [0x80, 0x18, 0x10, 0x01, 0x00, 0x00, 0x04, 0x05]
+        );
+        assert_eq!(
+            Response::parse(&[0x4F, 0x00, 0x10, 0x00, 0x92, 0, 0, 0]),
+            Response::UploadInitiate {
+                mux: Mux {
+                    index: 0x1000,
+                    sub: 0
+                },
+                expedited: true,
+                size: Some(1),
+                data: [0x92, 0, 0, 0],
+            }
+        );
     }
 }

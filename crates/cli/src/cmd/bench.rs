@@ -15,19 +15,21 @@
 use std::hint::black_box;
 use std::time::{Duration, Instant as StdInstant};
 
+use anyhow::{bail, ensure, Context as _, Result};
+use canpos_core::lss::{Inquire, LssRequest, LssResponse, MODE_CONFIGURATION};
+use canpos_core::models::{self, Model};
+use canpos_core::nmt::{NmtCommand, NmtFrame, ALL_NODES};
+use canpos_core::sdo::wire::{Mux, Request, Response};
+use canpos_core::storage::NoStorage;
+use canpos_core::{cob, Frame, Instant, Node, SensorNode};
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
 use canpos_host::transport::Transport;
+use clap::{Args, Subcommand, ValueEnum};
 use serde_json::{json, Value};
 
-use crate::device::{build_setup, SensorOpts};
-use crate::master::SdoClient;
-
-use anyhow::{bail, ensure, Context as _, Result};
-use canpos_core::models::{self, Model};
-use canpos_core::storage::NoStorage;
-use canpos_core::{Frame, Instant, Node, SensorNode};
-use clap::{Args, Subcommand, ValueEnum};
+use crate::client::SdoClient;
+use crate::sensor::{build_setup, SensorOpts};
 
 /// `canpos bench` options.
 #[derive(Debug, Args)]
@@ -73,7 +75,7 @@ struct BusesArgs {
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=256))]
     buses: u16,
     /// Bit rate of every bus, kbit/s (a CiA 301 rate).
-    #[arg(long, default_value_t = 1000, value_parser = crate::device::parse_bitrate)]
+    #[arg(long, default_value_t = 1000, value_parser = crate::common::parse_bitrate)]
     bitrate: u32,
     /// Length of the measured window in seconds (after 1 s of warm-up).
     #[arg(long, default_value_t = 5.0, value_parser = crate::limits::parse_positive_seconds)]
@@ -241,14 +243,14 @@ fn core(a: CoreArgs) -> Result<i32> {
             let expect = n
                 .read_object(0x1000, 0)
                 .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            let req = Frame::std8(0x600 + id16, [0x40, 0x00, 0x10, 0, 0, 0, 0, 0]);
-            let want = u32_frame(0x43, 0x1000, 0, expect);
+            let req = Frame::std8(cob::SDO_RX + id16, upload_request(0x1000, 0));
+            let want = expedited_upload(0x1000, 0, expect);
             start = StdInstant::now();
             for _ in 0..iters {
                 now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
-                check(r, 0x580 + id16, &want)?;
+                check(r, cob::SDO_TX + id16, &want)?;
             }
         }
         CoreOp::SdoDownload => {
@@ -261,32 +263,28 @@ fn core(a: CoreArgs) -> Result<i32> {
                 .od()
                 .find(index, sub)
                 .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            let cs = match n.device().od().entry(slot).ty.size() {
-                Some(1) => 0x2F,
-                Some(2) => 0x2B,
-                Some(4) => 0x23,
+            let len = match n.device().od().entry(slot).ty.size() {
+                Some(len @ (1 | 2 | 4)) => len as u32,
                 other => bail!("{index:04X}/{sub} has size {other:?}: not an expedited number"),
             };
-            let req = Frame::std8(0x600 + id16, u32_frame(cs, index, sub, v));
-            let want = u32_frame(0x60, index, sub, 0);
+            let req = Frame::std8(cob::SDO_RX + id16, download_request(index, sub, len, v));
+            let mux = Mux { index, sub };
+            let want = Response::DownloadInitiate { mux }.emit();
             start = StdInstant::now();
             for _ in 0..iters {
                 now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
-                check(r, 0x580 + id16, &want)?;
+                check(r, cob::SDO_TX + id16, &want)?;
             }
         }
         CoreOp::Tpdo => {
             // Event timer 1 ms (all models default to it, but say so), then NMT start.
             n.handle_frame(
-                &Frame::std8(0x600 + id16, [0x2B, 0x00, 0x18, 5, 1, 0, 0, 0]),
+                &Frame::std8(cob::SDO_RX + id16, download_request(0x1800, 5, 2, 1)),
                 now,
             );
-            n.handle_frame(
-                &Frame::new(0x000, &[0x01, 0]).unwrap_or(Frame::std8(0, [0; 8])),
-                now,
-            );
+            n.handle_frame(&nmt_start_all(), now);
             while n.poll_transmit().is_some() {}
             let first = n
                 .poll_timeout()
@@ -310,16 +308,19 @@ fn core(a: CoreArgs) -> Result<i32> {
         }
         CoreOp::LssInquire => {
             // Switch state global: configuration (no answer).
-            n.handle_frame(&Frame::std8(0x7E5, [0x04, 1, 0, 0, 0, 0, 0, 0]), now);
+            let mode = MODE_CONFIGURATION;
+            let switch = LssRequest::SwitchGlobal { mode }.emit();
+            n.handle_frame(&Frame::std8(cob::LSS_RX, switch), now);
             while n.poll_transmit().is_some() {}
-            let req = Frame::std8(0x7E5, [0x5E, 0, 0, 0, 0, 0, 0, 0]);
-            let want = [0x5E, id, 0, 0, 0, 0, 0, 0];
+            let inquire = LssRequest::Inquire(Inquire::NodeId).emit();
+            let req = Frame::std8(cob::LSS_RX, inquire);
+            let want = LssResponse::NodeId(id).emit();
             start = StdInstant::now();
             for _ in 0..iters {
                 now = Instant::from_micros(now.micros() + 1);
                 n.handle_frame(black_box(&req), now);
                 let r = step_out(&mut n, now);
-                check(r, 0x7E4, &want)?;
+                check(r, cob::LSS_TX, &want)?;
             }
         }
         _ => start = more_ops(a.op, &mut n, id, now, iters)?,
@@ -362,10 +363,9 @@ fn more_ops(
                 let v = n
                     .read_object(index, sub)
                     .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-                let i = index.to_le_bytes();
                 reqs.push((
-                    Frame::std8(0x600 + id16, [0x40, i[0], i[1], sub, 0, 0, 0, 0]),
-                    u32_frame(0x43, index, sub, v),
+                    Frame::std8(cob::SDO_RX + id16, upload_request(index, sub)),
+                    expedited_upload(index, sub, v),
                 ));
             }
             start = StdInstant::now();
@@ -374,19 +374,16 @@ fn more_ops(
                 let (req, want) = &reqs[(k & 1) as usize];
                 n.handle_frame(black_box(req), now);
                 let r = step_out(n, now);
-                check(r, 0x580 + id16, want)?;
+                check(r, cob::SDO_TX + id16, want)?;
             }
         }
         CoreOp::SyncTpdo => {
             // TPDO1 synchronous on every SYNC, then NMT start.
             n.handle_frame(
-                &Frame::std8(0x600 + id16, [0x2F, 0x00, 0x18, 2, 1, 0, 0, 0]),
+                &Frame::std8(cob::SDO_RX + id16, download_request(0x1800, 2, 1, 1)),
                 now,
             );
-            n.handle_frame(
-                &Frame::new(0x000, &[0x01, 0]).unwrap_or(Frame::std8(0, [0; 8])),
-                now,
-            );
+            n.handle_frame(&nmt_start_all(), now);
             while n.poll_transmit().is_some() {}
             let sync = Frame::new(0x080, &[]).map_err(|e| anyhow::anyhow!("SYNC frame: {e:?}"))?;
             n.handle_frame(&sync, now);
@@ -434,10 +431,42 @@ fn more_ops(
     Ok(start)
 }
 
-fn u32_frame(cs: u8, index: u16, sub: u8, v: u32) -> [u8; 8] {
-    let i = index.to_le_bytes();
-    let b = v.to_le_bytes();
-    [cs, i[0], i[1], sub, b[0], b[1], b[2], b[3]]
+/// An SDO upload request of `index`/`sub`.
+fn upload_request(index: u16, sub: u8) -> [u8; 8] {
+    let mux = Mux { index, sub };
+    Request::UploadInitiate { mux }.emit()
+}
+
+/// The expedited 4-byte upload answer carrying `v`.
+fn expedited_upload(index: u16, sub: u8, v: u32) -> [u8; 8] {
+    Response::UploadInitiate {
+        mux: Mux { index, sub },
+        expedited: true,
+        size: Some(4),
+        data: v.to_le_bytes(),
+    }
+    .emit()
+}
+
+/// An expedited SDO download of the low `len` (1…4) bytes of `v`.
+fn download_request(index: u16, sub: u8, len: u32, v: u32) -> [u8; 8] {
+    Request::DownloadInitiate {
+        mux: Mux { index, sub },
+        expedited: true,
+        size: Some(len),
+        data: v.to_le_bytes(),
+    }
+    .emit()
+}
+
+/// NMT start for all nodes.
+fn nmt_start_all() -> Frame {
+    let [c, n] = NmtFrame {
+        command: NmtCommand::Start,
+        node: ALL_NODES,
+    }
+    .emit();
+    Frame::std_len(cob::NMT, [c, n, 0, 0, 0, 0, 0, 0], 2)
 }
 
 #[inline(always)]
@@ -514,7 +543,7 @@ struct TempDir(tempfile::TempDir);
 
 impl TempDir {
     fn new(tag: &str) -> Result<TempDir> {
-        crate::private_state_dir(&format!("bench-{tag}")).map(TempDir)
+        crate::common::private_state_dir(&format!("bench-{tag}")).map(TempDir)
     }
 }
 
@@ -541,7 +570,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
     let dir = TempDir::new("scale")?;
     let nodes = a.nodes;
     // The bus: the runtime's port, a master port for the set-up, and a frame counter.
-    let pacing = crate::device::pacing(None, a.instant_bus);
+    let pacing = crate::common::pacing(None, a.instant_bus);
     let mem = MemBus::with_pacing(pacing).with_queue_len(65536);
     let mut hub = None;
     let (runtime_port, mut master): (Box<dyn Transport>, Box<dyn Transport>) = match a.bus {
@@ -582,7 +611,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
         c.download(0x1800, 5, &a.event_ms.to_le_bytes())
             .with_context(|| format!("writing 0x1800/5 of node {id}"))?;
     }
-    master.send(&Frame::std_len(0x000, [0x01, 0, 0, 0, 0, 0, 0, 0], 2))?;
+    master.send(&nmt_start_all())?;
     // The master port would only fill up: leave the bus (the socketcand client stays connected
     // but is drained by the observer or not at all; the hub drops for it without blocking).
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -684,7 +713,7 @@ fn scale(a: ScaleArgs) -> Result<i32> {
             "error: bench scale missed its expectation: {}",
             failures.join("; ")
         );
-        Ok(crate::master::EXIT_REFUSED)
+        Ok(crate::common::EXIT_REFUSED)
     }
 }
 
@@ -713,7 +742,7 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn sdo_rtt(a: RttArgs) -> Result<i32> {
-    let mut bus = crate::master::open_bus(&a.bus)?;
+    let mut bus = crate::common::open_bus(&a.bus)?;
     let mut c = SdoClient::new(&mut *bus, a.node, Duration::from_secs(1));
     // Expected answer: whatever 0x1000 holds, the same every time.
     let want = c.upload(0x1000, 0).context("first SDO upload of 0x1000")?;

@@ -26,14 +26,16 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
-use canpos_core::Frame;
+use canpos_core::nmt::{NmtCommand, NmtFrame, ALL_NODES};
+use canpos_core::sdo::wire::{Mux, Request, Response};
+use canpos_core::{cob, Frame};
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
 use canpos_host::transport::Transport;
 use clap::Args;
 use serde_json::{json, Value};
 
-use crate::device::{build_setup, SensorOpts};
+use crate::sensor::{build_setup, SensorOpts};
 
 /// `canpos soak` options.
 #[derive(Debug, Args)]
@@ -94,7 +96,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     let run_for = Duration::from_secs_f64(a.minutes * 60.0);
 
     // State files go to a private directory: the soak must not touch the user's units.
-    let state = crate::private_state_dir("soak")?;
+    let state = crate::common::private_state_dir("soak")?;
     let state_dir = state.path().to_path_buf();
 
     // The soak measures the runtime's timing, not the bus: the instant bus (127 × 1 ms is more
@@ -127,11 +129,17 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     // Boot-ups, then the event timer by SDO (a real master would do the same).
     wait_bootups(&mut observer, n)?;
     for id in 1..=a.nodes {
-        let ms = a.event_ms.to_le_bytes();
-        let req = Frame::std8(
-            0x600 + u16::from(id),
-            [0x2B, 0x00, 0x18, 0x05, ms[0], ms[1], 0, 0],
-        );
+        // 0x1800/5, TPDO1's event timer (2 bytes).
+        let req = Request::DownloadInitiate {
+            mux: Mux {
+                index: 0x1800,
+                sub: 5,
+            },
+            expedited: true,
+            size: Some(2),
+            data: u32::from(a.event_ms).to_le_bytes(),
+        };
+        let req = Frame::std8(cob::SDO_RX + u16::from(id), req.emit());
         observer.send(&req)?;
         expect_sdo_ok(&mut observer, id)?;
     }
@@ -144,7 +152,12 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     });
     let stop = Arc::new(AtomicBool::new(false));
     // NMT start all: every node enters Operational and its event timer starts now.
-    observer.send(&Frame::std_len(0x000, [0x01, 0, 0, 0, 0, 0, 0, 0], 2))?;
+    let [c, all] = NmtFrame {
+        command: NmtCommand::Start,
+        node: ALL_NODES,
+    }
+    .emit();
+    observer.send(&Frame::std_len(cob::NMT, [c, all, 0, 0, 0, 0, 0, 0], 2))?;
     let t0 = Instant::now();
     let obs_thread = {
         let counts = Arc::clone(&counts);
@@ -250,7 +263,7 @@ pub fn soak(a: SoakArgs) -> Result<i32> {
     Ok(if failures.is_empty() {
         0
     } else {
-        crate::master::EXIT_REFUSED
+        crate::common::EXIT_REFUSED
     })
 }
 
@@ -375,9 +388,13 @@ fn expect_sdo_ok(port: &mut impl Transport, id: u8) -> Result<()> {
     let deadline = Instant::now() + SETUP_WAIT;
     loop {
         match port.recv_deadline(deadline)? {
-            Some(rx) if rx.frame.id() == 0x580 + u32::from(id) => {
+            Some(rx) if rx.frame.id() == u32::from(cob::SDO_TX + u16::from(id)) => {
                 let d = rx.frame.data();
-                if d.first() == Some(&0x60) {
+                // Read as if padded with zeros: a short answer is no download confirmation.
+                let mut f = [0u8; 8];
+                f[..d.len().min(8)].copy_from_slice(&d[..d.len().min(8)]);
+                if !d.is_empty() && matches!(Response::parse(&f), Response::DownloadInitiate { .. })
+                {
                     return Ok(());
                 }
                 bail!("node {id} refused the event timer: {d:02X?}");

@@ -13,13 +13,15 @@ use anyhow::{anyhow, bail, Context, Result};
 use canpos_core::eds::{Commissioning, DcfValue, EdsInfo};
 use canpos_core::models::{self, DeviceConfig, Model};
 use canpos_core::od::{DataType, DefaultValue, Entry};
+use canpos_core::sdo::wire::{Mux, Request, Response};
 use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{cob, Frame, Instant, Node};
 use canpos_host::ini::Ini;
 use canpos_host::FileStorage;
 use clap::Args;
 
-use crate::master::{open_bus, BusArg, SdoClient, SdoError, Usage};
+use crate::client::{SdoClient, SdoError};
+use crate::common::{open_bus, BusArg, Usage};
 
 /// `canpos dcf`: write the DCF of a configured unit, read from the running node over SDO or
 /// from its state file.
@@ -153,7 +155,7 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
                     state.display()
                 ))))
             }
-            (m, code, _) => crate::master::export_unit(m.as_deref(), code.as_deref())?,
+            (m, code, _) => crate::sensor::export_unit(m.as_deref(), code.as_deref())?,
         };
         if let Some((_, serial)) = parse_state_name(state) {
             cfg.serial = serial;
@@ -177,7 +179,7 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
                 let m = recognise(&mut c)?;
                 (m, m.default_config, String::new())
             }
-            (m, code) => crate::master::export_unit(m.as_deref(), code.as_deref())?,
+            (m, code) => crate::sensor::export_unit(m.as_deref(), code.as_deref())?,
         };
         cfg.node_id = node;
         if let Some(b) = a.bitrate {
@@ -512,26 +514,20 @@ pub fn apply_to_state(
     }
     let mut refused = Vec::new();
     let mut write = |node: &mut Node<_, _>, index: u16, sub: u8, raw: u32, size: usize| {
-        let n = size.clamp(1, 4);
-        let cs = 0x23 | (((4 - n) as u8) << 2);
-        let v = raw.to_le_bytes();
-        let req = [
-            cs,
-            index as u8,
-            (index >> 8) as u8,
-            sub,
-            v[0],
-            v[1],
-            v[2],
-            v[3],
-        ];
+        let req = Request::DownloadInitiate {
+            mux: Mux { index, sub },
+            expedited: true,
+            size: Some(size.clamp(1, 4) as u32),
+            data: raw.to_le_bytes(),
+        }
+        .emit();
         now += canpos_core::Duration::from_millis(1);
-        node.handle_frame(&Frame::std8(0x600 + id as u16, req), now);
+        node.handle_frame(&Frame::std8(cob::SDO_RX + id as u16, req), now);
         let mut answer = None;
         // A store may answer later (a held SDO): let the node's time run until it does.
         for _ in 0..1000 {
             while let Some(f) = node.poll(now) {
-                if f.std_id() == Some(0x580 + id as u16) {
+                if f.std_id() == Some(cob::SDO_TX + id as u16) {
                     answer = Some(*f.raw());
                 }
             }
@@ -540,12 +536,9 @@ pub fn apply_to_state(
             }
             now += canpos_core::Duration::from_millis(10);
         }
-        match answer {
-            Some(a) if a[0] == 0x60 => Ok(()),
-            Some(a) if a[0] == 0x80 => Err(format!(
-                "SDO abort 0x{:08X}",
-                u32::from_le_bytes([a[4], a[5], a[6], a[7]])
-            )),
+        match answer.map(|a| Response::parse(&a)) {
+            Some(Response::DownloadInitiate { .. }) => Ok(()),
+            Some(Response::Abort { code, .. }) => Err(format!("SDO abort 0x{code:08X}")),
             _ => Err("no SDO answer".to_string()),
         }
     };
@@ -655,12 +648,12 @@ mod tests {
         std::fs::write(&dcf, &text).unwrap();
         let d = read_model_dcf(&dcf).unwrap().unwrap();
         assert_eq!(d.channels, Some(2));
-        let opts = crate::device::SensorOpts {
+        let opts = crate::sensor::SensorOpts {
             model: Some("tmi".into()),
             unit_channels: d.channels,
             ..Default::default()
         };
-        let built = crate::device::build_setup(&opts, dir.path()).unwrap();
+        let built = crate::sensor::build_setup(&opts, dir.path()).unwrap();
         assert_eq!(built.setup.cfg.channels, 2);
         let fresh = dir.path().join("fresh.bin");
         let refused = apply_to_state(&d, built.setup.cfg, &fresh).unwrap();

@@ -10,12 +10,26 @@ use std::sync::Arc;
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
+use anyhow::Result;
 use canpos_core::storage::RamStorage;
 use canpos_core::Frame;
 use canpos_host::mem::{MemBus, MemPort};
+use canpos_host::transport;
 use canpos_host::transport::Transport;
 
-use super::*;
+use crate::client::monitor::LoadMeter;
+use crate::client::*;
+use crate::client::{decode, sdo};
+use crate::cmd::eds::*;
+use crate::cmd::lss::*;
+use crate::cmd::monitor::*;
+use crate::cmd::nmt::*;
+use crate::cmd::record::*;
+use crate::cmd::replay::Timeline;
+use crate::cmd::replay::*;
+use crate::cmd::scan::*;
+use crate::cmd::sdo::*;
+use crate::common::*;
 
 /// A unique in-process bus name per test (the `mem://` registry is process-wide).
 fn bus_name(tag: &str) -> String {
@@ -1292,7 +1306,7 @@ fn sdo_scan_and_lss_timeout_over_socketcand_hub() {
 fn load_meter_counts_bits_over_the_last_second() {
     // ID 0x000, DLC 0: 53 bits (bus::bits). 1000 of them at 1000 kbit/s within one second:
     // 53,000 bits = 53 ms of 1 s = 5.3 %.
-    let mut m = super::LoadMeter::new(1000);
+    let mut m = LoadMeter::new(1000);
     let t0 = std::time::SystemTime::UNIX_EPOCH + Duration::from_secs(100);
     let f = Frame::new(0, &[]).unwrap();
     let mut last = (0.0, 0);

@@ -10,8 +10,11 @@ use std::io;
 use std::time::{Duration, Instant};
 
 use canpos_core::od::Abort;
-use canpos_core::Frame;
+use canpos_core::sdo::wire::{Mux, Request, Response, SEGMENT_DATA};
+use canpos_core::{cob, Frame};
 use canpos_host::transport::{RxFrame, Transport};
+
+use crate::common::{parse_i64, parse_u64};
 
 /// Largest segmented upload accepted; a server that keeps sending beyond that is aborted rather
 /// than letting a broken device exhaust memory.
@@ -96,23 +99,23 @@ impl<'a> SdoClient<'a> {
     }
 
     fn rx_id(&self) -> u32 {
-        0x580 + self.node as u32
+        u32::from(cob::SDO_TX) + self.node as u32
     }
 
-    fn send(&mut self, data: [u8; 8]) -> io::Result<()> {
-        let f = Frame::std8(0x600 + self.node as u16, data);
+    fn send(&mut self, req: Request) -> io::Result<()> {
+        let f = Frame::std8(cob::SDO_RX + self.node as u16, req.emit());
         self.bus.send(&f)
     }
 
     /// Best-effort abort: the transfer is failing anyway, so a send error is not reported over
     /// the original cause.
     fn send_abort(&mut self, index: u16, sub: u8, code: u32) {
-        let mut d = [0x80, index as u8, (index >> 8) as u8, sub, 0, 0, 0, 0];
-        d[4..8].copy_from_slice(&code.to_le_bytes());
-        let _ = self.send(d);
+        let mux = Mux { index, sub };
+        let _ = self.send(Request::Abort { mux, code });
     }
 
-    /// Sends `req` and waits for the server's answer to the transfer of `index`/`sub`.
+    /// Sends `req` and waits for the server's answer to the transfer of `index`/`sub`: its
+    /// command byte (for messages) and what it says.
     ///
     /// `initiate`: the answer must carry the multiplexer (initiate responses); answers with
     /// another multiplexer are stale (e.g. a late answer to an earlier, timed-out request) and
@@ -120,13 +123,14 @@ impl<'a> SdoClient<'a> {
     /// devices send for malformed requests).
     fn request(
         &mut self,
-        req: [u8; 8],
+        req: Request,
         index: u16,
         sub: u8,
         initiate: bool,
-    ) -> Result<[u8; 8], SdoError> {
+    ) -> Result<(u8, Response), SdoError> {
         self.send(req)?;
         let deadline = Instant::now() + self.timeout;
+        let ours_mux = Mux { index, sub };
         loop {
             let Some(rx) = self.bus.recv_deadline(deadline)? else {
                 self.send_abort(index, sub, code::TIMEOUT);
@@ -140,20 +144,18 @@ impl<'a> SdoClient<'a> {
                 }
                 continue;
             };
-            let mux_index = u16::from_le_bytes([d[1], d[2]]);
-            let mux_matches = mux_index == index && d[3] == sub;
-            if d[0] == 0x80 {
-                if mux_matches || (mux_index == 0 && d[3] == 0) {
-                    return Err(SdoError::Abort(u32::from_le_bytes([
-                        d[4], d[5], d[6], d[7],
-                    ])));
+            let mux_matches = Mux::from_frame(&d) == ours_mux;
+            let r = Response::parse(&d);
+            if let Response::Abort { mux, code } = r {
+                if mux_matches || mux == Mux::default() {
+                    return Err(SdoError::Abort(code));
                 }
                 continue;
             }
             if initiate && !mux_matches {
                 continue;
             }
-            return Ok(d);
+            return Ok((d[0], r));
         }
     }
 
@@ -164,49 +166,55 @@ impl<'a> SdoClient<'a> {
 
     /// Reads object `index`/`sub` (expedited or segmented, as the server chooses).
     pub fn upload(&mut self, index: u16, sub: u8) -> Result<Vec<u8>, SdoError> {
-        let [il, ih] = index.to_le_bytes();
-        let r = self.request([0x40, il, ih, sub, 0, 0, 0, 0], index, sub, true)?;
-        if r[0] >> 5 != 2 {
-            let m = format!("unexpected answer 0x{:02X} to upload initiate", r[0]);
+        let mux = Mux { index, sub };
+        let (c, r) = self.request(Request::UploadInitiate { mux }, index, sub, true)?;
+        let Response::UploadInitiate {
+            expedited,
+            size,
+            data: first,
+            ..
+        } = r
+        else {
+            let m = format!("unexpected answer 0x{c:02X} to upload initiate");
             return Err(self.protocol(index, sub, code::INVALID_COMMAND, m));
+        };
+        if expedited {
+            // Without the size bit the size is unspecified; all 4 bytes are data.
+            let n = size.unwrap_or(4) as usize;
+            return Ok(first[..n].to_vec());
         }
-        let size_given = r[0] & 0x01 != 0;
-        if r[0] & 0x02 != 0 {
-            // Expedited: without the size bit the size is unspecified; all 4 bytes are data.
-            let n = if size_given {
-                4 - ((r[0] >> 2) & 3) as usize
-            } else {
-                4
-            };
-            return Ok(r[4..4 + n].to_vec());
-        }
-        let size = size_given.then(|| u32::from_le_bytes([r[4], r[5], r[6], r[7]]) as usize);
+        let size = size.map(|s| s as usize);
         if size.is_some_and(|s| s > MAX_UPLOAD) {
             let m = format!("announced size {} exceeds {MAX_UPLOAD}", size.unwrap_or(0));
             return Err(self.protocol(index, sub, code::OUT_OF_MEMORY, m));
         }
         let mut data = Vec::with_capacity(size.unwrap_or(0));
-        let mut toggle = 0u8;
+        let mut toggle = false;
         loop {
-            let r = self.request([0x60 | toggle << 4, 0, 0, 0, 0, 0, 0, 0], index, sub, false)?;
-            if r[0] >> 5 != 0 {
-                let m = format!("unexpected answer 0x{:02X} to upload segment", r[0]);
+            let (c, r) = self.request(Request::UploadSegment { toggle }, index, sub, false)?;
+            let Response::UploadSegment {
+                toggle: t,
+                unused,
+                last,
+                data: seg,
+            } = r
+            else {
+                let m = format!("unexpected answer 0x{c:02X} to upload segment");
                 return Err(self.protocol(index, sub, code::INVALID_COMMAND, m));
-            }
-            if (r[0] >> 4) & 1 != toggle {
+            };
+            if t != toggle {
                 let m = "toggle bit not alternated in upload segment".to_string();
                 return Err(self.protocol(index, sub, code::TOGGLE, m));
             }
-            let n = ((r[0] >> 1) & 7) as usize;
-            data.extend_from_slice(&r[1..8 - n]);
+            data.extend_from_slice(&seg[..SEGMENT_DATA - unused as usize]);
             if data.len() > MAX_UPLOAD {
                 let m = format!("upload longer than {MAX_UPLOAD} bytes");
                 return Err(self.protocol(index, sub, code::OUT_OF_MEMORY, m));
             }
-            if r[0] & 1 != 0 {
+            if last {
                 break;
             }
-            toggle ^= 1;
+            toggle = !toggle;
         }
         if let Some(s) = size {
             if s != data.len() {
@@ -222,22 +230,19 @@ impl<'a> SdoClient<'a> {
 
     /// Writes `data` to object `index`/`sub`: expedited up to 4 bytes, segmented above.
     pub fn download(&mut self, index: u16, sub: u8, data: &[u8]) -> Result<(), SdoError> {
-        let [il, ih] = index.to_le_bytes();
+        let mux = Mux { index, sub };
         if (1..=4).contains(&data.len()) {
-            let mut req = [
-                0x23 | ((4 - data.len() as u8) << 2),
-                il,
-                ih,
-                sub,
-                0,
-                0,
-                0,
-                0,
-            ];
-            req[4..4 + data.len()].copy_from_slice(data);
-            let r = self.request(req, index, sub, true)?;
-            if r[0] >> 5 != 3 {
-                let m = format!("unexpected answer 0x{:02X} to download", r[0]);
+            let mut first = [0u8; 4];
+            first[..data.len()].copy_from_slice(data);
+            let req = Request::DownloadInitiate {
+                mux,
+                expedited: true,
+                size: Some(data.len() as u32),
+                data: first,
+            };
+            let (c, r) = self.request(req, index, sub, true)?;
+            if !matches!(r, Response::DownloadInitiate { .. }) {
+                let m = format!("unexpected answer 0x{c:02X} to download");
                 return Err(self.protocol(index, sub, code::INVALID_COMMAND, m));
             }
             return Ok(());
@@ -245,35 +250,43 @@ impl<'a> SdoClient<'a> {
         let Ok(size) = u32::try_from(data.len()) else {
             return Err(SdoError::Protocol("value too long for SDO".into()));
         };
-        let mut req = [0x21, il, ih, sub, 0, 0, 0, 0];
-        req[4..8].copy_from_slice(&size.to_le_bytes());
-        let r = self.request(req, index, sub, true)?;
-        if r[0] >> 5 != 3 {
-            let m = format!("unexpected answer 0x{:02X} to download initiate", r[0]);
+        let req = Request::DownloadInitiate {
+            mux,
+            expedited: false,
+            size: Some(size),
+            data: size.to_le_bytes(),
+        };
+        let (c, r) = self.request(req, index, sub, true)?;
+        if !matches!(r, Response::DownloadInitiate { .. }) {
+            let m = format!("unexpected answer 0x{c:02X} to download initiate");
             return Err(self.protocol(index, sub, code::INVALID_COMMAND, m));
         }
         // An empty value still needs one (empty, last) segment to complete the transfer.
         let chunks: Vec<&[u8]> = if data.is_empty() {
             vec![&[]]
         } else {
-            data.chunks(7).collect()
+            data.chunks(SEGMENT_DATA).collect()
         };
-        let mut toggle = 0u8;
+        let mut toggle = false;
         for (i, chunk) in chunks.iter().enumerate() {
-            let last = i + 1 == chunks.len();
-            let mut seg = [0u8; 8];
-            seg[0] = toggle << 4 | ((7 - chunk.len() as u8) << 1) | last as u8;
-            seg[1..1 + chunk.len()].copy_from_slice(chunk);
-            let r = self.request(seg, index, sub, false)?;
-            if r[0] >> 5 != 1 {
-                let m = format!("unexpected answer 0x{:02X} to download segment", r[0]);
+            let mut seg = [0u8; SEGMENT_DATA];
+            seg[..chunk.len()].copy_from_slice(chunk);
+            let req = Request::DownloadSegment {
+                toggle,
+                unused: (SEGMENT_DATA - chunk.len()) as u8,
+                last: i + 1 == chunks.len(),
+                data: seg,
+            };
+            let (c, r) = self.request(req, index, sub, false)?;
+            let Response::DownloadSegment { toggle: t } = r else {
+                let m = format!("unexpected answer 0x{c:02X} to download segment");
                 return Err(self.protocol(index, sub, code::INVALID_COMMAND, m));
-            }
-            if (r[0] >> 4) & 1 != toggle {
+            };
+            if t != toggle {
                 let m = "toggle bit not alternated in download segment answer".to_string();
                 return Err(self.protocol(index, sub, code::TOGGLE, m));
             }
-            toggle ^= 1;
+            toggle = !toggle;
         }
         Ok(())
     }
@@ -441,22 +454,4 @@ fn parse_hex_bytes(s: &str) -> Result<Vec<u8>, String> {
         .step_by(2)
         .map(|i| u8::from_str_radix(&digits[i..i + 2], 16).map_err(|e| e.to_string()))
         .collect()
-}
-
-/// Decimal, or hex with a `0x` prefix.
-pub fn parse_u64(s: &str) -> Option<u64> {
-    let s = s.trim();
-    match s.strip_prefix("0x").or_else(|| s.strip_prefix("0X")) {
-        Some(h) => u64::from_str_radix(h, 16).ok(),
-        None => s.parse().ok(),
-    }
-}
-
-/// Like [`parse_u64`] with an optional leading minus sign.
-pub fn parse_i64(s: &str) -> Option<i64> {
-    let s = s.trim();
-    match s.strip_prefix('-') {
-        Some(r) => parse_u64(r).and_then(|v| i64::try_from(v).ok()).map(|v| -v),
-        None => parse_u64(s).and_then(|v| i64::try_from(v).ok()),
-    }
 }

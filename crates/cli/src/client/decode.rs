@@ -1,7 +1,10 @@
 //! Decoders for `canpos monitor`: one line of text per frame. Pure functions of the frame and
 //! what is known about the node, so they are unit-testable and never fail on odd input.
 
-use canpos_core::Frame;
+use canpos_core::lss::{cs, Inquire, LssRequest, LssResponse, Part, MODE_CONFIGURATION};
+use canpos_core::nmt::{NmtCommand, NmtState, ALL_NODES};
+use canpos_core::sdo::wire::{Command, Mux, Request, Response, SEGMENT_DATA};
+use canpos_core::{cob, Frame};
 
 use super::sdo::{abort_meaning, hex_string};
 
@@ -40,24 +43,24 @@ pub fn emcy_meaning(code: u16) -> &'static str {
 
 /// Name of an NMT state as sent in heartbeats (bit 7, the guarding toggle, stripped).
 pub fn nmt_state_name(b: u8) -> &'static str {
-    match b & 0x7F {
-        0x00 => "boot-up",
-        0x04 => "stopped",
-        0x05 => "operational",
-        0x7F => "pre-operational",
-        _ => "unknown state",
+    match NmtState::from_code(b) {
+        Some(NmtState::Initialising) => "boot-up",
+        Some(NmtState::Stopped) => "stopped",
+        Some(NmtState::Operational) => "operational",
+        Some(NmtState::PreOperational) => "pre-operational",
+        None => "unknown state",
     }
 }
 
 /// Name of an NMT command byte.
 pub fn nmt_command_name(b: u8) -> &'static str {
-    match b {
-        0x01 => "start",
-        0x02 => "stop",
-        0x80 => "enter pre-operational",
-        0x81 => "reset node",
-        0x82 => "reset communication",
-        _ => "unknown command",
+    match NmtCommand::from_code(b) {
+        Some(NmtCommand::Start) => "start",
+        Some(NmtCommand::Stop) => "stop",
+        Some(NmtCommand::EnterPreOperational) => "enter pre-operational",
+        Some(NmtCommand::ResetNode) => "reset node",
+        Some(NmtCommand::ResetCommunication) => "reset communication",
+        None => "unknown command",
     }
 }
 
@@ -204,8 +207,8 @@ pub fn describe(f: &Frame) -> Option<String> {
         });
     }
     Some(match id {
-        0x000 => match d {
-            [c, 0] => format!("NMT {} all nodes", nmt_command_name(*c)),
+        cob::NMT => match d {
+            [c, ALL_NODES] => format!("NMT {} all nodes", nmt_command_name(*c)),
             [c, n] => format!("NMT {} node {n}", nmt_command_name(*c)),
             _ => format!("NMT malformed ({} bytes)", d.len()),
         },
@@ -234,8 +237,8 @@ pub fn describe(f: &Frame) -> Option<String> {
             [s] => format!("node {node} heartbeat {}", nmt_state_name(*s)),
             _ => format!("node {node} error control malformed"),
         },
-        0x7E5 => format!("LSS → {}", lss_summary(d, true)),
-        0x7E4 => format!("LSS ← {}", lss_summary(d, false)),
+        cob::LSS_RX => format!("LSS → {}", lss_summary(d, true)),
+        cob::LSS_TX => format!("LSS ← {}", lss_summary(d, false)),
         _ if node != 0 && (0x180..0x580).contains(&id) => {
             // Pre-defined connection set: TPDOn at 0x180 + 0x100·(n−1), RPDOn 0x80 above it.
             let fc = id & 0x780;
@@ -255,108 +258,158 @@ pub fn sdo_summary(d: &[u8], request: bool) -> String {
     let Ok(d) = <[u8; 8]>::try_from(d) else {
         return format!("malformed ({} bytes)", d.len());
     };
-    let mux = format!("{:04X}:{:02X}", u16::from_le_bytes([d[1], d[2]]), d[3]);
-    let val = u32::from_le_bytes([d[4], d[5], d[6], d[7]]);
-    let exp_len = |c: u8| {
-        if c & 1 != 0 {
-            4 - ((c >> 2) & 3) as usize
-        } else {
-            4
-        }
-    };
     let c = d[0];
-    match (c >> 5, request) {
-        (4, _) => format!("abort {mux} 0x{val:08X} {}", abort_meaning(val)),
-        (1, true) if c & 2 != 0 => {
-            format!("download {mux} = {}", hex_string(&d[4..4 + exp_len(c)]))
+    if Command(c).is_block() {
+        return format!("block transfer 0x{c:02X}");
+    }
+    let mux = |m: Mux| format!("{:04X}:{:02X}", m.index, m.sub);
+    let expedited = |size: Option<u32>, data: [u8; 4]| {
+        // Without the size bit the size is unspecified; all 4 bytes are data.
+        hex_string(&data[..size.unwrap_or(4) as usize])
+    };
+    let t = |toggle: bool| u8::from(toggle);
+    let abort =
+        |m: Mux, code: u32| format!("abort {} 0x{code:08X} {}", mux(m), abort_meaning(code));
+    if request {
+        match Request::parse(&d) {
+            Request::Abort { mux: m, code } => abort(m, code),
+            Request::DownloadInitiate {
+                mux: m,
+                expedited: true,
+                size,
+                data,
+            } => format!("download {} = {}", mux(m), expedited(size, data)),
+            Request::DownloadInitiate { mux: m, data, .. } => format!(
+                "download {} segmented, {} bytes",
+                mux(m),
+                u32::from_le_bytes(data)
+            ),
+            Request::UploadInitiate { mux: m } => format!("upload {}", mux(m)),
+            Request::UploadSegment { toggle } => {
+                format!("upload segment (toggle {})", t(toggle))
+            }
+            Request::DownloadSegment { toggle, .. } => {
+                format!("download segment (toggle {})", t(toggle))
+            }
+            _ => format!("command 0x{c:02X}"),
         }
-        (1, true) => format!("download {mux} segmented, {val} bytes"),
-        (2, true) => format!("upload {mux}"),
-        (3, true) => format!("upload segment (toggle {})", (c >> 4) & 1),
-        (0, true) => format!("download segment (toggle {})", (c >> 4) & 1),
-        (3, false) => format!("download {mux} ok"),
-        (2, false) if c & 2 != 0 => {
-            format!("upload {mux} = {}", hex_string(&d[4..4 + exp_len(c)]))
+    } else {
+        match Response::parse(&d) {
+            Response::Abort { mux: m, code } => abort(m, code),
+            Response::DownloadInitiate { mux: m } => format!("download {} ok", mux(m)),
+            Response::UploadInitiate {
+                mux: m,
+                expedited: true,
+                size,
+                data,
+            } => format!("upload {} = {}", mux(m), expedited(size, data)),
+            Response::UploadInitiate { mux: m, data, .. } => format!(
+                "upload {} segmented, {} bytes",
+                mux(m),
+                u32::from_le_bytes(data)
+            ),
+            Response::UploadSegment {
+                unused, last, data, ..
+            } => format!(
+                "upload segment {}{}",
+                hex_string(&data[..SEGMENT_DATA - unused as usize]),
+                if last { " (last)" } else { "" }
+            ),
+            Response::DownloadSegment { toggle } => {
+                format!("download segment ok (toggle {})", t(toggle))
+            }
+            _ => format!("command 0x{c:02X}"),
         }
-        (2, false) => format!("upload {mux} segmented, {val} bytes"),
-        (0, false) => format!(
-            "upload segment {}{}",
-            hex_string(&d[1..8 - ((c >> 1) & 7) as usize]),
-            if c & 1 != 0 { " (last)" } else { "" }
-        ),
-        (1, false) => format!("download segment ok (toggle {})", (c >> 4) & 1),
-        (5, _) | (6, _) => format!("block transfer 0x{c:02X}"),
-        _ => format!("command 0x{c:02X}"),
     }
 }
 
-/// One-line summary of an LSS frame.
-pub fn lss_summary(d: &[u8], request: bool) -> String {
-    let Some(&cs) = d.first() else {
-        return "empty".into();
-    };
-    let u = |i: usize| {
-        let mut b = [0u8; 4];
-        for (k, x) in b.iter_mut().enumerate() {
-            *x = d.get(i + k).copied().unwrap_or(0);
-        }
-        u32::from_le_bytes(b)
-    };
-    let b = |i: usize| d.get(i).copied().unwrap_or(0);
-    match (cs, request) {
-        (0x04, _) => format!(
+/// The name of an LSS address part.
+fn part_name(p: Part) -> &'static str {
+    match p {
+        Part::Vendor => "vendor",
+        Part::Product => "product",
+        Part::Revision => "revision",
+        Part::Serial => "serial",
+    }
+}
+
+/// One line for an LSS request.
+fn lss_request_text(c: u8, r: LssRequest) -> String {
+    match r {
+        LssRequest::SwitchGlobal { mode } => format!(
             "switch global {}",
-            if b(1) == 1 {
+            if mode == MODE_CONFIGURATION {
                 "configuration"
             } else {
                 "waiting"
             }
         ),
-        (0x40..=0x43, _) => format!(
-            "switch selective {} 0x{:08X}",
-            ["vendor", "product", "revision", "serial"][(cs - 0x40) as usize],
-            u(1)
-        ),
-        (0x44, _) => "switch selective: selected".into(),
-        (0x11, true) => format!("configure node-id {}", b(1)),
-        (0x13, true) => format!("configure bit timing table {} index {}", b(1), b(2)),
-        (0x11 | 0x13 | 0x17, false) => format!(
-            "{} status {} ({})",
-            match cs {
-                0x11 => "configure node-id",
-                0x13 => "configure bit timing",
-                _ => "store",
-            },
-            b(1),
-            super::lss::status_meaning(cs, b(1))
-        ),
-        (0x15, _) => format!(
-            "activate bit timing, delay {} ms",
-            u16::from_le_bytes([b(1), b(2)])
-        ),
-        (0x17, true) => "store configuration".into(),
-        (0x5A..=0x5D, true) => format!(
-            "inquire {}",
-            ["vendor", "product", "revision", "serial"][(cs - 0x5A) as usize]
-        ),
-        (0x5A..=0x5D, false) => format!(
-            "{} 0x{:08X}",
-            ["vendor", "product", "revision", "serial"][(cs - 0x5A) as usize],
-            u(1)
-        ),
-        (0x5E, true) => "inquire node-id".into(),
-        (0x5E, false) => format!("node-id {}", b(1)),
-        (0x4C, _) => "identify non-configured slaves".into(),
-        (0x50, _) => "non-configured slave present".into(),
-        (0x46..=0x4B, _) => format!("identify remote slave 0x{cs:02X} 0x{:08X}", u(1)),
-        (0x4F, _) => "identify slave".into(),
-        (0x51, _) => format!(
-            "fastscan id 0x{:08X} bit {} sub {} next {}",
-            u(1),
-            b(5),
-            b(6),
-            b(7)
-        ),
-        _ => format!("cs 0x{cs:02X} {}", hex_string(d)),
+        LssRequest::SwitchSelective { part, value } => {
+            format!("switch selective {} 0x{value:08X}", part_name(part))
+        }
+        LssRequest::ConfigureNodeId { node_id } => format!("configure node-id {node_id}"),
+        LssRequest::ConfigureBitTiming { table, index } => {
+            format!("configure bit timing table {table} index {index}")
+        }
+        LssRequest::ActivateBitTiming { delay_ms } => {
+            format!("activate bit timing, delay {delay_ms} ms")
+        }
+        LssRequest::StoreConfiguration => "store configuration".into(),
+        LssRequest::Inquire(Inquire::Identity(p)) => format!("inquire {}", part_name(p)),
+        LssRequest::Inquire(Inquire::NodeId) => "inquire node-id".into(),
+        LssRequest::IdentifyNonConfigured => "identify non-configured slaves".into(),
+        LssRequest::IdentifyRemote { value, .. } => {
+            format!("identify remote slave 0x{c:02X} 0x{value:08X}")
+        }
+        LssRequest::Fastscan {
+            id_number,
+            bit_checked,
+            sub,
+            next,
+        } => format!("fastscan id 0x{id_number:08X} bit {bit_checked} sub {sub} next {next}"),
     }
+}
+
+/// One line for an LSS answer.
+fn lss_response_text(r: LssResponse) -> String {
+    let status = |what: &str, c: u8, code: u8| {
+        format!(
+            "{what} status {code} ({})",
+            super::lss::status_meaning(c, code)
+        )
+    };
+    match r {
+        LssResponse::SwitchSelective => "switch selective: selected".into(),
+        LssResponse::ConfigureNodeId(s) => {
+            status("configure node-id", cs::CONFIGURE_NODE_ID, s.code)
+        }
+        LssResponse::ConfigureBitTiming(s) => {
+            status("configure bit timing", cs::CONFIGURE_BIT_TIMING, s.code)
+        }
+        LssResponse::StoreConfiguration(s) => status("store", cs::STORE_CONFIGURATION, s.code),
+        LssResponse::Identity { part, value } => format!("{} 0x{value:08X}", part_name(part)),
+        LssResponse::NodeId(id) => format!("node-id {id}"),
+        LssResponse::IdentifyNonConfiguredSlave => "non-configured slave present".into(),
+        LssResponse::IdentifySlave => "identify slave".into(),
+    }
+}
+
+/// One-line summary of an LSS frame. A specifier of the other direction is read as that
+/// direction's (a slave's answer seen on the master's COB-ID still says what it is); short
+/// frames read as if padded with zeros.
+pub fn lss_summary(d: &[u8], request: bool) -> String {
+    let Some(&c) = d.first() else {
+        return "empty".into();
+    };
+    let mut f = [0u8; 8];
+    let n = d.len().min(8);
+    f[..n].copy_from_slice(&d[..n]);
+    let as_request = || LssRequest::parse(&f).map(|r| lss_request_text(c, r));
+    let as_response = || LssResponse::parse(&f).map(lss_response_text);
+    let text = if request {
+        as_request().or_else(as_response)
+    } else {
+        as_response().or_else(as_request)
+    };
+    text.unwrap_or_else(|| format!("cs 0x{c:02X} {}", hex_string(d)))
 }

@@ -5,13 +5,17 @@ use std::fmt;
 use std::io;
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
+use canpos_core::lss::{
+    cs, LssRequest, LssResponse, Part, FASTSCAN_CONFIRM, MODE_CONFIGURATION, MODE_WAITING,
+    STATUS_MANUFACTURER, STATUS_OK, STATUS_REFUSED, STATUS_STORAGE_ERROR,
+};
+use canpos_core::{cob, Frame};
 use canpos_host::transport::Transport;
 
 /// LSS master → slave COB-ID.
-pub const LSS_TX: u16 = 0x7E5;
+pub const LSS_TX: u16 = cob::LSS_RX;
 /// LSS slave → master COB-ID.
-pub const LSS_RX: u32 = 0x7E4;
+pub const LSS_RX: u32 = cob::LSS_TX as u32;
 
 /// Index in CiA 305 bit-timing table 0 of a bit rate in kbit/s (the slave's own table).
 pub fn bit_timing_index(kbps: u32) -> Option<u8> {
@@ -74,15 +78,21 @@ pub enum Inquire {
 }
 
 impl Inquire {
+    /// The request as the stack's LSS vocabulary names it.
+    pub fn wire(self) -> canpos_core::lss::Inquire {
+        use canpos_core::lss::Inquire as W;
+        match self {
+            Inquire::Vendor => W::Identity(Part::Vendor),
+            Inquire::Product => W::Identity(Part::Product),
+            Inquire::Revision => W::Identity(Part::Revision),
+            Inquire::Serial => W::Identity(Part::Serial),
+            Inquire::NodeId => W::NodeId,
+        }
+    }
+
     /// The command specifier.
     pub fn cs(self) -> u8 {
-        match self {
-            Inquire::Vendor => 0x5A,
-            Inquire::Product => 0x5B,
-            Inquire::Revision => 0x5C,
-            Inquire::Serial => 0x5D,
-            Inquire::NodeId => 0x5E,
-        }
+        self.wire().cs()
     }
 }
 
@@ -134,12 +144,12 @@ impl LssStatus {
 /// The meaning of an LSS status byte for the service with command specifier `cs`.
 pub fn status_meaning(cs: u8, code: u8) -> &'static str {
     match (cs, code) {
-        (_, 0) => "success",
-        (_, 0xFF) => "manufacturer-specific error",
-        (0x11, 1) => "node-id out of range",
-        (0x13, 1) => "bit timing not supported",
-        (0x17, 1) => "store configuration not supported",
-        (0x17, 2) => "storage media access error",
+        (_, STATUS_OK) => "success",
+        (_, STATUS_MANUFACTURER) => "manufacturer-specific error",
+        (cs::CONFIGURE_NODE_ID, STATUS_REFUSED) => "node-id out of range",
+        (cs::CONFIGURE_BIT_TIMING, STATUS_REFUSED) => "bit timing not supported",
+        (cs::STORE_CONFIGURATION, STATUS_REFUSED) => "store configuration not supported",
+        (cs::STORE_CONFIGURATION, STATUS_STORAGE_ERROR) => "storage media access error",
         _ => "reserved error code",
     }
 }
@@ -156,13 +166,13 @@ impl<'a> LssMaster<'a> {
         LssMaster { bus, timeout }
     }
 
-    fn send(&mut self, d: [u8; 8]) -> io::Result<()> {
-        self.bus.send(&Frame::std8(LSS_TX, d))
+    fn send(&mut self, r: LssRequest) -> io::Result<()> {
+        self.bus.send(&Frame::std8(LSS_TX, r.emit()))
     }
 
-    /// Waits until `deadline` for an LSS answer whose first byte is `cs`; other frames are
+    /// Waits until `deadline` for an LSS answer with the specifier `cs`; other frames are
     /// dropped (nothing else should answer on 0x7E4).
-    fn wait(&mut self, cs: u8, deadline: Instant) -> io::Result<Option<[u8; 8]>> {
+    fn wait(&mut self, cs: Option<u8>, deadline: Instant) -> io::Result<Option<LssResponse>> {
         loop {
             let Some(rx) = self.bus.recv_deadline(deadline)? else {
                 return Ok(None);
@@ -175,34 +185,56 @@ impl<'a> LssMaster<'a> {
             let mut d = [0u8; 8];
             let n = f.data().len().min(8);
             d[..n].copy_from_slice(&f.data()[..n]);
-            if n >= 1 && d[0] == cs {
-                return Ok(Some(d));
+            if n == 0 {
+                continue;
+            }
+            if let Some(r) = LssResponse::parse(&d).filter(|r| Some(r.cs()) == cs) {
+                return Ok(Some(r));
             }
         }
     }
 
-    fn confirmed(&mut self, req: [u8; 8], answer_cs: u8) -> Result<[u8; 8], LssError> {
+    fn confirmed(&mut self, req: LssRequest) -> Result<LssResponse, LssError> {
         // Drop answers that arrived late for an earlier request.
         while self.bus.try_recv()?.is_some() {}
         self.send(req)?;
         let deadline = Instant::now() + self.timeout;
-        self.wait(answer_cs, deadline)?.ok_or(LssError::Timeout)
+        self.wait(req.answer_cs(), deadline)?
+            .ok_or(LssError::Timeout)
+    }
+
+    /// A configure or store service and its answer's status.
+    fn status(&mut self, req: LssRequest) -> Result<LssStatus, LssError> {
+        match self.confirmed(req)? {
+            LssResponse::ConfigureNodeId(s)
+            | LssResponse::ConfigureBitTiming(s)
+            | LssResponse::StoreConfiguration(s) => Ok(LssStatus {
+                code: s.code,
+                spec: s.spec,
+            }),
+            // `confirmed` returns only the answer the request names.
+            _ => Err(LssError::Timeout),
+        }
     }
 
     /// Switch state global: all slaves to configuration (`true`) or waiting state. Unconfirmed.
     pub fn switch_global(&mut self, configuration: bool) -> Result<(), LssError> {
-        Ok(self.send([0x04, configuration as u8, 0, 0, 0, 0, 0, 0])?)
+        let mode = if configuration {
+            MODE_CONFIGURATION
+        } else {
+            MODE_WAITING
+        };
+        Ok(self.send(LssRequest::SwitchGlobal { mode })?)
     }
 
     /// Switch state selective: the one slave with this address enters configuration state.
     pub fn switch_selective(&mut self, a: &LssAddress) -> Result<(), LssError> {
-        for (i, v) in a.parts().into_iter().enumerate() {
-            let mut d = [0x40 + i as u8, 0, 0, 0, 0, 0, 0, 0];
-            d[1..5].copy_from_slice(&v.to_le_bytes());
-            if i < 3 {
-                self.send(d)?;
+        for (part, value) in Part::ALL.into_iter().zip(a.parts()) {
+            let req = LssRequest::SwitchSelective { part, value };
+            if part != Part::Serial {
+                self.send(req)?;
             } else {
-                self.confirmed(d, 0x44)?;
+                self.confirmed(req)?;
             }
         }
         Ok(())
@@ -210,51 +242,38 @@ impl<'a> LssMaster<'a> {
 
     /// Configure node-id (1…127, or 0xFF to make the node unconfigured).
     pub fn configure_node_id(&mut self, id: u8) -> Result<LssStatus, LssError> {
-        let r = self.confirmed([0x11, id, 0, 0, 0, 0, 0, 0], 0x11)?;
-        Ok(LssStatus {
-            code: r[1],
-            spec: r[2],
-        })
+        self.status(LssRequest::ConfigureNodeId { node_id: id })
     }
 
     /// Configure bit timing with table 0 index `index`.
     pub fn configure_bit_timing(&mut self, index: u8) -> Result<LssStatus, LssError> {
-        let r = self.confirmed([0x13, 0, index, 0, 0, 0, 0, 0], 0x13)?;
-        Ok(LssStatus {
-            code: r[1],
-            spec: r[2],
-        })
+        self.status(LssRequest::ConfigureBitTiming { table: 0, index })
     }
 
     /// Activate bit timing: slaves switch after `delay_ms`, and talk again after another
     /// `delay_ms`. Unconfirmed.
     pub fn activate_bit_timing(&mut self, delay_ms: u16) -> Result<(), LssError> {
-        let [l, h] = delay_ms.to_le_bytes();
-        Ok(self.send([0x15, l, h, 0, 0, 0, 0, 0])?)
+        Ok(self.send(LssRequest::ActivateBitTiming { delay_ms })?)
     }
 
     /// Store configuration (node-id and bit rate).
     pub fn store(&mut self) -> Result<LssStatus, LssError> {
-        let r = self.confirmed([0x17, 0, 0, 0, 0, 0, 0, 0], 0x17)?;
-        Ok(LssStatus {
-            code: r[1],
-            spec: r[2],
-        })
+        self.status(LssRequest::StoreConfiguration)
     }
 
     /// Inquire one identity value or the node-id of the slave in configuration state.
     pub fn inquire(&mut self, what: Inquire) -> Result<u32, LssError> {
-        let cs = what.cs();
-        let r = self.confirmed([cs, 0, 0, 0, 0, 0, 0, 0], cs)?;
-        Ok(match what {
-            Inquire::NodeId => r[1] as u32,
-            _ => u32::from_le_bytes([r[1], r[2], r[3], r[4]]),
-        })
+        match self.confirmed(LssRequest::Inquire(what.wire()))? {
+            LssResponse::NodeId(id) => Ok(u32::from(id)),
+            LssResponse::Identity { value, .. } => Ok(value),
+            // `confirmed` returns only the answer the request names.
+            _ => Err(LssError::Timeout),
+        }
     }
 
     /// Identify non-configured remote slave: whether any slave without a node-id answers.
     pub fn identify_non_configured(&mut self) -> Result<bool, LssError> {
-        match self.confirmed([0x4C, 0, 0, 0, 0, 0, 0, 0], 0x50) {
+        match self.confirmed(LssRequest::IdentifyNonConfigured) {
             Ok(_) => Ok(true),
             Err(LssError::Timeout) => Ok(false),
             Err(e) => Err(e),
@@ -274,14 +293,19 @@ impl<'a> LssMaster<'a> {
         next: u8,
         step: Duration,
     ) -> Result<bool, LssError> {
-        let mut d = [0x51, 0, 0, 0, 0, bit, sub, next];
-        d[1..5].copy_from_slice(&id.to_le_bytes());
+        let req = LssRequest::Fastscan {
+            id_number: id,
+            bit_checked: bit,
+            sub,
+            next,
+        };
         while self.bus.try_recv()?.is_some() {}
-        self.send(d)?;
-        let got = self.wait(0x4F, Instant::now() + step)?.is_some();
+        self.send(req)?;
+        let answer = req.answer_cs();
+        let got = self.wait(answer, Instant::now() + step)?.is_some();
         if got {
             let linger = Instant::now() + step / 4;
-            while self.wait(0x4F, linger)?.is_some() {}
+            while self.wait(answer, linger)?.is_some() {}
         }
         Ok(got)
     }
@@ -291,7 +315,7 @@ impl<'a> LssMaster<'a> {
     /// `Ok(None)`: no slave answered the initial step.
     pub fn fastscan(&mut self, step: Duration) -> Result<Option<LssAddress>, LssError> {
         // Bit checked 0x80: every non-configured slave resets its scan and answers.
-        if !self.fastscan_step(0, 0x80, 0, 0, step)? {
+        if !self.fastscan_step(0, FASTSCAN_CONFIRM, 0, 0, step)? {
             return Ok(None);
         }
         let mut parts = [0u32; 4];

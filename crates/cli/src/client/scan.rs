@@ -1,0 +1,131 @@
+//! Finding the nodes on a bus: who answers an SDO read of the identity object.
+
+use canpos_core::cob;
+use canpos_core::sdo::wire::{Mux, Request, Response};
+use std::collections::HashMap;
+use std::io::{self};
+use std::time::{Duration, Instant};
+
+use canpos_core::Frame;
+use canpos_host::transport::{RxFrame, Transport};
+
+use crate::client::{SdoClient, SdoError};
+use crate::common::ms;
+
+/// One node found by [`scan_bus`].
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ScanResult {
+    /// Node-id.
+    pub node: u8,
+    /// 0x1000, when the node answered SDO.
+    pub device_type: Option<u32>,
+    /// 0x1018/1…4 (missing sub-indices are `None`).
+    pub identity: [Option<u32>; 4],
+    /// 0x1008.
+    pub name: Option<String>,
+    /// Last NMT state seen in a heartbeat / boot-up, if any.
+    pub state: Option<u8>,
+}
+
+/// 0x1000/0, the device type: the object every CiA 301 node has.
+pub const DEVICE_TYPE: Mux = Mux {
+    index: 0x1000,
+    sub: 0,
+};
+
+/// Finds nodes: SDO upload of 0x1000 to every node-id, plus heartbeats and boot-ups heard,
+/// then reads each node's identity.
+pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<ScanResult>> {
+    let mut found: HashMap<u8, ScanResult> = HashMap::new();
+    let note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
+        let f = rx.frame;
+        if f.is_extended() || f.is_remote() {
+            return;
+        }
+        let id = f.id() as u16;
+        let node = (id & 0x7F) as u8;
+        match (id & 0x780, f.data()) {
+            (cob::SDO_TX, d) if node != 0 => {
+                let Ok(d) = <[u8; 8]>::try_from(d) else {
+                    return;
+                };
+                match Response::parse(&d) {
+                    Response::UploadInitiate {
+                        mux: DEVICE_TYPE,
+                        expedited: true,
+                        size: Some(4),
+                        data,
+                    } => {
+                        let e = found.entry(node).or_default();
+                        e.node = node;
+                        e.device_type = Some(u32::from_le_bytes(data));
+                    }
+                    Response::Abort {
+                        mux: DEVICE_TYPE, ..
+                    } => {
+                        found.entry(node).or_default().node = node;
+                    }
+                    _ => {}
+                }
+            }
+            (cob::ERRCTL, [s]) if node != 0 => {
+                let e = found.entry(node).or_default();
+                e.node = node;
+                e.state = Some(*s & 0x7F);
+            }
+            _ => {}
+        }
+    };
+    // Requests go out in small bursts: a real adapter's transmit queue (and a slow hub client)
+    // would drop frames if all 127 were queued at once.
+    for node in 1..=127u8 {
+        let mux = DEVICE_TYPE;
+        bus.send(&Frame::std8(
+            cob::SDO_RX + node as u16,
+            Request::UploadInitiate { mux }.emit(),
+        ))?;
+        if node % 16 == 0 {
+            let until = Instant::now() + ms(2);
+            while let Some(rx) = bus.recv_deadline(until)? {
+                note(&mut found, rx);
+            }
+        }
+    }
+    let until = Instant::now() + timeout;
+    while let Some(rx) = bus.recv_deadline(until)? {
+        note(&mut found, rx);
+    }
+    let mut nodes: Vec<ScanResult> = found.into_values().collect();
+    nodes.sort_by_key(|n| n.node);
+    for n in &mut nodes {
+        let mut c = SdoClient::new(bus, n.node, timeout);
+        if n.device_type.is_none() {
+            match c.read_u32(0x1000, 0) {
+                Ok(v) => n.device_type = Some(v),
+                // A node that does not answer SDO (stopped) yields no more information.
+                Err(SdoError::Timeout) => continue,
+                Err(SdoError::Io(e)) => return Err(e),
+                Err(_) => {}
+            }
+        }
+        for sub in 1..=4u8 {
+            match c.read_u32(0x1018, sub) {
+                Ok(v) => n.identity[sub as usize - 1] = Some(v),
+                Err(SdoError::Io(e)) => return Err(e),
+                Err(_) => {}
+            }
+        }
+        match c.upload(0x1008, 0) {
+            Ok(d) => {
+                n.name = Some(
+                    String::from_utf8_lossy(&d)
+                        .trim_end_matches('\0')
+                        .to_string(),
+                )
+            }
+            Err(SdoError::Io(e)) => return Err(e),
+            Err(_) => {}
+        }
+    }
+    Ok(nodes)
+}
