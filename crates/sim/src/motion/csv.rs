@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use super::{in_range, Motion, MAX_MAGNITUDE};
+use super::source::{in_range, Motion, MAX_MAGNITUDE};
 use crate::error::{Error, Result};
 
 /// Largest trajectory file read (256 MiB: hours of a kilohertz recording).

@@ -2,7 +2,8 @@
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use super::{in_range, Motion, Profile, MAX_MAGNITUDE};
+use super::profile::Profile;
+use super::source::{in_range, Motion, MAX_MAGNITUDE};
 use crate::error::{Error, Result};
 
 /// Highest number of magnets a [`LiveMotion`] tracks (channels plus room for extra magnets).

@@ -2,7 +2,7 @@
 
 use core::f64::consts::TAU;
 
-use super::{in_range, MAX_MAGNITUDE, MIN_PERIOD_S};
+use super::source::{in_range, MAX_MAGNITUDE, MIN_PERIOD_S};
 use crate::error::{Error, Result};
 
 /// A trapezoidal back-and-forth ramp: dwell at `from`, move to `to` with limited velocity and
