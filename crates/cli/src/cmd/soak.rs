@@ -390,7 +390,8 @@ fn expect_sdo_ok(port: &mut impl Transport, id: u8) -> Result<()> {
         match port.recv_deadline(deadline)? {
             Some(rx) if rx.frame.id() == u32::from(cob::SDO_TX + u16::from(id)) => {
                 let d = rx.frame.data();
-                // Read as if padded with zeros: a short answer is no download confirmation.
+                // Read as if padded with zeros (a confirmation's bytes after the command byte are
+                // reserved, so a short one still confirms); an empty answer is none.
                 let mut f = [0u8; 8];
                 f[..d.len().min(8)].copy_from_slice(&d[..d.len().min(8)]);
                 if !d.is_empty() && matches!(Response::parse(&f), Response::DownloadInitiate { .. })
