@@ -138,16 +138,10 @@ impl ErrCtl {
                 let behind = crate::div::div(now.0 - t.0, p.micros());
                 t + Duration(p.micros() * (behind + 1))
             };
-            // The host skips the division when on time. A firmware always divides (on time, 0
-            // whole periods behind: the same result): less code, and one 32-bit division per
-            // heartbeat.
-            let next = if crate::config::INLINE_HOT_PATHS {
-                match t + p {
-                    n if n > now => n,
-                    _ => late(),
-                }
-            } else {
-                late()
+            // On time (the usual case) needs no division; only a late host divides.
+            let next = match t + p {
+                n if n > now => n,
+                _ => late(),
             };
             self.next_heartbeat = next;
             return Some(ErrCtlEvent::Heartbeat(state.code()));

@@ -122,14 +122,13 @@ pub struct Node<A: Application, S: Storage> {
     deadline: u64,
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs. (This and `fast_due` serve the host's
-    /// timer fast path only: a firmware takes the full path, for less flash.)
-    #[cfg(feature = "inline-hot-paths")]
+    /// timer fast path only, [`crate::config::INLINE_HOT_PATHS`]: a firmware takes the full
+    /// path, for less flash, and only keeps the two fields: 16 B of RAM.)
     other_due: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
     /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
     /// 0. (EMCY needs no term of its own: the epilogue flushes what was raised, and an EMCY
     /// held back by its inhibit time has its deadline in `other_due`.)
-    #[cfg(feature = "inline-hot-paths")]
     fast_due: u64,
 }
 
@@ -159,9 +158,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             lss: LssSlave::default(),
             timers: TimerTable::default(),
             deadline: NEVER,
-            #[cfg(feature = "inline-hot-paths")]
             other_due: NEVER,
-            #[cfg(feature = "inline-hot-paths")]
             fast_due: 0,
             dev: Device {
                 model,
@@ -252,8 +249,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         if !d.powered {
             self.timers.clear();
             self.deadline = NEVER;
-            #[cfg(feature = "inline-hot-paths")]
-            {
+            if crate::config::INLINE_HOT_PATHS {
                 self.other_due = NEVER;
                 self.fast_due = 0;
             }
@@ -289,8 +285,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.deadline = other.min(d.pdo.due_us());
         // A node without a node-id stays in initialisation (`reset`), so one test says both.
         debug_assert!(d.node_id != UNCONFIGURED || d.nmt == NmtState::Initialising);
-        #[cfg(feature = "inline-hot-paths")]
-        {
+        if crate::config::INLINE_HOT_PATHS {
             self.other_due = other;
             let runs = d.nmt != NmtState::Initialising;
             self.fast_due = if runs { other } else { 0 };
@@ -392,8 +387,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         // steps of the full path would all do nothing but the TPDOs'. (`fast_due` is 0
         // while powered off, unconfigured, initialising or with EMCY work.)
         // (A firmware takes the full path: the same steps, less flash.)
-        #[cfg(feature = "inline-hot-paths")]
-        if now.0 < self.fast_due {
+        if crate::config::INLINE_HOT_PATHS && now.0 < self.fast_due {
             self.dev.run_pdos(now);
             self.after_tpdo_timers(now);
             return;
@@ -417,8 +411,11 @@ impl<A: Application, S: Storage> Node<A, S> {
     pub fn poll(&mut self, now: Instant) -> Option<Frame> {
         if now.0 >= self.deadline {
             // The host's fast path (a firmware takes the full one).
-            #[cfg(feature = "inline-hot-paths")]
-            if now.0 < self.fast_due && self.dev.tx.is_empty() && self.dev.can_talk(now) {
+            if crate::config::INLINE_HOT_PATHS
+                && now.0 < self.fast_due
+                && self.dev.tx.is_empty()
+                && self.dev.can_talk(now)
+            {
                 // `now ≥ deadline` and `now < other_due`: the TPDOs' `due` has passed.
                 let Device { pdo, od, .. } = &mut self.dev;
                 let first = pdo.scan_due(od, now);

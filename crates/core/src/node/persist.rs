@@ -15,10 +15,11 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
     }
     // Firmware searches by the key itself: no index and sub-index to split it into, no abort
     // to work out for a key the table lacks.
-    #[cfg(not(feature = "inline-hot-paths"))]
-    let slot = od::search_entries(od.entries(), key).ok()?;
-    #[cfg(feature = "inline-hot-paths")]
-    let slot = od.find((key >> 8) as u16, key as u8).ok()?;
+    let slot = if crate::config::INLINE_HOT_PATHS {
+        od.find((key >> 8) as u16, key as u8).ok()?
+    } else {
+        od::search_entries(od.entries(), key).ok()?
+    };
     Some((slot, od.entries().get(slot)?))
 }
 

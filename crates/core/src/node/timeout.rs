@@ -66,7 +66,6 @@ impl<A: Application, S: Storage> Node<A, S> {
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
     /// (TPDOs change neither the other deadlines nor the EMCY state).
-    #[cfg(feature = "inline-hot-paths")]
     #[inline(always)]
     pub(super) fn after_tpdo_timers(&mut self, now: Instant) {
         let d = &mut self.dev;
