@@ -21,9 +21,6 @@
 /// (−256 B; some 30 instructions fewer per COB-ID download). docs/FIRMWARE.md, "Build options
 /// in figures", has them all with their dates.
 pub const INLINE_HOT_PATHS: bool = cfg!(feature = "inline-hot-paths");
-/// Feature `simulation`: what a simulated device needs and a firmware's hardware does itself
-/// (the bus's bit rate, autobaud, the D7 store time): −0.5 KB of flash without it.
-pub const SIMULATION: bool = cfg!(feature = "simulation");
 /// Feature `names`: object names in the tables and the EDS export (a string reference per
 /// entry and the strings: not in a firmware).
 pub const NAMES: bool = cfg!(feature = "names");

@@ -18,14 +18,6 @@ impl<A: Application, S: Storage> Node<A, S> {
             due(Timer::LssSwitch),
             due(Timer::Silence),
         );
-        #[cfg(feature = "simulation")]
-        if let Some((_, r)) = self.held_sdo.take_if(|_| due(Timer::HeldSdo)) {
-            // A node stopped during the store time no longer serves SDO.
-            if self.dev.nmt.sdo_allowed() {
-                let id = cob::SDO_TX + self.dev.node_id as u16;
-                self.dev.tx.push_std(id, r, 8);
-            }
-        }
         if transfer {
             if let Some(r) = self.sdo.handle_timeout(now) {
                 let id = cob::SDO_TX + self.dev.node_id as u16;
