@@ -52,9 +52,9 @@ pub struct Stats {
     /// "save" / "load" commands completed (wrapping): a frame whose handling changes it made
     /// the node queue the answer to a store (a simulated device holds that answer for the
     /// store time, D7).
-    pub stores: u32,
+    pub stores: u8,
     /// Resets of communication so far, power-on included (wrapping).
-    pub resets: u32,
+    pub resets: u8,
     /// The stored image failed its check at the last load.
     pub storage_corrupt: bool,
 }

@@ -53,10 +53,10 @@ pub struct SimHardware {
     tx_wrong_bitrate: u32,
     /// The store answer is the frame the node sends after this many more, and the store's
     /// request arrived then; with the node's reset count then.
-    store_answer: Option<(usize, Instant, u32)>,
+    store_answer: Option<(usize, Instant, u8)>,
     /// A store's answer waiting out the store time: when it is due, the frame, the node's reset
     /// count when it was held (a reset drops it, as it drops a transfer in progress).
-    held: Option<(Instant, Frame, u32)>,
+    held: Option<(Instant, Frame, u8)>,
     /// The held answer, due: it goes out after this many more of the node's frames.
     release: Option<(usize, Frame)>,
 }
