@@ -141,14 +141,13 @@ impl SimHardware {
         if self.release.is_none() {
             if let Some((_, f, resets)) = self.held.take_if(|(due, _, _)| *due <= now) {
                 let d = node.device();
-                if !d.powered() {
-                    // Served when the node runs again (a power-on resets it: dropped then).
-                    self.held = Some((now, f, resets));
-                } else if d.stats().resets == resets && d.nmt_state().sdo_allowed() {
+                // A node powered off sends nothing until its power-on, which resets it; a reset
+                // forgets the answer as it forgets a transfer; a stopped node serves no SDO.
+                let serves = d.stats().resets == resets && d.nmt_state().sdo_allowed();
+                if d.powered() && serves {
                     // Out where the node's own timer would have queued it: behind what waits.
                     self.release = Some((d.queued(), f));
                 }
-                // Else dropped: a reset forgets it, and a stopped node serves no SDO.
             }
         }
         loop {

@@ -455,3 +455,53 @@ fn save_answers_after_the_store_time() {
         }
     }
 }
+
+/// D7 as the core had it: a node stopped during the store time serves no SDO, so the held
+/// answer never leaves; a reset communication in that time forgets it, as it forgets a
+/// transfer in progress. The heartbeat keeps running meanwhile.
+#[test]
+fn a_held_store_answer_dies_with_stop_and_reset_and_the_heartbeat_runs_on() {
+    let save = hex("23 10 10 01 73 61 76 65");
+    // Stopped 5 ms into the store time.
+    let mut r = Rig::booted(&TH);
+    r.req(0x67F, &hex("2B 17 10 00 0A 00 00 00")); // heartbeat 10 ms
+    assert!(r.send(0x67F, &save).is_empty());
+    r.advance_ms(5);
+    r.send(0x000, &[0x02, 0x7F]);
+    let out = r.advance_ms(40);
+    assert!(
+        out.iter().all(|(_, f)| f.std_id() != Some(0x5FF)),
+        "{out:?}"
+    );
+    assert!(
+        out.iter().any(|(_, f)| f.std_id() == Some(0x77F)),
+        "heartbeat"
+    );
+    assert_eq!(r.hw.deadline(), None);
+    // Reset communication 5 ms into the store time: a boot-up, no answer.
+    let mut r = Rig::booted(&TH);
+    assert!(r.send(0x67F, &save).is_empty());
+    r.advance_ms(5);
+    let boot = r.send(0x000, &[0x82, 0x7F]);
+    assert_boot_up(&boot, 0x7F);
+    assert!(boot.iter().all(|f| f.std_id() != Some(0x5FF)), "{boot:?}");
+    let out = r.advance_ms(40);
+    assert!(
+        out.iter().all(|(_, f)| f.std_id() != Some(0x5FF)),
+        "{out:?}"
+    );
+    // Without either, the answer leaves at 20 ms with the heartbeat running around it.
+    let mut r = Rig::booted(&TH);
+    r.req(0x67F, &hex("2B 17 10 00 0A 00 00 00"));
+    let t0 = r.now;
+    assert!(r.send(0x67F, &save).is_empty());
+    let out = r.advance_ms(40);
+    let at = |id| {
+        out.iter()
+            .filter(|(_, f)| f.std_id() == Some(id))
+            .map(|(t, _)| t.micros() - t0.micros())
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(at(0x5FF), [20_000]);
+    assert_eq!(at(0x77F), [10_000, 20_000, 30_000, 40_000]);
+}
