@@ -26,8 +26,7 @@ grep -E '^test result:' target/cargo-test.log | awk '{p+=$4; f+=$6} END {printf 
 
 # The core's suites again on the code paths a firmware build takes (without the host's
 # `inline-hot-paths`: the SDO general path for expedited requests, the table search, the
-# out-of-line helpers; and without the host's `simulation`), with every model so every table is
-# covered.
+# out-of-line helpers), with every model so every table is covered.
 step "cargo test: the core as firmware builds it (no inline-hot-paths)"
 cargo test -p canpos-core --locked --no-default-features --features names,host-buffers,th,e-series,tmi 2>&1 |
   tee target/cargo-test-firmware-paths.log

@@ -9,7 +9,7 @@ use canpos_core::encoder::{Fault, Sample};
 use canpos_core::models::Model;
 use canpos_core::storage::RamStorage;
 use canpos_core::{Frame, Instant, Node, SensorNode};
-use canpos_host::runtime::{Runtime, RuntimeHandle, SensorSetup};
+use canpos_host::runtime::{Runtime, RuntimeHandle, SensorSetup, SimHardware};
 use canpos_host::socketcand::{Client, Hub, HubHandle};
 use canpos_host::Transport;
 
@@ -38,6 +38,8 @@ pub trait Backend {
 /// then jumps from one node deadline to the next, so a 10 s window costs microseconds.
 pub struct VirtualDut {
     node: SensorNode<RamStorage>,
+    /// The store time of "save" / "load" (D7), as the host runtime's sensors have it.
+    hw: SimHardware,
     now: u64,
     rx: VecDeque<(u64, Frame)>,
 }
@@ -49,6 +51,7 @@ impl VirtualDut {
         node.power_on(Instant::ZERO);
         let mut d = VirtualDut {
             node,
+            hw: SimHardware::default(),
             now: 0,
             rx: VecDeque::new(),
         };
@@ -62,7 +65,7 @@ impl VirtualDut {
     }
 
     fn drain(&mut self) {
-        while let Some(f) = self.node.poll_transmit() {
+        while let Some(f) = self.hw.poll(&mut self.node, Instant::from_micros(self.now)) {
             self.rx.push_back((self.now, f));
         }
     }
@@ -73,7 +76,8 @@ impl Backend for VirtualDut {
         self.node.device().model()
     }
     fn send(&mut self, f: &Frame) {
-        self.node.handle_frame(f, Instant::from_micros(self.now));
+        self.hw
+            .receive(&mut self.node, f, Instant::from_micros(self.now));
         self.drain();
     }
     fn now_us(&mut self) -> u64 {
@@ -87,7 +91,8 @@ impl Backend for VirtualDut {
             if let Some(x) = self.rx.pop_front() {
                 return Some(x);
             }
-            match self.node.poll_timeout() {
+            let next = [self.node.poll_timeout(), self.hw.deadline()];
+            match next.into_iter().flatten().min() {
                 Some(t) if t.micros() <= deadline_us && spins < 1_000_000 => {
                     spins += 1;
                     self.now = self.now.max(t.micros());

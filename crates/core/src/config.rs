@@ -18,12 +18,16 @@
 /// Host-only arms that remain: the SDO server's expedited fast path (−0.5 KB without it), the
 /// single-TPDO shortcut (−110 B without it; TPDO 91 instead of 113 instructions with it), the
 /// dense key array (−744 B; 57 instructions fewer per upload), the restricted CAN-ID bitmap
-/// (−256 B; some 30 instructions fewer per COB-ID download). docs/FIRMWARE.md, "Build options
-/// in figures", has them all with their dates.
+/// (−256 B; some 30 instructions fewer per COB-ID download), the node's timer fast path (its
+/// two deadline fields exist in every build: a firmware pays their 16 B of RAM and never reads
+/// them). Besides these `if`s only attributes differ: `cfg_attr(…, inline / inline(never))` on
+/// four object-access helpers and two LSS helpers (one out-of-line copy in a firmware).
+/// docs/FIRMWARE.md, "Build options in figures", has them all with their dates.
+///
+/// What a simulated device's hardware does (the bus's bit rate, autobaud, the D7 store time)
+/// is no option of the stack: the host's device wrapper does it (`canpos_host::runtime::
+/// SimHardware`), the core reporting what it needs (`Node::bitrate_detected`, `Stats::stores`).
 pub const INLINE_HOT_PATHS: bool = cfg!(feature = "inline-hot-paths");
-/// Feature `simulation`: what a simulated device needs and a firmware's hardware does itself
-/// (the bus's bit rate, autobaud, the D7 store time): −0.5 KB of flash without it.
-pub const SIMULATION: bool = cfg!(feature = "simulation");
 /// Feature `names`: object names in the tables and the EDS export (a string reference per
 /// entry and the strings: not in a firmware).
 pub const NAMES: bool = cfg!(feature = "names");

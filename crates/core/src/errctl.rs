@@ -133,23 +133,11 @@ impl ErrCtl {
         let (t, p) = (self.next_heartbeat, self.heartbeat);
         if p != Duration::ZERO && now >= t {
             // Absolute schedule: no drift; skip whole periods if the host was late.
-            // `now >= t`: no saturating subtraction needed.
-            let late = || {
-                let behind = crate::div::div(now.0 - t.0, p.micros());
-                t + Duration(p.micros() * (behind + 1))
-            };
-            // The host skips the division when on time. A firmware always divides (on time, 0
-            // whole periods behind: the same result): less code, and one 32-bit division per
-            // heartbeat.
-            let next = if crate::config::INLINE_HOT_PATHS {
-                match t + p {
-                    n if n > now => n,
-                    _ => late(),
-                }
-            } else {
-                late()
-            };
-            self.next_heartbeat = next;
+            // `now >= t`: no saturating subtraction needed. On time, 0 whole periods behind:
+            // one division per heartbeat rather than a test for lateness first (its flash cost
+            // in docs/FIRMWARE.md, "Build options in figures").
+            let behind = crate::div::div(now.0 - t.0, p.micros());
+            self.next_heartbeat = t + Duration(p.micros() * (behind + 1));
             return Some(ErrCtlEvent::Heartbeat(state.code()));
         }
         let d = self.guard_deadline;

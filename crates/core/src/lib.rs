@@ -83,7 +83,7 @@ pub use app::{AppCtx, AppView, Application, Plain};
 pub use encoder::{Encoder, Fault, Sample};
 pub use lss::UNCONFIGURED;
 pub use models::{DeviceConfig, Model};
-pub use node::{Device, Node, Stats, STORE_TIME};
+pub use node::{Device, Node, Stats};
 pub use od::{Abort, Dictionary, Entry, Hook};
 pub use storage::{
     NoStorage, RamStorage, Scope, Storage, StorageError, SIG_KILL_ASCII, SIG_KILL_MANUAL, SIG_LOAD,

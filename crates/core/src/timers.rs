@@ -10,9 +10,6 @@
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
 pub(crate) enum Timer {
-    /// An SDO answer held back by the store time (D7; feature `simulation`).
-    #[cfg(feature = "simulation")]
-    HeldSdo,
     /// A segmented / block SDO transfer's timeout.
     SdoTransfer,
     /// LSS activate bit timing: the switch.

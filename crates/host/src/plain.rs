@@ -16,12 +16,14 @@ use serde_json::json;
 
 use crate::can::{BusState, Transport};
 use crate::file_storage::FileStorage;
-use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle};
+use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle, SimHardware};
 
 /// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
 pub struct PlainRuntime {
     transport: Box<dyn Transport>,
     node: Node<Plain, FileStorage>,
+    /// The bus's bit rate and the store time around the node, as for a sensor.
+    hw: SimHardware,
     epoch: std::time::Instant,
     lateness: Lateness,
     powered: bool,
@@ -37,14 +39,14 @@ impl PlainRuntime {
         cfg: DeviceConfig,
         storage: FileStorage,
     ) -> PlainRuntime {
-        let mut node = Node::with_app(model, cfg, Plain, storage);
+        let node = Node::with_app(model, cfg, Plain, storage);
         let bus = bus_bitrate_kbps
             .or_else(|| transport.bus_bitrate())
             .map(|b| b.min(u32::from(u16::MAX)) as u16);
-        node.set_bus_bitrate(bus);
         PlainRuntime {
             transport,
             node,
+            hw: SimHardware::new(bus),
             epoch: std::time::Instant::now(),
             lateness: Lateness::default(),
             powered: false,
@@ -70,7 +72,7 @@ impl PlainRuntime {
 
     /// Sends everything the node has to send at `now` (its due timers first).
     fn flush(&mut self, now: Instant) -> io::Result<()> {
-        while let Some(f) = self.node.poll(now) {
+        while let Some(f) = self.hw.poll(&mut self.node, now) {
             if let Err(e) = self.transport.send(&f) {
                 tracing::warn!(error = %e, "send failed");
             }
@@ -109,7 +111,7 @@ impl PlainRuntime {
             while let Some(rx) = self.transport.try_recv()? {
                 // Each frame at the time it is handled (the store time counts from it).
                 now = self.now().max(now);
-                self.node.handle_frame(&rx.frame, now);
+                self.hw.receive(&mut self.node, &rx.frame, now);
                 self.flush(now)?;
             }
             self.flush(now)?;
@@ -124,9 +126,10 @@ impl PlainRuntime {
                     }
                 }
             }
-            let target = self
-                .node
-                .poll_timeout()
+            let target = [self.node.poll_timeout(), self.hw.deadline()]
+                .into_iter()
+                .flatten()
+                .min()
                 .map(|t| self.epoch + Duration::from_micros(t.micros()));
             if let Some(late) = wait_until(self.transport.receiver(), msgs, target) {
                 self.lateness.record(late.as_micros() as u64);

@@ -1,14 +1,33 @@
-//! The talk gate (a bit-rate switch, or a bus running another bit rate) and the bit-rate
-//! simulation: frames heard or lost while the node's rate differs from the bus, TMI autobaud.
+//! The talk gate (a bit-rate switch in progress) and the bit rate a controller detected
+//! (autobaud). Which bit rate the bus runs is the CAN controller's business: a firmware's
+//! hardware, a host's device wrapper.
 
 use super::*;
 
 impl<A: Application, S: Storage> Node<A, S> {
-    /// Tells the node the bit rate of the bus it is attached to (virtual buses).
-    #[cfg(feature = "simulation")]
-    pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
-        self.dev.bus_bitrate = kbps;
+    /// The CAN controller detected the bus's bit rate, `kbps` (a controller in autobaud, TMI
+    /// R19: it listens until it has received frames without error at one rate). A node waiting
+    /// for it (active bit rate 0) takes it as its active bit rate, and a node with a node-id
+    /// announces itself with its boot-up. Otherwise (a rate already active, powered off, a
+    /// bit-rate switch in progress) nothing changes.
+    pub fn bitrate_detected(&mut self, kbps: u16, now: Instant) {
+        if !self.hears(now) || self.dev.bitrate != 0 || kbps == 0 {
+            return;
+        }
+        let d = &mut self.dev;
+        d.now = now;
+        d.bitrate = kbps;
+        d.cfg.bitrate_kbps = kbps;
+        if d.node_id != UNCONFIGURED {
+            d.tx.push_std(cob::ERRCTL + d.node_id as u16, [0; 8], 1);
+        }
         self.epilogue();
+    }
+
+    /// Whether the node receives at `now`: powered, and no bit-rate switch in progress (CiA 305
+    /// §5.8: deaf from "activate bit timing" to the end of the second switch delay).
+    pub fn hears(&self, now: Instant) -> bool {
+        self.dev.powered && self.dev.hears(now)
     }
 }
 
@@ -21,42 +40,14 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(super) fn poll_transmit_lost(&mut self) -> Option<Frame> {
         debug_assert!(!self.can_talk(self.now));
         let lost = 1 + self.tx.len() as u32;
-        self.stats.tx_wrong_bitrate = self.stats.tx_wrong_bitrate.wrapping_add(lost);
+        self.stats.tx_silenced = self.stats.tx_silenced.wrapping_add(lost);
         self.tx.clear();
         None
     }
 
-    /// Whether the node can receive at `now` (bit rate matches, not switching).
-    pub(super) fn can_hear(&mut self, now: Instant) -> bool {
-        if let Some(t) = self.silent_until {
-            if now < t {
-                return false;
-            }
-        }
-        // Without the bus model (firmware), the controller hears only its own bit rate.
-        #[cfg(not(feature = "simulation"))]
-        return true;
-        #[cfg(feature = "simulation")]
-        match self.bus_bitrate {
-            None => true,
-            Some(bus) if self.bitrate == 0 => {
-                // Autobaud (TMI): lock on after a few frames of continuous traffic (R19).
-                self.autobaud_frames += 1;
-                if self.autobaud_frames >= 4 {
-                    self.bitrate = bus;
-                    self.cfg.bitrate_kbps = bus;
-                }
-                false
-            }
-            Some(bus) => {
-                if bus == self.bitrate {
-                    true
-                } else {
-                    self.stats.rx_wrong_bitrate = self.stats.rx_wrong_bitrate.wrapping_add(1);
-                    false
-                }
-            }
-        }
+    /// Whether the node can receive at `now` (not switching its bit rate).
+    pub(super) fn hears(&self, now: Instant) -> bool {
+        self.silent_until.is_none_or(|t| now >= t)
     }
 
     #[inline(always)]
@@ -67,15 +58,10 @@ impl<A: Application, S: Storage> Device<A, S> {
 
     /// What `talk_from` must be.
     fn talk_from_now(&self) -> u64 {
-        #[cfg(feature = "simulation")]
-        if self.bus_bitrate.is_some_and(|bus| bus != self.bitrate) {
-            return u64::MAX;
-        }
         self.silent_until.map_or(0, |t| t.0)
     }
 
-    /// Recomputes `talk_from` from `bitrate`, `bus_bitrate` and `silent_until` (the node's
-    /// epilogue).
+    /// Recomputes `talk_from` from `silent_until` (the node's epilogue).
     pub(crate) fn update_talk(&mut self) {
         self.talk_from = self.talk_from_now();
     }

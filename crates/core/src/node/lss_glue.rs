@@ -78,10 +78,6 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(crate) fn activate_bitrate(&mut self, kbps: u16) {
         self.bitrate = kbps;
         self.cfg.bitrate_kbps = kbps;
-        #[cfg(feature = "simulation")]
-        {
-            self.autobaud_frames = 0;
-        }
     }
 }
 

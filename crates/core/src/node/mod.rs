@@ -16,7 +16,7 @@
 //! | `persist.rs` | loading from the stored image; "save", "load" / "kill", the automatic store |
 //! | `lss_glue.rs` | what the LSS slave asks of the device; object copies of node-id and bit rate |
 //! | `services.rs` | hot object slots; the services' configuration; EMCY sending; PDO activity |
-//! | `bitrate.rs` | the talk gate, and the bus's bit rate as a simulation sees it |
+//! | `bitrate.rs` | the talk gate (a bit-rate switch) and the detected bit rate (autobaud) |
 
 use crate::app::{self, AppCtx, AppView, Application};
 use crate::emcy::{self, Emcy};
@@ -31,7 +31,7 @@ use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
 use crate::timers::{Timer, TimerTable, NEVER};
 use crate::txq::TxQueue;
-use crate::wire::{cob, Duration, Frame, Instant};
+use crate::wire::{cob, Frame, Instant};
 
 mod access;
 mod bitrate;
@@ -43,16 +43,18 @@ mod timeout;
 
 use services::HotSlots;
 
-/// Minimum time a store takes before the SDO answer (D7).
-pub const STORE_TIME: Duration = Duration::from_millis(20);
-
 /// Counters a host may show.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Stats {
-    /// Frames received while the node's bit rate differed from the bus.
-    pub rx_wrong_bitrate: u32,
-    /// Frames dropped at transmit while the node's bit rate differed from the bus.
-    pub tx_wrong_bitrate: u32,
+    /// Frames the node produced while it could not talk (a bit-rate switch, CiA 305 §5.8):
+    /// lost, as on a real bus.
+    pub tx_silenced: u32,
+    /// "save" / "load" commands completed (wrapping): a frame whose handling changes it made
+    /// the node queue the answer to a store (a simulated device holds that answer for the
+    /// store time, D7).
+    pub stores: u8,
+    /// Resets of communication so far, power-on included (wrapping).
+    pub resets: u8,
     /// The stored image failed its check at the last load.
     pub storage_corrupt: bool,
 }
@@ -72,20 +74,14 @@ pub struct Device<A: Application, S: Storage> {
     pub(crate) bitrate: u16,
     /// Bit rate that becomes active at the next reset / activation.
     pub(crate) pending_bitrate: u16,
-    /// Bit rate of the bus the node is attached to, if known.
-    #[cfg(feature = "simulation")]
-    pub(crate) bus_bitrate: Option<u16>,
     /// Bit-rate switch in progress (LSS activate): silent until then.
     pub(crate) silent_until: Option<Instant>,
-    /// The node may send from this instant (µs) on: `silent_until`, or never while the bus
-    /// runs another bit rate. Derived from the three fields above by the node's epilogue:
-    /// sending is checked per frame, so one comparison.
+    /// The node may send from this instant (µs) on: `silent_until`. Derived by the node's
+    /// epilogue: sending is checked per frame, so one comparison.
     talk_from: u64,
     /// Node-id and bit rate the unit was built with: what a power-on falls back to when
     /// nothing is stored (`cfg` follows the active values, so it cannot serve).
     pub(crate) factory_lss: (u8, u16),
-    #[cfg(feature = "simulation")]
-    autobaud_frames: u8,
     /// Node-id and bit rate as stored by LSS (kept across "restore defaults").
     pub(crate) stored_lss: (Option<u8>, Option<u16>),
     pub(crate) tx: TxQueue,
@@ -95,9 +91,6 @@ pub struct Device<A: Application, S: Storage> {
     pub(crate) app: A,
     pub(crate) storage: S,
     pub(crate) now: Instant,
-    /// A store completed: the SDO answer waits until this instant (D7).
-    #[cfg(feature = "simulation")]
-    pub(crate) sdo_hold_until: Option<Instant>,
     pub(crate) stats: Stats,
     /// Slots of the objects the per-frame paths touch.
     hot: HotSlots,
@@ -111,8 +104,6 @@ pub struct Device<A: Application, S: Storage> {
 /// A CANopen position sensor node.
 pub struct Node<A: Application, S: Storage> {
     sdo: SdoServer,
-    #[cfg(feature = "simulation")]
-    held_sdo: Option<(Instant, [u8; 8])>,
     lss: LssSlave,
     dev: Device<A, S>,
     /// The services' deadlines, written by [`Node::epilogue`] only.
@@ -122,14 +113,13 @@ pub struct Node<A: Application, S: Storage> {
     deadline: u64,
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs. (This and `fast_due` serve the host's
-    /// timer fast path only: a firmware takes the full path, for less flash.)
-    #[cfg(feature = "inline-hot-paths")]
+    /// timer fast path only, [`crate::config::INLINE_HOT_PATHS`]: a firmware takes the full
+    /// path, for less flash, and only keeps the two fields: 16 B of RAM.)
     other_due: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
     /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
     /// 0. (EMCY needs no term of its own: the epilogue flushes what was raised, and an EMCY
     /// held back by its inhibit time has its deadline in `other_due`.)
-    #[cfg(feature = "inline-hot-paths")]
     fast_due: u64,
 }
 
@@ -154,14 +144,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         let f = app::features::<A>(model);
         Node {
             sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),
-            #[cfg(feature = "simulation")]
-            held_sdo: None,
             lss: LssSlave::default(),
             timers: TimerTable::default(),
             deadline: NEVER,
-            #[cfg(feature = "inline-hot-paths")]
             other_due: NEVER,
-            #[cfg(feature = "inline-hot-paths")]
             fast_due: 0,
             dev: Device {
                 model,
@@ -173,13 +159,9 @@ impl<A: Application, S: Storage> Node<A, S> {
                 pending_node_id: cfg.node_id,
                 bitrate: cfg.bitrate_kbps,
                 pending_bitrate: cfg.bitrate_kbps,
-                #[cfg(feature = "simulation")]
-                bus_bitrate: None,
                 silent_until: None,
                 talk_from: 0,
                 factory_lss: (cfg.node_id, cfg.bitrate_kbps),
-                #[cfg(feature = "simulation")]
-                autobaud_frames: 0,
                 stored_lss: (None, None),
                 tx: TxQueue::default(),
                 emcy: Emcy::default(),
@@ -188,8 +170,6 @@ impl<A: Application, S: Storage> Node<A, S> {
                 app,
                 storage,
                 now: Instant::ZERO,
-                #[cfg(feature = "simulation")]
-                sdo_hold_until: None,
                 stats: Stats::default(),
                 hot,
                 memo: (u32::MAX, 0),
@@ -205,10 +185,6 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.dev.powered = true;
         self.dev.tx.clear();
         self.sdo.reset();
-        #[cfg(feature = "simulation")]
-        {
-            self.held_sdo = None;
-        }
         self.lss = LssSlave::default();
         // A bit-rate switch cut short by the power cycle must not keep the node deaf.
         self.dev.silent_until = None;
@@ -252,8 +228,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         if !d.powered {
             self.timers.clear();
             self.deadline = NEVER;
-            #[cfg(feature = "inline-hot-paths")]
-            {
+            if crate::config::INLINE_HOT_PATHS {
                 self.other_due = NEVER;
                 self.fast_due = 0;
             }
@@ -277,8 +252,6 @@ impl<A: Application, S: Storage> Node<A, S> {
             t.set_us(timer, us);
             other = other.min(us);
         };
-        #[cfg(feature = "simulation")]
-        set(Timer::HeldSdo, us(self.held_sdo.map(|(t, _)| t)));
         set(Timer::SdoTransfer, self.sdo.due_us());
         set(Timer::LssSwitch, self.lss.due_us());
         set(Timer::Silence, us(d.silent_until));
@@ -289,8 +262,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.deadline = other.min(d.pdo.due_us());
         // A node without a node-id stays in initialisation (`reset`), so one test says both.
         debug_assert!(d.node_id != UNCONFIGURED || d.nmt == NmtState::Initialising);
-        #[cfg(feature = "inline-hot-paths")]
-        {
+        if crate::config::INLINE_HOT_PATHS {
             self.other_due = other;
             let runs = d.nmt != NmtState::Initialising;
             self.fast_due = if runs { other } else { 0 };
@@ -309,11 +281,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         let d = &mut self.dev;
         d.now = now;
         self.sdo.reset();
-        #[cfg(feature = "simulation")]
-        {
-            self.held_sdo = None;
-            d.sdo_hold_until = None;
-        }
+        d.stats.resets = d.stats.resets.wrapping_add(1);
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
         d.cfg.node_id = d.node_id;
@@ -392,8 +360,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         // steps of the full path would all do nothing but the TPDOs'. (`fast_due` is 0
         // while powered off, unconfigured, initialising or with EMCY work.)
         // (A firmware takes the full path: the same steps, less flash.)
-        #[cfg(feature = "inline-hot-paths")]
-        if now.0 < self.fast_due {
+        if crate::config::INLINE_HOT_PATHS && now.0 < self.fast_due {
             self.dev.run_pdos(now);
             self.after_tpdo_timers(now);
             return;
@@ -417,8 +384,11 @@ impl<A: Application, S: Storage> Node<A, S> {
     pub fn poll(&mut self, now: Instant) -> Option<Frame> {
         if now.0 >= self.deadline {
             // The host's fast path (a firmware takes the full one).
-            #[cfg(feature = "inline-hot-paths")]
-            if now.0 < self.fast_due && self.dev.tx.is_empty() && self.dev.can_talk(now) {
+            if crate::config::INLINE_HOT_PATHS
+                && now.0 < self.fast_due
+                && self.dev.tx.is_empty()
+                && self.dev.can_talk(now)
+            {
                 // `now ≥ deadline` and `now < other_due`: the TPDOs' `due` has passed.
                 let Device { pdo, od, .. } = &mut self.dev;
                 let first = pdo.scan_due(od, now);
@@ -439,8 +409,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         (self.deadline != u64::MAX).then_some(Instant(self.deadline))
     }
 
-    /// Takes the next frame to send. Frames produced while the node's bit rate differs from the
-    /// bus (or during a bit-rate switch) are lost, as on a real bus.
+    /// Takes the next frame to send. Frames produced during a bit-rate switch are lost, as on
+    /// a real bus.
     #[inline]
     pub fn poll_transmit(&mut self) -> Option<Frame> {
         let d = &mut self.dev;
@@ -547,6 +517,11 @@ impl<A: Application, S: Storage> Device<A, S> {
         self.nmt
     }
 
+    /// Whether the node is powered.
+    pub fn powered(&self) -> bool {
+        self.powered
+    }
+
     /// Active node-id ([`UNCONFIGURED`] = none).
     pub fn node_id(&self) -> u8 {
         self.node_id
@@ -560,6 +535,11 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// Counters.
     pub fn stats(&self) -> Stats {
         self.stats
+    }
+
+    /// Frames waiting in the transmit queue.
+    pub fn queued(&self) -> usize {
+        self.tx.len()
     }
 
     /// The EMCY producer.

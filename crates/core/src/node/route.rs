@@ -6,13 +6,7 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// Returns whether the frame concerned the node (only then can a deadline have changed).
     pub(super) fn handle_frame_inner(&mut self, f: &Frame, now: Instant) -> bool {
         self.dev.now = now;
-        let autobaud = self.dev.bitrate == 0;
-        if !self.dev.can_hear(now) {
-            // Autobaud just locked: the node joins the bus and announces itself (R19).
-            let d = &mut self.dev;
-            if autobaud && d.bitrate != 0 && d.node_id != UNCONFIGURED {
-                d.tx.push_std(cob::ERRCTL + d.node_id as u16, [0; 8], 1);
-            }
+        if !self.dev.hears(now) {
             return true;
         }
         let Some(id) = f.std_id() else { return false };
@@ -59,20 +53,8 @@ impl<A: Application, S: Storage> Node<A, S> {
                 let model = d.model;
                 let t = move || app::features::<A>(model).sdo_transfers();
                 if let Some(r) = self.sdo.handle_as(f.data(), now, d, t) {
-                    // A simulated store holds its answer (D7).
-                    #[cfg(feature = "simulation")]
-                    let r = match d.sdo_hold_until.take() {
-                        Some(t) => {
-                            self.held_sdo = Some((t, r));
-                            None
-                        }
-                        None => Some(r),
-                    };
-                    #[cfg(not(feature = "simulation"))]
-                    let r = Some(r);
-                    if let Some(r) = r {
-                        d.tx.push_std(cob::SDO_TX + node, r, 8);
-                    }
+                    // After a store, the first frame this one queues (`Stats::stores`).
+                    d.tx.push_std(cob::SDO_TX + node, r, 8);
                 }
                 // Block-upload segments (a whole block answers one request).
                 while let Some(s) = self.sdo.poll_transmit_as(t) {

@@ -18,14 +18,6 @@ impl<A: Application, S: Storage> Node<A, S> {
             due(Timer::LssSwitch),
             due(Timer::Silence),
         );
-        #[cfg(feature = "simulation")]
-        if let Some((_, r)) = self.held_sdo.take_if(|_| due(Timer::HeldSdo)) {
-            // A node stopped during the store time no longer serves SDO.
-            if self.dev.nmt.sdo_allowed() {
-                let id = cob::SDO_TX + self.dev.node_id as u16;
-                self.dev.tx.push_std(id, r, 8);
-            }
-        }
         if transfer {
             if let Some(r) = self.sdo.handle_timeout(now) {
                 let id = cob::SDO_TX + self.dev.node_id as u16;
@@ -66,7 +58,6 @@ impl<A: Application, S: Storage> Node<A, S> {
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline
     /// (TPDOs change neither the other deadlines nor the EMCY state).
-    #[cfg(feature = "inline-hot-paths")]
     #[inline(always)]
     pub(super) fn after_tpdo_timers(&mut self, now: Instant) {
         let d = &mut self.dev;

@@ -190,10 +190,11 @@ fn pdo_mapping_example_5_th() {
 }
 
 #[test]
-fn store_table_13_answers_after_20ms_and_survives_power_cycle() {
+fn store_table_13_answers_and_survives_power_cycle() {
     let mut r = Rig::booted(&TH);
     r.req(0x67F, &hex("2B 17 10 00 64 00 00 00"));
-    // Store: the answer comes after the write completed, at least 20 ms later (D7).
+    // Store: the answer comes after the write completed (the 20 ms a simulated device holds it,
+    // D7, are the host's: `canpos-host`, `store_table_13_answers_after_20ms`).
     let t0 = r.now;
     let f = r.store_cmd(0x67F, &hex("22 10 10 01 73 61 76 65"), 20);
     let ans: Vec<_> = f
@@ -202,16 +203,8 @@ fn store_table_13_answers_after_20ms_and_survives_power_cycle() {
         .collect();
     assert_eq!(ans.len(), 1);
     assert_eq!(ans[0].1.data(), &hex("60 10 10 01 00 00 00 00")[..]);
-    // (Without the `simulation` feature, a firmware's, the store's own time is the wait.)
-    let waited = ans[0].0.micros() - t0.micros();
-    assert_eq!(
-        waited,
-        if cfg!(feature = "simulation") {
-            20_000
-        } else {
-            0
-        }
-    );
+    // The core answers as soon as the store returns (a firmware's store takes its own time).
+    assert_eq!(ans[0].0.micros() - t0.micros(), 0);
     // Reading 0x1010/1 reports "saves on command".
     assert_eq!(
         r.req(0x67F, &hex("40 10 10 01 00 00 00 00")).1,

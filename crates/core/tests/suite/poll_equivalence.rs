@@ -30,9 +30,9 @@ enum Stim {
     Sample(Option<i32>),
     /// Time: through every deadline up to +dt µs, or one jump.
     Advance(u32, bool),
-    /// The bit rate of the bus (None: matches the node); frames are lost on a mismatch.
-    #[cfg_attr(not(feature = "simulation"), allow(dead_code))]
-    Bus(Option<u16>),
+    /// LSS "activate bit timing" with a switch delay of this many ms: the node can neither
+    /// hear nor talk for twice that (its frames meanwhile are lost).
+    Switch(u16),
     PowerCycle,
 }
 
@@ -56,7 +56,7 @@ fn stim() -> impl Strategy<Value = Stim> {
         Just(Stim::Sync),
         prop::option::weighted(0.8, -100i32..600_000).prop_map(Stim::Sample),
         (0u32..25_000, any::<bool>()).prop_map(|(dt, jump)| Stim::Advance(dt, jump)),
-        prop::option::weighted(0.2, Just(50u16)).prop_map(Stim::Bus),
+        (0u16..8).prop_map(Stim::Switch),
         Just(Stim::PowerCycle),
     ]
 }
@@ -156,14 +156,18 @@ impl Pair {
                 }
                 self.now = end;
             }
-            // Without the bus model (a firmware build) the bus's rate stays unknown.
-            #[cfg(feature = "simulation")]
-            Stim::Bus(kbps) => {
-                self.a.set_bus_bitrate(kbps);
-                self.b.set_bus_bitrate(kbps);
+            Stim::Switch(ms) => {
+                let [d0, d1] = ms.to_le_bytes();
+                for req in [
+                    [0x04, 1, 0, 0, 0, 0, 0, 0],
+                    [0x15, d0, d1, 0, 0, 0, 0, 0],
+                    [0x04, 0, 0, 0, 0, 0, 0, 0],
+                ] {
+                    let f = Frame::new(0x7E5, &req).expect("LSS frame");
+                    self.a.handle_frame(&f, self.now);
+                    self.b.handle_frame(&f, self.now);
+                }
             }
-            #[cfg(not(feature = "simulation"))]
-            Stim::Bus(_) => {}
             Stim::PowerCycle => {
                 self.a.power_off();
                 self.b.power_off();

@@ -5,7 +5,8 @@
 use std::time::Duration;
 
 use canpos_core::models::{DeviceConfig, Model};
-use canpos_core::{Frame, Instant, Node, SensorNode};
+use canpos_core::storage::Storage;
+use canpos_core::{Application, Frame, Instant, Node, SensorNode};
 use canpos_sim::motion::{LiveHandle, LiveMotion, Motion};
 use canpos_sim::{Sensor, SensorSpec};
 use serde_json::{json, Value};
@@ -14,6 +15,190 @@ use crate::can::Transport;
 use crate::control::request::Fault;
 use crate::file_storage::FileStorage;
 use crate::timing::{DeviceTiming, Jitter};
+
+/// Minimum time a store takes before its SDO answer leaves (D7): what a firmware's flash takes
+/// by itself.
+pub const STORE_TIME: canpos_core::Duration = canpos_core::Duration::from_millis(20);
+
+/// Frames a controller in autobaud hears before it has the bus's bit rate (TMI R19:
+/// "continuous traffic of 4–5 messages").
+pub const AUTOBAUD_FRAMES: u8 = 4;
+
+/// What [`SimHardware`] counted.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct HardwareStats {
+    /// Frames received while the node's bit rate differed from the bus.
+    pub rx_wrong_bitrate: u32,
+    /// Frames the node produced and that never reached the bus: while its bit rate differed
+    /// from the bus, and during a bit-rate switch (the core's [`canpos_core::Stats::tx_silenced`]).
+    pub tx_wrong_bitrate: u32,
+}
+
+/// What a firmware's hardware does by itself and a simulated node needs done around it: the
+/// CAN controller on a bus of a given bit rate (frames lost both ways while the node's rate
+/// differs; autobaud detecting the bus's rate after [`AUTOBAUD_FRAMES`] frames) and the store
+/// time of "save" / "load" (D7: their SDO answer waits [`STORE_TIME`] after the request).
+///
+/// The node goes through it both ways: [`SimHardware::receive`] for every frame from the bus,
+/// [`SimHardware::poll`] in place of [`Node::poll`], and the host wakes for
+/// [`SimHardware::deadline`] too. It reads only what the node reports (its active bit rate, its
+/// store and reset counts, its queue length): no CANopen frame is decoded here.
+#[derive(Debug, Default)]
+pub struct SimHardware {
+    /// The bus's bit rate in kbit/s (`None`: unknown, the node's own).
+    bus_kbps: Option<u16>,
+    /// Frames heard while the node waits for its bit rate (autobaud).
+    autobaud_frames: u8,
+    rx_wrong_bitrate: u32,
+    tx_wrong_bitrate: u32,
+    /// The store answer is the frame the node sends after this many more, and the store's
+    /// request arrived then; with the node's reset count then.
+    store_answer: Option<(usize, Instant, u8)>,
+    /// A store's answer waiting out the store time: when it is due, the frame, the node's reset
+    /// count when it was held (a reset drops it, as it drops a transfer in progress).
+    held: Option<(Instant, Frame, u8)>,
+    /// The held answer, due: it goes out after this many more of the node's frames.
+    release: Option<(usize, Frame)>,
+}
+
+impl SimHardware {
+    /// On a bus of `kbps` kbit/s (`None`: unknown).
+    pub fn new(kbps: Option<u16>) -> SimHardware {
+        SimHardware {
+            bus_kbps: kbps,
+            ..SimHardware::default()
+        }
+    }
+
+    /// The bus the node is attached to now runs `kbps` kbit/s (`None`: unknown).
+    pub fn set_bus_bitrate(&mut self, kbps: Option<u16>) {
+        self.bus_kbps = kbps;
+    }
+
+    /// The bus's bit rate in kbit/s, if known.
+    pub fn bus_bitrate(&self) -> Option<u16> {
+        self.bus_kbps
+    }
+
+    /// What was counted, with the frames the node lost during a bit-rate switch.
+    pub fn stats<A: Application, S: Storage>(&self, node: &Node<A, S>) -> HardwareStats {
+        HardwareStats {
+            rx_wrong_bitrate: self.rx_wrong_bitrate,
+            tx_wrong_bitrate: self
+                .tx_wrong_bitrate
+                .wrapping_add(node.device().stats().tx_silenced),
+        }
+    }
+
+    /// Whether the node and the bus run different bit rates now.
+    fn mismatch<A: Application, S: Storage>(&self, node: &Node<A, S>) -> bool {
+        self.bus_kbps
+            .is_some_and(|bus| bus != node.device().bitrate())
+    }
+
+    /// A frame from the bus at `now`. A node that hears (powered, not switching its bit rate)
+    /// at another bit rate than the bus's does not get it; one in autobaud counts it towards
+    /// detecting the bus's rate.
+    pub fn receive<A: Application, S: Storage>(
+        &mut self,
+        node: &mut Node<A, S>,
+        f: &Frame,
+        now: Instant,
+    ) {
+        if let Some(bus) = self.bus_kbps.filter(|_| node.hears(now)) {
+            if node.device().bitrate() == 0 {
+                self.autobaud_frames = self.autobaud_frames.saturating_add(1);
+                if self.autobaud_frames >= AUTOBAUD_FRAMES {
+                    node.bitrate_detected(bus, now);
+                }
+                return;
+            }
+            // A new autobaud (after a reset to it) starts counting afresh.
+            self.autobaud_frames = 0;
+            if bus != node.device().bitrate() {
+                self.rx_wrong_bitrate = self.rx_wrong_bitrate.wrapping_add(1);
+                return;
+            }
+        }
+        let before = node.device().stats();
+        let ahead = node.device().queued();
+        node.handle_frame(f, now);
+        let after = node.device().stats();
+        if after.stores != before.stores {
+            // The answer is the first frame this one queued (`Stats::stores`).
+            self.store_answer = Some((ahead, now, after.resets));
+        }
+    }
+
+    /// The next frame for the bus at `now`, in place of [`Node::poll`]: a store's answer waits
+    /// out the store time; what the node sends while its bit rate differs from the bus's is
+    /// lost and counted.
+    pub fn poll<A: Application, S: Storage>(
+        &mut self,
+        node: &mut Node<A, S>,
+        now: Instant,
+    ) -> Option<Frame> {
+        if self.release.is_none() {
+            if let Some((_, f, resets)) = self.held.take_if(|(due, _, _)| *due <= now) {
+                let d = node.device();
+                // A node powered off sends nothing until its power-on, which resets it; a reset
+                // forgets the answer as it forgets a transfer; a stopped node serves no SDO.
+                let serves = d.stats().resets == resets && d.nmt_state().sdo_allowed();
+                if d.powered() && serves {
+                    // Out where the node's own timer would have queued it: behind what waits.
+                    self.release = Some((d.queued(), f));
+                }
+            }
+        }
+        loop {
+            let f = match self.release {
+                Some((0, f)) => {
+                    self.release = None;
+                    // Queued by the node it would have been lost during a bit-rate switch.
+                    if !node.hears(now) || self.mismatch(node) {
+                        self.tx_wrong_bitrate = self.tx_wrong_bitrate.wrapping_add(1);
+                        continue;
+                    }
+                    return Some(f);
+                }
+                _ => match node.poll(now) {
+                    Some(f) => {
+                        if let Some((n, _)) = &mut self.release {
+                            *n -= 1;
+                        }
+                        f
+                    }
+                    None => {
+                        // Whatever was queued is out, or was lost with the queue.
+                        self.store_answer = None;
+                        if self.release.take().is_some() {
+                            self.tx_wrong_bitrate = self.tx_wrong_bitrate.wrapping_add(1);
+                        }
+                        return None;
+                    }
+                },
+            };
+            if let Some((n, at, resets)) = self.store_answer {
+                if n == 0 {
+                    self.store_answer = None;
+                    self.held = Some((at + STORE_TIME, f, resets));
+                    continue;
+                }
+                self.store_answer = Some((n - 1, at, resets));
+            }
+            if self.mismatch(node) {
+                self.tx_wrong_bitrate = self.tx_wrong_bitrate.wrapping_add(1);
+                continue;
+            }
+            return Some(f);
+        }
+    }
+
+    /// When [`SimHardware::poll`] has a held answer to send.
+    pub fn deadline(&self) -> Option<Instant> {
+        self.held.map(|(due, _, _)| due)
+    }
+}
 
 /// Everything needed to build one simulated sensor.
 pub struct SensorSetup {
@@ -39,6 +224,9 @@ pub struct SensorSetup {
 pub(super) struct SimDevice {
     pub(super) name: String,
     pub(super) node: SensorNode<FileStorage>,
+    /// Its CAN controller's bit rate and autobaud, its flash's store time: every frame in and
+    /// out of `node` goes through it.
+    pub(super) hw: SimHardware,
     pub(super) sensor: Sensor,
     pub(super) motion: LiveMotion,
     pub(super) live: LiveHandle,
@@ -91,6 +279,7 @@ impl SimDevice {
         SimDevice {
             name: s.name,
             node: Node::new(s.model, s.cfg, s.storage),
+            hw: SimHardware::default(),
             sensor: Sensor::new(s.spec, s.seed, s.ideal),
             motion,
             live,
@@ -121,6 +310,16 @@ impl SimDevice {
     /// Whether the node takes frames from the bus now (not rebooting, not stalled).
     pub(super) fn listening(&self, now: Instant) -> bool {
         !self.bus_off && self.rebooting.is_none() && self.stall_until.is_none_or(|t| t <= now)
+    }
+
+    /// A frame from the bus at `now` (see [`SimHardware::receive`]).
+    pub(super) fn receive(&mut self, f: &Frame, now: Instant) {
+        self.hw.receive(&mut self.node, f, now);
+    }
+
+    /// The node's next frame at `now` (see [`SimHardware::poll`]).
+    pub(super) fn poll(&mut self, now: Instant) -> Option<Frame> {
+        self.hw.poll(&mut self.node, now)
     }
 
     /// Applies the device timing to a frame the node wants to send: an SDO response waits
@@ -177,6 +376,7 @@ impl SimDevice {
     pub(super) fn timing_deadline(&self) -> Option<Instant> {
         [
             self.held.front().map(|(t, _)| *t),
+            self.hw.deadline(),
             self.rebooting.map(|(t, _)| t),
             self.power_on_at,
             self.stall_until,

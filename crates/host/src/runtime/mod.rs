@@ -290,7 +290,7 @@ impl Runtime {
     pub fn add(&mut self, setup: SensorSetup) -> usize {
         let now = self.now();
         let mut d = SimDevice::new(setup, now);
-        d.node.set_bus_bitrate(self.bus_bitrate);
+        d.hw.set_bus_bitrate(self.bus_bitrate);
         // On a paced in-process bus each sensor has its own controller, as on a real bus.
         d.port = self.transport.controller();
         self.devices.push(d);
@@ -488,7 +488,7 @@ impl Runtime {
     fn deliver(&mut self, f: &Frame, from: Option<usize>, now: Instant) {
         for (i, d) in self.devices.iter_mut().enumerate() {
             if Some(i) != from && d.listening(now) {
-                d.node.handle_frame(f, now);
+                d.receive(f, now);
             }
         }
     }
@@ -503,7 +503,7 @@ impl Runtime {
             for i in 0..self.devices.len() {
                 due.clear();
                 self.devices[i].release(now, &mut due);
-                while let Some(f) = self.devices[i].node.poll(now) {
+                while let Some(f) = self.devices[i].poll(now) {
                     if self.devices[i].bus_off {
                         self.devices[i].lost_bus_off += 1;
                         continue;
@@ -756,11 +756,13 @@ mod device;
 mod requests;
 mod wait;
 
-pub use device::SensorSetup;
 use device::SimDevice;
+pub use device::{HardwareStats, SensorSetup, SimHardware, AUTOBAUD_FRAMES, STORE_TIME};
 use wait::wait_stepped;
 pub(crate) use wait::wait_until;
 pub use wait::{Lateness, EARLY_WAKE};
 
+#[cfg(test)]
+mod hardware_tests;
 #[cfg(test)]
 mod tests;

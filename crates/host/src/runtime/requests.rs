@@ -200,7 +200,7 @@ impl Runtime {
                 // Addressed to this node only and handed to it alone: the other nodes and the
                 // bus see nothing.
                 let f = Frame::new(0x000, &[cs, node_id]).map_err(|e| format!("{e:?}"))?;
-                self.devices[i].node.handle_frame(&f, now);
+                self.devices[i].receive(&f, now);
                 Ok(json!({"ok": true}))
             }
         }

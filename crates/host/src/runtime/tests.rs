@@ -38,12 +38,12 @@ fn step(d: &mut SimDevice, input: Option<Frame>, at_us: u64) -> Vec<Frame> {
     let now = Instant::from_micros(at_us);
     if let Some(f) = input {
         if d.listening(now) {
-            d.node.handle_frame(&f, now);
+            d.receive(&f, now);
         }
     }
     let mut out = Vec::new();
     d.release(now, &mut out);
-    while let Some(f) = d.node.poll(now) {
+    while let Some(f) = d.poll(now) {
         if let Some(f) = d.hold(f, now) {
             out.push(f);
         }
