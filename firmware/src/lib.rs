@@ -25,7 +25,7 @@ const WIDEST: &[canpos_core::Entry] = {
     #[cfg(all(feature = "tmi", not(feature = "th"), not(feature = "e-series")))]
     let t = models::tmi::ENTRIES_TWO_CHANNELS;
     #[cfg(not(all(feature = "tmi", not(feature = "th"), not(feature = "e-series"))))]
-    let t = MODEL.entries;
+    let t = MODEL.table.entries;
     t
 };
 

@@ -1276,7 +1276,7 @@ fn emcy_03(h: &mut Harness) -> Outcome {
 /// fault hook (0x5000).
 fn force_emcy(h: &mut Harness) -> [u8; 8] {
     h.clear();
-    if h.model().features.tmi_error_reactions {
+    if h.model().profile.tmi_error_reactions {
         h.fault(Fault::Transducer, true);
     } else {
         h.raw(0x080, &[0, 0]);
@@ -1292,7 +1292,7 @@ fn emcy_04(h: &mut Harness) -> Outcome {
     h.nmt(nmt::START);
     let e = force_emcy(h);
     let code = u16::from_le_bytes([e[0], e[1]]);
-    if h.model().features.tmi_error_reactions {
+    if h.model().profile.tmi_error_reactions {
         assert_eq!(code, 0x5000);
     } else {
         assert_eq!(code, 0x8240);
@@ -1315,12 +1315,12 @@ fn emcy_06(h: &mut Harness) -> Outcome {
         let hist = ok(h.read(0x1003, 1));
         assert_eq!(hist & 0xFFFF, u32::from(u16::from_le_bytes([e[0], e[1]])));
         assert_eq!(hist >> 16, u32::from(u16::from_le_bytes([e[3], e[4]])));
-        if h.model().features.tmi_error_reactions {
+        if h.model().profile.tmi_error_reactions {
             break;
         }
     }
     // A second trigger with other manufacturer bytes (the fault hook on every model).
-    if !h.model().features.tmi_error_reactions {
+    if !h.model().profile.tmi_error_reactions {
         let _ = h.take();
         h.fault(Fault::SupplyVoltage, true);
         let (_, f) = h.wait_for(100, |f| f.std_id() == Some(EMCY)).expect("EMCY");

@@ -9,6 +9,7 @@
 
 use std::hint::black_box;
 
+use canpos_core::encoder::Channels;
 use canpos_core::encoder::Sample;
 use canpos_core::models::{self, Model};
 use canpos_core::storage::NoStorage;

@@ -10,14 +10,14 @@
 //! no application of its own (every object a plain value).
 
 use crate::emcy::Emcy;
-use crate::models::{features_of, DeviceConfig, Features, Model};
+use crate::model::{Features, Model, UnitConfig};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 use crate::pdo::Tpdos;
 use crate::wire::Instant;
 
 /// What the application may touch while it runs a cycle or reacts to a write.
-pub struct AppCtx<'a> {
+pub struct AppCtx<'a, A: Application + ?Sized> {
     /// The dictionary (live values are written here).
     pub od: &'a mut Dictionary,
     /// EMCY producer.
@@ -25,9 +25,9 @@ pub struct AppCtx<'a> {
     /// TPDOs (told about changed mapped values).
     pub pdo: &'a mut Tpdos,
     /// The product model.
-    pub model: &'static Model,
+    pub model: &'static ModelOf<A>,
     /// The unit configuration (stroke, cycle time, channel count).
-    pub cfg: &'a DeviceConfig,
+    pub cfg: &'a A::Config,
     /// The NMT state (TMI 0x1002 bits 1–0).
     pub nmt: NmtState,
     /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
@@ -37,13 +37,13 @@ pub struct AppCtx<'a> {
 }
 
 /// Read-only view for write validation.
-pub struct AppView<'a> {
+pub struct AppView<'a, A: Application + ?Sized> {
     /// The dictionary.
     pub od: &'a Dictionary,
     /// The product model.
-    pub model: &'static Model,
+    pub model: &'static ModelOf<A>,
     /// The unit configuration.
-    pub cfg: &'a DeviceConfig,
+    pub cfg: &'a A::Config,
 }
 
 /// The application side of a node. Every method has the default "nothing to do", so an
@@ -54,17 +54,42 @@ pub trait Application {
     /// A fault the application reports the way its device's manual says.
     type Fault: Copy;
 
-    /// Whether the application runs only with the product models of [`crate::models`] (CiA
-    /// 406's encoder). A build that compiles in one product model then takes the node's
-    /// [`crate::models::Features`] as constants ([`crate::models::features_of`]), so the other
-    /// products' branches of the stack and of the application are not linked.
-    const PRODUCT_ONLY: bool = false;
+    /// The unit configuration the application reads (the stack reads [`UnitConfig`] of it).
+    type Config: UnitConfig;
+    /// What the application's device descriptions add to the stack's ([`Model::profile`]).
+    type Profile: 'static;
 
-    /// The device's [`Features`] when the build fixes them: a firmware for a device of its
-    /// own, as CANopenNode's `CO_config.h` fixes its services. It must be the node's model's
-    /// own `features`; the node then takes them as constants and links no branch for a feature
-    /// the device lacks. `None` (the default): read from the model ([`features_of`]).
-    const FEATURES: Option<&'static Features> = None;
+    /// The device description the build fixes: a firmware for a device of its own, as
+    /// CANopenNode's `CO_config.h` fixes its services. It must be the node's model (or one of
+    /// its unit variants with the same features); the node and the application then take its
+    /// features as constants and link no branch for a feature the device lacks. `None` (the
+    /// default): read from the node's model.
+    const FIXED: Option<&'static ModelOf<Self>> = None;
+
+    /// The features of a node of `model` running this application: [`Application::FIXED`]'s
+    /// when the build fixes them, else `model`'s.
+    #[inline(always)]
+    fn features(model: &'static ModelOf<Self>) -> &'static Features {
+        match Self::FIXED {
+            Some(f) => {
+                debug_assert!(
+                    f.features.tag == model.features.tag,
+                    "FEATURES are the model's"
+                );
+                &f.features
+            }
+            None => &model.features,
+        }
+    }
+
+    /// The profile part of `model`'s description, [`Application::FIXED`]'s when fixed.
+    #[inline(always)]
+    fn profile(model: &'static ModelOf<Self>) -> &'static Self::Profile {
+        match Self::FIXED {
+            Some(f) => &f.profile,
+            None => &model.profile,
+        }
+    }
 
     /// Power-on: back to the state of a device that was just switched on.
     fn power_on(&mut self) {}
@@ -74,27 +99,27 @@ pub trait Application {
 
     /// Runs one process cycle. Returns true when the device's reaction forces the node back to
     /// pre-operational.
-    fn cycle(&mut self, _s: &Self::Sample, _cx: &mut AppCtx<'_>) -> bool {
+    fn cycle(&mut self, _s: &Self::Sample, _cx: &mut AppCtx<'_, Self>) -> bool {
         false
     }
 
     /// Injects (`active`) or removes a fault. Returns true when the device's reaction forces
     /// the node back to pre-operational.
-    fn inject(&mut self, _f: Self::Fault, _active: bool, _cx: &mut AppCtx<'_>) -> bool {
+    fn inject(&mut self, _f: Self::Fault, _active: bool, _cx: &mut AppCtx<'_, Self>) -> bool {
         false
     }
 
     /// The rule of application hook `h` for a write of `raw` to sub-index `sub`.
-    fn validate(&self, _h: u8, _sub: u8, _raw: u32, _cx: &AppView<'_>) -> Result<(), Abort> {
+    fn validate(&self, _h: u8, _sub: u8, _raw: u32, _cx: &AppView<'_, Self>) -> Result<(), Abort> {
         Ok(())
     }
 
     /// The side effects of application hook `h` once `raw` was written to `sub`.
-    fn written(&mut self, _h: u8, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+    fn written(&mut self, _h: u8, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_, Self>) {}
 
     /// Communication parameter `sub` of TPDO `n` changed (an application may keep an object
     /// of its own in step, such as CiA 406's cyclic timer 0x6200).
-    fn tpdo_comm_written(&mut self, _n: usize, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_>) {}
+    fn tpdo_comm_written(&mut self, _n: usize, _sub: u8, _raw: u32, _cx: &mut AppCtx<'_, Self>) {}
 
     /// Brings a value the application derives (hook `h`) up to date before it is read.
     fn refresh(&self, _h: u8, _od: &mut Dictionary, _nmt: NmtState) {}
@@ -125,26 +150,13 @@ pub trait Application {
 
     /// The stored data failed its check at power-on. Returns true when the application reports
     /// that itself; otherwise the node raises the generic EMCY 0x6300.
-    fn storage_corrupt(&mut self, _cx: &mut AppCtx<'_>) -> bool {
+    fn storage_corrupt(&mut self, _cx: &mut AppCtx<'_, Self>) -> bool {
         false
     }
 }
 
-/// The features of a node of `model` running `A`: [`Application::FEATURES`], else
-/// [`features_of`] the model.
-#[inline(always)]
-pub(crate) fn features<A: Application>(model: &'static Model) -> &'static Features {
-    match A::FEATURES {
-        Some(f) => {
-            debug_assert!(
-                core::ptr::eq(f, &model.features),
-                "FEATURES are the model's"
-            );
-            f
-        }
-        None => features_of(model, A::PRODUCT_ONLY),
-    }
-}
+/// The device description of a node running `A`.
+pub type ModelOf<A> = Model<<A as Application>::Config, <A as Application>::Profile>;
 
 /// A CiA 301 device with no application of its own: every object is a plain value (a device
 /// served from an EDS file).
@@ -154,4 +166,6 @@ pub struct Plain;
 impl Application for Plain {
     type Sample = ();
     type Fault = core::convert::Infallible;
+    type Config = crate::model::CommConfig;
+    type Profile = ();
 }

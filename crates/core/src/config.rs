@@ -94,11 +94,6 @@ pub const EMCY_ACTIVE_LEN: usize = 8;
 pub const EMCY_PENDING_LEN: usize = 8;
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && EMCY_PENDING_LEN.is_power_of_two());
 
-/// Most position channels an application's sample carries (the CiA 406 encoder's: TH
-/// multi-position, 4 magnets). The application's size, kept here beside the stack's until the
-/// encoder has its own crate.
-pub const MAX_CHANNELS: usize = 4;
-
 /// `v` (a decimal number set at build time) or `default` when it is not set; a value that is
 /// not a number stops the build.
 const fn env_or(v: Option<&str>, default: usize) -> usize {

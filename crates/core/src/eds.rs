@@ -20,7 +20,7 @@
 
 use core::fmt::{self, Write};
 
-use crate::models::{DeviceConfig, Model};
+use crate::model::{Model, UnitConfig};
 use crate::od::{resolve_default, DataType, DefaultValue, Entry, Param, ParamSource, Range};
 
 /// File information for [`write_eds`] (the core has no clock or file system).
@@ -78,22 +78,22 @@ impl core::default::Default for EdsInfo<'_> {
     }
 }
 
-struct Unit<'a> {
-    model: &'static Model,
-    cfg: &'a DeviceConfig,
+struct Unit<'a, C: 'static, X: 'static> {
+    model: &'static Model<C, X>,
+    cfg: &'a C,
 }
 
-impl ParamSource for Unit<'_> {
+impl<C, X> ParamSource for Unit<'_, C, X> {
     fn param(&self, p: Param) -> u32 {
         (self.model.param)(self.cfg, p)
     }
 }
 
 /// Writes the EDS of `model` for the unit `cfg` to `w`.
-pub fn write_eds(
+pub fn write_eds<C: UnitConfig, X>(
     w: &mut dyn Write,
-    model: &'static Model,
-    cfg: &DeviceConfig,
+    model: &'static Model<C, X>,
+    cfg: &C,
     info: &EdsInfo<'_>,
 ) -> fmt::Result {
     write_file(w, model, cfg, info, None)
@@ -105,10 +105,10 @@ pub type ValueSource<'a> = &'a dyn Fn(u16, u8) -> Option<DcfValue<'a>>;
 
 /// Writes the DCF of a configured unit: the EDS of `model` for `cfg`, with `[DeviceComissioning]`
 /// and each object's current value from `values` as `ParameterValue`.
-pub fn write_dcf(
+pub fn write_dcf<C: UnitConfig, X>(
     w: &mut dyn Write,
-    model: &'static Model,
-    cfg: &DeviceConfig,
+    model: &'static Model<C, X>,
+    cfg: &C,
     info: &EdsInfo<'_>,
     commissioning: &Commissioning<'_>,
     values: ValueSource<'_>,
@@ -116,22 +116,22 @@ pub fn write_dcf(
     write_file(w, model, cfg, info, Some((commissioning, values)))
 }
 
-fn write_file(
+fn write_file<C: UnitConfig, X>(
     w: &mut dyn Write,
-    model: &'static Model,
-    cfg: &DeviceConfig,
+    model: &'static Model<C, X>,
+    cfg: &C,
     info: &EdsInfo<'_>,
     dcf: Option<(&Commissioning<'_>, ValueSource<'_>)>,
 ) -> fmt::Result {
     // The unit's own dictionary: one EDS per configuration (TMI 002 §1.6).
-    let model = crate::models::for_unit(model, cfg);
+    let model = model.for_unit(cfg);
     let unit = Unit { model, cfg };
     let value = |index: u16, sub: u8| -> u32 {
         model
             .entries
             .iter()
             .find(|e| e.index == index && e.sub == sub)
-            .map_or(0, |e| resolve_default(e, &unit, cfg.node_id))
+            .map_or(0, |e| resolve_default(e, &unit, cfg.node_id()))
     };
 
     writeln!(w, "[FileInfo]")?;
@@ -236,11 +236,11 @@ fn write_list(
 }
 
 /// A plain VAR when the object is sub 0 alone, else ARRAY / RECORD with one section per sub.
-fn write_object(
+fn write_object<C: UnitConfig, X>(
     w: &mut dyn Write,
     obj: &'static [Entry],
-    unit: &Unit<'_>,
-    cfg: &DeviceConfig,
+    unit: &Unit<'_, C, X>,
+    cfg: &C,
     values: Option<ValueSource<'_>>,
 ) -> fmt::Result {
     let first = &obj[0];
@@ -271,12 +271,12 @@ fn object_name(sub0: &str) -> &str {
     sub0.split(':').next().unwrap_or(sub0).trim()
 }
 
-fn write_var(
+fn write_var<C: UnitConfig, X>(
     w: &mut dyn Write,
     e: &Entry,
     name: &str,
-    unit: &Unit<'_>,
-    cfg: &DeviceConfig,
+    unit: &Unit<'_, C, X>,
+    cfg: &C,
     values: Option<ValueSource<'_>>,
 ) -> fmt::Result {
     writeln!(w, "ParameterName={name}")?;
@@ -312,10 +312,8 @@ fn write_var(
         DefaultValue::Param(p) => {
             // A value that moves with the node-id is written relative to it.
             let at = |id: u8| {
-                let c = DeviceConfig {
-                    node_id: id,
-                    ..*cfg
-                };
+                let mut c = *cfg;
+                c.set_node_id(id);
                 (unit.model.param)(&c, p)
             };
             let (v0, v1) = (at(0), at(1));
@@ -365,7 +363,7 @@ fn write_var(
 /// the application hook of the entry for this unit (the measuring step of a 5 µm TMI starts at
 /// 5000; [`crate::encoder::limits`]). Lists of allowed values are not expressible; they get
 /// the smallest and largest member.
-fn limits(e: &Entry, cfg: &DeviceConfig) -> Option<(i64, i64)> {
+fn limits<C: UnitConfig>(e: &Entry, cfg: &C) -> Option<(i64, i64)> {
     let table = match *e.range {
         Range::Any => None,
         Range::MinMax(..) => e.limits(),
@@ -380,7 +378,7 @@ fn limits(e: &Entry, cfg: &DeviceConfig) -> Option<(i64, i64)> {
         .hook
         .app_number()
         .filter(|_| e.access.writable())
-        .and_then(|h| crate::encoder::limits(h, cfg))
+        .and_then(|h| cfg.app_limits(h))
         .map(|(lo, hi)| (e.ty.to_i64(lo), e.ty.to_i64(hi)));
     match (table, rule) {
         (Some((a, b)), Some((c, d))) => Some((a.max(c), b.min(d))),

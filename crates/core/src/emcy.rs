@@ -52,10 +52,6 @@ pub mod code {
     pub const PDO_LENGTH: u16 = 0x8210;
     /// Unexpected SYNC data length (CiA 301).
     pub const SYNC_LENGTH: u16 = 0x8240;
-    /// TMI: cam state changed.
-    pub const TMI_CAM: u16 = 0x9080;
-    /// TMI: work area state changed.
-    pub const TMI_WORK_AREA: u16 = 0x9090;
 }
 
 pub use crate::config::HISTORY_LEN;
@@ -240,7 +236,7 @@ impl Emcy {
     }
 
     /// Sends 0x0000 also when an error clears while others stay, if the error register changed
-    /// (the model's rule, [`crate::models::Features::emcy_on_register_change`]).
+    /// (the model's rule, [`crate::model::Features::emcy_on_register_change`]).
     pub fn set_reset_on_register_change(&mut self, on: bool) {
         self.on_register_change = on;
     }
@@ -627,8 +623,8 @@ mod tests {
     fn inhibit_spaces_emcys() {
         let mut e = Emcy::default();
         e.set_inhibit(100); // 10 ms
-        e.event(code::TMI_CAM, [1, 0, 0, 0, 0]);
-        e.event(code::TMI_CAM, [1, 1, 0, 0, 0]);
+        e.event(0x9080, [1, 0, 0, 0, 0]);
+        e.event(0x9080, [1, 1, 0, 0, 0]);
         assert!(e.poll(Instant(0)).is_some());
         assert!(e.poll(Instant(9_999)).is_none());
         assert_eq!(e.poll_timeout(), Some(Instant(10_000)));

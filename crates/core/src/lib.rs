@@ -12,10 +12,10 @@
 //! are the firmware's; everything CANopen is the node's.
 //!
 //! ```
-//! use canpos_core::{models, Frame, Instant, Node, RamStorage, Sample};
+//! use canpos_core::{models, Frame, Instant, RamStorage, Sample, SensorNode};
 //!
 //! let model = &models::th::TH;
-//! let mut node = Node::new(model, model.configure(model.default_config), RamStorage::default());
+//! let mut node = SensorNode::new(model, model.configure(model.default_config), RamStorage::default());
 //! let mut now = Instant::ZERO;
 //! node.power_on(now);
 //! let mut sent = Vec::new();
@@ -61,13 +61,15 @@
 
 mod app;
 pub mod config;
-mod div;
+#[doc(hidden)]
+pub mod div;
 #[cfg(feature = "names")]
 pub mod eds;
 pub mod emcy;
 pub mod encoder;
 pub mod errctl;
 pub mod lss;
+pub mod model;
 pub mod models;
 pub mod nmt;
 mod node;
@@ -79,10 +81,10 @@ mod timers;
 mod txq;
 mod wire;
 
-pub use app::{AppCtx, AppView, Application, Plain};
-pub use encoder::{Encoder, Fault, Sample};
+pub use app::{AppCtx, AppView, Application, ModelOf, Plain};
+pub use encoder::{DeviceConfig, Encoder, Fault, Model, Sample};
 pub use lss::UNCONFIGURED;
-pub use models::{DeviceConfig, Model};
+pub use model::{CommConfig, Features, Table, UnitConfig};
 pub use node::{Device, Node, Stats};
 pub use od::{Abort, Dictionary, Entry, Hook};
 pub use storage::{
@@ -91,5 +93,5 @@ pub use storage::{
 };
 
 /// A position sensor: the CiA 301 / 305 stack running the CiA 406 application.
-pub type SensorNode<S> = Node<encoder::Encoder, S>;
+pub type SensorNode<S> = Node<models::Sensor, S>;
 pub use wire::{cob, Duration, Frame, FrameError, Instant};

@@ -548,7 +548,7 @@ mod tests {
     fn store_configuration_keeps_the_records_and_the_objects_copies() {
         use crate::models::tmi::TMI;
         use crate::storage::{self, RamStorage, IMAGE_MAX, KEY_LSS_BITRATE, KEY_LSS_NODE_ID};
-        let mut n = crate::Node::new(
+        let mut n = crate::SensorNode::new(
             &TMI,
             TMI.configure(TMI.default_config),
             RamStorage::default(),

@@ -25,7 +25,7 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use canpos_core::models::{DeviceConfig, Features, Model};
+use canpos_core::model::{CommConfig, Features, Model, Table};
 use canpos_core::od::{
     cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
 };
@@ -95,7 +95,7 @@ pub struct EdsDevice {
     /// The model (table and features leaked for the life of the process).
     pub model: &'static Model,
     /// Node-id and bit rate (command line, else DCF, else the defaults) and serial number.
-    pub cfg: DeviceConfig,
+    pub cfg: CommConfig,
     /// Things left out or not used (RPDOs, unlisted objects, …), for the log.
     pub warnings: Vec<String>,
     /// 0x1018/1 vendor-id.
@@ -550,10 +550,6 @@ impl Builder<'_> {
             bitrates: Box::leak(bitrates.into_boxed_slice()),
             store_preop_only: false,
             kill_signature: false,
-            preset_clear: false,
-            preset_offset_internal: false,
-            tmi_error_reactions: false,
-            window_cams: false,
             power_on_emcy: false,
             sync_length_emcy: true,
             event_timer_above_inhibit: false,
@@ -566,22 +562,22 @@ impl Builder<'_> {
         let table: &'static [Entry] = Box::leak(entries.into_boxed_slice());
         let keys: &'static [u32] = Box::leak(table.iter().map(Entry::key).collect());
         let model: &'static Model = Box::leak(Box::new(Model {
-            name: "eds",
-            product,
-            vendor,
-            entries: table,
-            keys,
-            features,
+            table: Table {
+                name: "eds",
+                product,
+                vendor,
+                entries: table,
+                keys,
+                features,
+            },
+            profile: (),
             param,
             derive: |c| c,
-            default_config: DeviceConfig {
+            variant: None,
+            default_config: CommConfig {
                 node_id,
                 bitrate_kbps: bitrate,
                 serial,
-                stroke_mm: 0,
-                position_step_nm: 0,
-                channels: 0,
-                cycle_us: 0,
             },
         }));
         Ok(EdsDevice {
@@ -799,7 +795,7 @@ impl Builder<'_> {
 pub const TAG_BASE: u8 = 0x40;
 
 /// A plain device has no configuration-dependent defaults beyond the unit's identity.
-fn param(cfg: &DeviceConfig, p: Param) -> u32 {
+fn param(cfg: &CommConfig, p: Param) -> u32 {
     match p {
         Param::NodeId => u32::from(cfg.node_id),
         Param::BitRateKbps => u32::from(cfg.bitrate_kbps),

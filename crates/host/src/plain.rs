@@ -9,7 +9,7 @@
 use std::io;
 use std::time::Duration;
 
-use canpos_core::models::{DeviceConfig, Model};
+use canpos_core::model::{CommConfig, Model};
 use canpos_core::Plain;
 use canpos_core::{Instant, Node};
 use serde_json::json;
@@ -36,7 +36,7 @@ impl PlainRuntime {
         transport: Box<dyn Transport>,
         bus_bitrate_kbps: Option<u32>,
         model: &'static Model,
-        cfg: DeviceConfig,
+        cfg: CommConfig,
         storage: FileStorage,
     ) -> PlainRuntime {
         let node = Node::with_app(model, cfg, Plain, storage);

@@ -22,7 +22,7 @@ fn run(
     cfg.cycle_us = cycle_us as u32;
     let max_err_um = spec.max_error_um(START_MM + SPEED_MM_S, 20.0);
     let mut sensor = Sensor::new(spec, 7, ideal);
-    let mut node = Node::new(model, cfg, RamStorage::default());
+    let mut node = SensorNode::new(model, cfg, RamStorage::default());
     node.power_on(Instant::ZERO);
     let step_nm = node.read_object(0x6005, 1).unwrap();
     let vstep = node.read_object(0x6005, 2).unwrap();

@@ -9,7 +9,7 @@ mod board;
 #[path = "../plain_stack.rs"]
 mod plain_stack;
 
-use canpos_core::models::Model;
+use canpos_core::model::Model;
 use canpos_core::od::{cia301, Entry};
 use panic_halt as _;
 

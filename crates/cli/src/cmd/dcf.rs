@@ -15,7 +15,7 @@ use canpos_core::models::{self, DeviceConfig, Model};
 use canpos_core::od::{DataType, DefaultValue, Entry};
 use canpos_core::sdo::wire::{Mux, Request, Response};
 use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
-use canpos_core::{cob, Frame, Instant, Node};
+use canpos_core::{cob, Frame, Instant, Node, SensorNode};
 use canpos_host::ini::Ini;
 use canpos_host::FileStorage;
 use clap::Args;
@@ -118,7 +118,7 @@ fn read_state(
     }
     // Unlocked: the unit may be running on it; this node only reads (it stores nothing unless
     // told by 0x1010, which nobody sends it).
-    let mut node = Node::new(model, cfg, FileStorage::new(path).for_model(model));
+    let mut node = SensorNode::new(model, cfg, FileStorage::new(path).for_model(model));
     node.power_on(Instant::ZERO);
     cfg.node_id = node.device().node_id();
     cfg.bitrate_kbps = node.device().bitrate();
@@ -504,7 +504,7 @@ pub fn apply_to_state(
     let storage = FileStorage::open(state)
         .with_context(|| format!("cannot open {}", state.display()))?
         .for_model(dcf.model);
-    let mut node = Node::new(dcf.model, cfg, storage);
+    let mut node = SensorNode::new(dcf.model, cfg, storage);
     let mut now = Instant::ZERO;
     node.power_on(now);
     while node.poll(now).is_some() {}
@@ -784,7 +784,7 @@ mod tests {
         // A missing file: the unit on its defaults.
         let storage = FileStorage::new(p);
         let cfg = m.default_config.with_node_id(20);
-        let mut node = Node::new(m, cfg, storage);
+        let mut node = SensorNode::new(m, cfg, storage);
         node.power_on(Instant::ZERO);
         let values = m
             .entries

@@ -233,7 +233,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     let state = dev.state_file(&state_dir);
     // Locked, links refused, stale temporaries removed, as a sensor's (FileStorage::open).
-    let storage = FileStorage::open(&state)?.for_model(dev.model);
+    let storage = FileStorage::open(&state)?.for_table(&dev.model.table);
     let (transport, _hub) = open_bus(
         &a.bus,
         a.hub,

@@ -84,7 +84,7 @@ fn run_node_on(port: MemPort, node_id: u8) -> Runner {
     let model = canpos_core::models::by_name("th").expect("th model");
     let mut cfg = model.default_config;
     cfg.node_id = node_id;
-    let mut node = canpos_core::Node::new(model, cfg, RamStorage::default());
+    let mut node = canpos_core::SensorNode::new(model, cfg, RamStorage::default());
     let t0 = Instant::now();
     let now = move || canpos_core::Instant::from_micros(t0.elapsed().as_micros() as u64);
     node.power_on(now());
@@ -726,7 +726,7 @@ impl ThUnit {
                     let mut cfg = model.default_config;
                     cfg.serial = serial;
                     cfg.node_id = node_id;
-                    let mut node = canpos_core::Node::new(model, cfg, RamStorage::default());
+                    let mut node = canpos_core::SensorNode::new(model, cfg, RamStorage::default());
                     node.power_on(canpos_core::Instant::ZERO);
                     while node.poll_transmit().is_some() {}
                     ThUnit {

@@ -16,14 +16,15 @@
 //! velocity = Δnm / Δt in 0x6005/2 units (0.01 mm/s), rounded, sign flipped with bit 0
 //! ```
 
+mod config;
 mod sample;
 
+pub use config::{common_param, param, Channels, DeviceConfig, Fixed, Model, Switches, Unfixed};
 pub use sample::{Sample, MAX_CHANNELS};
 
 use crate::app::{AppCtx, AppView, Application};
 use crate::div;
 use crate::emcy::{self, Emcy};
-use crate::models::{Features, Model};
 use crate::nmt::NmtState;
 use crate::od::{Abort, Dictionary};
 
@@ -51,6 +52,14 @@ pub mod hook {
     pub const OFFSET: u8 = 9;
     /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
     pub const MANUFACTURER_STATUS: u8 = 10;
+}
+
+/// The EMCY codes of the products' CiA 406 reactions that CiA 301 has no name for.
+pub mod code {
+    /// TMI: cam state changed.
+    pub const TMI_CAM: u16 = 0x9080;
+    /// TMI: work area state changed.
+    pub const TMI_WORK_AREA: u16 = 0x9090;
 }
 
 /// TMI system-data errors (§1.14, 0x5000 with sub-codes). All but
@@ -197,7 +206,9 @@ struct Channel {
 
 /// The CiA 406 application state (per-channel history the dictionary does not hold).
 #[derive(Clone, Debug, Default)]
-pub struct Encoder {
+pub struct Encoder<P: Fixed = Unfixed> {
+    /// The description the build fixes, if any ([`Fixed`]).
+    _fixed: core::marker::PhantomData<P>,
     ch: [Channel; MAX_CHANNELS],
     /// Active fault conditions (F_* bits).
     faults: u16,
@@ -231,13 +242,13 @@ pub struct Encoder {
     /// Auto-stored values changed: the node should persist them.
     auto_dirty: bool,
     /// The offset each channel's last preset produced, on a model that keeps it inside the
-    /// device ([`crate::models::Features::preset_offset_internal`], TMI): stored with 0x6010
+    /// device ([`Switches::preset_offset_internal`], TMI): stored with 0x6010
     /// (the application parameters) and given back at reset node. `None`: no preset since the
     /// defaults, the position is the measured one.
     offsets: [Option<i32>; MAX_CHANNELS],
 }
 
-impl Encoder {
+impl<P: Fixed> Encoder<P> {
     /// Whether a fault condition is active (hosts, tests).
     pub fn fault_active(&self, f: Fault) -> bool {
         match f {
@@ -305,9 +316,9 @@ impl Encoder {
     }
 
     /// One channel's measurement: position, velocity, then the states derived from them.
-    fn measure(&mut self, ch: usize, nm: Option<i64>, cx: &mut AppCtx<'_>) {
+    fn measure(&mut self, ch: usize, nm: Option<i64>, cx: &mut AppCtx<'_, Self>) {
         let sub = ch as u8 + 1;
-        let tmi = features(cx.model).tmi_error_reactions;
+        let tmi = Self::profile(cx.model).tmi_error_reactions;
         let c = &mut self.ch[ch];
         match nm {
             Some(nm) => {
@@ -339,7 +350,7 @@ impl Encoder {
     }
 
     /// Position of channel `ch` from its last measurement, and its cam / work-area states.
-    fn publish(&mut self, ch: usize, cx: &mut AppCtx<'_>) {
+    fn publish(&mut self, ch: usize, cx: &mut AppCtx<'_, Self>) {
         let Some(nm) = self.ch[ch].nm else {
             return;
         };
@@ -352,7 +363,7 @@ impl Encoder {
     }
 
     /// Position steps before the preset offset: quantised, direction applied.
-    fn base_steps(&self, nm: i64, cx: &AppCtx<'_>) -> i64 {
+    fn base_steps(&self, nm: i64, cx: &AppCtx<'_, Self>) -> i64 {
         let step = cx
             .od
             .value(0x6005, 1)
@@ -370,9 +381,9 @@ impl Encoder {
     }
 
     /// The offset added to channel `ch`'s steps: the one the last preset produced, in 0x650C/n
-    /// or kept inside the device (TMI, see [`crate::models::Features::preset_offset_internal`]).
-    fn offset(&self, ch: usize, cx: &AppCtx<'_>) -> i64 {
-        if features(cx.model).preset_offset_internal {
+    /// or kept inside the device (TMI, see [`Switches::preset_offset_internal`]).
+    fn offset(&self, ch: usize, cx: &AppCtx<'_, Self>) -> i64 {
+        if Self::profile(cx.model).preset_offset_internal {
             return self.offsets[ch].unwrap_or(0) as i64;
         }
         cx.od.value(0x650C, ch as u8 + 1).unwrap_or(0) as i32 as i64
@@ -380,9 +391,9 @@ impl Encoder {
 
     /// Writing a preset makes the current position read it (SPEC §10, CiA 406): the device
     /// keeps the offset between the two; E-Series clears the preset with 0xFFFFFFFF.
-    fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_>) {
+    fn preset(&mut self, ch: usize, raw: u32, cx: &mut AppCtx<'_, Self>) {
         let sub = ch as u8 + 1;
-        let offset = if features(cx.model).preset_clear && raw == 0xFFFF_FFFF {
+        let offset = if Self::profile(cx.model).preset_clear && raw == 0xFFFF_FFFF {
             cx.od.set_value(0x6010, sub, 0);
             0
         } else {
@@ -390,7 +401,7 @@ impl Encoder {
             let base = self.ch[ch].nm.map_or(0, |nm| self.base_steps(nm, cx));
             (raw as i32 as i64 - base).clamp(i32::MIN as i64, i32::MAX as i64)
         };
-        if features(cx.model).preset_offset_internal {
+        if Self::profile(cx.model).preset_offset_internal {
             self.offsets[ch] = Some(offset as i32);
             return;
         }
@@ -401,11 +412,11 @@ impl Encoder {
     }
 
     /// Cam states of one channel (D5).
-    fn cams(&mut self, ch: usize, pos: i64, cx: &mut AppCtx<'_>) {
+    fn cams(&mut self, ch: usize, pos: i64, cx: &mut AppCtx<'_, Self>) {
         let sub = ch as u8 + 1;
         let enable = cx.od.value(0x6301, sub).unwrap_or(0);
         let polarity = cx.od.value(0x6302, sub).unwrap_or(0);
-        let window = features(cx.model).window_cams;
+        let window = Self::profile(cx.model).window_cams;
         let mut state = 0u32;
         for k in 0..4u16 {
             let low = cx.od.value(0x6310 + k, sub).unwrap_or(0) as i32 as i64;
@@ -431,21 +442,20 @@ impl Encoder {
                 state |= bit;
             }
         }
-        if set_live(cx, 0x6300, sub, state, true) && features(cx.model).tmi_error_reactions {
-            cx.emcy
-                .event(emcy::code::TMI_CAM, [sub, state as u8, 0, 0, 0]);
+        if set_live(cx, 0x6300, sub, state, true) && Self::profile(cx.model).tmi_error_reactions {
+            cx.emcy.event(code::TMI_CAM, [sub, state as u8, 0, 0, 0]);
         }
     }
 
     /// Work-area state of one channel: bit 2 below the low limit, bit 1 above the high limit,
     /// bit 0 outside the measuring range (TH / E-Series) or at or below the preset or at or
     /// past the sensor length (TMI §1.11.2 with its inclusive bounds).
-    fn work_area(&mut self, ch: usize, pos: i64, nm: i64, cx: &mut AppCtx<'_>) {
+    fn work_area(&mut self, ch: usize, pos: i64, nm: i64, cx: &mut AppCtx<'_, Self>) {
         let sub = ch as u8 + 1;
         let low = cx.od.value(0x6401, sub).unwrap_or(0) as i32 as i64;
         let high = cx.od.value(0x6402, sub).unwrap_or(0) as i32 as i64;
         let end = cx.cfg.stroke_mm as i64 * 1_000_000;
-        let out = if features(cx.model).preset_offset_internal {
+        let out = if Self::profile(cx.model).preset_offset_internal {
             // TMI 002 §1.11.2: "Position <= Preset Value or Position >= Sensor length", both in
             // the preset's coordinates as the limits are ("regard the preset"): the length in
             // position steps, shifted by the preset's offset.
@@ -461,14 +471,14 @@ impl Encoder {
             nm < 0 || nm > end
         };
         let state = ((pos < low) as u32) << 2 | ((pos > high) as u32) << 1 | out as u32;
-        if set_live(cx, 0x6400, sub, state, true) && features(cx.model).tmi_error_reactions {
+        if set_live(cx, 0x6400, sub, state, true) && Self::profile(cx.model).tmi_error_reactions {
             cx.emcy
-                .event(emcy::code::TMI_WORK_AREA, [sub, 0, state as u8, 0, 0]);
+                .event(code::TMI_WORK_AREA, [sub, 0, state as u8, 0, 0]);
         }
     }
 
     /// TH 0x2901: actual, since start-up and operating-life extremes.
-    fn temperature(&mut self, t: i8, cx: &mut AppCtx<'_>) {
+    fn temperature(&mut self, t: i8, cx: &mut AppCtx<'_, Self>) {
         if cx.od.find(0x2901, 1).is_err() {
             return;
         }
@@ -499,8 +509,8 @@ impl Encoder {
     }
 
     /// Brings alarms, warnings and EMCYs in line with the conditions.
-    fn sync(&mut self, cx: &mut AppCtx<'_>) {
-        let tmi = features(cx.model).tmi_error_reactions;
+    fn sync(&mut self, cx: &mut AppCtx<'_, Self>) {
+        let tmi = Self::profile(cx.model).tmi_error_reactions;
         let position_error = self.faults & (F_MISSING | F_TRANSDUCER) != 0;
         cx.od.set_value(0x6503, 0, position_error as u32);
         cx.od.set_value(0x6505, 0, self.warnings as u32);
@@ -598,11 +608,12 @@ impl Encoder {
     }
 }
 
-impl Application for Encoder {
+impl<P: Fixed> Application for Encoder<P> {
     type Sample = Sample;
     type Fault = Fault;
-    // The CiA 406 application of the three products.
-    const PRODUCT_ONLY: bool = true;
+    type Config = DeviceConfig;
+    type Profile = Switches;
+    const FIXED: Option<&'static Model> = P::MODEL;
 
     fn power_on(&mut self) {
         *self = Encoder::default();
@@ -630,8 +641,8 @@ impl Application for Encoder {
     /// to pre-operational. Out of line, so that its frame is gone before the node stores what
     /// the cycle changed (0x2901): on an MCU that store is the deepest stack.
     #[inline(never)]
-    fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = features(cx.model).tmi_error_reactions;
+    fn cycle(&mut self, s: &Sample, cx: &mut AppCtx<'_, Self>) -> bool {
+        let tmi = Self::profile(cx.model).tmi_error_reactions;
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
         self.receiving = true;
         // TMI sensor error: "the current process values stay in the object directory; the cam
@@ -662,8 +673,8 @@ impl Application for Encoder {
 
     /// Injects (`active`) or removes a fault condition. Returns true when the model's
     /// reaction forces the node back to pre-operational.
-    fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_>) -> bool {
-        let tmi = features(cx.model).tmi_error_reactions;
+    fn inject(&mut self, f: Fault, active: bool, cx: &mut AppCtx<'_, Self>) -> bool {
+        let tmi = Self::profile(cx.model).tmi_error_reactions;
         match f {
             Fault::Transducer => set_flag(&mut self.faults, F_TRANSDUCER, active),
             Fault::SupplyVoltage => set_flag(&mut self.faults, F_VOLTAGE, active),
@@ -683,7 +694,7 @@ impl Application for Encoder {
                     cx.emcy.event(emcy::code::BUS_OFF_RECOVERED, [0; 5]);
                     if cx.emcy.is_active(emcy::code::BUS_OFF_RECOVERED) {
                         cx.emcy.clear(emcy::code::BUS_OFF_RECOVERED);
-                    } else if features(cx.model).emcy_on_register_change {
+                    } else if Self::features(cx.model).emcy_on_register_change {
                         cx.emcy.reset_message();
                     }
                 }
@@ -733,7 +744,7 @@ impl Application for Encoder {
     }
 
     /// The rule of application hook `h` for a write of `raw` to `sub`.
-    fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_>) -> Result<(), Abort> {
+    fn validate(&self, h: u8, sub: u8, raw: u32, cx: &AppView<'_, Self>) -> Result<(), Abort> {
         let (lo, hi) = limits(h, cx.cfg).unwrap_or((0, u32::MAX));
         match h {
             // D2: only the code-sequence bit.
@@ -748,7 +759,7 @@ impl Application for Encoder {
     }
 
     /// The side effects of application hook `h` once `raw` was written to `sub`.
-    fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+    fn written(&mut self, h: u8, sub: u8, raw: u32, cx: &mut AppCtx<'_, Self>) {
         let n = (cx.cfg.channels as usize).clamp(1, MAX_CHANNELS);
         match h {
             hook::PRESET => {
@@ -789,7 +800,7 @@ impl Application for Encoder {
 
     /// A communication parameter `sub` of TPDO `n` changed: 0x6200 is one value with TPDO1's
     /// event timer (D12).
-    fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_>) {
+    fn tpdo_comm_written(&mut self, n: usize, sub: u8, raw: u32, cx: &mut AppCtx<'_, Self>) {
         if n == 0 && sub == 5 {
             cx.od.set_value(0x6200, 0, raw);
         }
@@ -845,9 +856,9 @@ impl Application for Encoder {
 
     /// The TMI reports corrupt storage itself (0x1002 bit 14); the others leave it to the
     /// generic EMCY 0x6300.
-    fn storage_corrupt(&mut self, cx: &mut AppCtx<'_>) -> bool {
+    fn storage_corrupt(&mut self, cx: &mut AppCtx<'_, Self>) -> bool {
         self.storage_corrupt = true;
-        features(cx.model).tmi_error_reactions
+        Self::profile(cx.model).tmi_error_reactions
     }
 }
 
@@ -855,7 +866,7 @@ impl Application for Encoder {
 /// its rule is a range (the table's range of the entry applies as well): what the unit's EDS
 /// gives as `LowLimit` / `HighLimit`, so that the file names what that unit accepts (a 5 µm TMI
 /// refuses a measuring step below 5000 nm).
-pub fn limits(h: u8, cfg: &crate::models::DeviceConfig) -> Option<(u32, u32)> {
+pub fn limits(h: u8, cfg: &DeviceConfig) -> Option<(u32, u32)> {
     match h {
         // R31: from the variant's minimum step (1 µm or 5 µm), whole µm, up to 100 µm.
         hook::MEASURING_STEP => Some((cfg.position_step_nm.div_ceil(1000) * 1000, 100_000)),
@@ -900,7 +911,13 @@ fn first_mfr(fresh: u32, sensor: [u8; 5]) -> [u8; 5] {
 
 /// Writes a live value; tells the TPDOs when it changed (`event` for cam / work-area states,
 /// which trigger event-driven TPDOs). Returns whether it changed.
-fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> bool {
+fn set_live<A: Application + ?Sized>(
+    cx: &mut AppCtx<'_, A>,
+    index: u16,
+    sub: u8,
+    raw: u32,
+    event: bool,
+) -> bool {
     let Ok(slot) = cx.od.find(index, sub) else {
         return false;
     };
@@ -910,17 +927,6 @@ fn set_live(cx: &mut AppCtx<'_>, index: u16, sub: u8, raw: u32, event: bool) -> 
     cx.od.set(slot, raw);
     cx.pdo.value_changed(slot, event);
     true
-}
-
-/// The features of the product the encoder runs, by the node's own rule
-/// ([`crate::app::features`]): constants in a one-model build
-/// ([`crate::models::features_of`]; 1.3 KB of the TH firmware). Evaluated here, where they are
-/// used, rather than handed in through the context: a reference in [`AppCtx`] is a run-time
-/// value to the out-of-line cycle, and the other products' branches then stay (+1.3 KB,
-/// measured).
-#[inline(always)]
-fn features(model: &'static Model) -> &'static Features {
-    crate::app::features::<Encoder>(model)
 }
 
 /// Velocity in 0x6005/2 units (of 0.01 mm/s), rounded half away from zero, positive away
@@ -949,7 +955,7 @@ fn velocity_units(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
 }
 
 /// TMI R27: TPDO1's event timer is shorter than one worst-case frame at the active bit rate.
-fn event_timer_insufficient(cx: &AppCtx<'_>) -> bool {
+fn event_timer_insufficient<A: Application + ?Sized>(cx: &AppCtx<'_, A>) -> bool {
     if cx.bitrate_kbps == 0 {
         return false;
     }

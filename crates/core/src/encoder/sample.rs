@@ -1,5 +1,5 @@
-/// Highest number of position channels any model has (TH multi-position: 4 magnets).
-pub use crate::config::MAX_CHANNELS;
+/// Most position channels a sample carries (TH multi-position: 4 magnets).
+pub const MAX_CHANNELS: usize = 4;
 
 /// What the sensing element delivers once per measurement cycle: the input of the CiA 406
 /// encoder application. On a host it comes from `canpos-sim`; on a microcontroller from the
@@ -23,3 +23,6 @@ impl Default for Sample {
         }
     }
 }
+
+// One stored preset offset per channel (a TMI keeps them beside the dictionary).
+const _: () = assert!(MAX_CHANNELS <= crate::config::APP_RECORDS);

@@ -14,9 +14,11 @@
     allow(dead_code, unused_imports, unused_macros)
 )]
 
-use crate::div;
-use crate::od::{Entry, Param};
-use crate::sdo::Transfers;
+use crate::encoder::Fixed;
+use crate::od::Entry;
+
+pub use crate::encoder::{DeviceConfig, Model, Switches};
+pub use crate::model::Features;
 
 #[cfg(feature = "e-series")]
 pub mod e_series;
@@ -24,194 +26,6 @@ pub mod e_series;
 pub mod th;
 #[cfg(feature = "tmi")]
 pub mod tmi;
-
-/// Behaviour switches of a product model that are not properties of single objects.
-#[derive(Clone, Copy, Debug)]
-pub struct Features {
-    /// Tag written into storage images so one model never loads another's.
-    pub tag: u8,
-    /// Number of TPDOs (0x1800… / 0x1A00…).
-    pub tpdos: u8,
-    /// SDO segmented transfer supported (TMI: no → abort 0x05040001).
-    pub sdo_segmented: bool,
-    /// SDO block transfer supported.
-    pub sdo_block: bool,
-    /// Node guarding supported (TMI: no).
-    pub node_guarding: bool,
-    /// TPDOs may be requested by RTR (when COB-ID bit 30 is clear).
-    pub tpdo_rtr: bool,
-    /// LSS fastscan supported (DS 305 V2).
-    pub lss_fastscan: bool,
-    /// LSS bit-timing table-0 indices the model accepts (D9).
-    pub lss_bit_timing: &'static [u8],
-    /// Bit rates (kbit/s) the model supports, for the EDS `BaudRate_xxx` keys.
-    pub bitrates: &'static [u16],
-    /// Storing (0x1010) only allowed in pre-operational (TMI).
-    pub store_preop_only: bool,
-    /// 0x1010 accepts the "kill" signature (TMI).
-    pub kill_signature: bool,
-    /// E-Series: writing 0xFFFFFFFF to a preset clears it.
-    pub preset_clear: bool,
-    /// The offset a preset (0x6010/n) produces is kept inside the device and stored with the
-    /// preset, not shown in 0x650C (TMI: it has no offset object). The preset itself is CiA
-    /// 406's on every model: the value the current position takes when it is written.
-    pub preset_offset_internal: bool,
-    /// The TMI's EMCY table and error reactions (002 §1.13 / §1.14): manufacturer bytes per
-    /// code, EMCY 0x9080 / 0x9090 on cam / work-area changes, the system-data errors with their
-    /// lock-out, process values frozen on a sensor error, 0x1002 status, corrupt storage in
-    /// 0x1002 instead of EMCY 0x6300, and the conditions its table has no code for.
-    pub tmi_error_reactions: bool,
-    /// Cams are windows [low, high] with hysteresis (TMI, CiA 406) instead of thresholds.
-    pub window_cams: bool,
-    /// The power-on EMCY (0x0000) follows every boot-up (D14; TH and E-Series, whose manuals
-    /// say "Power-on / reset"; the TMI manual has none).
-    pub power_on_emcy: bool,
-    /// A SYNC with more than one data byte raises EMCY 0x8240 "unexpected SYNC data length"
-    /// (CiA 301; the TMI's EMCY table has no such code, so it ignores the frame).
-    pub sync_length_emcy: bool,
-    /// An EMCY 0x0000 goes along with every change of the error register when an error
-    /// clears, not only when the last one does (TH / E-Series: "Emergency objects go along
-    /// with changes of the internal error status register"; TMI: 0x0000 is "Sensor Error
-    /// resetted", sent once no error is left). Also the 0x0000 after "recovered from bus-off".
-    pub emcy_on_register_change: bool,
-    /// A TPDO's event timer must stay above its inhibit time (TMI R27).
-    pub event_timer_above_inhibit: bool,
-    /// A node without a valid node-id enters LSS configuration by itself (TMI, DSP 305 V1.1
-    /// R7); DS 305 V2 nodes wait in LSS waiting for a master to select them.
-    pub lss_unconfigured_configures: bool,
-}
-
-impl Features {
-    /// The SDO transfer types beyond expedited ones.
-    #[inline(always)]
-    pub const fn sdo_transfers(&self) -> Transfers {
-        Transfers {
-            segmented: self.sdo_segmented,
-            block: self.sdo_block,
-        }
-    }
-}
-
-/// The unit-specific configuration (what the order code and label say).
-///
-/// Start from a model's [`Model::default_config`] and change what the unit's order code says
-/// with the `with_*` builders, then pass it through [`Model::configure`] so that values the
-/// model derives (TH measurement cycle from the stroke) follow.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct DeviceConfig {
-    /// Node-id at first power-on (1…127, 0xFF = unconfigured); stored LSS values override it.
-    pub node_id: u8,
-    /// Bit rate at first power-on in kbit/s (0 = autobaud, TMI); stored values override it.
-    pub bitrate_kbps: u16,
-    /// Serial number (0x1018/4, 0x650B).
-    pub serial: u32,
-    /// Stroke length in mm.
-    pub stroke_mm: u32,
-    /// Position measuring step in nm (0x6005/1). On TMI the variant's minimum step (1 µm or
-    /// 5 µm); the step in use is 0x6005/1, which is writable there.
-    pub position_step_nm: u32,
-    /// Number of magnets / position channels.
-    pub channels: u8,
-    /// Measurement cycle in µs.
-    pub cycle_us: u32,
-}
-
-impl DeviceConfig {
-    /// With node-id `id` (1…127, or 0xFF to start unconfigured).
-    pub const fn with_node_id(mut self, id: u8) -> Self {
-        self.node_id = id;
-        self
-    }
-    /// With bit rate `kbps` (0 = autobaud on TMI).
-    pub const fn with_bitrate(mut self, kbps: u16) -> Self {
-        self.bitrate_kbps = kbps;
-        self
-    }
-    /// With serial number `serial`.
-    pub const fn with_serial(mut self, serial: u32) -> Self {
-        self.serial = serial;
-        self
-    }
-    /// With stroke length `mm`.
-    pub const fn with_stroke_mm(mut self, mm: u32) -> Self {
-        self.stroke_mm = mm;
-        self
-    }
-    /// With position measuring step (resolution) `nm`.
-    pub const fn with_step_nm(mut self, nm: u32) -> Self {
-        self.position_step_nm = nm;
-        self
-    }
-    /// With `n` magnets / position channels.
-    pub const fn with_channels(mut self, n: u8) -> Self {
-        self.channels = n;
-        self
-    }
-    /// With measurement cycle `us` (normally derived by [`Model::configure`]).
-    pub const fn with_cycle_us(mut self, us: u32) -> Self {
-        self.cycle_us = us;
-        self
-    }
-}
-
-/// A product model: its dictionary table, its behaviour switches and how configuration-dependent
-/// defaults are computed.
-pub struct Model {
-    /// Short name used on the command line (`th`, `e-series`, `tmi`).
-    pub name: &'static str,
-    /// Product name.
-    pub product: &'static str,
-    /// Vendor name (EDS `VendorName`).
-    pub vendor: &'static str,
-    /// The object dictionary, sorted by index and sub-index.
-    pub entries: &'static [Entry],
-    /// `entries[i].key()` for every entry, in the same order (`table::keys`): a host's
-    /// dictionary searches these, a dense array, rather than the entries (fewer instructions
-    /// per upload). Firmware (without `inline-hot-paths`) searches the entries and keeps the
-    /// array out of flash: empty there (figures: docs/FIRMWARE.md, "Build options in
-    /// figures").
-    pub keys: &'static [u32],
-    /// Behaviour switches.
-    pub features: Features,
-    /// Resolves [`Param`] defaults for a unit.
-    pub param: fn(&DeviceConfig, Param) -> u32,
-    /// Makes a configuration consistent with the model's rules (clamps the channel count,
-    /// derives the measurement cycle from the stroke, …).
-    pub derive: fn(DeviceConfig) -> DeviceConfig,
-    /// The default configuration of this model (the manuals' example unit).
-    pub default_config: DeviceConfig,
-}
-
-impl Model {
-    /// The slot of `key` ([`crate::od::key`]) in the table, or where it would be: a host
-    /// searches [`Model::keys`], firmware the entries.
-    pub fn search(&self, key: u32) -> Result<usize, usize> {
-        if crate::config::INLINE_HOT_PATHS {
-            self.keys.binary_search(&key)
-        } else {
-            crate::od::search_entries(self.entries, key)
-        }
-    }
-
-    /// `cfg` made consistent with this model's rules (see [`Model::derive`]).
-    pub fn configure(&self, cfg: DeviceConfig) -> DeviceConfig {
-        (self.derive)(cfg)
-    }
-
-    /// Most position channels this model's dictionary has (sub 0 of 0x6020).
-    pub fn max_channels(&self) -> u8 {
-        self.entries
-            .iter()
-            .filter(|e| e.index == 0x6020 && e.sub > 0)
-            .count() as u8
-    }
-}
-
-impl core::fmt::Debug for Model {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        f.write_str(self.name)
-    }
-}
 
 /// All models.
 #[cfg(all(feature = "th", feature = "e-series", feature = "tmi"))]
@@ -223,18 +37,8 @@ pub fn all() -> [&'static Model; 3] {
 /// its own, with channel-1 objects only (002 §1.6: a separate EDS per configuration), the
 /// two-channel unit the full one; every other model has one dictionary for all its units. A
 /// node ([`crate::Node::new`]) and an EDS ([`crate::eds::write_eds`]) of the unit use this.
-#[inline(always)]
 pub fn for_unit(model: &'static Model, cfg: &DeviceConfig) -> &'static Model {
-    #[cfg(feature = "tmi")]
-    if core::ptr::eq(model, &tmi::TMI) || core::ptr::eq(model, &tmi::TMI_TWO_CHANNELS) {
-        return if cfg.channels <= 1 {
-            &tmi::TMI
-        } else {
-            &tmi::TMI_TWO_CHANNELS
-        };
-    }
-    let _ = cfg;
-    model
+    model.for_unit(cfg)
 }
 
 /// The dictionary of `model`'s unit with the most objects (the two-channel TMI's): what a tool
@@ -256,28 +60,19 @@ pub fn by_name(name: &str) -> Option<&'static Model> {
 }
 
 /// The product model of a build that compiles in exactly one of them (a firmware: `th`,
-/// `e-series` or `tmi` alone), else `None`. A node whose application runs only with product
-/// models (the CiA 406 encoder) takes its [`Features`] from here when it is `Some`
-/// ([`features_of`]): constants then, so the other products' branches are not linked.
+/// `e-series` or `tmi` alone), else `None`: [`OneModel`] fixes it for the encoder.
 pub const BUILT_ALONE: Option<&'static Model> = built_alone();
 
-/// `model`'s features: [`BUILT_ALONE`]'s, constants, when the node's application runs only
-/// with product models (`product_only`, [`crate::app::Application::PRODUCT_ONLY`]) and the build
-/// has one; else read from `model`. In a one-model build such an application runs that model
-/// only.
-#[inline(always)]
-pub fn features_of(model: &'static Model, product_only: bool) -> &'static Features {
-    match BUILT_ALONE {
-        Some(m) if product_only => {
-            debug_assert!(
-                m.features.tag == model.features.tag,
-                "a one-model build runs its own model (in one of its configurations)"
-            );
-            &m.features
-        }
-        _ => &model.features,
-    }
+/// The description this build fixes for the encoder: [`BUILT_ALONE`]. In a one-model build its
+/// features are constants, so the other products' branches are not linked.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct OneModel;
+impl Fixed for OneModel {
+    const MODEL: Option<&'static Model> = BUILT_ALONE;
 }
+
+/// The CiA 406 encoder as this build runs it.
+pub type Sensor = crate::encoder::Encoder<OneModel>;
 
 const fn built_alone() -> Option<&'static Model> {
     #[cfg(all(feature = "th", not(feature = "e-series"), not(feature = "tmi")))]
@@ -353,7 +148,7 @@ macro_rules! tpdo_map_names {
         ]
     };
 }
-/// The search keys of a table, as [`Model::keys`] wants them (a device outside this crate
+/// The search keys of a table, as [`Table::keys`](crate::Table::keys) wants them (a device outside this crate
 /// builds them the way the models do).
 pub use table::keys;
 pub(crate) use tpdo_map_names;
@@ -706,46 +501,14 @@ pub(crate) mod table {
     }
 }
 
-/// Parameters computed the same way for every model; `product_code` is the model's fixed 0x1018/2.
-pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
-    let step = cfg.position_step_nm.max(1) as u64;
-    match p {
-        // D1: 0x00080196 with one magnet, 0x000A0196 for multi-position variants.
-        Param::DeviceType => {
-            if cfg.channels > 1 {
-                0x000A_0196
-            } else {
-                0x0008_0196
-            }
-        }
-        Param::ProductCode => product_code,
-        Param::SerialNumber => cfg.serial,
-        Param::NodeId => cfg.node_id as u32,
-        Param::BitRateKbps => cfg.bitrate_kbps as u32,
-        Param::PositionStepNm => cfg.position_step_nm,
-        // D18: resolution / (10 × cycle time) in 0.01 mm/s, rounded.
-        Param::VelocityStep => {
-            let num = cfg.position_step_nm as u64 * 100; // nm → 0.01 µm
-            let den = cfg.cycle_us.max(1) as u64 * 10;
-            div::div(div::div(num * 1000, den) + 500, 1000) as u32
-        }
-        Param::MinPosition => 0,
-        Param::MaxPosition => {
-            div::div(cfg.stroke_mm as u64 * 1_000_000, step).min(i32::MAX as u64) as u32
-        }
-        Param::Channels => cfg.channels as u32,
-        Param::Model(_) => 0,
-    }
-}
-
 /// The CiA 406 cams and work areas of a four-channel unit with threshold cams (one low limit
 /// per cam, 0x6310–0x6313), as the TH's and the E-Series' tables both have them. The TMI's
 /// window cams (high limits, hysteresis) are its own.
 #[cfg(any(feature = "th", feature = "e-series"))]
 #[rustfmt::skip]
 const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
-    use crate::encoder::hook;
-    use crate::od::{Access::{Ro, Rw}, DataType::*, DefaultValue::*, Group::*, Hook, Param, Range::Any};
+    use crate::encoder::{hook, param};
+    use crate::od::{Access::{Ro, Rw}, DataType::*, DefaultValue::*, Group::*, Hook, Range::Any};
     use table::{channels, hooked};
     &[
         &channels::<5>(0x6300, chnames!("Cam state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
@@ -756,8 +519,8 @@ const THRESHOLD_CAM_PARTS: &[&[Entry]] = {
         &hooked(channels::<5>(0x6312, chnames!("Cam3 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
         &hooked(channels::<5>(0x6313, chnames!("Cam4 low limit"; 1, 2, 3, 4), Integer32, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
         &channels::<5>(0x6400, chnames!("Work area state"; 1, 2, 3, 4), Unsigned8, Ro, true, Live, &Any, Volatile),
-        &hooked(channels::<5>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
-        &hooked(channels::<5>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+        &hooked(channels::<5>(0x6401, chnames!("Work area low limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(param::MIN_POSITION), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+        &hooked(channels::<5>(0x6402, chnames!("Work area high limit"; 1, 2, 3, 4), Integer32, Rw, false, Param(param::MAX_POSITION), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
     ]
 };
 

@@ -9,10 +9,12 @@
 //! sub-index) and it is the CiA 301 object, so TH has it (default 0) like the E-Series.
 
 use super::table::{self, channels, TpdoComm};
-use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use super::{chnames, tpdo_comm_names, tpdo_map_names};
 use crate::config;
 use crate::encoder::hook;
+use crate::encoder::{param, DeviceConfig, Model, Switches};
 use crate::entry;
+use crate::model::{Features, Table};
 use crate::od::{
     cia301,
     Access::{Ro, Rw},
@@ -111,8 +113,8 @@ const MFR: &[Entry] = &[
     // D20: stored, no effect (scaling is fixed).
     entry!(0x6002, 0, "Total measuring range", Unsigned32, Rw, Const(0), Any, App),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)).with_hook(Hook::app(hook::MEASURING_STEP)),
-    entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(Param::VelocityStep)),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Ro, Param(param::POSITION_STEP_NM)).with_hook(Hook::app(hook::MEASURING_STEP)),
+    entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Ro, Param(param::VELOCITY_STEP)),
 ];
 
 #[rustfmt::skip]
@@ -125,7 +127,7 @@ const STATUS: &[Entry] = &[
 const DIAG: &[Entry] = &[
     // D2: reads the active 0x6000.
     entry!(0x6500, 0, "Operating status", Unsigned16, Ro, Live).with_hook(Hook::app(hook::OPERATING_STATUS)),
-    entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(Param::PositionStepNm)),
+    entry!(0x6501, 0, "Measuring step", Unsigned32, Ro, Param(param::POSITION_STEP_NM)),
     // D3: bit 0 = position error (missing magnet); live, so no default in the EDS.
     // Table 17: default 0x0000; the application sets bit 0 while a magnet is missing (D13).
     entry!(0x6503, 0, "Alarms", Unsigned16, Ro, Const(0)),
@@ -136,8 +138,8 @@ const DIAG: &[Entry] = &[
     entry!(0x6507, 0, "Profile and software version", Unsigned32, Const, Const(0x0301_0401)),
     entry!(0x650A, 0, "Module identification: number of entries", Unsigned8, Const, Const(3)),
     entry!(0x650A, 1, "Manufacturer offset value", Integer32, Const, Const(0)),
-    entry!(0x650A, 2, "Manufacturer min. position value", Integer32, Ro, Param(Param::MinPosition)),
-    entry!(0x650A, 3, "Manufacturer max. position value", Integer32, Ro, Param(Param::MaxPosition)),
+    entry!(0x650A, 2, "Manufacturer min. position value", Integer32, Ro, Param(param::MIN_POSITION)),
+    entry!(0x650A, 3, "Manufacturer max. position value", Integer32, Ro, Param(param::MAX_POSITION)),
     entry!(0x650B, 0, "Serial number", Unsigned32, Ro, Param(Param::SerialNumber)),
 ];
 
@@ -189,7 +191,7 @@ pub static ENTRIES: &[Entry] = &TABLE;
 pub const PRODUCT_CODE: u32 = 0x4333_3034;
 
 fn param(cfg: &DeviceConfig, p: Param) -> u32 {
-    super::common_param(cfg, p, PRODUCT_CODE)
+    crate::encoder::common_param(cfg, p, PRODUCT_CODE)
 }
 
 /// TH §8: 1 to 4 magnets, 2 µm or 5 µm, measurement cycle by stroke length.
@@ -210,33 +212,38 @@ fn derive(mut cfg: DeviceConfig) -> DeviceConfig {
 
 /// The TH model.
 pub static TH: Model = Model {
-    name: "th",
-    product: "Temposonics TH CANbus",
-    vendor: "MTS Sensor Technologie GmbH & Co. KG",
-    entries: ENTRIES,
-    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
-    features: Features {
-        tag: 1,
-        tpdos: 4,
-        sdo_segmented: true,
-        sdo_block: true,
-        node_guarding: true,
-        tpdo_rtr: true,
-        lss_fastscan: true,
-        lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
-        bitrates: &[1000, 800, 500, 250, 125, 50, 20],
-        store_preop_only: false,
-        kill_signature: false,
+    table: Table {
+        name: "th",
+        product: "Temposonics TH CANbus",
+        vendor: "MTS Sensor Technologie GmbH & Co. KG",
+        entries: ENTRIES,
+        keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
+        features: Features {
+            tag: 1,
+            tpdos: 4,
+            sdo_segmented: true,
+            sdo_block: true,
+            node_guarding: true,
+            tpdo_rtr: true,
+            lss_fastscan: true,
+            lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
+            bitrates: &[1000, 800, 500, 250, 125, 50, 20],
+            store_preop_only: false,
+            kill_signature: false,
+            power_on_emcy: true,
+            sync_length_emcy: true,
+            emcy_on_register_change: true,
+            event_timer_above_inhibit: false,
+            lss_unconfigured_configures: false,
+        },
+    },
+    profile: Switches {
         preset_clear: false,
         preset_offset_internal: false,
         tmi_error_reactions: false,
         window_cams: false,
-        power_on_emcy: true,
-        sync_length_emcy: true,
-        emcy_on_register_change: true,
-        event_timer_above_inhibit: false,
-        lss_unconfigured_configures: false,
     },
+    variant: None,
     param,
     derive,
     default_config: DeviceConfig {

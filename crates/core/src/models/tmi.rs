@@ -17,10 +17,12 @@
 //! alarm), 0x6507 (D4: 0x03010100).
 
 use super::table::{self, channels, TpdoComm};
-use super::{chnames, tpdo_comm_names, tpdo_map_names, DeviceConfig, Features, Model};
+use super::{chnames, tpdo_comm_names, tpdo_map_names};
 use crate::config;
 use crate::encoder::hook;
+use crate::encoder::{param, DeviceConfig, Model, Switches};
 use crate::entry;
+use crate::model::{Features, Table};
 use crate::od::{
     cia301,
     Access::{Ro, Rw},
@@ -126,8 +128,8 @@ const MFR: &[Entry] = &[
     entry!(0x6000, 0, "Operating parameters", Unsigned16, Rw, Const(0), Any, Volatile).with_hook(Hook::app(hook::CODE_SEQUENCE)),
     entry!(0x6005, 0, "Linear encoder measuring step settings: number of entries", Unsigned8, Const, Const(2)),
     // R31: 1 µm steps up to 100 µm, not below the variant's minimum (checked by the encoder).
-    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(Param::PositionStepNm), MinMax(1000, 100_000), App).with_hook(Hook::app(hook::MEASURING_STEP)),
-    entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Rw, Param(Param::VelocityStep), OneOf(&[20, 50, 100, 250]), App),
+    entry!(0x6005, 1, "Position measuring step", Unsigned32, Rw, Param(param::POSITION_STEP_NM), MinMax(1000, 100_000), App).with_hook(Hook::app(hook::MEASURING_STEP)),
+    entry!(0x6005, 2, "Velocity measuring step", Unsigned32, Rw, Param(param::VELOCITY_STEP), OneOf(&[20, 50, 100, 250]), App),
 ];
 
 #[rustfmt::skip]
@@ -175,8 +177,8 @@ macro_rules! parts {
             &table::hooked(channels::<CH>(0x6332, chnames!("Cam3 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
             &table::hooked(channels::<CH>(0x6333, chnames!("Cam4 hysteresis"; $($n),*), Unsigned16, Rw, false, Const(0), &Any, App), Hook::app(hook::CAM_LIMIT)),
             &channels::<CH>(0x6400, chnames!("Work area state"; $($n),*), Unsigned8, Ro, true, Live, &Any, Volatile),
-            &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; $($n),*), Integer32, Rw, false, Param(Param::MinPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
-            &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; $($n),*), Integer32, Rw, false, Param(Param::MaxPosition), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+            &table::hooked(channels::<CH>(0x6401, chnames!("Work area low limit"; $($n),*), Integer32, Rw, false, Param(param::MIN_POSITION), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
+            &table::hooked(channels::<CH>(0x6402, chnames!("Work area high limit"; $($n),*), Integer32, Rw, false, Param(param::MAX_POSITION), &Any, App), Hook::app(hook::WORK_AREA_LIMIT)),
             DIAG,
         ];
         P
@@ -246,7 +248,7 @@ fn param(cfg: &DeviceConfig, p: Param) -> u32 {
     match p {
         Param::ProductCode => product_code(cfg),
         // D18: 2.5 mm/s by default, not derived from the resolution.
-        Param::VelocityStep => 250,
+        param::VELOCITY_STEP => 250,
         // D16: 0xFFFF is autobaud (0 in the configuration).
         Param::BitRateKbps if cfg.bitrate_kbps == 0 => 0xFFFF,
         Param::Model(PARAM_TPDO2_COB) => {
@@ -257,7 +259,7 @@ fn param(cfg: &DeviceConfig, p: Param) -> u32 {
                 base | 0x8000_0000
             }
         }
-        _ => super::common_param(cfg, p, 0),
+        _ => crate::encoder::common_param(cfg, p, 0),
     }
 }
 
@@ -275,6 +277,13 @@ fn derive(mut cfg: DeviceConfig) -> DeviceConfig {
 }
 
 /// The TMI's behaviour switches (both configurations).
+const SWITCHES: Switches = Switches {
+    preset_clear: false,
+    preset_offset_internal: true,
+    tmi_error_reactions: true,
+    window_cams: true,
+};
+
 const FEATURES: Features = Features {
     tag: 3,
     tpdos: 2,
@@ -287,10 +296,6 @@ const FEATURES: Features = Features {
     bitrates: &[1000, 800, 500, 250, 125, 50, 20, 10],
     store_preop_only: true,
     kill_signature: true,
-    preset_clear: false,
-    preset_offset_internal: true,
-    tmi_error_reactions: true,
-    window_cams: true,
     power_on_emcy: false,
     sync_length_emcy: false,
     emcy_on_register_change: false,
@@ -315,12 +320,16 @@ const DEFAULT_CONFIG: DeviceConfig = DeviceConfig {
 /// `62x`) uses [`TMI_TWO_CHANNELS`] instead ([`super::for_unit`]): 002 §1.6 provides "a
 /// separate eds-file … for each configuration".
 pub static TMI: Model = Model {
-    name: "tmi",
-    product: "Novotechnik TMI CANopen",
-    vendor: "Novotechnik Messwertaufnehmer OHG",
-    entries: ENTRIES,
-    keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
-    features: FEATURES,
+    table: Table {
+        name: "tmi",
+        product: "Novotechnik TMI CANopen",
+        vendor: "Novotechnik Messwertaufnehmer OHG",
+        entries: ENTRIES,
+        keys: if config::INLINE_HOT_PATHS { &KEYS } else { &[] },
+        features: FEATURES,
+    },
+    profile: SWITCHES,
+    variant: Some(unit),
     param,
     derive,
     default_config: DEFAULT_CONFIG,
@@ -328,17 +337,31 @@ pub static TMI: Model = Model {
 
 /// The two-channel TMI: the same unit with the objects of both channels.
 pub static TMI_TWO_CHANNELS: Model = Model {
-    name: "tmi",
-    product: "Novotechnik TMI CANopen",
-    vendor: "Novotechnik Messwertaufnehmer OHG",
-    entries: ENTRIES_TWO_CHANNELS,
-    keys: if config::INLINE_HOT_PATHS {
-        &KEYS_TWO
-    } else {
-        &[]
+    table: Table {
+        name: "tmi",
+        product: "Novotechnik TMI CANopen",
+        vendor: "Novotechnik Messwertaufnehmer OHG",
+        entries: ENTRIES_TWO_CHANNELS,
+        keys: if config::INLINE_HOT_PATHS {
+            &KEYS_TWO
+        } else {
+            &[]
+        },
+        features: FEATURES,
     },
-    features: FEATURES,
+    profile: SWITCHES,
+    variant: Some(unit),
     param,
     derive,
     default_config: DEFAULT_CONFIG.with_channels(2),
 };
+
+/// The TMI dictionary of a unit configured as `cfg`: the one-channel unit has its own, with
+/// channel-1 objects only (002 §1.6: a separate EDS per configuration).
+fn unit(cfg: &DeviceConfig) -> &'static Model {
+    if cfg.channels <= 1 {
+        &TMI
+    } else {
+        &TMI_TWO_CHANNELS
+    }
+}

@@ -17,7 +17,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         let d = &mut self.dev;
         d.now = now;
         d.bitrate = kbps;
-        d.cfg.bitrate_kbps = kbps;
+        d.cfg.set_bitrate_kbps(kbps);
         if d.node_id != UNCONFIGURED {
             d.tx.push_std(cob::ERRCTL + d.node_id as u16, [0; 8], 1);
         }

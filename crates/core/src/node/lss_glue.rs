@@ -77,7 +77,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// Makes `kbps` the active bit rate now (LSS activate bit timing).
     pub(crate) fn activate_bitrate(&mut self, kbps: u16) {
         self.bitrate = kbps;
-        self.cfg.bitrate_kbps = kbps;
+        self.cfg.set_bitrate_kbps(kbps);
     }
 }
 

@@ -18,12 +18,11 @@
 //! | `services.rs` | hot object slots; the services' configuration; EMCY sending; PDO activity |
 //! | `bitrate.rs` | the talk gate (a bit-rate switch) and the detected bit rate (autobaud) |
 
-use crate::app::{self, AppCtx, AppView, Application};
+use crate::app::{AppCtx, AppView, Application, ModelOf};
 use crate::emcy::{self, Emcy};
-use crate::encoder::Encoder;
 use crate::errctl::{self, ErrCtl, ErrCtlEvent};
 use crate::lss::{self, LssSlave, UNCONFIGURED};
-use crate::models::{DeviceConfig, Features, Model};
+use crate::model::{Features, Model, UnitConfig};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{self, le_u32, Abort, DataType, Dictionary, Entry, Hook, Param, ParamSource};
 use crate::pdo::Tpdos;
@@ -61,8 +60,8 @@ pub struct Stats {
 
 /// The state all services share: dictionary, NMT state, identity, queues, storage.
 pub struct Device<A: Application, S: Storage> {
-    pub(crate) model: &'static Model,
-    pub(crate) cfg: DeviceConfig,
+    pub(crate) model: &'static ModelOf<A>,
+    pub(crate) cfg: A::Config,
     pub(crate) od: Dictionary,
     pub(crate) nmt: NmtState,
     pub(crate) powered: bool,
@@ -123,12 +122,12 @@ pub struct Node<A: Application, S: Storage> {
     fast_due: u64,
 }
 
-impl<S: Storage> Node<Encoder, S> {
-    /// A sensor of `model` (the CiA 406 application) with unit configuration `cfg`, powered
-    /// off. Call [`Node::power_on`].
+impl<A: Application + core::default::Default, S: Storage> Node<A, S> {
+    /// A node of `model` running a new `A` with unit configuration `cfg`, powered off. Call
+    /// [`Node::power_on`].
     #[inline(always)] // lets firmware build the node in its static, not in a stack temporary
-    pub fn new(model: &'static Model, cfg: DeviceConfig, storage: S) -> Self {
-        Node::with_app(model, cfg, Encoder::default(), storage)
+    pub fn new(model: &'static ModelOf<A>, cfg: A::Config, storage: S) -> Self {
+        Node::with_app(model, cfg, A::default(), storage)
     }
 }
 
@@ -136,12 +135,16 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// A node of the device `model` describes, running application `app`, powered off. Call
     /// [`Node::power_on`].
     #[inline(always)] // as `new`
-    pub fn with_app(model: &'static Model, cfg: DeviceConfig, app: A, storage: S) -> Self {
-        // The unit's own dictionary (the one-channel TMI's has channel 1 only).
-        let model = crate::models::for_unit(model, &cfg);
+    pub fn with_app(model: &'static ModelOf<A>, cfg: A::Config, app: A, storage: S) -> Self {
+        // The unit's own dictionary (a device with one per configuration); none to pick where
+        // the build fixes a description that has no variants.
+        let model = match A::FIXED {
+            Some(f) if f.variant.is_none() => model,
+            _ => model.for_unit(&cfg),
+        };
         let od = Dictionary::new(model);
         let hot = HotSlots::new(model);
-        let f = app::features::<A>(model);
+        let f = A::features(model);
         Node {
             sdo: SdoServer::new(f.sdo_segmented, f.sdo_block),
             lss: LssSlave::default(),
@@ -155,13 +158,13 @@ impl<A: Application, S: Storage> Node<A, S> {
                 od,
                 nmt: NmtState::Initialising,
                 powered: false,
-                node_id: cfg.node_id,
-                pending_node_id: cfg.node_id,
-                bitrate: cfg.bitrate_kbps,
-                pending_bitrate: cfg.bitrate_kbps,
+                node_id: cfg.node_id(),
+                pending_node_id: cfg.node_id(),
+                bitrate: cfg.bitrate_kbps(),
+                pending_bitrate: cfg.bitrate_kbps(),
                 silent_until: None,
                 talk_from: 0,
-                factory_lss: (cfg.node_id, cfg.bitrate_kbps),
+                factory_lss: (cfg.node_id(), cfg.bitrate_kbps()),
                 stored_lss: (None, None),
                 tx: TxQueue::default(),
                 emcy: Emcy::default(),
@@ -284,8 +287,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.stats.resets = d.stats.resets.wrapping_add(1);
         d.node_id = d.pending_node_id;
         d.bitrate = d.pending_bitrate;
-        d.cfg.node_id = d.node_id;
-        d.cfg.bitrate_kbps = d.bitrate;
+        d.cfg.set_node_id(d.node_id);
+        d.cfg.set_bitrate_kbps(d.bitrate);
         // The application forgets first: reset node then gives it its stored values back.
         if application {
             d.app.reset();
@@ -489,21 +492,20 @@ impl<A: Application, S: Storage> Node<A, S> {
 }
 
 impl<A: Application, S: Storage> Device<A, S> {
-    /// The model's features: constants where the application fixes them
-    /// ([`Application::FEATURES`]) or in a one-model build whose application runs only product
-    /// models ([`crate::models::features_of`]; 0.7 KB of the TH firmware).
+    /// The model's features: constants where the application fixes its description
+    /// ([`Application::FIXED`]: the plain firmware, a one-model sensor build).
     #[inline(always)]
     pub fn features(&self) -> &'static Features {
-        app::features::<A>(self.model)
+        A::features(self.model)
     }
 
     /// The product model.
-    pub fn model(&self) -> &'static Model {
+    pub fn model(&self) -> &'static ModelOf<A> {
         self.model
     }
 
     /// The unit configuration (with the active node-id and bit rate).
-    pub fn config(&self) -> &DeviceConfig {
+    pub fn config(&self) -> &A::Config {
         &self.cfg
     }
 

@@ -23,12 +23,12 @@ fn stored_entry(od: &Dictionary, key: u32) -> Option<(usize, &'static Entry)> {
     Some((slot, od.entries().get(slot)?))
 }
 
-struct Params<'a> {
-    model: &'static Model,
-    cfg: &'a DeviceConfig,
+struct Params<'a, C: 'static, X: 'static> {
+    model: &'static Model<C, X>,
+    cfg: &'a C,
 }
 
-impl ParamSource for Params<'_> {
+impl<C, X> ParamSource for Params<'_, C, X> {
     fn param(&self, p: Param) -> u32 {
         (self.model.param)(self.cfg, p)
     }

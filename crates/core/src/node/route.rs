@@ -51,7 +51,7 @@ impl<A: Application, S: Storage> Node<A, S> {
             if d.nmt.sdo_allowed() {
                 // Read only where a request needs them (the expedited fast path does not).
                 let model = d.model;
-                let t = move || app::features::<A>(model).sdo_transfers();
+                let t = move || A::features(model).sdo_transfers();
                 if let Some(r) = self.sdo.handle_as(f.data(), now, d, t) {
                     // After a store, the first frame this one queues (`Stats::stores`).
                     d.tx.push_std(cob::SDO_TX + node, r, 8);

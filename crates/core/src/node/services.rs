@@ -25,10 +25,10 @@ pub(super) struct HotSlots {
 impl HotSlots {
     /// From the model's table (not the dictionary, which would then have to be in memory
     /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
-    pub(super) fn new(model: &Model) -> Self {
+    pub(super) fn new<C, X>(model: &Model<C, X>) -> Self {
         // Out of line: six lookups share it (this runs once per node).
         #[inline(never)]
-        fn find(model: &Model, index: u16, sub: u8) -> u16 {
+        fn find<C, X>(model: &Model<C, X>, index: u16, sub: u8) -> u16 {
             model
                 .search(od::key(index, sub))
                 .map_or(NO_SLOT, |s| s as u16)
@@ -71,7 +71,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     }
 
     /// The application and the context it runs in (disjoint borrows of the device).
-    pub(super) fn app_ctx(&mut self, now: Instant) -> (&mut A, AppCtx<'_>) {
+    pub(super) fn app_ctx(&mut self, now: Instant) -> (&mut A, AppCtx<'_, A>) {
         let cx = AppCtx {
             od: &mut self.od,
             emcy: &mut self.emcy,

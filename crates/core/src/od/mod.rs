@@ -11,12 +11,12 @@ mod types;
 
 pub use types::{key, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range};
 
-use crate::models::Model;
+use crate::model::Model;
 
 pub use crate::config::MAX_ENTRIES;
 
 /// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
-/// (hosts search [`Model::keys`]), one shared copy.
+/// (hosts search [`Table::keys`](crate::Table::keys)), one shared copy.
 #[inline(never)]
 pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
     entries.binary_search_by_key(&key, Entry::key)
@@ -32,7 +32,7 @@ pub trait ParamSource {
 #[derive(Clone)]
 pub struct Dictionary {
     entries: &'static [Entry],
-    /// [`Model::keys`], searched by [`Dictionary::find`] on a host
+    /// [`Table::keys`](crate::Table::keys), searched by [`Dictionary::find`] on a host
     /// ([`crate::config::INLINE_HOT_PATHS`]; a firmware searches the entries).
     keys: &'static [u32],
     values: [u32; MAX_ENTRIES],
@@ -40,10 +40,10 @@ pub struct Dictionary {
 
 impl Dictionary {
     /// A dictionary for `model`'s table (sorted by index, sub-index; at most [`MAX_ENTRIES`];
-    /// on hosts with its [`Model::keys`]) with all values zero (the node loads the defaults at
+    /// on hosts with its [`Table::keys`](crate::Table::keys)) with all values zero (the node loads the defaults at
     /// its first reset).
     #[inline(always)] // as `Node::new`
-    pub fn new(model: &'static Model) -> Self {
+    pub fn new<C, X>(model: &'static Model<C, X>) -> Self {
         let entries = model.entries;
         assert!(
             entries.len() <= MAX_ENTRIES,

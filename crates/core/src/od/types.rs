@@ -286,16 +286,9 @@ pub enum Param {
     NodeId,
     /// Configured bit rate in kbit/s (TMI 0x2001).
     BitRateKbps,
-    /// Position measuring step in nm (0x6005/1, 0x6501).
-    PositionStepNm,
-    /// Velocity measuring step in 0.01 mm/s (0x6005/2).
-    VelocityStep,
-    /// Start of the measuring range, in position steps (0x650A/2, work-area low limit).
-    MinPosition,
-    /// End of the measuring range, in position steps (0x650A/3, work-area high limit).
-    MaxPosition,
-    /// Number of position channels (sub 0 of per-channel arrays).
-    Channels,
+    /// A value the application's profile defines (its parameter function gives the number's
+    /// meaning).
+    Profile(u8),
     /// A value only one model has (e.g. TMI's TPDO2 COB-ID, valid only on two-channel units);
     /// the model's parameter function defines the number's meaning.
     Model(u8),

@@ -6,7 +6,7 @@
 
 use canpos_core::models::th::TH;
 use canpos_core::models::tmi::TMI;
-use canpos_core::models::Features;
+use canpos_core::models::Model;
 use canpos_core::nmt::NmtState;
 use canpos_core::storage::{self, RamStorage};
 use canpos_core::Application;
@@ -18,10 +18,47 @@ struct Quiet;
 impl Application for Quiet {
     type Sample = ();
     type Fault = u8;
+    type Config = canpos_core::DeviceConfig;
+    type Profile = canpos_core::models::Switches;
 }
 
-fn started<A: Application>(app: A) -> Node<A, RamStorage> {
-    let mut n = Node::with_app(&TH, TH.default_config, app, RamStorage::default());
+fn started<
+    A: Application<Config = canpos_core::DeviceConfig, Profile = canpos_core::models::Switches>,
+>(
+    app: A,
+) -> Node<A, RamStorage> {
+    started_on(&TH, TH.default_config, app)
+}
+
+/// The TH's table as a device with no application configuration (a `Plain` device).
+fn plain_th() -> &'static canpos_core::model::Model {
+    Box::leak(Box::new(canpos_core::model::Model {
+        table: canpos_core::Table { ..TH.table },
+        profile: (),
+        param: |c: &canpos_core::CommConfig, p| {
+            (TH.param)(
+                &TH.default_config
+                    .with_node_id(c.node_id)
+                    .with_serial(c.serial),
+                p,
+            )
+        },
+        derive: |c| c,
+        variant: None,
+        default_config: canpos_core::CommConfig {
+            node_id: 127,
+            bitrate_kbps: 125,
+            serial: 1,
+        },
+    }))
+}
+
+fn started_on<A: Application>(
+    model: &'static canpos_core::ModelOf<A>,
+    cfg: A::Config,
+    app: A,
+) -> Node<A, RamStorage> {
+    let mut n = Node::with_app(model, cfg, app, RamStorage::default());
     n.power_on(Instant::ZERO);
     while n.poll_transmit().is_some() {}
     let start = canpos_core::Frame::new(0x000, &[0x01, 0]).unwrap();
@@ -31,7 +68,8 @@ fn started<A: Application>(app: A) -> Node<A, RamStorage> {
 
 #[test]
 fn plain_device_starts_and_stays_operational_through_cycles() {
-    let mut n = started(Plain);
+    let m = plain_th();
+    let mut n = started_on(m, m.default_config, Plain);
     assert_eq!(n.device().nmt_state(), NmtState::Operational);
     for k in 1..=5 {
         n.update_sample(&(), Instant::from_millis(10 + k));
@@ -112,14 +150,16 @@ fn corrupt_storage_raises_the_generic_data_set_emcy() {
     );
 }
 
-/// An application that fixes its device's features at build time (`Application::FEATURES`, as
+/// An application that fixes its device's features at build time (`Application::FIXED`, as
 /// a firmware for a device of its own does; the `plain` size reference is one).
 struct Fixed;
 
 impl Application for Fixed {
     type Sample = ();
     type Fault = u8;
-    const FEATURES: Option<&'static Features> = Some(&TH.features);
+    type Config = canpos_core::DeviceConfig;
+    type Profile = canpos_core::models::Switches;
+    const FIXED: Option<&'static Model> = Some(&TH);
 }
 
 #[test]
@@ -135,7 +175,9 @@ struct Mismatched;
 impl Application for Mismatched {
     type Sample = ();
     type Fault = u8;
-    const FEATURES: Option<&'static Features> = Some(&TMI.features);
+    type Config = canpos_core::DeviceConfig;
+    type Profile = canpos_core::models::Switches;
+    const FIXED: Option<&'static Model> = Some(&TMI);
 }
 
 #[test]

@@ -18,10 +18,12 @@ struct Reacts;
 impl Application for Reacts {
     type Sample = bool;
     type Fault = bool;
-    fn cycle(&mut self, force: &bool, _cx: &mut AppCtx<'_>) -> bool {
+    type Config = canpos_core::DeviceConfig;
+    type Profile = canpos_core::models::Switches;
+    fn cycle(&mut self, force: &bool, _cx: &mut AppCtx<'_, Self>) -> bool {
         *force
     }
-    fn inject(&mut self, force: bool, _active: bool, _cx: &mut AppCtx<'_>) -> bool {
+    fn inject(&mut self, force: bool, _active: bool, _cx: &mut AppCtx<'_, Self>) -> bool {
         force
     }
 }
@@ -83,7 +85,7 @@ fn cia301_7_5_2_32_a_fault_forces_pre_operational_only_from_operational() {
 #[test]
 fn tmi_system_data_error_leaves_a_stopped_node_stopped() {
     let tmi = by_name("tmi").unwrap();
-    let mut n = Node::new(tmi, tmi.default_config, RamStorage::default());
+    let mut n = canpos_core::SensorNode::new(tmi, tmi.default_config, RamStorage::default());
     n.power_on(Instant::ZERO);
     while n.poll_transmit().is_some() {}
     n.handle_frame(
@@ -92,7 +94,7 @@ fn tmi_system_data_error_leaves_a_stopped_node_stopped() {
     );
     n.inject_fault(Fault::SystemData(SystemDataError::WrongScale), true);
     assert_eq!(n.device().nmt_state(), NmtState::Stopped);
-    let mut n = Node::new(tmi, tmi.default_config, RamStorage::default());
+    let mut n = canpos_core::SensorNode::new(tmi, tmi.default_config, RamStorage::default());
     n.power_on(Instant::ZERO);
     n.handle_frame(
         &Frame::new(0x000, &[0x01, 0]).unwrap(),
@@ -107,7 +109,7 @@ fn tmi_system_data_error_leaves_a_stopped_node_stopped() {
 /// TH: a supply-voltage error is reported (EMCY) and the node stays operational.
 #[test]
 fn th_an_error_without_that_reaction_keeps_the_node_operational() {
-    let mut n = Node::new(&TH, TH.default_config, RamStorage::default());
+    let mut n = canpos_core::SensorNode::new(&TH, TH.default_config, RamStorage::default());
     n.power_on(Instant::ZERO);
     n.handle_frame(
         &Frame::new(0x000, &[0x01, 0]).unwrap(),

@@ -7,6 +7,7 @@ use crate::common::{hex, Rig};
 use canpos_core::models::th::TH;
 use canpos_core::models::Model;
 use canpos_core::Frame;
+use canpos_core::Table;
 
 /// The TH without the objects `drop`.
 fn th_without(drop: &[u16]) -> &'static Model {
@@ -18,9 +19,12 @@ fn th_without(drop: &[u16]) -> &'static Model {
         .collect();
     let keys: Vec<u32> = entries.iter().map(|e| e.key()).collect();
     Box::leak(Box::new(Model {
-        name: "th-predefined",
-        entries: Box::leak(entries.into_boxed_slice()),
-        keys: Box::leak(keys.into_boxed_slice()),
+        table: Table {
+            name: "th-predefined",
+            entries: Box::leak(entries.into_boxed_slice()),
+            keys: Box::leak(keys.into_boxed_slice()),
+            ..TH.table
+        },
         ..TH
     }))
 }

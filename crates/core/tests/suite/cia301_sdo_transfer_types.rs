@@ -7,6 +7,7 @@ use crate::common::{hex, Rig};
 use canpos_core::models::th::TH;
 use canpos_core::models::{Features, Model};
 use canpos_core::od::{DefaultValue, Entry};
+use canpos_core::Table;
 
 /// A device name longer than four bytes: its upload needs a segmented or a block transfer.
 static NAME: &str = "canpos position sensor";
@@ -25,12 +26,15 @@ fn model(segmented: bool, block: bool) -> &'static Model {
         })
         .collect();
     Box::leak(Box::new(Model {
-        name: "th-transfer-types",
-        entries: Box::leak(entries.into_boxed_slice()),
-        features: Features {
-            sdo_segmented: segmented,
-            sdo_block: block,
-            ..TH.features
+        table: Table {
+            name: "th-transfer-types",
+            entries: Box::leak(entries.into_boxed_slice()),
+            features: Features {
+                sdo_segmented: segmented,
+                sdo_block: block,
+                ..TH.features
+            },
+            ..TH.table
         },
         ..TH
     }))

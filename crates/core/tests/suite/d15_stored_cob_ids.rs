@@ -57,7 +57,7 @@ fn cobs_as(node_id: u8, st: RamStorage) -> Vec<u32> {
         node_id,
         ..TH.default_config
     };
-    let mut n = Node::new(&TH, cfg, st);
+    let mut n = canpos_core::SensorNode::new(&TH, cfg, st);
     n.power_on(Instant::ZERO);
     (0..4)
         .map(|k| n.read_object(0x1800 + k, 1).unwrap())

@@ -8,6 +8,7 @@ use canpos_core::models::{self, Model};
 use canpos_core::od::{
     resolve_default, Access, DataType, DefaultValue, Entry, Group, Param, ParamSource, Range,
 };
+use canpos_core::Table;
 
 type Ini = BTreeMap<String, BTreeMap<String, String>>;
 
@@ -305,9 +306,12 @@ fn arrays_records_and_object_names() {
         #[cfg(feature = "inline-hot-paths")]
         let keys: &'static [u32] = Box::leak(entries.iter().map(Entry::key).collect());
         let m: &'static Model = Box::leak(Box::new(Model {
-            entries,
-            #[cfg(feature = "inline-hot-paths")]
-            keys,
+            table: Table {
+                entries,
+                #[cfg(feature = "inline-hot-paths")]
+                keys,
+                ..th.table
+            },
             ..*th
         }));
         parse_ini(&eds_of(m))["2F00"]["ObjectType"].clone()
@@ -383,7 +387,10 @@ fn unit_dependent_defaults_are_the_units_values() {
     // Spot checks on TH: the measuring step and the serial number are plain numbers.
     let th = models::by_name("th").unwrap();
     let ini = parse_ini(&eds_of(th));
-    let step = (th.param)(&th.default_config, Param::PositionStepNm);
+    let step = (th.param)(
+        &th.default_config,
+        canpos_core::encoder::param::POSITION_STEP_NM,
+    );
     assert!(step > 1);
     assert_eq!(num(&ini["6005sub1"]["DefaultValue"]), step as i64);
     assert_eq!(ini["100B"]["DefaultValue"], "$NODEID+0x00000000");

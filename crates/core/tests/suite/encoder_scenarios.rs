@@ -5,7 +5,7 @@
 use crate::common::{booted, emcys, expedited_download, hex, model, Rig};
 use canpos_core::encoder::{Fault, SystemDataError};
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant};
 
 fn sdo_write(r: &mut Rig, index: u16, sub: u8, v: u32, n: usize) -> Vec<Frame> {
     let out = r.send(0x67F, &expedited_download(index, sub, v, n));
@@ -323,7 +323,7 @@ fn tmi_insufficient_event_timer_r27() {
 fn corrupt_storage_reports_per_model() {
     for (name, emcy_expected) in [("th", true), ("tmi", false)] {
         let m = model(name);
-        let mut node = Node::new(m, m.default_config, RamStorage::default());
+        let mut node = canpos_core::SensorNode::new(m, m.default_config, RamStorage::default());
         node.power_on(Instant::ZERO);
         while node.poll_transmit().is_some() {}
         node.handle_frame(

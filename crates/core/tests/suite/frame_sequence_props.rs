@@ -12,7 +12,7 @@ use canpos_core::models;
 use canpos_core::nmt::{NmtCommand, NmtState};
 use canpos_core::sdo::wire::{self, Mux, Request};
 use canpos_core::storage::{self, ImageWriter, RamStorage, StorageError, IMAGE_MAX};
-use canpos_core::{Frame, Instant, Node};
+use canpos_core::{Frame, Instant};
 use proptest::prelude::*;
 use proptest::sample::select;
 
@@ -125,7 +125,7 @@ proptest! {
         let m = models::all()[model];
         let mut cfg = m.default_config;
         cfg.node_id = 1;
-        let mut node = Node::new(m, cfg, RamStorage::default());
+        let mut node = canpos_core::SensorNode::new(m, cfg, RamStorage::default());
         node.power_on(Instant::ZERO);
         while node.poll_transmit().is_some() {}
         prop_assert_eq!(node.device().nmt_state(), NmtState::PreOperational);
@@ -321,7 +321,7 @@ fn stored_impossible_node_id_is_ignored() {
             let n = w.finish();
             let mut ram = RamStorage::default();
             ram.save(&buf[..n]).unwrap();
-            let mut node = Node::new(m, m.default_config, ram);
+            let mut node = canpos_core::SensorNode::new(m, m.default_config, ram);
             node.power_on(Instant::ZERO);
             assert_eq!(
                 node.device().node_id(),

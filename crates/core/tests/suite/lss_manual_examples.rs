@@ -6,7 +6,8 @@ use crate::common::{hex, Rig};
 use canpos_core::models::th::TH;
 use canpos_core::models::{self, DeviceConfig, Features, Model};
 use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node, SensorNode};
+use canpos_core::Table;
+use canpos_core::{Frame, Instant, SensorNode};
 
 const LSS_RX: u16 = 0x7E5;
 const LSS_TX: u16 = 0x7E4;
@@ -16,14 +17,18 @@ const LSS_TX: u16 = 0x7E4;
 /// are not in the tree yet.
 fn variant(name: &'static str, features: Features) -> &'static Model {
     Box::leak(Box::new(Model {
-        name,
-        product: TH.product,
-        vendor: TH.vendor,
-        entries: TH.entries,
-        keys: TH.keys,
-        features,
+        table: Table {
+            name,
+            product: TH.product,
+            vendor: TH.vendor,
+            entries: TH.entries,
+            keys: TH.keys,
+            features,
+        },
         param: TH.param,
         derive: TH.derive,
+        profile: TH.profile,
+        variant: None,
         default_config: TH.default_config,
     }))
 }
@@ -466,7 +471,7 @@ fn store_configuration_survives_power_cycle() {
     assert_eq!(r.node.device().node_id(), 5);
     assert_eq!(r.node.device().bitrate(), 500);
     let storage: RamStorage = r.node.storage_mut().clone();
-    let mut n = Node::new(&TH, TH.default_config, storage);
+    let mut n = canpos_core::SensorNode::new(&TH, TH.default_config, storage);
     n.power_on(Instant::ZERO);
     assert_eq!((n.device().node_id(), n.device().bitrate()), (5, 500));
     let boot = n.poll_transmit().unwrap();
@@ -520,7 +525,7 @@ impl Bus {
                     serial,
                     ..TH.default_config
                 };
-                let mut n = Node::new(&TH, cfg, RamStorage::default());
+                let mut n = canpos_core::SensorNode::new(&TH, cfg, RamStorage::default());
                 n.power_on(Instant::ZERO);
                 n
             })

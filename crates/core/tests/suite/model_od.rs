@@ -3,6 +3,7 @@
 //! objects refuse writes with 0x06010002; the default TPDO is byte-exact (TH / E Tables 21/22).
 
 use crate::common::{booted, sample, Rig};
+use canpos_core::encoder::Channels;
 use canpos_core::models::{self, DeviceConfig, Model};
 use canpos_core::od::{resolve_default, DefaultValue, Entry, Group, Param, ParamSource, Range};
 

@@ -3,6 +3,7 @@
 //! command-line names and print as them.
 
 use crate::common::Rig;
+use canpos_core::encoder::Channels;
 use canpos_core::models;
 
 /// Indices of CiA 406 per-channel arrays (present in a model or not).

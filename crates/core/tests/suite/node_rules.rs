@@ -4,6 +4,7 @@ use crate::common::{booted, hex, Rig};
 use canpos_core::encoder::Fault;
 use canpos_core::models::th::TH;
 use canpos_core::Frame;
+use canpos_core::Table;
 
 fn emcy_codes(frames: &[Frame]) -> Vec<u16> {
     frames
@@ -210,10 +211,13 @@ fn cia301_7_2_2_3_rtr_requests_a_tpdo_in_operational() {
 fn a_model_without_tpdo_rtr_answers_no_remote_request() {
     use canpos_core::models::{Features, Model};
     let model: &'static Model = Box::leak(Box::new(Model {
-        name: "th-no-rtr",
-        features: Features {
-            tpdo_rtr: false,
-            ..TH.features
+        table: Table {
+            name: "th-no-rtr",
+            features: Features {
+                tpdo_rtr: false,
+                ..TH.features
+            },
+            ..TH.table
         },
         ..TH
     }));
@@ -280,7 +284,7 @@ fn tmi_0x2001_applies_at_reset_communication() {
 #[test]
 fn cia301_restricted_cob_ids_in_a_state_file_are_not_loaded() {
     use canpos_core::storage::{ImageWriter, RamStorage, Storage, IMAGE_MAX};
-    use canpos_core::{Instant, Node};
+    use canpos_core::Instant;
     let mut image = [0u8; IMAGE_MAX];
     let mut w = ImageWriter::new(&mut image, TH.features.tag);
     let key = |index: u32| index << 8;
@@ -290,7 +294,7 @@ fn cia301_restricted_cob_ids_in_a_state_file_are_not_loaded() {
     let n = w.finish();
     let mut ram = RamStorage::default();
     ram.save(&image[..n]).unwrap();
-    let mut node = Node::new(&TH, TH.default_config, ram);
+    let mut node = canpos_core::SensorNode::new(&TH, TH.default_config, ram);
     node.power_on(Instant::ZERO);
     let id = node.device().node_id() as u32;
     assert_eq!(node.read_object(0x1014, 0), Ok(0x80 + id));
@@ -310,7 +314,7 @@ fn cia301_restricted_cob_ids_in_a_state_file_are_not_loaded() {
 #[test]
 fn cia301_stored_guarding_cob_id_only_the_nodes_own() {
     use canpos_core::storage::{ImageWriter, RamStorage, Storage, IMAGE_MAX};
-    use canpos_core::{Instant, Node};
+    use canpos_core::Instant;
     let boot = |v: u32| {
         let mut image = [0u8; IMAGE_MAX];
         let mut w = ImageWriter::new(&mut image, TH.features.tag);
@@ -318,7 +322,7 @@ fn cia301_stored_guarding_cob_id_only_the_nodes_own() {
         let n = w.finish();
         let mut ram = RamStorage::default();
         ram.save(&image[..n]).unwrap();
-        let mut node = Node::new(&TH, TH.default_config.with_node_id(5), ram);
+        let mut node = canpos_core::SensorNode::new(&TH, TH.default_config.with_node_id(5), ram);
         node.power_on(Instant::ZERO);
         node.read_object(0x100E, 0).unwrap()
     };
@@ -332,7 +336,7 @@ fn cia301_stored_guarding_cob_id_only_the_nodes_own() {
 /// A node whose state file holds `records` (TH, node-id 5), powered on.
 fn boot_with(records: &[(u32, u32)]) -> canpos_core::SensorNode<canpos_core::storage::RamStorage> {
     use canpos_core::storage::{ImageWriter, RamStorage, Storage, IMAGE_MAX};
-    use canpos_core::{Instant, Node};
+    use canpos_core::Instant;
     let mut image = [0u8; IMAGE_MAX];
     let mut w = ImageWriter::new(&mut image, TH.features.tag);
     for &(key, v) in records {
@@ -341,7 +345,7 @@ fn boot_with(records: &[(u32, u32)]) -> canpos_core::SensorNode<canpos_core::sto
     let n = w.finish();
     let mut ram = RamStorage::default();
     ram.save(&image[..n]).unwrap();
-    let mut node = Node::new(&TH, TH.default_config.with_node_id(5), ram);
+    let mut node = canpos_core::SensorNode::new(&TH, TH.default_config.with_node_id(5), ram);
     node.power_on(Instant::ZERO);
     node
 }

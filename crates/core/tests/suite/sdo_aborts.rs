@@ -7,6 +7,7 @@ use canpos_core::models::{Features, Model};
 use canpos_core::od::Abort;
 use canpos_core::sdo::{ObjectAccess, SdoServer};
 use canpos_core::Instant;
+use canpos_core::Table;
 
 /// One step of a case.
 #[derive(Clone, Copy)]
@@ -339,12 +340,15 @@ const NOT_PRODUCED: &[(Abort, &str)] = &[
 
 fn tmi_like() -> &'static Model {
     Box::leak(Box::new(Model {
-        name: "th-tmi-like",
-        features: Features {
-            sdo_segmented: false,
-            sdo_block: false,
-            store_preop_only: true,
-            ..TH.features
+        table: Table {
+            name: "th-tmi-like",
+            features: Features {
+                sdo_segmented: false,
+                sdo_block: false,
+                store_preop_only: true,
+                ..TH.features
+            },
+            ..TH.table
         },
         ..TH
     }))

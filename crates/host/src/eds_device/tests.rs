@@ -31,8 +31,8 @@ fn find(m: &Model, index: u16, sub: u8) -> &Entry {
         .unwrap_or_else(|| panic!("no {index:04X}/{sub}"))
 }
 
-struct Unit(&'static Model, DeviceConfig);
-impl ParamSource for Unit {
+struct Unit<C: 'static, X: 'static>(&'static canpos_core::model::Model<C, X>, C);
+impl<C, X> ParamSource for Unit<C, X> {
     fn param(&self, p: Param) -> u32 {
         (self.0.param)(&self.1, p)
     }

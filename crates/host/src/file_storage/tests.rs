@@ -497,7 +497,7 @@ fn an_image_of_unused_records_does_not_block_later_saves() {
     assert_eq!(n, IMAGE_MAX);
     fs::write(&path, &buf[..n]).unwrap();
 
-    let mut node = Node::new(
+    let mut node = canpos_core::SensorNode::new(
         th,
         th.default_config.with_node_id(5),
         FileStorage::new(&path).for_model(th),
@@ -540,7 +540,11 @@ fn an_image_of_unused_records_does_not_block_later_saves() {
     let bytes = fs::read(&path).unwrap();
     let recs: Vec<_> = parse_image(&bytes, th.features.tag).unwrap().collect();
     assert!(recs.contains(&(0x0010_1700, 250)), "{recs:?}");
-    assert!(recs.iter().all(|&(k, _)| record_used(th, k)), "{recs:?}");
+    assert!(
+        recs.iter()
+            .all(|&(k, _)| record_used(FileStorage::new(&path).for_model(th).model.unwrap(), k)),
+        "{recs:?}"
+    );
     assert_eq!(recs.iter().filter(|r| r.0 == 0x0010_1700).count(), 1);
     // And a later save works too.
     let a = sdo(
@@ -581,7 +585,7 @@ fn a_tmi_preset_survives_a_restart_through_the_state_file() {
     let position = [0x40, 0x20, 0x60, 1, 0, 0, 0, 0];
     {
         let storage = FileStorage::new(&path).for_model(tmi);
-        let mut node = Node::new(tmi, tmi.default_config, storage);
+        let mut node = canpos_core::SensorNode::new(tmi, tmi.default_config, storage);
         node.power_on(Instant::ZERO);
         assert_eq!(read(sdo(&mut node, position)), 300_000);
         // Preset 1000 (0x3E8), then "save".
@@ -597,7 +601,7 @@ fn a_tmi_preset_survives_a_restart_through_the_state_file() {
         assert_eq!(a[0], 0x60, "save answered {a:02X?}");
     }
     let storage = FileStorage::new(&path).for_model(tmi);
-    let mut node = Node::new(tmi, tmi.default_config, storage);
+    let mut node = canpos_core::SensorNode::new(tmi, tmi.default_config, storage);
     // A new process: its own clock.
     node.power_on(Instant::ZERO);
     assert_eq!(
@@ -645,14 +649,16 @@ fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
     let read_cam2 = [0x40, 0x10, 0x63, 2, 0, 0, 0, 0];
     let value = |a: [u8; 8]| i32::from_le_bytes([a[4], a[5], a[6], a[7]]);
     {
-        let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_core::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         let a = sdo(&mut node, [0x23, 0x10, 0x63, 2, 0xD2, 0x04, 0, 0]);
         assert_eq!(a[0], 0x60, "write answered {a:02X?}");
         assert_eq!(sdo(&mut node, save)[0], 0x60);
     }
     {
-        let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_core::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         assert_eq!(
             value(sdo(&mut node, read_cam2)),
@@ -663,13 +669,14 @@ fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
     {
         // The same file in a one-channel unit: it has no 0x6310:2, and a save of its own
         // leaves the other unit's record alone.
-        let mut node = Node::new(tmi, one, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_core::SensorNode::new(tmi, one, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         let a = sdo(&mut node, read_cam2);
         assert_eq!((a[0], value(a)), (0x80, 0x0609_0011), "{a:02X?}");
         assert_eq!(sdo(&mut node, save)[0], 0x60);
     }
-    let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+    let mut node = canpos_core::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
     node.power_on(Instant::ZERO);
     assert_eq!(
         value(sdo(&mut node, read_cam2)),
