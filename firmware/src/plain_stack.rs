@@ -1,4 +1,4 @@
-//! The CiA 301 / 305 stack on its own, for its size figures: canpos-core's node with no
+//! The CiA 301 / 305 stack on its own, for its size figures: canpos-stack's node with no
 //! application of its own (no CiA 406), its features fixed at build time, and a minimal
 //! communication dictionary, on the same board as the TH firmware. Two builds share it (the
 //! crate root defines `ENTRIES` and `MODEL`):
@@ -13,10 +13,10 @@
 //! and checks them beside its table. docs/FIRMWARE.md says how the figures are taken.
 
 use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
-use canpos_core::model::{CommConfig, Features, Model, Table};
-use canpos_core::od::{DefaultValue::*, Entry, Param};
-use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
+use canpos_stack::model::{CommConfig, Features, Model, Table};
+use canpos_stack::od::{DefaultValue::*, Entry, Param};
+use canpos_stack::{entry, Application, Node};
 use core::mem::MaybeUninit;
 use embedded_can::nb::Can;
 

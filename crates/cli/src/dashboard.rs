@@ -31,11 +31,11 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use canpos_core::od::{Access, DataType};
-use canpos_core::Table;
 use canpos_host::control;
 use canpos_host::crossbeam_channel::Sender;
 use canpos_host::Transport;
+use canpos_stack::od::{Access, DataType};
+use canpos_stack::Table;
 use page::{render_page, APP_JS, STYLE, UPLOT_CSS, UPLOT_JS, UPLOT_LICENSE};
 use serde_json::{json, Value};
 use watch::{BusCmd, BusQueue, Controller, Link, Outcome, Pending, Refused, Shared};
@@ -637,7 +637,7 @@ fn object(
     node: &str,
     index: &str,
     sub: &str,
-) -> Result<(u8, &'static canpos_core::od::Entry), ApiError> {
+) -> Result<(u8, &'static canpos_stack::od::Entry), ApiError> {
     let id = known_node(app, node)?;
     let model = model_of(app, id)?;
     let ix = crate::common::parse_index(index)

@@ -6,8 +6,8 @@
 //! device's equivalent and says so in [`Case::note`]; where a product manual contradicts the
 //! catalogue, the manual wins and the note says what the device does instead.
 
-use canpos_core::encoder::Fault;
-use canpos_core::od::Group;
+use canpos_encoder::Fault;
+use canpos_stack::od::Group;
 
 use crate::eds::{export, Eds, EdsEntry};
 use crate::harness::{abort, nmt, BlockUpload, Harness};
@@ -611,7 +611,7 @@ fn sdo_23(h: &mut Harness) -> Outcome {
         return block_refused(h, true);
     }
     // The catalogue's CRC check value first (the harness's CRC is what the server must match).
-    assert_eq!(canpos_core::sdo::wire::crc16(b"CANopenDemoPIC32"), 0x43F3);
+    assert_eq!(canpos_stack::sdo::wire::crc16(b"CANopenDemoPIC32"), 0x43F3);
     let o = BlockUpload {
         crc: true,
         ..Default::default()
@@ -1144,7 +1144,7 @@ fn defaults(h: &mut Harness, lo: u16, hi: u16) -> Outcome {
             .iter()
             .find(|t| t.index == e.index && t.sub == e.sub)
             .unwrap();
-        if matches!(t.default, canpos_core::od::DefaultValue::Live) {
+        if matches!(t.default, canpos_stack::od::DefaultValue::Live) {
             assert!(
                 e.default.is_none(),
                 "{:04X}:{:02X} live with DefaultValue",

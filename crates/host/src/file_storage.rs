@@ -42,13 +42,13 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use canpos_core::od::{Group, Hook};
-use canpos_core::storage::{
+use canpos_models::Model;
+use canpos_stack::od::{Group, Hook};
+use canpos_stack::storage::{
     app_record, check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage,
     StorageError, IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
-use canpos_core::Model;
-use canpos_core::Table;
+use canpos_stack::Table;
 use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
 use rustix::io::Errno;
 
@@ -290,7 +290,7 @@ impl FileStorage {
     /// The same storage, for images of `model`: a load then also names an image of another
     /// model as such, and passes on only the records `model` uses (see the module docs).
     pub fn for_model(mut self, model: &'static Model) -> Self {
-        let widest = canpos_core::models::widest(model);
+        let widest = canpos_models::widest(model);
         self.model = Some((&widest.table, model.profile.preset_offset_internal));
         self
     }

@@ -9,9 +9,9 @@
 use std::io;
 use std::time::Duration;
 
-use canpos_core::model::{CommConfig, Model};
-use canpos_core::Plain;
-use canpos_core::{Instant, Node};
+use canpos_stack::model::{CommConfig, Model};
+use canpos_stack::Plain;
+use canpos_stack::{Instant, Node};
 use serde_json::json;
 
 use crate::can::{BusState, Transport};
@@ -144,7 +144,7 @@ mod tests {
     use crate::control::Request;
     use crate::eds_device::{build, FileKind, Overrides};
     use crate::mem::MemBus;
-    use canpos_core::Frame;
+    use canpos_stack::Frame;
 
     fn recv_id(port: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
         let end = std::time::Instant::now() + within;

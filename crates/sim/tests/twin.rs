@@ -1,10 +1,11 @@
 //! The measurement model driving the CANopen core: a magnet at constant speed reads back through
 //! the dictionary within the model's resolution and error budget (exactly with `ideal`).
 
-use canpos_core::models::{by_name, Model};
-use canpos_core::storage::RamStorage;
-use canpos_core::{Instant, Node, SensorNode};
+use canpos_models::SensorNode;
+use canpos_models::{by_name, Model};
 use canpos_sim::{Sensor, SensorSpec};
+use canpos_stack::storage::RamStorage;
+use canpos_stack::{Instant, Node};
 
 const SPEED_MM_S: f64 = 100.0;
 const START_MM: f64 = 200.0;

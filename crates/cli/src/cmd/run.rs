@@ -245,7 +245,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     rt.power_on()?;
     // The active node-id: a stored LSS node-id wins over the file's and the command line's.
     let id = rt.node().device().node_id();
-    let id_text = if id == canpos_core::UNCONFIGURED {
+    let id_text = if id == canpos_stack::UNCONFIGURED {
         "no node-id (255, LSS unconfigured)".to_string()
     } else {
         format!("node-id {id}")

@@ -10,13 +10,13 @@ use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use canpos_core::models;
-use canpos_core::od::DefaultValue;
-use canpos_core::sdo::wire;
-use canpos_core::{cob, Frame, Table};
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::{self, Receiver, Sender, TrySendError};
 use canpos_host::{ControlHandle, RxFrame, Transport};
+use canpos_models as models;
+use canpos_stack::od::DefaultValue;
+use canpos_stack::sdo::wire;
+use canpos_stack::{cob, Frame, Table};
 use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
