@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Flash of a firmware ELF by the source file its code comes from (docs/FIRMWARE.md, "Where the
 flash goes"): every instruction that `arm-none-eabi-objdump -d` lists is counted at its innermost
-`crates/core` frame of `arm-none-eabi-addr2line -i` (what the Rust library inlines counts where
-the core called it), other code at its innermost frame.
+frame in `crates/stack`, `crates/encoder` or `crates/models` of `arm-none-eabi-addr2line -i`
+(what the Rust library inlines counts where those crates called it), other code at its innermost
+frame.
 
     python3 scripts/firmware-by-file.py firmware/target/thumbv7em-none-eabihf/release/plain
 """
@@ -10,6 +11,10 @@ import collections
 import re
 import subprocess
 import sys
+
+CRATES = ("stack", "encoder", "models")
+# A source path in one of the three device crates: everything before `crates/` is dropped.
+OURS = re.compile(r".*/crates/(stack|encoder|models)/src/")
 
 
 def main(elf: str) -> None:
@@ -33,15 +38,18 @@ def main(elf: str) -> None:
         if size > 8:  # the gap before a literal pool or the next function: one instruction
             size = 4
         chain = chains.get(a) or ["??"]
-        core = [f for f in chain if "/crates/core/src/" in f]
-        f = core[0] if core else chain[0]
-        f = re.sub(r".*/crates/core/src/", "crates/core/src/", f)
+        ours = [f for f in chain if OURS.search(f)]
+        f = ours[0] if ours else chain[0]
+        f = OURS.sub(r"crates/\1/src/", f)
         f = re.sub(r".*/firmware/src/(bin/\.\./)?", "firmware/src/", f)
         by_file[f] += size
     for f, n in by_file.most_common():
         print(f"{n:7d} {f}")
-    core_total = sum(n for f, n in by_file.items() if f.startswith("crates/core/"))
-    print(f"{core_total:7d} crates/core in all")
+    totals = {c: sum(n for f, n in by_file.items() if f.startswith(f"crates/{c}/"))
+              for c in CRATES}
+    for c in CRATES:
+        print(f"{totals[c]:7d} crates/{c} in all")
+    print(f"{sum(totals.values()):7d} stack+encoder+models in all")
 
 
 if __name__ == "__main__":

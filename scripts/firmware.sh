@@ -22,8 +22,9 @@ nano() { arm-none-eabi-gcc -mcpu=cortex-m4 -mthumb -mfloat-abi=hard -mfpu=fpv4-s
 [ -e "$(nano)" ] || scripts/deps.sh
 [ -e "$(nano)" ] || fail "newlib-nano (libc_nano.a) is missing (scripts/deps.sh installs libnewlib-arm-none-eabi)"
 
-# The core with its host features (all models, names, EDS) stays no_std-clean for the MCU too.
-cargo build -p canpos-core --locked --quiet --target "$TARGET"
+# The stack, the encoder and the models with their host features (all models, names, EDS) stay
+# no_std-clean for the MCU too.
+cargo build -p canpos-stack -p canpos-encoder -p canpos-models --locked --quiet --target "$TARGET"
 HOST=$(rustc -vV | sed -n 's/^host: //p')
 # The portable part's unit tests (SLCAN lines) run on the host; the rest is built for the MCU.
 (cd firmware && cargo fmt --check && cargo clippy --release --locked --quiet -- -D warnings &&

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# Mutation testing of canpos-core with cargo-mutants (pinned below), against the core's own
-# tests only: a rule the core states must be enforced by the core's tests.
+# Mutation testing of the device crates (canpos-stack, canpos-encoder, canpos-models) with
+# cargo-mutants (pinned below), against their own tests only: a rule they state must be
+# enforced by their tests. Every mutant runs the tests of all three (`--test-package`): the
+# stack's rules are mostly tested through the models' nodes (crates/models/tests/suite).
 # (Doctests are left out: they restate the crate docs, and each one is a separate build.)
 #
-#   scripts/mutants.sh                       the whole core (target/mutants/full)
-#   scripts/mutants.sh --iterate             again, only the mutants the last whole-core run and
+#   scripts/mutants.sh                       all three crates (target/mutants/full)
+#   scripts/mutants.sh --iterate             again, only the mutants the last whole run and
 #                                            its iterations did not catch (new tests since)
-#   scripts/mutants.sh --shard K/N           one shard of the whole core (to split a run)
+#   scripts/mutants.sh --shard K/N           one shard of the whole run (to split it)
 #   scripts/mutants.sh --file PATH [...]     the mutants of these files
 #   scripts/mutants.sh --in-diff REV         the mutants on lines changed since REV
 #   scripts/mutants.sh --check ...           any of the above; exit 1 when a missed mutant is
@@ -30,14 +32,15 @@ fi
 # The property tests take nearly all of the suite's 2.3 s; with 32 cases each instead of 256 a
 # mutant costs about half as much, and the hand-written tests still run in full.
 export PROPTEST_CASES=${PROPTEST_CASES:-32}
-base=(cargo mutants --package canpos-core --no-shuffle --jobs "$JOBS" --profile mutants --cargo-test-arg=--tests
-  --timeout 10 --build-timeout 600 --exclude 'crates/core/benches/**' --exclude 'crates/core/tests/**'
-  # Compiled only without the host-buffers feature (firmware sizing); the default features this
-  # run builds with cannot reach them (docs/MUTANTS.md).
-  --exclude-re '^crates/core/src/models/mod.rs:.*(th_stored|e_series_stored|tmi_stored|largest_table|table::stored|built_alone|features_of)'
-  --exclude-re '^crates/core/src/storage.rs:.*firmware_records_max'
-  # Compiled only without inline-hot-paths: the firmware's table search (docs/MUTANTS.md).
-  --exclude-re '^crates/core/src/od/mod.rs:.*search_entries')
+base=(cargo mutants --package canpos-stack --package canpos-encoder --package canpos-models
+  --test-package canpos-stack,canpos-encoder,canpos-models
+  --no-shuffle --jobs "$JOBS" --profile mutants --cargo-test-arg=--tests
+  --timeout 10 --build-timeout 600 --exclude 'crates/models/benches/**' --exclude 'crates/models/tests/**'
+  # Reached only in a one-model (firmware) build; the default features this run builds with
+  # cannot reach them (docs/MUTANTS.md).
+  --exclude-re '^crates/models/src/lib.rs:.*(table::stored|built_alone)'
+  # Taken only without inline-hot-paths: the firmware's table search (docs/MUTANTS.md).
+  --exclude-re '^crates/stack/src/od/mod.rs:.*search_entries')
 mkdir -p target/mutants
 runs=()
 run() { # NAME ARGS...
@@ -45,8 +48,8 @@ run() { # NAME ARGS...
   local out=target/mutants/$name
   if [ "${1:-}" = --iterate ]; then
     # cargo-mutants renames the last output to mutants.out.old: keep every run's outcomes, so
-    # that the summary is the whole core's, the later outcome of a mutant winning.
-    [ -f "$out/mutants.out/outcomes.json" ] || { echo "mutants: no whole-core run to iterate on" >&2; exit 1; }
+    # that the summary is the whole run's, the later outcome of a mutant winning.
+    [ -f "$out/mutants.out/outcomes.json" ] || { echo "mutants: no whole run to iterate on" >&2; exit 1; }
     local n; n=$(find "$out" -maxdepth 1 -name 'outcomes-*.json' | wc -l)
     cp "$out/mutants.out/outcomes.json" "$out/outcomes-$n.json"
     for ((k = 0; k <= n; k++)); do runs+=("$out/outcomes-$k.json"); done
@@ -79,9 +82,9 @@ case "${1:-}" in
   --shard) run "shard-${2%/*}" --shard "$2" ;;
   --file) shift; args=(); for f in "$@"; do args+=(--file "$f"); done; run files "${args[@]}" ;;
   --in-diff)
-    git diff "$2" -- crates/core/src >target/mutants/in-diff.diff
+    git diff "$2" -- crates/stack/src crates/encoder/src crates/models/src >target/mutants/in-diff.diff
     if [ ! -s target/mutants/in-diff.diff ]; then
-      echo "mutants: no change to crates/core/src since $2"
+      echo "mutants: no change to crates/{stack,encoder,models}/src since $2"
       echo "mutants: 0 caught, 0 missed, 0 timeout, 0 unviable"
       exit 0
     fi

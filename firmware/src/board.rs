@@ -1,8 +1,8 @@
 //! mps2-an386 peripherals: CMSDK APB UART0, SysTick, and the flash-like parameter region.
 
-use canpos_core::{Frame, Instant, Storage, StorageError};
 use canpos_firmware::slcan::{self, LineReader, LINE_MAX};
 use canpos_firmware::Clock;
+use canpos_stack::{Frame, Instant, Storage, StorageError};
 use core::ptr::{read_volatile, write_volatile};
 use core::sync::atomic::{AtomicBool, AtomicU32, AtomicUsize, Ordering};
 use cortex_m::peripheral::{syst::SystClkSource, SYST};

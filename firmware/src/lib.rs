@@ -7,10 +7,12 @@
 
 pub mod slcan;
 
-use canpos_core::{models, Frame, Instant, Model, Sample, SensorNode, Storage};
+use canpos_encoder::Sample;
+use canpos_models::{self as models, Model, SensorNode};
+use canpos_stack::{Frame, Instant, Storage};
 
 /// The model this firmware is built for: cargo feature `th` (default), `e-series` or `tmi`,
-/// each of which builds only that model's table into canpos-core.
+/// each of which builds only that model's table into canpos-models.
 #[cfg(feature = "th")]
 pub const MODEL: &Model = &models::th::TH;
 /// The model this firmware is built for.
@@ -21,19 +23,19 @@ pub const MODEL: &Model = &models::e_series::E_SERIES;
 pub const MODEL: &Model = &models::tmi::TMI;
 
 /// The widest dictionary of [`MODEL`] (the two-channel TMI's for the TMI).
-const WIDEST: &[canpos_core::Entry] = {
+const WIDEST: &[canpos_stack::Entry] = {
     #[cfg(all(feature = "tmi", not(feature = "th"), not(feature = "e-series")))]
     let t = models::tmi::ENTRIES_TWO_CHANNELS;
     #[cfg(not(all(feature = "tmi", not(feature = "th"), not(feature = "e-series"))))]
-    let t = MODEL.entries;
+    let t = MODEL.table.entries;
     t
 };
 
 /// Entries of `t` that storage keeps.
-const fn stored(t: &[canpos_core::Entry]) -> usize {
+const fn stored(t: &[canpos_stack::Entry]) -> usize {
     let (mut n, mut i) = (0, 0);
     while i < t.len() {
-        if !matches!(t[i].group, canpos_core::od::Group::Volatile) {
+        if !matches!(t[i].group, canpos_stack::od::Group::Volatile) {
             n += 1;
         }
         i += 1;
@@ -46,12 +48,12 @@ const fn stored(t: &[canpos_core::Entry]) -> usize {
 // one would leave RAM unused. Another model: `CANPOS_MAX_ENTRIES=N CANPOS_MAX_STORED=M cargo
 // build …` with its figures (docs/FIRMWARE.md).
 const _: () = assert!(
-    canpos_core::config::MAX_ENTRIES == WIDEST.len(),
+    canpos_stack::config::MAX_ENTRIES == WIDEST.len(),
     "CANPOS_MAX_ENTRIES is not the model's number of entries (docs/FIRMWARE.md)"
 );
 const _: () = assert!(
-    canpos_core::config::RECORDS_MAX
-        == stored(WIDEST) + canpos_core::config::NODE_RECORDS + canpos_core::config::APP_RECORDS,
+    canpos_stack::config::RECORDS_MAX
+        == stored(WIDEST) + canpos_stack::config::NODE_RECORDS + canpos_stack::config::APP_RECORDS,
     "CANPOS_MAX_STORED is not the model's number of stored entries (docs/FIRMWARE.md)"
 );
 

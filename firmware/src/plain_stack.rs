@@ -1,4 +1,4 @@
-//! The CiA 301 / 305 stack on its own, for its size figures: canpos-core's node with no
+//! The CiA 301 / 305 stack on its own, for its size figures: canpos-stack's node with no
 //! application of its own (no CiA 406), its features fixed at build time, and a minimal
 //! communication dictionary, on the same board as the TH firmware. Two builds share it (the
 //! crate root defines `ENTRIES` and `MODEL`):
@@ -13,10 +13,10 @@
 //! and checks them beside its table. docs/FIRMWARE.md says how the figures are taken.
 
 use crate::board::{self, BoardClock, Nvm, Uart, UartCan};
-use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{DefaultValue::*, Entry, Param};
-use canpos_core::{entry, Application, Node};
 use canpos_firmware::Clock;
+use canpos_stack::model::{CommConfig, Features, Model, Table};
+use canpos_stack::od::{DefaultValue::*, Entry, Param};
+use canpos_stack::{entry, Application, Node};
 use core::mem::MaybeUninit;
 use embedded_can::nb::Can;
 
@@ -93,14 +93,14 @@ pub const fn join<const A: usize, const B: usize, const N: usize>(
 
 /// The dictionary's parameters (`DefaultValue::Param`): a plain CiA 301 device, with no profile and
 /// no sensor (stroke, steps, channels), has its serial number and nothing else.
-fn param(cfg: &DeviceConfig, p: Param) -> u32 {
+fn param(cfg: &CommConfig, p: Param) -> u32 {
     match p {
         Param::SerialNumber => cfg.serial,
         _ => 0,
     }
 }
 
-fn derive(c: DeviceConfig) -> DeviceConfig {
+fn derive(c: CommConfig) -> CommConfig {
     c
 }
 
@@ -108,44 +108,40 @@ fn derive(c: DeviceConfig) -> DeviceConfig {
 /// transfer.
 pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Model {
     Model {
-        name: "plain",
-        product: "",
-        vendor: "",
-        entries,
-        // A host searches a key array; a firmware searches the entries.
-        keys: &[],
-        features: Features {
-            tag: 0x50,
-            tpdos: 1,
-            sdo_segmented: true,
-            sdo_block: block,
-            node_guarding: guarding,
-            tpdo_rtr: true,
-            lss_fastscan: true,
-            lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
-            bitrates: &[],
-            store_preop_only: false,
-            kill_signature: false,
-            preset_clear: false,
-            preset_offset_internal: false,
-            tmi_error_reactions: false,
-            window_cams: false,
-            power_on_emcy: true,
-            sync_length_emcy: false,
-            emcy_on_register_change: false,
-            event_timer_above_inhibit: false,
-            lss_unconfigured_configures: false,
+        table: Table {
+            name: "plain",
+            product: "",
+            vendor: "",
+            entries,
+            // A host searches a key array; a firmware searches the entries.
+            keys: &[],
+            features: Features {
+                tag: 0x50,
+                tpdos: 1,
+                sdo_segmented: true,
+                sdo_block: block,
+                node_guarding: guarding,
+                tpdo_rtr: true,
+                lss_fastscan: true,
+                lss_bit_timing: &[0, 1, 2, 3, 4, 6, 7],
+                bitrates: &[],
+                store_preop_only: false,
+                kill_signature: false,
+                power_on_emcy: true,
+                sync_length_emcy: false,
+                emcy_on_register_change: false,
+                event_timer_above_inhibit: false,
+                lss_unconfigured_configures: false,
+            },
         },
+        profile: (),
+        variant: None,
         param,
         derive,
-        default_config: DeviceConfig {
+        default_config: CommConfig {
             node_id: 1,
             bitrate_kbps: 125,
             serial: 1,
-            stroke_mm: 0,
-            position_step_nm: 1,
-            channels: 1,
-            cycle_us: 1000,
         },
     }
 }
@@ -158,7 +154,9 @@ struct PlainDevice;
 impl Application for PlainDevice {
     type Sample = ();
     type Fault = core::convert::Infallible;
-    const FEATURES: Option<&'static Features> = Some(&crate::MODEL.features);
+    type Config = CommConfig;
+    type Profile = ();
+    const FIXED: Option<&'static Model> = Some(&crate::MODEL);
 }
 
 type PlainNode = Node<PlainDevice, Nvm>;

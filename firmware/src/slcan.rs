@@ -147,7 +147,7 @@ impl LineReader {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use canpos_core::Frame as CoreFrame;
+    use canpos_stack::Frame as CoreFrame;
 
     fn line_of(f: &CoreFrame) -> ([u8; LINE_MAX], usize) {
         let mut out = [0u8; LINE_MAX];

@@ -95,7 +95,7 @@ fn runtime() -> &'static (RuntimeHandle, ControlHandle) {
             .join(format!("control-{}", std::process::id()));
         std::fs::create_dir_all(&dir)
             .unwrap_or_else(|e| panic!("environment: cannot create {}: {e}", dir.display()));
-        let model = canpos_core::models::by_name("th").expect("th model");
+        let model = canpos_models::by_name("th").expect("th model");
         let mut cfg = model.default_config;
         cfg.channels = 4;
         let setup = SensorSetup {

@@ -1,9 +1,9 @@
 //! The device core of every model fed arbitrary frame sequences, time steps, samples and power
-//! cycles; the CANopen invariants are checked inside (see `crates/core/tests/suite/common/harness.rs`,
+//! cycles; the CANopen invariants are checked inside (see `crates/models/tests/suite/common/harness.rs`,
 //! shared with the `frame_sequence_props` property test).
 #![no_main]
 
-#[path = "../../crates/core/tests/suite/common/harness.rs"]
+#[path = "../../crates/models/tests/suite/common/harness.rs"]
 mod harness;
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {

@@ -45,7 +45,7 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
                 let mut out = Vec::new();
                 if codec::write_send(&mut out, f) {
                     let want = if f.is_remote() {
-                        canpos_core::Frame::with_id(f.id(), f.is_extended(), &[])
+                        canpos_stack::Frame::with_id(f.id(), f.is_extended(), &[])
                             .expect("a zero-length frame of a valid identifier")
                     } else {
                         *f
@@ -71,7 +71,7 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
                             // A remote frame (from the extension's `< rtr … >`) is written in
                             // the plain form: the zero-length data frame (D22).
                             let want = if rx.frame.is_remote() {
-                                canpos_core::Frame::with_id(
+                                canpos_stack::Frame::with_id(
                                     rx.frame.id(),
                                     rx.frame.is_extended(),
                                     &[],

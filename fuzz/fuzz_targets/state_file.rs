@@ -13,10 +13,11 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
-use canpos_core::models;
-use canpos_core::storage::{self, ImageWriter, RamStorage, Storage, IMAGE_MAX};
-use canpos_core::{Instant, Node};
 use canpos_host::FileStorage;
+use canpos_models as models;
+use canpos_models::SensorNode;
+use canpos_stack::storage::{self, ImageWriter, RamStorage, Storage, IMAGE_MAX};
+use canpos_stack::Instant;
 
 fn path() -> &'static PathBuf {
     static P: OnceLock<PathBuf> = OnceLock::new();
@@ -97,7 +98,7 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
 
         let mut ram = RamStorage::default();
         let stored = ram.save(bytes).is_ok();
-        let mut node = Node::new(model, model.default_config, ram);
+        let mut node = SensorNode::new(model, model.default_config, ram);
         node.power_on(Instant::ZERO);
         let valid = stored && storage::parse_image(bytes, tag).is_ok();
         let dev = node.device();
@@ -133,7 +134,7 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
             .map(|v| (v & 0x7FF) as u16);
         if let Some(e) = emcy {
             assert!(
-                !canpos_core::pdo::restricted_id(u32::from(e)),
+                !canpos_stack::pdo::restricted_id(u32::from(e)),
                 "{}: EMCY on the restricted CAN-ID {e:03X}",
                 model.name
             );

@@ -15,11 +15,11 @@ use std::io::{self, BufRead, Write};
 use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use canpos_core::Frame;
 use canpos_host::candump::{
     format_record_line, read_line_bounded, ErrorFrame, FdFrame, LineRead, LogError, LogReader,
     Record, CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, MAX_LINE,
 };
+use canpos_stack::Frame;
 
 /// `LINKTYPE_CAN_SOCKETCAN`.
 pub const LINKTYPE_CAN_SOCKETCAN: u16 = 227;

@@ -31,11 +31,11 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
-use canpos_core::models::Model;
-use canpos_core::od::{Access, DataType};
 use canpos_host::control;
 use canpos_host::crossbeam_channel::Sender;
 use canpos_host::Transport;
+use canpos_stack::od::{Access, DataType};
+use canpos_stack::Table;
 use page::{render_page, APP_JS, STYLE, UPLOT_CSS, UPLOT_JS, UPLOT_LICENSE};
 use serde_json::{json, Value};
 use watch::{BusCmd, BusQueue, Controller, Link, Outcome, Pending, Refused, Shared};
@@ -67,7 +67,7 @@ impl Dashboard {
     }
 
     /// Gives node `id` the object table of `model` (e.g. one built from an EDS file).
-    pub fn pin_model(&self, id: u8, model: &'static Model) {
+    pub fn pin_model(&self, id: u8, model: &'static Table) {
         self.shared.lock().unwrap().pin_model(id, model);
     }
 
@@ -386,7 +386,7 @@ fn alarm_labels(v: u16) -> Vec<String> {
 
 /// What an EMCY code means on this model: the manuals' tables, and for the TMI's transducer
 /// errors the sub-codes of its system-data errors (002 §1.14).
-fn emcy_text(model: Option<&Model>, e: &watch::Emcy) -> String {
+fn emcy_text(model: Option<&Table>, e: &watch::Emcy) -> String {
     let tmi = model.is_some_and(|m| m.name == "tmi");
     let base = match (e.code, tmi) {
         (0x9080 | 0x9090, false) => "external error",
@@ -602,9 +602,9 @@ fn access_name(a: Access) -> &'static str {
 /// The object table of node `id`'s model: that of the model's widest unit (the two-channel
 /// TMI's), as the dashboard does not know the unit's configuration; an object a unit does not
 /// have is answered by the unit itself (SDO abort 0x06020000 / 0x06090011).
-fn model_of(app: &App, id: u8) -> Result<&'static Model, ApiError> {
+fn model_of(app: &App, id: u8) -> Result<&'static Table, ApiError> {
     let model = app.shared.lock().unwrap().nodes[&id].model;
-    model.map(canpos_core::models::widest).ok_or_else(|| {
+    model.ok_or_else(|| {
         fail(
             StatusCode::CONFLICT,
             format!("node {id}: its model is not known (not a TH, E-Series or TMI; name its EDS with --eds {id}=FILE), so there is no object table"),
@@ -637,7 +637,7 @@ fn object(
     node: &str,
     index: &str,
     sub: &str,
-) -> Result<(u8, &'static canpos_core::od::Entry), ApiError> {
+) -> Result<(u8, &'static canpos_stack::od::Entry), ApiError> {
     let id = known_node(app, node)?;
     let model = model_of(app, id)?;
     let ix = crate::common::parse_index(index)

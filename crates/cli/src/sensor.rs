@@ -4,10 +4,10 @@
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context as _, Result};
-use canpos_core::models::{self, DeviceConfig};
 use canpos_host::control::{self};
 use canpos_host::runtime::{self, SensorSetup};
 use canpos_host::FileStorage;
+use canpos_models::{self as models, DeviceConfig};
 use canpos_sim::motion::{MotionSpec, Profile, Profiles};
 use canpos_sim::{parse_order_code, SensorSpec};
 use serde::Deserialize;
@@ -348,8 +348,8 @@ pub(crate) fn export_unit(
     model: Option<&str>,
     order_code: Option<&str>,
 ) -> Result<(
-    &'static canpos_core::models::Model,
-    canpos_core::models::DeviceConfig,
+    &'static canpos_models::Model,
+    canpos_models::DeviceConfig,
     String,
 )> {
     if let Some(code) = order_code {
@@ -357,8 +357,8 @@ pub(crate) fn export_unit(
         return Ok((m, cfg, oc.normalized));
     }
     let name = model.unwrap_or("th");
-    let names: Vec<&str> = canpos_core::models::all().iter().map(|m| m.name).collect();
-    let Some(m) = canpos_core::models::by_name(name) else {
+    let names: Vec<&str> = canpos_models::all().iter().map(|m| m.name).collect();
+    let Some(m) = canpos_models::by_name(name) else {
         bail!("unknown model `{name}` (known: {})", names.join(", "));
     };
     Ok((m, m.default_config, String::new()))

@@ -5,10 +5,10 @@
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant, SystemTime};
 
-use canpos_core::Frame;
 use canpos_host::socketcand::codec::ErrorFrame;
 use canpos_host::socketcand::{Client, Hub};
 use canpos_host::transport::{BusState, Transport};
+use canpos_stack::Frame;
 
 struct Kill(Child);
 

@@ -6,9 +6,9 @@ use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use canpos_core::storage::{parse_image, IMAGE_MAX};
-use canpos_core::Frame;
 use canpos_host::{SocketcandClient, Transport};
+use canpos_stack::storage::{parse_image, IMAGE_MAX};
+use canpos_stack::Frame;
 
 const BIN: &str = env!("CARGO_BIN_EXE_canpos");
 
@@ -250,7 +250,7 @@ fn stored_heartbeat(path: &Path) -> Result<Option<u32>, String> {
     if bytes.len() > IMAGE_MAX {
         return Err("too long".into());
     }
-    let tag = canpos_core::models::by_name("th").unwrap().features.tag;
+    let tag = canpos_models::by_name("th").unwrap().features.tag;
     let found = parse_image(&bytes, tag)
         .map_err(|e| format!("{e:?}"))?
         .find(|&(k, _)| k == 0x0010_1700)

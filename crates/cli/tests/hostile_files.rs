@@ -10,7 +10,7 @@ use std::process::{Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use canpos_core::storage::{parse_image, ImageWriter, IMAGE_MAX};
+use canpos_stack::storage::{parse_image, ImageWriter, IMAGE_MAX};
 use common::{assert_fails, free_port, run_in, text, wait_port, Proc, BIN};
 
 const SHORT: Duration = Duration::from_secs(10);
@@ -25,7 +25,7 @@ fn decoy(dir: &Path) -> PathBuf {
 }
 
 fn th_tag() -> u8 {
-    canpos_core::models::by_name("th").unwrap().features.tag
+    canpos_models::by_name("th").unwrap().features.tag
 }
 
 /// `canpos run --model th --serial 4242` on an embedded hub at `port` (as the issue ran it),
@@ -168,7 +168,7 @@ fn a_state_file_failing_its_check_is_named_on_stderr_with_the_reason() {
     let reseal = |at: usize, v: u8| {
         let mut b = good.clone();
         b[at] = v;
-        let crc = canpos_core::storage::crc32(&b[..n - 4]).to_le_bytes();
+        let crc = canpos_stack::storage::crc32(&b[..n - 4]).to_le_bytes();
         b[n - 4..].copy_from_slice(&crc);
         b
     };

@@ -12,8 +12,8 @@ use std::net::TcpStream;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::bus::bits::{frame_length, INTERMISSION_BITS};
+use canpos_stack::Frame;
 use common::{free_port, wait_port, Ctl, Proc};
 
 const NODE: u32 = 5;

@@ -157,8 +157,8 @@ fn spawn(args: &[&str], log: &std::path::Path) -> Sensor {
 /// traffic come back.
 #[test]
 fn bridge_carries_true_rtr_guarding_and_sdo_both_ways() {
-    use canpos_core::Frame;
     use canpos_host::transport::Transport;
+    use canpos_stack::Frame;
     if std::env::var("CANPOS_VCAN").as_deref() != Ok("1") {
         eprintln!("skipped: needs vcan0 (CANPOS_VCAN=1; run under scripts/uml/run-in-uml.sh)");
         return;

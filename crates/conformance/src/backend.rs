@@ -1,17 +1,17 @@
-//! The two ways the harness reaches a device: a [`VirtualDut`] (a `canpos_core::Node` on a
+//! The two ways the harness reaches a device: a [`VirtualDut`] (a `canpos_stack::Node` on a
 //! virtual clock, deterministic and as fast as the CPU) and a [`SocketcandDut`] (a real-time
 //! `canpos_host` runtime behind an in-process socketcand hub, reached over TCP like any tool).
 
 use std::collections::VecDeque;
 use std::time::Duration as StdDuration;
 
-use canpos_core::encoder::{Fault, Sample};
-use canpos_core::models::Model;
-use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node, SensorNode};
+use canpos_encoder::{Fault, Sample};
 use canpos_host::runtime::{Runtime, RuntimeHandle, SensorSetup, SimHardware};
 use canpos_host::socketcand::{Client, Hub, HubHandle};
 use canpos_host::Transport;
+use canpos_models::{Model, SensorNode};
+use canpos_stack::storage::RamStorage;
+use canpos_stack::{Frame, Instant, Node};
 
 /// A device under test as the harness sees it: frames in and out on a clock in µs.
 pub trait Backend {

@@ -6,8 +6,8 @@
 //! device's equivalent and says so in [`Case::note`]; where a product manual contradicts the
 //! catalogue, the manual wins and the note says what the device does instead.
 
-use canpos_core::encoder::Fault;
-use canpos_core::od::Group;
+use canpos_encoder::Fault;
+use canpos_stack::od::Group;
 
 use crate::eds::{export, Eds, EdsEntry};
 use crate::harness::{abort, nmt, BlockUpload, Harness};
@@ -611,7 +611,7 @@ fn sdo_23(h: &mut Harness) -> Outcome {
         return block_refused(h, true);
     }
     // The catalogue's CRC check value first (the harness's CRC is what the server must match).
-    assert_eq!(canpos_core::sdo::wire::crc16(b"CANopenDemoPIC32"), 0x43F3);
+    assert_eq!(canpos_stack::sdo::wire::crc16(b"CANopenDemoPIC32"), 0x43F3);
     let o = BlockUpload {
         crc: true,
         ..Default::default()
@@ -1144,7 +1144,7 @@ fn defaults(h: &mut Harness, lo: u16, hi: u16) -> Outcome {
             .iter()
             .find(|t| t.index == e.index && t.sub == e.sub)
             .unwrap();
-        if matches!(t.default, canpos_core::od::DefaultValue::Live) {
+        if matches!(t.default, canpos_stack::od::DefaultValue::Live) {
             assert!(
                 e.default.is_none(),
                 "{:04X}:{:02X} live with DefaultValue",
@@ -1276,7 +1276,7 @@ fn emcy_03(h: &mut Harness) -> Outcome {
 /// fault hook (0x5000).
 fn force_emcy(h: &mut Harness) -> [u8; 8] {
     h.clear();
-    if h.model().features.tmi_error_reactions {
+    if h.model().profile.tmi_error_reactions {
         h.fault(Fault::Transducer, true);
     } else {
         h.raw(0x080, &[0, 0]);
@@ -1292,7 +1292,7 @@ fn emcy_04(h: &mut Harness) -> Outcome {
     h.nmt(nmt::START);
     let e = force_emcy(h);
     let code = u16::from_le_bytes([e[0], e[1]]);
-    if h.model().features.tmi_error_reactions {
+    if h.model().profile.tmi_error_reactions {
         assert_eq!(code, 0x5000);
     } else {
         assert_eq!(code, 0x8240);
@@ -1315,12 +1315,12 @@ fn emcy_06(h: &mut Harness) -> Outcome {
         let hist = ok(h.read(0x1003, 1));
         assert_eq!(hist & 0xFFFF, u32::from(u16::from_le_bytes([e[0], e[1]])));
         assert_eq!(hist >> 16, u32::from(u16::from_le_bytes([e[3], e[4]])));
-        if h.model().features.tmi_error_reactions {
+        if h.model().profile.tmi_error_reactions {
             break;
         }
     }
     // A second trigger with other manufacturer bytes (the fault hook on every model).
-    if !h.model().features.tmi_error_reactions {
+    if !h.model().profile.tmi_error_reactions {
         let _ = h.take();
         h.fault(Fault::SupplyVoltage, true);
         let (_, f) = h.wait_for(100, |f| f.std_id() == Some(EMCY)).expect("EMCY");

@@ -135,14 +135,14 @@ fn var(ini: &Ini, sec: &str, index: u16, sub: u8) -> Result<EdsEntry, String> {
     })
 }
 
-/// The EDS `canpos_core` exports for `model`'s default unit.
-pub fn export(model: &'static canpos_core::models::Model) -> String {
+/// The EDS `canpos_stack` exports for `model`'s default unit.
+pub fn export(model: &'static canpos_models::Model) -> String {
     let mut s = String::new();
-    canpos_core::eds::write_eds(
+    canpos_stack::eds::write_eds(
         &mut s,
         model,
         &model.default_config,
-        &canpos_core::eds::EdsInfo::default(),
+        &canpos_stack::eds::EdsInfo::default(),
     )
     .expect("EDS export");
     s

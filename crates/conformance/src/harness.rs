@@ -2,10 +2,10 @@
 //! requests, timestamped capture, and a full SDO client (expedited, segmented, block with
 //! CRC-16) that can also send deliberately wrong frames.
 
-use canpos_core::encoder::{Fault, Sample, MAX_CHANNELS};
-use canpos_core::models::Model;
-use canpos_core::sdo::wire::crc16;
-use canpos_core::Frame;
+use canpos_encoder::{Fault, Sample, MAX_CHANNELS};
+use canpos_models::Model;
+use canpos_stack::sdo::wire::crc16;
+use canpos_stack::Frame;
 
 use crate::backend::Backend;
 

@@ -4,7 +4,7 @@
 //! * [`harness`]: the tool's master side (raw frames, NMT master, SYNC producer, guarding,
 //!   capture, SDO client with expedited / segmented / block transfers and forged frames,
 //!   sensor hooks in place of RPDO-triggered events).
-//! * [`backend`]: a `canpos_core::Node` on a virtual clock, or a real-time device over the
+//! * [`backend`]: a `canpos_stack::Node` on a virtual clock, or a real-time device over the
 //!   socketcand transport.
 //! * [`eds`]: a small INI / EDS reader for the EDS-driven cases.
 //! * [`cases`]: one function per catalogue case.
@@ -16,7 +16,7 @@ pub mod eds;
 pub mod harness;
 pub mod report;
 
-use canpos_core::models::Model;
+use canpos_models::Model;
 
 pub use backend::{Backend, SocketcandDut, VirtualDut};
 pub use cases::{Case, Outcome, CASES};
@@ -52,8 +52,8 @@ pub fn run_virtual(id: &str, model: &'static Model) -> Outcome {
 /// Runs case `id` on every model, and on the widest unit of a model whose units differ (the
 /// two-channel TMI beside the one-channel default); an n.a. verdict is printed with its reason.
 pub fn run_all_models(id: &str) {
-    for m in canpos_core::models::all() {
-        let widest = canpos_core::models::widest(m);
+    for m in canpos_models::all() {
+        let widest = canpos_models::widest(m);
         let units: &[&'static Model] = if core::ptr::eq(widest, m) {
             &[m]
         } else {

@@ -27,7 +27,7 @@ pub fn run_suite() -> Vec<(&'static str, Vec<Verdict>)> {
     let out = CASES
         .iter()
         .map(|c| {
-            let v = canpos_core::models::all()
+            let v = canpos_models::all()
                 .into_iter()
                 .map(
                     |m| match catch_unwind(AssertUnwindSafe(|| crate::run_virtual(c.id, m))) {
@@ -59,7 +59,7 @@ fn cell(v: &Verdict) -> String {
 
 /// Renders `docs/CONFORMANCE.md` from suite results.
 pub fn render(results: &[(&'static str, Vec<Verdict>)]) -> String {
-    let models = canpos_core::models::all();
+    let models = canpos_models::all();
     let mut s = String::new();
     let w = &mut s;
     let _ = writeln!(w, "# Conformance results\n");

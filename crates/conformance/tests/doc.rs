@@ -23,7 +23,7 @@ fn results_table_is_current() {
         .iter()
         .flat_map(|(id, v)| {
             v.iter()
-                .zip(canpos_core::models::all())
+                .zip(canpos_models::all())
                 .filter_map(move |(x, m)| match x {
                     Verdict::Fail(why) => Some(format!("{id} {}: {why}", m.name)),
                     _ => None,

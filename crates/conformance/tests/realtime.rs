@@ -5,7 +5,7 @@
 
 use canpos_conformance::harness::nmt;
 use canpos_conformance::{case, Harness, Outcome, SocketcandDut};
-use canpos_core::models::Model;
+use canpos_models::Model;
 
 fn run(model: &'static Model) {
     let dut = SocketcandDut::start(model).expect("hub and device start");
@@ -19,7 +19,7 @@ fn run(model: &'static Model) {
 
 #[test]
 fn realtime_timing_all_models() {
-    let threads: Vec<_> = canpos_core::models::all()
+    let threads: Vec<_> = canpos_models::all()
         .into_iter()
         .map(|m| std::thread::spawn(move || run(m)))
         .collect();

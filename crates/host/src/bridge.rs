@@ -88,7 +88,7 @@ fn log_state(side: &str, s: BusState) {
 mod tests {
     use super::*;
     use crate::mem::MemBus;
-    use canpos_core::Frame;
+    use canpos_stack::Frame;
     use std::sync::Arc;
 
     #[test]

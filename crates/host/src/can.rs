@@ -25,7 +25,7 @@
 use std::io;
 use std::time::{Duration, Instant, SystemTime};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 pub use crossbeam_channel::Receiver;
 
 /// A received frame with the time it was seen on the bus.

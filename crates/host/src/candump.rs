@@ -12,7 +12,7 @@
 use std::io::{self, BufRead, Write};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 /// SocketCAN's `CAN_EFF_FLAG`: the id is 29 bits.
 pub const CAN_EFF_FLAG: u32 = 0x8000_0000;

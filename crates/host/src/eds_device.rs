@@ -1,5 +1,5 @@
 //! A plain CiA 301 device described by a user's EDS or DCF file (CiA 306): the file becomes a
-//! [`Model`] at run time, served by [`canpos_core::Node`] with the [`Plain`] application.
+//! [`Model`] at run time, served by [`canpos_stack::Node`] with the [`Plain`] application.
 //!
 //! The core takes its dictionary as a `&'static [Entry]`; the table built here is leaked
 //! (`Box::leak`) once per process, like the strings it names. What the file says:
@@ -25,13 +25,13 @@ use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-use canpos_core::models::{DeviceConfig, Features, Model};
-use canpos_core::od::{
+use canpos_stack::model::{CommConfig, Features, Model, Table};
+use canpos_stack::od::{
     cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
 };
-use canpos_core::pdo;
-use canpos_core::storage::{crc32, IMAGE_MAX};
-use canpos_core::Plain;
+use canpos_stack::pdo;
+use canpos_stack::storage::{crc32, IMAGE_MAX};
+use canpos_stack::Plain;
 
 use crate::ini::{Ini, Key, Section};
 
@@ -95,7 +95,7 @@ pub struct EdsDevice {
     /// The model (table and features leaked for the life of the process).
     pub model: &'static Model,
     /// Node-id and bit rate (command line, else DCF, else the defaults) and serial number.
-    pub cfg: DeviceConfig,
+    pub cfg: CommConfig,
     /// Things left out or not used (RPDOs, unlisted objects, …), for the log.
     pub warnings: Vec<String>,
     /// 0x1018/1 vendor-id.
@@ -280,7 +280,7 @@ impl Builder<'_> {
             }
             if (0x1400..=0x17FF).contains(&index) {
                 self.warnings.push(format!(
-                    "[{}] (line {}): RPDO parameters left out (canpos-core has no RPDOs)",
+                    "[{}] (line {}): RPDO parameters left out (canpos-stack has no RPDOs)",
                     sec.name, sec.line
                 ));
                 continue;
@@ -291,7 +291,7 @@ impl Builder<'_> {
                     return Err(self.err(
                         sec.line,
                         format!(
-                            "[{}]: TPDO {} — canpos-core serves at most {} TPDOs",
+                            "[{}]: TPDO {} — canpos-stack serves at most {} TPDOs",
                             sec.name,
                             n + 1,
                             pdo::MAX_TPDOS
@@ -406,7 +406,7 @@ impl Builder<'_> {
             return Err(self.err(
                 0,
                 format!(
-                    "{} entries (objects and sub-indices); canpos-core serves at most {MAX_ENTRIES}",
+                    "{} entries (objects and sub-indices); canpos-stack serves at most {MAX_ENTRIES}",
                     entries.len()
                 ),
             ));
@@ -421,7 +421,7 @@ impl Builder<'_> {
             return Err(self.err(
                 0,
                 format!(
-                    "{stored} stored (rw) entries; canpos-core's storage image holds {max_stored}"
+                    "{stored} stored (rw) entries; canpos-stack's storage image holds {max_stored}"
                 ),
             ));
         }
@@ -550,10 +550,6 @@ impl Builder<'_> {
             bitrates: Box::leak(bitrates.into_boxed_slice()),
             store_preop_only: false,
             kill_signature: false,
-            preset_clear: false,
-            preset_offset_internal: false,
-            tmi_error_reactions: false,
-            window_cams: false,
             power_on_emcy: false,
             sync_length_emcy: true,
             event_timer_above_inhibit: false,
@@ -566,22 +562,22 @@ impl Builder<'_> {
         let table: &'static [Entry] = Box::leak(entries.into_boxed_slice());
         let keys: &'static [u32] = Box::leak(table.iter().map(Entry::key).collect());
         let model: &'static Model = Box::leak(Box::new(Model {
-            name: "eds",
-            product,
-            vendor,
-            entries: table,
-            keys,
-            features,
+            table: Table {
+                name: "eds",
+                product,
+                vendor,
+                entries: table,
+                keys,
+                features,
+            },
+            profile: (),
             param,
             derive: |c| c,
-            default_config: DeviceConfig {
+            variant: None,
+            default_config: CommConfig {
                 node_id,
                 bitrate_kbps: bitrate,
                 serial,
-                stroke_mm: 0,
-                position_step_nm: 0,
-                channels: 0,
-                cycle_us: 0,
             },
         }));
         Ok(EdsDevice {
@@ -643,7 +639,7 @@ impl Builder<'_> {
             return Err(self.err(
                 sec.line,
                 format!(
-                    "[{}]: canpos-core maps at most {} objects per TPDO",
+                    "[{}]: canpos-stack maps at most {} objects per TPDO",
                     sec.name,
                     pdo::MAX_MAP
                 ),
@@ -666,7 +662,7 @@ impl Builder<'_> {
                 return Err(self.err(
                     acc.line,
                     format!(
-                        "[{}]: a writable VISIBLE_STRING is not supported by canpos-core \
+                        "[{}]: a writable VISIBLE_STRING is not supported by canpos-stack \
                          (ro / const only)",
                         sec.name
                     ),
@@ -682,7 +678,7 @@ impl Builder<'_> {
             if s.len() > 64 {
                 return Err(self.err(
                     val.map_or(sec.line, |k| k.line),
-                    "a string of more than 64 bytes is not supported by canpos-core",
+                    "a string of more than 64 bytes is not supported by canpos-stack",
                 ));
             }
             return Ok(Entry {
@@ -799,7 +795,7 @@ impl Builder<'_> {
 pub const TAG_BASE: u8 = 0x40;
 
 /// A plain device has no configuration-dependent defaults beyond the unit's identity.
-fn param(cfg: &DeviceConfig, p: Param) -> u32 {
+fn param(cfg: &CommConfig, p: Param) -> u32 {
     match p {
         Param::NodeId => u32::from(cfg.node_id),
         Param::BitRateKbps => u32::from(cfg.bitrate_kbps),
@@ -809,7 +805,7 @@ fn param(cfg: &DeviceConfig, p: Param) -> u32 {
 }
 
 /// The node of an EDS device.
-pub type PlainNode<S> = canpos_core::Node<Plain, S>;
+pub type PlainNode<S> = canpos_stack::Node<Plain, S>;
 
 #[cfg(test)]
 mod tests;

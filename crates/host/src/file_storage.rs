@@ -42,12 +42,13 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use canpos_core::od::{Group, Hook};
-use canpos_core::storage::{
+use canpos_models::Model;
+use canpos_stack::od::{Group, Hook};
+use canpos_stack::storage::{
     app_record, check_image, is_object_key, parse_image, ImageFault, ImageWriter, Storage,
     StorageError, IMAGE_MAX, IMAGE_MIN, KEY_LSS_BITRATE, KEY_LSS_NODE_ID, KEY_SAVED_NODE_ID,
 };
-use canpos_core::Model;
+use canpos_stack::Table;
 use rustix::fs::{self as rfs, AtFlags, FileType, Mode, OFlags};
 use rustix::io::Errno;
 
@@ -62,7 +63,9 @@ pub struct FileStorage {
     /// use.
     dir: Option<Arc<OwnedFd>>,
     /// The model whose images these are ([`FileStorage::for_model`]).
-    model: Option<&'static Model>,
+    /// The table whose records a state file keeps (the widest unit's), and whether the
+    /// application's own records are kept (CiA 406's internal preset offsets).
+    model: Option<(&'static Table, bool)>,
     /// The last problem a load reported: the same one again is not logged again.
     reported: Option<String>,
 }
@@ -73,7 +76,7 @@ impl std::fmt::Debug for FileStorage {
             .field("path", &self.path)
             .field("saves", &self.saves)
             .field("locked", &self.lock.is_some())
-            .field("model", &self.model.map(|m| m.name))
+            .field("model", &self.model.map(|m| m.0.name))
             .finish()
     }
 }
@@ -225,12 +228,11 @@ fn type_at(dir: &OwnedFd, name: &OsStr) -> io::Result<Option<(FileType, u64)>> {
 /// `load_values`, `stored_lss_config`, `change_stored`): the LSS and node-id records, and
 /// the preset offsets a TMI keeps with 0x6010, and objects of the model that are stored (or
 /// hold the pending node-id or bit rate).
-fn record_used(model: &'static Model, key: u32) -> bool {
-    let widest = canpos_core::models::widest(model);
+fn record_used((widest, app_records): (&'static Table, bool), key: u32) -> bool {
     match key {
         KEY_LSS_NODE_ID | KEY_LSS_BITRATE | KEY_SAVED_NODE_ID => true,
         // The preset offsets a TMI keeps with 0x6010 (no object holds them).
-        k if app_record(k).is_some() => model.features.preset_offset_internal,
+        k if app_record(k).is_some() => app_records,
         // Objects of any unit of the model: a two-channel TMI's state file keeps its channel-2
         // records when the storage is opened for the model (whose default unit has one
         // channel), and a one-channel unit loading it leaves them for the other.
@@ -288,7 +290,14 @@ impl FileStorage {
     /// The same storage, for images of `model`: a load then also names an image of another
     /// model as such, and passes on only the records `model` uses (see the module docs).
     pub fn for_model(mut self, model: &'static Model) -> Self {
-        self.model = Some(model);
+        let widest = canpos_models::widest(model);
+        self.model = Some((&widest.table, model.profile.preset_offset_internal));
+        self
+    }
+
+    /// Storage for a device of `table` with no records of the application's own (an EDS device).
+    pub fn for_table(mut self, table: &'static Table) -> Self {
+        self.model = Some((table, false));
         self
     }
 
@@ -631,7 +640,7 @@ impl Storage for FileStorage {
         // The core checks the image again; checked here too, to say why it failed (the core's
         // answer is only EMCY 0x6300). Without a model, the image's own tag is taken.
         let tag = match (self.model, bytes.get(5)) {
-            (Some(m), _) => m.features.tag,
+            (Some(m), _) => m.0.features.tag,
             (None, Some(&t)) => t,
             (None, None) => 0,
         };
@@ -664,7 +673,7 @@ impl Storage for FileStorage {
             "{} of its {} records name nothing the {} stores or repeat a key; ignored, and the next save leaves them out",
             all.len() - kept.len(),
             all.len(),
-            model.name
+            model.0.name
         );
         if self.reported.as_ref() != Some(&why) {
             tracing::warn!(path = %self.path.display(), "{why}");

@@ -9,9 +9,9 @@
 use std::io;
 use std::time::Duration;
 
-use canpos_core::models::{DeviceConfig, Model};
-use canpos_core::Plain;
-use canpos_core::{Instant, Node};
+use canpos_stack::model::{CommConfig, Model};
+use canpos_stack::Plain;
+use canpos_stack::{Instant, Node};
 use serde_json::json;
 
 use crate::can::{BusState, Transport};
@@ -36,7 +36,7 @@ impl PlainRuntime {
         transport: Box<dyn Transport>,
         bus_bitrate_kbps: Option<u32>,
         model: &'static Model,
-        cfg: DeviceConfig,
+        cfg: CommConfig,
         storage: FileStorage,
     ) -> PlainRuntime {
         let node = Node::with_app(model, cfg, Plain, storage);
@@ -144,7 +144,7 @@ mod tests {
     use crate::control::Request;
     use crate::eds_device::{build, FileKind, Overrides};
     use crate::mem::MemBus;
-    use canpos_core::Frame;
+    use canpos_stack::Frame;
 
     fn recv_id(port: &mut dyn Transport, id: u16, within: Duration) -> Option<Frame> {
         let end = std::time::Instant::now() + within;

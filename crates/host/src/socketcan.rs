@@ -36,7 +36,7 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use socketcan::{CanFilter, CanFrame, CanSocket, Socket, SocketOptions};
 

@@ -422,7 +422,7 @@ pub fn open_device_bus_with(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use canpos_core::Frame;
+    use canpos_stack::Frame;
     use std::time::Duration;
 
     fn sc(host: &str, port: u16, channel: &str) -> BusUrl {

@@ -4,10 +4,10 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::socketcand::codec::{Decoder, Element};
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::Transport;
+use canpos_stack::Frame;
 use proptest::prelude::*;
 
 const WAIT: Duration = Duration::from_secs(5);

@@ -13,10 +13,10 @@ use std::net::{SocketAddr, TcpStream};
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::bus::bits::frame_length;
 use canpos_host::bus::Pacing;
 use canpos_host::socketcand::{Hub, HubConfig};
+use canpos_stack::Frame;
 
 const WAIT: Duration = Duration::from_secs(10);
 const BURST: usize = 50;

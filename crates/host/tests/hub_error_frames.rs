@@ -7,9 +7,9 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::transport::{BusState, Transport};
+use canpos_stack::Frame;
 
 const WAIT: Duration = Duration::from_secs(10);
 

@@ -193,7 +193,7 @@ fn a_client_that_stops_reading_gets_frames_again_when_it_reads() {
     expect(&mut s, b"< echo >");
     let mut port = hub.attach("can0");
     use canpos_host::transport::Transport;
-    let f = canpos_core::Frame::new(0x181, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
+    let f = canpos_stack::Frame::new(0x181, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
     let end = Instant::now() + WAIT;
     while hub.stats().dropped < 10_000 {
         assert!(Instant::now() < end, "{:?}", hub.stats());
@@ -217,7 +217,7 @@ fn a_client_that_stops_reading_gets_frames_again_when_it_reads() {
             _ => break,
         }
     }
-    let marker = canpos_core::Frame::new(0x7E0, &[0xAA]).unwrap();
+    let marker = canpos_stack::Frame::new(0x7E0, &[0xAA]).unwrap();
     port.send(&marker).unwrap();
     s.set_read_timeout(Some(WAIT)).unwrap();
     let mut got = Vec::new();

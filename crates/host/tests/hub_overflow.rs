@@ -9,11 +9,11 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::bus::bits::{frame_length, INTERMISSION_BITS};
 use canpos_host::bus::Pacing;
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::transport::Transport;
+use canpos_stack::Frame;
 
 const WAIT: Duration = Duration::from_secs(10);
 /// The report of a full transmit queue: `CAN_ERR_CRTL`, data byte 1 `CAN_ERR_CRTL_TX_OVERFLOW`.
@@ -158,7 +158,7 @@ fn a_sensor_behind_the_hub_sends_its_overflow_emcy() {
     let url = format!("socketcand://{}/can0", h.local_addr());
     let (t, embedded) = canpos_host::open_device_bus(&url, HubPolicy::Never).unwrap();
     assert!(embedded.is_none());
-    let model = canpos_core::models::by_name("th").unwrap();
+    let model = canpos_models::by_name("th").unwrap();
     let mut cfg = model.default_config;
     cfg.node_id = 9;
     cfg.serial = 78;

@@ -11,9 +11,9 @@ use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::socketcand::{Client, Hub, HubConfig};
 use canpos_host::Transport;
+use canpos_stack::Frame;
 
 const WAIT: Duration = Duration::from_secs(10);
 

@@ -11,13 +11,13 @@ use std::os::fd::AsRawFd;
 use std::sync::Mutex;
 use std::time::{Duration, Instant, SystemTime};
 
-use canpos_core::Frame;
 use canpos_host::runtime::{state_file, SensorSetup};
 use canpos_host::socketcan::{self as sc, SocketCanTransport};
 use canpos_host::transport::{BusState, Transport};
 use canpos_host::{FileStorage, Runtime};
 use canpos_sim::motion::{Profile, Profiles};
 use canpos_sim::SensorSpec;
+use canpos_stack::Frame;
 
 const IFACE: &str = "vcan0";
 /// The tests share vcan0: one at a time.
@@ -122,7 +122,7 @@ impl Peer {
 }
 
 fn th(dir: &std::path::Path, node_id: u8) -> SensorSetup {
-    let model = canpos_core::models::by_name("th").unwrap();
+    let model = canpos_models::by_name("th").unwrap();
     let mut cfg = model.default_config;
     cfg.node_id = node_id;
     cfg.serial = 1000 + u32::from(node_id);

@@ -4,7 +4,6 @@
 
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::control::Request;
 use canpos_host::runtime::{Runtime, SensorSetup};
 use canpos_host::socketcand::{Client, Hub};
@@ -12,9 +11,10 @@ use canpos_host::transport::{BusState, HubPolicy, Transport};
 use canpos_host::FileStorage;
 use canpos_sim::motion::{Profile, Profiles};
 use canpos_sim::SensorSpec;
+use canpos_stack::Frame;
 
 fn th(dir: &std::path::Path) -> SensorSetup {
-    let model = canpos_core::models::by_name("th").unwrap();
+    let model = canpos_models::by_name("th").unwrap();
     let mut cfg = model.default_config;
     cfg.node_id = 9;
     cfg.serial = 77;

@@ -6,11 +6,11 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::time::{Duration, Instant, SystemTime};
 
-use canpos_core::Frame;
 use canpos_host::bus::Pacing;
 use canpos_host::socketcand::codec::ErrorFrame;
 use canpos_host::socketcand::{Client, Hub, HubConfig, HubHandle};
 use canpos_host::transport::{BusState, Transport};
+use canpos_stack::Frame;
 
 const WAIT: Duration = Duration::from_secs(5);
 

@@ -7,7 +7,7 @@
 //! * [`motion`]: where the magnets truly are — static, sine, triangle, trapezoid ramp, steps,
 //!   CSV trajectories, live set-points — and the textual spec parser used by the CLI.
 //! * [`Sensor`]: one unit; per measurement cycle it turns true positions into a
-//!   [`canpos_core::encoder::Sample`] (channels ordered from the head, missing magnets, soft
+//!   [`canpos_encoder::Sample`] (channels ordered from the head, missing magnets, soft
 //!   stroke edges, seeded error budget, electronics temperature), with [`Faults`] injection;
 //!   [`Sensor::cycle`] publishes each measurement after the strain pulse's time of flight
 //!   (the next cycle boundary), and electronics and waveguide follow the ambient temperature

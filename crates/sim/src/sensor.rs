@@ -2,7 +2,7 @@
 
 use std::collections::VecDeque;
 
-use canpos_core::encoder::{Sample, MAX_CHANNELS};
+use canpos_encoder::{Sample, MAX_CHANNELS};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 

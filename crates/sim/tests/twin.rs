@@ -1,10 +1,11 @@
 //! The measurement model driving the CANopen core: a magnet at constant speed reads back through
 //! the dictionary within the model's resolution and error budget (exactly with `ideal`).
 
-use canpos_core::models::{by_name, Model};
-use canpos_core::storage::RamStorage;
-use canpos_core::{Instant, Node, SensorNode};
+use canpos_models::SensorNode;
+use canpos_models::{by_name, Model};
 use canpos_sim::{Sensor, SensorSpec};
+use canpos_stack::storage::RamStorage;
+use canpos_stack::{Instant, Node};
 
 const SPEED_MM_S: f64 = 100.0;
 const START_MM: f64 = 200.0;
@@ -22,7 +23,7 @@ fn run(
     cfg.cycle_us = cycle_us as u32;
     let max_err_um = spec.max_error_um(START_MM + SPEED_MM_S, 20.0);
     let mut sensor = Sensor::new(spec, 7, ideal);
-    let mut node = Node::new(model, cfg, RamStorage::default());
+    let mut node = SensorNode::new(model, cfg, RamStorage::default());
     node.power_on(Instant::ZERO);
     let step_nm = node.read_object(0x6005, 1).unwrap();
     let vstep = node.read_object(0x6005, 2).unwrap();

@@ -9,8 +9,8 @@
 mod board;
 
 use board::{BoardClock, Nvm, Uart, UartCan};
-use canpos_core::Storage;
 use canpos_firmware::Clock;
+use canpos_stack::Storage;
 use embedded_can::nb::Can;
 use panic_halt as _;
 

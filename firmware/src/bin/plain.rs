@@ -10,8 +10,8 @@ mod board;
 #[path = "../plain_stack.rs"]
 mod plain_stack;
 
-use canpos_core::models::Model;
-use canpos_core::od::{cia301, Entry};
+use canpos_stack::model::Model;
+use canpos_stack::od::{cia301, Entry};
 use panic_halt as _;
 
 /// The communication dictionary without node guarding's objects.

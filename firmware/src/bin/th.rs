@@ -8,7 +8,7 @@
 mod board;
 
 use board::{BoardClock, Nvm, Uart, UartCan};
-use canpos_core::Sample;
+use canpos_encoder::Sample;
 use canpos_firmware::{Clock, Firmware, MeasurementSource};
 use core::mem::MaybeUninit;
 use cortex_m_rt::entry;
@@ -32,7 +32,7 @@ impl SweepingMagnet {
 }
 
 impl MeasurementSource for SweepingMagnet {
-    fn sample(&mut self, now: canpos_core::Instant) -> Sample {
+    fn sample(&mut self, now: canpos_stack::Instant) -> Sample {
         // Elapsed time in 32 bits (a cycle is far shorter than 71 minutes): no 64-bit division.
         let dt = now.micros().wrapping_sub(self.last_us).min(u32::MAX as u64) as i64;
         self.last_us = now.micros();

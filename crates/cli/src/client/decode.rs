@@ -1,10 +1,10 @@
 //! Decoders for `canpos monitor`: one line of text per frame. Pure functions of the frame and
 //! what is known about the node, so they are unit-testable and never fail on odd input.
 
-use canpos_core::lss::{cs, Inquire, LssRequest, LssResponse, Part, MODE_CONFIGURATION};
-use canpos_core::nmt::{NmtCommand, NmtState, ALL_NODES};
-use canpos_core::sdo::wire::{Command, Mux, Request, Response, SEGMENT_DATA};
-use canpos_core::{cob, Frame};
+use canpos_stack::lss::{cs, Inquire, LssRequest, LssResponse, Part, MODE_CONFIGURATION};
+use canpos_stack::nmt::{NmtCommand, NmtState, ALL_NODES};
+use canpos_stack::sdo::wire::{Command, Mux, Request, Response, SEGMENT_DATA};
+use canpos_stack::{cob, Frame};
 
 use super::sdo::{abort_meaning, hex_string};
 

@@ -5,12 +5,12 @@ use std::fmt;
 use std::io;
 use std::time::{Duration, Instant};
 
-use canpos_core::lss::{
+use canpos_host::transport::Transport;
+use canpos_stack::lss::{
     cs, LssRequest, LssResponse, Part, FASTSCAN_CONFIRM, MODE_CONFIGURATION, MODE_WAITING,
     STATUS_MANUFACTURER, STATUS_OK, STATUS_REFUSED, STATUS_STORAGE_ERROR,
 };
-use canpos_core::{cob, Frame};
-use canpos_host::transport::Transport;
+use canpos_stack::{cob, Frame};
 
 /// LSS master → slave COB-ID.
 pub const LSS_TX: u16 = cob::LSS_RX;
@@ -20,7 +20,7 @@ pub const LSS_RX: u32 = cob::LSS_TX as u32;
 /// Index in CiA 305 bit-timing table 0 of a bit rate in kbit/s (the slave's own table).
 pub fn bit_timing_index(kbps: u32) -> Option<u8> {
     let kbps = u16::try_from(kbps).ok().filter(|&k| k != 0)?;
-    (0..=u8::MAX).find(|&i| canpos_core::lss::bit_timing_kbps(i) == Some(kbps))
+    (0..=u8::MAX).find(|&i| canpos_stack::lss::bit_timing_kbps(i) == Some(kbps))
 }
 
 /// The 128-bit LSS address (0x1018 sub 1…4).
@@ -79,8 +79,8 @@ pub enum Inquire {
 
 impl Inquire {
     /// The request as the stack's LSS vocabulary names it.
-    pub fn wire(self) -> canpos_core::lss::Inquire {
-        use canpos_core::lss::Inquire as W;
+    pub fn wire(self) -> canpos_stack::lss::Inquire {
+        use canpos_stack::lss::Inquire as W;
         match self {
             Inquire::Vendor => W::Identity(Part::Vendor),
             Inquire::Product => W::Identity(Part::Product),

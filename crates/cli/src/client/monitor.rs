@@ -6,7 +6,7 @@ use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, SystemTime};
 
 use anyhow::Result;
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 use crate::client::{decode, sdo, SdoClient, SdoError};
 

@@ -1,13 +1,13 @@
 //! Finding the nodes on a bus: who answers an SDO read of the identity object.
 
-use canpos_core::cob;
-use canpos_core::sdo::wire::{Mux, Request, Response};
+use canpos_stack::cob;
+use canpos_stack::sdo::wire::{Mux, Request, Response};
 use std::collections::HashMap;
 use std::io::{self};
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
 use canpos_host::transport::{RxFrame, Transport};
+use canpos_stack::Frame;
 
 use crate::client::{SdoClient, SdoError};
 use crate::common::ms;

@@ -9,10 +9,10 @@ use std::fmt;
 use std::io;
 use std::time::{Duration, Instant};
 
-use canpos_core::od::Abort;
-use canpos_core::sdo::wire::{Mux, Request, Response, SEGMENT_DATA};
-use canpos_core::{cob, Frame};
 use canpos_host::transport::{RxFrame, Transport};
+use canpos_stack::od::Abort;
+use canpos_stack::sdo::wire::{Mux, Request, Response, SEGMENT_DATA};
+use canpos_stack::{cob, Frame};
 
 use crate::common::{parse_i64, parse_u64};
 

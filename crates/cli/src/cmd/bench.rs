@@ -16,15 +16,16 @@ use std::hint::black_box;
 use std::time::{Duration, Instant as StdInstant};
 
 use anyhow::{bail, ensure, Context as _, Result};
-use canpos_core::lss::{Inquire, LssRequest, LssResponse, MODE_CONFIGURATION};
-use canpos_core::models::{self, Model};
-use canpos_core::nmt::{NmtCommand, NmtFrame, ALL_NODES};
-use canpos_core::sdo::wire::{Mux, Request, Response};
-use canpos_core::storage::NoStorage;
-use canpos_core::{cob, Frame, Instant, Node, SensorNode};
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
 use canpos_host::transport::Transport;
+use canpos_models::SensorNode;
+use canpos_models::{self as models, Model};
+use canpos_stack::lss::{Inquire, LssRequest, LssResponse, MODE_CONFIGURATION};
+use canpos_stack::nmt::{NmtCommand, NmtFrame, ALL_NODES};
+use canpos_stack::sdo::wire::{Mux, Request, Response};
+use canpos_stack::storage::NoStorage;
+use canpos_stack::{cob, Frame, Instant, Node};
 use clap::{Args, Subcommand, ValueEnum};
 use serde_json::{json, Value};
 
@@ -851,7 +852,7 @@ fn boot(a: BootArgs) -> Result<i32> {
 /// `size_of` of the node: one type for every model (the model's table is `&'static` data, the
 /// values array is sized for the largest table), so the figure holds for th, e-series and tmi.
 fn size() -> Result<i32> {
-    use canpos_core::storage::RamStorage;
+    use canpos_stack::storage::RamStorage;
     use std::mem::size_of;
     let line = json!({
         "bench": "size",
@@ -859,11 +860,11 @@ fn size() -> Result<i32> {
         "node_no_storage": size_of::<SensorNode<NoStorage>>(),
         "node_ram_storage": size_of::<SensorNode<RamStorage>>(),
         "node_file_storage": size_of::<SensorNode<canpos_host::FileStorage>>(),
-        "dictionary": size_of::<canpos_core::od::Dictionary>(),
-        "sdo_server": size_of::<canpos_core::sdo::SdoServer>(),
-        "tpdos": size_of::<canpos_core::pdo::Tpdos>(),
-        "emcy": size_of::<canpos_core::emcy::Emcy>(),
-        "encoder": size_of::<canpos_core::encoder::Encoder>(),
+        "dictionary": size_of::<canpos_stack::od::Dictionary>(),
+        "sdo_server": size_of::<canpos_stack::sdo::SdoServer>(),
+        "tpdos": size_of::<canpos_stack::pdo::Tpdos>(),
+        "emcy": size_of::<canpos_stack::emcy::Emcy>(),
+        "encoder": size_of::<canpos_encoder::Encoder>(),
         "ram_storage": size_of::<RamStorage>(),
         "table_entries": models::all().map(|m| m.entries.len()),
     });

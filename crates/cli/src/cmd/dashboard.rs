@@ -57,7 +57,7 @@ pub fn dashboard(a: DashboardArgs) -> Result<i32> {
                 serial: None,
             },
         )?;
-        tables.push((*id, dev.model));
+        tables.push((*id, &dev.model.table));
     }
     let bus = crate::common::open_bus(&a.bus)?;
     let d = start(bus, &a.listen, Controls::Remote(a.controls), a.window)?;

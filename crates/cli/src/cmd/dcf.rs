@@ -10,14 +10,15 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 use anyhow::{anyhow, bail, Context, Result};
-use canpos_core::eds::{Commissioning, DcfValue, EdsInfo};
-use canpos_core::models::{self, DeviceConfig, Model};
-use canpos_core::od::{DataType, DefaultValue, Entry};
-use canpos_core::sdo::wire::{Mux, Request, Response};
-use canpos_core::storage::{Storage, StorageError, IMAGE_MAX};
-use canpos_core::{cob, Frame, Instant, Node};
 use canpos_host::ini::Ini;
 use canpos_host::FileStorage;
+use canpos_models::SensorNode;
+use canpos_models::{self as models, DeviceConfig, Model};
+use canpos_stack::eds::{Commissioning, DcfValue, EdsInfo};
+use canpos_stack::od::{DataType, DefaultValue, Entry};
+use canpos_stack::sdo::wire::{Mux, Request, Response};
+use canpos_stack::storage::{Storage, StorageError, IMAGE_MAX};
+use canpos_stack::{cob, Frame, Instant, Node};
 use clap::Args;
 
 use crate::client::{SdoClient, SdoError};
@@ -82,11 +83,11 @@ fn state_unit(path: &Path, model: &'static Model) -> DeviceConfig {
         // read_state reports the file.
         return cfg;
     };
-    let Ok(mut recs) = canpos_core::storage::parse_image(&image[..n], model.features.tag) else {
+    let Ok(mut recs) = canpos_stack::storage::parse_image(&image[..n], model.features.tag) else {
         return cfg;
     };
     let wider = recs.any(|(k, _)| {
-        canpos_core::storage::is_object_key(k)
+        canpos_stack::storage::is_object_key(k)
             && widest.search(k).is_ok()
             && narrow.search(k).is_err()
     });
@@ -118,7 +119,7 @@ fn read_state(
     }
     // Unlocked: the unit may be running on it; this node only reads (it stores nothing unless
     // told by 0x1010, which nobody sends it).
-    let mut node = Node::new(model, cfg, FileStorage::new(path).for_model(model));
+    let mut node = SensorNode::new(model, cfg, FileStorage::new(path).for_model(model));
     node.power_on(Instant::ZERO);
     cfg.node_id = node.device().node_id();
     cfg.bitrate_kbps = node.device().bitrate();
@@ -324,7 +325,7 @@ fn render(
         }
     };
     let mut text = String::new();
-    canpos_core::eds::write_dcf(&mut text, model, cfg, &info, &comm, &lookup)
+    canpos_stack::eds::write_dcf(&mut text, model, cfg, &info, &comm, &lookup)
         .map_err(|_| anyhow!("formatting the DCF failed"))?;
     Ok(text)
 }
@@ -504,7 +505,7 @@ pub fn apply_to_state(
     let storage = FileStorage::open(state)
         .with_context(|| format!("cannot open {}", state.display()))?
         .for_model(dcf.model);
-    let mut node = Node::new(dcf.model, cfg, storage);
+    let mut node = SensorNode::new(dcf.model, cfg, storage);
     let mut now = Instant::ZERO;
     node.power_on(now);
     while node.poll(now).is_some() {}
@@ -521,7 +522,7 @@ pub fn apply_to_state(
             data: raw.to_le_bytes(),
         }
         .emit();
-        now += canpos_core::Duration::from_millis(1);
+        now += canpos_stack::Duration::from_millis(1);
         node.handle_frame(&Frame::std8(cob::SDO_RX + id as u16, req), now);
         let mut answer = None;
         // A store may answer later (a held SDO): let the node's time run until it does.
@@ -534,7 +535,7 @@ pub fn apply_to_state(
             if answer.is_some() {
                 break;
             }
-            now += canpos_core::Duration::from_millis(10);
+            now += canpos_stack::Duration::from_millis(10);
         }
         match answer.map(|a| Response::parse(&a)) {
             Some(Response::DownloadInitiate { .. }) => Ok(()),
@@ -600,7 +601,7 @@ pub fn apply_to_state(
     Ok(refused)
 }
 
-fn read<A: canpos_core::Application, S: canpos_core::Storage>(
+fn read<A: canpos_stack::Application, S: canpos_stack::Storage>(
     node: &mut Node<A, S>,
     index: u16,
     sub: u8,
@@ -621,7 +622,7 @@ mod tests {
         let path = dir.path().join("tmi-9050001.bin");
         let write = |recs: &[(u32, u32)]| {
             let mut buf = [0u8; IMAGE_MAX];
-            let mut w = canpos_core::storage::ImageWriter::new(&mut buf, tmi.features.tag);
+            let mut w = canpos_stack::storage::ImageWriter::new(&mut buf, tmi.features.tag);
             for &(k, v) in recs {
                 assert!(w.push(k, v));
             }
@@ -784,7 +785,7 @@ mod tests {
         // A missing file: the unit on its defaults.
         let storage = FileStorage::new(p);
         let cfg = m.default_config.with_node_id(20);
-        let mut node = Node::new(m, cfg, storage);
+        let mut node = SensorNode::new(m, cfg, storage);
         node.power_on(Instant::ZERO);
         let values = m
             .entries

@@ -1,18 +1,18 @@
 //! The demo (`canpos` without arguments, or `canpos demo`).
 
-use canpos_core::cob;
-use canpos_core::nmt::{NmtCommand, NmtFrame};
-use canpos_core::sdo::wire::{self, Mux, Response};
+use canpos_stack::cob;
+use canpos_stack::nmt::{NmtCommand, NmtFrame};
+use canpos_stack::sdo::wire::{self, Mux, Response};
 use std::io::Write as _;
 use std::net::SocketAddr;
 use std::time::Duration;
 
 use anyhow::{bail, Context as _, Result};
-use canpos_core::Frame;
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::Receiver;
 use canpos_host::runtime::{Runtime, RuntimeHandle};
 use canpos_host::{Hub, Transport};
+use canpos_stack::Frame;
 use clap::Args;
 
 use crate::common::{stop_signal, DEFAULT_LISTEN};

@@ -57,7 +57,7 @@ pub fn eds(a: EdsArgs) -> Result<i32> {
     };
     let file_name = export_file_name(a.output.as_ref(), default_name);
     let (date, time) = crate::capture::eds_date_time(SystemTime::now());
-    let info = canpos_core::eds::EdsInfo {
+    let info = canpos_stack::eds::EdsInfo {
         file_name: &file_name,
         date: &date,
         time: &time,
@@ -65,7 +65,7 @@ pub fn eds(a: EdsArgs) -> Result<i32> {
         ..Default::default()
     };
     let mut text = String::new();
-    canpos_core::eds::write_eds(&mut text, model, &cfg, &info)
+    canpos_stack::eds::write_eds(&mut text, model, &cfg, &info)
         .map_err(|_| anyhow::anyhow!("formatting the EDS failed"))?;
     write_export(a.output.as_ref(), &text)?;
     Ok(0)

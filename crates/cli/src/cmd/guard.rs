@@ -3,8 +3,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use canpos_core::Frame;
 use canpos_host::transport::Transport;
+use canpos_stack::Frame;
 use clap::Args;
 
 use crate::client::decode;

@@ -1,7 +1,7 @@
 //! `canpos lss`: the layer setting services (CiA 305) from the master's side.
 
 use anyhow::Result;
-use canpos_core::lss::cs;
+use canpos_stack::lss::cs;
 use clap::{Args, Subcommand, ValueEnum};
 
 use crate::client::{lss, Inquire, LssAddress, LssError, LssMaster, LssStatus};

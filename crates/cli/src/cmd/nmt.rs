@@ -1,8 +1,8 @@
 //! `canpos nmt`: send an NMT command.
 
 use anyhow::{Context, Result};
-use canpos_core::{cob, nmt, Frame};
 use canpos_host::transport::Transport;
+use canpos_stack::{cob, nmt, Frame};
 use clap::{Args, ValueEnum};
 
 use crate::client::decode;

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use canpos_core::Frame;
 use canpos_host::transport::Transport;
+use canpos_stack::Frame;
 use clap::{Args, ValueEnum};
 
 use crate::common::{open_bus, usage, BusArg, EXIT_OK};

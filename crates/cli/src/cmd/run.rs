@@ -233,7 +233,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     let state_dir = a.state_dir.unwrap_or_else(runtime::default_state_dir);
     let state = dev.state_file(&state_dir);
     // Locked, links refused, stale temporaries removed, as a sensor's (FileStorage::open).
-    let storage = FileStorage::open(&state)?.for_model(dev.model);
+    let storage = FileStorage::open(&state)?.for_table(&dev.model.table);
     let (transport, _hub) = open_bus(
         &a.bus,
         a.hub,
@@ -245,7 +245,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     rt.power_on()?;
     // The active node-id: a stored LSS node-id wins over the file's and the command line's.
     let id = rt.node().device().node_id();
-    let id_text = if id == canpos_core::UNCONFIGURED {
+    let id_text = if id == canpos_stack::UNCONFIGURED {
         "no node-id (255, LSS unconfigured)".to_string()
     } else {
         format!("node-id {id}")

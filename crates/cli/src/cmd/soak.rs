@@ -26,12 +26,12 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
-use canpos_core::nmt::{NmtCommand, NmtFrame, ALL_NODES};
-use canpos_core::sdo::wire::{Mux, Request, Response};
-use canpos_core::{cob, Frame};
 use canpos_host::mem::MemBus;
 use canpos_host::runtime::Runtime;
 use canpos_host::transport::Transport;
+use canpos_stack::nmt::{NmtCommand, NmtFrame, ALL_NODES};
+use canpos_stack::sdo::wire::{Mux, Request, Response};
+use canpos_stack::{cob, Frame};
 use clap::Args;
 use serde_json::{json, Value};
 

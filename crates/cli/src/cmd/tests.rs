@@ -1,4 +1,4 @@
-//! Tests of the master tools against a real `canpos_core::Node` (expedited SDO, NMT, scan,
+//! Tests of the master tools against a real `canpos_stack::Node` (expedited SDO, NMT, scan,
 //! monitor configuration reads, LSS fastscan and configuration) and against small scripted
 //! slaves for what must also be exercised independently of the device core (segmented SDO with
 //! toggle errors, LSS with fastscan), so that a misreading shared by the core and the master
@@ -11,11 +11,11 @@ use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use canpos_core::storage::RamStorage;
-use canpos_core::Frame;
 use canpos_host::mem::{MemBus, MemPort};
 use canpos_host::transport;
 use canpos_host::transport::Transport;
+use canpos_stack::storage::RamStorage;
+use canpos_stack::Frame;
 
 use crate::client::monitor::LoadMeter;
 use crate::client::*;
@@ -81,12 +81,12 @@ fn run_node(bus: &MemBus, node_id: u8) -> Runner {
 
 /// A TH node with `node_id` on `port`, driven with the real clock.
 fn run_node_on(port: MemPort, node_id: u8) -> Runner {
-    let model = canpos_core::models::by_name("th").expect("th model");
+    let model = canpos_models::by_name("th").expect("th model");
     let mut cfg = model.default_config;
     cfg.node_id = node_id;
-    let mut node = canpos_core::Node::new(model, cfg, RamStorage::default());
+    let mut node = canpos_models::SensorNode::new(model, cfg, RamStorage::default());
     let t0 = Instant::now();
-    let now = move || canpos_core::Instant::from_micros(t0.elapsed().as_micros() as u64);
+    let now = move || canpos_stack::Instant::from_micros(t0.elapsed().as_micros() as u64);
     node.power_on(now());
     spawn(port, move |port, f| {
         if let Some(f) = f {
@@ -710,15 +710,15 @@ fn lss_fastscan_finds_unconfigured_node() {
 /// A real TH node of the core on a [`SyncBus`]: the LSS master against the device it
 /// commissions. Its time is virtual and moves 1 ms per frame sent.
 struct ThUnit {
-    node: canpos_core::SensorNode<RamStorage>,
-    now: canpos_core::Instant,
+    node: canpos_models::SensorNode<RamStorage>,
+    now: canpos_stack::Instant,
 }
 
 impl ThUnit {
     /// TH nodes with these serial numbers and node-ids (0xFF: unconfigured), powered on, their
     /// boot-ups dropped.
     fn bus(units: &[(u32, u8)]) -> SyncBus<ThUnit> {
-        let model = canpos_core::models::by_name("th").expect("th model");
+        let model = canpos_models::by_name("th").expect("th model");
         SyncBus::new(
             units
                 .iter()
@@ -726,12 +726,13 @@ impl ThUnit {
                     let mut cfg = model.default_config;
                     cfg.serial = serial;
                     cfg.node_id = node_id;
-                    let mut node = canpos_core::Node::new(model, cfg, RamStorage::default());
-                    node.power_on(canpos_core::Instant::ZERO);
+                    let mut node =
+                        canpos_models::SensorNode::new(model, cfg, RamStorage::default());
+                    node.power_on(canpos_stack::Instant::ZERO);
                     while node.poll_transmit().is_some() {}
                     ThUnit {
                         node,
-                        now: canpos_core::Instant::ZERO,
+                        now: canpos_stack::Instant::ZERO,
                     }
                 })
                 .collect(),
@@ -741,7 +742,7 @@ impl ThUnit {
 
 impl Answers for ThUnit {
     fn answer_frame(&mut self, frame: &Frame, out: &mut Vec<Frame>) {
-        self.now = canpos_core::Instant::from_micros(self.now.micros() + 1000);
+        self.now = canpos_stack::Instant::from_micros(self.now.micros() + 1000);
         self.node.handle_frame(frame, self.now);
         self.node.handle_timeout(self.now);
         while let Some(f) = self.node.poll_transmit() {

@@ -10,13 +10,13 @@ use std::sync::atomic::{AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use canpos_core::models::{self, Model};
-use canpos_core::od::DefaultValue;
-use canpos_core::sdo::wire;
-use canpos_core::{cob, Frame};
 use canpos_host::control::{self, Request};
 use canpos_host::crossbeam_channel::{self, Receiver, Sender, TrySendError};
 use canpos_host::{ControlHandle, RxFrame, Transport};
+use canpos_models as models;
+use canpos_stack::od::DefaultValue;
+use canpos_stack::sdo::wire;
+use canpos_stack::{cob, Frame, Table};
 use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
@@ -112,7 +112,7 @@ pub struct Emcy {
 #[derive(Default)]
 pub struct Node {
     /// Model recognised from 0x1018/1 and 0x1008 (or reported by its control interface).
-    pub model: Option<&'static Model>,
+    pub model: Option<&'static Table>,
     /// 0x1008.
     pub name: Option<String>,
     /// 0x1018/1…4.
@@ -187,7 +187,7 @@ impl Shared {
     }
 
     /// Gives node `id` the object table of `model` (an EDS the user named).
-    pub fn pin_model(&mut self, id: u8, model: &'static Model) {
+    pub fn pin_model(&mut self, id: u8, model: &'static Table) {
         let n = self.node(id);
         n.model = Some(model);
         n.pinned = true;
@@ -336,10 +336,12 @@ pub fn pdo_fields(mapping: &[u32], data: &[u8]) -> Vec<(u16, u8, i64)> {
 }
 
 /// The model whose table has this vendor-id and device name (0x1018/1, 0x1008).
-pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Model> {
+pub fn recognise(vendor: Option<u32>, name: Option<&str>) -> Option<&'static Table> {
     let vendor = vendor?;
-    let candidates: Vec<&'static Model> = models::all()
+    // The widest unit's table (the two-channel TMI's): the dashboard does not know the unit.
+    let candidates: Vec<&'static Table> = models::all()
         .into_iter()
+        .map(|m| &models::widest(m).table)
         .filter(|m| {
             m.entries.iter().any(|e| {
                 e.index == 0x1018 && e.sub == 1 && e.default == DefaultValue::Const(vendor)
@@ -737,13 +739,19 @@ pub fn run_poller(shared: Arc<Mutex<Shared>>, stop: Receiver<()>) {
             for (c, st) in s.controllers.iter_mut().zip(states) {
                 c.state = (st["ok"] == true).then_some(st);
             }
-            let known: Vec<(u8, Option<&'static Model>)> = s
+            let known: Vec<(u8, Option<&'static Table>)> = s
                 .controllers
                 .iter()
                 .filter_map(|c| c.state.as_ref())
                 .filter_map(|st| {
                     let id = st["node_id"].as_u64().filter(|id| (1..=127).contains(id))?;
-                    Some((id as u8, st["model"].as_str().and_then(models::by_name)))
+                    Some((
+                        id as u8,
+                        st["model"]
+                            .as_str()
+                            .and_then(models::by_name)
+                            .map(|m| &models::widest(m).table),
+                    ))
                 })
                 .collect();
             for (id, model) in known {

@@ -5,7 +5,7 @@
 //! run. The fixed tail is not stuffed: CRC delimiter 1, ACK slot 1, ACK delimiter 1, EOF 7,
 //! intermission 3.
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 /// Bits after the CRC sequence: CRC delimiter, ACK slot, ACK delimiter, EOF (7), intermission (3).
 pub const TAIL_BITS: u32 = 1 + 1 + 1 + 7 + 3;

@@ -9,7 +9,7 @@
 
 use std::collections::VecDeque;
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 use super::bits::{
     arbitration_key, first_difference, frame_length, stuffed, BUS_OFF_RECOVERY_SEQUENCES,

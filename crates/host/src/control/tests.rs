@@ -149,7 +149,7 @@ fn absurd_values_are_refused() {
 fn runtime(dir: &std::path::Path) -> (crate::RuntimeHandle, ControlHandle) {
     use crate::runtime::{state_file, SensorSetup};
     use canpos_sim::motion::{Profile, Profiles};
-    let model = canpos_core::models::by_name("th").unwrap();
+    let model = canpos_models::by_name("th").unwrap();
     let cfg = model.default_config;
     let setup = SensorSetup {
         name: "th-control".into(),

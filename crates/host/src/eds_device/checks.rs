@@ -16,7 +16,7 @@ impl Builder<'_> {
             None => Ok(()),
             Some((index, sub)) => Err(self.err(
                 value_lines
-                    .get(&canpos_core::od::key(index, sub))
+                    .get(&canpos_stack::od::key(index, sub))
                     .copied()
                     .unwrap_or(0),
                 format!(

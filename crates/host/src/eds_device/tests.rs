@@ -3,11 +3,11 @@
 //! serves values, limits, PDOs and storage.
 
 use super::*;
-use canpos_core::models;
-use canpos_core::od::{resolve_default, ParamSource};
-use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node};
-use canpos_core::{SIG_LOAD, SIG_SAVE};
+use canpos_models as models;
+use canpos_stack::od::{resolve_default, ParamSource};
+use canpos_stack::storage::RamStorage;
+use canpos_stack::{Frame, Instant, Node};
+use canpos_stack::{SIG_LOAD, SIG_SAVE};
 
 const IO: &str = include_str!(concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -31,8 +31,8 @@ fn find(m: &Model, index: u16, sub: u8) -> &Entry {
         .unwrap_or_else(|| panic!("no {index:04X}/{sub}"))
 }
 
-struct Unit(&'static Model, DeviceConfig);
-impl ParamSource for Unit {
+struct Unit<C: 'static, X: 'static>(&'static canpos_stack::model::Model<C, X>, C);
+impl<C, X> ParamSource for Unit<C, X> {
     fn param(&self, p: Param) -> u32 {
         (self.0.param)(&self.1, p)
     }
@@ -42,11 +42,11 @@ impl ParamSource for Unit {
 fn the_exported_eds_of_every_model_rebuilds_its_table() {
     for m in models::all() {
         let mut text = String::new();
-        canpos_core::eds::write_eds(
+        canpos_stack::eds::write_eds(
             &mut text,
             m,
             &m.default_config,
-            &canpos_core::eds::EdsInfo::default(),
+            &canpos_stack::eds::EdsInfo::default(),
         )
         .unwrap();
         let d = eds(&text).unwrap_or_else(|e| panic!("{}: {e}", m.name));
@@ -625,7 +625,7 @@ fn a_table_whose_cia301_object_lacks_its_hook_is_refused() {
         kind: FileKind::Eds,
         warnings: Vec::new(),
     };
-    let lines = BTreeMap::from([(canpos_core::od::key(0x1014, 0), 42usize)]);
+    let lines = BTreeMap::from([(canpos_stack::od::key(0x1014, 0), 42usize)]);
     b.check_hooks(d.model.entries, &lines).unwrap();
     // …and a table where one of them is missing or wrong is an error naming the object.
     for (index, sub) in [(0x1005, 0), (0x1010, 1), (0x1014, 0), (0x1017, 0)] {

@@ -1,7 +1,7 @@
 //! The values of an EDS / DCF file: numbers (CiA 306 notation, `$NODEID+…`), data type codes,
 //! access types, section names of objects. Plain parsing, below the device builder.
 
-use canpos_core::od::{Access, DataType};
+use canpos_stack::od::{Access, DataType};
 
 /// An EDS number: decimal, `0x` hex, octal with a leading 0 (CiA 306), or negative decimal.
 pub fn parse_int(s: &str) -> Option<i64> {
@@ -61,10 +61,10 @@ pub(super) fn data_type(code: i64) -> Result<DataType, String> {
         0x0006 => DataType::Unsigned16,
         0x0007 => DataType::Unsigned32,
         0x0009 => DataType::VisibleString,
-        0x000F => return Err("DOMAIN objects are not supported by canpos-core".into()),
+        0x000F => return Err("DOMAIN objects are not supported by canpos-stack".into()),
         0x0008 | 0x000A | 0x000B | 0x000C | 0x000D | 0x0010..=0x001B => {
             return Err(format!(
-                "DataType 0x{code:04X} is not supported by canpos-core (BOOLEAN, INTEGER8/16/32, \
+                "DataType 0x{code:04X} is not supported by canpos-stack (BOOLEAN, INTEGER8/16/32, \
                  UNSIGNED8/16/32 and VISIBLE_STRING are)"
             ))
         }

@@ -1,5 +1,5 @@
 use super::*;
-use canpos_core::storage::{parse_image, ImageWriter};
+use canpos_stack::storage::{parse_image, ImageWriter};
 use std::os::unix::fs::symlink;
 
 fn image(value: u32) -> Vec<u8> {
@@ -131,7 +131,7 @@ fn torn_or_garbage_files_are_corrupt() {
 /// core's answer is only EMCY 0x6300), and a load refuses the image for it.
 #[test]
 fn an_image_failing_a_check_is_corrupt_with_its_reason() {
-    let th = canpos_core::models::by_name("th").unwrap();
+    let th = canpos_models::by_name("th").unwrap();
     let tag = th.features.tag;
     let mut buf = [0u8; IMAGE_MAX];
     let mut w = ImageWriter::new(&mut buf, tag);
@@ -141,7 +141,7 @@ fn an_image_failing_a_check_is_corrupt_with_its_reason() {
     let reseal = |at: usize, v: u8| {
         let mut b = good.clone();
         b[at] = v;
-        let crc = canpos_core::storage::crc32(&b[..n - 4]).to_le_bytes();
+        let crc = canpos_stack::storage::crc32(&b[..n - 4]).to_le_bytes();
         b[n - 4..].copy_from_slice(&crc);
         b
     };
@@ -471,8 +471,8 @@ fn unreadable_path_is_corrupt_not_empty() {
 /// the save stores the unit's own configuration.
 #[test]
 fn an_image_of_unused_records_does_not_block_later_saves() {
-    use canpos_core::{Duration, Frame, Instant, Node};
-    let th = canpos_core::models::by_name("th").unwrap();
+    use canpos_stack::{Duration, Frame, Instant, Node};
+    let th = canpos_models::by_name("th").unwrap();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("th-1.bin");
     let fit = (IMAGE_MAX - 12) / 8;
@@ -497,7 +497,7 @@ fn an_image_of_unused_records_does_not_block_later_saves() {
     assert_eq!(n, IMAGE_MAX);
     fs::write(&path, &buf[..n]).unwrap();
 
-    let mut node = Node::new(
+    let mut node = canpos_models::SensorNode::new(
         th,
         th.default_config.with_node_id(5),
         FileStorage::new(&path).for_model(th),
@@ -540,7 +540,11 @@ fn an_image_of_unused_records_does_not_block_later_saves() {
     let bytes = fs::read(&path).unwrap();
     let recs: Vec<_> = parse_image(&bytes, th.features.tag).unwrap().collect();
     assert!(recs.contains(&(0x0010_1700, 250)), "{recs:?}");
-    assert!(recs.iter().all(|&(k, _)| record_used(th, k)), "{recs:?}");
+    assert!(
+        recs.iter()
+            .all(|&(k, _)| record_used(FileStorage::new(&path).for_model(th).model.unwrap(), k)),
+        "{recs:?}"
+    );
     assert_eq!(recs.iter().filter(|r| r.0 == 0x0010_1700).count(), 1);
     // And a later save works too.
     let a = sdo(
@@ -554,9 +558,9 @@ fn an_image_of_unused_records_does_not_block_later_saves() {
 /// reading in the next process (the offset is kept with 0x6010, issue 36 item 5).
 #[test]
 fn a_tmi_preset_survives_a_restart_through_the_state_file() {
-    use canpos_core::encoder::Sample;
-    use canpos_core::{Duration, Frame, Instant, Node};
-    let tmi = canpos_core::models::by_name("tmi").unwrap();
+    use canpos_encoder::Sample;
+    use canpos_stack::{Duration, Frame, Instant, Node};
+    let tmi = canpos_models::by_name("tmi").unwrap();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("tmi-1.bin");
     let mut s = Sample::default();
@@ -581,7 +585,7 @@ fn a_tmi_preset_survives_a_restart_through_the_state_file() {
     let position = [0x40, 0x20, 0x60, 1, 0, 0, 0, 0];
     {
         let storage = FileStorage::new(&path).for_model(tmi);
-        let mut node = Node::new(tmi, tmi.default_config, storage);
+        let mut node = canpos_models::SensorNode::new(tmi, tmi.default_config, storage);
         node.power_on(Instant::ZERO);
         assert_eq!(read(sdo(&mut node, position)), 300_000);
         // Preset 1000 (0x3E8), then "save".
@@ -597,7 +601,7 @@ fn a_tmi_preset_survives_a_restart_through_the_state_file() {
         assert_eq!(a[0], 0x60, "save answered {a:02X?}");
     }
     let storage = FileStorage::new(&path).for_model(tmi);
-    let mut node = Node::new(tmi, tmi.default_config, storage);
+    let mut node = canpos_models::SensorNode::new(tmi, tmi.default_config, storage);
     // A new process: its own clock.
     node.power_on(Instant::ZERO);
     assert_eq!(
@@ -619,8 +623,8 @@ fn a_tmi_preset_survives_a_restart_through_the_state_file() {
 /// review).
 #[test]
 fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
-    use canpos_core::{Duration, Frame, Instant, Node};
-    let tmi = canpos_core::models::by_name("tmi").unwrap();
+    use canpos_stack::{Duration, Frame, Instant, Node};
+    let tmi = canpos_models::by_name("tmi").unwrap();
     let one = tmi.default_config.with_channels(1);
     let two = tmi.default_config.with_channels(2);
     let dir = tempfile::tempdir().unwrap();
@@ -645,14 +649,16 @@ fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
     let read_cam2 = [0x40, 0x10, 0x63, 2, 0, 0, 0, 0];
     let value = |a: [u8; 8]| i32::from_le_bytes([a[4], a[5], a[6], a[7]]);
     {
-        let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_models::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         let a = sdo(&mut node, [0x23, 0x10, 0x63, 2, 0xD2, 0x04, 0, 0]);
         assert_eq!(a[0], 0x60, "write answered {a:02X?}");
         assert_eq!(sdo(&mut node, save)[0], 0x60);
     }
     {
-        let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_models::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         assert_eq!(
             value(sdo(&mut node, read_cam2)),
@@ -663,13 +669,14 @@ fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
     {
         // The same file in a one-channel unit: it has no 0x6310:2, and a save of its own
         // leaves the other unit's record alone.
-        let mut node = Node::new(tmi, one, FileStorage::new(&path).for_model(tmi));
+        let mut node =
+            canpos_models::SensorNode::new(tmi, one, FileStorage::new(&path).for_model(tmi));
         node.power_on(Instant::ZERO);
         let a = sdo(&mut node, read_cam2);
         assert_eq!((a[0], value(a)), (0x80, 0x0609_0011), "{a:02X?}");
         assert_eq!(sdo(&mut node, save)[0], 0x60);
     }
-    let mut node = Node::new(tmi, two, FileStorage::new(&path).for_model(tmi));
+    let mut node = canpos_models::SensorNode::new(tmi, two, FileStorage::new(&path).for_model(tmi));
     node.power_on(Instant::ZERO);
     assert_eq!(
         value(sdo(&mut node, read_cam2)),
@@ -682,7 +689,7 @@ fn a_two_channel_tmi_keeps_its_channel_2_configuration_in_the_state_file() {
 /// The records the core uses are kept, every one (the LSS ones included), and in order.
 #[test]
 fn an_image_of_used_records_loads_unchanged() {
-    let tmi = canpos_core::models::by_name("tmi").unwrap();
+    let tmi = canpos_models::by_name("tmi").unwrap();
     let tag = tmi.features.tag;
     let mut buf = [0u8; IMAGE_MAX];
     let mut w = ImageWriter::new(&mut buf, tag);
@@ -693,8 +700,8 @@ fn an_image_of_used_records_loads_unchanged() {
         (0x0020_0000, 5),
         (0x0010_1700, 100),
         // The TMI's preset offsets, kept with 0x6010 (issue 36 item 5).
-        (canpos_core::storage::app_key(0), -299_000i32 as u32),
-        (canpos_core::storage::app_key(1), 7),
+        (canpos_stack::storage::app_key(0), -299_000i32 as u32),
+        (canpos_stack::storage::app_key(1), 7),
     ] {
         w.push(k, v);
     }

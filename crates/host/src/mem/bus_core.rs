@@ -7,7 +7,7 @@
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock, Weak};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 
 use crate::bus::{BusEvent, MemberId, Nanos, Pacing, Timeline, DEFAULT_TX_DEPTH};

@@ -18,7 +18,7 @@ use std::io;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
 use crate::bus::{MemberStats, Pacing};

@@ -3,7 +3,7 @@
 
 use std::io;
 
-use canpos_core::Instant;
+use canpos_stack::Instant;
 
 use crate::can::Transport;
 use crate::clock::{Driver, SimClock};

@@ -4,11 +4,11 @@
 
 use std::time::Duration;
 
-use canpos_core::models::{DeviceConfig, Model};
-use canpos_core::storage::Storage;
-use canpos_core::{Application, Frame, Instant, Node, SensorNode};
+use canpos_models::{DeviceConfig, Model, SensorNode};
 use canpos_sim::motion::{LiveHandle, LiveMotion, Motion};
 use canpos_sim::{Sensor, SensorSpec};
+use canpos_stack::storage::Storage;
+use canpos_stack::{Application, Frame, Instant, Node};
 use serde_json::{json, Value};
 
 use crate::can::Transport;
@@ -18,7 +18,7 @@ use crate::timing::{DeviceTiming, Jitter};
 
 /// Minimum time a store takes before its SDO answer leaves (D7): what a firmware's flash takes
 /// by itself.
-pub const STORE_TIME: canpos_core::Duration = canpos_core::Duration::from_millis(20);
+pub const STORE_TIME: canpos_stack::Duration = canpos_stack::Duration::from_millis(20);
 
 /// Frames a controller in autobaud hears before it has the bus's bit rate (TMI R19:
 /// "continuous traffic of 4–5 messages").
@@ -30,7 +30,7 @@ pub struct HardwareStats {
     /// Frames received while the node's bit rate differed from the bus.
     pub rx_wrong_bitrate: u32,
     /// Frames the node produced and that never reached the bus: while its bit rate differed
-    /// from the bus, and during a bit-rate switch (the core's [`canpos_core::Stats::tx_silenced`]).
+    /// from the bus, and during a bit-rate switch (the core's [`canpos_stack::Stats::tx_silenced`]).
     pub tx_wrong_bitrate: u32,
 }
 
@@ -429,7 +429,7 @@ impl SimDevice {
         if want != self.temp_alarm {
             self.temp_alarm = want;
             self.node
-                .inject_fault(canpos_core::encoder::Fault::OverTemperature, want);
+                .inject_fault(canpos_encoder::Fault::OverTemperature, want);
         }
     }
 

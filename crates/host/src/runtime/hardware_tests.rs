@@ -3,10 +3,11 @@
 //! core's behaviours under its former `simulation` feature; their tests moved here with them,
 //! assertion for assertion (issue 37).
 
-use canpos_core::models::th::TH;
-use canpos_core::models::{self, Model};
-use canpos_core::storage::RamStorage;
-use canpos_core::{Frame, Instant, Node, SensorNode};
+use canpos_models::th::TH;
+use canpos_models::SensorNode;
+use canpos_models::{self as models, Model};
+use canpos_stack::storage::RamStorage;
+use canpos_stack::{Frame, Instant, Node};
 
 use super::SimHardware;
 

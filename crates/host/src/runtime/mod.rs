@@ -1,4 +1,4 @@
-//! The runtime: drives one or many simulated sensors ([`canpos_core::Node`] + [`canpos_sim::Sensor`])
+//! The runtime: drives one or many simulated sensors ([`canpos_stack::Node`] + [`canpos_sim::Sensor`])
 //! on one bus, on absolute deadlines.
 //!
 //! # Design
@@ -7,12 +7,12 @@
 //!
 //! 1. drains received frames and hands each to every node;
 //! 2. runs every measurement cycle that is due (motion → [`Sensor::cycle`](canpos_sim::Sensor::cycle) →
-//!    [`Node::update_sample`](canpos_core::Node::update_sample)); cycles are scheduled as `start + k × cycle`, never as
+//!    [`Node::update_sample`](canpos_stack::Node::update_sample)); cycles are scheduled as `start + k × cycle`, never as
 //!    "now + cycle", so they do not drift. The sensor publishes each measurement at the first
 //!    cycle boundary after its pulse returned (one cycle later on every TH / E-Series stroke),
 //!    and its temperature leaving the limits raises the core's over-temperature condition
 //!    (EMCY 0x4200) by itself;
-//! 3. polls every node ([`Node::poll`](canpos_core::Node::poll): the timers that are due — TPDO event timers,
+//! 3. polls every node ([`Node::poll`](canpos_stack::Node::poll): the timers that are due — TPDO event timers,
 //!    heartbeat, SDO timeout, EMCY inhibit — then the frames it has to send) and routes what
 //!    they send: to the transport **and** to the other nodes of this runtime (they share the
 //!    bus; a transport never echoes a frame to its sender);
@@ -46,7 +46,7 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use canpos_core::{Frame, Instant};
+use canpos_stack::{Frame, Instant};
 use crossbeam_channel::{Receiver, Sender};
 use serde_json::{json, Value};
 
@@ -563,7 +563,7 @@ impl Runtime {
         // lost frames are its "software buffer overflow" (0x8110), separate from the injectable
         // controller overrun (`can-overrun`), and error passive / bus-off are left alone while
         // the same fault is injected by hand.
-        use canpos_core::encoder::Fault as Core;
+        use canpos_encoder::Fault as Core;
         let dropped = self.transport.dropped();
         if dropped > self.drops_seen {
             tracing::warn!(
@@ -654,7 +654,7 @@ impl Runtime {
     /// [`OVERRUN_HOLD`] after the last loss), collisions with a node sending the same
     /// identifier (CAN-ID collision), and its error state (error passive, bus-off, recovery).
     fn watch_controllers(&mut self, now: Instant) {
-        use canpos_core::encoder::Fault as Core;
+        use canpos_encoder::Fault as Core;
         // Sensors without their own controller share the transport's (one TCP connection to a
         // hub): its transmit-queue overflows, as the server reports them (issue 36 item 7).
         let shared_lost = self.transport.tx_overflows();

@@ -2,10 +2,10 @@
 //! [`crate::control::request`]; the server is [`crate::control::server`]): magnets, faults,
 //! power, timing, state.
 
-use canpos_core::nmt::NmtState;
-use canpos_core::{Frame, Instant};
 use canpos_sim::motion::MotionSpec;
 use canpos_sim::Faults;
+use canpos_stack::nmt::NmtState;
+use canpos_stack::{Frame, Instant};
 use serde_json::{json, Value};
 
 use crate::can::{BusState, BusStats, Disturbance, Transport};
@@ -276,7 +276,7 @@ impl Runtime {
         d.sensor.set_faults(faults).map_err(|e| e.to_string())?;
         // The core knows how each model reports these (EMCY code and bytes, error register,
         // TMI 0x1002 bits and reactions); the runtime only says what happened.
-        use canpos_core::encoder::Fault as Core;
+        use canpos_encoder::Fault as Core;
         match fault {
             Fault::SensorError => d.node.inject_fault(Core::Transducer, on),
             Fault::SupplyVoltage => d.node.inject_fault(Core::SupplyVoltage, on),
@@ -291,7 +291,7 @@ impl Runtime {
             | Fault::UnexpectedSystemData
             | Fault::NoSystemData
             | Fault::InvalidSerial => {
-                use canpos_core::encoder::SystemDataError as E;
+                use canpos_encoder::SystemDataError as E;
                 let e = match fault {
                     Fault::WrongMapping => E::WrongMapping,
                     Fault::WrongVendorId => E::WrongVendorId,

@@ -6,7 +6,7 @@ use canpos_sim::motion::{Profile, Profiles};
 use canpos_sim::SensorSpec;
 
 fn th_setup(dir: &std::path::Path, node_id: u8, serial: u32) -> SensorSetup {
-    let model = canpos_core::models::by_name("th").unwrap();
+    let model = canpos_models::by_name("th").unwrap();
     let mut cfg = model.default_config;
     cfg.node_id = node_id;
     cfg.serial = serial;

@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
 /// How long [`open`](crate::transport::open) waits for a socketcand server to accept and complete

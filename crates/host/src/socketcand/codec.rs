@@ -8,7 +8,7 @@
 use std::io::Write as _;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 use crate::can::RxFrame;
 pub use crate::can::{err_class, ErrorFrame};

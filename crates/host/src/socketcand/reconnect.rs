@@ -14,7 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::Duration;
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 
 use super::client::CONNECT_TIMEOUT;

@@ -5,7 +5,7 @@
 
 use std::time::{Duration, Instant, SystemTime};
 
-use canpos_core::Frame;
+use canpos_stack::Frame;
 
 use super::codec::{self, CanId, Element, ErrorFrame, Mode};
 

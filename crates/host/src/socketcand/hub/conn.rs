@@ -166,7 +166,7 @@ pub(super) struct Conn {
     pub(super) out: Vec<u8>,
     pub(super) out_pos: usize,
     /// Frames of this read not yet on the bus: they enter it together ([`Conn::submit`]).
-    pub(super) sends: Vec<canpos_core::Frame>,
+    pub(super) sends: Vec<canpos_stack::Frame>,
     /// An urgent byte is sent once `out` is written up to here: right after a rawmode
     /// `< ok >` ([`send_urgent`]).
     pub(super) urgent_at: Option<usize>,

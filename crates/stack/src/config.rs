@@ -1,0 +1,128 @@
+//! Build options: every switch a build may set, in one place (the role of CANopenNode's
+//! `CO_config.h`). Service code reads these constants in plain `if`s, so both arms of every
+//! option compile in every build; the compiler drops the arm a build does not take.
+//!
+//! The features themselves are documented in `crates/stack/Cargo.toml`; what each one saves
+//! (flash, instructions per operation) is measured in docs/FIRMWARE.md ("Build options") and
+//! docs/BENCHMARKS.md.
+//!
+//! Every size the stack is built with is here too. Two of them follow the one dictionary a
+//! firmware runs and are set by its build, as smoltcp's `SMOLTCP_*` variables set its buffer
+//! counts: `CANPOS_MAX_ENTRIES` ([`MAX_ENTRIES`]) and `CANPOS_MAX_STORED` ([`RECORDS_MAX`]),
+//! read at compile time (`firmware/.cargo/config.toml` sets the TH's). A table larger than
+//! them does not compile (the table's own `const` assert says which variable to raise).
+
+/// Feature `inline-hot-paths`: hot paths inlined for fewer instructions per frame (a host).
+/// Without it (firmware) the dictionary search, the TPDO timer walk and some fifteen helpers
+/// are one shared copy each: the TH firmware 26,560 B instead of 35,712 B of flash (issue 37).
+/// Host-only arms that remain: the SDO server's expedited fast path (−0.5 KB without it), the
+/// single-TPDO shortcut (−110 B without it; TPDO 91 instead of 113 instructions with it), the
+/// dense key array (−744 B; 57 instructions fewer per upload), the restricted CAN-ID bitmap
+/// (−256 B; some 30 instructions fewer per COB-ID download), the node's timer fast path (its
+/// two deadline fields exist in every build: a firmware pays their 16 B of RAM and never reads
+/// them). Besides these `if`s only attributes differ: `cfg_attr(…, inline / inline(never))` on
+/// four object-access helpers and two LSS helpers (one out-of-line copy in a firmware).
+/// docs/FIRMWARE.md, "Build options in figures", has them all with their dates.
+///
+/// What a simulated device's hardware does (the bus's bit rate, autobaud, the D7 store time)
+/// is no option of the stack: the host's device wrapper does it (`canpos_host::runtime::
+/// SimHardware`), the core reporting what it needs (`Node::bitrate_detected`, `Stats::stores`).
+pub const INLINE_HOT_PATHS: bool = cfg!(feature = "inline-hot-paths");
+/// Feature `names`: object names in the tables and the EDS export (a string reference per
+/// entry and the strings: not in a firmware).
+pub const NAMES: bool = cfg!(feature = "names");
+/// Feature `host-buffers`: buffers sized for any device a host may run ([`TXQ_LEN`],
+/// [`MAX_ENTRIES`], [`RECORDS_MAX`] below, with their RAM).
+pub const HOST_BUFFERS: bool = cfg!(feature = "host-buffers");
+
+// --- Sizes ------------------------------------------------------------------------------------
+
+/// Most TPDOs a device has (0x1800… / 0x1A00…): each costs its state in RAM.
+pub const MAX_TPDOS: usize = 4;
+const _: () = assert!(MAX_TPDOS.is_power_of_two() && MAX_TPDOS <= 8);
+
+/// Most mapping entries per TPDO (0x1A00/1…8): eight 8-bit objects fill a frame.
+pub const MAX_MAP: usize = 8;
+
+/// Most entries (objects and sub-indices) a dictionary may have: its value array, 4 B of RAM
+/// each. On a host (`host-buffers`) 256, so that a slot fits a `u8` and
+/// [`crate::od::Dictionary::get_u8`] needs no bounds check (the TPDO hot path). Without it
+/// (firmware) `CANPOS_MAX_ENTRIES`, else 64 (a firmware's own small dictionary): the
+/// firmware's table exactly, trading that bounds check for RAM.
+pub const MAX_ENTRIES: usize = if HOST_BUFFERS {
+    256
+} else {
+    env_or(option_env!("CANPOS_MAX_ENTRIES"), 64)
+};
+const _: () = assert!(MAX_ENTRIES <= 256, "a slot must fit a u8");
+
+/// Values of its own an application stores beside the dictionary (one per position channel:
+/// CiA 406's preset offset on a device without an offset object, TMI).
+pub const APP_RECORDS: usize = 4;
+
+/// Records a storage image holds besides the dictionary's and the application's: the
+/// LSS-configured node-id and bit rate and the node-id of the save (D15).
+pub const NODE_RECORDS: usize = 3;
+
+/// Most records a storage image holds: 240 on a host (any device an EDS may describe), else
+/// the dictionary's stored entries (`CANPOS_MAX_STORED`, at least 32, for a firmware's own
+/// small dictionary) plus [`NODE_RECORDS`] and [`APP_RECORDS`].
+pub const RECORDS_MAX: usize = if HOST_BUFFERS {
+    240
+} else {
+    let stored = env_or(option_env!("CANPOS_MAX_STORED"), 32);
+    (if stored > 32 { stored } else { 32 }) + NODE_RECORDS + APP_RECORDS
+};
+
+/// Capacity of the transmit queue, in frames (a power of two). On a host 64; a firmware's main
+/// loop hands the frames to the controller's mailboxes after each frame it receives, so 8
+/// hold what one frame sets off: at most a SYNC's four TPDOs, with a heartbeat or an EMCY due
+/// at the same time, beyond what the mailboxes take.
+pub const TXQ_LEN: usize = if HOST_BUFFERS { 64 } else { 8 };
+const _: () = assert!(TXQ_LEN.is_power_of_two());
+
+/// Capacity of the SDO server's transfer buffer: the largest value a segmented or block
+/// transfer carries (larger ones are refused with 0x05040005, out of memory) and the longest
+/// string an upload serves.
+pub const SDO_BUF_LEN: usize = 64;
+
+/// Depth of the pre-defined error field 0x1003 (a power of two: a ring).
+pub const HISTORY_LEN: usize = 8;
+/// Errors active at once (the error register's sources).
+pub const EMCY_ACTIVE_LEN: usize = 8;
+/// EMCY frames waiting for their inhibit time (a power of two: a ring).
+pub const EMCY_PENDING_LEN: usize = 8;
+const _: () = assert!(HISTORY_LEN.is_power_of_two() && EMCY_PENDING_LEN.is_power_of_two());
+
+/// `v` (a decimal number set at build time) or `default` when it is not set; a value that is
+/// not a number stops the build.
+const fn env_or(v: Option<&str>, default: usize) -> usize {
+    let Some(s) = v else {
+        return default;
+    };
+    let b = s.as_bytes();
+    assert!(!b.is_empty(), "CANPOS_* size: empty");
+    let mut n = 0usize;
+    let mut i = 0;
+    while i < b.len() {
+        assert!(b[i].is_ascii_digit(), "CANPOS_* size: not a decimal number");
+        n = n * 10 + (b[i] - b'0') as usize;
+        i += 1;
+    }
+    n
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::env_or;
+
+    #[test]
+    fn a_build_size_is_a_decimal_number_or_the_default() {
+        assert_eq!(env_or(None, 64), 64);
+        assert_eq!(env_or(Some("186"), 64), 186);
+        assert_eq!(env_or(Some("0"), 64), 0);
+        assert!(std::panic::catch_unwind(|| env_or(Some("0x10"), 64)).is_err());
+        assert!(std::panic::catch_unwind(|| env_or(Some(""), 64)).is_err());
+    }
+}

@@ -1,0 +1,197 @@
+//! The slots of the objects the per-frame paths touch, the services' configuration from the
+//! dictionary, EMCY sending and mirroring, PDO activity.
+
+use super::*;
+
+/// No such object in this model's table.
+const NO_SLOT: u16 = u16::MAX;
+
+/// Slots of the objects that per-frame paths read or write, found once per node: the model
+/// table is static, so a slot never moves, and a frame then costs no dictionary search.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct HotSlots {
+    /// 0x1005 COB-ID SYNC.
+    pub(super) sync: u16,
+    /// 0x1014 COB-ID EMCY.
+    pub(super) emcy_cob: u16,
+    /// 0x1001 error register.
+    pub(super) err_reg: u16,
+    /// 0x1003 sub 0.
+    pub(super) hist: u16,
+    /// How many of 0x1003 sub 1…8 the table has: they follow sub 0 in the slots.
+    pub(super) hist_subs: u8,
+}
+
+impl HotSlots {
+    /// From the model's table (not the dictionary, which would then have to be in memory
+    /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
+    pub(super) fn new<C, X>(model: &Model<C, X>) -> Self {
+        // Out of line: six lookups share it (this runs once per node).
+        #[inline(never)]
+        fn find<C, X>(model: &Model<C, X>, index: u16, sub: u8) -> u16 {
+            model
+                .search(od::key(index, sub))
+                .map_or(NO_SLOT, |s| s as u16)
+        }
+        let slot = |index: u16, sub: u8| find(model, index, sub);
+        let hist = slot(0x1003, 0);
+        let hist_subs = (1..=emcy::HISTORY_LEN as u16)
+            .take_while(|&i| hist != NO_SLOT && slot(0x1003, i as u8) == hist + i)
+            .count() as u8;
+        HotSlots {
+            sync: slot(0x1005, 0),
+            emcy_cob: slot(0x1014, 0),
+            err_reg: slot(0x1001, 0),
+            hist,
+            hist_subs,
+        }
+    }
+}
+
+impl Dictionary {
+    /// Value of a slot from [`HotSlots`], `None` when the model lacks the object.
+    #[inline]
+    pub(super) fn hot(&self, slot: u16) -> Option<u32> {
+        (slot != NO_SLOT).then(|| self.get(slot as usize))
+    }
+
+    /// Sets a slot from [`HotSlots`] if the model has the object.
+    #[inline]
+    pub(super) fn set_hot(&mut self, slot: u16, raw: u32) {
+        if slot != NO_SLOT {
+            self.set(slot as usize, raw);
+        }
+    }
+}
+
+impl<A: Application, S: Storage> Device<A, S> {
+    /// The CAN-ID of the SYNC COB-ID (0x1005), whatever its bit 31.
+    pub(super) fn sync_can_id(&self) -> u32 {
+        self.od.hot(self.hot.sync).unwrap_or(0x80) & 0x7FF
+    }
+
+    /// The application and the context it runs in (disjoint borrows of the device).
+    pub(super) fn app_ctx(&mut self, now: Instant) -> (&mut A, AppCtx<'_, A>) {
+        let cx = AppCtx {
+            od: &mut self.od,
+            emcy: &mut self.emcy,
+            pdo: &mut self.pdo,
+            model: self.model,
+            cfg: &self.cfg,
+            nmt: self.nmt,
+            bitrate_kbps: self.bitrate,
+            now,
+        };
+        (&mut self.app, cx)
+    }
+
+    /// Hands guard time, life time factor and the guarding COB-ID (0x100E where the model has
+    /// it, else the pre-defined 0x700 + node-id) to the error-control service.
+    /// Without the feature (a constant where the build fixes the features) life guarding is
+    /// never armed, and its code is not linked.
+    pub(super) fn apply_guarding(&mut self, now: Instant) {
+        if self.features().node_guarding {
+            let gt = self.od.value(0x100C, 0).unwrap_or(0) as u16;
+            let lf = self.od.value(0x100D, 0).unwrap_or(0) as u8;
+            self.errctl.set_guarding(gt, lf, now);
+        }
+        let id = self
+            .od
+            .value(0x100E, 0)
+            .map_or(cob::ERRCTL + self.node_id as u16, |v| (v & 0x7FF) as u16);
+        self.errctl.set_guarding_id(id);
+    }
+
+    /// Pushes the cached service configuration from the dictionary after a reload.
+    pub(super) fn apply_comm_config(&mut self, now: Instant) {
+        self.pdo
+            .configure_all(self.features().tpdos as usize, &self.od);
+        let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
+        self.errctl.set_heartbeat(hb, now);
+        self.apply_guarding(now);
+        self.emcy
+            .set_inhibit(self.od.value(0x1015, 0).unwrap_or(0) as u16);
+        self.sync_error_register();
+    }
+
+    pub(super) fn sync_error_register(&mut self) {
+        let h = self.hot;
+        let r = self.emcy.register();
+        self.od.set_hot(h.err_reg, r as u32);
+        let n = self.emcy.history_len();
+        self.od.set_hot(h.hist, n as u32);
+        // Half-open: an inclusive range's iterator compiles to more code.
+        for i in 1..usize::from(h.hist_subs) + 1 {
+            let v = self.emcy.history_or_zero(i);
+            self.od.set(usize::from(h.hist) + i, v);
+        }
+        self.emcy_synced = self.emcy.generation();
+    }
+
+    /// Moves EMCYs whose inhibit time allows into the transmit queue and mirrors the error
+    /// register and history into the dictionary.
+    #[inline]
+    pub(super) fn flush_emcy(&mut self) {
+        // Runs after every frame and timer: on a host the usual "nothing to do" stays inline; a
+        // firmware calls straight through (`flush_emcy_slow` checks the same), a test fewer at
+        // every call site.
+        if crate::config::INLINE_HOT_PATHS
+            && self.emcy.generation() == self.emcy_synced
+            && !self.emcy.has_pending()
+        {
+            return;
+        }
+        self.flush_emcy_slow();
+    }
+
+    /// Whether EMCYs go out now: in pre-operational and operational only. A stopped node keeps
+    /// them until it leaves Stopped, one without a node-id (initialising) until it has one.
+    /// The one rule for both sending and the EMCY deadline.
+    #[inline]
+    pub(super) fn emcy_served(&self) -> bool {
+        self.nmt.sdo_allowed()
+    }
+
+    // Out of line: `flush_emcy` is inlined at every entry point's end.
+    #[inline(never)]
+    fn flush_emcy_slow(&mut self) {
+        // Nothing else writes 0x1001 / 0x1003 between resets, so an unchanged EMCY state needs
+        // no mirroring (this runs after every frame).
+        if self.emcy.generation() != self.emcy_synced {
+            self.sync_error_register();
+        }
+        // No separate "nothing waits" test: `poll` makes it (reading the COB-ID first is cheap).
+        if !self.emcy_served() {
+            return;
+        }
+        let cobid = self
+            .od
+            .hot(self.hot.emcy_cob)
+            .unwrap_or(0x80 + self.node_id as u32);
+        while let Some(p) = self.emcy.poll(self.now) {
+            if cobid & 0x8000_0000 == 0 {
+                self.tx.push_std((cobid & 0x7FF) as u16, p, 8);
+            }
+        }
+    }
+
+    pub(super) fn run_pdos(&mut self, now: Instant) {
+        let Device { pdo, od, tx, .. } = self;
+        pdo.handle_timeout(od, now, &mut |f| {
+            tx.push(f);
+        });
+    }
+
+    /// PDOs run in Operational unless life guarding was lost (D11).
+    pub(super) fn update_pdo_activity(&mut self, now: Instant) {
+        let guarding = self.features().node_guarding;
+        let lost = guarding && self.errctl.life_guard_lost;
+        let on = self.nmt == NmtState::Operational && !lost;
+        self.pdo.set_active(on, now);
+        // Also a 0x8130 raised from outside (`Node::set_error`), on every model.
+        if !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
+            self.emcy.clear(emcy::code::LIFE_GUARD);
+            self.flush_emcy();
+        }
+    }
+}
