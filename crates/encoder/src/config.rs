@@ -4,6 +4,8 @@
 use canpos_stack::model::UnitConfig;
 use canpos_stack::od::Param;
 
+use crate::hook;
+
 /// The unit-specific configuration (what the order code and label say).
 ///
 /// Start from a model's `Model::default_config` and change what the unit's order code says
@@ -80,7 +82,7 @@ impl UnitConfig for DeviceConfig {
         self.bitrate_kbps = kbps;
     }
     fn app_limits(&self, hook: u8) -> Option<(u32, u32)> {
-        super::limits(hook, self)
+        limits(hook, self)
     }
 }
 
@@ -175,5 +177,19 @@ pub fn common_param(cfg: &DeviceConfig, p: Param, product_code: u32) -> u32 {
             .min(i32::MAX as u64) as u32,
         param::CHANNELS => cfg.channels as u32,
         Param::Profile(_) | Param::Model(_) => 0,
+    }
+}
+
+/// The values application hook `h` accepts on a unit configured as `cfg`, as raw bounds, where
+/// its rule is a range (the table's range of the entry applies as well): what the unit's EDS
+/// gives as `LowLimit` / `HighLimit`, so that the file names what that unit accepts (a 5 µm TMI
+/// refuses a measuring step below 5000 nm).
+pub fn limits(h: u8, cfg: &DeviceConfig) -> Option<(u32, u32)> {
+    match h {
+        // R31: from the variant's minimum step (1 µm or 5 µm), whole µm, up to 100 µm.
+        hook::MEASURING_STEP => Some((cfg.position_step_nm.div_ceil(1000) * 1000, 100_000)),
+        // Four cams per channel: bits 0…3.
+        hook::CAM_SWITCH => Some((0, 0x0F)),
+        _ => None,
     }
 }

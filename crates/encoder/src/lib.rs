@@ -20,9 +20,12 @@
 #![deny(missing_docs)]
 
 mod config;
+pub mod hook;
 mod sample;
 
-pub use config::{common_param, param, Channels, DeviceConfig, Fixed, Model, Switches, Unfixed};
+pub use config::{
+    common_param, limits, param, Channels, DeviceConfig, Fixed, Model, Switches, Unfixed,
+};
 pub use sample::{Sample, MAX_CHANNELS};
 
 /// A position sensor: the CiA 301 / 305 stack running the CiA 406 application (`P`: the
@@ -34,32 +37,6 @@ use canpos_stack::emcy::{self, Emcy};
 use canpos_stack::nmt::NmtState;
 use canpos_stack::od::{Abort, Dictionary};
 use canpos_stack::{AppCtx, AppView, Application};
-
-/// The CiA 406 object rules, as [`canpos_stack::od::Hook::app`] numbers in the model tables: each
-/// object names the rule that governs it, so no index list is repeated here.
-pub mod hook {
-    /// 0x6000 operating parameters: only the code-sequence bit (D2); positions follow it.
-    pub const CODE_SEQUENCE: u8 = 1;
-    /// 0x6005/1 position measuring step (writable on TMI, R31): whole µm, not below the
-    /// variant's minimum; positions follow it.
-    pub const MEASURING_STEP: u8 = 2;
-    /// 0x6010/n preset: the current position reads the written value (SPEC §10).
-    pub const PRESET: u8 = 3;
-    /// 0x6301/n cam enable, 0x6302/n cam polarity: one bit per cam, four cams.
-    pub const CAM_SWITCH: u8 = 4;
-    /// 0x631x / 0x632x / 0x633x cam limits and hysteresis: the cam states follow.
-    pub const CAM_LIMIT: u8 = 5;
-    /// 0x6401/n, 0x6402/n work-area limits: the work-area state follows.
-    pub const WORK_AREA_LIMIT: u8 = 6;
-    /// 0x6200 cyclic timer: one value with TPDO1's event timer (D12).
-    pub const CYCLIC_TIMER: u8 = 7;
-    /// 0x6500 operating status: reads the active 0x6000 (D2).
-    pub const OPERATING_STATUS: u8 = 8;
-    /// 0x6509 offset value: reads the offset of channel 1's preset (0x650C/1).
-    pub const OFFSET: u8 = 9;
-    /// TMI 0x1002 manufacturer status register (§1.15): conditions and NMT state.
-    pub const MANUFACTURER_STATUS: u8 = 10;
-}
 
 /// The EMCY codes of the products' CiA 406 reactions that CiA 301 has no name for.
 pub mod code {
@@ -872,20 +849,6 @@ impl<P: Fixed> Application for Encoder<P> {
     fn storage_corrupt(&mut self, cx: &mut AppCtx<'_, Self>) -> bool {
         self.storage_corrupt = true;
         Self::profile(cx.model).tmi_error_reactions
-    }
-}
-
-/// The values application hook `h` accepts on a unit configured as `cfg`, as raw bounds, where
-/// its rule is a range (the table's range of the entry applies as well): what the unit's EDS
-/// gives as `LowLimit` / `HighLimit`, so that the file names what that unit accepts (a 5 µm TMI
-/// refuses a measuring step below 5000 nm).
-pub fn limits(h: u8, cfg: &DeviceConfig) -> Option<(u32, u32)> {
-    match h {
-        // R31: from the variant's minimum step (1 µm or 5 µm), whole µm, up to 100 µm.
-        hook::MEASURING_STEP => Some((cfg.position_step_nm.div_ceil(1000) * 1000, 100_000)),
-        // Four cams per channel: bits 0…3.
-        hook::CAM_SWITCH => Some((0, 0x0F)),
-        _ => None,
     }
 }
 

@@ -8,8 +8,7 @@
 //! (D1–D5, D7, D18, D20); additions the manual does not list: 0x1000, 0x1003, 0x1015, sub 0 of
 //! the per-channel arrays, mapping sub-entries 4…8 (default 0).
 
-use super::table::{self, channels, TpdoComm};
-use super::{chnames, tpdo_comm_names, tpdo_map_names};
+use crate::table::{self, channels, chnames, tpdo_comm_names, tpdo_map_names, TpdoComm};
 use canpos_encoder::hook;
 use canpos_encoder::{param, DeviceConfig, Model, Switches};
 use canpos_stack::config;
@@ -150,7 +149,7 @@ const PARTS: &[&[Entry]] = &[
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, &Any, Volatile),
     STATUS,
-    &super::THRESHOLD_CAMS_AND_WORK_AREAS,
+    &table::THRESHOLD_CAMS_AND_WORK_AREAS,
     DIAG,
     // The offsets the presets produced (CiA 406), stored with "save" so a preset survives a
     // power cycle; "load" returns them to 0.

@@ -8,8 +8,7 @@
 //! TPDO inhibit time (0x180x/3) is not in TH Table 16, but its sub 0 reads 5 (highest
 //! sub-index) and it is the CiA 301 object, so TH has it (default 0) like the E-Series.
 
-use super::table::{self, channels, TpdoComm};
-use super::{chnames, tpdo_comm_names, tpdo_map_names};
+use crate::table::{self, channels, chnames, tpdo_comm_names, tpdo_map_names, TpdoComm};
 use canpos_encoder::hook;
 use canpos_encoder::{param, DeviceConfig, Model, Switches};
 use canpos_stack::config;
@@ -161,7 +160,7 @@ const PARTS: &[&[Entry]] = &[
     &channels::<CH>(0x6020, chnames!("Position value"; 1, 2, 3, 4), Integer32, Ro, true, Live, &Any, Volatile),
     &channels::<CH>(0x6030, chnames!("Speed value"; 1, 2, 3, 4), Integer16, Ro, true, Live, &Any, Volatile),
     STATUS,
-    &super::THRESHOLD_CAMS_AND_WORK_AREAS,
+    &table::THRESHOLD_CAMS_AND_WORK_AREAS,
     DIAG,
     // The offsets the presets produced (CiA 406), stored with "save" so a preset survives a
     // power cycle; "load" returns them to 0.

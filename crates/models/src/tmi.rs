@@ -16,8 +16,7 @@
 //! 0x1001, 0x1003, 0x1015, 0x6000 / 0x6500 (D2), 0x6503–0x6506 (D3, D13: the missing-magnet
 //! alarm), 0x6507 (D4: 0x03010100).
 
-use super::table::{self, channels, TpdoComm};
-use super::{chnames, tpdo_comm_names, tpdo_map_names};
+use crate::table::{self, channels, chnames, tpdo_comm_names, tpdo_map_names, TpdoComm};
 use canpos_encoder::hook;
 use canpos_encoder::{param, DeviceConfig, Model, Switches};
 use canpos_stack::config;
@@ -317,7 +316,7 @@ const DEFAULT_CONFIG: DeviceConfig = DeviceConfig {
 
 /// The TMI model as the manual's example unit has it: one channel (order-code interface `61x`),
 /// channel-1 objects only. A node or EDS of a two-channel unit ([`DeviceConfig::channels`] 2,
-/// `62x`) uses [`TMI_TWO_CHANNELS`] instead ([`super::for_unit`]): 002 §1.6 provides "a
+/// `62x`) uses [`TMI_TWO_CHANNELS`] instead ([`crate::for_unit`]): 002 §1.6 provides "a
 /// separate eds-file … for each configuration".
 pub static TMI: Model = Model {
     table: Table {

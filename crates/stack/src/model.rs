@@ -1,7 +1,7 @@
 //! The device description the stack runs: a table, the stack's behaviour switches, and the
 //! unit configuration the stack reads (node-id, bit rate, serial number).
 
-use crate::od::{Entry, Param};
+use crate::od::types::{search_entries, Entry, Param};
 use crate::sdo::Transfers;
 
 /// The unit configuration the stack reads; an application's configuration adds its own fields.
@@ -149,7 +149,7 @@ impl Table {
         if crate::config::INLINE_HOT_PATHS {
             self.keys.binary_search(&key)
         } else {
-            crate::od::search_entries(self.entries, key)
+            search_entries(self.entries, key)
         }
     }
 }

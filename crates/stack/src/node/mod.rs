@@ -38,9 +38,10 @@ mod lss_glue;
 mod persist;
 mod route;
 mod services;
+mod slots;
 mod timeout;
 
-use services::HotSlots;
+use slots::HotSlots;
 
 /// Counters a host may show.
 #[derive(Clone, Copy, Debug, Default)]

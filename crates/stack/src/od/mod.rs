@@ -7,20 +7,15 @@
 //! dictionary costs 4 bytes per entry of RAM and no allocation.
 
 pub mod cia301;
-mod types;
+pub(crate) mod types;
 
-pub use types::{key, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range};
+pub use types::{
+    key, search_entries, Abort, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range,
+};
 
 use crate::model::Model;
 
 pub use crate::config::MAX_ENTRIES;
-
-/// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
-/// (hosts search [`Table::keys`](crate::Table::keys)), one shared copy.
-#[inline(never)]
-pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
-    entries.binary_search_by_key(&key, Entry::key)
-}
 
 /// Configuration-dependent values that [`DefaultValue::Param`] entries resolve against.
 pub trait ParamSource {

@@ -655,3 +655,10 @@ impl fmt::Display for Abort {
         write!(f, "0x{:08X} {}", self.code(), self.meaning())
     }
 }
+
+/// The slot of `key` ([`key`]) in a sorted table, or where it would be: firmware's search
+/// (hosts search [`Table::keys`](crate::Table::keys)), one shared copy.
+#[inline(never)]
+pub fn search_entries(entries: &[Entry], key: u32) -> Result<usize, usize> {
+    entries.binary_search_by_key(&key, Entry::key)
+}
