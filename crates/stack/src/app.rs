@@ -24,11 +24,11 @@ pub struct AppCtx<'a, A: Application + ?Sized> {
     pub emcy: &'a mut Emcy,
     /// TPDOs (told about changed mapped values).
     pub pdo: &'a mut Tpdos,
-    /// The product model.
+    /// The device description the node runs.
     pub model: &'static ModelOf<A>,
-    /// The unit configuration (stroke, cycle time, channel count).
+    /// The unit configuration ([`Application::Config`]).
     pub cfg: &'a A::Config,
-    /// The NMT state (TMI 0x1002 bits 1–0).
+    /// The NMT state (an application may report it in an object of its own).
     pub nmt: NmtState,
     /// Active bit rate in kbit/s, 0 while autobaud has not locked (TMI R27 check).
     pub bitrate_kbps: u16,
@@ -40,7 +40,7 @@ pub struct AppCtx<'a, A: Application + ?Sized> {
 pub struct AppView<'a, A: Application + ?Sized> {
     /// The dictionary.
     pub od: &'a Dictionary,
-    /// The product model.
+    /// The device description the node runs.
     pub model: &'static ModelOf<A>,
     /// The unit configuration.
     pub cfg: &'a A::Config,

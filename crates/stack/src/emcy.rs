@@ -22,7 +22,7 @@ pub mod reg {
     pub const MANUFACTURER: u8 = 0x80;
 }
 
-/// Error codes the sensors use (TH/E Table 5, TMI §1.14).
+/// The CiA 301 EMCY error codes the stack and its applications raise.
 pub mod code {
     /// Error reset or no error.
     pub const NO_ERROR: u16 = 0x0000;

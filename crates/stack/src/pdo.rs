@@ -383,7 +383,8 @@ impl Tpdos {
                     }
                 }
                 3 | 5 if event_gt_inhibit => {
-                    // TMI R27: the event timer must stay above the inhibit time (0 excepted).
+                    // `Features::event_timer_above_inhibit`: the event timer must stay above the
+                    // inhibit time (0 excepted).
                     let (inh, ev) = if sub == 3 {
                         (raw, od.value(index, 5).unwrap_or(0))
                     } else {

@@ -101,7 +101,8 @@ pub struct Device<A: Application, S: Storage> {
     emcy_synced: u32,
 }
 
-/// A CANopen position sensor node.
+/// A CANopen device: the CiA 301 / 305 services wired to one dictionary, running
+/// application `A` and storing through `S`.
 pub struct Node<A: Application, S: Storage> {
     sdo: SdoServer,
     lss: LssSlave,
@@ -301,7 +302,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.pdo.set_active(false, now);
         if d.node_id == UNCONFIGURED {
             // CiA 305: no node-id, no NMT: wait in LSS for one, in LSS waiting for a master to
-            // select (DS 305 V2), or in configuration by itself (TMI R7).
+            // select (DS 305 V2), or in configuration by itself (DSP 305 V1.1 R7:
+            // `Features::lss_unconfigured_configures`).
             d.nmt = NmtState::Initialising;
             if d.features().lss_unconfigured_configures {
                 self.lss.force_configuration();
@@ -445,9 +447,8 @@ impl<A: Application, S: Storage> Node<A, S> {
         &mut self.dev.app
     }
 
-    /// Injects (`active`) or removes a fault the CiA 406 application reports the way the
-    /// model's manual says (EMCY code and bytes, error register, alarms, TMI 0x1002 bits and
-    /// lock-out).
+    /// Injects (`active`) or removes a fault the application reports the way its device's
+    /// manual says ([`Application::inject`]: its EMCY, error register and reactions).
     pub fn inject_fault(&mut self, fault: A::Fault, active: bool) {
         if !self.dev.powered {
             return;

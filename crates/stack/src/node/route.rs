@@ -86,7 +86,8 @@ impl<A: Application, S: Storage> Node<A, S> {
             } else if d.features().sync_length_emcy {
                 // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
-                // The TMI's own EMCY table has no such code, so it ignores the frame.
+                // Without `Features::sync_length_emcy` (a device whose EMCY table has no such
+                // code) the frame is ignored.
                 d.emcy.event(emcy::code::SYNC_LENGTH, [0; 5]);
             }
             return true;
