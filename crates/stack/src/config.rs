@@ -41,14 +41,19 @@
 ///   benchmarked operation (only "save", "load" and loading at reset look records up)
 ///
 /// Besides these `if`s only attributes differ: `cfg_attr(…, inline / inline(never))`. Their
-/// TH flash, each group forced the host's way alone (2026-12-07); their instructions not
-/// measured one by one (together they are part of every figure in docs/BENCHMARKS.md):
-/// - `od/mod.rs` `Dictionary::find`, `entry`, `value`, `set_value`: 2,900 B
-/// - `txq.rs` `push_std`, `reserve`: 708 B
+/// TH flash, each group forced the host's way alone (2026-12-07); their instructions for the
+/// four largest groups, per file (the host given the firmware's `inline(never)`), the others
+/// not measured:
+/// - `od/mod.rs` `Dictionary::find`, `entry`, `value`, `set_value`: 2,900 B; 34 to 43 per SDO
+///   request (upload 427 / 470), while they cost 35 per LSS inquire (236 / 201 without)
+/// - `txq.rs` `push_std`, `reserve`: 708 B; 24 to 26 per SDO request, 10 per SYNC → TPDO, 5
+///   per LSS inquire
 /// - `pdo.rs` `Tpdo::send` 336 B, `refresh_due` 368 B, `Tpdo::step` 12 B; `Tpdos::scan_due`
-///   −12 B (a firmware 12 B smaller with the host's `inline(always)`)
+///   −12 B (a firmware 12 B smaller with the host's `inline(always)`); together 32 per TPDO
+///   (92 / 124), 16 per SYNC → TPDO
 /// - `node/access.rs` `value_allowed` 64 B, `find` 48 B, `find_readable` 28 B,
-///   `find_writable` 32 B (344 B together)
+///   `find_writable` 32 B (344 B together); together 87 per upload (427 / 514), 61 to 67 per
+///   download
 /// - `node/lss_glue.rs` `after_lss` 64 B, `lss_request` 308 B; `lss.rs` `Lss::handle`,
 ///   `address_part`: 292 B
 /// - `emcy.rs` `find`, `register`, `event`, `record`: 240 B
