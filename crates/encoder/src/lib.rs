@@ -916,8 +916,8 @@ fn velocity(dnm: i64, dt_us: i64, od: &Dictionary) -> i64 {
 /// `dnm` nm in `dt_us` µs in units of `vstep` × 0.01 mm/s, rounded half away from zero,
 /// negated when `reversed`, saturated to INTEGER16.
 ///
-/// 1 nm/µs = 1 mm/s = 100 × 0.01 mm/s. In 64 bits, not 128 (a 128-bit division is 1 KB of
-/// firmware): a product past i64 saturates, and only a move of some 10^17 nm in one interval
+/// 1 nm/µs = 1 mm/s = 100 × 0.01 mm/s. In 64 bits, not 128 (a 128-bit division would link
+/// compiler-builtins' general one into a firmware; its size in docs/FIRMWARE.md): a product past i64 saturates, and only a move of some 10^17 nm in one interval
 /// could make that change a result the clamp lets through.
 fn velocity_units(dnm: i64, dt_us: i64, vstep: i64, reversed: bool) -> i64 {
     let num = dnm.saturating_mul(100);

@@ -15,14 +15,53 @@
 /// Feature `inline-hot-paths`: hot paths inlined for fewer instructions per frame (a host).
 /// Without it (firmware) the dictionary search, the TPDO timer walk and some fifteen helpers
 /// are one shared copy each: the TH firmware 26,560 B instead of 35,712 B of flash (issue 37).
-/// Host-only arms that remain: the SDO server's expedited fast path (−0.5 KB without it), the
-/// single-TPDO shortcut (−110 B without it; TPDO 91 instead of 113 instructions with it), the
-/// dense key array (−744 B; 57 instructions fewer per upload), the restricted CAN-ID bitmap
-/// (−256 B; some 30 instructions fewer per COB-ID download), the node's timer fast path (its
-/// two deadline fields exist in every build: a firmware pays their 16 B of RAM and never reads
-/// them). Besides these `if`s only attributes differ: `cfg_attr(…, inline / inline(never))` on
-/// four object-access helpers and two LSS helpers (one out-of-line copy in a firmware).
-/// docs/FIRMWARE.md, "Build options in figures", has them all with their dates.
+///
+/// Every remaining host / firmware difference, one a line: what; TH flash saved without it
+/// (firmware); instructions saved with it (host, `scripts/bench-instructions.sh`, TH) and the
+/// operation. Flash and the instructions of the first four measured 2026-12-07 on main
+/// cc2b2de by forcing that one site the other way (docs/FIRMWARE.md, "Build options in
+/// figures", has the commands); the other instruction counts are earlier figures.
+/// - the SDO server's expedited fast path (`sdo/server.rs`): 696 B; 88 per
+///   expedited upload (427 / 515), 58 to 59 per expedited download, while it costs 1 per
+///   TPDO, idle poll and LSS inquire
+/// - the node's timer fast path (`other_due` / `fast_due`, `Node::after_tpdo_timers`, in
+///   `handle_timeout` and `poll`): 400 B (the two fields stay in every build: a firmware pays
+///   their 16 B of RAM and never reads them); 137 per TPDO (92 instead of 229), while it costs
+///   4 to 5 per SDO request, LSS inquire and SYNC → TPDO (the epilogue writes the deadlines)
+/// - `epilogue_inline` in `handle_frame` rather than the shared `epilogue`: 412 B; 2 to 4 per
+///   frame: SDO upload 2 (427 / 429), downloads 3 to 4, SYNC → TPDO 4, LSS inquire 3
+/// - `flush_emcy`'s inline early return when no EMCY work is waiting: 56 B; 20 to 22 per
+///   frame: SDO upload 20 (427 / 447), downloads 21 to 22, SYNC → TPDO 21, LSS inquire 20
+/// - the single-TPDO shortcut (`Tpdos::single`): 108 B; 22 per TPDO (91 instead of 113)
+/// - the dense key array (`Model::keys`, its searches in `od/mod.rs` and `model.rs`): 852 B
+///   (the TH's array 744 B); 57 per upload of an object other than the last
+/// - the restricted CAN-ID bitmap (`wire::cob::restricted_id`): 200 B (256 B of bitmap less
+///   the compares); some 30 per COB-ID download
+/// - `stored_entry` (`node/persist.rs`) by `Dictionary::find` rather than by the key: 4 B; no
+///   benchmarked operation (only "save", "load" and loading at reset look records up)
+///
+/// Besides these `if`s only attributes differ: `cfg_attr(…, inline / inline(never))`. Their
+/// TH flash, each group forced the host's way alone (2026-12-07); their instructions for the
+/// four largest groups, per file (the host given the firmware's `inline(never)`), the others
+/// not measured:
+/// - `od/mod.rs` `Dictionary::find`, `entry`, `value`, `set_value`: 2,900 B; 34 to 43 per SDO
+///   request (upload 427 / 470), while they cost 35 per LSS inquire (236 / 201 without)
+/// - `txq.rs` `push_std`, `reserve`: 708 B; 24 to 26 per SDO request, 10 per SYNC → TPDO, 5
+///   per LSS inquire
+/// - `pdo.rs` `Tpdo::send` 336 B, `refresh_due` 368 B, `Tpdo::step` 12 B; `Tpdos::scan_due`
+///   −12 B (a firmware 12 B smaller with the host's `inline(always)`); together 32 per TPDO
+///   (92 / 124), 16 per SYNC → TPDO
+/// - `node/access.rs` `value_allowed` 64 B, `find` 48 B, `find_readable` 28 B,
+///   `find_writable` 32 B (344 B together); together 87 per upload (427 / 514), 61 to 67 per
+///   download
+/// - `node/lss_glue.rs` `after_lss` 64 B, `lss_request` 308 B; `lss.rs` `Lss::handle`,
+///   `address_part`: 292 B
+/// - `emcy.rs` `find`, `register`, `event`, `record`: 240 B
+/// - `wire/time.rs` `Instant + Duration`: 104 B; `od/types.rs` `Range::check` (`inline` on a
+///   host only): 112 B; `wire/cob.rs` `restricted_id`: 32 B
+/// - `sdo/server.rs` `SdoServer::reset` −64 B and `errctl.rs` `set_heartbeat` −12 B: their
+///   `inline(never)` makes a firmware larger, not smaller (left as they are: this list only
+///   measures)
 ///
 /// What a simulated device's hardware does (the bus's bit rate, autobaud, the D7 store time)
 /// is no option of the stack: the host's device wrapper does it (`canpos_host::runtime::

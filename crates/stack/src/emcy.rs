@@ -57,7 +57,8 @@ pub mod code {
 pub use crate::config::HISTORY_LEN;
 use crate::config::{EMCY_ACTIVE_LEN as ACTIVE_LEN, EMCY_PENDING_LEN as PENDING_LEN};
 // The history and the pending frames are rings (indices masked), so that nothing is shifted:
-// a shift compiles to a call of the general-purpose `memmove`, 1.6 KB of firmware.
+// a shift compiles to a call of the general-purpose `memmove`, which a firmware would link
+// only for this (its size in docs/FIRMWARE.md).
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && PENDING_LEN.is_power_of_two());
 
 /// Bit 31 of the COB-ID EMCY (0x1014): the EMCY is not valid, nothing is sent on it.
@@ -83,7 +84,8 @@ pub struct Emcy {
     /// The active errors, each its code in bits 0–15 and its error-register bits in 16–23:
     /// a word has no padding, so a new `Emcy` is all zero bytes (one `memclr`, not a loop).
     active: [u32; ACTIVE_LEN],
-    // The counts and ring positions are bytes (every ring holds 8): 16 B less RAM than `usize`.
+    // The counts and ring positions are bytes (every ring is far shorter than 256): less RAM
+    // than `usize` (docs/FIRMWARE.md).
     n_active: u8,
     history: [u32; HISTORY_LEN],
     /// Where the newest history entry is.

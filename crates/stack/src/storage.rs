@@ -390,7 +390,7 @@ impl ImageFault {
 /// and CRC. `Ok` holds the length of the header and records (the CRC follows them).
 ///
 /// Inlined so that a firmware's `parse_image`, which drops the fault, keeps only the tests
-/// (out of line the fault's values cost the TH firmware 76 B of flash).
+/// (out of line the fault's values would cost a firmware flash: docs/FIRMWARE.md).
 #[inline]
 pub fn check_image(image: &[u8], model_tag: u8) -> Result<usize, ImageFault> {
     if image.len() < IMAGE_MIN {

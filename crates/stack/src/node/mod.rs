@@ -115,7 +115,8 @@ pub struct Node<A: Application, S: Storage> {
     /// The earliest deadline of everything but the TPDOs (same encoding): while it is in the
     /// future a timer expiry can only concern TPDOs. (This and `fast_due` serve the host's
     /// timer fast path only, [`crate::config::INLINE_HOT_PATHS`]: a firmware takes the full
-    /// path, for less flash, and only keeps the two fields: 16 B of RAM.)
+    /// path, for less flash, and only keeps the two fields; both figures are in
+    /// docs/FIRMWARE.md, "Build options in figures".)
     other_due: u64,
     /// The timer fast path (only TPDO timers can be due) applies while `now < fast_due`:
     /// `other_due` while the node runs (powered, with a node-id, out of initialisation), else
@@ -325,7 +326,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         if self.handle_frame_inner(f, now) {
             // A host inlines it where a request's answer waits for it; a firmware shares the
-            // one out-of-line copy (about 0.4 KB of flash less).
+            // one out-of-line copy, for less flash (the config.rs list has both figures).
             if crate::config::INLINE_HOT_PATHS {
                 self.epilogue_inline();
             } else {

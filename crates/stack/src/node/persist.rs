@@ -220,7 +220,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         storage::change_image(&mut self.storage, tag, &replaced, put)
     }
 
-    // Out of line: its image buffers would give every write a 4 KiB stack frame.
+    // Out of line: its image buffers would otherwise be in every write's stack frame (their
+    // size in docs/FIRMWARE.md, "Build options in figures").
     #[inline(never)]
     pub(super) fn storage_command(&mut self, e: &Entry, raw: u32) -> Result<(), Abort> {
         let f = self.features();

@@ -25,7 +25,8 @@ pub(super) struct HotSlots {
 
 impl HotSlots {
     /// From the model's table (not the dictionary, which would then have to be in memory
-    /// before the node it is part of: in firmware, a 0.8 KB stack temporary).
+    /// before the node it is part of: in firmware, a stack temporary the size of the value
+    /// array).
     pub(super) fn new<C, X>(model: &Model<C, X>) -> Self {
         // Out of line: six lookups share it (this runs once per node).
         #[inline(never)]

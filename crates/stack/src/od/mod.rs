@@ -4,7 +4,7 @@
 //! (`models/`). Everything else reads that table: the SDO server's access, size and range checks,
 //! PDO mapping checks, persistence (the storage group of each entry), and EDS export. The
 //! current values live in a fixed array parallel to the table (one `u32` per entry), so a
-//! dictionary costs 4 bytes per entry of RAM and no allocation.
+//! dictionary costs that array's RAM and no allocation.
 
 pub mod cia301;
 pub(crate) mod types;

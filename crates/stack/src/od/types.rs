@@ -198,8 +198,8 @@ pub enum Hook {
     /// Objects of the application, which validates them, reacts to writes and refreshes them
     /// before reads: [`Hook::app`]`(n)` with the application's own number `n` (0–15, e.g.
     /// `encoder::hook`), which [`Hook::app_number`] gives back. Sixteen variants rather than
-    /// one carrying a number: a `Hook` is then one plain byte, so a table entry is 20 bytes
-    /// rather than 24 on a 32-bit microcontroller, and the node's matches on hooks (several
+    /// one carrying a number: a `Hook` is then one plain byte, so a table entry is a word
+    /// smaller on a 32-bit microcontroller (docs/FIRMWARE.md has the size), and the node's matches on hooks (several
     /// per SDO write) stay plain compares.
     App0,
     #[allow(missing_docs)]
@@ -302,8 +302,8 @@ pub enum DefaultValue {
     /// `base + node-id` (pre-defined connection set COB-IDs).
     NodeId(u32),
     /// A fixed string (VISIBLE_STRING, const / ro). Behind a second reference, so that the
-    /// variant holds one pointer rather than a pointer and a length: the entries of a table
-    /// are then 32 bytes instead of 36 on a 32-bit microcontroller.
+    /// variant holds one pointer rather than a pointer and a length: every entry of a table
+    /// is smaller on a 32-bit microcontroller (docs/FIRMWARE.md has the size).
     Str(&'static &'static str),
     /// A configuration-dependent value.
     Param(Param),
@@ -353,8 +353,8 @@ pub struct Entry {
     /// Value at boot / after restore.
     pub default: DefaultValue,
     /// Accepted values on write. Behind a reference, so that the many entries with
-    /// [`Range::Any`] take one pointer (4 bytes on a 32-bit microcontroller) rather than the
-    /// 12 of a range: the table's entries are 20 bytes there.
+    /// [`Range::Any`] take one pointer rather than a whole range (the sizes in
+    /// docs/FIRMWARE.md).
     pub range: &'static Range,
     /// Storage group.
     pub group: Group,

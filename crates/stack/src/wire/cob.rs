@@ -39,9 +39,9 @@ pub(crate) fn service_cob_id_refused(raw: u32, may_be_restricted: bool) -> bool 
 #[cfg_attr(feature = "inline-hot-paths", inline)]
 #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
 pub fn restricted_id(id: u32) -> bool {
-    // A host looks up one bit per 11-bit CAN-ID: the eight range compares cost an SDO download
-    // of a COB-ID some 30 instructions more. A firmware compares: the bitmap is 256 B of flash
-    // for a check only COB-ID writes make.
+    // A host looks up one bit per 11-bit CAN-ID: the eight range compares would make an SDO
+    // download of a COB-ID slower. A firmware compares: the bitmap would take flash for a check
+    // only COB-ID writes make (both figures in the options file, config.rs).
     if crate::config::INLINE_HOT_PATHS {
         restricted_by_table(id)
     } else {

@@ -49,8 +49,8 @@ impl Duration {
 
 impl Add<Duration> for Instant {
     type Output = Instant;
-    // A saturating 64-bit add is some ten instructions on a 32-bit MCU: a firmware's dozen
-    // call sites share one copy.
+    // A saturating 64-bit add takes several instructions on a 32-bit MCU: a firmware's many
+    // call sites share one copy (config.rs lists what that saves).
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     fn add(self, d: Duration) -> Instant {
         Instant(self.0.saturating_add(d.0))
