@@ -109,6 +109,51 @@ mod tests {
     use super::*;
     use crate::od::{Access, DataType, DefaultValue, Group, Range};
 
+    /// Each rule covers the sub-indices CiA 301 gives it and no other: a sub-index beside them
+    /// (a count, a manufacturer-specific sub, a sub the object does not define) is a plain value.
+    #[test]
+    fn each_rule_covers_its_sub_indices_only() {
+        let cases = [
+            (0x1003, 0, Hook::ErrorHistory),
+            (0x1003, 0xFE, Hook::ErrorHistory),
+            (0x1003, 0xFF, Hook::None),
+            (0x1005, 0, Hook::SyncCobId),
+            (0x1005, 1, Hook::None),
+            (0x100C, 0, Hook::Guarding),
+            (0x100C, 1, Hook::None),
+            (0x100D, 0, Hook::Guarding),
+            (0x100D, 1, Hook::None),
+            (0x100E, 0, Hook::GuardingCobId),
+            (0x100E, 1, Hook::None),
+            (0x1010, 0, Hook::None),
+            (0x1010, 1, Hook::StoreParameters),
+            (0x1010, 0x7F, Hook::StoreParameters),
+            (0x1010, 0x80, Hook::None),
+            (0x1011, 0, Hook::None),
+            (0x1011, 1, Hook::RestoreDefaults),
+            (0x1011, 0x7F, Hook::RestoreDefaults),
+            (0x1011, 0x80, Hook::None),
+            (0x1014, 0, Hook::EmcyCobId),
+            (0x1014, 1, Hook::None),
+            (0x1015, 0, Hook::EmcyInhibit),
+            (0x1015, 1, Hook::None),
+            (0x1017, 0, Hook::Heartbeat),
+            (0x1017, 1, Hook::None),
+            (0x1800, 0, Hook::None),
+            (0x1800, 1, Hook::TpdoComm),
+            (0x1800, 4, Hook::None),
+            (0x1800, 5, Hook::TpdoComm),
+            (0x1A00, 0, Hook::TpdoMap),
+            (0x1A00, MAX_MAP as u8, Hook::TpdoMap),
+            (0x1A00, MAX_MAP as u8 + 1, Hook::None),
+            (0x1800 + MAX_TPDOS as u16, 1, Hook::None),
+            (0x1A00 + MAX_TPDOS as u16, 1, Hook::None),
+        ];
+        for (index, sub, hook) in cases {
+            assert_eq!(hook_of(index, sub), hook, "0x{index:04X} sub {sub}");
+        }
+    }
+
     const fn e(index: u16, sub: u8, hook: Hook) -> Entry {
         Entry {
             index,
