@@ -204,6 +204,7 @@ mod tests {
                 .unwrap();
             t[slot].hook = Hook::None;
             assert_eq!(missing_hook(&t), Some((index, sub)), "object {i}");
+            assert!(!hooks_complete(&t), "object {i}");
             // A wrong hook is as bad as none.
             t[slot].hook = Hook::Guarding;
             if hook != Hook::Guarding {
