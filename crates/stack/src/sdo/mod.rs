@@ -6,7 +6,7 @@ pub mod wire;
 
 pub use server::{SdoServer, TransferKind, Transfers, SDO_BUF_LEN, SDO_TIMEOUT, SERVER_BLKSIZE};
 
-use crate::od::Abort;
+use crate::od::types::Abort;
 
 /// What the SDO server needs from the device: object access with every check applied.
 ///
