@@ -506,6 +506,9 @@ def test_lss_fastscan_and_selection_by_python_canopen(network, sensors, tmp_path
     found, addr = lss.fast_scan()
     assert found, "fastscan found no unconfigured node"
     assert addr == [0x40, 0x43333034, 0x00010005, 4242]
+    # From here on every request has an answer: wait for it as long as a stalled VM needs
+    # (a short timeout only serves the silences above, where no answer is the result).
+    lss.RESPONSE_TIMEOUT = 2.0
     # The slave found is in configuration: it alone answers.
     answers = []
     network.subscribe(0x7E4, lambda c, d, t: answers.append(bytes(d)))
