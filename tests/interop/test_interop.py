@@ -498,16 +498,32 @@ def test_lss_fastscan_and_selection_by_python_canopen(network, sensors, tmp_path
     e = add_node(network, 10)
     e_addr = [u32(e, 0x1018, s) for s in (1, 2, 3, 4)]
     lss = network.lss
+    # Wait for the TH process to be up: it answers the fastscan probe ("any unconfigured
+    # node?") once it listens. A fixed sleep was too short for a loaded UML guest.
+    probes = []
+
+    def probed(cob_id, data, ts):
+        probes.append(data[0])
+
+    network.subscribe(0x7E4, probed)
+    end = time.monotonic() + 10
+    while not probes and time.monotonic() < end:
+        network.send_message(0x7E5, struct.pack("<BIBBB", 0x51, 0, 128, 0, 0))
+        time.sleep(0.1)
+    time.sleep(0.5)  # the answers to probes still on their way (the LSS master drops them)
+    network.unsubscribe(0x7E4, probed)
+    assert probes and set(probes) == {0x4F}, probes
+    # Both wait: an inquiry gets no answer (a silence is the result: a short timeout).
     lss.RESPONSE_TIMEOUT = 0.2
-    # Both wait: an inquiry gets no answer (wait for the TH process to be up first).
-    time.sleep(1.0)
     with pytest.raises(canopen.lss.LssError):
         lss.inquire_node_id()
+    # Fastscan reads a silence as a bit that differs: 0.5 s per step, so that a guest stalled
+    # for a few hundred ms does not turn a late answer into a wrong bit.
+    lss.RESPONSE_TIMEOUT = 0.5
     found, addr = lss.fast_scan()
     assert found, "fastscan found no unconfigured node"
     assert addr == [0x40, 0x43333034, 0x00010005, 4242]
-    # From here on every request has an answer: wait for it as long as a stalled VM needs
-    # (a short timeout only serves the silences above, where no answer is the result).
+    # From here on every request has an answer: wait for it as long as a stalled VM needs.
     lss.RESPONSE_TIMEOUT = 2.0
     # The slave found is in configuration: it alone answers.
     answers = []
