@@ -267,7 +267,9 @@ impl<A: Application, S: Storage> Node<A, S> {
         set(Timer::LssSwitch, self.lss.due_us());
         set(Timer::Silence, us(d.silent_until));
         set(Timer::ErrorControl, d.errctl.due_us());
-        set(Timer::HbConsumer, d.hbc.due_us());
+        if crate::config::MAX_HB_CONSUMERS > 0 {
+            set(Timer::HbConsumer, d.hbc.due_us());
+        }
         set(Timer::Emcy, emcy);
         debug_assert_eq!(other, self.timers.next());
         // The TPDOs keep their own schedule (the hot path reads it directly).

@@ -56,7 +56,7 @@ impl<A: Application, S: Storage> Node<A, S> {
                 }
             }
         }
-        if heartbeats {
+        if crate::config::MAX_HB_CONSUMERS > 0 && heartbeats {
             self.heartbeats_missed(now);
         }
         self.dev.run_pdos(now);
