@@ -2,7 +2,8 @@
 //! error of a class, sub 1 the communication error class.
 //!
 //! Communication errors (CiA 301; vendors' manuals list the same three): bus-off, a life
-//! guarding event and a heartbeat consumer event, each on its occurrence (not on its end). The
+//! guarding event and a heartbeat consumer event, each on its occurrence (not on its end;
+//! bus-off through `Node::set_bus_off`). The
 //! further sub-indices an EDS may declare (device-profile or manufacturer-specific classes) are
 //! values of the same range with no error feeding them in this stack (D25 in
 //! docs/DECISIONS.md). A device without 0x1029 keeps what it did before (the sensors: life

@@ -412,6 +412,45 @@ fn cia301_7_5_2_32_communication_error_reactions() {
     }
 }
 
+/// CiA 301 §7.5.2.32 for the third communication error, bus-off (`Node::set_bus_off`): the
+/// reaction on entering it; the communication bit while it lasts; EMCY 0x8140 at the recovery
+/// (the EMCY of a stopped node waits until it leaves Stopped).
+#[test]
+fn cia301_7_5_2_32_bus_off_reactions() {
+    use NmtState::*;
+    for (from, state) in [(0u8, PreOperational), (0x01, Operational), (0x02, Stopped)] {
+        for v in [None, Some(0), Some(1), Some(2)] {
+            let mut r = Rig::new(model(&[], v, false));
+            if from != 0 {
+                r.nmt(1, from);
+            }
+            r.out.clear();
+            r.n.set_bus_off(true);
+            r.n.set_bus_off(true);
+            r.run(10);
+            let want = match (v, state) {
+                (Some(0), Operational) => PreOperational,
+                (Some(2), PreOperational | Operational) => Stopped,
+                _ => state,
+            };
+            assert_eq!(r.state(), want, "0x1029 = {v:?} from {state:?}");
+            assert_eq!(r.n.read_object(0x1001, 0), Ok(0x11));
+            assert!(r.emcys().is_empty(), "nothing sent while bus-off");
+            r.n.set_bus_off(false);
+            r.n.set_bus_off(false);
+            r.run(20);
+            assert_eq!(r.state(), want, "the recovery changes no state");
+            assert_eq!(r.n.read_object(0x1001, 0), Ok(0));
+            let sent = if want == Stopped {
+                vec![]
+            } else {
+                vec![(20, 0x8140, 0x11, 0), (20, 0, 0, 0)]
+            };
+            assert_eq!(r.emcys(), sent, "0x1029 = {v:?} from {state:?}");
+        }
+    }
+}
+
 /// A node stopped by 0x1029 = 2 reports it in its own heartbeat (0x04) and answers no SDO.
 #[test]
 fn a_node_stopped_by_its_error_behaviour_says_so_in_its_heartbeat() {

@@ -144,6 +144,28 @@ impl<A: Application, S: Storage> Device<A, S> {
 }
 
 impl<A: Application, S: Storage> Node<A, S> {
+    /// The CAN controller went bus-off (`active`) or recovered, for a device whose application
+    /// has no bus-off reaction of its own (a plain device; the sensors report it through their
+    /// application's fault). Going bus-off is a communication error: the communication bit of
+    /// 0x1001 while it lasts and the 0x1029 sub 1 reaction; the recovery sends EMCY 0x8140
+    /// ("recovered from bus-off") and clears it, as CANopenNode reports it (D25).
+    pub fn set_bus_off(&mut self, active: bool) {
+        if !self.dev.powered {
+            return;
+        }
+        let now = self.dev.now;
+        let code = emcy::code::BUS_OFF_RECOVERED;
+        let e = &mut self.dev.emcy;
+        if active && !e.is_active(code) {
+            e.hold(code, emcy::reg::COMMUNICATION);
+            self.communication_error(now);
+        } else if !active && e.is_active(code) {
+            e.event(code, [0; 5]);
+            e.clear(code);
+        }
+        self.epilogue();
+    }
+
     /// A communication error occurred (a heartbeat consumer or life guarding event, bus-off):
     /// the node changes state as 0x1029 sub 1 says, if the table has it
     /// ([`errbehav::reaction`]).
