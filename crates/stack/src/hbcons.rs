@@ -460,16 +460,20 @@ mod tests {
     #[test]
     fn pause_stops_monitoring_and_keeps_errors() {
         let mut c = HbConsumer::default();
-        c.load(&od_with(&[raw(1, 10), raw(2, 10)]));
+        c.load(&od_with(&[raw(1, 10), raw(2, 10), raw(3, 10)]));
         c.received(1, 0x05, ms(0));
         c.received(2, 0x05, ms(5));
+        c.received(3, 0x05, ms(5));
         assert_eq!(c.handle_timeout(ms(10)), Some(1));
         c.pause();
         assert_eq!(c.due_us(), NEVER);
         assert_eq!(c.handle_timeout(ms(100)), None);
         assert!(c.any_lost());
+        // Node 3 was monitored at the pause: no longer, until its own next heartbeat.
         c.received(2, 0x05, ms(200));
         assert_eq!(c.due_us(), ms(210).0);
+        assert_eq!(c.handle_timeout(ms(210)), Some(2));
+        assert_eq!(c.handle_timeout(ms(210)), None);
     }
 
     /// The bitmap: every node-id 1…127 in its own bit, whatever the entry.
