@@ -155,8 +155,11 @@ impl HbConsumer {
     /// test: a constant `false` when the service is compiled out).
     #[inline(always)]
     pub fn consumes(&self, id: u16) -> bool {
-        let node = id.wrapping_sub(0x700);
-        MAX_HB_CONSUMERS > 0 && node < 0x80 && self.watches(node as u8)
+        if MAX_HB_CONSUMERS == 0 {
+            return false;
+        }
+        // 0x700…0x77F (node-id 0 is never watched), then its bit.
+        id >> 7 == 0x700 >> 7 && self.watches(id as u8 & 0x7F)
     }
 
     /// A heartbeat of `node` arrived with state byte `state` at `now` (the node is
@@ -324,6 +327,18 @@ mod tests {
         Instant::from_millis(n)
     }
 
+    /// A table with no entries (or only unused ones) has no deadline: not even one at 0, which
+    /// would wake a host at once after every reset.
+    #[test]
+    fn no_entries_no_deadline() {
+        for v in [&[][..], &[0, raw(0, 5)][..]] {
+            let mut c = HbConsumer::default();
+            c.load(&od_with(v));
+            assert_eq!(c.due_us(), NEVER);
+            assert!(!c.consumes(0x700));
+        }
+    }
+
     #[test]
     fn an_entry_is_unused_without_a_node_id_1_to_127_or_a_time() {
         assert_eq!(watched(raw(5, 100)), Some(5));
@@ -377,7 +392,13 @@ mod tests {
             assert_eq!(c.due_us(), due.0);
             assert_eq!(c.handle_timeout(Instant(due.0 - 1)), None);
             assert!(!c.any_lost());
-            assert_eq!(c.handle_timeout(due), Some(5));
+            // Handled on time, or late (a host that slept past the deadline).
+            let at = if time == 100 {
+                due + Duration::from_millis(1)
+            } else {
+                due
+            };
+            assert_eq!(c.handle_timeout(at), Some(5));
             assert!(c.any_lost());
             assert_eq!(c.handle_timeout(ms(3_000_000)), None, "one event");
             assert_eq!(c.due_us(), NEVER);
