@@ -158,8 +158,12 @@ impl HbConsumer {
         if MAX_HB_CONSUMERS == 0 {
             return false;
         }
-        // 0x700…0x77F (node-id 0 is never watched), then its bit.
-        id >> 7 == 0x700 >> 7 && self.watches(id as u8 & 0x7F)
+        // Node-ids 1…127, then its bit. Below 0x701 first: most frames that get this far
+        // (other nodes' PDOs) leave after that one compare.
+        if id < 0x701 {
+            return false;
+        }
+        id <= 0x77F && self.watches(id as u8 & 0x7F)
     }
 
     /// A heartbeat of `node` arrived with state byte `state` at `now` (the node is
