@@ -18,13 +18,16 @@
 //!
 //! What the core cannot serve is an error naming the file and line, as is anything malformed:
 //! DOMAIN and 64-bit / REAL / OCTET_STRING types, writable strings, more than
-//! [`MAX_ENTRIES`] entries or [`pdo::MAX_TPDOS`] TPDOs. RPDO objects (0x1400–0x17FF) are left
+//! [`MAX_ENTRIES`] entries, [`pdo::MAX_TPDOS`] TPDOs or [`MAX_HB_CONSUMERS`] heartbeat
+//! consumer entries (0x1016), and start values the services' rules refuse (a node-id watched
+//! twice in 0x1016, a 0x1029 reaction other than 0, 1, 2). RPDO objects (0x1400–0x17FF) are left
 //! out with a warning: the core has no RPDOs.
 
 use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use canpos_stack::config::MAX_HB_CONSUMERS;
 use canpos_stack::model::{CommConfig, Features, Model, Table};
 use canpos_stack::od::{
     cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
@@ -177,9 +180,13 @@ const STANDARD: &[Std] = {
         row(0x1011, 0x1011, 1, 0x7F, U32),
         row(0x1014, 0x1014, 0, 0, U32),
         row(0x1015, 0x1015, 0, 0, U16),
+        row(0x1016, 0x1016, 0, 0, U8),
+        row(0x1016, 0x1016, 1, MAX_HB_CONSUMERS as u8, U32),
         row(0x1017, 0x1017, 0, 0, U16),
         row(0x1018, 0x1018, 0, 0, U8),
         row(0x1018, 0x1018, 1, 4, U32),
+        row(0x1029, 0x1029, 0, 0, U8),
+        row(0x1029, 0x1029, 1, 0xFE, U8),
         row(0x1800, 0x1800 + t, 0, 0, U8),
         row(0x1800, 0x1800 + t, 1, 1, U32),
         row(0x1800, 0x1800 + t, 2, 2, U8),
@@ -426,6 +433,7 @@ impl Builder<'_> {
             ));
         }
         self.check_mappings(&entries, &value_lines)?;
+        self.check_error_control(&entries, &value_lines)?;
 
         if let Some(k) = info.key("NrOfTXPDO") {
             if self.num(k)? != tpdo_objects as i64 {
@@ -642,6 +650,16 @@ impl Builder<'_> {
                     "[{}]: canpos-stack maps at most {} objects per TPDO",
                     sec.name,
                     pdo::MAX_MAP
+                ),
+            ));
+        }
+        if index == 0x1016 && std.is_none() {
+            return Err(self.err(
+                sec.line,
+                format!(
+                    "[{}]: canpos-stack consumes at most {MAX_HB_CONSUMERS} heartbeats \
+                     (0x1016 sub 1…{MAX_HB_CONSUMERS})",
+                    sec.name
                 ),
             ));
         }

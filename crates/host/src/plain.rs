@@ -98,7 +98,8 @@ impl PlainRuntime {
     fn run_loop(&mut self, msgs: &crossbeam_channel::Receiver<Msg>) -> io::Result<()> {
         let (mut dropped, mut state) = (0, BusState::ErrorActive);
         loop {
-            // Logged only: the sensors' EMCYs for these come from their models' tables.
+            // Lost frames are logged only: the sensors' EMCYs for them come from their models'
+            // tables.
             if self.transport.dropped() > dropped {
                 dropped = self.transport.dropped();
                 tracing::warn!(total = dropped, "CAN frames lost");
@@ -106,6 +107,10 @@ impl PlainRuntime {
             if self.transport.bus_state() != state {
                 let old = std::mem::replace(&mut state, self.transport.bus_state());
                 tracing::warn!(from = ?old, to = ?state, "CAN controller state");
+                // Bus-off is a communication error (0x1029); leaving it the recovery EMCY.
+                if state == BusState::BusOff || old == BusState::BusOff {
+                    self.node.set_bus_off(state == BusState::BusOff);
+                }
             }
             let mut now = self.now();
             while let Some(rx) = self.transport.try_recv()? {

@@ -133,6 +133,27 @@ pub const EMCY_ACTIVE_LEN: usize = 8;
 pub const EMCY_PENDING_LEN: usize = 8;
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && EMCY_PENDING_LEN.is_power_of_two());
 
+// --- Heartbeat consumer and error behaviour (issue 33) ------------------------------------
+
+/// Most heartbeat consumer entries (0x1016 sub 1…) the stack serves: each costs 12 B of RAM.
+/// On a host (`host-buffers`) 32, beyond the EDS files met so far (an EDS device declaring more
+/// is refused with its file and line); without it `CANPOS_MAX_HB_CONSUMERS`, else 4. Zero
+/// compiles the service out: 0x1016 is then a plain value (`od::cia301::hook_of` gives it no
+/// hook) and the receive path has no heartbeat test (the TH firmware sets 0,
+/// `firmware/.cargo/config.toml`).
+pub const MAX_HB_CONSUMERS: usize = if HOST_BUFFERS {
+    32
+} else {
+    env_or(option_env!("CANPOS_MAX_HB_CONSUMERS"), 4)
+};
+const _: () = assert!(MAX_HB_CONSUMERS <= 127, "one entry per node-id at most");
+
+/// Whether the stack reacts to a communication error as 0x1029 sub 1 says (error behaviour).
+/// Always on a host; without `host-buffers` `CANPOS_ERROR_BEHAVIOUR` (0 or 1), else on. Off,
+/// 0x1029 is a plain value and its code is not linked (the TH firmware sets 0).
+pub const ERROR_BEHAVIOUR: bool =
+    HOST_BUFFERS || env_or(option_env!("CANPOS_ERROR_BEHAVIOUR"), 1) != 0;
+
 /// `v` (a decimal number set at build time) or `default` when it is not set; a value that is
 /// not a number stops the build.
 const fn env_or(v: Option<&str>, default: usize) -> usize {

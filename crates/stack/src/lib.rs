@@ -37,7 +37,9 @@ pub mod div;
 #[cfg(feature = "names")]
 pub mod eds;
 pub mod emcy;
+pub mod errbehav;
 pub mod errctl;
+pub mod hbcons;
 pub mod lss;
 pub mod model;
 pub mod nmt;

@@ -18,6 +18,8 @@ pub(crate) enum Timer {
     Silence,
     /// Heartbeat and life guarding.
     ErrorControl,
+    /// The heartbeat consumer's earliest missed heartbeat (0x1016).
+    HbConsumer,
     /// An EMCY held back by its inhibit time.
     Emcy,
 }

@@ -180,4 +180,50 @@ impl Builder<'_> {
         }
         Ok(())
     }
+
+    /// The start values of 0x1016 and 0x1029 follow the rules an SDO write of them must: each
+    /// node-id watched by one entry (the stack would watch the first only), reserved bits 0,
+    /// reactions 0, 1 or 2. Refused with the value's line.
+    pub(super) fn check_error_control(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        use canpos_stack::{errbehav, hbcons};
+        let mut watched: BTreeMap<u8, u8> = BTreeMap::new();
+        for e in entries {
+            let DefaultValue::Const(v) = e.default else {
+                continue;
+            };
+            let line = || {
+                value_lines
+                    .get(&canpos_stack::od::key(e.index, e.sub))
+                    .copied()
+                    .unwrap_or(0)
+            };
+            let bad = match e.hook {
+                Hook::HbConsumer => hbcons::value_allowed(v)
+                    .err()
+                    .map(|_| format!("0x1016 sub {}: bits 31–24 are reserved (0)", e.sub))
+                    .or_else(|| {
+                        let node = hbcons::watched(v)?;
+                        watched.insert(node, e.sub).map(|first| {
+                            format!(
+                                "0x1016 sub {} watches node {node}, as sub {first} does (CiA 301: \
+                             one entry per node-id)",
+                                e.sub
+                            )
+                        })
+                    }),
+                Hook::ErrorBehaviour => errbehav::value_allowed(v)
+                    .err()
+                    .map(|_| format!("0x1029 sub {}: {v} is no reaction (0, 1 or 2)", e.sub)),
+                _ => None,
+            };
+            if let Some(msg) = bad {
+                return Err(self.err(line(), msg));
+            }
+        }
+        Ok(())
+    }
 }

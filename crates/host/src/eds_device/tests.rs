@@ -646,3 +646,112 @@ fn a_table_whose_cia301_object_lacks_its_hook_is_refused() {
         }
     }
 }
+
+const HBC: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../../tests/interop/hbc-device.eds"
+));
+
+/// An EDS that declares 0x1016 and 0x1029 gets their rules (live objects, not plain values):
+/// a duplicate node-id is refused with 0x06040043, a 0x1029 value above 2 with 0x06090030, and
+/// a missed heartbeat raises EMCY 0x8130 and stops the node as 0x1029 sub 1 = 2 says.
+#[test]
+fn heartbeat_consumer_and_error_behaviour_are_live() {
+    let o = Overrides {
+        node_id: Some(ID),
+        ..NONE
+    };
+    let d = build(HBC, "hbc.eds", FileKind::Eds, &o).unwrap();
+    assert!(d.warnings.is_empty(), "{:?}", d.warnings);
+    assert_eq!(find(d.model, 0x1016, 4).hook, Hook::HbConsumer);
+    assert_eq!(find(d.model, 0x1029, 1).hook, Hook::ErrorBehaviour);
+    assert_eq!(find(d.model, 0x1029, 2).hook, Hook::ErrorBehaviour);
+    let mut n = Node::with_app(d.model, d.cfg, Plain, RamStorage::default());
+    n.power_on(Instant::from_micros(0));
+    while n.poll(Instant::from_micros(0)).is_some() {}
+    let mut t = 0;
+    let watch = (0x20u32 << 16 | 100).to_le_bytes();
+    assert_eq!(download(&mut n, &mut t, 0x1016, 1, &watch), None);
+    assert_eq!(
+        download(&mut n, &mut t, 0x1016, 3, &watch),
+        Some(0x0604_0043)
+    );
+    assert_eq!(upload(&mut n, &mut t, 0x1016, 3), 0);
+    assert_eq!(download(&mut n, &mut t, 0x1029, 1, &[3]), Some(0x0609_0030));
+    assert_eq!(download(&mut n, &mut t, 0x1029, 1, &[2]), None);
+    n.handle_frame(
+        &Frame::new(0x000, &[0x01, ID]).unwrap(),
+        Instant::from_micros(t),
+    );
+    n.handle_frame(
+        &Frame::new(0x720, &[0x05]).unwrap(),
+        Instant::from_micros(t),
+    );
+    let mut emcy = None;
+    for _ in 0..200 {
+        t += 1000;
+        while let Some(f) = n.poll(Instant::from_micros(t)) {
+            if f.std_id() == Some(0x80 + u16::from(ID)) {
+                emcy = Some(f);
+            }
+        }
+    }
+    assert_eq!(n.device().nmt_state(), canpos_stack::nmt::NmtState::Stopped);
+    assert!(emcy.is_none(), "a stopped node keeps its EMCY");
+    n.handle_frame(
+        &Frame::new(0x000, &[0x80, ID]).unwrap(),
+        Instant::from_micros(t),
+    );
+    let f = n
+        .poll(Instant::from_micros(t))
+        .expect("EMCY once pre-operational");
+    assert_eq!(f.data()[..4], [0x30, 0x81, 0x11, 0x20]);
+}
+
+/// What the stack cannot serve or would refuse at run time is refused with the file's line: a
+/// 0x1016 entry beyond the stack's count, a node-id watched twice, reserved bits, a 0x1029
+/// start value that is no reaction.
+#[test]
+fn error_control_start_values_the_rules_refuse_name_the_line() {
+    let beyond = canpos_stack::config::MAX_HB_CONSUMERS + 1;
+    let extra = format!(
+        "[1016sub{beyond:X}]\nParameterName=x\nObjectType=0x7\nDataType=0x0007\nAccessType=rw\n\
+         DefaultValue=0\nPDOMapping=0\n\n[1017]\n"
+    );
+    let text = HBC.replacen("[1017]\n", &extra, 1).replacen(
+        "heartbeat time\nObjectType=0x8\nSubNumber=5",
+        "heartbeat time\nObjectType=0x8\nSubNumber=6",
+        1,
+    );
+    let err = eds(&text).unwrap_err();
+    assert_eq!(
+        err.line,
+        line_of(&text, &format!("[1016sub{beyond:X}]")),
+        "{err}"
+    );
+    assert!(err.msg.contains("at most"), "{err}");
+    let set = |sec: &str, v: &str| {
+        let start = HBC.find(&format!("\n[{sec}]\n")).expect(sec);
+        let at = start + HBC[start..].find("\nDefaultValue=").unwrap();
+        let end = at + 1 + HBC[at + 1..].find('\n').unwrap();
+        format!("{}\nDefaultValue={v}{}", &HBC[..at], &HBC[end..])
+    };
+    let two = set("1016sub2", "0x00200064");
+    let two = {
+        let start = two.find("\n[1016sub4]\n").unwrap();
+        let at = start + two[start..].find("\nDefaultValue=").unwrap();
+        let end = at + 1 + two[at + 1..].find('\n').unwrap();
+        format!("{}\nDefaultValue=0x00200010{}", &two[..at], &two[end..])
+    };
+    let err = eds(&two).unwrap_err();
+    assert!(err.msg.contains("as sub 2 does"), "{err}");
+    let sec4 = line_of(&two, "[1016sub4]");
+    assert!(err.line > sec4 && err.line < sec4 + 8, "{err}");
+    // A zero time or another node-id is no clash.
+    assert!(eds(&set("1016sub2", "0x00200000")).is_ok());
+    let err = eds(&set("1016sub1", "0x01200064")).unwrap_err();
+    assert!(err.msg.contains("reserved"), "{err}");
+    let err = eds(&set("1029sub2", "3")).unwrap_err();
+    assert!(err.msg.contains("no reaction"), "{err}");
+    assert!(eds(&set("1029sub2", "2")).is_ok());
+}

@@ -2,6 +2,7 @@
 
 use super::lss_glue::kbps_of_object;
 use super::*;
+use crate::config::{ERROR_BEHAVIOUR, MAX_HB_CONSUMERS};
 
 impl<A: Application, S: Storage> Device<A, S> {
     /// The rule of an entry's hook for a value of its own, on this node-id, whatever the object
@@ -20,6 +21,9 @@ impl<A: Application, S: Storage> Device<A, S> {
             Hook::TpdoComm | Hook::TpdoMap => {
                 return Tpdos::check_value(&self.od, e.index, e.sub, raw)
             }
+            // (Guards that are constants where a build compiles the services out.)
+            Hook::HbConsumer if MAX_HB_CONSUMERS > 0 => return hbcons::value_allowed(raw),
+            Hook::ErrorBehaviour if ERROR_BEHAVIOUR => return errbehav::value_allowed(raw),
             // The others check nothing beyond the table.
             _ => return Ok(()),
         };
@@ -40,6 +44,8 @@ impl<A: Application, S: Storage> Device<A, S> {
         // One call for every other hook (`value_allowed` is a match of its own).
         self.value_allowed(e, raw)?;
         let clash = match e.hook {
+            // CiA 301: one entry per node-id (its own abort code).
+            Hook::HbConsumer if MAX_HB_CONSUMERS > 0 => return hbcons::check(&self.od, e.sub, raw),
             Hook::EmcyCobId => emcy::cob_id_change_refused(cur, raw),
             // D22: SYNC and guarding on different CAN-IDs.
             Hook::SyncCobId => errctl::sync_guarding_clash(raw, self.errctl.guarding_id().into()),
@@ -96,6 +102,12 @@ impl<A: Application, S: Storage> Device<A, S> {
             Hook::Guarding | Hook::GuardingCobId => self.apply_guarding(now),
             Hook::EmcyInhibit => self.emcy.set_inhibit(raw as u16),
             Hook::Heartbeat => self.errctl.set_heartbeat(raw as u16, now),
+            Hook::HbConsumer if MAX_HB_CONSUMERS > 0 => {
+                if self.hbc.set(e.sub, raw) {
+                    // Its error ended: cleared as the others are.
+                    self.update_pdo_activity(now);
+                }
+            }
             Hook::TpdoComm | Hook::TpdoMap => {
                 let n = (e.index & 0x1FF) as usize;
                 self.pdo.reconfigure(n, &self.od, now);

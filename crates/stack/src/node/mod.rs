@@ -20,7 +20,9 @@
 
 use crate::app::{AppCtx, AppView, Application, ModelOf};
 use crate::emcy::{self, Emcy};
+use crate::errbehav;
 use crate::errctl::{self, ErrCtl, ErrCtlEvent};
+use crate::hbcons::{self, HbConsumer};
 use crate::lss::{self, LssSlave, UNCONFIGURED};
 use crate::model::{Features, Model, UnitConfig};
 use crate::nmt::{NmtCommand, NmtState};
@@ -87,6 +89,8 @@ pub struct Device<A: Application, S: Storage> {
     pub(crate) tx: TxQueue,
     pub(crate) emcy: Emcy,
     pub(crate) errctl: ErrCtl,
+    /// The heartbeat consumer (0x1016).
+    pub(crate) hbc: HbConsumer,
     pub(crate) pdo: Tpdos,
     pub(crate) app: A,
     pub(crate) storage: S,
@@ -172,6 +176,7 @@ impl<A: Application, S: Storage> Node<A, S> {
                 tx: TxQueue::default(),
                 emcy: Emcy::default(),
                 errctl: ErrCtl::default(),
+                hbc: HbConsumer::default(),
                 pdo: Tpdos::default(),
                 app,
                 storage,
@@ -262,6 +267,9 @@ impl<A: Application, S: Storage> Node<A, S> {
         set(Timer::LssSwitch, self.lss.due_us());
         set(Timer::Silence, us(d.silent_until));
         set(Timer::ErrorControl, d.errctl.due_us());
+        if crate::config::MAX_HB_CONSUMERS > 0 {
+            set(Timer::HbConsumer, d.hbc.due_us());
+        }
         set(Timer::Emcy, emcy);
         debug_assert_eq!(other, self.timers.next());
         // The TPDOs keep their own schedule (the hot path reads it directly).

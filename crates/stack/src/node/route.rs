@@ -92,6 +92,10 @@ impl<A: Application, S: Storage> Node<A, S> {
             }
             return true;
         }
+        if d.hbc.consumes(id) {
+            d.heartbeat_received(id, f, now);
+            return true;
+        }
         // What is left `ignores` let through as a remote request on a model with RTR-triggered
         // TPDOs.
         let Device { pdo, od, tx, .. } = d;
@@ -145,6 +149,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
         let sync_id = self.od.hot(self.hot.sync).unwrap_or(0x80);
         let is_sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !remote;
-        !(is_sync || remote && self.features().tpdo_rtr)
+        // A watched node's heartbeat: one more test only for frames that get this far.
+        !(is_sync || remote && self.features().tpdo_rtr || self.hbc.consumes(id))
     }
 }

@@ -47,6 +47,9 @@ impl<A: Application, S: Storage> Device<A, S> {
         let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
         self.errctl.set_heartbeat(hb, now);
         self.apply_guarding(now);
+        if crate::config::MAX_HB_CONSUMERS > 0 {
+            self.hbc.load(&self.od);
+        }
         self.emcy
             .set_inhibit(self.od.value(0x1015, 0).unwrap_or(0) as u16);
         self.sync_error_register();
@@ -126,10 +129,93 @@ impl<A: Application, S: Storage> Device<A, S> {
         let lost = guarding && self.errctl.life_guard_lost;
         let on = self.nmt == NmtState::Operational && !lost;
         self.pdo.set_active(on, now);
-        // Also a 0x8130 raised from outside (`Node::set_error`), on every model.
-        if !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
+        if crate::config::MAX_HB_CONSUMERS > 0 && !self.nmt.sdo_allowed() {
+            // Heartbeats are consumed in pre-operational and operational only (D24).
+            self.hbc.pause();
+        }
+        // Also a 0x8130 raised from outside (`Node::set_error`), on every model. One code for
+        // life guarding and the heartbeat consumer: it stands while either has an error.
+        let hb_lost = crate::config::MAX_HB_CONSUMERS > 0 && self.hbc.any_lost();
+        if !lost && !hb_lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
             self.emcy.clear(emcy::code::LIFE_GUARD);
             self.flush_emcy();
+        }
+    }
+}
+
+impl<A: Application, S: Storage> Node<A, S> {
+    /// The CAN controller went bus-off (`active`) or recovered, for a device whose application
+    /// has no bus-off reaction of its own (a plain device; the sensors report it through their
+    /// application's fault). Going bus-off is a communication error: the communication bit of
+    /// 0x1001 while it lasts and the 0x1029 sub 1 reaction; the recovery sends EMCY 0x8140
+    /// ("recovered from bus-off") and clears it, as CANopenNode reports it (D25).
+    pub fn set_bus_off(&mut self, active: bool) {
+        if !self.dev.powered {
+            return;
+        }
+        let now = self.dev.now;
+        let code = emcy::code::BUS_OFF_RECOVERED;
+        let e = &mut self.dev.emcy;
+        if active && !e.is_active(code) {
+            e.hold(code, emcy::reg::COMMUNICATION);
+            self.communication_error(now);
+        } else if !active && e.is_active(code) {
+            e.event(code, [0; 5]);
+            e.clear(code);
+        }
+        self.epilogue();
+    }
+
+    /// A communication error occurred (a heartbeat consumer or life guarding event, bus-off):
+    /// the node changes state as 0x1029 sub 1 says, if the table has it
+    /// ([`errbehav::reaction`]).
+    pub(super) fn communication_error(&mut self, now: Instant) {
+        if !crate::config::ERROR_BEHAVIOUR {
+            return;
+        }
+        let d = &mut self.dev;
+        let v = d.od.hot(d.hot.comm_error);
+        let Some(to) = errbehav::reaction(v, d.nmt) else {
+            return;
+        };
+        d.nmt = to;
+        if to == NmtState::Stopped {
+            // As the NMT stop command: an unfinished SDO transfer ends silently.
+            self.sdo.reset();
+        }
+        d.update_pdo_activity(now);
+    }
+
+    /// The heartbeat consumer's missed heartbeats at `now`: EMCY 0x8130 with the node-id in
+    /// its first manufacturer byte (an event of its own for each further node while the error
+    /// stands, the register unchanged), and the 0x1029 reaction.
+    pub(super) fn heartbeats_missed(&mut self, now: Instant) {
+        while let Some(node) = self.dev.hbc.handle_timeout(now) {
+            let e = &mut self.dev.emcy;
+            let mfr = [node, 0, 0, 0, 0];
+            if e.is_active(emcy::code::LIFE_GUARD) {
+                e.event(emcy::code::LIFE_GUARD, mfr);
+            } else {
+                e.raise(emcy::code::LIFE_GUARD, emcy::reg::COMMUNICATION, mfr);
+            }
+            self.communication_error(now);
+        }
+    }
+}
+
+impl<A: Application, S: Storage> Device<A, S> {
+    /// A frame on a watched node's heartbeat CAN-ID `id` (pre-operational or operational): a
+    /// heartbeat or boot-up (one data byte or more; a zero-length frame is a guard request to
+    /// that node, D11). An error it ends clears as the others do.
+    pub(super) fn heartbeat_received(&mut self, id: u16, f: &Frame, now: Instant) {
+        if f.is_remote() || f.dlc() == 0 {
+            return;
+        }
+        if self
+            .hbc
+            .received((id - cob::ERRCTL) as u8, f.data()[0], now)
+        {
+            self.update_pdo_activity(now);
         }
     }
 }

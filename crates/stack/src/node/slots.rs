@@ -19,6 +19,9 @@ pub(super) struct HotSlots {
     pub(super) err_reg: u16,
     /// 0x1003 sub 0.
     pub(super) hist: u16,
+    /// 0x1029 sub 1, the reaction to a communication error (none where the build has no error
+    /// behaviour, [`crate::config::ERROR_BEHAVIOUR`]).
+    pub(super) comm_error: u16,
     /// How many of 0x1003 sub 1…8 the table has: they follow sub 0 in the slots.
     pub(super) hist_subs: u8,
 }
@@ -46,6 +49,11 @@ impl HotSlots {
             err_reg: slot(0x1001, 0),
             hist,
             hist_subs,
+            comm_error: if crate::config::ERROR_BEHAVIOUR {
+                slot(crate::errbehav::INDEX, 1)
+            } else {
+                NO_SLOT
+            },
         }
     }
 }

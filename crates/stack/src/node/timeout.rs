@@ -13,10 +13,11 @@ impl<A: Application, S: Storage> Node<A, S> {
         // The table says which services have a deadline that passed (the epilogue of the
         // entry point before wrote it); the others have nothing to do.
         let due = |t| self.timers.due(t, now.0);
-        let (transfer, switch, silence) = (
+        let (transfer, switch, silence, heartbeats) = (
             due(Timer::SdoTransfer),
             due(Timer::LssSwitch),
             due(Timer::Silence),
+            due(Timer::HbConsumer),
         );
         if transfer {
             if let Some(r) = self.sdo.handle_timeout(now) {
@@ -40,7 +41,8 @@ impl<A: Application, S: Storage> Node<A, S> {
             return;
         }
         let guarding = d.features().node_guarding;
-        while let Some(ev) = d.errctl.handle_timeout(now, d.nmt, guarding) {
+        while let Some(ev) = self.dev.errctl.handle_timeout(now, self.dev.nmt, guarding) {
+            let d = &mut self.dev;
             match ev {
                 ErrCtlEvent::Heartbeat(b) => {
                     let id = cob::ERRCTL + d.node_id as u16;
@@ -50,10 +52,14 @@ impl<A: Application, S: Storage> Node<A, S> {
                     d.emcy
                         .raise(emcy::code::LIFE_GUARD, emcy::reg::COMMUNICATION, [0; 5]);
                     d.update_pdo_activity(now);
+                    self.communication_error(now);
                 }
             }
         }
-        d.run_pdos(now);
+        if crate::config::MAX_HB_CONSUMERS > 0 && heartbeats {
+            self.heartbeats_missed(now);
+        }
+        self.dev.run_pdos(now);
     }
 
     /// The rest of the timer fast path once the TPDOs ran: the node's clock and deadline

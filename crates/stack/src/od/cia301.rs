@@ -34,7 +34,7 @@
 //! ```
 
 use super::{Entry, Hook};
-use crate::config::{MAX_MAP, MAX_TPDOS};
+use crate::config::{ERROR_BEHAVIOUR, MAX_HB_CONSUMERS, MAX_MAP, MAX_TPDOS};
 
 /// The hook CiA 301 gives object `index` / `sub`: the service whose rules its values follow,
 /// or [`Hook::None`] for a plain value (identity, counts, manufacturer and profile objects).
@@ -51,7 +51,11 @@ pub const fn hook_of(index: u16, sub: u8) -> Hook {
         0x1011 if sub >= 1 && sub <= 0x7F => Hook::RestoreDefaults,
         0x1014 if sub == 0 => Hook::EmcyCobId,
         0x1015 if sub == 0 => Hook::EmcyInhibit,
+        // The consumer entries the stack has (none where it is compiled out).
+        0x1016 if sub >= 1 && sub as usize <= MAX_HB_CONSUMERS => Hook::HbConsumer,
         0x1017 if sub == 0 => Hook::Heartbeat,
+        // Sub 1 the communication error, the others device-profile / manufacturer classes.
+        0x1029 if ERROR_BEHAVIOUR && sub >= 1 && sub <= 0xFE => Hook::ErrorBehaviour,
         // COB-ID, transmission type, inhibit time, event timer of each TPDO the stack has.
         _ if index >= TPDO_COMM
             && index < TPDO_COMM + MAX_TPDOS as u16
@@ -139,6 +143,14 @@ mod tests {
             (0x1015, 1, Hook::None),
             (0x1017, 0, Hook::Heartbeat),
             (0x1017, 1, Hook::None),
+            (0x1016, 0, Hook::None),
+            (0x1016, 1, Hook::HbConsumer),
+            (0x1016, MAX_HB_CONSUMERS as u8, Hook::HbConsumer),
+            (0x1016, MAX_HB_CONSUMERS as u8 + 1, Hook::None),
+            (0x1029, 0, Hook::None),
+            (0x1029, 1, Hook::ErrorBehaviour),
+            (0x1029, 0xFE, Hook::ErrorBehaviour),
+            (0x1029, 0xFF, Hook::None),
             (0x1800, 0, Hook::None),
             (0x1800, 1, Hook::TpdoComm),
             (0x1800, 4, Hook::None),

@@ -189,6 +189,10 @@ pub enum Hook {
     /// An object copy of the bit rate (kbit/s, 0xFFFF autobaud) that the next reset activates
     /// (TMI 0x2001): one value with LSS "configure bit timing".
     PendingBitRate,
+    /// 0x1016 consumer heartbeat time sub 1…: a node-id watched once (heartbeat consumer).
+    HbConsumer,
+    /// 0x1029 error behaviour sub 1…: 0, 1 or 2 (the node's reaction to an error class).
+    ErrorBehaviour,
     // The hooks from here on are those whose values their service checks (PDO service, the
     // application): `Hook::checked_by_service` is then one compare. A new hook goes above.
     /// A TPDO communication parameter (0x1800…, PDO service).
@@ -381,6 +385,7 @@ impl Hook {
                 | Hook::EmcyCobId
                 | Hook::StoreParameters
                 | Hook::RestoreDefaults
+                | Hook::ErrorBehaviour
         )
     }
 }
