@@ -4,7 +4,7 @@
 //! node-id) is expected at least every `time_ms`. A zero time, or a node-id 0 or above 127,
 //! leaves the entry unused. Monitoring of a node starts with the first heartbeat received from
 //! it, not with the configuration; a heartbeat that then fails to come within the time is a
-//! heartbeat event (the node raises EMCY 0x8130 and reacts as 0x1029 sub 1 says). D24 in
+//! heartbeat event (the node raises EMCY 0x8130 and reacts as 0x1029 sub 1 says). D27 in
 //! docs/DECISIONS.md has what the stack decided beyond the standard: the states it monitors
 //! in, and the boot-up of a consumed node.
 //!
@@ -168,7 +168,7 @@ impl HbConsumer {
 
     /// A heartbeat of `node` arrived with state byte `state` at `now` (the node is
     /// pre-operational or operational). A heartbeat starts or continues monitoring; a boot-up
-    /// (state 0) stops it until the node's next heartbeat (D24). Either ends the node's error:
+    /// (state 0) stops it until the node's next heartbeat (D27). Either ends the node's error:
     /// returns whether it did.
     pub fn received(&mut self, node: u8, state: u8, now: Instant) -> bool {
         let mut ended = false;
@@ -431,7 +431,7 @@ mod tests {
         assert_eq!(c.handle_timeout(ms(140)), None);
     }
 
-    /// D24: a consumed node's boot-up ends monitoring (its heartbeat may be off after its
+    /// D27: a consumed node's boot-up ends monitoring (its heartbeat may be off after its
     /// reset) and its error; its next heartbeat starts monitoring again.
     #[test]
     fn a_boot_up_stops_monitoring_until_the_next_heartbeat() {

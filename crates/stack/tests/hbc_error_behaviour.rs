@@ -302,7 +302,7 @@ fn a_write_to_an_entry_ends_its_error() {
     assert_eq!(r.emcys().len(), 1, "waits for the first heartbeat");
 }
 
-/// D24: a consumed node's boot-up stops its monitoring until its next heartbeat (after a reset
+/// D27: a consumed node's boot-up stops its monitoring until its next heartbeat (after a reset
 /// its heartbeat may be off) and ends its error; no EMCY of its own.
 #[test]
 fn d24_a_boot_up_of_a_watched_node_waits_for_its_next_heartbeat() {
@@ -320,7 +320,7 @@ fn d24_a_boot_up_of_a_watched_node_waits_for_its_next_heartbeat() {
     assert_eq!(r.emcys().len(), 2);
 }
 
-/// D24: heartbeats are consumed in pre-operational and operational only; a stopped node
+/// D27: heartbeats are consumed in pre-operational and operational only; a stopped node
 /// forgets the monitoring and starts again at the first heartbeat once running.
 #[test]
 fn d24_no_monitoring_while_stopped() {

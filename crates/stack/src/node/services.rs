@@ -130,7 +130,7 @@ impl<A: Application, S: Storage> Device<A, S> {
         let on = self.nmt == NmtState::Operational && !lost;
         self.pdo.set_active(on, now);
         if crate::config::MAX_HB_CONSUMERS > 0 && !self.nmt.sdo_allowed() {
-            // Heartbeats are consumed in pre-operational and operational only (D24).
+            // Heartbeats are consumed in pre-operational and operational only (D27).
             self.hbc.pause();
         }
         // Also a 0x8130 raised from outside (`Node::set_error`), on every model. One code for
