@@ -541,6 +541,7 @@ impl Builder<'_> {
         let features = Features {
             tag,
             tpdos: tpdo_objects as u8,
+            rpdos: 0,
             sdo_segmented: true,
             sdo_block: true,
             node_guarding: objects.contains_key(&0x100C) && objects.contains_key(&0x100D),

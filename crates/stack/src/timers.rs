@@ -20,9 +20,11 @@ pub(crate) enum Timer {
     ErrorControl,
     /// An EMCY held back by its inhibit time.
     Emcy,
+    /// An RPDO's deadline monitoring (its event timer).
+    Rpdo,
 }
 
-const COUNT: usize = Timer::Emcy as usize + 1;
+const COUNT: usize = Timer::Rpdo as usize + 1;
 
 /// No deadline.
 pub(crate) const NEVER: u64 = u64::MAX;
