@@ -149,6 +149,11 @@ pub const MAX_RPDOS: usize = if HOST_BUFFERS {
 };
 const _: () = assert!(MAX_RPDOS <= 512, "CiA 301 has 512 RPDOs");
 
+/// The SYNC start value of synchronous TPDOs (0x1800:6, CiA 301), where a table declares it:
+/// always on a host; a firmware whose table declares it sets `CANPOS_SYNC_START=1` (the TH's
+/// does not: without it the 120 B of its code are left out, docs/FIRMWARE.md).
+pub const SYNC_START: bool = HOST_BUFFERS || env_or(option_env!("CANPOS_SYNC_START"), 0) != 0;
+
 /// `v` (a decimal number set at build time) or `default` when it is not set; a value that is
 /// not a number stops the build.
 const fn env_or(v: Option<&str>, default: usize) -> usize {

@@ -20,6 +20,8 @@ pub use crate::wire::cob::{restricted_id, COB_ID_HIGH_BITS};
 
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
+/// `Tpdo::sync_count` while a TPDO waits for the SYNC of its start value (counts stay ≤ 240).
+const SYNC_WAIT: u8 = u8::MAX;
 /// `Tpdos::single` when zero or several TPDOs have timers.
 const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
@@ -89,10 +91,9 @@ pub struct Tpdo {
     pending: bool,
     sync_count: u8,
     /// SYNC start value (0x1800:6, 0 where the table has none): a cyclic synchronous TPDO
-    /// starts counting at the SYNC whose counter equals it.
+    /// starts counting at the SYNC whose counter equals it. While it waits for that SYNC
+    /// (from every restart of the count), `sync_count` is [`SYNC_WAIT`].
     sync_start: u8,
-    /// Waiting for the SYNC whose counter is `sync_start` (set whenever counting restarts).
-    sync_wait: bool,
     changed: bool,
     /// Event timer periods that passed without a transmission because the host was late.
     pub missed: u32,
@@ -114,7 +115,6 @@ impl core::default::Default for Tpdo {
             pending: false,
             sync_count: 0,
             sync_start: 0,
-            sync_wait: false,
             changed: false,
             missed: 0,
         }
@@ -140,6 +140,16 @@ impl Tpdo {
     #[inline(always)]
     fn inhibit(&self) -> Duration {
         Duration::from_micros(u64::from(self.inhibit_us))
+    }
+
+    /// The SYNC count a (re)start begins with: [`SYNC_WAIT`] with a start value, else 0.
+    #[inline(always)]
+    fn first_count(&self) -> u8 {
+        if config::SYNC_START && self.sync_start != 0 {
+            SYNC_WAIT
+        } else {
+            0
+        }
     }
 
     /// The timers of an asynchronous TPDO at `now`: the event timer on its absolute
@@ -331,14 +341,15 @@ impl Tpdos {
         // read as such: the products stay in 32 bits.
         p.inhibit_us = u32::from(od.value(ci, 3).unwrap_or(0) as u16) * 100;
         p.event_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
-        p.sync_start = od.value(ci, 6).unwrap_or(0) as u8;
+        if config::SYNC_START {
+            p.sync_start = od.value(ci, 6).unwrap_or(0) as u8;
+        }
         let (n_map, len) = read_mapping::<false>(od, map_index(n), &mut p.map);
         p.n_map = n_map;
         p.len = len;
         p.next_event = NEVER;
         p.pending = false;
-        p.sync_count = 0;
-        p.sync_wait = p.sync_start != 0;
+        p.sync_count = p.first_count();
         self.refresh();
     }
 
@@ -389,8 +400,7 @@ impl Tpdos {
                 NEVER
             };
             p.pending = false;
-            p.sync_count = 0;
-            p.sync_wait = p.sync_start != 0;
+            p.sync_count = p.first_count();
             p.changed = true;
         }
     }
@@ -443,12 +453,12 @@ impl Tpdos {
             let send = if p.ttype == 0 {
                 core::mem::take(&mut p.changed)
             } else {
-                if p.sync_wait {
+                if config::SYNC_START && p.sync_count == SYNC_WAIT {
                     if counter.is_some_and(|c| c != p.sync_start) {
                         continue;
                     }
                     // This SYNC is the first one counted.
-                    p.sync_wait = false;
+                    p.sync_count = 0;
                 }
                 p.sync_count += 1;
                 if p.sync_count >= p.ttype {
@@ -593,7 +603,7 @@ pub(crate) fn check_param<const RX: bool>(
             // D10: 241–253 are reserved.
             2 if (241..254).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
             // SYNC start value: 0 (none) or a SYNC counter value 1…240.
-            6 if raw > 240 => return Err(Abort::InvalidValue),
+            6 if config::SYNC_START && raw > 240 => return Err(Abort::InvalidValue),
             _ => {}
         }
         return Ok(());
@@ -688,24 +698,22 @@ pub(crate) fn read_mapping<const RX: bool>(
         let Some(raw) = od.value(mi, n_map + 1) else {
             break;
         };
-        let bytes = ((raw & 0xFF) / 8) as u8;
-        let (slot, mask) = if RX && dummy_bits(raw).is_some() {
-            // A dummy entry: its bytes are skipped.
-            (0, 0)
-        } else {
-            let Ok(slot) = od.find((raw >> 16) as u16, (raw >> 8) as u8) else {
-                break;
-            };
-            (slot as u8, byte_mask(bytes))
+        // A dummy entry (RPDOs only) has no slot, and a mask of 0: its bytes are skipped.
+        let dummy = RX && dummy_bits(raw).is_some();
+        let slot = match od.find((raw >> 16) as u16, (raw >> 8) as u8) {
+            Ok(slot) => slot,
+            Err(_) if dummy => 0,
+            Err(_) => break,
         };
+        let bytes = ((raw & 0xFF) / 8) as u8;
         if len + bytes > 8 {
             break;
         }
         // Precomputed so that building a TPDO is one mask and one shift per entry.
         *m = Mapped {
-            slot,
+            slot: slot as u8,
             shift: 8 * len,
-            mask,
+            mask: if dummy { 0 } else { byte_mask(bytes) },
         };
         n_map += 1;
         len += bytes;

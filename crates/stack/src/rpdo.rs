@@ -151,6 +151,9 @@ pub const fn map_index(n: usize) -> u16 {
 impl Rpdos {
     /// Re-reads every RPDO's configuration from the dictionary (after reset or load).
     pub fn configure_all(&mut self, count: usize, od: &Dictionary) {
+        if MAX_RPDOS == 0 {
+            return;
+        }
         self.count = count.min(MAX_RPDOS);
         for n in 0..self.count {
             self.configure(n, od);
@@ -196,7 +199,7 @@ impl Rpdos {
     /// Starts or stops reception (entering / leaving Operational). Leaving drops held data
     /// and stops the deadline monitoring; entering waits for a reception to start it.
     pub fn set_active(&mut self, active: bool) {
-        if active == self.active {
+        if MAX_RPDOS == 0 || active == self.active {
             return;
         }
         self.active = active;

@@ -24,7 +24,12 @@ pub(crate) enum Timer {
     Rpdo,
 }
 
-const COUNT: usize = Timer::Rpdo as usize + 1;
+// A build without RPDOs has no entry for them (never set nor read there).
+const COUNT: usize = if crate::config::MAX_RPDOS > 0 {
+    Timer::Rpdo as usize + 1
+} else {
+    Timer::Rpdo as usize
+};
 
 /// No deadline.
 pub(crate) const NEVER: u64 = u64::MAX;

@@ -20,7 +20,8 @@ impl<A: Application, S: Storage> Device<A, S> {
             Hook::TpdoComm | Hook::TpdoMap => {
                 return Tpdos::check_value(&self.od, e.index, e.sub, raw)
             }
-            Hook::RpdoComm | Hook::RpdoMap => {
+            // (A build without RPDOs has no such object: no code for it.)
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
                 return Rpdos::check_value(&self.od, e.index, e.sub, raw)
             }
             // The others check nothing beyond the table.
@@ -65,7 +66,9 @@ impl<A: Application, S: Storage> Device<A, S> {
                 let strict = self.features().event_timer_above_inhibit;
                 self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
-            Hook::RpdoComm | Hook::RpdoMap => self.rpdo.validate(&self.od, e.index, e.sub, raw),
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
+                self.rpdo.validate(&self.od, e.index, e.sub, raw)
+            }
             hook => match hook.app_number() {
                 Some(h) => {
                     let cx = AppView {
@@ -108,7 +111,7 @@ impl<A: Application, S: Storage> Device<A, S> {
                     app.tpdo_comm_written(n, e.sub, raw, &mut cx);
                 }
             }
-            Hook::RpdoComm | Hook::RpdoMap => {
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
                 self.rpdo.configure((e.index & 0x1FF) as usize, &self.od)
             }
             Hook::PendingNodeId => self.pending_node_id = raw as u8,

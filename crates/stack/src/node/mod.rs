@@ -266,7 +266,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         set(Timer::Silence, us(d.silent_until));
         set(Timer::ErrorControl, d.errctl.due_us());
         set(Timer::Emcy, emcy);
-        set(Timer::Rpdo, d.rpdo.due_us());
+        if crate::config::MAX_RPDOS > 0 {
+            // (Else never armed: `clear` and the default leave it at `NEVER`.)
+            set(Timer::Rpdo, d.rpdo.due_us());
+        }
         debug_assert_eq!(other, self.timers.next());
         // The TPDOs keep their own schedule (the hot path reads it directly).
         self.deadline = other.min(d.pdo.due_us());
