@@ -659,3 +659,52 @@ fn cia301_sync_start_value_starts_the_count_at_its_sync_counter() {
     assert_eq!(r.download(0x1800, 6, 241, 1), Err(INVALID_VALUE));
     assert_eq!(r.download(0x1800, 6, 240, 1), Ok(()));
 }
+
+/// The same table without RPDOs (a sensor's case).
+static NO_RPDOS: Model = Model {
+    table: Table {
+        name: "rpdo-test-none",
+        features: Features {
+            rpdos: 0,
+            ..MODEL.table.features
+        },
+        ..MODEL.table
+    },
+    ..MODEL
+};
+
+/// CiA 306 export: a device with RPDOs gives their number (`NrOfRXPDO`), their parameters as
+/// RECORDs, and its writable mappable objects as `rww` (written by RPDOs); without RPDOs such an
+/// object stays `ro` (CONFORMANCE EDS-01: mappable values are the device's).
+#[test]
+fn the_eds_lists_rpdos_and_what_they_write() {
+    let eds = |m: &'static Model| {
+        let mut s = String::new();
+        canpos_stack::eds::write_eds(
+            &mut s,
+            m,
+            &m.default_config,
+            &canpos_stack::eds::EdsInfo::default(),
+        )
+        .unwrap();
+        s
+    };
+    let access = |s: &str, sec: &str| {
+        let at = s.find(&format!("[{sec}]\n")).unwrap();
+        let line = s[at..]
+            .lines()
+            .find(|l| l.starts_with("AccessType="))
+            .unwrap();
+        line.to_string()
+    };
+    let with = eds(&MODEL);
+    assert!(with.contains("\nNrOfRXPDO=2\n"));
+    let at = with.find("[1401]\n").unwrap();
+    assert!(with[at..].contains("ObjectType=0x9\n"));
+    assert_eq!(access(&with, "2000"), "AccessType=rww");
+    assert_eq!(access(&with, "2004"), "AccessType=ro");
+    assert_eq!(access(&with, "2005"), "AccessType=rw");
+    let without = eds(&NO_RPDOS);
+    assert!(without.contains("\nNrOfRXPDO=0\n"));
+    assert_eq!(access(&without, "2000"), "AccessType=ro");
+}
