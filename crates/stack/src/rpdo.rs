@@ -270,9 +270,11 @@ impl Rpdos {
         }
         self.refresh_due();
         let p = &mut self.pdos[n];
+        // (Bytes past the mapping are never read: `values` takes the mapped ones.)
         let mut buf = [0u8; 8];
-        let k = len.min(data.len());
-        buf[..k].copy_from_slice(&data[..k]);
+        for (b, d) in buf.iter_mut().zip(data) {
+            *b = *d;
+        }
         if p.synchronous() {
             p.held = Some(buf);
             return None;
@@ -347,12 +349,6 @@ impl Rpdos {
             return NEVER;
         }
         self.due
-    }
-
-    /// The earliest deadline.
-    pub fn poll_timeout(&self) -> Option<Instant> {
-        let t = self.due_us();
-        (t != NEVER).then_some(Instant(t))
     }
 
     /// Read access to RPDO `n` (0-based).
