@@ -770,3 +770,64 @@ fn cia301_7_5_2_35_the_timeout_clears_when_every_rpdo_receives_again() {
     r.send(RPDO2, &[4, 0]);
     assert_eq!(r.emcys(), [0x0000]);
 }
+
+/// A stored RPDO parameter passes the same rule as an SDO write of it before it is loaded; one
+/// that fails keeps its default (a restricted or 29-bit COB-ID, a reserved type, a mapping of a
+/// read-only object).
+#[test]
+fn a_stored_rpdo_parameter_is_loaded_only_if_a_write_could_set_it() {
+    use canpos_stack::storage::{ImageWriter, Storage, IMAGE_MAX};
+    let boot = |records: &[(u16, u8, u32)]| {
+        let mut image = [0u8; IMAGE_MAX];
+        let mut w = ImageWriter::new(&mut image, MODEL.features.tag);
+        for &(index, sub, v) in records {
+            assert!(w.push((u32::from(index) << 8) | u32::from(sub), v));
+        }
+        let n = w.finish();
+        let mut ram = RamStorage::default();
+        ram.save(&image[..n]).unwrap();
+        let mut node: Node<Plain, RamStorage> = Node::new(&MODEL, MODEL.default_config, ram);
+        node.power_on(Instant::ZERO);
+        [(0x1400, 1), (0x1400, 2), (0x1400, 5), (0x1600, 1)]
+            .map(|(i, s)| node.read_object(i, s).unwrap())
+    };
+    let defaults = [0x205, 255, 0, 0x2000_0008];
+    assert_eq!(boot(&[]), defaults);
+    assert_eq!(
+        boot(&[
+            (0x1400, 1, 0x8000_0333),
+            (0x1400, 2, 1),
+            (0x1400, 5, 77),
+            (0x1600, 1, 0x2001_0010)
+        ]),
+        [0x8000_0333, 1, 77, 0x2001_0010]
+    );
+    // D15: a pre-defined COB-ID of another node-id (an image without the saved node-id) follows
+    // this node's.
+    assert_eq!(boot(&[(0x1400, 1, 0x8000_0207)])[0], 0x8000_0205);
+    for bad in [
+        (0x1400, 1, 0x0000_0705),
+        (0x1400, 1, 0x2000_0205),
+        (0x1400, 2, 245),
+        (0x1600, 1, 0x2004_0020),
+    ] {
+        assert_eq!(boot(&[bad]), defaults, "{bad:X?}");
+    }
+}
+
+/// An NMT command that leaves the node in Operational (start again, a guard request) changes
+/// nothing for the RPDOs: held data and running deadlines stay.
+#[test]
+fn staying_in_operational_keeps_held_data_and_deadlines() {
+    let mut r = Rig::new();
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.download(0x1400, 5, 50, 2).unwrap();
+    r.nmt(0x01);
+    r.send(RPDO1, &[1]);
+    r.send(RPDO2, &[7, 0]);
+    r.nmt(0x01);
+    r.sync(None);
+    assert_eq!(r.read(0x2001, 0), 7, "held data kept");
+    r.advance_ms(50);
+    assert_eq!(r.emcys(), [0x8250], "deadline kept");
+}
