@@ -4,8 +4,8 @@
 //! have no RPDOs (issue 33 item 6), so the table is this test's own, built as a firmware's is.
 
 use canpos_stack::model::{CommConfig, Features, Model, Table};
-use canpos_stack::od::{cia301, DefaultValue::*, Entry, Param};
-use canpos_stack::{entry, Frame, Instant, Node, Plain, RamStorage};
+use canpos_stack::od::{cia301, Abort, DefaultValue::*, Entry, Hook, Param};
+use canpos_stack::{entry, AppCtx, AppView, Application, Frame, Instant, Node, Plain, RamStorage};
 
 /// The objects every layout test maps: position `k` (0…3) of a layout has its own object of
 /// each size (0x2100 + 16 k + 0 / 1 / 2: UNSIGNED8 / 16 / 32), so each value can be checked.
@@ -71,7 +71,8 @@ const TABLE: [Entry; 74] = cia301::attach([
     entry!(0x1A00, 3, "", Unsigned32, Rw, Const(0), Any, Comm),
     entry!(0x1A00, 4, "", Unsigned32, Rw, Const(0), Any, Comm),
     entry!(0x2000, 0, "", Unsigned8, Rw, Const(0), Any, App, true),
-    entry!(0x2001, 0, "", Unsigned16, Rw, Const(0), Any, App, true),
+    // The application's object (its hook 0): written through `Application::written`.
+    entry!(0x2001, 0, "", Unsigned16, Rw, Const(0), Any, App, true).with_hook(Hook::app(0)),
     // −100…100: a value beyond is refused as an SDO write's would be.
     entry!(0x2002, 0, "", Integer16, Rw, Const(0), MinMax(0xFF9C, 100), Volatile, true),
     entry!(0x2003, 0, "", Boolean, Rw, Const(0), Any, Volatile, true),
@@ -830,4 +831,62 @@ fn staying_in_operational_keeps_held_data_and_deadlines() {
     assert_eq!(r.read(0x2001, 0), 7, "held data kept");
     r.advance_ms(50);
     assert_eq!(r.emcys(), [0x8250], "deadline kept");
+}
+
+/// An application that refuses 0xDEAD for its object and records what it is told was written.
+#[derive(Default)]
+struct Recorder {
+    written: Vec<(u8, u8, u32)>,
+}
+
+impl Application for Recorder {
+    type Sample = ();
+    type Fault = core::convert::Infallible;
+    type Config = CommConfig;
+    type Profile = ();
+    fn validate(&self, _h: u8, _sub: u8, raw: u32, _cx: &AppView<'_, Self>) -> Result<(), Abort> {
+        if raw == 0xDEAD {
+            return Err(Abort::InvalidValue);
+        }
+        Ok(())
+    }
+    fn written(&mut self, h: u8, sub: u8, raw: u32, _cx: &mut AppCtx<'_, Self>) {
+        self.written.push((h, sub, raw));
+    }
+}
+
+/// A value an RPDO writes reaches the application through the hooks of an SDO write: its
+/// rule (a value it refuses leaves the PDO unprocessed) and `Application::written`.
+#[test]
+fn an_rpdo_value_reaches_the_application_as_an_sdo_write_does() {
+    let mut node = Node::with_app(
+        &MODEL,
+        MODEL.default_config,
+        Recorder::default(),
+        RamStorage::default(),
+    );
+    node.power_on(Instant::ZERO);
+    let frame = |id: u16, data: &[u8]| Frame::new(id, data).unwrap();
+    node.handle_frame(
+        &frame(0x605, &[0x2B, 0x01, 0x20, 0, 0x11, 0x00, 0, 0]),
+        Instant::ZERO,
+    );
+    node.handle_frame(
+        &frame(0x605, &[0x23, 0x01, 0x14, 1, 0x05, 0x03, 0, 0]),
+        Instant::ZERO,
+    );
+    node.handle_frame(&frame(0x000, &[0x01, 5]), Instant::ZERO);
+    assert_eq!(node.app_mut().written, [(0, 0, 0x11)], "the SDO write");
+    // RPDO2 (synchronous) maps 0x2001: valid on 0x305 (set above), applied at the SYNC.
+    node.handle_frame(&frame(RPDO2, &[0x34, 0x12]), Instant::ZERO);
+    node.handle_frame(&frame(0x80, &[]), Instant::ZERO);
+    assert_eq!(node.app_mut().written, [(0, 0, 0x11), (0, 0, 0x1234)]);
+    node.handle_frame(&frame(RPDO2, &[0xAD, 0xDE]), Instant::ZERO);
+    node.handle_frame(&frame(0x80, &[]), Instant::ZERO);
+    assert_eq!(
+        node.app_mut().written.len(),
+        2,
+        "refused by the application"
+    );
+    assert_eq!(node.read_object(0x2001, 0), Ok(0x1234));
 }
