@@ -270,11 +270,11 @@ impl Rpdos {
         }
         self.refresh_due();
         let p = &mut self.pdos[n];
-        // (Bytes past the mapping are never read: `values` takes the mapped ones.)
+        // The whole frame (bytes past the mapping are never read: `values` takes the mapped
+        // ones).
         let mut buf = [0u8; 8];
-        for (b, d) in buf.iter_mut().zip(data) {
-            *b = *d;
-        }
+        let k = data.len().min(buf.len());
+        buf[..k].copy_from_slice(&data[..k]);
         if p.synchronous() {
             p.held = Some(buf);
             return None;
