@@ -890,3 +890,25 @@ fn an_rpdo_value_reaches_the_application_as_an_sdo_write_does() {
     );
     assert_eq!(node.read_object(0x2001, 0), Ok(0x1234));
 }
+
+/// A stored mapping that counts an empty entry (a state file; a write cannot set one) maps
+/// nothing there: the PDO is not valid, so neither sent nor received.
+#[test]
+fn a_stored_mapping_of_an_empty_entry_maps_nothing() {
+    use canpos_stack::storage::{ImageWriter, Storage, IMAGE_MAX};
+    let mut image = [0u8; IMAGE_MAX];
+    let mut w = ImageWriter::new(&mut image, MODEL.features.tag);
+    for (index, sub, v) in [(0x1600u32, 1u32, 0u32), (0x1A00, 1, 0)] {
+        assert!(w.push((index << 8) | sub, v));
+    }
+    let n = w.finish();
+    let mut ram = RamStorage::default();
+    ram.save(&image[..n]).unwrap();
+    let mut node: Node<Plain, RamStorage> = Node::new(&MODEL, MODEL.default_config, ram);
+    node.power_on(Instant::ZERO);
+    assert_eq!(node.read_object(0x1600, 0), Ok(1));
+    assert_eq!(node.read_object(0x1A00, 1), Ok(0));
+    let d = node.device();
+    assert!(!d.rpdos().get(0).unwrap().valid());
+    assert!(!d.tpdos().get(0).unwrap().valid());
+}
