@@ -311,6 +311,7 @@ mod tests {
     const FEATURES: Features = Features {
         tag: 0,
         tpdos: 0,
+        rpdos: 0,
         sdo_segmented: false,
         sdo_block: false,
         node_guarding: false,

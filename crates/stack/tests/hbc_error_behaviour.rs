@@ -90,6 +90,7 @@ fn model(consumers: &[u32], behaviour: Option<u8>, guarding: bool) -> &'static M
             features: Features {
                 tag: 0x51,
                 tpdos: 0,
+                rpdos: 0,
                 sdo_segmented: false,
                 sdo_block: false,
                 node_guarding: guarding,
