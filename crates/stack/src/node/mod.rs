@@ -364,8 +364,10 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// `index`/`sub`: an input it read, as an application's cycle writes its live values. The
     /// value must suit the entry (its type, size and range: [`Abort`] as an SDO write would
     /// get), but access does not count (a read-only input is the process's to change), and
-    /// only an object no service or application rule owns ([`Hook::None`]) may be written
-    /// so: [`Abort::UnsupportedAccess`] otherwise. A refused value changes nothing. A changed
+    /// only an object of the application area (0x2000 on) that no service or application rule
+    /// owns ([`Hook::None`]) may be written so: [`Abort::UnsupportedAccess`] otherwise (the
+    /// communication area's objects, 0x1001 among them, are the services'). A refused value
+    /// changes nothing. A changed
     /// value is a change-of-state event to the TPDOs that map it (the path of
     /// [`Node::update_sample`]). Returns whether the value changed; a node that is off takes
     /// nothing (`Ok(false)`).
@@ -382,7 +384,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         let Some(size) = e.ty.size() else {
             return Err(Abort::UnsupportedAccess);
         };
-        if e.hook != Hook::None {
+        if e.hook != Hook::None || e.index < 0x2000 {
             return Err(Abort::UnsupportedAccess);
         }
         // Bits beyond the type's bytes would be sent by no PDO and read by no SDO.
