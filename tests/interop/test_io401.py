@@ -70,6 +70,19 @@ class Received:
             return self.values[n - 1]
 
 
+def test_io401_eds_imports_in_python_canopen():
+    od = canopen.import_od(str(IO401), node_id=NODE)
+    assert od[0x1000].default == 0x000F0191
+    assert od[0x6000][1].data_type == canopen.objectdictionary.UNSIGNED8
+    assert od[0x6401][12].data_type == canopen.objectdictionary.INTEGER16
+    assert od[0x6411][1].data_type == canopen.objectdictionary.INTEGER16
+    assert od[0x1800][1].default == 0x180 + NODE
+    assert od[0x1403][1].default == 0x500 + NODE
+    assert od[0x1A03][1].default == 0x64010910
+    assert od[0x1603][4].default == 0x64110C10
+    assert od.device_information.nr_of_RXPDO == 4 and od.device_information.nr_of_TXPDO == 4
+
+
 def test_io401_default_pdo_mapping_and_identity(network, sensors):
     node, port = start_io401(network, sensors)
     sdo = node.sdo
