@@ -118,6 +118,7 @@ pub const fn model(entries: &'static [Entry], guarding: bool, block: bool) -> Mo
             features: Features {
                 tag: 0x50,
                 tpdos: 1,
+                rpdos: 0,
                 sdo_segmented: true,
                 sdo_block: block,
                 node_guarding: guarding,

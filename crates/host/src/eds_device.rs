@@ -8,8 +8,8 @@
 //! - `DefaultValue` (`$NODEID+…` becomes a node-id relative default), `LowLimit` / `HighLimit`;
 //! - with a DCF, `ParameterValue` is the value the device starts with, and
 //!   `[DeviceComissioning]` `NodeID` / `Baudrate` its node-id and bit rate;
-//! - `[DeviceInfo]`: `VendorName`, `ProductName`, `NrOfTXPDO` (checked against the objects),
-//!   `BaudRate_*`, `LSS_Supported`.
+//! - `[DeviceInfo]`: `VendorName`, `ProductName`, `NrOfTXPDO` / `NrOfRXPDO` (checked against
+//!   the objects), `BaudRate_*`, `LSS_Supported`.
 //!
 //! What the standard says, not the file (`STANDARD`, one table): which service owns the CiA
 //! 301 objects (their [`Hook`]) and which data type each must have. Storage groups follow
@@ -18,8 +18,9 @@
 //!
 //! What the core cannot serve is an error naming the file and line, as is anything malformed:
 //! DOMAIN and 64-bit / REAL / OCTET_STRING types, writable strings, more than
-//! [`MAX_ENTRIES`] entries or [`pdo::MAX_TPDOS`] TPDOs. RPDO objects (0x1400–0x17FF) are left
-//! out with a warning: the core has no RPDOs.
+//! [`MAX_ENTRIES`] entries or [`pdo::MAX_TPDOS`] TPDOs. RPDOs beyond [`rpdo::MAX_RPDOS`] are
+//! left out with a warning naming their line (the ones served stay usable: a master that
+//! configures only the first ones works).
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -29,9 +30,9 @@ use canpos_stack::model::{CommConfig, Features, Model, Table};
 use canpos_stack::od::{
     cia301, Access, DataType, DefaultValue, Entry, Group, Hook, Param, Range, MAX_ENTRIES,
 };
-use canpos_stack::pdo;
 use canpos_stack::storage::{crc32, IMAGE_MAX};
 use canpos_stack::Plain;
+use canpos_stack::{pdo, rpdo};
 
 use crate::ini::{Ini, Key, Section};
 
@@ -162,6 +163,7 @@ const fn row(lo: u16, hi: u16, s0: u8, s1: u8, ty: DataType) -> Std {
 const STANDARD: &[Std] = {
     use DataType::{Unsigned16 as U16, Unsigned32 as U32, Unsigned8 as U8};
     let t = pdo::MAX_TPDOS as u16 - 1;
+    let r = rpdo::MAX_RPDOS as u16 - 1;
     &[
         row(0x1000, 0x1000, 0, 0, U32),
         row(0x1001, 0x1001, 0, 0, U8),
@@ -180,11 +182,19 @@ const STANDARD: &[Std] = {
         row(0x1017, 0x1017, 0, 0, U16),
         row(0x1018, 0x1018, 0, 0, U8),
         row(0x1018, 0x1018, 1, 4, U32),
+        row(0x1400, 0x1400 + r, 0, 0, U8),
+        row(0x1400, 0x1400 + r, 1, 1, U32),
+        row(0x1400, 0x1400 + r, 2, 2, U8),
+        row(0x1400, 0x1400 + r, 3, 3, U16),
+        row(0x1400, 0x1400 + r, 5, 5, U16),
+        row(0x1600, 0x1600 + r, 0, 0, U8),
+        row(0x1600, 0x1600 + r, 1, pdo::MAX_MAP as u8, U32),
         row(0x1800, 0x1800 + t, 0, 0, U8),
         row(0x1800, 0x1800 + t, 1, 1, U32),
         row(0x1800, 0x1800 + t, 2, 2, U8),
         row(0x1800, 0x1800 + t, 3, 3, U16),
         row(0x1800, 0x1800 + t, 5, 5, U16),
+        row(0x1800, 0x1800 + t, 6, 6, U8),
         row(0x1A00, 0x1A00 + t, 0, 0, U8),
         row(0x1A00, 0x1A00 + t, 1, pdo::MAX_MAP as u8, U32),
     ]
@@ -269,6 +279,7 @@ impl Builder<'_> {
         let mut entries: Vec<Entry> = Vec::new();
         let mut value_lines: BTreeMap<u32, usize> = BTreeMap::new();
         let mut tpdo_objects = 0usize;
+        let mut rpdo_objects = 0usize;
         for (&index, sec) in &objects {
             if index < 0x1000 {
                 self.warnings.push(format!(
@@ -279,11 +290,19 @@ impl Builder<'_> {
                 continue;
             }
             if (0x1400..=0x17FF).contains(&index) {
-                self.warnings.push(format!(
-                    "[{}] (line {}): RPDO parameters left out (canpos-stack has no RPDOs)",
-                    sec.name, sec.line
-                ));
-                continue;
+                let n = usize::from(index & 0x1FF);
+                if n >= rpdo::MAX_RPDOS {
+                    self.warnings.push(format!(
+                        "[{}] (line {}): RPDO {} left out: canpos-stack serves at most {} RPDOs",
+                        sec.name,
+                        sec.line,
+                        n + 1,
+                        rpdo::MAX_RPDOS
+                    ));
+                    continue;
+                }
+                self.check_pdo_pair(&objects, sec, index, "RPDO")?;
+                rpdo_objects = rpdo_objects.max(n + 1);
             }
             if (0x1800..=0x19FF).contains(&index) || (0x1A00..=0x1BFF).contains(&index) {
                 let n = usize::from(index & 0x1FF);
@@ -298,21 +317,7 @@ impl Builder<'_> {
                         ),
                     ));
                 }
-                let other = if index < 0x1A00 {
-                    index + 0x200
-                } else {
-                    index - 0x200
-                };
-                if !objects.contains_key(&other) {
-                    return Err(self.err(
-                        sec.line,
-                        format!(
-                            "[{}]: TPDO {} has no [{other:04X}] section",
-                            sec.name,
-                            n + 1
-                        ),
-                    ));
-                }
+                self.check_pdo_pair(&objects, sec, index, "TPDO")?;
                 tpdo_objects = tpdo_objects.max(n + 1);
             }
             if let Some(k) = sec.key("CompactSubObj") {
@@ -427,25 +432,27 @@ impl Builder<'_> {
         }
         self.check_mappings(&entries, &value_lines)?;
 
-        if let Some(k) = info.key("NrOfTXPDO") {
-            if self.num(k)? != tpdo_objects as i64 {
-                self.warnings.push(format!(
-                    "line {}: NrOfTXPDO={} but the file has {tpdo_objects} TPDO(s); the objects \
-                     are served",
-                    k.line, k.value
-                ));
+        for (key, have, what) in [
+            ("NrOfTXPDO", tpdo_objects, "TPDO"),
+            ("NrOfRXPDO", rpdo_objects, "RPDO"),
+        ] {
+            if let Some(k) = info.key(key) {
+                if self.num(k)? != have as i64 {
+                    self.warnings.push(format!(
+                        "line {}: {key}={} but the file has {have} {what}(s); the objects \
+                         are served",
+                        k.line, k.value
+                    ));
+                }
             }
         }
-        for d in 1..=7 {
-            if ini
-                .get("DummyUsage", &format!("Dummy{d:04X}"))
-                .and_then(parse_int)
-                == Some(1)
-            {
-                self.warnings.push(format!(
-                    "Dummy{d:04X}=1: dummy mapping is not supported; not mappable"
-                ));
-            }
+        // Dummy entries of the integer types (0x0002–0x0007) map into RPDOs; a BOOLEAN one is
+        // a single bit, and PDOs are mapped in whole bytes.
+        if ini.get("DummyUsage", "Dummy0001").and_then(parse_int) == Some(1) {
+            self.warnings.push(
+                "Dummy0001=1: a 1-bit dummy is not supported (PDOs map whole bytes); not mappable"
+                    .into(),
+            );
         }
 
         let bitrates: Vec<u16> = [10u16, 20, 50, 125, 250, 500, 800, 1000]
@@ -541,6 +548,7 @@ impl Builder<'_> {
         let features = Features {
             tag,
             tpdos: tpdo_objects as u8,
+            rpdos: rpdo_objects as u8,
             sdo_segmented: true,
             sdo_block: true,
             node_guarding: objects.contains_key(&0x100C) && objects.contains_key(&0x100D),
@@ -635,15 +643,17 @@ impl Builder<'_> {
                 ));
             }
         }
-        if (0x1A00..=0x1BFF).contains(&index) && std.is_none() {
-            return Err(self.err(
-                sec.line,
-                format!(
-                    "[{}]: canpos-stack maps at most {} objects per TPDO",
-                    sec.name,
-                    pdo::MAX_MAP
-                ),
-            ));
+        for (maps, what) in [(0x1A00..=0x1BFF, "TPDO"), (0x1600..=0x17FF, "RPDO")] {
+            if maps.contains(&index) && std.is_none() {
+                return Err(self.err(
+                    sec.line,
+                    format!(
+                        "[{}]: canpos-stack maps at most {} objects per {what}",
+                        sec.name,
+                        pdo::MAX_MAP
+                    ),
+                ));
+            }
         }
         let hook = cia301::hook_of(index, sub);
 

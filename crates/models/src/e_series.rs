@@ -207,6 +207,7 @@ pub static E_SERIES: Model = Model {
         features: Features {
             tag: 2,
             tpdos: 4,
+            rpdos: 0,
             sdo_segmented: true,
             sdo_block: true,
             node_guarding: true,

@@ -220,6 +220,7 @@ pub static TH: Model = Model {
         features: Features {
             tag: 1,
             tpdos: 4,
+            rpdos: 0,
             sdo_segmented: true,
             sdo_block: true,
             node_guarding: true,

@@ -286,6 +286,7 @@ const SWITCHES: Switches = Switches {
 const FEATURES: Features = Features {
     tag: 3,
     tpdos: 2,
+    rpdos: 0,
     sdo_segmented: false,
     sdo_block: false,
     node_guarding: false,

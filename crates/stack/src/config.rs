@@ -133,6 +133,27 @@ pub const EMCY_ACTIVE_LEN: usize = 8;
 pub const EMCY_PENDING_LEN: usize = 8;
 const _: () = assert!(HISTORY_LEN.is_power_of_two() && EMCY_PENDING_LEN.is_power_of_two());
 
+// --- RPDOs (issue 33) ----------------------------------------------------------------------
+
+/// Most RPDOs a device has (0x1400… / 0x1600…): each costs its state in RAM (96 B on a
+/// 64-bit host), in every node, sensors included. On a host (`host-buffers`) 4, as
+/// [`MAX_TPDOS`]: CiA 301's pre-defined connection set and CiA 401's default mapping have four
+/// of each, and a sensor node's state stays within its 4 KiB (eight would take it to 4.1 KiB).
+/// The EDS device leaves RPDOs beyond them out with a warning naming the file and line.
+/// Without it (firmware) `CANPOS_MAX_RPDOS`, else 4; 0 leaves the RPDO service out of the
+/// build (a device without RPDOs, as the TH firmware: `firmware/.cargo/config.toml`).
+pub const MAX_RPDOS: usize = if HOST_BUFFERS {
+    4
+} else {
+    env_or(option_env!("CANPOS_MAX_RPDOS"), 4)
+};
+const _: () = assert!(MAX_RPDOS <= 512, "CiA 301 has 512 RPDOs");
+
+/// The SYNC start value of synchronous TPDOs (0x1800:6, CiA 301), where a table declares it:
+/// always on a host; a firmware whose table declares it sets `CANPOS_SYNC_START=1` (the TH's
+/// does not: without it the 120 B of its code are left out, docs/FIRMWARE.md).
+pub const SYNC_START: bool = HOST_BUFFERS || env_or(option_env!("CANPOS_SYNC_START"), 0) != 0;
+
 /// `v` (a decimal number set at build time) or `default` when it is not set; a value that is
 /// not a number stops the build.
 const fn env_or(v: Option<&str>, default: usize) -> usize {

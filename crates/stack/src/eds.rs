@@ -5,7 +5,9 @@
 //! §13):
 //!
 //! * TPDO-mappable objects are `ro` (never plain `rw`), and live values carry no
-//!   `DefaultValue` (a conformance tool compares defaults with what it reads).
+//!   `DefaultValue` (a conformance tool compares defaults with what it reads). On a device
+//!   with RPDOs a writable mappable object is `rww` (CiA 306: written by the process output,
+//!   an RPDO), never plain `rw` either.
 //! * Defaults that follow the node-id are written `$NODEID+0x180` style; other unit-dependent
 //!   defaults (product code, serial, measuring steps, limits) are resolved for the given unit.
 //! * Objects with sub-indices are ARRAY (0x8) when all subs after sub 0 share one type,
@@ -167,7 +169,7 @@ fn write_file<C: UnitConfig, X>(
     writeln!(w, "Granularity=8")?;
     writeln!(w, "DynamicChannelsSupported=0")?;
     writeln!(w, "GroupMessaging=0")?;
-    writeln!(w, "NrOfRXPDO=0")?;
+    writeln!(w, "NrOfRXPDO={}", f.rpdos)?;
     writeln!(w, "NrOfTXPDO={}", f.tpdos)?;
     writeln!(w, "LSS_Supported=1")?;
     writeln!(w)?;
@@ -249,7 +251,7 @@ fn write_object<C: UnitConfig, X>(
         return write_var(w, first, first.name, unit, cfg, values);
     }
     let index = first.index;
-    let record = matches!(index, 0x1018 | 0x1800..=0x1BFF)
+    let record = matches!(index, 0x1018 | 0x1400..=0x17FF | 0x1800..=0x1BFF)
         || obj
             .iter()
             .filter(|e| e.sub > 0)
@@ -282,9 +284,14 @@ fn write_var<C: UnitConfig, X>(
     writeln!(w, "ParameterName={name}")?;
     writeln!(w, "ObjectType=0x7")?;
     writeln!(w, "DataType=0x{:04X}", e.ty.code())?;
-    // Mappable values are produced by the device: ro, never rw (CONFORMANCE EDS-01).
+    // Mappable values are produced by the device: ro, never rw (CONFORMANCE EDS-01); on a
+    // device with RPDOs a writable one is what they write: rww.
     let access = if e.pdo && e.access.writable() {
-        "ro"
+        if unit.model.features.rpdos > 0 {
+            "rww"
+        } else {
+            "ro"
+        }
     } else {
         e.access.eds()
     };

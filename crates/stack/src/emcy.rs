@@ -52,6 +52,10 @@ pub mod code {
     pub const PDO_LENGTH: u16 = 0x8210;
     /// Unexpected SYNC data length (CiA 301).
     pub const SYNC_LENGTH: u16 = 0x8240;
+    /// PDO length exceeded (an RPDO longer than its mapping).
+    pub const PDO_LENGTH_EXCEEDED: u16 = 0x8220;
+    /// RPDO timeout (its deadline monitoring, the event timer 0x1400:5, expired).
+    pub const RPDO_TIMEOUT: u16 = 0x8250;
 }
 
 pub use crate::config::HISTORY_LEN;

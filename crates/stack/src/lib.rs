@@ -20,6 +20,7 @@
 //! | [`nmt`] | CiA 301 | NMT slave states and commands |
 //! | [`sdo`] | CiA 301 | SDO server |
 //! | [`pdo`] | CiA 301 | TPDOs and SYNC consumer |
+//! | [`rpdo`] | CiA 301 | RPDOs |
 //! | [`emcy`] | CiA 301 | EMCY producer, error register, error history |
 //! | [`errctl`] | CiA 301 | boot-up, heartbeat, node guarding |
 //! | [`storage`] | CiA 301 | store / restore scopes, image format |
@@ -44,6 +45,7 @@ pub mod nmt;
 mod node;
 pub mod od;
 pub mod pdo;
+pub mod rpdo;
 pub mod sdo;
 pub mod storage;
 mod timers;

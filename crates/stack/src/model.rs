@@ -53,6 +53,8 @@ pub struct Features {
     pub tag: u8,
     /// Number of TPDOs (0x1800… / 0x1A00…).
     pub tpdos: u8,
+    /// Number of RPDOs (0x1400… / 0x1600…), at most [`crate::config::MAX_RPDOS`].
+    pub rpdos: u8,
     /// SDO segmented transfer supported (TMI: no → abort 0x05040001).
     pub sdo_segmented: bool,
     /// SDO block transfer supported.

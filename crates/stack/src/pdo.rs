@@ -20,18 +20,55 @@ pub use crate::wire::cob::{restricted_id, COB_ID_HIGH_BITS};
 
 /// No deadline (timers are µs instants; `u64::MAX` is never reached).
 const NEVER: u64 = u64::MAX;
+/// `Tpdo::sync_count` while a TPDO waits for the SYNC of its start value (counts stay ≤ 240).
+const SYNC_WAIT: u8 = u8::MAX;
 /// `Tpdos::single` when zero or several TPDOs have timers.
 const NO_SINGLE: u8 = u8::MAX;
 const _: () = assert!(crate::od::MAX_ENTRIES <= 256);
 
 #[derive(Clone, Copy, Debug, Default)]
-struct Mapped {
+pub(crate) struct Mapped {
     /// Dictionary slot (every slot fits a `u8`: `MAX_ENTRIES` ≤ 256).
-    slot: u8,
+    pub(crate) slot: u8,
     /// Bit position of the entry in the frame's data read as a little-endian u64.
-    shift: u8,
-    /// The entry's bytes of the value (`bytes` of them, at most 4).
-    mask: u32,
+    pub(crate) shift: u8,
+    /// The entry's bytes of the value (`bytes` of them, at most 4); 0 for an RPDO's dummy
+    /// entry, whose bytes are skipped.
+    pub(crate) mask: u32,
+}
+
+/// The side of a PDO: the few parameter rules in which TPDOs and RPDOs differ (their indices,
+/// which objects they may map, dummy entries). Everything else is one code for both, with
+/// the side as a `const RX: bool` parameter: a firmware without RPDOs links the TPDO copy only,
+/// with no RPDO branch in it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Dir {
+    /// A TPDO (0x1800… / 0x1A00…): maps readable objects.
+    Tx,
+    /// An RPDO (0x1400… / 0x1600…): maps writable objects and dummy entries.
+    Rx,
+}
+
+impl Dir {
+    /// The side a `const RX: bool` names.
+    pub(crate) const fn of(rx: bool) -> Dir {
+        if rx {
+            Dir::Rx
+        } else {
+            Dir::Tx
+        }
+    }
+    /// The communication parameter record of PDO 0 of this side.
+    pub(crate) const fn comm_base(self) -> u16 {
+        match self {
+            Dir::Tx => 0x1800,
+            Dir::Rx => 0x1400,
+        }
+    }
+    /// The mapping record of PDO 0 of this side.
+    pub(crate) const fn map_base(self) -> u16 {
+        self.comm_base() + 0x200
+    }
 }
 
 /// One TPDO's cached configuration and timers.
@@ -53,6 +90,10 @@ pub struct Tpdo {
     inhibit_until: Instant,
     pending: bool,
     sync_count: u8,
+    /// SYNC start value (0x1800:6, 0 where the table has none): a cyclic synchronous TPDO
+    /// starts counting at the SYNC whose counter equals it. While it waits for that SYNC
+    /// (from every restart of the count), `sync_count` is [`SYNC_WAIT`].
+    sync_start: u8,
     changed: bool,
     /// Event timer periods that passed without a transmission because the host was late.
     pub missed: u32,
@@ -73,6 +114,7 @@ impl core::default::Default for Tpdo {
             inhibit_until: Instant::ZERO,
             pending: false,
             sync_count: 0,
+            sync_start: 0,
             changed: false,
             missed: 0,
         }
@@ -98,6 +140,16 @@ impl Tpdo {
     #[inline(always)]
     fn inhibit(&self) -> Duration {
         Duration::from_micros(u64::from(self.inhibit_us))
+    }
+
+    /// The SYNC count a (re)start begins with: [`SYNC_WAIT`] with a start value, else 0.
+    #[inline(always)]
+    fn first_count(&self) -> u8 {
+        if config::SYNC_START && self.sync_start != 0 {
+            SYNC_WAIT
+        } else {
+            0
+        }
     }
 
     /// The timers of an asynchronous TPDO at `now`: the event timer on its absolute
@@ -289,35 +341,15 @@ impl Tpdos {
         // read as such: the products stay in 32 bits.
         p.inhibit_us = u32::from(od.value(ci, 3).unwrap_or(0) as u16) * 100;
         p.event_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
-        let mi = map_index(n);
-        let count = od.value(mi, 0).unwrap_or(0) as usize;
-        let (mut n_map, mut len) = (0u8, 0u8);
-        // Entries from sub 1 on, at most `MAX_MAP`; the first that cannot be mapped ends them.
-        for m in p.map.iter_mut().take(count) {
-            let Some(raw) = od.value(mi, n_map + 1) else {
-                break;
-            };
-            let Ok(slot) = od.find((raw >> 16) as u16, (raw >> 8) as u8) else {
-                break;
-            };
-            let bytes = ((raw & 0xFF) / 8) as u8;
-            if len + bytes > 8 {
-                break;
-            }
-            // Precomputed so that building a TPDO is one mask and one shift per entry.
-            *m = Mapped {
-                slot: slot as u8,
-                shift: 8 * len,
-                mask: byte_mask(bytes),
-            };
-            n_map += 1;
-            len += bytes;
+        if config::SYNC_START {
+            p.sync_start = od.value(ci, 6).unwrap_or(0) as u8;
         }
+        let (n_map, len) = read_mapping::<false>(od, map_index(n), &mut p.map);
         p.n_map = n_map;
         p.len = len;
         p.next_event = NEVER;
         p.pending = false;
-        p.sync_count = 0;
+        p.sync_count = p.first_count();
         self.refresh();
     }
 
@@ -325,30 +357,7 @@ impl Tpdos {
     /// whatever the PDO holds now: what an SDO write must pass and what a state file may load.
     /// Independent of the PDO count configured (a state file is loaded before it is).
     pub fn check_value(od: &Dictionary, index: u16, sub: u8, raw: u32) -> Result<(), Abort> {
-        if index < map_index(0) {
-            match sub {
-                // 29-bit CAN-IDs are not supported; a valid PDO may not use a restricted one.
-                1 if raw & (COB_EXTENDED | COB_ID_HIGH_BITS) != 0
-                    || (raw & COB_INVALID == 0 && restricted_id(raw & 0x7FF)) =>
-                {
-                    return Err(Abort::InvalidValue)
-                }
-                // D10: 241–253 are reserved.
-                2 if (241..254).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
-                _ => {}
-            }
-            return Ok(());
-        }
-        if sub == 0 {
-            // A mapping record's entries are subs 1…N without a gap (every model's are, tested):
-            // `raw` counts no more of them than there are when sub `raw` exists.
-            if raw > 0xFF || od.find(index, raw as u8).is_err() {
-                return Err(Abort::MappingLength);
-            }
-        } else if raw != 0 {
-            check_mappable(od, raw)?;
-        }
-        Ok(())
+        check_param::<false>(od, index, sub, raw)
     }
 
     /// Validates an SDO write to a TPDO parameter (`index` in 0x1800.. or 0x1A00..) before it
@@ -361,58 +370,11 @@ impl Tpdos {
         raw: u32,
         event_gt_inhibit: bool,
     ) -> Result<(), Abort> {
-        let n = self.count as u16;
-        let comm = (comm_index(0)..comm_index(0) + n).contains(&index);
-        if !comm && !(map_index(0)..map_index(0) + n).contains(&index) {
-            return Ok(());
-        }
-        // The manuals' procedure: set sub 0 to zero before changing entries (checked first).
-        if !comm && sub != 0 && od.value(index, 0).unwrap_or(0) != 0 {
-            return Err(Abort::UnsupportedAccess);
-        }
-        Self::check_value(od, index, sub, raw)?;
-        if comm {
-            match sub {
-                1 => {
-                    let cur = od.value(index, 1).unwrap_or(COB_INVALID);
-                    let valid_now = cur & COB_INVALID == 0;
-                    let valid_new = raw & COB_INVALID == 0;
-                    // Changing the CAN-ID of a valid PDO is refused; toggling bits 31 / 30 is not.
-                    if valid_now && valid_new && (cur & 0x7FF) != (raw & 0x7FF) {
-                        return Err(Abort::InvalidValue);
-                    }
-                }
-                3 | 5 if event_gt_inhibit => {
-                    // `Features::event_timer_above_inhibit`: the event timer must stay above the
-                    // inhibit time (0 excepted).
-                    let (inh, ev) = if sub == 3 {
-                        (raw, od.value(index, 5).unwrap_or(0))
-                    } else {
-                        (od.value(index, 3).unwrap_or(0), raw)
-                    };
-                    if ev != 0 && (ev as u64) * 10 <= inh as u64 {
-                        return Err(Abort::InvalidValue);
-                    }
-                }
-                _ => {}
-            }
-        } else if sub == 0 {
-            let mut bits = 0u32;
-            // `check_value` kept `raw` to the entries there are: no overflow.
-            for k in 1..raw + 1 {
-                let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
-                if e == 0 {
-                    // An empty entry cannot be counted in.
-                    return Err(Abort::NotMappable);
-                }
-                check_mappable(od, e)?;
-                bits += e & 0xFF;
-            }
-            if bits > 64 {
-                return Err(Abort::MappingLength);
-            }
-        }
-        Ok(())
+        let rules = Rules {
+            count: self.count,
+            event_gt_inhibit,
+        };
+        validate_param::<false>(rules, od, index, sub, raw)
     }
 
     /// Starts or stops production (entering / leaving Operational, life guarding).
@@ -438,7 +400,7 @@ impl Tpdos {
                 NEVER
             };
             p.pending = false;
-            p.sync_count = 0;
+            p.sync_count = p.first_count();
             p.changed = true;
         }
     }
@@ -468,8 +430,17 @@ impl Tpdos {
         self.refresh_due();
     }
 
-    /// A SYNC arrived: produces synchronous TPDOs into `out`.
-    pub(crate) fn on_sync(&mut self, od: &Dictionary, now: Instant, out: &mut TxQueue) {
+    /// A SYNC arrived, with its counter when it carries one: produces synchronous TPDOs into
+    /// `out`. A cyclic TPDO with a SYNC start value counts from the SYNC whose counter equals
+    /// it (CiA 301 0x1800:6); a SYNC without a counter starts it at once (no counter to wait
+    /// for: the producer's 0x1019 is 0).
+    pub(crate) fn on_sync(
+        &mut self,
+        od: &Dictionary,
+        now: Instant,
+        counter: Option<u8>,
+        out: &mut TxQueue,
+    ) {
         if !self.active {
             return;
         }
@@ -482,6 +453,13 @@ impl Tpdos {
             let send = if p.ttype == 0 {
                 core::mem::take(&mut p.changed)
             } else {
+                if config::SYNC_START && p.sync_count == SYNC_WAIT {
+                    if counter.is_some_and(|c| c != p.sync_start) {
+                        continue;
+                    }
+                    // This SYNC is the first one counted.
+                    p.sync_count = 0;
+                }
                 p.sync_count += 1;
                 if p.sync_count >= p.ttype {
                     p.sync_count = 0;
@@ -596,13 +574,190 @@ impl Tpdos {
     }
 }
 
-fn check_mappable(od: &Dictionary, raw: u32) -> Result<(), Abort> {
-    let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
-    let e = od.entry(slot);
+/// What [`validate_param`] needs to know of the PDOs of one side.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Rules {
+    /// PDOs of this side the device has.
+    pub(crate) count: usize,
+    /// `Features::event_timer_above_inhibit` (TPDOs only).
+    pub(crate) event_gt_inhibit: bool,
+}
+
+/// The rule of one PDO parameter value on its own (`index` in the communication or mapping
+/// records of the side `RX` names), whatever the PDO holds now: what an SDO write must pass and what a state
+/// file may load.
+pub(crate) fn check_param<const RX: bool>(
+    od: &Dictionary,
+    index: u16,
+    sub: u8,
+    raw: u32,
+) -> Result<(), Abort> {
+    if index < Dir::of(RX).map_base() {
+        match sub {
+            // 29-bit CAN-IDs are not supported; a valid PDO may not use a restricted one.
+            1 if raw & (COB_EXTENDED | COB_ID_HIGH_BITS) != 0
+                || (raw & COB_INVALID == 0 && restricted_id(raw & 0x7FF)) =>
+            {
+                return Err(Abort::InvalidValue)
+            }
+            // D10: 241–253 are reserved.
+            2 if (241..254).contains(&(raw as u8)) => return Err(Abort::InvalidValue),
+            // SYNC start value: 0 (none) or a SYNC counter value 1…240.
+            6 if config::SYNC_START && raw > 240 => return Err(Abort::InvalidValue),
+            _ => {}
+        }
+        return Ok(());
+    }
+    if sub == 0 {
+        // A mapping record's entries are subs 1…N without a gap (every model's are, tested):
+        // `raw` counts no more of them than there are when sub `raw` exists.
+        if raw > 0xFF || od.find(index, raw as u8).is_err() {
+            return Err(Abort::MappingLength);
+        }
+    } else if raw != 0 {
+        check_mappable::<RX>(od, raw)?;
+    }
+    Ok(())
+}
+
+/// Validates an SDO write to a PDO parameter before it lands: [`check_param`] and the rules
+/// that relate it to what the PDO holds now.
+pub(crate) fn validate_param<const RX: bool>(
+    r: Rules,
+    od: &Dictionary,
+    index: u16,
+    sub: u8,
+    raw: u32,
+) -> Result<(), Abort> {
+    let (comm_base, map_base) = (Dir::of(RX).comm_base(), Dir::of(RX).map_base());
+    let n = r.count as u16;
+    let comm = (comm_base..comm_base + n).contains(&index);
+    if !comm && !(map_base..map_base + n).contains(&index) {
+        return Ok(());
+    }
+    // The manuals' procedure: set sub 0 to zero before changing entries (checked first).
+    if !comm && sub != 0 && od.value(index, 0).unwrap_or(0) != 0 {
+        return Err(Abort::UnsupportedAccess);
+    }
+    check_param::<RX>(od, index, sub, raw)?;
+    if comm {
+        match sub {
+            1 => {
+                let cur = od.value(index, 1).unwrap_or(COB_INVALID);
+                let valid_now = cur & COB_INVALID == 0;
+                let valid_new = raw & COB_INVALID == 0;
+                // Changing the CAN-ID of a valid PDO is refused; toggling bits 31 / 30 is not.
+                if valid_now && valid_new && (cur & 0x7FF) != (raw & 0x7FF) {
+                    return Err(Abort::InvalidValue);
+                }
+            }
+            3 | 5 if r.event_gt_inhibit => {
+                // `Features::event_timer_above_inhibit`: the event timer must stay above the
+                // inhibit time (0 excepted).
+                let (inh, ev) = if sub == 3 {
+                    (raw, od.value(index, 5).unwrap_or(0))
+                } else {
+                    (od.value(index, 3).unwrap_or(0), raw)
+                };
+                if ev != 0 && (ev as u64) * 10 <= inh as u64 {
+                    return Err(Abort::InvalidValue);
+                }
+            }
+            _ => {}
+        }
+    } else if sub == 0 {
+        let mut bits = 0u32;
+        // `check_param` kept `raw` to the entries there are: no overflow.
+        for k in 1..raw + 1 {
+            let e = od.value(index, k as u8).ok_or(Abort::MappingLength)?;
+            if e == 0 {
+                // An empty entry cannot be counted in.
+                return Err(Abort::NotMappable);
+            }
+            check_mappable::<RX>(od, e)?;
+            bits += e & 0xFF;
+        }
+        if bits > 64 {
+            return Err(Abort::MappingLength);
+        }
+    }
+    Ok(())
+}
+
+/// The mapping record `mi` as `map` entries, from sub 1 on, at most `MAX_MAP`: the number of
+/// entries and the PDO's length in bytes. The first entry that cannot be mapped ends them (the
+/// write rules keep a record from holding one).
+pub(crate) fn read_mapping<const RX: bool>(
+    od: &Dictionary,
+    mi: u16,
+    map: &mut [Mapped; MAX_MAP],
+) -> (u8, u8) {
+    let count = od.value(mi, 0).unwrap_or(0) as usize;
+    let (mut n_map, mut len) = (0u8, 0u8);
+    for m in map.iter_mut().take(count) {
+        let Some(raw) = od.value(mi, n_map + 1) else {
+            break;
+        };
+        // A dummy entry (RPDOs only) has no slot, and a mask of 0: its bytes are skipped.
+        let dummy = RX && dummy_bits(raw).is_some();
+        let slot = match od.find((raw >> 16) as u16, (raw >> 8) as u8) {
+            Ok(slot) => slot,
+            Err(_) if dummy => 0,
+            Err(_) => break,
+        };
+        let bytes = ((raw & 0xFF) / 8) as u8;
+        if len + bytes > 8 {
+            break;
+        }
+        // Precomputed so that building a TPDO is one mask and one shift per entry.
+        *m = Mapped {
+            slot: slot as u8,
+            shift: 8 * len,
+            mask: if dummy { 0 } else { byte_mask(bytes) },
+        };
+        n_map += 1;
+        len += bytes;
+    }
+    (n_map, len)
+}
+
+/// The bits of the data type a dummy mapping entry names (index 0x0002–0x0007, sub 0: the
+/// CiA 301 integer types), `None` for any other entry.
+fn dummy_bits(raw: u32) -> Option<u8> {
+    // Index and sub-index (`raw >> 8`): the type's index, sub 0.
+    let bits = match raw >> 8 {
+        0x200 | 0x500 => 8,
+        0x300 | 0x600 => 16,
+        0x400 | 0x700 => 32,
+        _ => return None,
+    };
+    Some(bits)
+}
+
+/// Whether mapping entry `raw` may be mapped into a PDO of the side `RX` names: an object that may be
+/// mapped, readable for a TPDO and writable for an RPDO, of at most its type's bits in whole
+/// bytes; for an RPDO also a dummy entry of exactly its type's bits.
+fn check_mappable<const RX: bool>(od: &Dictionary, raw: u32) -> Result<(), Abort> {
     // Compared as the u8s they are (a byte table of the types' sizes, not a word table).
     let bits = raw as u8;
-    if !e.pdo || !e.access.readable() || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits()
-    {
+    if RX {
+        if let Some(b) = dummy_bits(raw) {
+            return if bits == b {
+                Ok(())
+            } else {
+                Err(Abort::NotMappable)
+            };
+        }
+    }
+    let slot = od.find((raw >> 16) as u16, (raw >> 8) as u8)?;
+    let e = od.entry(slot);
+    // A TPDO reads its objects, an RPDO writes them.
+    let allowed = if RX {
+        e.access.writable()
+    } else {
+        e.access.readable()
+    };
+    if !e.pdo || !allowed || bits == 0 || !bits.is_multiple_of(8) || bits > e.ty.bits() {
         return Err(Abort::NotMappable);
     }
     Ok(())
@@ -625,7 +780,7 @@ fn assemble_shifted<'a>(
 /// The low `bytes` bytes of a u32 (0 for none, all of them from 4 on): a checked shift
 /// instead of a branch around the shift by 32.
 #[inline(always)]
-fn byte_mask(bytes: u8) -> u32 {
+pub(crate) fn byte_mask(bytes: u8) -> u32 {
     1u32.checked_shl(8 * u32::from(bytes))
         .map_or(u32::MAX, |v| v - 1)
 }

@@ -20,9 +20,16 @@ pub(crate) enum Timer {
     ErrorControl,
     /// An EMCY held back by its inhibit time.
     Emcy,
+    /// An RPDO's deadline monitoring (its event timer).
+    Rpdo,
 }
 
-const COUNT: usize = Timer::Emcy as usize + 1;
+// A build without RPDOs has no entry for them (never set nor read there).
+const COUNT: usize = if crate::config::MAX_RPDOS > 0 {
+    Timer::Rpdo as usize + 1
+} else {
+    Timer::Rpdo as usize
+};
 
 /// No deadline.
 pub(crate) const NEVER: u64 = u64::MAX;

@@ -1,5 +1,5 @@
 //! The builder's whole-file checks: the object lists of `[MandatoryObjects]` … agree with the
-//! sections, and every TPDO's default mapping names objects that exist and fit.
+//! sections, and every PDO's default mapping names objects that exist and fit.
 
 use super::*;
 
@@ -96,87 +96,151 @@ impl Builder<'_> {
         Ok(())
     }
 
-    /// The default mapping of every TPDO names objects that exist, may be mapped, and fit.
+    /// A PDO's communication parameters (`index` 0x1400… / 0x1800…) come with its mapping
+    /// (0x1600… / 0x1A00…) and the other way round.
+    pub(super) fn check_pdo_pair(
+        &self,
+        objects: &BTreeMap<u16, &Section>,
+        sec: &Section,
+        index: u16,
+        what: &str,
+    ) -> Result<(), EdsError> {
+        // The mapping record is 0x200 above its communication record, on both sides.
+        let other = if index & 0x200 == 0 {
+            index + 0x200
+        } else {
+            index - 0x200
+        };
+        if objects.contains_key(&other) {
+            return Ok(());
+        }
+        Err(self.err(
+            sec.line,
+            format!(
+                "[{}]: {what} {} has no [{other:04X}] section",
+                sec.name,
+                (index & 0x1FF) + 1
+            ),
+        ))
+    }
+
+    /// The default mapping of every PDO names objects that exist, may be mapped (and, for an
+    /// RPDO, written; or is a dummy entry of an integer type), and fit.
     pub(super) fn check_mappings(
         &self,
         entries: &[Entry],
         value_lines: &BTreeMap<u32, usize>,
     ) -> Result<(), EdsError> {
+        let tpdos = (0..pdo::MAX_TPDOS as u16).map(|n| (0x1A00 + n, false));
+        let rpdos = (0..rpdo::MAX_RPDOS as u16).map(|n| (0x1600 + n, true));
+        for (mi, rx) in tpdos.chain(rpdos) {
+            self.check_mapping(entries, value_lines, mi, rx)?;
+        }
+        Ok(())
+    }
+
+    /// [`Builder::check_mappings`] of the mapping record `mi`, of an RPDO when `rx`.
+    fn check_mapping(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+        mi: u16,
+        rx: bool,
+    ) -> Result<(), EdsError> {
         let find = |i: u16, s: u8| entries.iter().find(|e| e.index == i && e.sub == s);
         // The line of the entry's value (or of its section).
         let line = |e: &Entry| value_lines.get(&e.key()).copied().unwrap_or(0);
-        for n in 0..pdo::MAX_TPDOS as u16 {
-            let Some(e0) = find(0x1A00 + n, 0) else {
-                continue;
-            };
-            let DefaultValue::Const(count) = e0.default else {
-                return Err(self.err(line(e0), "a mapping count must be a number"));
-            };
-            let have = (1..=pdo::MAX_MAP as u8)
-                .take_while(|&k| find(0x1A00 + n, k).is_some())
-                .count() as u32;
-            if count > have {
+        let Some(e0) = find(mi, 0) else {
+            return Ok(());
+        };
+        let DefaultValue::Const(count) = e0.default else {
+            return Err(self.err(line(e0), "a mapping count must be a number"));
+        };
+        let have = (1..=pdo::MAX_MAP as u8)
+            .take_while(|&k| find(mi, k).is_some())
+            .count() as u32;
+        if count > have {
+            return Err(self.err(
+                line(e0),
+                format!(
+                    "0x{mi:04X} maps {count} objects but has no sub {}",
+                    have + 1
+                ),
+            ));
+        }
+        let mut bits = 0u32;
+        for k in 1..=count {
+            let Some(m) = u8::try_from(k).ok().and_then(|k| find(mi, k)) else {
                 return Err(self.err(
                     line(e0),
-                    format!(
-                        "0x{:04X} maps {count} objects but has no sub {}",
-                        0x1A00 + n,
-                        have + 1
-                    ),
+                    format!("0x{mi:04X} maps {count} objects but has no sub {k}"),
                 ));
-            }
-            let mut bits = 0u32;
-            for k in 1..=count {
-                let Some(m) = u8::try_from(k).ok().and_then(|k| find(0x1A00 + n, k)) else {
-                    return Err(self.err(
-                        line(e0),
-                        format!(
-                            "0x{:04X} maps {count} objects but has no sub {k}",
-                            0x1A00 + n
-                        ),
-                    ));
-                };
-                let DefaultValue::Const(v) = m.default else {
-                    return Err(self.err(line(m), "a mapping entry must be a number"));
-                };
-                let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);
-                let at = line(m);
-                let Some(t) = find(ti, ts) else {
+            };
+            let DefaultValue::Const(v) = m.default else {
+                return Err(self.err(line(m), "a mapping entry must be a number"));
+            };
+            let (ti, ts, tb) = ((v >> 16) as u16, (v >> 8) as u8, v & 0xFF);
+            let at = line(m);
+            // A dummy entry (RPDOs): the integer types' indices, sub 0, their own length.
+            let dummy = match (ti, ts) {
+                (2 | 5, 0) => Some(8),
+                (3 | 6, 0) => Some(16),
+                (4 | 7, 0) => Some(32),
+                _ => None,
+            };
+            if let (true, Some(b)) = (rx, dummy) {
+                if tb != b {
                     return Err(self.err(
                         at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which does not exist",
-                            0x1A00 + n
-                        ),
-                    ));
-                };
-                if !t.pdo {
-                    return Err(self.err(
-                        at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts}, which has no PDOMapping=1",
-                            0x1A00 + n
-                        ),
-                    ));
-                }
-                if tb != u32::from(t.ty.bits()) {
-                    return Err(self.err(
-                        at,
-                        format!(
-                            "0x{:04X} sub {k} maps 0x{ti:04X} sub {ts} with {tb} bits; it has {}",
-                            0x1A00 + n,
-                            t.ty.bits()
-                        ),
+                        format!("0x{mi:04X} sub {k}: a dummy of 0x{ti:04X} has {b} bits, not {tb}"),
                     ));
                 }
                 bits += tb;
+                continue;
             }
-            if bits > 64 {
+            let Some(t) = find(ti, ts) else {
                 return Err(self.err(
-                    line(e0),
-                    format!("TPDO {} maps {bits} bits; a CAN frame holds 64", n + 1),
+                    at,
+                    format!("0x{mi:04X} sub {k} maps 0x{ti:04X} sub {ts}, which does not exist"),
+                ));
+            };
+            if !t.pdo {
+                return Err(self.err(
+                    at,
+                    format!(
+                        "0x{mi:04X} sub {k} maps 0x{ti:04X} sub {ts}, which has no PDOMapping=1"
+                    ),
                 ));
             }
+            if rx && !t.access.writable() {
+                return Err(self.err(
+                    at,
+                    format!(
+                        "0x{mi:04X} sub {k} maps 0x{ti:04X} sub {ts} into an RPDO, which is \
+                         not writable"
+                    ),
+                ));
+            }
+            if tb != u32::from(t.ty.bits()) {
+                return Err(self.err(
+                    at,
+                    format!(
+                        "0x{mi:04X} sub {k} maps 0x{ti:04X} sub {ts} with {tb} bits; it has {}",
+                        t.ty.bits()
+                    ),
+                ));
+            }
+            bits += tb;
+        }
+        if bits > 64 {
+            let what = if rx { "RPDO" } else { "TPDO" };
+            return Err(self.err(
+                line(e0),
+                format!(
+                    "{what} {} maps {bits} bits; a CAN frame holds 64",
+                    (mi & 0x1FF) + 1
+                ),
+            ));
         }
         Ok(())
     }

@@ -96,14 +96,15 @@ fn the_exported_eds_of_every_model_rebuilds_its_table() {
 fn the_hand_written_io_device() {
     let d = eds(IO).unwrap();
     let m = d.model;
-    // RPDOs left out, with a warning each.
-    assert_eq!(d.warnings.len(), 2, "{:?}", d.warnings);
-    assert!(d.warnings.iter().all(|w| w.contains("RPDO")));
-    assert!(!m
-        .entries
-        .iter()
-        .any(|e| (0x1400..0x1800).contains(&e.index)));
+    // Nothing left out: its RPDO is served, with the RPDO service's rules.
+    assert_eq!(d.warnings, Vec::<String>::new());
     assert_eq!(m.features.tpdos, 2);
+    assert_eq!(m.features.rpdos, 1);
+    assert_eq!(find(m, 0x1400, 1).hook, Hook::RpdoComm);
+    assert_eq!(find(m, 0x1400, 5).hook, Hook::RpdoComm);
+    assert_eq!(find(m, 0x1600, 1).hook, Hook::RpdoMap);
+    assert_eq!(find(m, 0x1400, 1).default, DefaultValue::NodeId(0x200));
+    assert_eq!(find(m, 0x1600, 1).group, Group::Comm);
     assert_eq!(m.features.bitrates, &[125, 250, 500, 1000]);
     assert_eq!(m.features.lss_bit_timing, &[4, 3, 2, 0]);
     assert!(m.features.lss_fastscan && m.features.node_guarding);
@@ -413,6 +414,23 @@ fn malformed_files_name_the_line() {
             "88 bits",
         ),
         (
+            edit("1600sub1", "DefaultValue=0x21010010", "DefaultValue=0x20000008"),
+            sec_line("1600sub1") + 5,
+            "into an RPDO, which is not writable",
+        ),
+        (
+            edit("1600sub1", "DefaultValue=0x21010010", "DefaultValue=0x00050010"),
+            sec_line("1600sub1") + 5,
+            "a dummy of 0x0005 has 8 bits, not 16",
+        ),
+        (
+            IO.replace("[1600]", "[1602]")
+                .replace("[1600sub", "[1602sub")
+                .replace("11=0x1600", "11=0x1602"),
+            sec_line("1400"),
+            "RPDO 1 has no [1600] section",
+        ),
+        (
             IO.replace("[1801]", "[1804]")
                 .replace("[1801sub", "[1804sub")
                 .replace("13=0x1801", "13=0x1804"),
@@ -701,4 +719,101 @@ fn a_table_whose_cia301_object_lacks_its_hook_is_refused() {
             }
         }
     }
+}
+
+/// The file's RPDO is served: a value it carries lands after the SDO write's checks, its
+/// event timer is a deadline (EMCY 0x8250), and an RPDO beyond those the stack has is left
+/// out with a warning naming its line.
+#[test]
+fn the_node_serves_its_rpdo() {
+    let mut n = node();
+    let mut t = 1000;
+    let at = |t: u64| Instant::from_micros(t);
+    let rpdo = |n: &mut Node<Plain, RamStorage>, t: u64, data: &[u8]| {
+        n.handle_frame(&Frame::new(0x200 + u16::from(ID), data).unwrap(), at(t));
+    };
+    // Pre-operational: not processed.
+    rpdo(&mut n, t, &500u16.to_le_bytes());
+    assert_eq!(upload(&mut n, &mut t, 0x2101, 0), 10);
+    n.handle_frame(&Frame::std_len(0, [1, ID, 0, 0, 0, 0, 0, 0], 2), at(t));
+    rpdo(&mut n, t, &500u16.to_le_bytes());
+    assert_eq!(upload(&mut n, &mut t, 0x2101, 0), 500);
+    // Beyond HighLimit: refused as an SDO write would be, the PDO not processed.
+    rpdo(&mut n, t, &1001u16.to_le_bytes());
+    assert_eq!(upload(&mut n, &mut t, 0x2101, 0), 500);
+    // A 50 ms deadline from the next reception.
+    assert_eq!(
+        download(&mut n, &mut t, 0x1400, 5, &50u16.to_le_bytes()),
+        None
+    );
+    rpdo(&mut n, t, &20u16.to_le_bytes());
+    let mut emcy = Vec::new();
+    for _ in 0..60 {
+        t += 1000;
+        while let Some(f) = n.poll(at(t)) {
+            if f.std_id() == Some(0x80 + u16::from(ID)) {
+                emcy.push(u16::from_le_bytes([f.data()[0], f.data()[1]]));
+            }
+        }
+    }
+    assert_eq!(emcy, [0x8250]);
+    assert_eq!(upload(&mut n, &mut t, 0x2101, 0), 20);
+
+    let five = IO
+        .replace("[1400]", "[1404]")
+        .replace("[1400sub", "[1404sub")
+        .replace("10=0x1400", "10=0x1404")
+        .replace("[1600]", "[1604]")
+        .replace("[1600sub", "[1604sub")
+        .replace("11=0x1600", "11=0x1604");
+    let d = eds(&five).unwrap();
+    let line = line_of(&five, "[1404]");
+    assert!(
+        d.warnings.iter().any(|w| w
+            == &format!(
+                "[1404] (line {line}): RPDO 5 left out: canpos-stack serves at most 4 RPDOs"
+            )),
+        "{:?}",
+        d.warnings
+    );
+    assert_eq!(d.model.features.rpdos, 0);
+    assert!(!d.model.entries.iter().any(|e| e.index == 0x1404));
+}
+
+/// The EDS export of a device with RPDOs lists them as it lists TPDOs (RECORDs, `NrOfRXPDO`)
+/// and its RPDO-mappable objects as `rww`; the file builds the same table again.
+#[test]
+fn the_exported_eds_of_a_device_with_rpdos_rebuilds_it() {
+    let m = eds(IO).unwrap().model;
+    let mut text = String::new();
+    canpos_stack::eds::write_eds(
+        &mut text,
+        m,
+        &m.default_config,
+        &canpos_stack::eds::EdsInfo::default(),
+    )
+    .unwrap();
+    assert!(text.contains("NrOfRXPDO=1\n"), "{text}");
+    assert!(text.contains("[1400]\nParameterName="), "{text}");
+    let at = text.find("[1600]\n").unwrap();
+    assert!(text[at..].contains("ObjectType=0x9\n"));
+    let at = text.find("[2101]\n").unwrap();
+    assert!(
+        text[at..].starts_with(
+            "[2101]\nParameterName=Filter time\nObjectType=0x7\nDataType=0x0006\nAccessType=rww\n"
+        ),
+        "{}",
+        &text[at..at + 120]
+    );
+    let d = eds(&text).unwrap();
+    assert!(d.warnings.is_empty(), "{:?}", d.warnings);
+    let b = d.model;
+    assert_eq!(b.features.rpdos, 1);
+    let keys = |m: &Model| {
+        m.entries
+            .iter()
+            .map(|e| (e.key(), e.hook, e.access))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(keys(b), keys(m));
 }

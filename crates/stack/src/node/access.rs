@@ -20,6 +20,10 @@ impl<A: Application, S: Storage> Device<A, S> {
             Hook::TpdoComm | Hook::TpdoMap => {
                 return Tpdos::check_value(&self.od, e.index, e.sub, raw)
             }
+            // (A build without RPDOs has no such object: no code for it.)
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
+                return Rpdos::check_value(&self.od, e.index, e.sub, raw)
+            }
             // The others check nothing beyond the table.
             _ => return Ok(()),
         };
@@ -62,6 +66,9 @@ impl<A: Application, S: Storage> Device<A, S> {
                 let strict = self.features().event_timer_above_inhibit;
                 self.pdo.validate(&self.od, e.index, e.sub, raw, strict)
             }
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
+                self.rpdo.validate(&self.od, e.index, e.sub, raw)
+            }
             hook => match hook.app_number() {
                 Some(h) => {
                     let cx = AppView {
@@ -103,6 +110,9 @@ impl<A: Application, S: Storage> Device<A, S> {
                     let (app, mut cx) = self.app_ctx(now);
                     app.tpdo_comm_written(n, e.sub, raw, &mut cx);
                 }
+            }
+            Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
+                self.rpdo.configure((e.index & 0x1FF) as usize, &self.od)
             }
             Hook::PendingNodeId => self.pending_node_id = raw as u8,
             Hook::PendingBitRate => self.pending_bitrate = kbps_of_object(raw),
@@ -234,13 +244,45 @@ impl<A: Application, S: Storage> Device<A, S> {
         if matches!(e.hook, Hook::StoreParameters | Hook::RestoreDefaults) {
             return self.storage_command(e, raw);
         }
+        self.check_write(slot, raw)?;
+        self.land_write(slot, raw);
+        Ok(())
+    }
+
+    /// The checks of a value written to `slot` (an SDO download's, an RPDO's): the table's
+    /// and the hook's rules.
+    #[inline]
+    fn check_write(&mut self, slot: usize, raw: u32) -> Result<(), Abort> {
+        let e = self.od.entry(slot);
         if e.ty == DataType::Boolean && raw > 1 {
             return Err(Abort::InvalidValue);
         }
         e.check(raw)?;
-        self.validate(e, self.od.get(slot), raw)?;
+        self.validate(e, self.od.get(slot), raw)
+    }
+
+    /// A checked value lands in `slot`, with its hook's side effects.
+    #[inline]
+    fn land_write(&mut self, slot: usize, raw: u32) {
         self.od.set(slot, raw);
-        self.written(e, raw);
-        Ok(())
+        self.written(self.od.entry(slot), raw);
+    }
+
+    /// RPDO `n`'s data: each value is checked as an SDO download's would be and, only when all
+    /// pass (D-RPDO: a value that fails leaves the whole PDO unprocessed, as CiA 301 says),
+    /// written with the same side effects; an object a TPDO maps then sets off its
+    /// asynchronous TPDOs as an application event does.
+    pub(super) fn apply_rpdo(&mut self, n: usize, data: [u8; 8]) {
+        let values = self.rpdo.values(n, data);
+        if values
+            .iter()
+            .any(|(slot, raw)| self.check_write(slot, raw).is_err())
+        {
+            return;
+        }
+        for (slot, raw) in values.iter() {
+            self.land_write(slot, raw);
+            self.pdo.value_changed(slot, true);
+        }
     }
 }

@@ -26,6 +26,7 @@ use crate::model::{Features, Model, UnitConfig};
 use crate::nmt::{NmtCommand, NmtState};
 use crate::od::{self, le_u32, Abort, DataType, Dictionary, Entry, Hook, Param, ParamSource};
 use crate::pdo::Tpdos;
+use crate::rpdo::Rpdos;
 use crate::sdo::{ObjectAccess, SdoServer};
 use crate::storage::{self, Scope, Storage, StorageError, IMAGE_MAX};
 use crate::timers::{Timer, TimerTable, NEVER};
@@ -88,6 +89,7 @@ pub struct Device<A: Application, S: Storage> {
     pub(crate) emcy: Emcy,
     pub(crate) errctl: ErrCtl,
     pub(crate) pdo: Tpdos,
+    pub(crate) rpdo: Rpdos,
     pub(crate) app: A,
     pub(crate) storage: S,
     pub(crate) now: Instant,
@@ -173,6 +175,7 @@ impl<A: Application, S: Storage> Node<A, S> {
                 emcy: Emcy::default(),
                 errctl: ErrCtl::default(),
                 pdo: Tpdos::default(),
+                rpdo: Rpdos::default(),
                 app,
                 storage,
                 now: Instant::ZERO,
@@ -263,6 +266,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         set(Timer::Silence, us(d.silent_until));
         set(Timer::ErrorControl, d.errctl.due_us());
         set(Timer::Emcy, emcy);
+        if crate::config::MAX_RPDOS > 0 {
+            // (Else never armed: `clear` and the default leave it at `NEVER`.)
+            set(Timer::Rpdo, d.rpdo.due_us());
+        }
         debug_assert_eq!(other, self.timers.next());
         // The TPDOs keep their own schedule (the hot path reads it directly).
         self.deadline = other.min(d.pdo.due_us());
@@ -301,6 +308,7 @@ impl<A: Application, S: Storage> Node<A, S> {
         d.errctl.reset();
         d.apply_comm_config(now);
         d.pdo.set_active(false, now);
+        d.rpdo.set_active(false);
         if d.node_id == UNCONFIGURED {
             // CiA 305: no node-id, no NMT: wait in LSS for one, in LSS waiting for a master to
             // select (DS 305 V2), or in configuration by itself (DSP 305 V1.1 R7:
@@ -601,6 +609,11 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// The TPDOs.
     pub fn tpdos(&self) -> &Tpdos {
         &self.pdo
+    }
+
+    /// The RPDOs.
+    pub fn rpdos(&self) -> &Rpdos {
+        &self.rpdo
     }
 
     /// The application.

@@ -81,8 +81,11 @@ impl<A: Application, S: Storage> Node<A, S> {
         }
         if sync {
             if f.dlc() <= 1 {
+                // RPDO data is applied before the TPDOs sample theirs.
+                d.rpdo_sync();
+                let counter = f.data().first().copied();
                 let Device { pdo, od, tx, .. } = d;
-                pdo.on_sync(od, now, tx);
+                pdo.on_sync(od, now, counter, tx);
             } else if d.features().sync_length_emcy {
                 // CiA 301 "unexpected SYNC data length" (conformance EMCY-04 without an RPDO).
                 // DLC 1 stays accepted: without 0x1019 the counter byte is simply ignored.
@@ -91,6 +94,12 @@ impl<A: Application, S: Storage> Node<A, S> {
                 d.emcy.event(emcy::code::SYNC_LENGTH, [0; 5]);
             }
             return true;
+        }
+        if !f.is_remote() {
+            if let Some(n) = d.rpdo.find(id) {
+                d.receive_rpdo(n, f.data(), now);
+                return true;
+            }
         }
         // What is left `ignores` let through as a remote request on a model with RTR-triggered
         // TPDOs.
@@ -126,7 +135,7 @@ impl<A: Application, S: Storage> Node<A, S> {
 
 impl<A: Application, S: Storage> Device<A, S> {
     /// Whether a standard frame `id` is none of the node's business: not LSS, NMT, its SDO or
-    /// error control, SYNC, nor (where the model allows) a remote request. Mirrors the checks of
+    /// error control, SYNC, one of its RPDOs, nor (where the model allows) a remote request. Mirrors the checks of
     /// `Node::handle_frame_inner` that would end in doing nothing.
     #[inline]
     fn ignores(&self, id: u16, remote: bool) -> bool {
@@ -145,6 +154,6 @@ impl<A: Application, S: Storage> Device<A, S> {
         }
         let sync_id = self.od.hot(self.hot.sync).unwrap_or(0x80);
         let is_sync = sync_id & 0x8000_0000 == 0 && id as u32 == sync_id & 0x7FF && !remote;
-        !(is_sync || remote && self.features().tpdo_rtr)
+        !(is_sync || remote && self.features().tpdo_rtr || !remote && self.rpdo.find(id).is_some())
     }
 }

@@ -44,6 +44,8 @@ impl<A: Application, S: Storage> Device<A, S> {
     pub(super) fn apply_comm_config(&mut self, now: Instant) {
         self.pdo
             .configure_all(self.features().tpdos as usize, &self.od);
+        self.rpdo
+            .configure_all(self.features().rpdos as usize, &self.od);
         let hb = self.od.value(0x1017, 0).unwrap_or(0) as u16;
         self.errctl.set_heartbeat(hb, now);
         self.apply_guarding(now);
@@ -120,12 +122,31 @@ impl<A: Application, S: Storage> Device<A, S> {
         });
     }
 
+    /// RPDO `n` received `data` (a data frame on its CAN-ID, in Operational): the RPDO
+    /// service's checks, and its values applied when they are due now.
+    pub(super) fn receive_rpdo(&mut self, n: usize, data: &[u8], now: Instant) {
+        let Device { rpdo, emcy, .. } = self;
+        if let Some(d) = rpdo.receive(n, data, now, emcy) {
+            self.apply_rpdo(n, d);
+        }
+    }
+
+    /// A SYNC: the data synchronous RPDOs received since the last one is applied.
+    pub(super) fn rpdo_sync(&mut self) {
+        for n in 0..crate::config::MAX_RPDOS {
+            if let Some(d) = self.rpdo.take_held(n) {
+                self.apply_rpdo(n, d);
+            }
+        }
+    }
+
     /// PDOs run in Operational unless life guarding was lost (D11).
     pub(super) fn update_pdo_activity(&mut self, now: Instant) {
         let guarding = self.features().node_guarding;
         let lost = guarding && self.errctl.life_guard_lost;
         let on = self.nmt == NmtState::Operational && !lost;
         self.pdo.set_active(on, now);
+        self.rpdo.set_active(on);
         // Also a 0x8130 raised from outside (`Node::set_error`), on every model.
         if !lost && self.emcy.is_active(emcy::code::LIFE_GUARD) {
             self.emcy.clear(emcy::code::LIFE_GUARD);

@@ -39,6 +39,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         if d.nmt == NmtState::Initialising {
             return;
         }
+        // (Never due in a build without RPDOs: the test goes with them.)
+        if crate::config::MAX_RPDOS > 0 && self.timers.due(Timer::Rpdo, now.0) {
+            d.rpdo.handle_timeout(now, &mut d.emcy);
+        }
         let guarding = d.features().node_guarding;
         while let Some(ev) = d.errctl.handle_timeout(now, d.nmt, guarding) {
             match ev {

@@ -34,13 +34,15 @@
 //! ```
 
 use super::{Entry, Hook};
-use crate::config::{MAX_MAP, MAX_TPDOS};
+use crate::config::{MAX_MAP, MAX_RPDOS, MAX_TPDOS};
 
 /// The hook CiA 301 gives object `index` / `sub`: the service whose rules its values follow,
 /// or [`Hook::None`] for a plain value (identity, counts, manufacturer and profile objects).
 pub const fn hook_of(index: u16, sub: u8) -> Hook {
     const TPDO_COMM: u16 = 0x1800;
     const TPDO_MAP: u16 = 0x1A00;
+    const RPDO_COMM: u16 = 0x1400;
+    const RPDO_MAP: u16 = 0x1600;
     match index {
         // Sub 0 (count; writing 0 clears) and the standard error fields 1…254.
         0x1003 if sub <= 0xFE => Hook::ErrorHistory,
@@ -52,10 +54,26 @@ pub const fn hook_of(index: u16, sub: u8) -> Hook {
         0x1014 if sub == 0 => Hook::EmcyCobId,
         0x1015 if sub == 0 => Hook::EmcyInhibit,
         0x1017 if sub == 0 => Hook::Heartbeat,
-        // COB-ID, transmission type, inhibit time, event timer of each TPDO the stack has.
+        // COB-ID, transmission type, event timer (the deadline) of each RPDO the stack has
+        // (CiA 301 gives an RPDO's inhibit time and SYNC start value no meaning).
+        _ if index >= RPDO_COMM
+            && index < RPDO_COMM + MAX_RPDOS as u16
+            && matches!(sub, 1 | 2 | 5) =>
+        {
+            Hook::RpdoComm
+        }
+        // The mapping count and its entries.
+        _ if index >= RPDO_MAP
+            && index < RPDO_MAP + MAX_RPDOS as u16
+            && sub as usize <= MAX_MAP =>
+        {
+            Hook::RpdoMap
+        }
+        // COB-ID, transmission type, inhibit time, event timer, SYNC start value of each
+        // TPDO the stack has.
         _ if index >= TPDO_COMM
             && index < TPDO_COMM + MAX_TPDOS as u16
-            && matches!(sub, 1 | 2 | 3 | 5) =>
+            && matches!(sub, 1 | 2 | 3 | 5 | 6) =>
         {
             Hook::TpdoComm
         }
@@ -143,6 +161,20 @@ mod tests {
             (0x1800, 1, Hook::TpdoComm),
             (0x1800, 4, Hook::None),
             (0x1800, 5, Hook::TpdoComm),
+            (0x1800, 6, Hook::TpdoComm),
+            (0x1800, 7, Hook::None),
+            (0x1400, 0, Hook::None),
+            (0x1400, 1, Hook::RpdoComm),
+            (0x1400, 2, Hook::RpdoComm),
+            (0x1400, 3, Hook::None),
+            (0x1400, 5, Hook::RpdoComm),
+            (0x1400, 6, Hook::None),
+            (0x1600, 0, Hook::RpdoMap),
+            (0x1600, MAX_MAP as u8, Hook::RpdoMap),
+            (0x1600, MAX_MAP as u8 + 1, Hook::None),
+            (0x1400 + MAX_RPDOS as u16, 1, Hook::None),
+            (0x1600 + MAX_RPDOS as u16, 1, Hook::None),
+            (0x13FF, 1, Hook::None),
             (0x1A00, 0, Hook::TpdoMap),
             (0x1A00, MAX_MAP as u8, Hook::TpdoMap),
             (0x1A00, MAX_MAP as u8 + 1, Hook::None),

@@ -195,6 +195,10 @@ pub enum Hook {
     TpdoComm,
     /// A TPDO mapping parameter (0x1A00…, PDO service).
     TpdoMap,
+    /// An RPDO communication parameter (0x1400…, RPDO service).
+    RpdoComm,
+    /// An RPDO mapping parameter (0x1600…, RPDO service).
+    RpdoMap,
     /// Objects of the application, which validates them, reacts to writes and refreshes them
     /// before reads: [`Hook::app`]`(n)` with the application's own number `n` (0–15, e.g.
     /// `encoder::hook`), which [`Hook::app_number`] gives back. Sixteen variants rather than
@@ -238,7 +242,8 @@ pub enum Hook {
 // sixteen application hooks, last.
 const _: () = assert!(
     Hook::TpdoMap as u8 == Hook::TpdoComm as u8 + 1
-        && Hook::App0 as u8 == Hook::TpdoMap as u8 + 1
+        && Hook::RpdoMap as u8 == Hook::RpdoComm as u8 + 1
+        && Hook::App0 as u8 == Hook::RpdoMap as u8 + 1
         && Hook::App15 as u8 == Hook::App0 as u8 + 15
         && Hook::APP[15] as u8 == Hook::App15 as u8
 );
