@@ -1,7 +1,7 @@
 """`canpos run --eds` / `--dcf`: a plain CiA 301 device from an EDS or DCF file, driven by
 python-canopen. Two files: the EDS canpos exports for the TH, and examples/io-device.eds, a small
 generic I/O device written by hand (manufacturer objects of several types with limits, one
-TPDO mapping three of them)."""
+TPDO mapping three of them, one RPDO mapping one)."""
 import struct
 import time
 
@@ -79,13 +79,13 @@ def test_hand_written_eds_values_and_limits(network, sensors):
     sdo["Output enable"].raw = True
     assert (sdo["Scale"].raw, sdo["Filter time"].raw, sdo["Offset"].raw) == (-10, 1000, -100000)
     assert sdo["Output enable"].raw is True
-    # Access types: ro / const refuse writes, wo refuses reads; wrong length; RPDO left out.
+    # Access types: ro / const refuse writes, wo refuses reads; wrong length; the RPDO's COB-ID.
     assert abort_code(lambda: sdo.download(0x2000, 0, b"\x01")) == 0x06010002
     assert abort_code(lambda: sdo.download(0x1008, 0, b"x")) == 0x06010002
     assert abort_code(lambda: sdo.upload(0x2200, 0)) == 0x06010001
     sdo.download(0x2200, 0, struct.pack("<H", 3))
     assert abort_code(lambda: sdo.download(0x2101, 0, b"\x01")) == 0x06070013
-    assert abort_code(lambda: sdo.upload(0x1400, 1)) == 0x06020000
+    assert sdo["RPDO1 communication parameter"]["COB-ID used by RPDO"].raw == 0x205
     assert abort_code(lambda: sdo.upload(0x2001, 3)) == 0x06090011
 
 
@@ -123,6 +123,48 @@ def test_hand_written_eds_tpdo_remap_and_reception(network, sensors):
     node.sdo.download(0x1A00, 0, b"\x00")
     assert abort_code(
         lambda: node.sdo.download(0x1A00, 1, struct.pack("<I", 0x23000008))) == 0x06040041
+
+
+def test_hand_written_eds_rpdo_writes_and_its_deadline_raises_emcy(network, sensors):
+    """python-canopen's RPDO API (a master transmits the device's RPDOs): the value it sends is
+    what an SDO upload then reads; the RPDO's event timer is its deadline, EMCY 0x8250 when no
+    RPDO came in time, cleared (EMCY 0x0000) by the next one; a value beyond the object's
+    limits leaves the PDO unprocessed."""
+    wait_bootup(network, 5, lambda: start_eds(sensors, IO_EDS, node_id=5))
+    node = io_node(network)
+    emcys = []
+    node.emcy.add_callback(lambda e: emcys.append(e.code))
+    node.rpdo.read()
+    rpdo1 = node.rpdo[1]
+    assert rpdo1.enabled and rpdo1.cob_id == 0x205
+    assert [(v.index, v.subindex) for v in rpdo1.map] == [(0x2101, 0)]
+    rpdo1.event_timer = 200
+    rpdo1.save()
+    assert node.sdo.upload(0x1400, 5) == struct.pack("<H", 200)
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.1)
+    rpdo1["Filter time"].raw = 500
+    rpdo1.transmit()
+    deadline = time.monotonic() + 2
+    while node.sdo["Filter time"].raw != 500:
+        assert time.monotonic() < deadline, "RPDO value never landed"
+        time.sleep(0.05)
+    rpdo1["Filter time"].raw = 1001
+    rpdo1.transmit()
+    # Nothing more: the 200 ms deadline passes (generous bound for a loaded machine).
+    deadline = time.monotonic() + 3
+    while 0x8250 not in emcys:
+        assert time.monotonic() < deadline, f"no RPDO timeout EMCY: {emcys}"
+        time.sleep(0.05)
+    assert node.sdo["Filter time"].raw == 500
+    assert node.sdo["Error register"].raw & 0x10
+    rpdo1["Filter time"].raw = 42
+    rpdo1.transmit()
+    deadline = time.monotonic() + 2
+    while node.sdo["Filter time"].raw != 42 or 0x0000 not in emcys:
+        assert time.monotonic() < deadline, f"no error reset: {emcys}"
+        time.sleep(0.05)
+    assert emcys[emcys.index(0x8250):][:2] == [0x8250, 0x0000]
 
 
 def test_hand_written_eds_heartbeat_and_guarding(network, sensors):

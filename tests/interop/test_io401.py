@@ -4,8 +4,8 @@ SDO, inputs set through canpos's control interface (`canpos ctl set-input`, the 
 received by python-canopen's TPDO API, and outputs written by python-canopen's RPDO API (what a
 master transmits to the module's RPDOs) shown by `canpos ctl state`.
 
-The RPDO test needs the stack's RPDO service (issue 33 item 1): until it is there, the module
-serves no 0x1400-0x17FF and the test fails on reading the RPDO parameters by SDO."""
+The RPDO test needs the stack's RPDO service (issue 33 item 1): without it the module serves
+no 0x1400-0x17FF and the test fails on reading the RPDO parameters by SDO (0x06020000)."""
 import json
 import subprocess
 import threading

@@ -327,7 +327,7 @@ fn layouts() -> Vec<Vec<Slot>> {
 /// §7.2.2 / §7.5.2.36: each mapped object takes its bytes of the received data in mapping
 /// order (little-endian), a dummy entry's bytes are skipped; a PDO shorter than its mapping is
 /// not processed (EMCY 0x8210, until a PDO of the right length); a longer one is processed
-/// with its first bytes (EMCY 0x8220, D29). Every layout of up to four entries.
+/// with its first bytes (EMCY 0x8220, D24). Every layout of up to four entries.
 #[test]
 fn cia301_7_2_2_every_layout_of_up_to_four_entries_lands_its_bytes() {
     let all = layouts();
@@ -550,7 +550,7 @@ fn cia301_7_5_2_35_the_event_timer_is_the_rpdo_deadline() {
 }
 
 /// §7.2.2: a value an RPDO carries is checked as an SDO write of it would be; one that would
-/// be refused leaves the whole PDO unprocessed (D29).
+/// be refused leaves the whole PDO unprocessed (D24).
 #[test]
 fn cia301_7_2_2_a_value_out_of_range_leaves_the_pdo_unprocessed() {
     let mut r = Rig::operational();

@@ -269,7 +269,7 @@ impl<A: Application, S: Storage> Device<A, S> {
     }
 
     /// RPDO `n`'s data: each value is checked as an SDO download's would be and, only when all
-    /// pass (D-RPDO: a value that fails leaves the whole PDO unprocessed, as CiA 301 says),
+    /// pass (D24: a value that fails leaves the whole PDO unprocessed),
     /// written with the same side effects; an object a TPDO maps then sets off its
     /// asynchronous TPDOs as an application event does.
     pub(super) fn apply_rpdo(&mut self, n: usize, data: [u8; 8]) {
