@@ -407,6 +407,22 @@ fn an_eds_devices_process_objects_show_and_its_inputs_are_set() {
     let objs = st["process"].as_array().unwrap();
     let changed: Vec<_> = objs.iter().filter(|o| o["value"] != 0).collect();
     assert_eq!(changed.len(), 1, "{changed:?}");
+    // The master writes the digital outputs by RPDO1: the page shows them.
+    let rpdo1 = canpos_stack::Frame::new(0x207, &[0x3C, 0x81]).unwrap();
+    master.send(&rpdo1).unwrap();
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        let n = snapshot_node(a, 7);
+        let outs = (
+            process_value(&n, "0x6200", 1),
+            process_value(&n, "0x6200", 2),
+        );
+        if outs == (Some(0x3C), Some(0x81)) {
+            break;
+        }
+        assert!(Instant::now() < until, "{outs:?}: {n}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
     // As a browser renders it: the process objects with the input's value and a Set button
     // for each input, none for an output, and no magnet / fault controls.
     if let Some(browser) = chromium() {
@@ -428,7 +444,9 @@ fn an_eds_devices_process_objects_show_and_its_inputs_are_set() {
         let di = row("0x6000/1");
         assert!(di.contains("<td class=\"value\">90</td>"), "{di}");
         assert!(di.contains("input-set"), "{di}");
-        assert!(!row("0x6200/1").contains("input-set"));
+        let out = row("0x6200/1");
+        assert!(out.contains("<td class=\"value\">60</td>"), "{out}");
+        assert!(!out.contains("input-set"), "{out}");
         assert!(dom.contains("class=\"sensor-controls\" hidden"), "{dom}");
         let (w, h, idat) = png_facts(&png);
         assert_eq!((w, h), (1200, 900));

@@ -13,7 +13,7 @@ use canpos_stack::storage::RamStorage;
 use canpos_stack::{entry, Abort, Frame, Instant, Node, Plain};
 
 #[rustfmt::skip]
-const ENTRIES: [Entry; 20] = cia301::attach([
+const ENTRIES: [Entry; 21] = cia301::attach([
     entry!(0x1000, 0, "", Unsigned32, Ro, Const(0x000F_0191)),
     entry!(0x1001, 0, "", Unsigned8, Ro, Live),
     entry!(0x1017, 0, "", Unsigned16, Rw, Const(0), Any, Comm),
@@ -30,6 +30,7 @@ const ENTRIES: [Entry; 20] = cia301::attach([
     entry!(0x1A00, 0, "", Unsigned8, Rw, Const(2), Any, Comm),
     entry!(0x1A00, 1, "", Unsigned32, Rw, Const(0x6000_0108), Any, Comm),
     entry!(0x1A00, 2, "", Unsigned32, Rw, Const(0x6401_0110), Any, Comm),
+    entry!(0x2000, 0, "", Unsigned32, Ro, Const(0)),
     entry!(0x6000, 1, "", Unsigned8, Ro, Const(0), Any, Volatile, true),
     entry!(0x6200, 1, "", Unsigned8, Rw, Const(0), Any, Volatile, true),
     entry!(0x6401, 1, "", Integer16, Ro, Const(0), MinMax(0xFFFF_FF9C, 100), Volatile, true),
@@ -159,4 +160,7 @@ fn a_value_the_entry_cannot_hold_is_refused_and_changes_nothing() {
         assert!(sent(&mut n, 10).is_empty(), "{i:04X}/{s}");
     }
     assert_eq!(n.write_process_value(0x6423, 0, 1, t(20)), Ok(true));
+    // The application area starts at 0x2000; a 32-bit value takes all its bits.
+    assert_eq!(n.write_process_value(0x2000, 0, u32::MAX, t(30)), Ok(true));
+    assert_eq!(n.read_object(0x2000, 0), Ok(u32::MAX));
 }
