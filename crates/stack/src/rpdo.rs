@@ -71,18 +71,29 @@ impl Default for Rpdo {
 }
 
 impl Rpdo {
-    /// Whether the PDO exists (COB-ID bit 31 clear) and maps something.
-    pub fn valid(&self) -> bool {
-        self.cob & COB_INVALID == 0 && self.n_map > 0
+    /// RPDO `n` as the dictionary configures it, with no data held and no deadline running;
+    /// the errors it reported (`timed_out`, `length`) stay until its next reception.
+    fn read(od: &Dictionary, n: usize, timed_out: bool, length: Length) -> Rpdo {
+        let ci = comm_index(n);
+        let cob = od.value(ci, 1).unwrap_or(COB_INVALID);
+        let mut map = [Mapped::default(); MAX_MAP];
+        let (n_map, len) = read_mapping::<true>(od, map_index(n), &mut map);
+        Rpdo {
+            cob,
+            id: (cob & 0x7FF) as u16,
+            ttype: od.value(ci, 2).unwrap_or(255) as u8,
+            // The event timer is the deadline (UNSIGNED16 ms: the product stays in 32 bits).
+            timeout_us: u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000,
+            map,
+            n_map,
+            len,
+            deadline: NEVER,
+            held: None,
+            timed_out,
+            length,
+        }
     }
-    /// The 11-bit CAN-ID.
-    pub fn can_id(&self) -> u16 {
-        self.id
-    }
-    /// The transmission type.
-    pub fn transmission_type(&self) -> u8 {
-        self.ttype
-    }
+
     /// The mapped length in bytes.
     pub fn len(&self) -> usize {
         usize::from(self.len)
@@ -90,6 +101,18 @@ impl Rpdo {
     /// Whether nothing is mapped.
     pub fn is_empty(&self) -> bool {
         self.n_map == 0
+    }
+    /// Whether the RPDO is received: it exists (COB-ID bit 31 clear) and maps something.
+    pub fn valid(&self) -> bool {
+        self.cob & COB_INVALID == 0 && !self.is_empty()
+    }
+    /// The 11-bit CAN-ID it is received on.
+    pub fn can_id(&self) -> u16 {
+        self.id
+    }
+    /// The transmission type: 0–240 synchronous, 254 / 255 asynchronous.
+    pub fn transmission_type(&self) -> u8 {
+        self.ttype
     }
     /// Whether its deadline monitoring expired with no reception since (EMCY 0x8250).
     pub fn timed_out(&self) -> bool {
@@ -120,21 +143,22 @@ impl Values {
 /// All RPDOs of a node.
 #[derive(Clone, Debug)]
 pub struct Rpdos {
-    pdos: [Rpdo; MAX_RPDOS],
-    count: usize,
-    /// In Operational: receptions are processed.
-    active: bool,
     /// The earliest deadline in µs ([`NEVER`]: none).
     due: u64,
+    /// In Operational: receptions are processed.
+    active: bool,
+    count: usize,
+    pdos: [Rpdo; MAX_RPDOS],
 }
 
 impl Default for Rpdos {
     fn default() -> Self {
+        // Nothing configured, nothing received, not in Operational.
         Rpdos {
-            pdos: [Rpdo::default(); MAX_RPDOS],
-            count: 0,
-            active: false,
             due: NEVER,
+            active: false,
+            count: 0,
+            pdos: [Rpdo::default(); MAX_RPDOS],
         }
     }
 }
@@ -163,20 +187,9 @@ impl Rpdos {
     /// Re-reads RPDO `n` (0-based) after a write to its parameters: held data is dropped and
     /// the deadline monitoring waits for the next reception.
     pub fn configure(&mut self, n: usize, od: &Dictionary) {
-        let Some(p) = self.pdos.get_mut(n) else {
-            return;
-        };
-        let ci = comm_index(n);
-        p.cob = od.value(ci, 1).unwrap_or(COB_INVALID);
-        p.id = (p.cob & 0x7FF) as u16;
-        p.ttype = od.value(ci, 2).unwrap_or(255) as u8;
-        // UNSIGNED16 ms in the table: the product stays in 32 bits.
-        p.timeout_us = u32::from(od.value(ci, 5).unwrap_or(0) as u16) * 1000;
-        let (n_map, len) = read_mapping::<true>(od, map_index(n), &mut p.map);
-        p.n_map = n_map;
-        p.len = len;
-        p.deadline = NEVER;
-        p.held = None;
+        if let Some(p) = self.pdos.get_mut(n) {
+            *p = Rpdo::read(od, n, p.timed_out, p.length);
+        }
         self.refresh_due();
     }
 
@@ -257,9 +270,11 @@ impl Rpdos {
         }
         self.refresh_due();
         let p = &mut self.pdos[n];
+        // (Bytes past the mapping are never read: `values` takes the mapped ones.)
         let mut buf = [0u8; 8];
-        let k = len.min(data.len());
-        buf[..k].copy_from_slice(&data[..k]);
+        for (b, d) in buf.iter_mut().zip(data) {
+            *b = *d;
+        }
         if p.synchronous() {
             p.held = Some(buf);
             return None;
@@ -334,12 +349,6 @@ impl Rpdos {
             return NEVER;
         }
         self.due
-    }
-
-    /// The earliest deadline.
-    pub fn poll_timeout(&self) -> Option<Instant> {
-        let t = self.due_us();
-        (t != NEVER).then_some(Instant(t))
     }
 
     /// Read access to RPDO `n` (0-based).

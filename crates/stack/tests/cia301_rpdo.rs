@@ -659,3 +659,114 @@ fn cia301_sync_start_value_starts_the_count_at_its_sync_counter() {
     assert_eq!(r.download(0x1800, 6, 241, 1), Err(INVALID_VALUE));
     assert_eq!(r.download(0x1800, 6, 240, 1), Ok(()));
 }
+
+/// The same table without RPDOs (a sensor's case).
+static NO_RPDOS: Model = Model {
+    table: Table {
+        name: "rpdo-test-none",
+        features: Features {
+            rpdos: 0,
+            ..MODEL.table.features
+        },
+        ..MODEL.table
+    },
+    ..MODEL
+};
+
+/// CiA 306 export: a device with RPDOs gives their number (`NrOfRXPDO`), their parameters as
+/// RECORDs, and its writable mappable objects as `rww` (written by RPDOs); without RPDOs such an
+/// object stays `ro` (CONFORMANCE EDS-01: mappable values are the device's).
+#[test]
+fn the_eds_lists_rpdos_and_what_they_write() {
+    let eds = |m: &'static Model| {
+        let mut s = String::new();
+        canpos_stack::eds::write_eds(
+            &mut s,
+            m,
+            &m.default_config,
+            &canpos_stack::eds::EdsInfo::default(),
+        )
+        .unwrap();
+        s
+    };
+    let access = |s: &str, sec: &str| {
+        let at = s.find(&format!("[{sec}]\n")).unwrap();
+        let line = s[at..]
+            .lines()
+            .find(|l| l.starts_with("AccessType="))
+            .unwrap();
+        line.to_string()
+    };
+    let with = eds(&MODEL);
+    assert!(with.contains("\nNrOfRXPDO=2\n"));
+    let at = with.find("[1401]\n").unwrap();
+    assert!(with[at..].contains("ObjectType=0x9\n"));
+    assert_eq!(access(&with, "2000"), "AccessType=rww");
+    assert_eq!(access(&with, "2004"), "AccessType=ro");
+    assert_eq!(access(&with, "2005"), "AccessType=rw");
+    let without = eds(&NO_RPDOS);
+    assert!(without.contains("\nNrOfRXPDO=0\n"));
+    assert_eq!(access(&without, "2000"), "AccessType=ro");
+}
+
+/// What a host reads of the RPDO service: each RPDO's configuration as the dictionary sets it,
+/// whether it receives, its deadline in the node's `poll_timeout`, and its timeout state.
+#[test]
+fn the_rpdo_service_as_a_host_sees_it() {
+    let mut r = Rig::new();
+    let rpdos = |r: &Rig| r.node.device().rpdos().clone();
+    let s = rpdos(&r);
+    assert!(!s.active());
+    let (p1, p2) = (s.get(0).unwrap(), s.get(1).unwrap());
+    assert!(s.get(2).is_none(), "two RPDOs in the table");
+    assert!(p1.valid() && !p2.valid());
+    assert_eq!(
+        (p1.can_id(), p1.transmission_type(), p1.len()),
+        (RPDO1, 255, 1)
+    );
+    assert_eq!(
+        (p2.can_id(), p2.transmission_type(), p2.len()),
+        (RPDO2, 1, 2)
+    );
+    assert!(!p1.is_empty() && !p1.timed_out());
+    r.map(1, &[]);
+    assert!(rpdos(&r).get(1).unwrap().is_empty());
+    r.download(0x1400, 5, 40, 2).unwrap();
+    r.nmt(0x01);
+    assert!(rpdos(&r).active());
+    assert_eq!(
+        r.node.poll_timeout(),
+        None,
+        "no deadline before a reception"
+    );
+    r.advance_ms(5);
+    r.send(RPDO1, &[1]);
+    assert_eq!(r.node.poll_timeout(), Some(Instant::from_millis(45)));
+    r.advance_ms(40);
+    assert!(rpdos(&r).get(0).unwrap().timed_out());
+    assert_eq!(r.node.poll_timeout(), None);
+}
+
+/// Two RPDOs past their deadlines: EMCY 0x8250 stays until neither is timed out; type 240 is
+/// synchronous (applied at the SYNC).
+#[test]
+fn cia301_7_5_2_35_the_timeout_clears_when_every_rpdo_receives_again() {
+    let mut r = Rig::new();
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.download(0x1401, 2, 240, 1).unwrap();
+    r.download(0x1400, 5, 10, 2).unwrap();
+    r.download(0x1401, 5, 10, 2).unwrap();
+    r.nmt(0x01);
+    r.send(RPDO1, &[1]);
+    r.send(RPDO2, &[2, 0]);
+    assert_eq!(r.read(0x2001, 0), 0, "type 240: held for the SYNC");
+    r.sync(None);
+    assert_eq!(r.read(0x2001, 0), 2);
+    r.advance_ms(20);
+    assert_eq!(r.emcys(), [0x8250]);
+    r.send(RPDO1, &[3]);
+    assert_eq!(r.emcys(), [], "RPDO2 is still late");
+    assert_eq!(r.read(0x1001, 0), 0x11);
+    r.send(RPDO2, &[4, 0]);
+    assert_eq!(r.emcys(), [0x0000]);
+}
