@@ -511,6 +511,10 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                     "bus_state": st.get("bus_state").or_else(|| st.get("error_state")),
                     // The simulation clock: how late the host made it (docs/CLOCK.md).
                     "clock": st.get("clock"),
+                    // A device served from an EDS: no magnets or faults, its process objects
+                    // (inputs the page may set, outputs as the master wrote them).
+                    "device": st.get("device"),
+                    "process": st.get("process"),
                 })),
             })
         })
@@ -785,8 +789,17 @@ async fn sdo_write(
     ))
 }
 
-/// The commands the page may send (`state` and `reset-lateness` are the poller's).
-const PAGE_COMMANDS: [&str; 6] = ["magnet", "motion", "fault", "power-cycle", "nmt", "ambient"];
+/// The commands the page may send (`state` and `reset-lateness` are the poller's;
+/// `set-input` is an EDS device's).
+const PAGE_COMMANDS: [&str; 7] = [
+    "magnet",
+    "motion",
+    "fault",
+    "power-cycle",
+    "nmt",
+    "ambient",
+    "set-input",
+];
 
 async fn node_control(State(app): State<App>, Path(node): Path<String>, body: String) -> Answer {
     let id = known_node(&app, &node)?;

@@ -12,7 +12,7 @@ mod common;
 use canpos_cli::dashboard::{self, Controls, Dashboard};
 use canpos_cli::sensor::{build_setup, open_storage, SensorOpts};
 use canpos_host::control::Request;
-use canpos_host::{MemBus, Runtime, RuntimeHandle};
+use canpos_host::{MemBus, Runtime, RuntimeHandle, Transport};
 use serde_json::Value;
 
 struct Rig {
@@ -295,6 +295,165 @@ fn a_node_named_with_an_eds_gets_its_object_table() {
     // Its objects, not a sensor's: 0x6020 is no object of the I/O device.
     let (code, v) = http(a, "GET", "/api/nodes/20/sdo/0x6020/1", "");
     assert_eq!(code, 404, "{v}");
+}
+
+/// The node of a dashboard snapshot.
+fn snapshot_node(a: SocketAddr, id: u8) -> Value {
+    let (code, s) = http(a, "GET", "/api/snapshot", "");
+    assert_eq!(code, 200, "{s}");
+    s["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|n| n["node"] == id)
+        .cloned()
+        .unwrap_or(Value::Null)
+}
+
+/// The value of `index`/`sub` among a snapshot node's process objects.
+fn process_value(n: &Value, index: &str, sub: u64) -> Option<i64> {
+    n["control"]["process"]
+        .as_array()?
+        .iter()
+        .find(|o| o["index"] == index && o["sub"] == sub)?["value"]
+        .as_i64()
+}
+
+/// An EDS device (examples/io-401.eds) behind the dashboard: its process objects are in the
+/// snapshot with its control state, the page's `set-input` sets an input (and its TPDO goes
+/// out), and a refused one (an output, a sensor's request) says why and changes nothing.
+#[test]
+fn an_eds_devices_process_objects_show_and_its_inputs_are_set() {
+    let dir = tempfile::tempdir().unwrap();
+    let eds = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/io-401.eds");
+    let o = canpos_host::eds_device::Overrides {
+        node_id: Some(7),
+        bitrate_kbps: None,
+        serial: None,
+    };
+    let dev =
+        canpos_host::eds_device::load(&eds, canpos_host::eds_device::FileKind::Eds, &o).unwrap();
+    let bus = MemBus::new();
+    let mut master = bus.attach();
+    let storage = canpos_host::FileStorage::new(dev.state_file(dir.path()));
+    let rt = canpos_host::plain::PlainRuntime::new(
+        Box::new(bus.attach()),
+        None,
+        dev.model,
+        dev.cfg,
+        storage,
+    )
+    .spawn()
+    .unwrap();
+    let web = dashboard::start(
+        Box::new(bus.attach()),
+        "127.0.0.1:0",
+        Controls::Local(rt.control(), 1),
+        10.0,
+    )
+    .unwrap();
+    web.pin_model(7, &dev.model.table);
+    let a = web.local_addr();
+    let until = Instant::now() + Duration::from_secs(10);
+    let n = loop {
+        let n = snapshot_node(a, 7);
+        if n["control"]["device"] == "eds" {
+            break n;
+        }
+        assert!(Instant::now() < until, "no control state: {n}");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(n["control"]["process"].as_array().unwrap().len(), 28, "{n}");
+    assert_eq!(process_value(&n, "0x6000", 1), Some(0));
+    let post = |body: &str| http(a, "POST", "/api/nodes/7/control", body);
+    let (code, v) = post(r#"{"cmd":"nmt","command":"start"}"#);
+    assert_eq!(code, 200, "{v}");
+    let (code, v) = post(r#"{"cmd":"set-input","index":"0x6000","sub":1,"value":"0x5A"}"#);
+    assert_eq!(code, 200, "{v}");
+    // TPDO1 of node 7 carries it.
+    let end = Instant::now() + Duration::from_secs(5);
+    let tpdo = loop {
+        match master.recv_deadline(end).unwrap() {
+            Some(rx) if rx.frame.std_id() == Some(0x187) => break rx.frame,
+            Some(_) => {}
+            None => panic!("no TPDO1"),
+        }
+    };
+    assert_eq!(tpdo.data(), &[0x5A, 0]);
+    let until = Instant::now() + Duration::from_secs(5);
+    while process_value(&snapshot_node(a, 7), "0x6000", 1) != Some(0x5A) {
+        assert!(Instant::now() < until, "{}", snapshot_node(a, 7));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    for (body, why) in [
+        (
+            r#"{"cmd":"set-input","index":"0x6200","sub":1,"value":1}"#,
+            "is an output",
+        ),
+        (
+            r#"{"cmd":"set-input","index":"0x6401","sub":1,"value":70000}"#,
+            "out of range",
+        ),
+        (
+            r#"{"cmd":"magnet","index":0,"mm":5}"#,
+            "no `magnet` request",
+        ),
+    ] {
+        let (code, v) = post(body);
+        assert_eq!(code, 400, "{body}: {v}");
+        assert!(error_of(&v).contains(why), "{body}: {v}");
+    }
+    let st = rt.control().request(Request::State { sensor: None });
+    let objs = st["process"].as_array().unwrap();
+    let changed: Vec<_> = objs.iter().filter(|o| o["value"] != 0).collect();
+    assert_eq!(changed.len(), 1, "{changed:?}");
+    // The master writes the digital outputs by RPDO1: the page shows them.
+    let rpdo1 = canpos_stack::Frame::new(0x207, &[0x3C, 0x81]).unwrap();
+    master.send(&rpdo1).unwrap();
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        let n = snapshot_node(a, 7);
+        let outs = (
+            process_value(&n, "0x6200", 1),
+            process_value(&n, "0x6200", 2),
+        );
+        if outs == (Some(0x3C), Some(0x81)) {
+            break;
+        }
+        assert!(Instant::now() < until, "{outs:?}: {n}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // As a browser renders it: the process objects with the input's value and a Set button
+    // for each input, none for an output, and no magnet / fault controls.
+    if let Some(browser) = chromium() {
+        let png = dir.path().join("io401.png");
+        let dom = headless(
+            &browser,
+            &web.url(),
+            &png,
+            &["--virtual-time-budget=2000"],
+            Duration::from_secs(60),
+        )
+        .expect("chromium finished");
+        let row = |key: &str| {
+            let at = dom
+                .find(&format!("data-object=\"{key}\""))
+                .unwrap_or_else(|| panic!("no row {key}: {dom}"));
+            dom[at..at + dom[at..].find("</tr>").unwrap()].to_string()
+        };
+        let di = row("0x6000/1");
+        assert!(di.contains("<td class=\"value\">90</td>"), "{di}");
+        assert!(di.contains("input-set"), "{di}");
+        let out = row("0x6200/1");
+        assert!(out.contains("<td class=\"value\">60</td>"), "{out}");
+        assert!(!out.contains("input-set"), "{out}");
+        assert!(dom.contains("class=\"sensor-controls\" hidden"), "{dom}");
+        let (w, h, idat) = png_facts(&png);
+        assert_eq!((w, h), (1200, 900));
+        assert!(idat > 10_000, "an empty page: {idat} B");
+    }
+    drop(web);
+    rt.stop().unwrap();
 }
 
 /// `--web` on `run` and on the demo: the URL is printed, the page is served and the

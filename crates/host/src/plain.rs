@@ -3,8 +3,9 @@
 //! the node's next deadline on the same absolute clock as [`crate::runtime`].
 //!
 //! There is no measurement cycle and no fault model, so the sensor runtime's loop would be
-//! mostly idle parts; this one is that loop reduced to the node. It answers control requests
-//! with an error (a plain device has no magnets or faults to drive).
+//! mostly idle parts; this one is that loop reduced to the node. Its control requests
+//! ([`requests`]) show the process objects and set inputs; a plain device has no magnets or
+//! faults to drive.
 
 use std::io;
 use std::time::Duration;
@@ -18,6 +19,8 @@ use crate::can::{BusState, Transport};
 use crate::file_storage::FileStorage;
 use crate::runtime::{set_timer_slack_1ns, wait_until, Lateness, Msg, RuntimeHandle, SimHardware};
 
+pub mod requests;
+
 /// A plain device on a transport. [`PlainRuntime::spawn`] runs it.
 pub struct PlainRuntime {
     transport: Box<dyn Transport>,
@@ -27,6 +30,8 @@ pub struct PlainRuntime {
     epoch: std::time::Instant,
     lateness: Lateness,
     powered: bool,
+    /// The state file, for the control state.
+    storage: String,
 }
 
 impl PlainRuntime {
@@ -39,6 +44,7 @@ impl PlainRuntime {
         cfg: CommConfig,
         storage: FileStorage,
     ) -> PlainRuntime {
+        let storage_name = storage.path().display().to_string();
         let node = Node::with_app(model, cfg, Plain, storage);
         let bus = bus_bitrate_kbps
             .or_else(|| transport.bus_bitrate())
@@ -50,6 +56,7 @@ impl PlainRuntime {
             epoch: std::time::Instant::now(),
             lateness: Lateness::default(),
             powered: false,
+            storage: storage_name,
         }
     }
 
@@ -123,11 +130,13 @@ impl PlainRuntime {
             while let Ok(m) = msgs.try_recv() {
                 match m {
                     Msg::Stop => return Ok(()),
-                    Msg::Request(_, reply) => {
-                        let _ = reply.send(json!({
-                            "ok": false,
-                            "error": "a plain (EDS / DCF) device has no control requests"
-                        }));
+                    Msg::Request(req, reply) => {
+                        let now = self.now();
+                        let answer = requests::handle(&mut self.node, req, &self.storage, now)
+                            .unwrap_or_else(|e| json!({"ok": false, "error": e}));
+                        let _ = reply.send(answer);
+                        // What the request caused (a TPDO of a changed input) goes out now.
+                        self.flush(now)?;
                     }
                 }
             }
@@ -198,8 +207,21 @@ mod tests {
         );
         let first = recv_id(&mut master, 0x709, Duration::from_secs(1)).expect("heartbeat");
         assert_eq!(first.data(), &[0x7F]);
-        let bad = h.control().request(Request::State { sensor: None });
+        // The control interface: the state (this file has no process objects), and a
+        // sensor's request refused with the ones it takes.
+        let st = h.control().request(Request::State { sensor: None });
+        assert_eq!(
+            (&st["ok"], &st["nmt"]),
+            (&json!(true), &json!("pre-operational")),
+            "{st}"
+        );
+        assert_eq!(st["process"], json!([]), "{st}");
+        let bad = h.control().request(Request::PowerCycle { sensor: None });
         assert_eq!(bad["ok"], false, "{bad}");
+        assert!(
+            bad["error"].as_str().unwrap().contains("set-input"),
+            "{bad}"
+        );
         h.stop().unwrap();
     }
 }

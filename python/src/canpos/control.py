@@ -127,6 +127,11 @@ class ControlClient:
         """Hands the sensor an NMT command (start, stop, preop, reset, reset-comm)."""
         return self.request("nmt", sensor, command=command)
 
+    def set_input(self, index: int, sub: int, value: int) -> Dict[str, Any]:
+        """Sets an input of a device served from an EDS (a read-only object of 0x6000-0x9FFF)
+        as its own process would; a TPDO that maps it sends the change."""
+        return self.request("set-input", index=index, sub=sub, value=value)
+
     # --- state and timing
     def state(self, sensor: Optional[int] = None) -> Dict[str, Any]:
         """The sensor's state (NMT, node-id, positions, faults, timing, …)."""

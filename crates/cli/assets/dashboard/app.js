@@ -118,16 +118,23 @@ function panel(n) {
   const spec = el("input", { class: "motion-spec", size: "36", value: "sine:center=500,amp=300,period=4" });
   const faultSel = el("select", { class: "fault-name" }, ...FAULTS.map((f) => el("option", { value: f }, f)));
   const nmtSel = el("select", { class: "nmt-command" }, ...NMT.map((c) => el("option", { value: c }, c)));
-  ctl.append(
+  // The sensor's own controls: a device served from an EDS has no magnets, motion or faults.
+  const sensorCtl = el("span", { class: "sensor-controls" },
     el("label", {}, "Magnet 0: ", slider, " ", out),
     el("span", {}, spec, el("button", { class: "motion-start", onclick: () => control(n.node, { cmd: "motion", spec: spec.value }).catch(() => {}) }, "Start motion")),
     el("span", {}, faultSel,
       el("button", { class: "fault-on", onclick: () => control(n.node, { cmd: "fault", name: faultSel.value, on: true }).catch(() => {}) }, "on"),
       el("button", { class: "fault-off", onclick: () => control(n.node, { cmd: "fault", name: faultSel.value, on: false }).catch(() => {}) }, "off")),
-    el("button", { class: "power-cycle", onclick: () => control(n.node, { cmd: "power-cycle" }).catch(() => {}) }, "Power-cycle"),
+    el("button", { class: "power-cycle", onclick: () => control(n.node, { cmd: "power-cycle" }).catch(() => {}) }, "Power-cycle"));
+  ctl.append(sensorCtl,
     el("span", {}, nmtSel, el("button", { class: "nmt-send", onclick: () => control(n.node, { cmd: "nmt", command: nmtSel.value }).catch(() => {}) }, "NMT")),
     el("span", { class: "faults" }));
   sec.append(ctl);
+  // An EDS device's process objects: outputs as the master wrote them, inputs to set.
+  sec.append(el("div", { class: "process", hidden: "" }, el("h3", {}, "Process objects"),
+    el("table", { class: "process-objects" },
+      el("thead", {}, el("tr", {}, ...["object", "name", "type", "direction", "value", "set"].map((h) => el("th", {}, h)))),
+      el("tbody"))));
   sec.append(el("h3", {}, "EMCY log"), el("table", { class: "emcy" },
     el("thead", {}, el("tr", {}, ...["t / s", "code", "meaning", "register", "manufacturer bytes"].map((h) => el("th", {}, h)))),
     el("tbody")));
@@ -135,6 +142,34 @@ function panel(n) {
   sec.append(el("h3", {}, "Object dictionary ", el("button", { class: "od-load", onclick: () => loadOd(n.node, odBox) }, "Load")), odBox);
   $("#panels").append(sec);
   return sec;
+}
+
+// The process objects of an EDS device's control state, one row each, kept across updates:
+// values change in place and an input field being edited is left alone.
+function processObjects(sec, n) {
+  const box = $(".process", sec);
+  const objs = (n.control && n.control.process) || null;
+  box.hidden = !objs;
+  if (!objs) return;
+  const tb = $("tbody", box);
+  for (const o of objs) {
+    const key = `${o.index}/${o.sub}`;
+    let tr = $(`tr[data-object="${key}"]`, tb);
+    if (!tr) {
+      tr = el("tr", { "data-object": key, class: o.direction });
+      const set = el("td", { class: "set" });
+      if (o.direction === "input") {
+        const input = el("input", { class: "input-value", size: "8", value: String(o.value) });
+        const go = () => control(n.node, { cmd: "set-input", index: o.index, sub: o.sub, value: input.value.trim() }).catch(() => {});
+        input.onkeydown = (e) => { if (e.key === "Enter") go(); };
+        set.append(input, el("button", { class: "input-set", onclick: go }, "Set"));
+      }
+      tr.append(el("td", {}, key), el("td", {}, o.name), el("td", {}, o.type),
+        el("td", {}, o.direction), el("td", { class: "value" }), set);
+      tb.append(tr);
+    }
+    $(".value", tr).textContent = String(o.value);
+  }
 }
 
 async function loadOd(node, box) {
@@ -231,7 +266,9 @@ function update(s) {
       : `0x${n.error_register.toString(16).padStart(2, "0").toUpperCase()} (${n.error_register_text})`;
     const ctl = $(".controls", sec);
     ctl.hidden = !n.control;
+    processObjects(sec, n);
     if (n.control) {
+      $(".sensor-controls", ctl).hidden = n.control.device === "eds";
       const late = n.control.clock && n.control.clock.events_late_us;
       const bus = [n.control.bus_off ? "bus-off" : null, n.control.bus_state ? `CAN ${JSON.stringify(n.control.bus_state)}` : null,
         late && late.max > 1000 ? `host late: max ${(late.max / 1000).toFixed(1)} ms (frames kept their times)` : null].filter(Boolean);

@@ -69,8 +69,21 @@ pub enum CtlAction {
         #[arg(value_parser = ["start", "stop", "preop", "reset", "reset-comm"])]
         command: String,
     },
-    /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors).
+    /// Print the state (NMT, node-id, bit rate, true / reported positions, velocity, errors;
+    /// of a device served from an EDS, its process objects).
     State,
+    /// Set an input of a device served from an EDS (`canpos run --eds`) as its own process
+    /// would: a read-only object of 0x6000…0x9FFF, e.g. `set-input 0x6000 1 0xA5`. A TPDO
+    /// that maps it sends the change.
+    SetInput {
+        /// Object index (decimal or 0x hex).
+        index: String,
+        /// Sub-index.
+        sub: String,
+        /// The value, a whole number of the object's type (decimal or 0x hex).
+        #[arg(allow_negative_numbers = true)]
+        value: String,
+    },
     /// Disturb the bus (paced virtual buses, docs/BUS.md): `corrupt PER_MILLION` (0 stops),
     /// `stuck-dominant MS`, `transceiver on|off` (this sensor's).
     BusFault {
@@ -115,6 +128,13 @@ pub fn ctl(a: CtlArgs) -> Result<i32> {
         CtlAction::Ambient { celsius } => Request::Ambient { sensor, celsius },
         CtlAction::Nmt { command } => Request::Nmt { sensor, command },
         CtlAction::State => Request::State { sensor },
+        // Checked by the device, which knows the object's type and range.
+        CtlAction::SetInput { index, sub, value } => Request::SetInput {
+            sensor,
+            index: index.into(),
+            sub: Some(sub.into()),
+            value: value.into(),
+        },
         CtlAction::BusFault { kind, value } => {
             let (value, on) = match value.as_str() {
                 "on" => (None, Some(true)),

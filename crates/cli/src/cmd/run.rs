@@ -110,8 +110,9 @@ pub struct RunArgs {
     pub reset_boot_delay: Option<f64>,
 }
 
-/// The sensor options that mean nothing to a device served from an EDS / DCF file.
-const EDS_CONFLICTS: [&str; 9] = [
+/// The sensor options that mean nothing to a device served from an EDS / DCF file (its
+/// `--control` and `--web` show its process objects and set its inputs instead).
+const EDS_CONFLICTS: [&str; 7] = [
     "model",
     "order_code",
     "magnets",
@@ -119,9 +120,6 @@ const EDS_CONFLICTS: [&str; 9] = [
     "ideal",
     "seed",
     "thermal_time_scale",
-    "control",
-    // The EDS device runs without one; `canpos dashboard --eds NODE=FILE` shows it.
-    "web",
 ];
 
 /// Runs `canpos run`.
@@ -138,7 +136,6 @@ pub fn run(a: RunArgs) -> Result<i32> {
             ("--ideal", a.ideal),
             ("--seed", a.seed.is_some()),
             ("--thermal-time-scale", a.thermal_time_scale.is_some()),
-            ("--control", a.control.is_some()),
         ];
         if let Some((flag, _)) = given.iter().find(|(_, g)| *g) {
             return Err(anyhow::Error::new(crate::common::Usage(format!(
@@ -242,6 +239,8 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     )?;
     let desc = transport.describe();
     let mut rt = PlainRuntime::new(transport, a.bus_bitrate, dev.model, dev.cfg, storage);
+    // Bound before the boot-up, as for a sensor: a client that saw it can connect at once.
+    let listener = bind_control(a.control.as_deref())?;
     rt.power_on()?;
     // The active node-id: a stored LSS node-id wins over the file's and the command line's.
     let id = rt.node().device().node_id();
@@ -259,5 +258,17 @@ fn run_eds(a: RunArgs) -> Result<i32> {
         dev.model.entries.len(),
         state.display()
     );
+    // `--nmt`, as for a sensor (the plain device takes the `nmt` request).
+    let nmt = match a.nmt.as_deref() {
+        Some(s) => parse_nmt_state(s).map_err(|e| anyhow!(e))?,
+        None => None,
+    };
+    start_nodes(&handle, &[nmt])?;
+    let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
+    let web = start_web(a.web.as_deref(), &a.bus, &handle, 1)?;
+    if let Some(w) = &web {
+        // The dashboard knows no model by this name: the file's table is the node's.
+        w.pin_model(id, &dev.model.table);
+    }
     supervise(handle, &stop)
 }

@@ -137,6 +137,22 @@ pub enum Request {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         reset_boot_delay_ms: Option<f64>,
     },
+    /// Sets an input of a device served from an EDS (docs/EDS_DEVICE.md) as its own process
+    /// would: a read-only object of the device profile area 0x6000–0x9FFF, checked against
+    /// its type and range; a TPDO that maps it sees a change-of-state event. Numbers are JSON
+    /// numbers or text (`"0x6000"`, `"-5"`); a BOOLEAN object also takes `true` / `false`.
+    SetInput {
+        /// Sensor index (0: the one device of a `--eds` process).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sensor: Option<usize>,
+        /// Object index, e.g. `24576` or `"0x6000"`.
+        index: Value,
+        /// Sub-index (default 0).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        sub: Option<Value>,
+        /// The new value, a whole number of the object's type.
+        value: Value,
+    },
 }
 
 /// The NMT commands of [`Request::Nmt`] and their command specifiers (CiA 301).
@@ -224,6 +240,12 @@ impl fmt::Display for Request {
                 }
                 Ok(())
             }
+            Request::SetInput {
+                index, sub, value, ..
+            } => {
+                let sub = sub.as_ref().map_or("0".to_string(), Value::to_string);
+                write!(f, "set-input {index}/{sub} = {value}")
+            }
             Request::BusFault {
                 kind, value, on, ..
             } => {
@@ -253,6 +275,7 @@ impl Request {
             | Request::Nmt { sensor, .. }
             | Request::Timing { sensor, .. }
             | Request::BusFault { sensor, .. }
+            | Request::SetInput { sensor, .. }
             | Request::ResetLateness { sensor } => *sensor,
         }
     }
@@ -346,6 +369,7 @@ impl Request {
                 Ok(())
             }
             Request::Nmt { command, .. } => nmt_command(command).map(|_| ()),
+            Request::SetInput { .. } => self.input_target().map(|_| ()),
             Request::BusFault {
                 kind, value, on, ..
             } => bus_disturbance(kind, *value, *on).map(|_| ()),
@@ -353,6 +377,59 @@ impl Request {
                 Ok(())
             }
         }
+    }
+}
+
+impl Request {
+    /// Index, sub-index and value of a [`Request::SetInput`], each a whole number in its
+    /// range (the value in that of an `i64`: the device checks it against the object's type).
+    pub fn input_target(&self) -> Result<(u16, u8, i64), String> {
+        let Request::SetInput {
+            index, sub, value, ..
+        } = self
+        else {
+            return Err("not a set-input request".into());
+        };
+        let index = whole("index", index)?;
+        let index = u16::try_from(index)
+            .map_err(|_| format!("index {index} is not an object index (0 … 0xFFFF)"))?;
+        let sub = match sub {
+            Some(s) => whole("sub", s)?,
+            None => 0,
+        };
+        let sub =
+            u8::try_from(sub).map_err(|_| format!("sub {sub} is not a sub-index (0 … 255)"))?;
+        Ok((index, sub, whole("value", value)?))
+    }
+}
+
+/// A whole number given as a JSON number, as text (decimal or `0x` hex, with an optional
+/// `-`), or as `true` / `false` (1 / 0).
+fn whole(what: &str, v: &Value) -> Result<i64, String> {
+    let bad = || format!("{what} {v} is not a whole number (decimal or 0x hex)");
+    match v {
+        Value::Bool(b) => Ok(i64::from(*b)),
+        Value::Number(n) => n.as_i64().ok_or_else(bad),
+        Value::String(s) => {
+            let t = s.trim();
+            let (neg, body) = match t.strip_prefix('-') {
+                Some(b) => (true, b),
+                None => (false, t),
+            };
+            let n = match body.strip_prefix("0x").or_else(|| body.strip_prefix("0X")) {
+                Some(h) if !h.is_empty() && h.bytes().all(|b| b.is_ascii_hexdigit()) => {
+                    i64::from_str_radix(h, 16).ok()
+                }
+                Some(_) => None,
+                None if !body.is_empty() && body.bytes().all(|b| b.is_ascii_digit()) => {
+                    body.parse().ok()
+                }
+                None => None,
+            }
+            .ok_or_else(bad)?;
+            Ok(if neg { -n } else { n })
+        }
+        _ => Err(bad()),
     }
 }
 
@@ -552,7 +629,7 @@ impl FromStr for Fault {
 }
 
 /// The `cmd` names of [`Request`], for messages.
-pub const COMMANDS: [&str; 10] = [
+pub const COMMANDS: [&str; 11] = [
     "magnet",
     "motion",
     "fault",
@@ -563,6 +640,7 @@ pub const COMMANDS: [&str; 10] = [
     "reset-lateness",
     "nmt",
     "timing",
+    "set-input",
 ];
 
 /// Parses one request line into a request, or the error answer to send back. A key the

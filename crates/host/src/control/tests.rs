@@ -214,6 +214,12 @@ fn every_request() -> Vec<Request> {
             boot_delay_ms: Some(1.0),
             reset_boot_delay_ms: Some(1.0),
         },
+        Request::SetInput {
+            sensor: Some(0),
+            index: json!("0x6000"),
+            sub: Some(json!(1)),
+            value: json!(165),
+        },
     ]
 }
 

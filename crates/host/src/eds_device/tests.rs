@@ -152,6 +152,81 @@ fn the_hand_written_io_device() {
     assert!(find(m, 0x2000, 0).pdo && !find(m, 0x2100, 0).pdo);
 }
 
+/// examples/io-401.eds, the CiA 401 I/O module: it passes every check of the builder, with
+/// nothing left out.
+#[test]
+fn the_cia401_io_module() {
+    let text = include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../examples/io-401.eds"
+    ));
+    let d = eds(text).unwrap();
+    assert!(d.warnings.is_empty(), "{:?}", d.warnings);
+    let m = d.model;
+    assert_eq!((m.features.tpdos, m.features.rpdos), (4, 4));
+    // CiA 401's default RPDOs: digital outputs, then analogue outputs 1-4, 5-8, 9-12.
+    for (n, first, count) in [
+        (0u16, 0x6200_0108u32, 2u8),
+        (1, 0x6411_0110, 4),
+        (2, 0x6411_0510, 4),
+        (3, 0x6411_0910, 4),
+    ] {
+        assert_eq!(
+            find(m, 0x1600 + n, 0).default,
+            DefaultValue::Const(count.into())
+        );
+        for k in 0..count {
+            let want = first + (u32::from(k) << 8);
+            assert_eq!(
+                find(m, 0x1600 + n, k + 1).default,
+                DefaultValue::Const(want)
+            );
+        }
+        assert_eq!(
+            find(m, 0x1400 + n, 1).default,
+            DefaultValue::NodeId(0x200 + 0x100 * u32::from(n))
+        );
+    }
+    assert_eq!((d.vendor_id, d.product_code), (0xCA7, 0x401));
+    assert_eq!(find(m, 0x1000, 0).default, DefaultValue::Const(0x000F_0191));
+    // CiA 401's default TPDOs: digital inputs, then analogue inputs 1-4, 5-8, 9-12.
+    for (n, first, count) in [
+        (0u16, 0x6000_0108u32, 2u8),
+        (1, 0x6401_0110, 4),
+        (2, 0x6401_0510, 4),
+        (3, 0x6401_0910, 4),
+    ] {
+        assert_eq!(
+            find(m, 0x1A00 + n, 0).default,
+            DefaultValue::Const(count.into())
+        );
+        for k in 0..count {
+            let want = first + (u32::from(k) << 8);
+            assert_eq!(
+                find(m, 0x1A00 + n, k + 1).default,
+                DefaultValue::Const(want)
+            );
+        }
+        assert_eq!(
+            find(m, 0x1800 + n, 1).default,
+            DefaultValue::NodeId(0x180 + 0x100 * u32::from(n))
+        );
+        assert_eq!(find(m, 0x1800 + n, 2).default, DefaultValue::Const(255));
+    }
+    for (i, s, ty, access) in [
+        (0x6000, 2, DataType::Unsigned8, Access::Ro),
+        (0x6200, 2, DataType::Unsigned8, Access::Rw),
+        (0x6401, 12, DataType::Integer16, Access::Ro),
+        (0x6411, 12, DataType::Integer16, Access::Rw),
+        (0x1016, 4, DataType::Unsigned32, Access::Rw),
+        (0x1029, 3, DataType::Unsigned8, Access::Rw),
+    ] {
+        let e = find(m, i, s);
+        assert_eq!((e.ty, e.access), (ty, access), "{i:04X}/{s}");
+    }
+    assert!(find(m, 0x6401, 1).pdo && find(m, 0x6411, 1).pdo);
+}
+
 #[test]
 fn overrides_and_state_file() {
     let o = Overrides {

@@ -185,6 +185,12 @@ impl Runtime {
                 self.set_timing(i, t)?;
                 Ok(json!({"ok": true, "timing": timing_json(&t)}))
             }
+            Request::SetInput { sensor, .. } => {
+                let i = self.sensor_index(sensor)?;
+                Err(format!(
+                    "sensor {i} has no inputs to set: its process values are its measurements (magnet, motion, fault); set-input is for a device served from an EDS (docs/EDS_DEVICE.md)"
+                ))
+            }
             Request::Nmt { sensor, command } => {
                 let i = self.sensor_index(sensor)?;
                 let cs = nmt_command(&command)?;

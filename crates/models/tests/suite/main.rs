@@ -46,6 +46,7 @@ mod model_variants;
 mod node_rules;
 mod od_rows;
 mod poll_equivalence;
+mod process_values;
 mod reset_node_application;
 mod sdo_aborts;
 mod sdo_manual_tables;

@@ -376,6 +376,52 @@ impl<A: Application, S: Storage> Node<A, S> {
         self.epilogue();
     }
 
+    /// The device's own process wrote `raw` (little-endian, the type's bytes only) to
+    /// `index`/`sub`: an input it read, as an application's cycle writes its live values. The
+    /// value must suit the entry (its type, size and range: [`Abort`] as an SDO write would
+    /// get), but access does not count (a read-only input is the process's to change), and
+    /// only an object of the application area (0x2000 on) that no service or application rule
+    /// owns ([`Hook::None`]) may be written so: [`Abort::UnsupportedAccess`] otherwise (the
+    /// communication area's objects, 0x1001 among them, are the services'). A refused value
+    /// changes nothing. A changed
+    /// value is a change-of-state event to the TPDOs that map it (the path of
+    /// [`Node::update_sample`]). Returns whether the value changed; a node that is off takes
+    /// nothing (`Ok(false)`).
+    pub fn write_process_value(
+        &mut self,
+        index: u16,
+        sub: u8,
+        raw: u32,
+        now: Instant,
+    ) -> Result<bool, Abort> {
+        let d = &mut self.dev;
+        let slot = d.od.find(index, sub)?;
+        let e = d.od.entry(slot);
+        let Some(size) = e.ty.size() else {
+            return Err(Abort::UnsupportedAccess);
+        };
+        if e.hook != Hook::None || e.index < 0x2000 {
+            return Err(Abort::UnsupportedAccess);
+        }
+        // Bits beyond the type's bytes would be sent by no PDO and read by no SDO.
+        if size < 4 && raw >> (8 * size) != 0 {
+            return Err(Abort::InvalidValue);
+        }
+        e.check(raw)?;
+        if !d.powered {
+            return Ok(false);
+        }
+        d.now = now;
+        if d.od.get(slot) == raw {
+            return Ok(false);
+        }
+        d.od.set(slot, raw);
+        d.pdo.value_changed(slot, true);
+        d.run_pdos(now);
+        self.epilogue();
+        Ok(true)
+    }
+
     /// Handles every deadline that has passed at `now`.
     #[inline]
     pub fn handle_timeout(&mut self, now: Instant) {
