@@ -847,6 +847,8 @@ fn error_control_start_values_the_rules_refuse_name_the_line() {
     let err = eds(&set("1029sub2", "3")).unwrap_err();
     assert!(err.msg.contains("no reaction"), "{err}");
     assert!(eds(&set("1029sub2", "2")).is_ok());
+}
+
 /// The file's RPDO is served: a value it carries lands after the SDO write's checks, its
 /// event timer is a deadline (EMCY 0x8250), and an RPDO beyond those the stack has is left
 /// out with a warning naming its line.
