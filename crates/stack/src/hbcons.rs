@@ -223,7 +223,7 @@ impl HbConsumer {
         self.entries.iter().any(|e| e.lost)
     }
 
-    /// The next deadline in µs, [`NEVER`] for none (the node's timer table).
+    /// The next deadline in µs, `u64::MAX` for none (the node's timer table).
     #[inline]
     pub fn due_us(&self) -> u64 {
         if MAX_HB_CONSUMERS == 0 {
