@@ -133,8 +133,15 @@ pub fn check_input<S: Storage>(
         .map_err(|_| format!("{obj} does not exist in the device's dictionary"))?;
     let e = od.entry(slot);
     if !PROFILE_AREA.contains(&index) {
+        // Said as it is: the master writes a writable one; a read-only one (0x1001, 0x1018)
+        // is the stack's own.
+        let who = if e.access.writable() {
+            "the master sets it by SDO"
+        } else {
+            "it is read-only, kept by the device's CANopen services"
+        };
         return Err(format!(
-            "{obj} `{}` is no process object (those are 0x6000 … 0x9FFF, the device profile area): the master sets it by SDO",
+            "{obj} `{}` is no process object (those are 0x6000 … 0x9FFF, the device profile area): {who}",
             e.name
         ));
     }
@@ -415,6 +422,18 @@ mod tests {
             (r#""index":"0x6000","sub":3,"value":1"#, "does not exist"),
             (r#""index":"0x6200","sub":1,"value":1"#, "is an output (rw)"),
             (r#""index":"0x1017","value":100"#, "no process object"),
+            (
+                r#""index":"0x1017","value":100"#,
+                "the master sets it by SDO",
+            ),
+            (
+                r#""index":"0x1001","value":1"#,
+                "read-only, kept by the device",
+            ),
+            (
+                r#""index":"0x1018","sub":1,"value":1"#,
+                "read-only, kept by the device",
+            ),
             (r#""index":"0x1A00","sub":1,"value":0"#, "no process object"),
             (r#""index":"0x6000","sub":0,"value":1"#, "number of entries"),
             (r#""index":"0x6000","sub":1,"value":256"#, "out of range"),
