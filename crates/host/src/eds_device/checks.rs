@@ -327,37 +327,42 @@ impl Builder<'_> {
         Ok(())
     }
 
-    /// The PDO communication values a device starts with (`model`'s table, node-id relative
-    /// ones on its node-id) pass the rule an SDO write of them must
-    /// ([`pdo::Tpdos::check_value`], [`rpdo::Rpdos::check_value`]): no reserved transmission
-    /// type, no restricted or 29-bit CAN-ID on a valid PDO, a SYNC start value of at most 240.
-    /// Served as they were, they would drive the PDO (an RPDO of type 241 taken at once, one
-    /// listening on NMT's CAN-ID 0) where no master could have put it. Refused with the
-    /// value's line.
+    /// The PDO communication values a device starts with (`model`'s table; a node-id relative
+    /// one on every node-id 1 … 127, as LSS may give it any) pass the rule an SDO write of them
+    /// must ([`pdo::Tpdos::check_value`], [`rpdo::Rpdos::check_value`]): no reserved
+    /// transmission type, no restricted or 29-bit CAN-ID on a valid PDO, a SYNC start value of
+    /// at most 240. Served as they were, they would drive the PDO (an RPDO of type 241 taken
+    /// at once, one listening on NMT's CAN-ID 0) where no master could have put it. Refused
+    /// with the value's line.
     pub(super) fn check_pdo_comm(
         &self,
         model: &'static Model,
         value_lines: &BTreeMap<u32, usize>,
     ) -> Result<(), EdsError> {
         let od = canpos_stack::Dictionary::new(model);
-        let node = u32::from(model.default_config.node_id);
         for e in model.entries {
-            let raw = match e.default {
-                DefaultValue::Const(v) => v,
-                DefaultValue::NodeId(base) => base.wrapping_add(node),
+            let (base, nodes) = match e.default {
+                DefaultValue::Const(v) => (v, 0..=0u32),
+                DefaultValue::NodeId(base) => (base, 1..=127),
                 _ => continue,
             };
-            let refused = match e.hook {
+            let refused = |raw: u32| match e.hook {
                 Hook::TpdoComm => pdo::Tpdos::check_value(&od, e.index, e.sub, raw).is_err(),
                 Hook::RpdoComm => rpdo::Rpdos::check_value(&od, e.index, e.sub, raw).is_err(),
-                _ => continue,
+                _ => false,
             };
-            if !refused {
+            let Some(node) = nodes.clone().find(|&n| refused(base.wrapping_add(n))) else {
                 continue;
-            }
+            };
+            let raw = base.wrapping_add(node);
+            let on = if node == 0 {
+                String::new()
+            } else {
+                format!(" ($NODEID+0x{base:X} on node-id {node})")
+            };
             let what = match e.sub {
                 1 => format!(
-                    "COB-ID 0x{raw:08X} is refused: a valid PDO takes no restricted CAN-ID \
+                    "COB-ID 0x{raw:08X}{on} is refused: a valid PDO takes no restricted CAN-ID \
                      (CiA 301: NMT, SYNC, EMCY, TIME, SDO, heartbeat, LSS) and canpos no 29-bit one"
                 ),
                 2 => format!("transmission type {raw} is reserved (241 … 253, CiA 301)"),

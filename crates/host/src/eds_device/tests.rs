@@ -971,7 +971,16 @@ fn record_counts_and_pdo_start_values_the_rules_refuse_name_the_line() {
         ("1400sub2", "241", "transmission type 241 is reserved"),
         ("1802sub2", "253", "transmission type 253 is reserved"),
         ("1400sub1", "0x0", "COB-ID 0x00000000 is refused"),
-        ("1401sub1", "$NODEID+0x580", "COB-ID 0x00000585 is refused"),
+        (
+            "1401sub1",
+            "$NODEID+0x580",
+            "COB-ID 0x00000581 ($NODEID+0x580 on node-id 1)",
+        ),
+        (
+            "1401sub1",
+            "$NODEID+0x560",
+            "COB-ID 0x00000581 ($NODEID+0x560 on node-id 33)",
+        ),
         ("1800sub1", "0x701", "COB-ID 0x00000701 is refused"),
         ("1400sub1", "0x20000205", "29-bit"),
     ] {
@@ -992,7 +1001,18 @@ fn record_counts_and_pdo_start_values_the_rules_refuse_name_the_line() {
         assert!(err.line > at && err.line < at + 8, "[{sec}] {v}: {err}");
         assert!(err.msg.contains(words), "[{sec}] {v}: {err}");
     }
-    // What a write could set is taken: a restricted CAN-ID on an invalid PDO, type 240.
+    // What a write could set is taken: a restricted CAN-ID on an invalid PDO, type 240; the
+    // pre-defined COB-IDs on the highest node-id and on none yet (LSS unconfigured, 255).
     assert!(eds(&set("1400sub1", "0x80000000")).is_ok());
     assert!(eds(&set("1400sub2", "240")).is_ok());
+    for node_id in [127, 255] {
+        let o = Overrides {
+            node_id: Some(node_id),
+            ..NONE
+        };
+        assert!(
+            build(io401, "x.eds", FileKind::Eds, &o).is_ok(),
+            "{node_id}"
+        );
+    }
 }
