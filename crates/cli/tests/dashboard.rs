@@ -403,6 +403,30 @@ fn an_eds_devices_process_objects_show_and_its_inputs_are_set() {
         assert_eq!(code, 400, "{body}: {v}");
         assert!(error_of(&v).contains(why), "{body}: {v}");
     }
+    // set-input passes the guard of every other write: another site's page (even with a JSON
+    // body), a body of a type a page may send without a preflight, a DNS-rebinding name.
+    let host = format!("Host: {a}");
+    let rebound = format!("Host: attacker.example:{}", a.port());
+    let input = r#"{"cmd":"set-input","index":"0x6000","sub":2,"value":1}"#;
+    for (headers, status) in [
+        (
+            vec![
+                &host[..],
+                "Origin: http://evil.example",
+                "Content-Type: application/json",
+            ],
+            403,
+        ),
+        (
+            vec![&host[..], "Origin: null", "Content-Type: application/json"],
+            403,
+        ),
+        (vec![&host[..], "Content-Type: text/plain"], 415),
+        (vec![&rebound[..], "Content-Type: application/json"], 403),
+    ] {
+        let (code, v) = http_with(a, "POST", "/api/nodes/7/control", &headers, input);
+        assert_eq!(code, status, "{headers:?}: {v}");
+    }
     let st = rt.control().request(Request::State { sensor: None });
     let objs = st["process"].as_array().unwrap();
     let changed: Vec<_> = objs.iter().filter(|o| o["value"] != 0).collect();

@@ -20,7 +20,8 @@
 //! DOMAIN and 64-bit / REAL / OCTET_STRING types, writable strings, more than
 //! [`MAX_ENTRIES`] entries, [`pdo::MAX_TPDOS`] TPDOs or [`MAX_HB_CONSUMERS`] heartbeat
 //! consumer entries (0x1016), and start values the services' rules refuse (a node-id watched
-//! twice in 0x1016, a 0x1029 reaction other than 0, 1, 2). RPDOs beyond [`rpdo::MAX_RPDOS`]
+//! twice in 0x1016, a 0x1029 reaction other than 0, 1, 2, a reserved PDO transmission type, a
+//! sub 0 that is not its record's highest sub-index). RPDOs beyond [`rpdo::MAX_RPDOS`]
 //! are left out with a warning naming their line (the ones served stay usable: a master that
 //! configures only the first ones works).
 
@@ -439,6 +440,7 @@ impl Builder<'_> {
         }
         self.check_mappings(&entries, &value_lines)?;
         self.check_error_control(&entries, &value_lines)?;
+        self.check_highest_sub(&entries, &value_lines)?;
 
         for (key, have, what) in [
             ("NrOfTXPDO", tpdo_objects, "TPDO"),
@@ -596,6 +598,8 @@ impl Builder<'_> {
                 serial,
             },
         }));
+        // On the table as served (a leak of a refused file's table is a few KiB, once).
+        self.check_pdo_comm(model, &value_lines)?;
         Ok(EdsDevice {
             model,
             cfg: model.default_config,

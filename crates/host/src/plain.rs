@@ -32,6 +32,8 @@ pub struct PlainRuntime {
     powered: bool,
     /// The state file, for the control state.
     storage: String,
+    /// The inputs the control interface set, written back after a reset node.
+    inputs: requests::Inputs,
 }
 
 impl PlainRuntime {
@@ -57,6 +59,7 @@ impl PlainRuntime {
             lateness: Lateness::default(),
             powered: false,
             storage: storage_name,
+            inputs: requests::Inputs::default(),
         }
     }
 
@@ -77,12 +80,16 @@ impl PlainRuntime {
         self.flush(now)
     }
 
-    /// Sends everything the node has to send at `now` (its due timers first).
+    /// Sends everything the node has to send at `now` (its due timers first). After a reset,
+    /// first the inputs the control interface set go back into the dictionary: the module's
+    /// process reads its terminals again before anything reads the objects.
     fn flush(&mut self, now: Instant) -> io::Result<()> {
+        self.inputs.after_reset(&mut self.node, now);
         while let Some(f) = self.hw.poll(&mut self.node, now) {
             if let Err(e) = self.transport.send(&f) {
                 tracing::warn!(error = %e, "send failed");
             }
+            self.inputs.after_reset(&mut self.node, now);
         }
         Ok(())
     }
@@ -132,8 +139,14 @@ impl PlainRuntime {
                     Msg::Stop => return Ok(()),
                     Msg::Request(req, reply) => {
                         let now = self.now();
-                        let answer = requests::handle(&mut self.node, req, &self.storage, now)
-                            .unwrap_or_else(|e| json!({"ok": false, "error": e}));
+                        let answer = requests::handle(
+                            &mut self.node,
+                            req,
+                            &self.storage,
+                            &mut self.inputs,
+                            now,
+                        )
+                        .unwrap_or_else(|e| json!({"ok": false, "error": e}));
                         let _ = reply.send(answer);
                         // What the request caused (a TPDO of a changed input) goes out now.
                         self.flush(now)?;
@@ -222,6 +235,67 @@ mod tests {
             bad["error"].as_str().unwrap().contains("set-input"),
             "{bad}"
         );
+        h.stop().unwrap();
+    }
+
+    /// An input set through the control interface is the module's terminal, not a value of
+    /// its dictionary: an NMT reset node (a PLC's start-up sends one to every node) reloads the
+    /// defaults, and the input reads what the terminal says again at once. Before, it read 0
+    /// until the next set-input. An output goes back to its default, as the reset says.
+    #[test]
+    fn an_input_set_holds_across_a_reset_node() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = include_str!(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../examples/io-401.eds"
+        ));
+        let o = Overrides {
+            node_id: Some(7),
+            bitrate_kbps: None,
+            serial: None,
+        };
+        let d = build(text, "io-401.eds", FileKind::Eds, &o).unwrap();
+        let bus = MemBus::new();
+        let mut master = bus.attach();
+        let storage = FileStorage::new(d.state_file(dir.path()));
+        let rt = PlainRuntime::new(Box::new(bus.attach()), None, d.model, d.cfg, storage);
+        let h = rt.spawn().unwrap();
+        recv_id(&mut master, 0x707, Duration::from_secs(2)).expect("boot-up");
+        let set = h.control().request(Request::SetInput {
+            sensor: None,
+            index: json!("0x6000"),
+            sub: Some(json!(1)),
+            value: json!("0xA5"),
+        });
+        assert_eq!(set["ok"], true, "{set}");
+        let upload = |master: &mut dyn Transport, index: u16, sub: u8| {
+            let [lo, hi] = index.to_le_bytes();
+            let req = Frame::new(0x607, &[0x40, lo, hi, sub, 0, 0, 0, 0]).unwrap();
+            master.send(&req).unwrap();
+            let r = recv_id(master, 0x587, Duration::from_secs(2)).expect("SDO answer");
+            r.data()[4]
+        };
+        // An output the master wrote.
+        let out = Frame::new(0x607, &[0x2F, 0x00, 0x62, 1, 0x3C, 0, 0, 0]).unwrap();
+        master.send(&out).unwrap();
+        recv_id(&mut master, 0x587, Duration::from_secs(2)).expect("SDO answer");
+        master
+            .send(&Frame::new(0x000, &[0x81, 7]).unwrap())
+            .unwrap();
+        let boot = recv_id(&mut master, 0x707, Duration::from_secs(2)).expect("boot-up");
+        assert_eq!(boot.data(), &[0]);
+        assert_eq!(
+            upload(&mut master, 0x6000, 1),
+            0xA5,
+            "the input after the reset"
+        );
+        assert_eq!(
+            upload(&mut master, 0x6200, 1),
+            0,
+            "the output after the reset"
+        );
+        let st = h.control().request(Request::State { sensor: None });
+        assert_eq!(st["process"][0]["value"], 0xA5, "{st}");
         h.stop().unwrap();
     }
 }

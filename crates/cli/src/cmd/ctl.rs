@@ -80,8 +80,10 @@ pub enum CtlAction {
         index: String,
         /// Sub-index.
         sub: String,
-        /// The value, a whole number of the object's type (decimal or 0x hex).
-        #[arg(allow_negative_numbers = true)]
+        /// The value, a whole number of the object's type (decimal or 0x hex, `-` for
+        /// negative: `-0x8000`).
+        // Any leading `-`: clap's negative numbers are decimal only, and `-0x8000` is a value.
+        #[arg(allow_hyphen_values = true)]
         value: String,
     },
     /// Disturb the bus (paced virtual buses, docs/BUS.md): `corrupt PER_MILLION` (0 stops),

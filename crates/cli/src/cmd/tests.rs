@@ -1241,6 +1241,7 @@ fn command_line_definitions_are_consistent() {
         Eds(EdsArgs),
         Record(RecordArgs),
         Replay(ReplayArgs),
+        Ctl(crate::cmd::ctl::CtlArgs),
     }
     Cli::command().debug_assert();
     let p = |args: &[&str]| Cli::try_parse_from(args).map(|c| c.cmd);
@@ -1272,6 +1273,29 @@ fn command_line_definitions_are_consistent() {
         p(&["canpos", "sdo", "write", "5", "6010", "1", "7"]).is_err(),
         "--type is required"
     );
+    // A negative value of set-input in hex, as docs/EDS_DEVICE.md has it (clap took `-0x8000`
+    // for an option).
+    for v in ["-0x8000", "-5", "0xA5"] {
+        match p(&[
+            "canpos",
+            "ctl",
+            "--control",
+            "127.0.0.1:1",
+            "set-input",
+            "0x6401",
+            "7",
+            v,
+        ]) {
+            Ok(Cmd::Ctl(crate::cmd::ctl::CtlArgs {
+                action: crate::cmd::ctl::CtlAction::SetInput { value, .. },
+                ..
+            })) => assert_eq!(value, v),
+            other => panic!(
+                "set-input {v} did not parse: {:?}",
+                other.err().map(|e| e.to_string())
+            ),
+        }
+    }
 }
 
 #[test]

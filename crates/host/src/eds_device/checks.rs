@@ -291,3 +291,91 @@ impl Builder<'_> {
         Ok(())
     }
 }
+
+impl Builder<'_> {
+    /// Sub-index 0 of the records whose sub-indices the stack's services read (0x1016, 0x1029,
+    /// the PDO communication records) is their highest sub-index (CiA 301): a master walks the
+    /// record up to it, so a larger one sends it into aborts, a smaller one hides entries that
+    /// still act (a heartbeat consumer entry it never configured). Refused with its line.
+    pub(super) fn check_highest_sub(
+        &self,
+        entries: &[Entry],
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        let counted = |i: u16| matches!(i, 0x1016 | 0x1029 | 0x1400..=0x15FF | 0x1800..=0x19FF);
+        for e in entries.iter().filter(|e| e.sub == 0 && counted(e.index)) {
+            let highest = entries
+                .iter()
+                .filter(|x| x.index == e.index)
+                .map(|x| x.sub)
+                .max()
+                .unwrap_or(0);
+            match e.default {
+                DefaultValue::Const(v) if highest > 0 && v != u32::from(highest) => {
+                    return Err(self.err(
+                        value_lines.get(&e.key()).copied().unwrap_or(0),
+                        format!(
+                            "0x{:04X} sub 0 is {v}, but the highest sub-index of 0x{:04X} is \
+                             {highest} (CiA 301: sub 0 is the highest sub-index supported)",
+                            e.index, e.index
+                        ),
+                    ))
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// The PDO communication values a device starts with (`model`'s table; a node-id relative
+    /// one on every node-id 1 … 127, as LSS may give it any) pass the rule an SDO write of them
+    /// must ([`pdo::Tpdos::check_value`], [`rpdo::Rpdos::check_value`]): no reserved
+    /// transmission type, no restricted or 29-bit CAN-ID on a valid PDO, a SYNC start value of
+    /// at most 240. Served as they were, they would drive the PDO (an RPDO of type 241 taken
+    /// at once, one listening on NMT's CAN-ID 0) where no master could have put it. Refused
+    /// with the value's line.
+    pub(super) fn check_pdo_comm(
+        &self,
+        model: &'static Model,
+        value_lines: &BTreeMap<u32, usize>,
+    ) -> Result<(), EdsError> {
+        let od = canpos_stack::Dictionary::new(model);
+        for e in model.entries {
+            let (base, nodes) = match e.default {
+                DefaultValue::Const(v) => (v, 0..=0u32),
+                DefaultValue::NodeId(base) => (base, 1..=127),
+                _ => continue,
+            };
+            let refused = |raw: u32| match e.hook {
+                Hook::TpdoComm => pdo::Tpdos::check_value(&od, e.index, e.sub, raw).is_err(),
+                Hook::RpdoComm => rpdo::Rpdos::check_value(&od, e.index, e.sub, raw).is_err(),
+                _ => false,
+            };
+            let Some(node) = nodes.clone().find(|&n| refused(base.wrapping_add(n))) else {
+                continue;
+            };
+            let raw = base.wrapping_add(node);
+            let on = if node == 0 {
+                String::new()
+            } else {
+                format!(" ($NODEID+0x{base:X} on node-id {node})")
+            };
+            let what = match e.sub {
+                1 => format!(
+                    "COB-ID 0x{raw:08X}{on} is refused: a valid PDO takes no restricted CAN-ID \
+                     (CiA 301: NMT, SYNC, EMCY, TIME, SDO, heartbeat, LSS) and canpos no 29-bit one"
+                ),
+                2 => format!("transmission type {raw} is reserved (241 … 253, CiA 301)"),
+                _ => format!("SYNC start value {raw} is above 240"),
+            };
+            return Err(self.err(
+                value_lines.get(&e.key()).copied().unwrap_or(0),
+                format!(
+                    "0x{:04X} sub {}: {what}; an SDO write of it would be refused too",
+                    e.index, e.sub
+                ),
+            ));
+        }
+        Ok(())
+    }
+}

@@ -945,3 +945,74 @@ fn the_exported_eds_of_a_device_with_rpdos_rebuilds_it() {
     };
     assert_eq!(keys(b), keys(m));
 }
+
+/// Sub 0 of 0x1016, 0x1029 and the PDO communication records is their highest sub-index, and
+/// the PDOs' start values pass the rules an SDO write of them must: otherwise the file is
+/// refused with the value's line (before, a lying sub 0 was served, and an RPDO of the reserved
+/// type 241 took frames at once, one on the NMT CAN-ID 0 listened there).
+#[test]
+fn record_counts_and_pdo_start_values_the_rules_refuse_name_the_line() {
+    let io401 = include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../examples/io-401.eds"
+    ));
+    let set = |sec: &str, v: &str| {
+        let start = io401.find(&format!("\n[{sec}]\n")).expect(sec);
+        let at = start + io401[start..].find("\nDefaultValue=").unwrap();
+        let end = at + 1 + io401[at + 1..].find('\n').unwrap();
+        format!("{}\nDefaultValue={v}{}", &io401[..at], &io401[end..])
+    };
+    for (sec, v, words) in [
+        ("1016sub0", "9", "highest sub-index of 0x1016 is 4"),
+        ("1016sub0", "2", "highest sub-index of 0x1016 is 4"),
+        ("1029sub0", "1", "highest sub-index of 0x1029 is 3"),
+        ("1400sub0", "2", "highest sub-index of 0x1400 is 5"),
+        ("1803sub0", "6", "highest sub-index of 0x1803 is 5"),
+        ("1400sub2", "241", "transmission type 241 is reserved"),
+        ("1802sub2", "253", "transmission type 253 is reserved"),
+        ("1400sub1", "0x0", "COB-ID 0x00000000 is refused"),
+        (
+            "1401sub1",
+            "$NODEID+0x580",
+            "COB-ID 0x00000581 ($NODEID+0x580 on node-id 1)",
+        ),
+        (
+            "1401sub1",
+            "$NODEID+0x560",
+            "COB-ID 0x00000581 ($NODEID+0x560 on node-id 33)",
+        ),
+        ("1800sub1", "0x701", "COB-ID 0x00000701 is refused"),
+        ("1400sub1", "0x20000205", "29-bit"),
+    ] {
+        let text = set(sec, v);
+        let err = match build(
+            &text,
+            "x.eds",
+            FileKind::Eds,
+            &Overrides {
+                node_id: Some(5),
+                ..NONE
+            },
+        ) {
+            Err(e) => e,
+            Ok(_) => panic!("[{sec}] DefaultValue={v} was taken"),
+        };
+        let at = line_of(&text, &format!("[{sec}]"));
+        assert!(err.line > at && err.line < at + 8, "[{sec}] {v}: {err}");
+        assert!(err.msg.contains(words), "[{sec}] {v}: {err}");
+    }
+    // What a write could set is taken: a restricted CAN-ID on an invalid PDO, type 240; the
+    // pre-defined COB-IDs on the highest node-id and on none yet (LSS unconfigured, 255).
+    assert!(eds(&set("1400sub1", "0x80000000")).is_ok());
+    assert!(eds(&set("1400sub2", "240")).is_ok());
+    for node_id in [127, 255] {
+        let o = Overrides {
+            node_id: Some(node_id),
+            ..NONE
+        };
+        assert!(
+            build(io401, "x.eds", FileKind::Eds, &o).is_ok(),
+            "{node_id}"
+        );
+    }
+}

@@ -133,8 +133,15 @@ pub fn check_input<S: Storage>(
         .map_err(|_| format!("{obj} does not exist in the device's dictionary"))?;
     let e = od.entry(slot);
     if !PROFILE_AREA.contains(&index) {
+        // Said as it is: the master writes a writable one; a read-only one (0x1001, 0x1018)
+        // is the stack's own.
+        let who = if e.access.writable() {
+            "the master sets it by SDO"
+        } else {
+            "it is read-only, kept by the device's CANopen services"
+        };
         return Err(format!(
-            "{obj} `{}` is no process object (those are 0x6000 … 0x9FFF, the device profile area): the master sets it by SDO",
+            "{obj} `{}` is no process object (those are 0x6000 … 0x9FFF, the device profile area): {who}",
             e.name
         ));
     }
@@ -187,12 +194,43 @@ pub fn check_input<S: Storage>(
     Ok(v as u32 & mask)
 }
 
+/// The inputs `set-input` set: the module's terminals, which its process reads, not values
+/// of its dictionary. A reset node reloads the dictionary's defaults; a real module reads its
+/// terminals again at once, so [`Inputs::after_reset`] writes them back.
+#[derive(Clone, Debug, Default)]
+pub struct Inputs {
+    /// (index, sub) → raw value, one per input set (bounded by the dictionary's entries).
+    held: std::collections::BTreeMap<(u16, u8), u32>,
+    /// The node's reset count when the inputs were last in its dictionary.
+    resets: u8,
+}
+
+impl Inputs {
+    /// Writes the held inputs back into `node` at `now` if it was reset since the last call
+    /// (an input is read-only to the bus: only a reset changes it behind the process's back).
+    /// Returns whether it was.
+    pub fn after_reset<S: Storage>(&mut self, node: &mut Node<Plain, S>, now: Instant) -> bool {
+        let resets = node.device().stats().resets;
+        if resets == self.resets {
+            return false;
+        }
+        self.resets = resets;
+        for (&(index, sub), &raw) in &self.held {
+            // Checked when it was set; the table has not changed since.
+            let _ = node.write_process_value(index, sub, raw, now);
+        }
+        true
+    }
+}
+
 /// Carries out a control request on the plain device `node` at `now`; `storage` names its
-/// state file. The frames it causes are left in the node for the caller to send.
+/// state file, `inputs` holds what `set-input` set. The frames it causes are left in the node
+/// for the caller to send.
 pub fn handle<S: Storage>(
     node: &mut Node<Plain, S>,
     req: Request,
     storage: &str,
+    inputs: &mut Inputs,
     now: Instant,
 ) -> Result<Value, String> {
     req.validate()?;
@@ -209,6 +247,7 @@ pub fn handle<S: Storage>(
             let changed = node
                 .write_process_value(index, sub, raw, now)
                 .map_err(|a| format!("{}: {}", object(index, sub), a.meaning()))?;
+            inputs.held.insert((index, sub), raw);
             Ok(json!({"ok": true, "changed": changed, "value": v}))
         }
         Request::Nmt { command, .. } => {
@@ -274,7 +313,13 @@ mod tests {
     }
 
     fn ask(n: &mut Node<Plain, RamStorage>, line: &str, t: u64) -> Result<Value, String> {
-        handle(n, req(line), "ram", Instant::from_micros(t))
+        handle(
+            n,
+            req(line),
+            "ram",
+            &mut Inputs::default(),
+            Instant::from_micros(t),
+        )
     }
 
     fn object_of<'a>(st: &'a Value, index: &str, sub: u64) -> &'a Value {
@@ -377,6 +422,18 @@ mod tests {
             (r#""index":"0x6000","sub":3,"value":1"#, "does not exist"),
             (r#""index":"0x6200","sub":1,"value":1"#, "is an output (rw)"),
             (r#""index":"0x1017","value":100"#, "no process object"),
+            (
+                r#""index":"0x1017","value":100"#,
+                "the master sets it by SDO",
+            ),
+            (
+                r#""index":"0x1001","value":1"#,
+                "read-only, kept by the device",
+            ),
+            (
+                r#""index":"0x1018","sub":1,"value":1"#,
+                "read-only, kept by the device",
+            ),
             (r#""index":"0x1A00","sub":1,"value":0"#, "no process object"),
             (r#""index":"0x6000","sub":0,"value":1"#, "number of entries"),
             (r#""index":"0x6000","sub":1,"value":256"#, "out of range"),

@@ -37,6 +37,16 @@ impl Runtime {
         }
     }
 
+    /// Why sensor `s` refuses `set-input` (or that it does not exist).
+    fn no_inputs(&self, s: Option<usize>) -> String {
+        match self.sensor_index(s) {
+            Ok(i) => format!(
+                "sensor {i} has no inputs to set: its process values are its measurements (magnet, motion, fault); set-input is for a device served from an EDS (docs/EDS_DEVICE.md)"
+            ),
+            Err(e) => e,
+        }
+    }
+
     /// Position channels of sensor `i` (magnets it can measure).
     pub(super) fn channels(&self, i: usize) -> usize {
         usize::from(self.devices[i].node.device().config().channels.max(1))
@@ -54,6 +64,11 @@ impl Runtime {
     }
 
     pub(super) fn try_request(&mut self, req: Request, now: Instant) -> Result<Value, String> {
+        // A sensor has no inputs: said before the request's values are judged, so that a
+        // user with a typo is not sent to fix a value of a request no sensor takes.
+        if let Request::SetInput { sensor, .. } = req {
+            return Err(self.no_inputs(sensor));
+        }
         // Values first, then indices, then the change: a refused request changes nothing.
         req.validate()?;
         match req {
@@ -185,12 +200,7 @@ impl Runtime {
                 self.set_timing(i, t)?;
                 Ok(json!({"ok": true, "timing": timing_json(&t)}))
             }
-            Request::SetInput { sensor, .. } => {
-                let i = self.sensor_index(sensor)?;
-                Err(format!(
-                    "sensor {i} has no inputs to set: its process values are its measurements (magnet, motion, fault); set-input is for a device served from an EDS (docs/EDS_DEVICE.md)"
-                ))
-            }
+            Request::SetInput { sensor, .. } => Err(self.no_inputs(sensor)),
             Request::Nmt { sensor, command } => {
                 let i = self.sensor_index(sensor)?;
                 let cs = nmt_command(&command)?;

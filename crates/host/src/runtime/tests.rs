@@ -691,6 +691,53 @@ fn refused_requests_change_nothing() {
     h.stop().unwrap();
 }
 
+/// A sensor has no inputs to set (its process values are its measurements): `set-input` is
+/// refused with that reason whatever its values, so a user with a typo is not sent to fix a
+/// value the sensor would then refuse anyway; an unknown sensor is still named.
+#[test]
+fn a_sensor_refuses_set_input_whatever_its_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let bus = MemBus::new();
+    let mut rt = Runtime::new(Box::new(bus.attach()), None);
+    rt.add(th_setup(dir.path(), 9, 5));
+    let h = rt.spawn().unwrap();
+    let c = h.control();
+    for (index, value) in [
+        (json!("0x6000"), json!(1)),
+        (json!("0x6000"), json!("abc")),
+        (json!(0x1_0000), json!(1)),
+    ] {
+        let a = c.request(Request::SetInput {
+            sensor: None,
+            index,
+            sub: Some(json!(1)),
+            value,
+        });
+        assert_eq!(a["ok"], false, "{a}");
+        assert!(
+            a["error"]
+                .as_str()
+                .unwrap()
+                .contains("has no inputs to set"),
+            "{a}"
+        );
+    }
+    let a = c.request(Request::SetInput {
+        sensor: Some(2),
+        index: json!("0x6000"),
+        sub: None,
+        value: json!(1),
+    });
+    assert!(
+        a["error"]
+            .as_str()
+            .unwrap()
+            .contains("sensor 2 does not exist"),
+        "{a}"
+    );
+    h.stop().unwrap();
+}
+
 #[test]
 fn ambient_out_of_range_raises_over_temperature_by_itself() {
     let dir = tempfile::tempdir().unwrap();
