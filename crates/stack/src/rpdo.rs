@@ -30,6 +30,12 @@ enum Length {
     Long,
 }
 
+/// The length errors and their EMCY codes.
+const LENGTH_ERRORS: [(Length, u16); 2] = [
+    (Length::Short, emcy::code::PDO_LENGTH),
+    (Length::Long, emcy::code::PDO_LENGTH_EXCEEDED),
+];
+
 /// One RPDO's cached configuration and reception state.
 #[derive(Clone, Copy, Debug)]
 pub struct Rpdo {
@@ -71,9 +77,9 @@ impl Default for Rpdo {
 }
 
 impl Rpdo {
-    /// RPDO `n` as the dictionary configures it, with no data held and no deadline running;
-    /// the errors it reported (`timed_out`, `length`) stay until its next reception.
-    fn read(od: &Dictionary, n: usize, timed_out: bool, length: Length) -> Rpdo {
+    /// RPDO `n` as the dictionary configures it, with no data held, no deadline running and
+    /// no error.
+    fn read(od: &Dictionary, n: usize) -> Rpdo {
         let ci = comm_index(n);
         let cob = od.value(ci, 1).unwrap_or(COB_INVALID);
         let mut map = [Mapped::default(); MAX_MAP];
@@ -89,8 +95,8 @@ impl Rpdo {
             len,
             deadline: NEVER,
             held: None,
-            timed_out,
-            length,
+            timed_out: false,
+            length: Length::Fits,
         }
     }
 
@@ -173,24 +179,47 @@ pub const fn map_index(n: usize) -> u16 {
 }
 
 impl Rpdos {
-    /// Re-reads every RPDO's configuration from the dictionary (after reset or load).
+    /// Re-reads every RPDO's configuration from the dictionary (a reset communication or
+    /// node): their errors are forgotten with the EMCY service's active errors, which the
+    /// reset clears too (an error kept here would be raised again by another RPDO's
+    /// reception, or keep 0x8250 standing for good).
     pub fn configure_all(&mut self, count: usize, od: &Dictionary) {
         if MAX_RPDOS == 0 {
             return;
         }
         self.count = count.min(MAX_RPDOS);
-        for n in 0..self.count {
-            self.configure(n, od);
+        for (n, p) in self.pdos.iter_mut().enumerate() {
+            *p = if n < self.count {
+                Rpdo::read(od, n)
+            } else {
+                Rpdo::default()
+            };
         }
+        self.refresh_due();
     }
 
     /// Re-reads RPDO `n` (0-based) after a write to its parameters: held data is dropped and
-    /// the deadline monitoring waits for the next reception.
-    pub fn configure(&mut self, n: usize, od: &Dictionary) {
+    /// the deadline monitoring waits for the next reception. Its errors stay for that
+    /// reception to end while it is valid; one no longer valid receives nothing, so they end
+    /// now (the EMCY codes no RPDO holds any more are cleared).
+    pub fn configure(&mut self, n: usize, od: &Dictionary, emcy: &mut Emcy) {
         if let Some(p) = self.pdos.get_mut(n) {
-            *p = Rpdo::read(od, n, p.timed_out, p.length);
+            let (timed_out, length) = (p.timed_out, p.length);
+            *p = Rpdo::read(od, n);
+            if p.valid() {
+                p.timed_out = timed_out;
+                p.length = length;
+            }
         }
         self.refresh_due();
+        for (kind, code) in LENGTH_ERRORS {
+            if !self.pdos.iter().any(|p| p.length == kind) {
+                emcy.clear(code);
+            }
+        }
+        if !self.pdos.iter().any(|p| p.timed_out) {
+            emcy.clear(emcy::code::RPDO_TIMEOUT);
+        }
     }
 
     /// The rule of one RPDO parameter value on its own (`index` in 0x1400.. or 0x1600..): the
@@ -285,10 +314,7 @@ impl Rpdos {
     /// Raises or clears the two length errors: each stays while an RPDO's last reception had
     /// it (the error register's communication bit with it).
     fn report_length(&self, emcy: &mut Emcy) {
-        for (kind, code) in [
-            (Length::Short, emcy::code::PDO_LENGTH),
-            (Length::Long, emcy::code::PDO_LENGTH_EXCEEDED),
-        ] {
+        for (kind, code) in LENGTH_ERRORS {
             if self.pdos.iter().any(|p| p.length == kind) {
                 emcy.raise(code, emcy::reg::COMMUNICATION, [0; 5]);
             } else {

@@ -912,3 +912,71 @@ fn a_stored_mapping_of_an_empty_entry_maps_nothing() {
     assert!(!d.rpdos().get(0).unwrap().valid());
     assert!(!d.tpdos().get(0).unwrap().valid());
 }
+
+/// A reset communication forgets the RPDOs' errors with the rest of the EMCY state (CiA 301
+/// 0x1001 / 0x1003: the errors are the device's present ones): a length error or a timeout
+/// from before it is neither raised again by another RPDO's reception nor kept standing.
+#[test]
+fn a_reset_communication_ends_the_rpdo_errors() {
+    // A length error of RPDO1, then the reset: RPDO2's good frame raises nothing.
+    let mut r = Rig::operational();
+    r.send(RPDO1, &[]);
+    assert_eq!(r.emcys(), [0x8210]);
+    r.nmt(0x82);
+    r.take();
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.nmt(0x01);
+    r.send(RPDO2, &[1, 0]);
+    r.sync(None);
+    assert_eq!(r.read(0x2001, 0), 1);
+    assert_eq!(r.emcys(), [], "a length error from before the reset");
+    assert_eq!(r.read(0x1001, 0), 0);
+    // RPDO1 timed out, then the reset: RPDO2's own timeout clears at its next reception.
+    let mut r = Rig::new();
+    r.download(0x1400, 5, 10, 2).unwrap();
+    r.nmt(0x01);
+    r.send(RPDO1, &[1]);
+    r.advance_ms(20);
+    assert_eq!(r.emcys(), [0x8250]);
+    r.nmt(0x82);
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.download(0x1401, 2, 255, 1).unwrap();
+    r.download(0x1401, 5, 10, 2).unwrap();
+    r.nmt(0x01);
+    r.take();
+    r.send(RPDO2, &[2, 0]);
+    r.advance_ms(20);
+    assert_eq!(r.emcys(), [0x8250]);
+    r.send(RPDO2, &[3, 0]);
+    assert_eq!(r.emcys(), [0x0000], "RPDO1's timeout from before the reset");
+    assert_eq!(r.read(0x1001, 0), 0);
+}
+
+/// An RPDO that is no longer received (made not valid) has no deadline and no length: its
+/// errors end with it, so that another RPDO's reception clears the EMCY as its own would.
+#[test]
+fn an_rpdo_made_not_valid_ends_its_errors() {
+    let mut r = Rig::new();
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.download(0x1401, 2, 255, 1).unwrap();
+    r.download(0x1400, 5, 10, 2).unwrap();
+    r.download(0x1401, 5, 10, 2).unwrap();
+    r.nmt(0x01);
+    r.send(RPDO1, &[1]);
+    r.send(RPDO2, &[2, 0]);
+    r.advance_ms(20);
+    assert_eq!(r.emcys(), [0x8250]);
+    // RPDO2 no longer exists: RPDO1's reception ends the timeout.
+    r.download(0x1401, 1, 0x8000_0305, 4).unwrap();
+    r.send(RPDO1, &[3]);
+    assert_eq!(r.emcys(), [0x0000]);
+    assert_eq!(r.read(0x1001, 0), 0);
+    // The same for a length error.
+    r.download(0x1401, 1, 0x0000_0305, 4).unwrap();
+    r.send(RPDO2, &[4]);
+    assert_eq!(r.emcys(), [0x8210]);
+    r.download(0x1401, 1, 0x8000_0305, 4).unwrap();
+    r.send(RPDO1, &[5]);
+    assert_eq!(r.read(0x2000, 0), 5);
+    assert_eq!(r.read(0x1001, 0), 0, "RPDO2 is not received any more");
+}

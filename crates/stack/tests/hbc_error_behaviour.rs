@@ -306,7 +306,7 @@ fn a_write_to_an_entry_ends_its_error() {
 /// D27: a consumed node's boot-up stops its monitoring until its next heartbeat (after a reset
 /// its heartbeat may be off) and ends its error; no EMCY of its own.
 #[test]
-fn d24_a_boot_up_of_a_watched_node_waits_for_its_next_heartbeat() {
+fn d27_a_boot_up_of_a_watched_node_waits_for_its_next_heartbeat() {
     let mut r = Rig::new(model(&[raw(PEER, 100)], None, false));
     r.heartbeat(0, PEER, 5);
     r.heartbeat(50, PEER, 0x00);
@@ -324,7 +324,7 @@ fn d24_a_boot_up_of_a_watched_node_waits_for_its_next_heartbeat() {
 /// D27: heartbeats are consumed in pre-operational and operational only; a stopped node
 /// forgets the monitoring and starts again at the first heartbeat once running.
 #[test]
-fn d24_no_monitoring_while_stopped() {
+fn d27_no_monitoring_while_stopped() {
     let mut r = Rig::new(model(&[raw(PEER, 100)], None, false));
     r.heartbeat(0, PEER, 5);
     r.nmt(50, 0x02);

@@ -1,7 +1,7 @@
 //! `Node::write_process_value`: a device's own process writes an object (an input it read),
 //! as an application's cycle writes its live values. The entry's type, size and range hold as
 //! for an SDO write, access does not (a read-only input is the process's), an object a
-//! service owns is refused, a refused value changes nothing, and a changed value is a
+//! service owns or a constant is refused, a refused value changes nothing, and a changed value is a
 //! change-of-state event for the asynchronous TPDO that maps it (CiA 301 §7.5.2.35,
 //! transmission type 254 / 255). On a plain device of its own (node-id 1): the sensors' inputs
 //! are all the application's.
@@ -13,7 +13,7 @@ use canpos_stack::storage::RamStorage;
 use canpos_stack::{entry, Abort, Frame, Instant, Node, Plain};
 
 #[rustfmt::skip]
-const ENTRIES: [Entry; 21] = cia301::attach([
+const ENTRIES: [Entry; 22] = cia301::attach([
     entry!(0x1000, 0, "", Unsigned32, Ro, Const(0x000F_0191)),
     entry!(0x1001, 0, "", Unsigned8, Ro, Live),
     entry!(0x1017, 0, "", Unsigned16, Rw, Const(0), Any, Comm),
@@ -35,6 +35,8 @@ const ENTRIES: [Entry; 21] = cia301::attach([
     entry!(0x6200, 1, "", Unsigned8, Rw, Const(0), Any, Volatile, true),
     entry!(0x6401, 1, "", Integer16, Ro, Const(0), MinMax(0xFFFF_FF9C, 100), Volatile, true),
     entry!(0x6423, 0, "", Boolean, Ro, Const(0)),
+    // A constant of the profile area (never changes, not even by the process).
+    entry!(0x6500, 0, "", Unsigned8, Const, Const(16)),
 ]);
 
 fn param(cfg: &CommConfig, p: Param) -> u32 {
@@ -148,6 +150,8 @@ fn a_value_the_entry_cannot_hold_is_refused_and_changes_nothing() {
         (0x1800, 2, 1, Abort::UnsupportedAccess),
         (0x1A00, 1, 0x6000_0108, Abort::UnsupportedAccess),
         (0x1001, 0, 1, Abort::UnsupportedAccess),
+        // A constant (`Access::Const`: it never changes).
+        (0x6500, 0, 8, Abort::ReadOnly),
     ];
     for (i, s, raw, abort) in cases {
         let before = n.device().od().value(i, s);

@@ -124,7 +124,8 @@ impl<A: Application, S: Storage> Device<A, S> {
                 }
             }
             Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
-                self.rpdo.configure((e.index & 0x1FF) as usize, &self.od)
+                let n = (e.index & 0x1FF) as usize;
+                self.rpdo.configure(n, &self.od, &mut self.emcy)
             }
             Hook::PendingNodeId => self.pending_node_id = raw as u8,
             Hook::PendingBitRate => self.pending_bitrate = kbps_of_object(raw),

@@ -383,7 +383,8 @@ impl<A: Application, S: Storage> Node<A, S> {
     /// only an object of the application area (0x2000 on) that no service or application rule
     /// owns ([`Hook::None`]) may be written so: [`Abort::UnsupportedAccess`] otherwise (the
     /// communication area's objects, 0x1001 among them, are the services'). A refused value
-    /// changes nothing. A changed
+    /// changes nothing, and a constant ([`od::Access::Const`]) is refused as an SDO write of
+    /// it is ([`Abort::ReadOnly`]). A changed
     /// value is a change-of-state event to the TPDOs that map it (the path of
     /// [`Node::update_sample`]). Returns whether the value changed; a node that is off takes
     /// nothing (`Ok(false)`).
@@ -402,6 +403,10 @@ impl<A: Application, S: Storage> Node<A, S> {
         };
         if e.hook != Hook::None || e.index < 0x2000 {
             return Err(Abort::UnsupportedAccess);
+        }
+        // A constant never changes (its EDS `const`), whoever writes.
+        if e.access == od::Access::Const {
+            return Err(Abort::ReadOnly);
         }
         // Bits beyond the type's bytes would be sent by no PDO and read by no SDO.
         if size < 4 && raw >> (8 * size) != 0 {
