@@ -252,6 +252,16 @@ impl Rpdos {
         self.refresh_due();
     }
 
+    /// The RPDOs the device has (0 in a build without the service).
+    #[inline(always)]
+    pub fn count(&self) -> usize {
+        if MAX_RPDOS == 0 {
+            0
+        } else {
+            self.count
+        }
+    }
+
     /// Whether receptions are processed (Operational).
     pub fn active(&self) -> bool {
         self.active

@@ -10,7 +10,9 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// not loaded. For COB-IDs of services this node produces or answers on it keeps them off
     /// 29-bit and CiA 301 restricted CAN-IDs (else a write or a state file could make the node
     /// talk on the NMT or SYNC identifier). Out of line in firmware: writes and loads share it.
-    #[cfg_attr(feature = "inline-hot-paths", inline)]
+    /// On a host always in line: with the arms of the heartbeat consumer, 0x1029 and RPDOs
+    /// rustc's hint no longer inlined it, and an SDO download paid 25 instructions.
+    #[cfg_attr(feature = "inline-hot-paths", inline(always))]
     #[cfg_attr(not(feature = "inline-hot-paths"), inline(never))]
     pub(super) fn value_allowed(&self, e: &Entry, raw: u32) -> Result<(), Abort> {
         // Each service's own rule says whether its COB-ID may name a restricted CAN-ID.
@@ -40,7 +42,9 @@ impl<A: Application, S: Storage> Device<A, S> {
     /// The rule of an entry's hook for an SDO write of `raw` over `cur` that passed the
     /// table's checks: [`Device::value_allowed`] and what relates the new value to the current
     /// one (a state file's values are loaded without the latter).
-    #[inline]
+    // One caller (`check_write`); out of line it cost an SDO download a call and its register
+    // saves (the services' arms live in `validate_service`, out of line).
+    #[inline(always)]
     fn validate(&mut self, e: &Entry, cur: u32, raw: u32) -> Result<(), Abort> {
         if e.hook.checked_by_service() {
             return self.validate_service(e, raw);
@@ -48,8 +52,6 @@ impl<A: Application, S: Storage> Device<A, S> {
         // One call for every other hook (`value_allowed` is a match of its own).
         self.value_allowed(e, raw)?;
         let clash = match e.hook {
-            // CiA 301: one entry per node-id (its own abort code).
-            Hook::HbConsumer if MAX_HB_CONSUMERS > 0 => return hbcons::check(&self.od, e.sub, raw),
             Hook::EmcyCobId => emcy::cob_id_change_refused(cur, raw),
             // D22: SYNC and guarding on different CAN-IDs.
             Hook::SyncCobId => errctl::sync_guarding_clash(raw, self.errctl.guarding_id().into()),
@@ -74,6 +76,11 @@ impl<A: Application, S: Storage> Device<A, S> {
             }
             Hook::RpdoComm | Hook::RpdoMap if crate::config::MAX_RPDOS > 0 => {
                 self.rpdo.validate(&self.od, e.index, e.sub, raw)
+            }
+            // The value on its own, then CiA 301's one entry per node-id (its own abort code).
+            Hook::HbConsumer if MAX_HB_CONSUMERS > 0 => {
+                hbcons::value_allowed(raw)?;
+                hbcons::check(&self.od, e.sub, raw)
             }
             hook => match hook.app_number() {
                 Some(h) => {
@@ -257,16 +264,18 @@ impl<A: Application, S: Storage> Device<A, S> {
         if matches!(e.hook, Hook::StoreParameters | Hook::RestoreDefaults) {
             return self.storage_command(e, raw);
         }
-        self.check_write(slot, raw)?;
-        self.land_write(slot, raw);
+        self.check_write(slot, e, raw)?;
+        self.land_write(slot, e, raw);
         Ok(())
     }
 
     /// The checks of a value written to `slot` (an SDO download's, an RPDO's): the table's
     /// and the hook's rules.
-    #[inline]
-    fn check_write(&mut self, slot: usize, raw: u32) -> Result<(), Abort> {
-        let e = self.od.entry(slot);
+    // Inlined, with the entry its caller found: an SDO download runs it on every write; the
+    // RPDO path is the other caller (out of line, with a second lookup, they cost a download
+    // about 40 instructions, docs/BENCHMARKS.md).
+    #[inline(always)]
+    fn check_write(&mut self, slot: usize, e: &'static Entry, raw: u32) -> Result<(), Abort> {
         if e.ty == DataType::Boolean && raw > 1 {
             return Err(Abort::InvalidValue);
         }
@@ -275,10 +284,11 @@ impl<A: Application, S: Storage> Device<A, S> {
     }
 
     /// A checked value lands in `slot`, with its hook's side effects.
-    #[inline]
-    fn land_write(&mut self, slot: usize, raw: u32) {
+    // Inlined as `check_write` is.
+    #[inline(always)]
+    fn land_write(&mut self, slot: usize, e: &'static Entry, raw: u32) {
         self.od.set(slot, raw);
-        self.written(self.od.entry(slot), raw);
+        self.written(e, raw);
     }
 
     /// RPDO `n`'s data: each value is checked as an SDO download's would be and, only when all
@@ -289,12 +299,12 @@ impl<A: Application, S: Storage> Device<A, S> {
         let values = self.rpdo.values(n, data);
         if values
             .iter()
-            .any(|(slot, raw)| self.check_write(slot, raw).is_err())
+            .any(|(slot, raw)| self.check_write(slot, self.od.entry(slot), raw).is_err())
         {
             return;
         }
         for (slot, raw) in values.iter() {
-            self.land_write(slot, raw);
+            self.land_write(slot, self.od.entry(slot), raw);
             self.pdo.value_changed(slot, true);
         }
     }

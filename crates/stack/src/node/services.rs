@@ -135,8 +135,11 @@ impl<A: Application, S: Storage> Device<A, S> {
     }
 
     /// A SYNC: the data synchronous RPDOs received since the last one is applied.
+    // Inlined, over the device's RPDOs only: a node without any (the sensors) pays one
+    // comparison per SYNC, not a call and a walk over the stack's `MAX_RPDOS`.
+    #[inline(always)]
     pub(super) fn rpdo_sync(&mut self) {
-        for n in 0..crate::config::MAX_RPDOS {
+        for n in 0..self.rpdo.count() {
             if let Some(d) = self.rpdo.take_held(n) {
                 self.apply_rpdo(n, d);
             }

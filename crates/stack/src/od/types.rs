@@ -189,12 +189,13 @@ pub enum Hook {
     /// An object copy of the bit rate (kbit/s, 0xFFFF autobaud) that the next reset activates
     /// (TMI 0x2001): one value with LSS "configure bit timing".
     PendingBitRate,
-    /// 0x1016 consumer heartbeat time sub 1…: a node-id watched once (heartbeat consumer).
-    HbConsumer,
     /// 0x1029 error behaviour sub 1…: 0, 1 or 2 (the node's reaction to an error class).
     ErrorBehaviour,
-    // The hooks from here on are those whose values their service checks (PDO service, the
-    // application): `Hook::checked_by_service` is then one compare. A new hook goes above.
+    // The hooks from here on are those whose values their service checks (heartbeat consumer,
+    // PDO services, the application): `Hook::checked_by_service` is then one compare. A new
+    // hook goes above.
+    /// 0x1016 consumer heartbeat time sub 1…: a node-id watched once (heartbeat consumer).
+    HbConsumer,
     /// A TPDO communication parameter (0x1800…, PDO service).
     TpdoComm,
     /// A TPDO mapping parameter (0x1A00…, PDO service).
@@ -272,7 +273,7 @@ impl Hook {
     /// service its parameters, the application its objects) rather than the node.
     #[inline]
     pub const fn checked_by_service(self) -> bool {
-        self as u8 >= Hook::TpdoComm as u8
+        self as u8 >= Hook::HbConsumer as u8
     }
 
     /// The application's number of an application hook, `None` for the services' hooks.
