@@ -189,8 +189,14 @@ fn bridge_carries_true_rtr_guarding_and_sdo_both_ways() {
         ],
         &dir.path().join("run.log"),
     );
-    // The bridge needs the hub: retried until it listens.
+    // The bridge needs the hub: wait until it listens (a bridge started before that exits
+    // with "connection refused", and in the slow UML guest it may do so after the 300 ms the
+    // loop below gives it), then retried as before.
     let end = Instant::now() + Duration::from_secs(10);
+    while std::net::TcpStream::connect(&listen).is_err() {
+        assert!(Instant::now() < end, "the hub did not listen on {listen}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
     let bridge_log = dir.path().join("bridge.log");
     let mut bridge = loop {
         let mut b = spawn(&["bus", "bridge", BUS, &url], &bridge_log);
@@ -222,7 +228,11 @@ fn bridge_carries_true_rtr_guarding_and_sdo_both_ways() {
         if let Some(f) = recv(&mut master, 0x5FF, Duration::from_millis(300)) {
             break f;
         }
-        assert!(Instant::now() < end, "no SDO answer across the bridge");
+        assert!(
+            Instant::now() < end,
+            "no SDO answer across the bridge; bridge: {}",
+            std::fs::read_to_string(&bridge_log).unwrap_or_default()
+        );
     };
     assert_eq!(&answer.data()[4..8], &0x0008_0196u32.to_le_bytes());
     // Node guarding with true RTR frames (DLC 1, as a SocketCAN master sends them).
