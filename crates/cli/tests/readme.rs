@@ -214,7 +214,10 @@ fn run_bounded(dir: &Path, args: &[String]) {
     } else {
         "canpos: sensor 0:"
     };
-    let end = Instant::now() + Duration::from_secs(90);
+    // The soak's 127 nodes take both cores in a debug build (its first report came after 18 s
+    // on a quiet machine, and not within 90 s once beside the suite's other tests in CI): a
+    // generous bound, as only a missing report is a failure.
+    let end = Instant::now() + Duration::from_secs(240);
     loop {
         let out = p.output();
         if out.contains(sign) {
@@ -222,7 +225,7 @@ fn run_bounded(dir: &Path, args: &[String]) {
         }
         if Instant::now() > end {
             panic!(
-                "README example `canpos {}`: no `{sign}` within 90 s: {out}",
+                "README example `canpos {}`: no `{sign}` within 240 s: {out}",
                 a.join(" ")
             );
         }
