@@ -98,6 +98,14 @@ function parameterValues(text) {
   return out;
 }
 const num = (s) => Number(BigInt.asIntN(64, BigInt(s.trim())));
+/** Waits for the page's message to say `what`; a timeout says what it said instead. */
+async function message(what, timeout = 20000) {
+  try {
+    await page.locator("#message", { hasText: what }).waitFor({ timeout });
+  } catch (e) {
+    throw new Error(`the page's message is "${await page.locator("#message").innerText()}", not ${what}: ${e.message}`);
+  }
+}
 const clearMessage = () => page.evaluate(() => { const m = document.querySelector("#message"); m.textContent = ""; m.hidden = true; });
 
 test("the page lists the three nodes", async () => {
@@ -199,13 +207,13 @@ test("a write out of range shows the node's SDO abort and changes nothing", asyn
   await clearMessage();
   // BOOLEAN: 2 fits the byte, not the object.
   const row = await writeRow("0x2101/0", 2);
-  await page.locator("#message", { hasText: /SDO abort 0x0609003\d/ }).waitFor({ timeout: 15000 });
+  await message(/SDO abort 0x0609003\d/);
   await row.locator(".value", { hasText: /^0 / }).waitFor({ timeout: 15000 });
   assert.equal(run(["sdo", "--bus", BUS, "read", "5", "0x2101", "0"]), before);
   // A value the type cannot hold is refused before the bus.
   await clearMessage();
   await writeRow("0x1017/0", 70000);
-  await page.locator("#message", { hasText: /does not fit/ }).waitFor({ timeout: 15000 });
+  await message(/does not fit/);
   assert.match(run(["sdo", "--bus", BUS, "read", "5", "0x1017", "0"]), /\b250\b/);
 });
 
@@ -226,16 +234,25 @@ test("the E-Series' TPDO1 names channel 1's objects; a remap from the page makes
   await clearMessage();
   await tpdo1.locator(".remap-objects").fill("0x6020/1, 0x1017/0");
   await tpdo1.locator(".remap-go").click();
-  await page.locator("#message", { hasText: /SDO abort 0x06040041/ }).waitFor({ timeout: 20000 });
+  await message(/SDO abort 0x06040041/);
   assert.match(await page.locator("#message").innerText(), /written back/);
   await es.locator('.pdo tr[data-tpdo="1"] .mapped', { hasText: mapped.split("\n")[0] }).waitFor({ timeout: 20000 });
+  assert.equal(await es.locator('.pdo tr[data-tpdo="1"] .mapped').innerText(), mapped);
+
+  // Only the page's own origin remaps (the dashboard's guard): another site's request, or one
+  // without a JSON body, is refused before the bus.
+  const other = await fetch(`${URL}api/nodes/10/pdo/1`, { method: "PUT", body: '{"mapping":[]}',
+    headers: { "content-type": "application/json", origin: "http://attacker.example" } });
+  assert.equal(other.status, 403);
+  const plain = await fetch(`${URL}api/nodes/10/pdo/1`, { method: "PUT", body: '{"mapping":[]}' });
+  assert.equal(plain.status, 415);
   assert.equal(await es.locator('.pdo tr[data-tpdo="1"] .mapped').innerText(), mapped);
 
   // Both positions in TPDO1: channel 2 appears with its position.
   await clearMessage();
   await es.locator('.pdo tr[data-tpdo="1"] .remap-objects').fill("0x6020/1, 0x6020/2");
   await es.locator('.pdo tr[data-tpdo="1"] .remap-go').click();
-  await page.locator("#message", { hasText: "TPDO 1 remapped" }).waitFor({ timeout: 20000 });
+  await message("TPDO 1 remapped");
   await es.locator('.pdo tr[data-tpdo="1"] .mapped', { hasText: /Position value channel 2/i }).waitFor({ timeout: 20000 });
   const ch2 = es.locator('.channel[data-ch="1"] .pos-now');
   await ch2.waitFor({ timeout: 20000 });
@@ -245,15 +262,22 @@ test("the E-Series' TPDO1 names channel 1's objects; a remap from the page makes
 
 test("read all of a node that stops answering ends with the reason", async () => {
   await clearMessage();
-  run(["ctl", "--control", `127.0.0.1:${thCtl}`, "fault", "stall", "on", "--value", "4"]);
+  run(["ctl", "--control", `127.0.0.1:${thCtl}`, "fault", "stall", "on", "--value", "6"]);
   const t0 = Date.now();
   await th.locator(".od-read-all").click();
   await th.locator(".od-progress.error").waitFor({ timeout: 30000 });
   const why = await th.locator(".od-progress").innerText();
   assert.match(why, /read all of node 5 stopped at 0x1000\/0: .*SDO timeout.*; 0 of \d+ objects read/, why);
   assert.match(await page.locator("#message").innerText(), /SDO timeout/);
-  // The button is usable again; once the stall is over the node answers.
+  // The button is usable again; the PDO view of the silent node says why it has nothing.
   assert.equal(await th.locator(".od-read-all").isEnabled(), true);
-  await page.waitForTimeout(Math.max(0, 4500 - (Date.now() - t0)));
+  await clearMessage();
+  const t1 = Date.now() - t0;
+  await th.locator(".pdo-load").click();
+  await message(/reading 0x1800\/1: node 5: SDO timeout/).catch((e) => {
+    throw new Error(`${e.message} (read all ended ${t1} ms into the stall, now ${Date.now() - t0} ms)`);
+  });
+  // Once the stall is over the node answers.
+  await page.waitForTimeout(Math.max(0, 6500 - (Date.now() - t0)));
   assert.match(run(["sdo", "--bus", BUS, "read", "5", "0x1017", "0"]), /\b250\b/);
 });

@@ -165,10 +165,11 @@ window.canposOd = (() => {
         title: "objects to map, in order: INDEX/SUB, comma-separated (the list below names those the node may map)" });
       const go = async () => {
         const mapping = input.value.split(/[\s,;]+/).filter(Boolean);
-        const r = await api("PUT", `/api/nodes/${node}/pdo/${t.tpdo}`, { mapping }).catch(() => null);
-        if (r) show(`node ${node}: TPDO ${t.tpdo} remapped: ${r.tpdo.mapping.map((m) => m.name ?? m.raw).join(", ") || "nothing mapped"}`, "info");
-        // Shown again as the node has it now (unchanged after a refusal).
+        const { status, j } = await call("PUT", `/api/nodes/${node}/pdo/${t.tpdo}`, { mapping });
+        // Shown again as the node has it now (unchanged after a refusal), then the outcome.
         await loadPdo(node, box);
+        if (j.ok) show(`node ${node}: TPDO ${t.tpdo} remapped: ${j.tpdo.mapping.map((m) => m.name ?? m.raw).join(", ") || "nothing mapped"}`, "info");
+        else show(`${status}: ${j.error || "request failed"}`);
       };
       input.onkeydown = (ev) => { if (ev.key === "Enter") go(); };
       tb.append(el("tr", { "data-tpdo": t.tpdo, class: t.valid ? "valid" : "invalid" },
