@@ -147,7 +147,7 @@ async function writeRow(key, value) {
 }
 
 let exported = null;
-test("read all fills every value of the TH and its DCF starts a unit that answers the same values", async () => {
+test("read all fills every value of the TH and its DCF starts a unit that answers the same values", async (t) => {
   await th.locator(".od-load").click();
   await th.locator('.od tr[data-key="0x1017/0"]').waitFor({ timeout: 15000 });
   // The range of a write is shown with the object.
@@ -158,8 +158,10 @@ test("read all fills every value of the TH and its DCF starts a unit that answer
     await writeRow(key, v);
     await page.locator("#message", { hasText: `wrote ${key}` }).waitFor({ timeout: 15000 });
   }
+  const started = Date.now();
   await th.locator(".od-read-all").click();
   await th.locator(".od-progress.done").waitFor({ timeout: 120000 });
+  t.diagnostic(`read all took ${Date.now() - started} ms`);
   const progress = await th.locator(".od-progress").innerText();
   const rows = await th.locator(".od tbody tr").count();
   assert.match(progress, new RegExp(`read all: ${rows} of ${rows} objects`), progress);
@@ -180,7 +182,14 @@ test("read all fills every value of the TH and its DCF starts a unit that answer
   assert.match(await th.locator('.od tr[data-key="0x6020/1"] .value').innerText(), new RegExp(`= \\d+\\.\\d{${d}} mm$`));
   assert.match(await page.locator('#nodes tr[data-node="5"] .pos').innerText(), new RegExp(`^\\d+\\.\\d{${d}} mm`));
   mkdirSync(SHOTS, { recursive: true });
-  await th.locator(".od-box").screenshot({ path: join(SHOTS, "dashboard-od.png") });
+  // The heading with its buttons and progress, and the table scrolled to the positions.
+  await th.locator('.od tr[data-key="0x6020/1"]').evaluate((tr) => { tr.closest(".od").scrollTop = tr.offsetTop - 120; });
+  const heading = th.locator("h3", { has: page.locator(".od-read-all") });
+  await heading.evaluate((h) => h.scrollIntoView());
+  const head = await heading.boundingBox();
+  const table = await th.locator(".od-box").boundingBox();
+  await page.screenshot({ path: join(SHOTS, "dashboard-od.png"),
+    clip: { x: table.x, y: head.y, width: table.width, height: table.y + table.height - head.y } });
 
   // The DCF, downloaded as the page's user gets it.
   const [dl] = await Promise.all([page.waitForEvent("download", { timeout: 15000 }), th.locator(".od-dcf").click()]);
