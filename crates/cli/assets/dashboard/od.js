@@ -160,12 +160,20 @@ window.canposOd = (() => {
     if (!j) return;
     const tb = el("tbody");
     for (const t of j.tpdos) {
-      const input = el("input", { class: "remap-objects", size: "40",
+      const input = el("input", { class: "remap-objects", size: "30",
         value: t.mapping.map((m) => `${m.index}/${m.sub}`).join(", "),
         title: "objects to map, in order: INDEX/SUB, comma-separated (the list below names those the node may map)" });
+      const ttype = el("input", { class: "remap-type", size: "3", value: String(t.transmission_type), title: "transmission type (0…255)" });
+      const event = el("input", { class: "remap-event", size: "5", value: t.event_ms == null ? "" : String(t.event_ms), title: "event timer, ms (0…65535)" });
+      if (t.event_ms == null) event.disabled = true;
       const go = async () => {
         const mapping = input.value.split(/[\s,;]+/).filter(Boolean);
-        const { status, j } = await call("PUT", `/api/nodes/${node}/pdo/${t.tpdo}`, { mapping });
+        const body = { mapping };
+        // Numbers as typed: the server refuses what is no number of the range, before the bus.
+        const asNumber = (v) => (/^\s*\d+\s*$/.test(v) ? Number(v) : v);
+        if (ttype.value.trim() !== String(t.transmission_type)) body.transmission_type = asNumber(ttype.value);
+        if (!event.disabled && event.value.trim() !== String(t.event_ms)) body.event_ms = asNumber(event.value);
+        const { status, j } = await call("PUT", `/api/nodes/${node}/pdo/${t.tpdo}`, body);
         // Shown again as the node has it now (unchanged after a refusal), then the outcome.
         await loadPdo(node, box);
         if (j.ok) show(`node ${node}: TPDO ${t.tpdo} remapped: ${j.tpdo.mapping.map((m) => m.name ?? m.raw).join(", ") || "nothing mapped"}`, "info");
@@ -179,7 +187,8 @@ window.canposOd = (() => {
         el("td", { class: "inhibit" }, t.inhibit_ms == null ? "–" : `${t.inhibit_ms} ms`),
         el("td", { class: "event" }, t.event_ms == null ? "–" : `${t.event_ms} ms`),
         el("td", { class: "mapped" }, ...(t.mapping.length ? t.mapping.map((m) => el("div", {}, mappedText(m))) : ["nothing mapped"])),
-        el("td", { class: "remap" }, input, el("button", { class: "remap-go", onclick: go }, "Remap"))));
+        el("td", { class: "remap" }, input, " type ", ttype, " event ", event, " ms ",
+          el("button", { class: "remap-go", onclick: go }, "Remap"))));
     }
     box.replaceChildren(
       el("table", { class: "pdo" }, el("thead", {}, el("tr", {}, ...["TPDO", "COB-ID (0x180x/1)", "transmission type", "inhibit time", "event timer", "mapped objects (0x1A0x)", "remap (invalidate, count 0, entries, count, validate)"].map((h) => el("th", {}, h)))), tb),
