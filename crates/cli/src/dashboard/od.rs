@@ -589,6 +589,31 @@ mod tests {
         assert_eq!(decimals(10, 2), 1);
     }
 
+    /// The served page's node table rounds a position to the node's step (D47).
+    #[test]
+    fn the_served_table_shows_positions_at_their_resolution() {
+        let info = NodeInfo {
+            position_step_nm: Some(20_000),
+            velocity_step: Some(100),
+            tpdos: Vec::new(),
+        };
+        let res = resolution(Some(&info));
+        assert_eq!(
+            (&res["position_decimals"], &res["velocity_decimals"]),
+            (&json!(2), &json!(0))
+        );
+        let snap = json!({
+            "t": 1.0, "seq": 1, "bus": "mem://x",
+            "nodes": [{"node": 5, "positions": [250.123456, null], "positions_from": "TPDO",
+                       "resolution": res}],
+        });
+        let page = super::super::page::render_page(&snap);
+        assert!(
+            page.contains(r#"<td class="pos">250.12 mm · no position</td>"#),
+            "{page}"
+        );
+    }
+
     #[test]
     fn ranges_read_with_the_types_sign() {
         let th = &models::widest(models::all()[0]).table;
