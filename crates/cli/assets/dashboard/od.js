@@ -111,8 +111,9 @@ window.canposOd = (() => {
   }
 
   // Every readable object, one SDO upload after the other. An object the node refuses (SDO
-  // abort) shows the abort and the run goes on; anything else (no answer, the bus busy or
-  // gone) ends it with the reason, so a node that stops answering ends it at its first timeout.
+  // abort) shows the abort and the run goes on; anything else (no answer twice, the bus busy
+  // or gone) ends it with the reason, so a node that stops answering ends it at its first
+  // object without an answer.
   async function readAllOd(node, box, progress, button) {
     const st = state(node);
     if (st.reading) return;
@@ -128,7 +129,11 @@ window.canposOd = (() => {
         const key = `${e.index}/${e.sub}`;
         const row = st.rows.get(key);
         progress.textContent = `reading ${key}: ${done} of ${todo.length}` + (refused ? ` (${refused} refused)` : "");
-        const { status, j } = await call("GET", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`);
+        let { status, j } = await call("GET", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`);
+        // No answer: tried once more (a loaded host may answer late, D45), then the run ends.
+        if (status === 502 && /SDO timeout/.test(j.error || "")) {
+          ({ status, j } = await call("GET", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`));
+        }
         if (status === 200 && j.ok) {
           row.val.textContent = valueText(node, e, j);
           row.val.className = "value";

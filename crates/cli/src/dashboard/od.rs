@@ -252,22 +252,35 @@ async fn eds(State(app): State<App>, Path(node): Path<String>) -> Result<Respons
     Ok(text_file(name, text))
 }
 
-/// One SDO upload through the bus queue, as a number.
+/// Whether a failed transfer had no answer (an SDO timeout): on a loaded host a node may
+/// answer one transfer later than the dashboard's SDO timeout, so such a transfer is tried once
+/// more (D45); an abort is the node's answer and is never retried.
+fn no_answer(e: &ApiError) -> bool {
+    e.0 == StatusCode::BAD_GATEWAY && e.1.contains("SDO timeout")
+}
+
+/// One SDO upload through the bus queue, as a number (tried again once without an answer).
 async fn read_u32(app: &App, id: u8, index: u16, sub: u8) -> Result<u32, ApiError> {
-    let p = app
-        .cmds
-        .submit(|job| BusCmd::Read(id, index, sub, job))
-        .map_err(|r| refused(app, r))?;
-    let d = bus_result(app, id, p)
-        .await
-        .map_err(|e| step_error(e, format!("reading 0x{index:04X}/{sub}")))?;
+    let once = || async {
+        let p = app
+            .cmds
+            .submit(|job| BusCmd::Read(id, index, sub, job))
+            .map_err(|r| refused(app, r))?;
+        bus_result(app, id, p).await
+    };
+    let d = match once().await {
+        Err(e) if no_answer(&e) => once().await,
+        r => r,
+    }
+    .map_err(|e| step_error(e, format!("reading 0x{index:04X}/{sub}")))?;
     let mut b = [0u8; 4];
     let n = d.len().min(4);
     b[..n].copy_from_slice(&d[..n]);
     Ok(u32::from_le_bytes(b))
 }
 
-/// One SDO download through the bus queue of a value `bytes` long.
+/// One SDO download through the bus queue of a value `bytes` long (tried again once without an
+/// answer: the PDO parameters a remap writes take the same value twice alike).
 async fn write(
     app: &App,
     id: u8,
@@ -276,14 +289,19 @@ async fn write(
     v: u32,
     bytes: usize,
 ) -> Result<(), ApiError> {
-    let data = v.to_le_bytes()[..bytes].to_vec();
-    let p = app
-        .cmds
-        .submit(|job| BusCmd::Write(id, index, sub, data, job))
-        .map_err(|r| refused(app, r))?;
-    bus_result(app, id, p)
-        .await
-        .map_err(|e| step_error(e, format!("writing 0x{index:04X}/{sub} = 0x{v:X}")))
+    let once = || async {
+        let data = v.to_le_bytes()[..bytes].to_vec();
+        let p = app
+            .cmds
+            .submit(|job| BusCmd::Write(id, index, sub, data, job))
+            .map_err(|r| refused(app, r))?;
+        bus_result(app, id, p).await
+    };
+    match once().await {
+        Err(e) if no_answer(&e) => once().await,
+        r => r,
+    }
+    .map_err(|e| step_error(e, format!("writing 0x{index:04X}/{sub} = 0x{v:X}")))
 }
 
 fn step_error(e: ApiError, step: String) -> ApiError {
