@@ -13,6 +13,7 @@
 
 mod answer;
 pub mod guard;
+mod od;
 mod page;
 pub mod serve;
 pub mod watch;
@@ -154,6 +155,7 @@ pub fn start_on(
     let app = App {
         shared: shared.clone(),
         cmds: Arc::new(cmd_tx),
+        od: Arc::default(),
     };
     let router = router(app);
     let cap = serve::connection_cap();
@@ -206,6 +208,8 @@ pub fn start_for_runtime(
 struct App {
     shared: Arc<Mutex<Shared>>,
     cmds: Arc<BusQueue>,
+    /// The values the object browser's reads brought in ([`od`]).
+    od: Arc<od::Values>,
 }
 
 fn router(app: App) -> Router {
@@ -232,6 +236,7 @@ fn router(app: App) -> Router {
             get(sdo_read).put(sdo_write),
         )
         .route("/api/nodes/{node}/control", post(node_control))
+        .merge(od::routes())
         // axum answers a known path's other methods 405 with an empty body; the API's errors
         // are JSON (axum still adds `Allow`).
         .method_not_allowed_fallback(|method: Method, uri: Uri| async move {
@@ -499,6 +504,8 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                 "alarm_labels": alarms.map(alarm_labels).unwrap_or_default(),
                 "emcy": emcy,
                 "channels": channels,
+                // The figures' resolution, from the node's measuring steps (0x6005).
+                "resolution": od::resolution(n.info.as_ref()),
                 "control": st.map(|st| json!({
                     "sensor": ctl.map(|c| c.sensor),
                     "name": st["name"],
@@ -626,6 +633,7 @@ async fn od(State(app): State<App>, Path(node): Path<String>) -> Answer {
             json!({
                 "index": format!("0x{:04X}", e.index), "sub": e.sub, "name": e.name,
                 "type": type_name(e.ty), "access": access_name(e.access), "pdo": e.pdo,
+                "range": od::range_json(e),
             })
         })
         .collect();
@@ -729,7 +737,13 @@ async fn sdo_read(
         .cmds
         .submit(|job| BusCmd::Read(id, e.index, e.sub, job))
         .map_err(|r| refused(&app, r))?;
-    let d = bus_result(&app, id, p).await?;
+    // A refused read leaves no value to export; a timeout says nothing about the value.
+    let d = bus_result(&app, id, p).await.inspect_err(|err| {
+        if err.1.contains("SDO abort") {
+            app.od.forget(id, e)
+        }
+    })?;
+    app.od.remember(id, e, &d);
     let value = value_type(e.ty)
         .decode(&d)
         .unwrap_or_else(|_| format_auto(&d));

@@ -1332,3 +1332,171 @@ fn has_position(t: &str) -> bool {
             && b[b.len() - 5].is_ascii_digit()
     })
 }
+
+/// One GET as a script sends it; (status, body text).
+fn get_text(addr: SocketAddr, path: &str) -> (u16, String) {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    let code = text[9..12].parse().unwrap();
+    let body = text.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    (code, body.to_string())
+}
+
+/// TPDO `n`'s COB-ID and mapping as `GET /api/nodes/127/pdo` reads them.
+fn tpdo(a: SocketAddr, n: usize) -> (Value, Vec<Value>) {
+    let (code, v) = http(a, "GET", "/api/nodes/127/pdo", "");
+    assert_eq!(code, 200, "{v}");
+    let t = &v["tpdos"][n - 1];
+    assert_eq!(t["tpdo"], n, "{v}");
+    (
+        t["cob_id"].clone(),
+        t["mapping"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m["raw"].clone())
+            .collect(),
+    )
+}
+
+/// The PDO view names what each TPDO maps; a remap the body or the node refuses changes
+/// nothing (the node's refusal after the procedure invalidated the TPDO included: the old
+/// mapping is written back), a good one is read back (issue 38 item 4, D46).
+#[test]
+fn a_refused_remap_changes_nothing_and_a_good_one_is_read_back() {
+    let r = rig();
+    let a = r.web.local_addr();
+    let (code, v) = http(a, "GET", "/api/nodes/127/pdo", "");
+    assert_eq!(code, 200, "{v}");
+    let t1 = &v["tpdos"][0];
+    assert_eq!(t1["mapping"][0]["name"], "Position value channel 1", "{v}");
+    assert_eq!(t1["valid"], true, "{v}");
+    let before = tpdo(a, 1);
+    assert_eq!(before.1.len(), 3, "{before:?}");
+    let path = "/api/nodes/127/pdo/1";
+    let too_many = format!(r#"{{"mapping":[{}]}}"#, vec![r#""0x6300/1""#; 65].join(","));
+    for (code, p, body, why) in [
+        (400, path, "not json", "bad body"),
+        (400, path, r#"{"map":[]}"#, "expected {\"mapping\""),
+        (400, path, &too_many, "at most 64"),
+        (
+            400,
+            path,
+            r#"{"mapping":["0x7777/1"]}"#,
+            "has no object 0x7777/1",
+        ),
+        (
+            400,
+            path,
+            r#"{"mapping":["0x1008/0"]}"#,
+            "no size a PDO could carry",
+        ),
+        (400, path, r#"{"mapping":[],"event_ms":70000}"#, "0…65535"),
+        (
+            404,
+            "/api/nodes/127/pdo/9",
+            r#"{"mapping":[]}"#,
+            "no TPDO `9`",
+        ),
+        (
+            502,
+            path,
+            r#"{"mapping":["0x6020/1","0x1017/0"]}"#,
+            "SDO abort 0x06040041",
+        ),
+        (
+            502,
+            path,
+            r#"{"mapping":["0x6020/1","0x6020/2","0x6020/3"]}"#,
+            "SDO abort 0x06040042",
+        ),
+    ] {
+        let (c, v) = http(a, "PUT", p, body);
+        assert_eq!(c, code, "{body}: {v}");
+        assert!(error_of(&v).contains(why), "{body}: {v}");
+        if c == 502 {
+            assert!(error_of(&v).contains("written back"), "{v}");
+        }
+        assert_eq!(tpdo(a, 1), before, "after {body}");
+    }
+    let (c, v) = http(
+        a,
+        "PUT",
+        path,
+        r#"{"mapping":["0x6020/1","0x6020/2"],"event_ms":5}"#,
+    );
+    assert_eq!(c, 200, "{v}");
+    assert_eq!(v["tpdo"]["event_ms"], 5, "{v}");
+    assert_eq!(
+        tpdo(a, 1),
+        (
+            before.0,
+            vec![
+                Value::from("0x60200120".to_string()),
+                Value::from("0x60200220".to_string())
+            ]
+        )
+    );
+}
+
+/// The DCF export holds the values read, nothing before a read; the EDS is the model's; the
+/// object table shows each object's range (issue 38 item 3).
+#[test]
+fn the_dcf_export_holds_the_values_read() {
+    let r = rig();
+    let a = r.web.local_addr();
+    let (code, v) = http(a, "GET", "/api/nodes/127/dcf", "");
+    assert_eq!(code, 409, "{v}");
+    assert!(error_of(&v).contains("read all first"), "{v}");
+    let (code, v) = http(
+        a,
+        "PUT",
+        "/api/nodes/127/sdo/0x1017/0",
+        r#"{"value":"250"}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 200, "{v}");
+    let (code, v) = http(a, "GET", "/api/nodes/127/values", "");
+    assert_eq!(code, 200, "{v}");
+    assert_eq!(v["values"][0]["index"], "0x1017", "{v}");
+    let (code, dcf) = get_text(a, "/api/nodes/127/dcf");
+    assert_eq!(code, 200, "{dcf}");
+    let section = &dcf[dcf.find("[1017]").expect("no [1017] section")..];
+    let section = &section[..section[1..].find("\n[").unwrap_or(section.len() - 1) + 1];
+    let value = section
+        .lines()
+        .find_map(|l| l.strip_prefix("ParameterValue="))
+        .unwrap_or_else(|| panic!("no ParameterValue: {section}"));
+    let value = match value.strip_prefix("0x") {
+        Some(h) => u32::from_str_radix(h, 16).unwrap(),
+        None => value.parse().unwrap(),
+    };
+    assert_eq!(value, 250, "{section}");
+    assert!(dcf.contains("NodeID=0x7F"), "{dcf}");
+    // Only what was read: the heartbeat consumer was not.
+    assert!(!dcf[dcf.find("[1016").unwrap_or(0)..]
+        .split("\n[")
+        .next()
+        .unwrap_or("")
+        .contains("ParameterValue"));
+    let (code, eds) = get_text(a, "/api/nodes/127/eds");
+    assert_eq!(code, 200, "{eds}");
+    assert!(eds.contains("ProductName=Temposonics TH CANbus"), "{eds}");
+    assert!(!eds.contains("ParameterValue"), "{eds}");
+    let (_, od) = http(a, "GET", "/api/nodes/127/od", "");
+    let hb = od["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["index"] == "0x1017")
+        .unwrap();
+    assert_eq!(hb["range"]["text"], "0 … 65535", "{hb}");
+}

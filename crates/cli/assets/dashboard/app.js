@@ -83,7 +83,8 @@ function nodeRow(n) {
 // Each channel's position in mm (as the server's `positions_text` writes it).
 function positionsText(n) {
   if (!n.positions || !n.positions.length) return "–";
-  const out = n.positions.map((p) => (p == null ? "no position" : `${p.toFixed(3)} mm`));
+  const d = (n.resolution && n.resolution.position_decimals) ?? 3;
+  const out = n.positions.map((p) => (p == null ? "no position" : `${p.toFixed(d)} mm`));
   if (n.positions_from === "control") out.push("(control state; no TPDO)");
   return out.join(" · ");
 }
@@ -138,8 +139,8 @@ function panel(n) {
   sec.append(el("h3", {}, "EMCY log"), el("table", { class: "emcy" },
     el("thead", {}, el("tr", {}, ...["t / s", "code", "meaning", "register", "manufacturer bytes"].map((h) => el("th", {}, h)))),
     el("tbody")));
-  const odBox = el("div", { class: "od-box" });
-  sec.append(el("h3", {}, "Object dictionary ", el("button", { class: "od-load", onclick: () => loadOd(n.node, odBox) }, "Load")), odBox);
+  // Object dictionary and PDOs: od.js.
+  window.canposOd.attach(sec, n.node);
   $("#panels").append(sec);
   return sec;
 }
@@ -170,32 +171,6 @@ function processObjects(sec, n) {
     }
     $(".value", tr).textContent = String(o.value);
   }
-}
-
-async function loadOd(node, box) {
-  const j = await api("GET", `/api/nodes/${node}/od`).catch(() => null);
-  if (!j) return;
-  const tb = el("tbody");
-  for (const e of j.entries) {
-    const key = `${e.index}/${e.sub}`;
-    const val = el("td", { class: "value" }, "");
-    const input = el("input", { class: "write-value" });
-    const read = async () => {
-      const r = await api("GET", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`).catch(() => null);
-      if (r) val.textContent = `${r.value} [${r.hex}]`;
-    };
-    const write = async () => {
-      const r = await api("PUT", `/api/nodes/${node}/sdo/${e.index}/${e.sub}`, { value: input.value }).catch(() => null);
-      if (r) { show(`node ${node}: wrote ${key}`, "info"); read(); }
-    };
-    const acts = el("td", {});
-    if (e.access !== "wo") acts.append(el("button", { class: "read", onclick: read }, "read"));
-    if (e.access === "rw" || e.access === "wo") acts.append(input, el("button", { class: "write", onclick: write }, "write"));
-    tb.append(el("tr", { "data-key": key }, el("td", {}, e.index), el("td", {}, String(e.sub)),
-      el("td", {}, e.name), el("td", {}, e.type), el("td", {}, e.access), val, acts));
-  }
-  box.replaceChildren(el("table", { class: "od" },
-    el("thead", {}, el("tr", {}, ...["index", "sub", "name", "type", "access", "value", ""].map((h) => el("th", {}, h)))), tb));
 }
 
 function draw(node, i) {
@@ -239,8 +214,9 @@ function channels(sec, n) {
     if (cut) { d.t.splice(0, cut); d.p.splice(0, cut); d.v.splice(0, cut); }
     // Off-screen plots are not redrawn (with many nodes most are): their data still grows.
     if ((c.t.length || cut) && dash.plots[n.node][i].visible) draw(n.node, i);
+    const res = n.resolution || {};
     $(".pos-now", ch).textContent = c.pos == null ? "no position"
-      : `${c.pos.toFixed(3)} mm, ${c.vel == null ? "–" : c.vel.toFixed(2)} mm/s`;
+      : `${c.pos.toFixed(res.position_decimals ?? 3)} mm, ${c.vel == null ? "–" : c.vel.toFixed(res.velocity_decimals ?? 2)} mm/s`;
     $(".cams", ch).textContent = c.cam == null ? "–" : (c.cam_labels.join(", ") || "all cams inactive");
     $(".area", ch).textContent = c.area == null ? "–" : (c.area_labels.join(", ") || "inside the work area");
   });
@@ -266,6 +242,7 @@ function update(s) {
       : `0x${n.error_register.toString(16).padStart(2, "0").toUpperCase()} (${n.error_register_text})`;
     const ctl = $(".controls", sec);
     ctl.hidden = !n.control;
+    window.canposOd.update(sec, n);
     processObjects(sec, n);
     if (n.control) {
       $(".sensor-controls", ctl).hidden = n.control.device === "eds";

@@ -188,8 +188,11 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
         }
         let mut values: Vec<(u16, u8, Vec<u8>)> = Vec::new();
         // Every object the model's units may have (a one-channel TMI refuses channel 2).
-        let widest = models::widest(model);
-        for e in widest.entries.iter().filter(|e| e.access.readable()) {
+        for e in models::widest(model)
+            .entries
+            .iter()
+            .filter(|e| e.access.readable())
+        {
             match c.upload(e.index, e.sub) {
                 Ok(d) => values.push((e.index, e.sub, d)),
                 // Refused (e.g. an object this unit's variant lacks): no ParameterValue.
@@ -197,15 +200,7 @@ pub fn dcf(a: DcfArgs) -> Result<i32> {
                 Err(err) => bail!("reading 0x{:04X}/{}: {err}", e.index, e.sub),
             }
         }
-        // A unit whose configuration has a dictionary of its own (TMI, 002 §1.6) has the
-        // channels it answers for.
-        if !std::ptr::eq(models::for_unit(model, &cfg), widest) {
-            let channels = values.iter().filter(|v| v.0 == 0x6020 && v.1 > 0).count();
-            if channels > 0 {
-                cfg.channels = channels as u8;
-            }
-        }
-        (model, cfg, code, values)
+        (model, unit_of_reads(model, cfg, &values), code, values)
     };
     if let Some(serial) = values
         .iter()
@@ -257,6 +252,31 @@ fn recognise(c: &mut SdoClient<'_>) -> Result<&'static Model> {
         })
 }
 
+/// The unit `cfg` of `model` as its objects read over SDO (`values`) show it: a unit whose
+/// configuration has a dictionary of its own (TMI, 002 §1.6) has the channels it answered
+/// for. (`canpos dcf --node` and the dashboard's DCF export.)
+pub(crate) fn unit_of_reads(
+    model: &'static Model,
+    mut cfg: DeviceConfig,
+    values: &[(u16, u8, Vec<u8>)],
+) -> DeviceConfig {
+    if !std::ptr::eq(models::for_unit(model, &cfg), models::widest(model)) {
+        let channels = values.iter().filter(|v| v.0 == 0x6020 && v.1 > 0).count();
+        if channels > 0 {
+            cfg.channels = channels as u8;
+        }
+    }
+    if let Some(serial) = values
+        .iter()
+        .find(|(i, s, _)| *i == 0x1018 && *s == 4)
+        .and_then(|(_, _, d)| d.get(..4)?.try_into().ok())
+        .map(u32::from_le_bytes)
+    {
+        cfg.serial = serial;
+    }
+    cfg
+}
+
 fn model_vendor(m: &Model) -> u32 {
     m.entries
         .iter()
@@ -273,7 +293,7 @@ fn numeric(ty: DataType) -> bool {
 }
 
 /// The DCF text of `model` for unit `cfg` with the read `values`.
-fn render(
+pub(crate) fn render(
     model: &'static Model,
     cfg: &DeviceConfig,
     order_code: &str,

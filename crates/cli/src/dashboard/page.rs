@@ -5,6 +5,7 @@ use serde_json::Value;
 
 const PAGE: &str = include_str!("../../assets/dashboard/index.html");
 pub(super) const APP_JS: &str = include_str!("../../assets/dashboard/app.js");
+pub(super) const OD_JS: &str = include_str!("../../assets/dashboard/od.js");
 pub(super) const STYLE: &str = include_str!("../../assets/dashboard/style.css");
 pub(super) const UPLOT_JS: &str = include_str!("../../assets/dashboard/uplot/uPlot.iife.min.js");
 pub(super) const UPLOT_CSS: &str = include_str!("../../assets/dashboard/uplot/uPlot.min.css");
@@ -68,10 +69,12 @@ fn positions_text(n: &Value) -> String {
     let Some(ps) = n["positions"].as_array().filter(|p| !p.is_empty()) else {
         return "–".into();
     };
+    // As many decimals as the node's position step has (3 without one).
+    let d = n["resolution"]["position_decimals"].as_u64().unwrap_or(3) as usize;
     let mut out: Vec<String> = ps
         .iter()
         .map(|p| match p.as_f64() {
-            Some(mm) => format!("{mm:.3} mm"),
+            Some(mm) => format!("{mm:.d$} mm"),
             None => "no position".into(),
         })
         .collect();

@@ -193,6 +193,14 @@ impl Shared {
         n.pinned = true;
     }
 
+    /// Node `id`'s TPDO mappings changed (a remap): they are read again at once.
+    pub fn forget_mapping(&mut self, id: u8) {
+        if let Some(n) = self.nodes.get_mut(&id) {
+            n.info = None;
+            n.asked = None;
+        }
+    }
+
     fn node(&mut self, id: u8) -> &mut Node {
         self.nodes.entry(id).or_default()
     }
