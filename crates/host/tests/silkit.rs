@@ -151,9 +151,11 @@ fn frames_cross_between_participants_and_one_too_long_for_classic_can_is_dropped
         .unwrap()
         .is_some()
     {}
-    // CAN FD with 12 bytes, then 9 bytes without FD, then a classic frame: only the last
+    // CAN FD with 12 and 8 bytes, 9 bytes without FD, then a classic frame: only the last
     // comes through; the others are counted.
     raw_send(&raw, ctl, 0x123, silkit::sys::CAN_FLAG_FDF, &[1; 12]);
+    // CAN FD even with 8 bytes: not a classic frame (its bit timing and CRC differ).
+    raw_send(&raw, ctl, 0x122, silkit::sys::CAN_FLAG_FDF, &[4; 8]);
     raw_send(&raw, ctl, 0x124, 0, &[2; 9]);
     raw_send(&raw, ctl, 0x125, 0, &[3; 8]);
     let rx = b
@@ -162,7 +164,7 @@ fn frames_cross_between_participants_and_one_too_long_for_classic_can_is_dropped
         .expect("the classic frame");
     assert_eq!(rx.frame.id(), 0x125, "{rx:?}");
     assert_eq!(rx.frame.data(), &[3; 8]);
-    assert_eq!(b.not_classic(), 2);
+    assert_eq!(b.not_classic(), 3);
     // A remote frame and an extended identifier keep their kind.
     let r = canpos_stack::Frame::remote(0x1ABCDEF, true, 4).unwrap();
     // `a` saw the bare participant's frame too.
