@@ -88,11 +88,23 @@ function positionsText(n) {
   return out.join(" · ");
 }
 
+// A y range of at least `span`: a still sensor's µm of noise is not blown up to fill the plot.
+const atLeast = (span) => (u, min, max) => {
+  if (min == null || max == null) return [0, span];
+  if (max - min >= span) { const pad = (max - min) * 0.05; return [min - pad, max + pad]; }
+  const mid = (min + max) / 2;
+  return [mid - span / 2, mid + span / 2];
+};
+
+// Decimals of a value in mm whose step is `nm` (0x6005/1): 1 µm → 3, 0.1 µm → 4 …
+const mmDecimals = (nm) => (nm > 0 ? Math.min(6, Math.max(0, Math.ceil(6 - Math.log10(nm) - 1e-9))) : 3);
+
 function plot(target, label, unit, stroke) {
   const opts = {
     width: 520, height: 200, title: `${label} (${unit})`,
-    scales: { x: { time: false } },
-    axes: [{ label: "s" }, { label: unit }],
+    scales: { x: { time: false }, y: { range: atLeast(unit === "mm" ? 1 : 10) } },
+    // A wider y axis: its label clears tick labels like 1000.5.
+    axes: [{ label: "s" }, { label: unit, size: 72, labelGap: 4 }],
     series: [{ label: "t / s" }, { label: `${label} / ${unit}`, stroke, width: 1.5 }],
   };
   return new uPlot(opts, [[], []], target);
@@ -240,7 +252,7 @@ function channels(sec, n) {
     // Off-screen plots are not redrawn (with many nodes most are): their data still grows.
     if ((c.t.length || cut) && dash.plots[n.node][i].visible) draw(n.node, i);
     $(".pos-now", ch).textContent = c.pos == null ? "no position"
-      : `${c.pos.toFixed(3)} mm, ${c.vel == null ? "–" : c.vel.toFixed(2)} mm/s`;
+      : `${c.pos.toFixed(mmDecimals(n.position_step_nm))} mm, ${c.vel == null ? "–" : c.vel.toFixed(2)} mm/s`;
     $(".cams", ch).textContent = c.cam == null ? "–" : (c.cam_labels.join(", ") || "all cams inactive");
     $(".area", ch).textContent = c.area == null ? "–" : (c.area_labels.join(", ") || "inside the work area");
   });
@@ -277,7 +289,7 @@ function update(s) {
       const mm = n.control.true_mm && n.control.true_mm[0];
       if (mm != null && document.activeElement !== slider && !slider.dataset.set) {
         slider.value = mm; slider.dataset.set = "1";
-        $(".magnet-mm", ctl).textContent = `${mm} mm`;
+        $(".magnet-mm", ctl).textContent = `${mm.toFixed(mmDecimals(n.position_step_nm))} mm`;
       }
     }
     const tb = $(".emcy tbody", sec);
