@@ -9,8 +9,12 @@
 const trace = { seq: 0, paused: false, mode: "rows", last: null, polls: 0 };
 window.canposTrace = trace;
 
-// Rows of the log view kept in the page at most (the server keeps more, for the export).
-const LOG_ROWS = 500;
+// Rows of the log view kept in the page at most, and asked for per poll (the server keeps more,
+// for the export): at 10,000 frames/s nobody reads more, and the page stays responsive.
+const LOG_ROWS = 200;
+
+// Sets a cell's text only when it changed (a row per identifier is rewritten every poll).
+const put = (cell, text) => { if (cell.textContent !== text) cell.textContent = text; };
 
 function traceQuery() {
   const q = new URLSearchParams();
@@ -43,22 +47,46 @@ function traceRow(r) {
     const after = rows.find((x) => x.dataset.key > key);
     $("#trace tbody").insertBefore(tr, after || null);
   }
-  $(".dir", tr).textContent = r.dir;
-  $(".id", tr).textContent = r.id + (r.ext ? " (ext)" : "");
-  $(".dlc", tr).textContent = r.dlc;
-  $(".data", tr).textContent = r.rtr ? "RTR" : r.data;
-  $(".count", tr).textContent = r.count;
-  $(".cycle", tr).textContent = fmtMs(r.cycle_ms);
-  $(".decoded", tr).textContent = r.decoded;
+  const c = tr.children;
+  put(c[0], r.dir);
+  put(c[1], r.id + (r.ext ? " (ext)" : ""));
+  put(c[2], String(r.dlc));
+  put(c[3], r.rtr ? "RTR" : r.data);
+  put(c[4], String(r.count));
+  put(c[5], fmtMs(r.cycle_ms));
+  put(c[6], r.decoded);
   tr.title = `last interval ${fmtMs(r.dt_ms)} ms`;
   return tr;
 }
 
-function logLine(e) {
-  return el("tr", { "data-id": e.id, "data-seq": e.seq },
-    el("td", { class: "t" }, e.t.toFixed(6)), el("td", { class: "dir" }, e.dir),
-    el("td", { class: "id" }, e.id + (e.ext ? " (ext)" : "")), el("td", { class: "dlc" }, String(e.dlc)),
-    el("td", { class: "data" }, e.rtr ? "RTR" : e.data), el("td", { class: "decoded" }, e.decoded));
+// The log view: the newest LOG_ROWS entries, newest first, written into rows made once (no rows added or
+// removed while frames stream: at 10,000 frames/s that relayout was most of the page's time).
+const logBuf = [];
+function logRows(fresh, entries) {
+  if (fresh) logBuf.length = 0;
+  logBuf.push(...entries);
+  if (logBuf.length > LOG_ROWS) logBuf.splice(0, logBuf.length - LOG_ROWS);
+  const tb = $("#trace-log tbody");
+  while (tb.children.length < LOG_ROWS) {
+    const tr = el("tr", {});
+    for (const c of ["t", "dir", "id", "dlc", "data", "decoded"]) tr.append(el("td", { class: c }));
+    tb.append(tr);
+  }
+  const rows = tb.children;
+  // Newest first: nothing to scroll, so no layout is forced while frames stream.
+  for (let i = 0; i < LOG_ROWS; i++) {
+    const e = logBuf[logBuf.length - 1 - i], tr = rows[i], c = tr.children;
+    tr.hidden = !e;
+    if (!e) continue;
+    tr.dataset.id = e.id;
+    tr.dataset.seq = e.seq;
+    put(c[0], e.t.toFixed(6));
+    put(c[1], e.dir);
+    put(c[2], e.id + (e.ext ? " (ext)" : ""));
+    put(c[3], String(e.dlc));
+    put(c[4], e.rtr ? "RTR" : e.data);
+    put(c[5], e.decoded);
+  }
 }
 
 function header(j) {
@@ -81,6 +109,9 @@ function header(j) {
 
 function periodicList(list) {
   const ul = $("#tx-periodic");
+  const key = JSON.stringify(list);
+  if (ul.dataset.key === key) return;
+  ul.dataset.key = key;
   ul.replaceChildren(...list.map((p) => el("li", { "data-id": p.id },
     `${p.id} [${p.dlc}] ${p.rtr ? "RTR" : p.data} every ${p.period_ms} ms (${p.sent} sent) `,
     el("button", { class: "tx-stop", onclick: () => api("POST", "/api/send/stop", { id: p.id, ext: p.ext }).then((j) => periodicList(j.periodic)).catch(() => {}) }, "Stop"))));
@@ -91,12 +122,7 @@ function render(j, fresh) {
     const keep = new Set(j.rows.map((r) => traceRow(r)));
     for (const tr of [...$("#trace tbody").children]) if (!keep.has(tr)) tr.remove();
   } else {
-    const tb = $("#trace-log tbody");
-    if (fresh) tb.replaceChildren();
-    tb.append(...j.log.map(logLine));
-    while (tb.children.length > LOG_ROWS) tb.firstChild.remove();
-    const box = $("#trace-log-box");
-    box.scrollTop = box.scrollHeight;
+    logRows(fresh, j.log);
   }
 }
 
@@ -107,7 +133,7 @@ async function tracePoll(failures = 0) {
     // The log asks for what is new; a changed filter starts it again.
     const key = q.toString();
     if (key !== trace.filterKey) { trace.filterKey = key; trace.seq = 0; fresh = true; }
-    if (trace.mode === "log" && !trace.paused) q.set("since", trace.seq);
+    if (trace.mode === "log" && !trace.paused) { q.set("since", trace.seq); q.set("limit", LOG_ROWS); }
     else q.set("since", "18446744073709551615");
     const r = await fetch(`/api/trace?${q}`);
     const j = await r.json();
@@ -150,7 +176,7 @@ function buildTrace() {
   const filt = (k, ph, size) => el("label", {}, `${k} `, el("input", { id: `trace-${k}`, placeholder: ph, size: String(size), oninput: exportLinks }));
   const clear = el("button", { id: "trace-clear" }, "Clear");
   clear.onclick = () => api("POST", "/api/trace/clear").then(() => {
-    $("#trace tbody").replaceChildren(); $("#trace-log tbody").replaceChildren(); trace.seq = 0;
+    $("#trace tbody").replaceChildren(); logRows(true, []); trace.seq = 0;
   }).catch(() => {});
   const cols = (...h) => el("thead", {}, el("tr", {}, ...h.map((x) => el("th", {}, x))));
   // Transmit: one frame, or one every `period` ms; NMT to all nodes or one.

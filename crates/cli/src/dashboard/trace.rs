@@ -336,7 +336,15 @@ fn ms(d: Option<Duration>) -> Value {
 }
 
 /// The trace as the page and scripts read it (`GET /api/trace`).
-pub fn answer(trace: &Trace, mon: &Monitor, filter: &Filter, since: u64, now: Instant) -> Value {
+/// At most `limit` (and [`LOG_ANSWER`]) log entries, the newest.
+pub fn answer(
+    trace: &Trace,
+    mon: &Monitor,
+    filter: &Filter,
+    since: u64,
+    limit: usize,
+    now: Instant,
+) -> Value {
     let frame_fields = |f: &Frame| {
         json!({
             "id": id_text(f), "ext": f.is_extended(), "rtr": f.is_remote(), "dlc": f.dlc(),
@@ -362,7 +370,7 @@ pub fn answer(trace: &Trace, mon: &Monitor, filter: &Filter, since: u64, now: In
         .log_since(since)
         .filter(|e| filter.admits(mon, &e.frame))
         .collect();
-    let skipped = newer.len().saturating_sub(LOG_ANSWER);
+    let skipped = newer.len().saturating_sub(limit.min(LOG_ANSWER));
     let log: Vec<Value> = newer[skipped..]
         .iter()
         .map(|e| {
@@ -790,6 +798,7 @@ struct TraceQuery {
     to: Option<String>,
     node: Option<String>,
     format: Option<String>,
+    limit: Option<usize>,
 }
 
 fn bad(why: String) -> ApiError {
@@ -888,6 +897,7 @@ async fn trace_get(
         &mon,
         &filter,
         q.since.unwrap_or(0),
+        q.limit.unwrap_or(LOG_ANSWER),
         Instant::now(),
     );
     let o = v.as_object_mut().expect("an object");
@@ -1192,9 +1202,12 @@ mod tests {
         assert_eq!(t.rows.len(), ROWS);
         assert_eq!(t.log.len(), LOG);
         assert_eq!(t.log_since(t.seq() - 5).count(), 5);
-        let a = answer(&t, &Monitor::new(), &Filter::default(), 0, now);
+        let a = answer(&t, &Monitor::new(), &Filter::default(), 0, LOG_ANSWER, now);
         assert_eq!(a["log"].as_array().unwrap().len(), LOG_ANSWER);
         assert_eq!(a["log_skipped"], LOG - LOG_ANSWER);
+        let a = answer(&t, &Monitor::new(), &Filter::default(), 0, 10, now);
+        assert_eq!(a["log"].as_array().unwrap().len(), 10);
+        assert_eq!(a["log"][9]["seq"], t.seq());
     }
 
     #[test]
@@ -1216,7 +1229,7 @@ mod tests {
             .into_iter(),
         );
         let ids = |f: Filter| -> Vec<String> {
-            answer(&t, &mon, &f, 0, now)["rows"]
+            answer(&t, &mon, &f, 0, LOG_ANSWER, now)["rows"]
                 .as_array()
                 .unwrap()
                 .iter()
@@ -1235,7 +1248,7 @@ mod tests {
             ..Filter::default()
         };
         assert_eq!(ids(node), ["0x185", "0x705"]);
-        let a = answer(&t, &mon, &Filter::default(), 0, now);
+        let a = answer(&t, &mon, &Filter::default(), 0, LOG_ANSWER, now);
         assert_eq!(a["rows"][0]["decoded"], "node 5 TPDO1 pos1=1.000 mm");
         assert_eq!(a["rows"][2]["decoded"], "node 5 heartbeat operational");
     }
