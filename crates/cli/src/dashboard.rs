@@ -16,6 +16,7 @@ pub mod guard;
 mod od;
 mod page;
 pub mod serve;
+pub mod trace;
 pub mod watch;
 
 use std::convert::Infallible;
@@ -81,6 +82,18 @@ impl Dashboard {
     pub fn connections(&self) -> usize {
         self.connections.load(Ordering::SeqCst)
     }
+
+    /// Names the bus in the page's header (the bus URL rather than what the connection calls
+    /// itself, e.g. `in-process bus port 3`).
+    pub fn set_bus_label(&self, label: &str) {
+        self.shared.lock().unwrap().bus = label.to_string();
+    }
+
+    /// When the bus connection is lost, reconnect with `reopen` (and say so on the page)
+    /// instead of ending: a standalone dashboard outlives a hub that restarts.
+    pub fn reconnect_with(&self, reopen: trace::Reopen) {
+        self.shared.lock().unwrap().trace.reopen_with(reopen);
+    }
 }
 
 impl Drop for Dashboard {
@@ -139,6 +152,13 @@ pub fn start_on(
         window_s,
         controllers,
     )));
+    // Every frame in and out goes through the trace (issue 38).
+    let hub = shared.lock().unwrap().trace.clone();
+    hub.trace
+        .lock()
+        .unwrap()
+        .set_bitrate(bus.bus_bitrate().unwrap_or(1000));
+    let bus: Box<dyn Transport> = Box::new(trace::Tap::new(bus, hub));
     let (cmd_tx, cmd_rx) = watch::bus_queue(watch::QUEUE);
     let (stop_bus, stop_bus_rx) = canpos_host::crossbeam_channel::bounded(1);
     let (stop_poll, stop_poll_rx) = canpos_host::crossbeam_channel::bounded(1);
@@ -237,6 +257,7 @@ fn router(app: App) -> Router {
         )
         .route("/api/nodes/{node}/control", post(node_control))
         .merge(od::routes())
+        .merge(trace::routes())
         // axum answers a known path's other methods 405 with an empty body; the API's errors
         // are JSON (axum still adds `Allow`).
         .method_not_allowed_fallback(|method: Method, uri: Uri| async move {
@@ -432,6 +453,7 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                 .or(n.error_register);
             let nmt = st
                 .and_then(|st| st["nmt"].as_str().map(str::to_string))
+                .or_else(|| trace::nmt_of(s, *id, n))
                 .unwrap_or_else(|| watch::nmt_name(n.nmt).to_string());
             let channels: Vec<Value> = n
                 .channels

@@ -117,7 +117,9 @@ pub(crate) fn start_web(
     let url = &crate::common::second_connection_url(url);
     let bus =
         canpos_host::open(url).with_context(|| format!("dashboard: cannot connect to {url}"))?;
-    crate::dashboard::start_for_runtime(web, bus, handle, sensors).map(Some)
+    let d = crate::dashboard::start_for_runtime(web, bus, handle, sensors)?;
+    d.set_bus_label(url);
+    Ok(Some(d))
 }
 
 /// Prints what each sensor of a started runtime really is, from its state: the active node-id

@@ -1500,3 +1500,67 @@ fn the_dcf_export_holds_the_values_read() {
         .unwrap();
     assert_eq!(hb["range"]["text"], "0 … 65535", "{hb}");
 }
+
+/// The trace's and transmitter's state changes (a frame once or periodically, NMT, clear) pass
+/// the guard of every write: another site's origin, `Origin: null` and a body that is not
+/// typed JSON are refused and nothing goes on the bus; the page's own origin sends (issue 38
+/// item 9).
+#[test]
+fn the_transmitter_passes_the_guard_of_every_write() {
+    let bus = MemBus::new();
+    let mut peer = bus.attach();
+    let web = dashboard::start(
+        Box::new(bus.attach()),
+        "127.0.0.1:0",
+        Controls::Remote(Vec::new()),
+        10.0,
+    )
+    .unwrap();
+    let a = web.local_addr();
+    let host = format!("Host: {a}");
+    let own = format!("Origin: http://{a}");
+    let json = "Content-Type: application/json";
+    let once = r#"{"id":"0x123","data":"11 22"}"#;
+    let writes = [
+        ("/api/send", once),
+        ("/api/send", r#"{"id":"0x124","period_ms":5}"#),
+        ("/api/nmt", r#"{"command":"stop","node":0}"#),
+        ("/api/trace/clear", "{}"),
+    ];
+    for (path, body) in writes {
+        for h in [
+            vec![&host[..], "Origin: http://evil.example", json],
+            vec![&host[..], "Origin: null", json],
+            vec![&host[..], &own[..], "Content-Type: text/plain"],
+        ] {
+            let (code, v) = http_with(a, "POST", path, &h, body);
+            assert!(code == 403 || code == 415, "{path} {h:?}: {code} {v}");
+        }
+    }
+    let (code, v) = http_with(a, "GET", "/api/send", &[&host], "");
+    assert_eq!(
+        (code, v["periodic"].as_array().map(Vec::len)),
+        (200, Some(0)),
+        "{v}"
+    );
+    // Nothing of theirs reached the bus (the dashboard's scan did).
+    let theirs = |f: &canpos_stack::Frame| matches!(f.id(), 0x000 | 0x123 | 0x124);
+    let until = Instant::now() + Duration::from_millis(300);
+    while let Some(rx) = peer.recv_deadline(until).unwrap() {
+        assert!(!theirs(&rx.frame), "a refused request sent {:?}", rx.frame);
+    }
+    // The page's own origin: sent.
+    let (code, v) = http_with(a, "POST", "/api/send", &[&host, &own, json], once);
+    assert_eq!(code, 200, "{v}");
+    let until = Instant::now() + Duration::from_secs(5);
+    loop {
+        let rx = peer
+            .recv_deadline(until)
+            .unwrap()
+            .expect("0x123 on the bus");
+        if rx.frame.id() == 0x123 {
+            assert_eq!(rx.frame.data(), [0x11, 0x22]);
+            break;
+        }
+    }
+}

@@ -89,11 +89,20 @@ function positionsText(n) {
   return out.join(" · ");
 }
 
+// A y range of at least `span`: a still sensor's µm of noise is not blown up to fill the plot.
+const atLeast = (span) => (u, min, max) => {
+  if (min == null || max == null) return [0, span];
+  if (max - min >= span) { const pad = (max - min) * 0.05; return [min - pad, max + pad]; }
+  const mid = (min + max) / 2;
+  return [mid - span / 2, mid + span / 2];
+};
+
 function plot(target, label, unit, stroke) {
   const opts = {
     width: 520, height: 200, title: `${label} (${unit})`,
-    scales: { x: { time: false } },
-    axes: [{ label: "s" }, { label: unit }],
+    scales: { x: { time: false }, y: { range: atLeast(unit === "mm" ? 1 : 10) } },
+    // A wider y axis: its label clears tick labels like 1000.5.
+    axes: [{ label: "s" }, { label: unit, size: 72, labelGap: 4 }],
     series: [{ label: "t / s" }, { label: `${label} / ${unit}`, stroke, width: 1.5 }],
   };
   return new uPlot(opts, [[], []], target);
@@ -254,7 +263,7 @@ function update(s) {
       const mm = n.control.true_mm && n.control.true_mm[0];
       if (mm != null && document.activeElement !== slider && !slider.dataset.set) {
         slider.value = mm; slider.dataset.set = "1";
-        $(".magnet-mm", ctl).textContent = `${mm} mm`;
+        $(".magnet-mm", ctl).textContent = `${mm.toFixed((n.resolution && n.resolution.position_decimals) ?? 3)} mm`;
       }
     }
     const tb = $(".emcy tbody", sec);

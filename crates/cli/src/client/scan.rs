@@ -23,8 +23,11 @@ pub struct ScanResult {
     pub identity: [Option<u32>; 4],
     /// 0x1008.
     pub name: Option<String>,
-    /// Last NMT state seen in a heartbeat / boot-up, if any.
+    /// Last NMT state seen in a heartbeat / boot-up, if any; else operational when the node
+    /// sent a PDO of the pre-defined connection set (see `state_inferred`).
     pub state: Option<u8>,
+    /// `state` is inferred from PDOs, not heard in a heartbeat (issue 38 item 5).
+    pub state_inferred: bool,
 }
 
 /// 0x1000/0, the device type: the object every CiA 301 node has.
@@ -37,7 +40,9 @@ pub const DEVICE_TYPE: Mux = Mux {
 /// then reads each node's identity.
 pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<ScanResult>> {
     let mut found: HashMap<u8, ScanResult> = HashMap::new();
-    let note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
+    // Nodes heard sending a TPDO of the pre-defined connection set.
+    let mut pdo = [false; 128];
+    let mut note = |found: &mut HashMap<u8, ScanResult>, rx: RxFrame| {
         let f = rx.frame;
         if f.is_extended() || f.is_remote() {
             return;
@@ -72,7 +77,10 @@ pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<Sc
                 let e = found.entry(node).or_default();
                 e.node = node;
                 e.state = Some(*s & 0x7F);
+                // PDOs before it tell nothing of the state it reports.
+                pdo[usize::from(node)] = false;
             }
+            (0x180 | 0x280 | 0x380 | 0x480, _) if node != 0 => pdo[usize::from(node)] = true,
             _ => {}
         }
     };
@@ -97,6 +105,15 @@ pub fn scan_bus(bus: &mut dyn Transport, timeout: Duration) -> io::Result<Vec<Sc
     }
     let mut nodes: Vec<ScanResult> = found.into_values().collect();
     nodes.sort_by_key(|n| n.node);
+    // No heartbeat (or only a boot-up) but PDOs after it: only an operational node sends them
+    // (CiA 301). Only for nodes found otherwise: a PDO's COB-ID alone may be another node's
+    // (a remapped one).
+    for n in &mut nodes {
+        if matches!(n.state, None | Some(0)) && pdo[usize::from(n.node)] {
+            n.state = Some(0x05);
+            n.state_inferred = true;
+        }
+    }
     for n in &mut nodes {
         let mut c = SdoClient::new(bus, n.node, timeout);
         if n.device_type.is_none() {

@@ -62,6 +62,12 @@ pub fn dashboard(a: DashboardArgs) -> Result<i32> {
     }
     let bus = crate::common::open_bus(&a.bus)?;
     let d = start(bus, &a.listen, Controls::Remote(a.controls), a.window)?;
+    // A hub that goes away is waited for and reconnected to, as `canpos run --hub never` does
+    // (issue 38 item 7); the page says so meanwhile.
+    let url = a.bus.clone();
+    d.reconnect_with(Box::new(move || {
+        canpos_host::open(&url).map_err(std::io::Error::other)
+    }));
     for (id, model) in tables {
         d.pin_model(id, model);
     }

@@ -169,6 +169,7 @@ pub fn demo(a: DemoArgs) -> Result<i32> {
                 crate::dashboard::Controls::Local(handle.control(), 1),
                 30.0,
             )?;
+            d.set_bus_label(&format!("socketcand://{addr}/can0"));
             writeln!(o, "  dashboard: {}", d.url())?;
             Some(d)
         }

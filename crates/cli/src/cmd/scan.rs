@@ -38,7 +38,11 @@ pub fn scan(a: ScanArgs) -> Result<i32> {
             hex(n.identity[2]),
             n.identity[3].map_or("-".to_string(), |v| v.to_string()),
             n.name.as_deref().unwrap_or("-"),
-            n.state.map_or("-", decode::nmt_state_name),
+            match (n.state, n.state_inferred) {
+                (None, _) => "-".to_string(),
+                (Some(s), false) => decode::nmt_state_name(s).to_string(),
+                (Some(s), true) => format!("{} (inferred)", decode::nmt_state_name(s)),
+            },
         );
     }
     Ok(EXIT_OK)

@@ -263,6 +263,23 @@ fn scan_finds_nodes_and_identity() {
     }
 }
 
+/// A node that sends PDOs but no heartbeat (the TH's default 0x1017 = 0) after its boot-up is
+/// operational "(inferred)"; one still pre-operational keeps its boot-up (issue 38 item 5).
+#[test]
+fn scan_infers_operational_from_pdos_without_a_heartbeat() {
+    let bus = MemBus::new();
+    let _a = run_node(&bus, 5);
+    let _b = run_node(&bus, 6);
+    let mut port = bus.attach();
+    port.send(&Frame::new(0, &[0x01, 5]).unwrap()).unwrap();
+    let found = scan_bus(&mut port, Duration::from_millis(200)).unwrap();
+    let states: Vec<(u8, Option<u8>, bool)> = found
+        .iter()
+        .map(|n| (n.node, n.state, n.state_inferred))
+        .collect();
+    assert_eq!(states, [(5, Some(0x05), true), (6, Some(0), false)]);
+}
+
 #[test]
 fn monitor_reads_tpdo_configuration() {
     let bus = MemBus::new();

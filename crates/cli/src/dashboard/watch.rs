@@ -157,6 +157,8 @@ pub struct Shared {
     pub streams: usize,
     /// Why the bus connection ended, once it has.
     pub bus_error: Option<String>,
+    /// The frame trace and the transmitter (issue 38; [`super::trace`]).
+    pub trace: Arc<super::trace::TraceHub>,
     rate_mark: (Instant, u64),
 }
 
@@ -175,6 +177,7 @@ impl Shared {
             seq: 1,
             streams: 0,
             bus_error: None,
+            trace: super::trace::TraceHub::new(1000),
             rate_mark: (now, 0),
         }
     }
@@ -675,7 +678,7 @@ pub fn run_bus(
 }
 
 /// Sends the scan's 0x1000 reads in small bursts (a slow hub client would drop a flood).
-fn scan(bus: &mut dyn Transport) -> std::io::Result<()> {
+pub(super) fn scan(bus: &mut dyn Transport) -> std::io::Result<()> {
     for node in 1..=127u8 {
         let mux = DEVICE_TYPE;
         bus.send(&Frame::std8(

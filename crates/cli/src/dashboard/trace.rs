@@ -1,0 +1,1379 @@
+//! The dashboard's bus tool (issue 38 items 1, 2, 5, 7): a frame trace in PCAN-View's manner,
+//! a transmitter, the NMT state a node's own frames tell, and a bus connection that comes back.
+//!
+//! * [`Trace`]: one row per identifier (count, cycle time and last data, the cycle from the
+//!   frames' own timestamps) and a log of the last [`LOG`] frames, both bounded; bus load and
+//!   frame rate over a second of frame timestamps. Frames are decoded at request time by the
+//!   monitor's decoder ([`Monitor`], fed the mappings the dashboard read), never a second one.
+//! * [`Tap`]: the bus thread's transport, wrapped. Every frame it receives or sends goes into
+//!   the trace (so the dashboard's own SDO requests and the page's frames are in it too); it
+//!   sends the page's frames, once or periodically, between the bus thread's receives; and when
+//!   given a way to reopen the bus ([`TraceHub::reopen_with`]) it waits out a lost hub and
+//!   reconnects, as `canpos run --hub never` does, instead of ending the bus thread.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::io;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use canpos_host::transport::{BusState, RxFrame, Transport};
+use canpos_stack::Frame;
+use serde_json::{json, Value};
+
+use crate::capture::{CaptureWriter, Format};
+use crate::client::decode::NodeInfo;
+use crate::client::sdo::hex_string;
+use crate::client::Monitor;
+
+/// Rows kept, one per identifier (and RTR or not): every standard identifier twice over; an
+/// identifier beyond them (a flood of extended ones) is counted in [`Trace::unlisted`] (D42).
+pub const ROWS: usize = 4096;
+/// Frames kept for the log and the export (D42): 1.6 s of a bus at 40,000 frames/s.
+pub const LOG: usize = 65_536;
+/// Log entries one answer carries at most (the newest).
+pub const LOG_ANSWER: usize = 2000;
+/// Frames the page may have queued to send once; more are refused (503) until they went out.
+pub const ONCE_QUEUE: usize = 64;
+/// Periodic transmissions at once (D43).
+pub const PERIODIC: usize = 16;
+/// Shortest period of a periodic transmission: the bus thread's timer (D43); the hub's own
+/// cyclic jobs go down to 100 µs, a thread sleeping between receives does not.
+pub const MIN_PERIOD: Duration = Duration::from_millis(1);
+/// Longest period.
+pub const MAX_PERIOD: Duration = Duration::from_secs(3600);
+/// A node whose heartbeat (or guarding answer) is this old counts as not sending one.
+pub const HEARTBEAT_SILENCE: Duration = Duration::from_secs(3);
+/// A PDO from a node this recent makes it "operational (inferred)".
+pub const PDO_FRESH: Duration = Duration::from_secs(1);
+/// Waits between attempts to reach a lost hub: 100 ms doubling to this.
+pub const REOPEN_MAX: Duration = Duration::from_millis(800);
+
+/// Which way a frame went, seen from the dashboard.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dir {
+    /// Heard on the bus.
+    Rx,
+    /// Sent by the dashboard (its SDO client, its scan, the page's transmitter).
+    Tx,
+}
+
+impl Dir {
+    fn name(self) -> &'static str {
+        match self {
+            Dir::Rx => "rx",
+            Dir::Tx => "tx",
+        }
+    }
+}
+
+/// One logged frame.
+#[derive(Clone, Debug)]
+pub struct Entry {
+    /// Log sequence number (from 1).
+    pub seq: u64,
+    /// The frame's own timestamp.
+    pub t: SystemTime,
+    /// The frame.
+    pub frame: Frame,
+    /// Direction.
+    pub dir: Dir,
+}
+
+/// One identifier's row.
+#[derive(Clone, Debug)]
+pub struct Row {
+    /// The last frame.
+    pub frame: Frame,
+    /// Direction of the last frame.
+    pub dir: Dir,
+    /// Frames counted.
+    pub count: u64,
+    /// Timestamp of the last frame.
+    pub last: SystemTime,
+    /// Interval between the last two frames.
+    pub dt: Option<Duration>,
+    /// The mean cycle over the last full second of timestamps (or since the first frame, until
+    /// a second has passed).
+    pub cycle: Option<Duration>,
+    /// When the last frame arrived here (for what is still being sent).
+    pub arrived: Instant,
+    window: (SystemTime, u64),
+}
+
+/// Row key: extended flag, identifier, remote flag.
+type Key = (bool, u32, bool);
+
+fn key(f: &Frame) -> Key {
+    (f.is_extended(), f.id(), f.is_remote())
+}
+
+/// The frame trace; see the [module docs](self).
+pub struct Trace {
+    rows: BTreeMap<Key, Row>,
+    log: VecDeque<Entry>,
+    next_seq: u64,
+    /// Frames whose identifier found no free row (beyond [`ROWS`]).
+    pub unlisted: u64,
+    bit_ns: u64,
+    second: Option<(SystemTime, u64, u64)>,
+    load: Option<(f64, f64)>,
+    last_arrival: Option<Instant>,
+}
+
+impl Trace {
+    /// An empty trace of a bus of `kbps` kbit/s (for its load).
+    pub fn new(kbps: u32) -> Trace {
+        Trace {
+            rows: BTreeMap::new(),
+            log: VecDeque::new(),
+            next_seq: 1,
+            unlisted: 0,
+            bit_ns: 1_000_000 / u64::from(kbps.max(1)),
+            second: None,
+            load: None,
+            last_arrival: None,
+        }
+    }
+
+    /// Takes in one frame stamped `t` (its own timestamp) that arrived `now`.
+    pub fn note(&mut self, f: &Frame, t: SystemTime, dir: Dir, now: Instant) {
+        let k = key(f);
+        if let Some(r) = self.rows.get_mut(&k) {
+            r.dt = t.duration_since(r.last).ok();
+            r.count += 1;
+            r.last = t;
+            r.frame = *f;
+            r.dir = dir;
+            r.arrived = now;
+            let (w0, c0) = r.window;
+            if let Ok(span) = t.duration_since(w0) {
+                if span >= Duration::from_secs(1) {
+                    r.cycle = Some(span / (r.count - c0) as u32);
+                    r.window = (t, r.count);
+                } else if r.cycle.is_none() || r.window.1 == 1 {
+                    // The first second: the mean since the first frame.
+                    r.cycle = Some(span / (r.count - c0) as u32);
+                }
+            } else {
+                // A stamp older than the window's start (another source's clock): start again.
+                r.window = (t, r.count);
+            }
+        } else if self.rows.len() < ROWS {
+            self.rows.insert(
+                k,
+                Row {
+                    frame: *f,
+                    dir,
+                    count: 1,
+                    last: t,
+                    dt: None,
+                    cycle: None,
+                    arrived: now,
+                    window: (t, 1),
+                },
+            );
+        } else {
+            self.unlisted += 1;
+        }
+        if self.log.len() == LOG {
+            self.log.pop_front();
+        }
+        self.log.push_back(Entry {
+            seq: self.next_seq,
+            t,
+            frame: *f,
+            dir,
+        });
+        self.next_seq += 1;
+        // Load and rate over a second of frame timestamps.
+        let bits = u64::from(canpos_host::bus::bits::frame_length(f).total);
+        match &mut self.second {
+            Some((t0, b, n)) => match t.duration_since(*t0) {
+                Ok(span) if span >= Duration::from_secs(1) => {
+                    let ns = span.as_nanos() as f64;
+                    let pct = (*b * self.bit_ns) as f64 / ns * 100.0;
+                    self.load = Some((pct.min(100.0), *n as f64 / span.as_secs_f64()));
+                    self.second = Some((t, bits, 1));
+                }
+                Ok(_) => {
+                    *b += bits;
+                    *n += 1;
+                }
+                Err(_) => self.second = Some((t, bits, 1)),
+            },
+            None => self.second = Some((t, bits, 1)),
+        }
+        self.last_arrival = Some(now);
+    }
+
+    /// Sets the bit rate the load is figured at.
+    pub fn set_bitrate(&mut self, kbps: u32) {
+        self.bit_ns = 1_000_000 / u64::from(kbps.max(1));
+    }
+
+    /// Forgets every row and logged frame (the page's "Clear").
+    pub fn clear(&mut self) {
+        self.rows.clear();
+        self.log.clear();
+        self.unlisted = 0;
+    }
+
+    /// Bus load (%) and frames/s over the last full second of timestamps; zero once nothing
+    /// has arrived for two seconds.
+    pub fn load(&self, now: Instant) -> (f64, f64) {
+        match (self.load, self.last_arrival) {
+            (Some(l), Some(a)) if now.duration_since(a) < Duration::from_secs(2) => l,
+            _ => (0.0, 0.0),
+        }
+    }
+
+    /// The rows, by identifier.
+    pub fn rows(&self) -> impl Iterator<Item = &Row> {
+        self.rows.values()
+    }
+
+    /// Logged frames newer than `since`, oldest first.
+    pub fn log_since(&self, since: u64) -> impl Iterator<Item = &Entry> {
+        let skip = self.log.partition_point(|e| e.seq <= since);
+        self.log.range(skip..)
+    }
+
+    /// The sequence number of the last frame logged (0: none yet).
+    pub fn seq(&self) -> u64 {
+        self.next_seq - 1
+    }
+
+    /// What node `node`'s NMT state is from its own frames, when no heartbeat or guarding
+    /// answer of it is recent: "operational (inferred)" while it sends PDOs (`pdo_cobs`: the
+    /// COB-IDs of its TPDOs; the pre-defined set's four when its mapping is not known). A
+    /// recent guarding answer (toggle bit) is named as such. `None`: nothing to add to the
+    /// heartbeat's word.
+    pub fn inferred_nmt(&self, node: u8, pdo_cobs: &[u16], now: Instant) -> Option<String> {
+        let recent = |id: u32, within: Duration| {
+            self.rows
+                .get(&(false, id, false))
+                .filter(|r| now.duration_since(r.arrived) < within)
+        };
+        let defaults: Vec<u16> = [0x180u16, 0x280, 0x380, 0x480]
+            .iter()
+            .map(|b| b + u16::from(node))
+            .collect();
+        let cobs = if pdo_cobs.is_empty() {
+            &defaults[..]
+        } else {
+            pdo_cobs
+        };
+        let pdo = cobs
+            .iter()
+            .filter_map(|c| recent(u32::from(*c), PDO_FRESH))
+            .map(|r| r.arrived)
+            .max();
+        let errctl = 0x700 + u32::from(node);
+        if let Some(r) = recent(errctl, HEARTBEAT_SILENCE) {
+            // A guarding answer carries the toggle bit or follows a guarding request.
+            let rtr = self.rows.get(&(false, errctl, true));
+            let guarded = r.frame.data().first().is_some_and(|b| b & 0x80 != 0)
+                || rtr.is_some_and(|q| {
+                    r.arrived >= q.arrived && r.arrived - q.arrived < Duration::from_millis(500)
+                });
+            if guarded && r.frame.dlc() == 1 {
+                let state = crate::client::decode::nmt_state_name(r.frame.data()[0] & 0x7F);
+                return Some(format!("{state} (guarding)"));
+            }
+            // A heartbeat speaks for itself; a boot-up only until the node's first PDO.
+            if r.frame.data() != [0] || pdo.is_none_or(|p| p < r.arrived) {
+                return None;
+            }
+        }
+        pdo.map(|_| "operational (inferred)".to_string())
+    }
+}
+
+/// A filter of the trace: an identifier range and a node.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Filter {
+    /// Lowest identifier shown.
+    pub from: Option<u32>,
+    /// Highest identifier shown.
+    pub to: Option<u32>,
+    /// Only frames that concern this node (as `canpos monitor --node` chooses them).
+    pub node: Option<u8>,
+}
+
+impl Filter {
+    fn admits(&self, mon: &Monitor, f: &Frame) -> bool {
+        self.from.is_none_or(|lo| f.id() >= lo)
+            && self.to.is_none_or(|hi| f.id() <= hi)
+            && self.node.is_none_or(|n| mon.concerns(f, n))
+    }
+}
+
+/// A monitor that knows the TPDO mappings the dashboard read.
+pub fn monitor_of<'a>(infos: impl Iterator<Item = (u8, &'a NodeInfo)>) -> Monitor {
+    let mut m = Monitor::new();
+    for (id, info) in infos {
+        m.learn(id, Some(info.clone()));
+    }
+    m
+}
+
+fn secs(t: SystemTime) -> f64 {
+    t.duration_since(UNIX_EPOCH)
+        .unwrap_or_default()
+        .as_secs_f64()
+}
+
+fn id_text(f: &Frame) -> String {
+    if f.is_extended() {
+        format!("0x{:08X}", f.id())
+    } else {
+        format!("0x{:03X}", f.id())
+    }
+}
+
+fn ms(d: Option<Duration>) -> Value {
+    d.map_or(Value::Null, |d| json!(d.as_secs_f64() * 1e3))
+}
+
+/// The trace as the page and scripts read it (`GET /api/trace`).
+/// At most `limit` (and [`LOG_ANSWER`]) log entries, the newest.
+pub fn answer(
+    trace: &Trace,
+    mon: &Monitor,
+    filter: &Filter,
+    since: u64,
+    limit: usize,
+    now: Instant,
+) -> Value {
+    let frame_fields = |f: &Frame| {
+        json!({
+            "id": id_text(f), "ext": f.is_extended(), "rtr": f.is_remote(), "dlc": f.dlc(),
+            "data": if f.is_remote() { String::new() } else { hex_string(f.data()) },
+            "decoded": mon.describe(f),
+        })
+    };
+    let rows: Vec<Value> = trace
+        .rows()
+        .filter(|r| filter.admits(mon, &r.frame))
+        .map(|r| {
+            let mut v = frame_fields(&r.frame);
+            let o = v.as_object_mut().expect("an object");
+            o.insert("count".into(), json!(r.count));
+            o.insert("cycle_ms".into(), ms(r.cycle));
+            o.insert("dt_ms".into(), ms(r.dt));
+            o.insert("t".into(), json!(secs(r.last)));
+            o.insert("dir".into(), json!(r.dir.name()));
+            v
+        })
+        .collect();
+    let newer: Vec<&Entry> = trace
+        .log_since(since)
+        .filter(|e| filter.admits(mon, &e.frame))
+        .collect();
+    let skipped = newer.len().saturating_sub(limit.min(LOG_ANSWER));
+    let log: Vec<Value> = newer[skipped..]
+        .iter()
+        .map(|e| {
+            let mut v = frame_fields(&e.frame);
+            let o = v.as_object_mut().expect("an object");
+            o.insert("seq".into(), json!(e.seq));
+            o.insert("t".into(), json!(secs(e.t)));
+            o.insert("dir".into(), json!(e.dir.name()));
+            v
+        })
+        .collect();
+    let (load, fps) = trace.load(now);
+    json!({
+        "ok": true, "seq": trace.seq(), "rows": rows, "log": log, "log_skipped": skipped,
+        "unlisted": trace.unlisted, "bus_load_pct": load, "frames_per_s": fps,
+        "bitrate_kbps": 1_000_000 / trace.bit_ns,
+    })
+}
+
+/// The logged frames that pass `filter`, as a capture file of `format` (`canpos record`'s
+/// writers).
+pub fn export(
+    trace: &Trace,
+    mon: &Monitor,
+    filter: &Filter,
+    format: Format,
+) -> io::Result<Vec<u8>> {
+    let mut w = CaptureWriter::new(Vec::new(), format, "can0")?;
+    for e in trace.log_since(0).filter(|e| filter.admits(mon, &e.frame)) {
+        w.write(e.t, &canpos_host::candump::Record::Frame(e.frame))?;
+    }
+    w.finish()
+}
+
+/// A periodic transmission.
+#[derive(Clone, Debug)]
+pub struct Periodic {
+    /// The frame.
+    pub frame: Frame,
+    /// Its period.
+    pub period: Duration,
+    /// When it is sent next.
+    pub next: Instant,
+    /// Frames sent.
+    pub sent: u64,
+}
+
+/// The hub's state as the dashboard's connection sees it.
+#[derive(Clone, Debug, Default)]
+pub struct LinkState {
+    /// Lost, since then, why (while it is away).
+    pub down: Option<(SystemTime, String)>,
+    /// Reconnections so far, and the time of the last one.
+    pub reconnections: u64,
+    /// When the last reconnection happened.
+    pub back_at: Option<SystemTime>,
+}
+
+/// A way to open the bus again.
+pub type Reopen = Box<dyn Fn() -> io::Result<Box<dyn Transport>> + Send>;
+
+/// What the HTTP side and the bus thread share for the trace and the transmitter.
+pub struct TraceHub {
+    /// The trace.
+    pub trace: Mutex<Trace>,
+    once: Mutex<VecDeque<Frame>>,
+    periodic: Mutex<Vec<Periodic>>,
+    /// The hub connection's state.
+    pub link: Mutex<LinkState>,
+    reopen: Mutex<Option<Reopen>>,
+}
+
+/// Why a frame was not queued.
+#[derive(Debug, PartialEq, Eq)]
+pub enum SendRefused {
+    /// [`ONCE_QUEUE`] frames wait already.
+    Busy,
+    /// [`PERIODIC`] periodic transmissions run already.
+    TooMany,
+}
+
+impl TraceHub {
+    /// A hub for a bus of `kbps` kbit/s.
+    pub fn new(kbps: u32) -> Arc<TraceHub> {
+        Arc::new(TraceHub {
+            trace: Mutex::new(Trace::new(kbps)),
+            once: Mutex::new(VecDeque::new()),
+            periodic: Mutex::new(Vec::new()),
+            link: Mutex::new(LinkState::default()),
+            reopen: Mutex::new(None),
+        })
+    }
+
+    /// Gives the bus thread a way to reconnect when the bus connection is lost.
+    pub fn reopen_with(&self, r: Reopen) {
+        *self.reopen.lock().unwrap() = Some(r);
+    }
+
+    /// Queues `f` to be sent once.
+    pub fn send_once(&self, f: Frame) -> Result<(), SendRefused> {
+        let mut q = self.once.lock().unwrap();
+        if q.len() >= ONCE_QUEUE {
+            return Err(SendRefused::Busy);
+        }
+        q.push_back(f);
+        Ok(())
+    }
+
+    /// Sends `f` every `period` (first now); one already sent on its identifier is replaced,
+    /// as a socketcand `add` replaces a job.
+    pub fn send_periodic(
+        &self,
+        f: Frame,
+        period: Duration,
+        now: Instant,
+    ) -> Result<(), SendRefused> {
+        let mut p = self.periodic.lock().unwrap();
+        let job = Periodic {
+            frame: f,
+            period,
+            next: now,
+            sent: 0,
+        };
+        if let Some(j) = p.iter_mut().find(|j| key(&j.frame) == key(&f)) {
+            *j = job;
+        } else if p.len() >= PERIODIC {
+            return Err(SendRefused::TooMany);
+        } else {
+            p.push(job);
+        }
+        Ok(())
+    }
+
+    /// Stops the periodic transmission of identifier `id` (`ext`); whether there was one.
+    pub fn stop_periodic(&self, ext: bool, id: u32) -> bool {
+        let mut p = self.periodic.lock().unwrap();
+        let n = p.len();
+        p.retain(|j| !(j.frame.is_extended() == ext && j.frame.id() == id));
+        p.len() != n
+    }
+
+    /// The periodic transmissions.
+    pub fn periodic(&self) -> Vec<Periodic> {
+        self.periodic.lock().unwrap().clone()
+    }
+}
+
+/// The bus thread's transport; see the [module docs](self).
+pub struct Tap {
+    inner: Box<dyn Transport>,
+    hub: Arc<TraceHub>,
+    /// Lost: when to try again, and the next wait.
+    down: Option<(Instant, Duration)>,
+}
+
+impl Tap {
+    /// Wraps the bus connection `inner`.
+    pub fn new(inner: Box<dyn Transport>, hub: Arc<TraceHub>) -> Tap {
+        Tap {
+            inner,
+            hub,
+            down: None,
+        }
+    }
+
+    fn record(&self, f: &Frame, t: SystemTime, dir: Dir) {
+        self.hub
+            .trace
+            .lock()
+            .unwrap()
+            .note(f, t, dir, Instant::now());
+    }
+
+    /// Sends the page's frames that are due; the time of the next periodic one.
+    fn service(&mut self) -> io::Result<Option<Instant>> {
+        if self.down.is_some() {
+            return Ok(None);
+        }
+        loop {
+            let Some(f) = self.hub.once.lock().unwrap().pop_front() else {
+                break;
+            };
+            self.send(&f)?;
+        }
+        let now = Instant::now();
+        let due: Vec<Frame> = {
+            let mut p = self.hub.periodic.lock().unwrap();
+            let mut out = Vec::new();
+            for j in p.iter_mut().filter(|j| j.next <= now) {
+                out.push(j.frame);
+                j.sent += 1;
+                // A late thread sends once and keeps the cycle, no burst to catch up.
+                j.next += j.period;
+                if j.next <= now {
+                    j.next = now + j.period;
+                }
+            }
+            out
+        };
+        for f in due {
+            self.send(&f)?;
+        }
+        Ok(self
+            .hub
+            .periodic
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|j| j.next)
+            .min())
+    }
+
+    /// The bus connection failed with `e`: wait for it to come back when the bus can be
+    /// reopened, or report the error (the bus thread ends) when it cannot.
+    fn lost(&mut self, e: io::Error) -> io::Result<()> {
+        if self.hub.reopen.lock().unwrap().is_none() || e.kind() == io::ErrorKind::InvalidInput {
+            return Err(e);
+        }
+        if self.down.is_none() {
+            tracing::warn!("dashboard: the bus connection was lost ({e}); reconnecting");
+            self.hub.link.lock().unwrap().down = Some((SystemTime::now(), e.to_string()));
+            self.down = Some((
+                Instant::now() + Duration::from_millis(100),
+                Duration::from_millis(100),
+            ));
+        }
+        Ok(())
+    }
+
+    /// While lost: one attempt to reopen when it is due, else wait until `deadline`.
+    fn wait_for_bus(&mut self, deadline: Instant) {
+        let Some((at, wait)) = self.down else { return };
+        let now = Instant::now();
+        if now < at {
+            std::thread::sleep((at.min(deadline)).saturating_duration_since(now));
+            return;
+        }
+        let r = self.hub.reopen.lock().unwrap().as_ref().map(|f| f());
+        match r {
+            Some(Ok(bus)) => {
+                self.inner = bus;
+                self.down = None;
+                {
+                    let mut l = self.hub.link.lock().unwrap();
+                    l.down = None;
+                    l.reconnections += 1;
+                    l.back_at = Some(SystemTime::now());
+                }
+                tracing::warn!("dashboard: the bus connection is back; scanning it again");
+                // The hub may be a new one and its nodes booted again: ask who is there.
+                if let Err(e) = super::watch::scan(self) {
+                    let _ = self.lost(e);
+                }
+            }
+            _ => {
+                let next = (wait * 2).min(REOPEN_MAX);
+                self.down = Some((Instant::now() + wait, next));
+            }
+        }
+    }
+}
+
+impl Transport for Tap {
+    fn send(&mut self, frame: &Frame) -> io::Result<()> {
+        if self.down.is_some() {
+            return Err(io::Error::new(
+                io::ErrorKind::NotConnected,
+                "the bus connection is lost; the dashboard is reconnecting",
+            ));
+        }
+        match self.inner.send(frame) {
+            Ok(()) => {
+                self.record(frame, SystemTime::now(), Dir::Tx);
+                Ok(())
+            }
+            Err(e) => {
+                let kind = e.kind();
+                let text = e.to_string();
+                self.lost(e)?;
+                Err(io::Error::new(kind, text))
+            }
+        }
+    }
+
+    fn recv_timeout(&mut self, timeout: Option<Duration>) -> io::Result<Option<RxFrame>> {
+        let deadline = timeout.map(|t| Instant::now() + t);
+        loop {
+            let now = Instant::now();
+            if self.down.is_some() {
+                let d = deadline.unwrap_or(now + Duration::from_millis(100));
+                self.wait_for_bus(d);
+                if self.down.is_some() {
+                    if Instant::now() >= d {
+                        return Ok(None);
+                    }
+                    continue;
+                }
+            }
+            let next = match self.service() {
+                Ok(n) => n,
+                Err(e) => {
+                    self.lost(e)?;
+                    continue;
+                }
+            };
+            let until = match (deadline, next) {
+                (Some(d), Some(n)) => Some(d.min(n)),
+                (d, n) => d.or(n),
+            };
+            let wait = until.map(|u| u.saturating_duration_since(now));
+            match self.inner.recv_timeout(wait) {
+                Ok(Some(rx)) => {
+                    self.record(&rx.frame, rx.timestamp, Dir::Rx);
+                    return Ok(Some(rx));
+                }
+                Ok(None) => {
+                    if deadline.is_some_and(|d| Instant::now() >= d) {
+                        return Ok(None);
+                    }
+                }
+                Err(e) => self.lost(e)?,
+            }
+        }
+    }
+
+    fn recv_deadline(&mut self, deadline: Instant) -> io::Result<Option<RxFrame>> {
+        self.recv_timeout(Some(deadline.saturating_duration_since(Instant::now())))
+    }
+
+    fn try_recv(&mut self) -> io::Result<Option<RxFrame>> {
+        if self.down.is_some() {
+            return Ok(None);
+        }
+        match self.inner.try_recv() {
+            Ok(Some(rx)) => {
+                self.record(&rx.frame, rx.timestamp, Dir::Rx);
+                Ok(Some(rx))
+            }
+            Ok(None) => Ok(None),
+            Err(e) => self.lost(e).map(|()| None),
+        }
+    }
+
+    fn receiver(&self) -> &canpos_host::crossbeam_channel::Receiver<RxFrame> {
+        self.inner.receiver()
+    }
+
+    fn dead_error(&self) -> io::Error {
+        self.inner.dead_error()
+    }
+
+    fn bus_bitrate(&self) -> Option<u32> {
+        self.inner.bus_bitrate()
+    }
+
+    fn dropped(&self) -> u64 {
+        self.inner.dropped()
+    }
+
+    fn bus_state(&self) -> BusState {
+        if self.down.is_some() {
+            return BusState::BusOff;
+        }
+        self.inner.bus_state()
+    }
+
+    fn tx_overflows(&self) -> u64 {
+        self.inner.tx_overflows()
+    }
+
+    fn reconnections(&self) -> u64 {
+        self.hub.link.lock().unwrap().reconnections
+    }
+
+    fn describe(&self) -> String {
+        self.inner.describe()
+    }
+}
+
+/// The link state for the page.
+pub fn link_json(l: &LinkState) -> Value {
+    json!({
+        "down_since": l.down.as_ref().map(|(t, _)| secs(*t)),
+        "down_why": l.down.as_ref().map(|(_, w)| w.clone()),
+        "reconnections": l.reconnections,
+        "back_at": l.back_at.map(secs),
+    })
+}
+
+// --- The HTTP side ------------------------------------------------------------------------------
+
+use axum::extract::{Query, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+
+use super::answer::{fail, ApiError};
+use super::App;
+
+/// The trace's and transmitter's routes (docs/DASHBOARD.md, "Trace" and "Transmit").
+pub(super) fn routes() -> Router<App> {
+    Router::new()
+        .route(
+            "/trace.js",
+            get(|| super::asset("text/javascript", TRACE_JS)),
+        )
+        .route("/api/trace", get(trace_get))
+        .route("/api/trace/export", get(trace_export))
+        .route("/api/trace/clear", post(trace_clear))
+        .route("/api/send", get(send_list).post(send))
+        .route("/api/send/stop", post(send_stop))
+        .route("/api/nmt", post(nmt))
+}
+
+const TRACE_JS: &str = include_str!("../../assets/dashboard/trace.js");
+
+type Answer = Result<Json<Value>, ApiError>;
+
+/// The query of the trace's reads: `since` (log), `from` / `to` (hex identifiers), `node`.
+#[derive(serde::Deserialize, Default)]
+struct TraceQuery {
+    since: Option<u64>,
+    from: Option<String>,
+    to: Option<String>,
+    node: Option<String>,
+    format: Option<String>,
+    limit: Option<usize>,
+}
+
+fn bad(why: String) -> ApiError {
+    fail(StatusCode::BAD_REQUEST, why)
+}
+
+/// An identifier: hex with or without `0x`, at most 29 bits.
+fn parse_id(s: &str) -> Result<u32, ApiError> {
+    let t = s.trim();
+    let h = t
+        .strip_prefix("0x")
+        .or_else(|| t.strip_prefix("0X"))
+        .unwrap_or(t);
+    if h.is_empty() || h.len() > 8 {
+        return Err(bad(format!("identifier `{s}`: expected hex, e.g. 0x185")));
+    }
+    let v = u32::from_str_radix(h, 16)
+        .map_err(|_| bad(format!("identifier `{s}`: expected hex, e.g. 0x185")))?;
+    if v > 0x1FFF_FFFF {
+        return Err(bad(format!(
+            "identifier `{s}` is above 0x1FFFFFFF (29 bits)"
+        )));
+    }
+    Ok(v)
+}
+
+fn filter_of(q: &TraceQuery) -> Result<Filter, ApiError> {
+    fn opt(v: &Option<String>) -> Option<&str> {
+        v.as_deref().filter(|s| !s.trim().is_empty())
+    }
+    let node = match opt(&q.node) {
+        Some(n) => {
+            Some(crate::common::parse_node(n.trim(), 1).map_err(|e| bad(format!("node: {e}")))?)
+        }
+        None => None,
+    };
+    let f = Filter {
+        from: opt(&q.from).map(parse_id).transpose()?,
+        to: opt(&q.to).map(parse_id).transpose()?,
+        node,
+    };
+    if let (Some(a), Some(b)) = (f.from, f.to) {
+        if a > b {
+            return Err(bad(format!("from 0x{a:X} is above to 0x{b:X}")));
+        }
+    }
+    Ok(f)
+}
+
+fn query(
+    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<TraceQuery, ApiError> {
+    q.map(|Query(q)| q).map_err(|e| {
+        bad(format!(
+            "{}; expected ?since=N&from=0xID&to=0xID&node=N (each optional)",
+            e.body_text()
+        ))
+    })
+}
+
+/// The monitor of the mappings the dashboard read, and its trace hub.
+fn monitor(app: &App) -> (Monitor, Arc<TraceHub>) {
+    let s = app.shared.lock().unwrap();
+    let m = monitor_of(
+        s.nodes
+            .iter()
+            .filter_map(|(id, n)| n.info.as_ref().map(|i| (*id, i))),
+    );
+    (m, s.trace.clone())
+}
+
+fn periodic_json(hub: &TraceHub) -> Vec<Value> {
+    hub.periodic()
+        .iter()
+        .map(|j| {
+            json!({
+                "id": id_text(&j.frame), "ext": j.frame.is_extended(), "rtr": j.frame.is_remote(),
+                "dlc": j.frame.dlc(), "data": hex_string(j.frame.data()),
+                "period_ms": j.period.as_secs_f64() * 1e3, "sent": j.sent,
+            })
+        })
+        .collect()
+}
+
+/// `GET /api/trace`: the rows, the log since `since`, load, rate, the hub link and the
+/// periodic transmissions.
+async fn trace_get(
+    State(app): State<App>,
+    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
+) -> Answer {
+    let q = query(q)?;
+    let filter = filter_of(&q)?;
+    let (mon, hub) = monitor(&app);
+    let mut v = answer(
+        &hub.trace.lock().unwrap(),
+        &mon,
+        &filter,
+        q.since.unwrap_or(0),
+        q.limit.unwrap_or(LOG_ANSWER),
+        Instant::now(),
+    );
+    let o = v.as_object_mut().expect("an object");
+    o.insert("link".into(), link_json(&hub.link.lock().unwrap()));
+    o.insert("periodic".into(), json!(periodic_json(&hub)));
+    Ok(Json(v))
+}
+
+/// `GET /api/trace/export?format=pcapng|candump`: the logged frames as a capture file.
+async fn trace_export(
+    State(app): State<App>,
+    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let q = query(q)?;
+    let filter = filter_of(&q)?;
+    let (format, ext, ty) = match q.format.as_deref().unwrap_or("pcapng") {
+        "pcapng" => (Format::Pcapng, "pcapng", "application/x-pcapng"),
+        "candump" => (Format::Candump, "log", "text/plain; charset=utf-8"),
+        other => return Err(bad(format!("format `{other}`: expected pcapng or candump"))),
+    };
+    let (mon, hub) = monitor(&app);
+    let body = export(&hub.trace.lock().unwrap(), &mon, &filter, format)
+        .map_err(|e| fail(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, ty.to_string()),
+            (
+                header::CONTENT_DISPOSITION,
+                format!("attachment; filename=\"canpos-trace.{ext}\""),
+            ),
+        ],
+        body,
+    )
+        .into_response())
+}
+
+async fn trace_clear(State(app): State<App>) -> Answer {
+    let hub = app.shared.lock().unwrap().trace.clone();
+    hub.trace.lock().unwrap().clear();
+    Ok(Json(json!({"ok": true})))
+}
+
+fn body_json(body: &str) -> Result<serde_json::Map<String, Value>, ApiError> {
+    match serde_json::from_str::<Value>(body) {
+        Ok(Value::Object(o)) => Ok(o),
+        Ok(_) => Err(bad("bad body: expected a JSON object".into())),
+        Err(e) => Err(bad(format!("bad body: {e}"))),
+    }
+}
+
+/// The frame a send request describes, with the hub's checks (`< send >`): identifier within
+/// 11 bits (29 when extended), DLC 0…8, as many data bytes as the DLC says, none for a remote
+/// frame.
+fn frame_of(o: &serde_json::Map<String, Value>) -> Result<Frame, ApiError> {
+    let id = match o.get("id") {
+        Some(Value::String(s)) => parse_id(s)?,
+        Some(Value::Number(n)) => n
+            .as_u64()
+            .filter(|v| *v <= 0x1FFF_FFFF)
+            .ok_or_else(|| bad(format!("identifier {n} is not 0…0x1FFFFFFF")))?
+            as u32,
+        _ => return Err(bad("`id` is missing: e.g. \"0x605\"".into())),
+    };
+    let flag = |k: &str| match o.get(k) {
+        None | Some(Value::Null) => Ok(None),
+        Some(Value::Bool(b)) => Ok(Some(*b)),
+        Some(_) => Err(bad(format!("`{k}` must be true or false"))),
+    };
+    // As the hub reads an identifier: above 0x7FF it is an extended one.
+    let ext = flag("ext")?.unwrap_or(id > 0x7FF);
+    if !ext && id > 0x7FF {
+        return Err(bad(format!(
+            "identifier 0x{id:X} is above 0x7FF: a standard frame has 11 bits (set ext)"
+        )));
+    }
+    let rtr = flag("rtr")?.unwrap_or(false);
+    let data: Vec<u8> = match o.get("data") {
+        None | Some(Value::Null) => Vec::new(),
+        Some(Value::String(s)) => {
+            let hex: String = s.chars().filter(|c| !c.is_whitespace()).collect();
+            if !hex.len().is_multiple_of(2) || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+                return Err(bad(format!(
+                    "data `{s}`: expected hex bytes, e.g. \"40 00 10 00\""
+                )));
+            }
+            (0..hex.len() / 2)
+                .map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).expect("hex"))
+                .collect()
+        }
+        Some(Value::Array(a)) => a
+            .iter()
+            .map(|v| v.as_u64().filter(|b| *b <= 0xFF).map(|b| b as u8))
+            .collect::<Option<Vec<u8>>>()
+            .ok_or_else(|| bad("data: expected bytes 0…255".into()))?,
+        Some(_) => {
+            return Err(bad(
+                "data: expected a hex string or an array of bytes".into()
+            ))
+        }
+    };
+    let dlc = match o.get("dlc") {
+        None | Some(Value::Null) => data.len(),
+        Some(v) => v
+            .as_u64()
+            .filter(|d| *d <= 8)
+            .ok_or_else(|| bad(format!("DLC {v} is not 0…8")))? as usize,
+    };
+    if data.len() > 8 {
+        return Err(bad(format!(
+            "{} data bytes: a CAN frame has 8 at most",
+            data.len()
+        )));
+    }
+    if rtr {
+        if !data.is_empty() {
+            return Err(bad(
+                "a remote frame carries no data (give its DLC only)".into()
+            ));
+        }
+        return Frame::remote(id, ext, dlc as u8).map_err(|e| bad(format!("{e:?}")));
+    }
+    if dlc != data.len() {
+        return Err(bad(format!(
+            "DLC {dlc} but {} data bytes: they must agree",
+            data.len()
+        )));
+    }
+    Frame::with_id(id, ext, &data).map_err(|e| bad(format!("{e:?}")))
+}
+
+/// `POST /api/send`: a frame once, or every `period_ms`.
+async fn send(State(app): State<App>, body: String) -> Answer {
+    let o = body_json(&body)?;
+    let f = frame_of(&o)?;
+    let hub = app.shared.lock().unwrap().trace.clone();
+    match o.get("period_ms") {
+        None | Some(Value::Null) => {
+            hub.send_once(f).map_err(|_| {
+                fail(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
+                )
+            })?;
+            Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
+        }
+        Some(v) => {
+            let ms = v
+                .as_f64()
+                .filter(|m| m.is_finite())
+                .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
+            let period = Duration::from_secs_f64(ms.max(0.0) / 1e3);
+            if !(MIN_PERIOD..=MAX_PERIOD).contains(&period) {
+                return Err(bad(format!(
+                    "period {ms} ms: expected {} ms … {} s",
+                    MIN_PERIOD.as_millis(),
+                    MAX_PERIOD.as_secs()
+                )));
+            }
+            hub.send_periodic(f, period, Instant::now()).map_err(|_| {
+                fail(
+                    StatusCode::CONFLICT,
+                    format!("{PERIODIC} periodic transmissions run already: stop one first"),
+                )
+            })?;
+            Ok(Json(
+                json!({"ok": true, "id": id_text(&f), "periodic": periodic_json(&hub)}),
+            ))
+        }
+    }
+}
+
+async fn send_list(State(app): State<App>) -> Answer {
+    let hub = app.shared.lock().unwrap().trace.clone();
+    Ok(Json(json!({"ok": true, "periodic": periodic_json(&hub)})))
+}
+
+/// `POST /api/send/stop {"id": …, "ext": …}`: ends a periodic transmission.
+async fn send_stop(State(app): State<App>, body: String) -> Answer {
+    let o = body_json(&body)?;
+    let id = match o.get("id") {
+        Some(Value::String(s)) => parse_id(s)?,
+        _ => return Err(bad("`id` is missing: e.g. \"0x605\"".into())),
+    };
+    let ext = o.get("ext").and_then(Value::as_bool).unwrap_or(id > 0x7FF);
+    let hub = app.shared.lock().unwrap().trace.clone();
+    if !hub.stop_periodic(ext, id) {
+        return Err(fail(
+            StatusCode::NOT_FOUND,
+            format!("no periodic transmission of 0x{id:X}"),
+        ));
+    }
+    Ok(Json(json!({"ok": true, "periodic": periodic_json(&hub)})))
+}
+
+/// NMT command specifiers by the names `canpos nmt` takes.
+fn nmt_cs(name: &str) -> Option<u8> {
+    Some(match name {
+        "start" => 0x01,
+        "stop" => 0x02,
+        "preop" | "pre-operational" => 0x80,
+        "reset" | "reset-node" => 0x81,
+        "reset-comm" | "reset-communication" => 0x82,
+        _ => return None,
+    })
+}
+
+/// `POST /api/nmt {"command": "start", "node": 0}`: an NMT command to one node or (0) all.
+async fn nmt(State(app): State<App>, body: String) -> Answer {
+    let o = body_json(&body)?;
+    let name = o.get("command").and_then(Value::as_str).unwrap_or("");
+    let cs = nmt_cs(name).ok_or_else(|| {
+        bad(format!(
+            "NMT command `{name}`: expected start, stop, preop, reset or reset-comm"
+        ))
+    })?;
+    let node = match o.get("node") {
+        None | Some(Value::Null) => 0,
+        Some(v) => v
+            .as_u64()
+            .filter(|n| *n <= 127)
+            .ok_or_else(|| bad(format!("node {v}: expected 0 (all) or 1…127")))?
+            as u8,
+    };
+    let hub = app.shared.lock().unwrap().trace.clone();
+    let f = Frame::new(0x000, &[cs, node]).expect("two bytes");
+    hub.send_once(f).map_err(|_| {
+        fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
+        )
+    })?;
+    Ok(Json(json!({"ok": true, "command": name, "node": node})))
+}
+
+/// The NMT state shown for node `id` when no control interface reports it: what its own frames
+/// say when it sends no heartbeat.
+pub(super) fn nmt_of(s: &super::watch::Shared, id: u8, n: &super::watch::Node) -> Option<String> {
+    let cobs: Vec<u16> = n
+        .info
+        .as_ref()
+        .map(|i| i.tpdos.iter().map(|(_, c, _)| *c).collect())
+        .unwrap_or_default();
+    s.trace
+        .trace
+        .lock()
+        .unwrap()
+        .inferred_nmt(id, &cobs, Instant::now())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn std(id: u16, d: &[u8]) -> Frame {
+        Frame::new(id, d).unwrap()
+    }
+
+    fn at(ms: u64) -> SystemTime {
+        UNIX_EPOCH + Duration::from_millis(1_700_000_000_000 + ms)
+    }
+
+    #[test]
+    fn a_row_counts_and_times_its_identifier_from_the_frames_stamps() {
+        let mut t = Trace::new(1000);
+        let now = Instant::now();
+        let f = std(0x1FF, &[1, 2, 3, 4, 5, 6, 7]);
+        // 1,500 frames 1 ms apart by their stamps, all arriving at one instant (a batch).
+        for i in 0..1500 {
+            t.note(&f, at(i), Dir::Rx, now);
+        }
+        let r = t.rows().next().unwrap();
+        assert_eq!(r.count, 1500);
+        assert_eq!(r.dt, Some(Duration::from_millis(1)));
+        assert_eq!(r.cycle, Some(Duration::from_millis(1)));
+        // 1,500 frames of 7 bytes in 1.5 s: 1,000 frames/s; a 7-byte frame is 111 bits and
+        // stuff bits, about 12 % of 1 Mbit/s.
+        let (load, fps) = t.load(now);
+        assert!((fps - 1000.0).abs() < 1.0, "{fps}");
+        assert!((11.0..15.0).contains(&load), "{load}");
+        // A changed cycle shows after the next full second.
+        for i in 0..1100 {
+            t.note(&f, at(1500 + 2 * (i + 1)), Dir::Rx, now);
+        }
+        let r = t.rows().next().unwrap();
+        assert_eq!(r.cycle, Some(Duration::from_millis(2)));
+        assert_eq!(t.load(now + Duration::from_secs(3)), (0.0, 0.0));
+    }
+
+    #[test]
+    fn the_log_and_the_rows_are_bounded() {
+        let mut t = Trace::new(1000);
+        let now = Instant::now();
+        for i in 0..(ROWS as u32 + 10) {
+            let f = Frame::with_id(i, true, &[]).unwrap();
+            t.note(&f, at(0), Dir::Rx, now);
+        }
+        assert_eq!(t.rows.len(), ROWS);
+        assert_eq!(t.unlisted, 10);
+        for _ in 0..LOG {
+            t.note(&std(0x80, &[]), at(1), Dir::Rx, now);
+        }
+        assert_eq!(t.rows.len(), ROWS);
+        assert_eq!(t.log.len(), LOG);
+        assert_eq!(t.log_since(t.seq() - 5).count(), 5);
+        let a = answer(&t, &Monitor::new(), &Filter::default(), 0, LOG_ANSWER, now);
+        assert_eq!(a["log"].as_array().unwrap().len(), LOG_ANSWER);
+        assert_eq!(a["log_skipped"], LOG - LOG_ANSWER);
+        let a = answer(&t, &Monitor::new(), &Filter::default(), 0, 10, now);
+        assert_eq!(a["log"].as_array().unwrap().len(), 10);
+        assert_eq!(a["log"][9]["seq"], t.seq());
+    }
+
+    #[test]
+    fn a_filter_keeps_its_range_and_node_and_the_monitor_decodes() {
+        let mut t = Trace::new(1000);
+        let now = Instant::now();
+        t.note(&std(0x185, &[0xE8, 3, 0, 0]), at(0), Dir::Rx, now);
+        t.note(&std(0x705, &[5]), at(0), Dir::Rx, now);
+        t.note(&std(0x186, &[0, 0, 0, 0]), at(0), Dir::Rx, now);
+        let mon = monitor_of(
+            [(
+                5u8,
+                &NodeInfo {
+                    position_step_nm: Some(1000),
+                    velocity_step: None,
+                    tpdos: vec![(1, 0x185, vec![0x6020_0120])],
+                },
+            )]
+            .into_iter(),
+        );
+        let ids = |f: Filter| -> Vec<String> {
+            answer(&t, &mon, &f, 0, LOG_ANSWER, now)["rows"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|r| r["id"].as_str().unwrap().to_string())
+                .collect()
+        };
+        assert_eq!(ids(Filter::default()), ["0x185", "0x186", "0x705"]);
+        let range = Filter {
+            from: Some(0x180),
+            to: Some(0x1FF),
+            node: None,
+        };
+        assert_eq!(ids(range), ["0x185", "0x186"]);
+        let node = Filter {
+            node: Some(5),
+            ..Filter::default()
+        };
+        assert_eq!(ids(node), ["0x185", "0x705"]);
+        let a = answer(&t, &mon, &Filter::default(), 0, LOG_ANSWER, now);
+        assert_eq!(a["rows"][0]["decoded"], "node 5 TPDO1 pos1=1.000 mm");
+        assert_eq!(a["rows"][2]["decoded"], "node 5 heartbeat operational");
+    }
+
+    #[test]
+    fn pdos_without_a_heartbeat_infer_operational() {
+        let mut t = Trace::new(1000);
+        let now = Instant::now();
+        assert_eq!(t.inferred_nmt(5, &[], now), None);
+        t.note(&std(0x185, &[1, 2]), at(0), Dir::Rx, now);
+        assert_eq!(
+            t.inferred_nmt(5, &[], now).as_deref(),
+            Some("operational (inferred)")
+        );
+        // Another node's mapping names its COB-IDs: the default one is not it.
+        assert_eq!(t.inferred_nmt(5, &[0x1A0], now), None);
+        // PDOs that stopped a second ago tell nothing.
+        assert_eq!(t.inferred_nmt(5, &[], now + PDO_FRESH), None);
+        // A boot-up followed by PDOs: operational (a start nobody's heartbeat reported).
+        t.note(&std(0x705, &[0]), at(1), Dir::Rx, now);
+        assert_eq!(
+            t.inferred_nmt(5, &[], now).as_deref(),
+            Some("operational (inferred)")
+        );
+        let after = now + Duration::from_millis(1);
+        t.note(&std(0x705, &[0]), at(1), Dir::Rx, after);
+        assert_eq!(t.inferred_nmt(5, &[], after), None);
+        // A heartbeat speaks for itself.
+        t.note(&std(0x705, &[0x7F]), at(1), Dir::Rx, now);
+        assert_eq!(t.inferred_nmt(5, &[], now), None);
+        // A guarding answer (toggle bit) is named as one.
+        t.note(&std(0x705, &[0x85]), at(2), Dir::Rx, now);
+        assert_eq!(
+            t.inferred_nmt(5, &[], now).as_deref(),
+            Some("operational (guarding)")
+        );
+        // Its silence for longer than HEARTBEAT_SILENCE: back to what the PDOs say.
+        let later = now + HEARTBEAT_SILENCE;
+        t.note(&std(0x185, &[1, 2]), at(3), Dir::Rx, later);
+        assert_eq!(
+            t.inferred_nmt(5, &[], later).as_deref(),
+            Some("operational (inferred)")
+        );
+    }
+
+    #[test]
+    fn the_export_writes_the_log_as_record_does() {
+        let mut t = Trace::new(1000);
+        let now = Instant::now();
+        t.note(&std(0x185, &[1, 2]), at(0), Dir::Rx, now);
+        t.note(
+            &std(0x605, &[0x40, 0, 0x10, 0, 0, 0, 0, 0]),
+            at(1),
+            Dir::Tx,
+            now,
+        );
+        let c = export(&t, &Monitor::new(), &Filter::default(), Format::Candump).unwrap();
+        let text = String::from_utf8(c).unwrap();
+        assert_eq!(text.lines().count(), 2, "{text}");
+        assert!(
+            text.lines().next().unwrap().ends_with(" can0 185#0102"),
+            "{text}"
+        );
+        let p = export(&t, &Monitor::new(), &Filter::default(), Format::Pcapng).unwrap();
+        // Section header, interface description, two enhanced packet blocks of 16-byte frames.
+        assert_eq!(&p[..4], &0x0A0D_0D0Au32.to_le_bytes());
+        let empty = export(
+            &Trace::new(1000),
+            &Monitor::new(),
+            &Filter::default(),
+            Format::Pcapng,
+        )
+        .unwrap();
+        assert_eq!(p.len(), empty.len() + 2 * (12 + 20 + 16));
+        // The second packet block: type 6, its frame's can_id big-endian (0x605).
+        let epb = &p[empty.len() + 48..];
+        assert_eq!(&epb[..4], &6u32.to_le_bytes());
+        assert_eq!(&epb[28..32], &0x605u32.to_be_bytes());
+    }
+
+    #[test]
+    fn the_transmitter_is_bounded_and_replaces_a_job_of_the_same_identifier() {
+        let hub = TraceHub::new(1000);
+        let now = Instant::now();
+        for _ in 0..ONCE_QUEUE {
+            hub.send_once(std(0x100, &[])).unwrap();
+        }
+        assert_eq!(hub.send_once(std(0x100, &[])), Err(SendRefused::Busy));
+        for i in 0..PERIODIC as u16 {
+            hub.send_periodic(std(0x200 + i, &[]), MIN_PERIOD, now)
+                .unwrap();
+        }
+        let extra = std(0x300, &[]);
+        assert_eq!(
+            hub.send_periodic(extra, MIN_PERIOD, now),
+            Err(SendRefused::TooMany)
+        );
+        // The same identifier again: replaced, not added.
+        hub.send_periodic(std(0x200, &[9]), MAX_PERIOD, now)
+            .unwrap();
+        assert_eq!(hub.periodic().len(), PERIODIC);
+        assert!(hub.stop_periodic(false, 0x200));
+        assert!(!hub.stop_periodic(false, 0x200));
+        assert_eq!(hub.periodic().len(), PERIODIC - 1);
+    }
+
+    #[test]
+    fn the_tap_sends_the_pages_frames_and_records_both_ways() {
+        let bus = canpos_host::MemBus::instant();
+        let port = bus.attach();
+        let mut peer = bus.attach();
+        let hub = TraceHub::new(1000);
+        let mut tap = Tap::new(Box::new(port), hub.clone());
+        hub.send_once(std(0x123, &[0xAB])).unwrap();
+        hub.send_periodic(std(0x124, &[]), Duration::from_millis(5), Instant::now())
+            .unwrap();
+        peer.send(&std(0x701, &[5])).unwrap();
+        let got = tap.recv_timeout(Some(Duration::from_millis(50))).unwrap();
+        assert_eq!(got.map(|r| r.frame.id()), Some(0x701));
+        let heard: Vec<u32> = std::iter::from_fn(|| peer.try_recv().unwrap())
+            .map(|r| r.frame.id())
+            .collect();
+        assert_eq!(&heard[..2], [0x123, 0x124]);
+        let t = hub.trace.lock().unwrap();
+        let dirs: Vec<(u32, Dir)> = t.rows().map(|r| (r.frame.id(), r.dir)).collect();
+        assert_eq!(dirs, [(0x123, Dir::Tx), (0x124, Dir::Tx), (0x701, Dir::Rx)]);
+    }
+}
