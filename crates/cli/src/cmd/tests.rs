@@ -268,9 +268,10 @@ fn scan_finds_nodes_and_identity() {
 #[test]
 fn scan_infers_operational_from_pdos_without_a_heartbeat() {
     let bus = MemBus::new();
+    // Attached first: a boot-up sent before the scan's port joined would not be heard.
+    let mut port = bus.attach();
     let _a = run_node(&bus, 5);
     let _b = run_node(&bus, 6);
-    let mut port = bus.attach();
     port.send(&Frame::new(0, &[0x01, 5]).unwrap()).unwrap();
     let found = scan_bus(&mut port, Duration::from_millis(200)).unwrap();
     let states: Vec<(u8, Option<u8>, bool)> = found
