@@ -302,12 +302,19 @@ impl Ports {
     /// nothing to report (an arbitration's start, a lost frame's retry), then on to `until`.
     pub fn run_until(&mut self, until: Nanos, out: &mut Vec<PortEvent>) -> Nanos {
         let before = out.len();
+        let mut stuck_at = None;
         loop {
             let Some(e) = self.next_event().filter(|&e| e <= until) else {
                 self.advance_to(until, out);
                 return self.reached;
             };
+            if e <= self.reached && stuck_at == Some(self.reached) {
+                // Nothing moved at this time on the last pass: never spin on it.
+                self.advance_to(until, out);
+                return self.reached;
+            }
             if e <= self.reached {
+                stuck_at = Some(self.reached);
                 // The arbitration at the time reached, with every frame of that time.
                 let mut events = std::mem::take(&mut self.scratch);
                 self.timeline.advance(self.reached, &mut events);
