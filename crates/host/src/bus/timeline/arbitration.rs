@@ -23,7 +23,7 @@ impl Timeline {
         let Some(best) = best else {
             return;
         };
-        if self.report_losses {
+        if offers.len() > 1 {
             // Each offer is another member's: a loser leaving its queue moves no winner's index.
             self.arbitration_losses(&offers, best, t, out);
         }
@@ -118,11 +118,17 @@ impl Timeline {
             let m = &mut self.members[i as usize];
             let frame = m.queue[q].frame;
             let discarded = m.discard_on_loss;
+            if !discarded && !self.report_losses {
+                continue;
+            }
             if discarded {
                 m.queue.remove(q);
                 if m.queue.is_empty() {
                     self.active.retain(|&a| a != i);
                 }
+            }
+            if !self.report_losses {
+                continue;
             }
             out.push(BusEvent::ArbitrationLost {
                 member: MemberId(i),
