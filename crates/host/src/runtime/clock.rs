@@ -7,6 +7,8 @@ use canpos_stack::Instant;
 
 use crate::can::Transport;
 use crate::clock::{Driver, SimClock};
+use crate::control::request::Request;
+use serde_json::Value;
 
 use super::{Msg, Runtime};
 
@@ -72,6 +74,24 @@ impl Runtime {
             }
         }
         Ok(())
+    }
+
+    /// Carries out a control request on the caller's thread at the time reached, as
+    /// [`Runtime::advance_to`] does with the requests waiting: a co-simulation driver that also
+    /// steps the runtime (FMI `doStep`) cannot wait on a [`super::ControlHandle`].
+    pub fn request_now(&mut self, req: Request) -> Value {
+        let now = self.reached;
+        self.hold_at(now.micros() * 1000);
+        let answer = self.handle_request(req, now);
+        self.route(now);
+        self.hold_next();
+        answer
+    }
+
+    /// The runtime's next own event (measurement cycle, node timer, held SDO answer, boot…),
+    /// `None` when it has none: where a co-simulation step may end early (FMI early return).
+    pub fn next_event(&self) -> Option<Instant> {
+        self.deadline()
     }
 
     /// Processes every event up to `limit` in time order: for each own deadline `e`, the bus

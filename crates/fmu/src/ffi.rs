@@ -1,0 +1,1109 @@
+//! The FMI 3.0 C ABI: all `fmi3*` functions of `fmi3Functions.h`, exported by the shared
+//! library. Every call checks its instance (a live one of this library), the mode of the FMI
+//! state machine, null pointers and sizes before anything happens, and runs inside
+//! `catch_unwind`: a bad call gets `fmi3Error` with the reason in the importer's log, never a
+//! crash; nothing of a refused call is applied. The functions canpos FMUs do not support
+//! (Model Exchange, Scheduled Execution, FMU state, derivatives, clocks with intervals) answer
+//! `fmi3Error` with their reason.
+
+#![allow(clippy::missing_safety_doc, clippy::too_many_arguments)]
+
+use std::ffi::{c_char, c_int, c_void, CStr, CString};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::Mutex;
+
+use crate::kind::{Kind, RESOURCE_FILE};
+use crate::model::{Causality, FmuModel, Value, VarType};
+
+/// `fmi3Status`.
+pub type Status = c_int;
+/// `fmi3OK`.
+pub const OK: Status = 0;
+/// `fmi3Warning`.
+pub const WARNING: Status = 1;
+/// `fmi3Discard`.
+pub const DISCARD: Status = 2;
+/// `fmi3Error`.
+pub const ERROR: Status = 3;
+/// `fmi3Fatal`.
+pub const FATAL: Status = 4;
+
+/// `fmi3LogMessageCallback`.
+pub type Logger = Option<unsafe extern "C" fn(*mut c_void, Status, *const c_char, *const c_char)>;
+
+/// The FMI state machine's modes (co-simulation with event mode).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    Instantiated,
+    Initialization,
+    Event,
+    Step,
+    Terminated,
+    /// A panic inside the library: only `fmi3Reset` and `fmi3FreeInstance` remain.
+    Broken,
+}
+
+struct Instance {
+    name: String,
+    env: *mut c_void,
+    logger: Logger,
+    debug: bool,
+    mode: Mode,
+    event_mode_used: bool,
+    early_return_allowed: bool,
+    kind: Kind,
+    model: Box<dyn FmuModel>,
+}
+
+/// The instances alive (their addresses): a pointer not in it is refused, never dereferenced.
+static LIVE: Mutex<Vec<usize>> = Mutex::new(Vec::new());
+
+fn live() -> std::sync::MutexGuard<'static, Vec<usize>> {
+    LIVE.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+fn cstring(s: &str) -> CString {
+    CString::new(s.replace('\0', " ")).unwrap_or_default()
+}
+
+impl Instance {
+    fn log(&self, status: Status, category: &str, msg: &str) {
+        if status == OK && !self.debug {
+            return;
+        }
+        if let Some(f) = self.logger {
+            let (c, m) = (cstring(category), cstring(msg));
+            // SAFETY: the importer gave this callback for this instance's life.
+            unsafe { f(self.env, status, c.as_ptr(), m.as_ptr()) };
+        }
+    }
+
+    fn error(&self, func: &str, msg: &str) -> Status {
+        self.log(
+            ERROR,
+            "logStatusError",
+            &format!("{}: {func}: {msg}", self.name),
+        );
+        ERROR
+    }
+
+    fn flush_log(&mut self) {
+        for m in self.model.take_log() {
+            self.log(WARNING, "logStatusWarning", &m);
+        }
+    }
+
+    fn expect(&self, func: &str, modes: &[Mode]) -> Result<(), Status> {
+        if modes.contains(&self.mode) {
+            Ok(())
+        } else {
+            Err(self.error(
+                func,
+                &format!(
+                    "not allowed in {:?} mode (allowed in: {})",
+                    self.mode,
+                    modes
+                        .iter()
+                        .map(|m| format!("{m:?}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            ))
+        }
+    }
+}
+
+/// Runs `f` on a live instance, catching panics. An unknown or null instance gets
+/// `fmi3Error` and a line on standard error (it has no logger to tell).
+fn with(inst: *mut c_void, func: &str, f: impl FnOnce(&mut Instance) -> Status) -> Status {
+    if inst.is_null() || !live().contains(&(inst as usize)) {
+        eprintln!(
+            "canpos fmu: {func}: not an instance of this FMU (null, freed or foreign pointer)"
+        );
+        return ERROR;
+    }
+    // SAFETY: the address is a live Box<Instance> of ours (LIVE); the importer does not call
+    // one instance from two threads at once (FMI 3.0 §2.1.5).
+    let i = unsafe { &mut *(inst as *mut Instance) };
+    if i.mode == Mode::Broken && func != "fmi3Reset" {
+        return i.error(
+            func,
+            "the instance failed earlier: only fmi3Reset or fmi3FreeInstance",
+        );
+    }
+    match catch_unwind(AssertUnwindSafe(|| f(&mut *i))) {
+        Ok(s) => {
+            i.flush_log();
+            s
+        }
+        Err(p) => {
+            let what = p
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            i.mode = Mode::Broken;
+            i.log(
+                FATAL,
+                "logStatusFatal",
+                &format!("{func}: internal error: {what}"),
+            );
+            FATAL
+        }
+    }
+}
+
+unsafe fn str_arg<'a>(p: *const c_char) -> Option<&'a str> {
+    if p.is_null() {
+        None
+    } else {
+        // SAFETY: FMI strings are NUL-terminated C strings.
+        unsafe { CStr::from_ptr(p) }.to_str().ok()
+    }
+}
+
+/// The resources folder of an FMI 3.0 `resourcePath` (a native path ending in `/`).
+fn read_resource(path: &str) -> Result<String, String> {
+    let p = std::path::Path::new(path).join(RESOURCE_FILE);
+    let meta = std::fs::metadata(&p).map_err(|e| format!("{}: {e}", p.display()))?;
+    if meta.len() > 64 * 1024 {
+        return Err(format!(
+            "{}: {} bytes is too large",
+            p.display(),
+            meta.len()
+        ));
+    }
+    std::fs::read_to_string(&p).map_err(|e| format!("{}: {e}", p.display()))
+}
+
+fn log_to(logger: Logger, env: *mut c_void, msg: &str) {
+    match logger {
+        Some(f) => {
+            let (c, m) = (cstring("logStatusError"), cstring(msg));
+            // SAFETY: the importer's callback.
+            unsafe { f(env, ERROR, c.as_ptr(), m.as_ptr()) }
+        }
+        None => eprintln!("canpos fmu: {msg}"),
+    }
+}
+
+/// `fmi3GetVersion`.
+#[no_mangle]
+pub extern "C" fn fmi3GetVersion() -> *const c_char {
+    c"3.0".as_ptr()
+}
+
+/// `fmi3SetDebugLogging`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3SetDebugLogging(
+    inst: *mut c_void,
+    logging_on: bool,
+    n_categories: usize,
+    categories: *const *const c_char,
+) -> Status {
+    with(inst, "fmi3SetDebugLogging", |i| {
+        if n_categories > 0 && categories.is_null() {
+            return i.error("fmi3SetDebugLogging", "categories is null");
+        }
+        i.debug = logging_on;
+        OK
+    })
+}
+
+/// `fmi3InstantiateCoSimulation`: the kind and the unit come from `resourcePath`; a token
+/// that is not this FMU's is refused (a modelDescription from another build or unit).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3InstantiateCoSimulation(
+    instance_name: *const c_char,
+    token: *const c_char,
+    resource_path: *const c_char,
+    _visible: bool,
+    logging_on: bool,
+    event_mode_used: bool,
+    early_return_allowed: bool,
+    _required_intermediate: *const u32,
+    _n_required_intermediate: usize,
+    env: *mut c_void,
+    logger: Logger,
+    _intermediate_update: *const c_void,
+) -> *mut c_void {
+    let r = catch_unwind(AssertUnwindSafe(|| -> Result<*mut c_void, String> {
+        let name = unsafe { str_arg(instance_name) }
+            .ok_or("fmi3InstantiateCoSimulation: instanceName is null or not UTF-8")?;
+        let token = unsafe { str_arg(token) }
+            .ok_or("fmi3InstantiateCoSimulation: instantiationToken is null or not UTF-8")?;
+        let res = unsafe { str_arg(resource_path) }.ok_or(
+            "fmi3InstantiateCoSimulation: resourcePath is null: the FMU's resources say what it is",
+        )?;
+        let kind = Kind::from_resource(&read_resource(res)?)?;
+        let model = kind.instantiate()?;
+        let mine = &model.description().token;
+        if token != mine {
+            return Err(format!(
+                "fmi3InstantiateCoSimulation: instantiationToken {token} is not this FMU's ({mine}): \
+                 the modelDescription.xml and the binary are from different builds or units"
+            ));
+        }
+        let i = Box::new(Instance {
+            name: name.to_string(),
+            env,
+            logger,
+            debug: logging_on,
+            mode: Mode::Instantiated,
+            event_mode_used,
+            early_return_allowed,
+            kind,
+            model,
+        });
+        let p = Box::into_raw(i) as *mut c_void;
+        live().push(p as usize);
+        Ok(p)
+    }));
+    match r {
+        Ok(Ok(p)) => p,
+        Ok(Err(msg)) => {
+            log_to(logger, env, &msg);
+            std::ptr::null_mut()
+        }
+        Err(_) => {
+            log_to(logger, env, "fmi3InstantiateCoSimulation: internal error");
+            std::ptr::null_mut()
+        }
+    }
+}
+
+/// `fmi3InstantiateModelExchange`: not provided (canpos FMUs are co-simulation FMUs).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3InstantiateModelExchange(
+    _name: *const c_char,
+    _token: *const c_char,
+    _res: *const c_char,
+    _visible: bool,
+    _logging_on: bool,
+    env: *mut c_void,
+    logger: Logger,
+) -> *mut c_void {
+    log_to(
+        logger,
+        env,
+        "fmi3InstantiateModelExchange: canpos FMUs are co-simulation FMUs only",
+    );
+    std::ptr::null_mut()
+}
+
+/// `fmi3InstantiateScheduledExecution`: not provided.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3InstantiateScheduledExecution(
+    _name: *const c_char,
+    _token: *const c_char,
+    _res: *const c_char,
+    _visible: bool,
+    _logging_on: bool,
+    env: *mut c_void,
+    logger: Logger,
+    _clock_update: *const c_void,
+    _lock: *const c_void,
+    _unlock: *const c_void,
+) -> *mut c_void {
+    log_to(
+        logger,
+        env,
+        "fmi3InstantiateScheduledExecution: canpos FMUs are co-simulation FMUs only",
+    );
+    std::ptr::null_mut()
+}
+
+/// `fmi3FreeInstance`: everything of the instance goes (its runtime, its state directory).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3FreeInstance(inst: *mut c_void) {
+    let mut l = live();
+    let Some(k) = l.iter().position(|&p| p == inst as usize) else {
+        if !inst.is_null() {
+            eprintln!("canpos fmu: fmi3FreeInstance: not an instance of this FMU");
+        }
+        return;
+    };
+    l.swap_remove(k);
+    drop(l);
+    // SAFETY: it was ours and is no longer reachable through LIVE.
+    let b = unsafe { Box::from_raw(inst as *mut Instance) };
+    let _ = catch_unwind(AssertUnwindSafe(move || drop(b)));
+}
+
+/// `fmi3EnterInitializationMode`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3EnterInitializationMode(
+    inst: *mut c_void,
+    _tolerance_defined: bool,
+    _tolerance: f64,
+    start_time: f64,
+    stop_time_defined: bool,
+    stop_time: f64,
+) -> Status {
+    const F: &str = "fmi3EnterInitializationMode";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Instantiated]) {
+            return s;
+        }
+        if stop_time_defined && (stop_time.is_nan() || stop_time < start_time) {
+            return i.error(
+                F,
+                &format!("stop time {stop_time} before start time {start_time}"),
+            );
+        }
+        match i.model.enter_initialization(start_time) {
+            Ok(()) => {
+                i.mode = Mode::Initialization;
+                OK
+            }
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// `fmi3ExitInitializationMode`: the unit starts (event mode if the importer uses it).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3ExitInitializationMode(inst: *mut c_void) -> Status {
+    const F: &str = "fmi3ExitInitializationMode";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Initialization]) {
+            return s;
+        }
+        match i.model.exit_initialization() {
+            Ok(()) => {
+                i.mode = if i.event_mode_used {
+                    Mode::Event
+                } else {
+                    Mode::Step
+                };
+                OK
+            }
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// `fmi3EnterEventMode`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3EnterEventMode(inst: *mut c_void) -> Status {
+    const F: &str = "fmi3EnterEventMode";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Step]) {
+            return s;
+        }
+        if !i.event_mode_used {
+            return i.error(
+                F,
+                "the instance was instantiated with eventModeUsed = false",
+            );
+        }
+        match i.model.enter_event_mode() {
+            Ok(()) => {
+                i.mode = Mode::Event;
+                OK
+            }
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// `fmi3Terminate`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3Terminate(inst: *mut c_void) -> Status {
+    const F: &str = "fmi3Terminate";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Step, Mode::Event, Mode::Initialization]) {
+            return s;
+        }
+        i.mode = Mode::Terminated;
+        OK
+    })
+}
+
+/// `fmi3Reset`: back to the state right after instantiation (a new unit, defaults).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3Reset(inst: *mut c_void) -> Status {
+    const F: &str = "fmi3Reset";
+    with(inst, F, |i| match i.kind.instantiate() {
+        Ok(m) => {
+            i.model = m;
+            i.mode = Mode::Instantiated;
+            OK
+        }
+        Err(e) => i.error(F, &e),
+    })
+}
+
+/// Checks that `n` value references and `n_values` values come with pointers, and that the
+/// counts agree (canpos FMUs have no arrays).
+fn check_arrays(
+    i: &Instance,
+    func: &str,
+    vrs: *const u32,
+    n: usize,
+    values_null: bool,
+    n_values: usize,
+) -> Result<(), Status> {
+    if n > 0 && (vrs.is_null() || values_null) {
+        return Err(i.error(func, "valueReferences or values is null"));
+    }
+    if n != n_values {
+        return Err(i.error(
+            func,
+            &format!("nValues = {n_values} for {n} value references (canpos FMUs have no arrays)"),
+        ));
+    }
+    Ok(())
+}
+
+fn check_type(i: &Instance, func: &str, vr: u32, ty: VarType) -> Result<(), Status> {
+    match i.model.description().variable(vr) {
+        None => Err(i.error(func, &format!("no variable with value reference {vr}"))),
+        Some(v) if v.ty != ty => Err(i.error(
+            func,
+            &format!(
+                "`{}` (value reference {vr}) is a {}, not a {}",
+                v.name,
+                v.ty.element(),
+                ty.element()
+            ),
+        )),
+        Some(_) => Ok(()),
+    }
+}
+
+fn check_set(i: &Instance, func: &str, vr: u32, ty: VarType) -> Result<(), Status> {
+    check_type(i, func, vr, ty)?;
+    let v = i.model.description().variable(vr).expect("checked");
+    let ok = match (v.causality, ty) {
+        (Causality::Output, _) => false,
+        (Causality::Parameter, _) => matches!(i.mode, Mode::Instantiated | Mode::Initialization),
+        (Causality::Input, VarType::Clock) => i.mode == Mode::Event,
+        (Causality::Input, _) => matches!(
+            i.mode,
+            Mode::Instantiated | Mode::Initialization | Mode::Step | Mode::Event
+        ),
+    };
+    if ok {
+        Ok(())
+    } else {
+        Err(i.error(
+            func,
+            &format!(
+                "`{}` ({:?}) cannot be set in {:?} mode",
+                v.name, v.causality, i.mode
+            ),
+        ))
+    }
+}
+
+fn get_scalars<T: Copy>(
+    inst: *mut c_void,
+    func: &str,
+    ty: VarType,
+    vrs: *const u32,
+    n: usize,
+    values: *mut T,
+    n_values: usize,
+    conv: fn(Value<'_>) -> Option<T>,
+) -> Status {
+    with(inst, func, |i| {
+        if let Err(s) = check_arrays(i, func, vrs, n, values.is_null(), n_values) {
+            return s;
+        }
+        for k in 0..n {
+            // SAFETY: the importer gives n value references and n values (checked non-null).
+            let vr = unsafe { *vrs.add(k) };
+            if let Err(s) = check_type(i, func, vr, ty) {
+                return s;
+            }
+        }
+        for k in 0..n {
+            let vr = unsafe { *vrs.add(k) };
+            match i.model.get(vr).map(conv) {
+                Ok(Some(v)) => unsafe { *values.add(k) = v },
+                Ok(None) => {
+                    return i.error(func, &format!("value reference {vr} has another type"))
+                }
+                Err(e) => return i.error(func, &e),
+            }
+        }
+        OK
+    })
+}
+
+fn set_scalars<T: Copy>(
+    inst: *mut c_void,
+    func: &str,
+    ty: VarType,
+    vrs: *const u32,
+    n: usize,
+    values: *const T,
+    n_values: usize,
+    conv: fn(T) -> Value<'static>,
+) -> Status {
+    with(inst, func, |i| {
+        if let Err(s) = check_arrays(i, func, vrs, n, values.is_null(), n_values) {
+            return s;
+        }
+        for k in 0..n {
+            let vr = unsafe { *vrs.add(k) };
+            if let Err(s) = check_set(i, func, vr, ty) {
+                return s;
+            }
+        }
+        for k in 0..n {
+            let (vr, v) = unsafe { (*vrs.add(k), *values.add(k)) };
+            if let Err(e) = i.model.set(vr, conv(v)) {
+                return i.error(func, &e);
+            }
+        }
+        OK
+    })
+}
+
+fn no_such(i: &Instance, func: &str, vr: u32) -> Status {
+    match i.model.description().variable(vr) {
+        None => i.error(func, &format!("no variable with value reference {vr}")),
+        Some(v) => i.error(
+            func,
+            &format!(
+                "`{}` (value reference {vr}) is a {}",
+                v.name,
+                v.ty.element()
+            ),
+        ),
+    }
+}
+
+/// A getter / setter pair for a type canpos FMUs have no variable of: any value reference is
+/// refused as unknown (none is), zero of them is fine.
+macro_rules! no_variables_of {
+    ($get:ident, $set:ident, $t:ty) => {
+        /// No variable of this type: refused with the reason.
+        #[no_mangle]
+        pub unsafe extern "C" fn $get(
+            inst: *mut c_void,
+            vrs: *const u32,
+            n: usize,
+            values: *mut $t,
+            n_values: usize,
+        ) -> Status {
+            with(inst, stringify!($get), |i| {
+                if let Err(s) =
+                    check_arrays(i, stringify!($get), vrs, n, values.is_null(), n_values)
+                {
+                    return s;
+                }
+                if n == 0 {
+                    return OK;
+                }
+                let vr = unsafe { *vrs };
+                no_such(i, stringify!($get), vr)
+            })
+        }
+        /// No variable of this type: refused with the reason.
+        #[no_mangle]
+        pub unsafe extern "C" fn $set(
+            inst: *mut c_void,
+            vrs: *const u32,
+            n: usize,
+            values: *const $t,
+            n_values: usize,
+        ) -> Status {
+            with(inst, stringify!($set), |i| {
+                if let Err(s) =
+                    check_arrays(i, stringify!($set), vrs, n, values.is_null(), n_values)
+                {
+                    return s;
+                }
+                if n == 0 {
+                    return OK;
+                }
+                let vr = unsafe { *vrs };
+                no_such(i, stringify!($set), vr)
+            })
+        }
+    };
+}
+
+no_variables_of!(fmi3GetFloat32, fmi3SetFloat32, f32);
+no_variables_of!(fmi3GetInt8, fmi3SetInt8, i8);
+no_variables_of!(fmi3GetInt16, fmi3SetInt16, i16);
+no_variables_of!(fmi3GetInt32, fmi3SetInt32, i32);
+no_variables_of!(fmi3GetInt64, fmi3SetInt64, i64);
+no_variables_of!(fmi3GetString, fmi3SetString, *const c_char);
+
+macro_rules! scalars {
+    ($get:ident, $set:ident, $t:ty, $vt:ident) => {
+        /// Reads variables of this type.
+        #[no_mangle]
+        pub unsafe extern "C" fn $get(
+            inst: *mut c_void,
+            vrs: *const u32,
+            n: usize,
+            values: *mut $t,
+            n_values: usize,
+        ) -> Status {
+            get_scalars(
+                inst,
+                stringify!($get),
+                VarType::$vt,
+                vrs,
+                n,
+                values,
+                n_values,
+                |v| match v {
+                    Value::$vt(x) => Some(x),
+                    _ => None,
+                },
+            )
+        }
+        /// Writes variables of this type.
+        #[no_mangle]
+        pub unsafe extern "C" fn $set(
+            inst: *mut c_void,
+            vrs: *const u32,
+            n: usize,
+            values: *const $t,
+            n_values: usize,
+        ) -> Status {
+            set_scalars(
+                inst,
+                stringify!($set),
+                VarType::$vt,
+                vrs,
+                n,
+                values,
+                n_values,
+                Value::$vt,
+            )
+        }
+    };
+}
+
+scalars!(fmi3GetFloat64, fmi3SetFloat64, f64, Float64);
+scalars!(fmi3GetUInt8, fmi3SetUInt8, u8, UInt8);
+scalars!(fmi3GetUInt16, fmi3SetUInt16, u16, UInt16);
+scalars!(fmi3GetUInt32, fmi3SetUInt32, u32, UInt32);
+scalars!(fmi3GetUInt64, fmi3SetUInt64, u64, UInt64);
+
+/// `fmi3GetBoolean`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3GetBoolean(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    values: *mut bool,
+    n_values: usize,
+) -> Status {
+    get_scalars(
+        inst,
+        "fmi3GetBoolean",
+        VarType::Boolean,
+        vrs,
+        n,
+        values,
+        n_values,
+        |v| match v {
+            Value::Boolean(x) => Some(x),
+            _ => None,
+        },
+    )
+}
+
+/// `fmi3SetBoolean`: any non-zero byte is true (a C caller may pass any `bool` bit pattern).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3SetBoolean(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    values: *const u8,
+    n_values: usize,
+) -> Status {
+    set_scalars(
+        inst,
+        "fmi3SetBoolean",
+        VarType::Boolean,
+        vrs,
+        n,
+        values,
+        n_values,
+        |b| Value::Boolean(b != 0),
+    )
+}
+
+/// `fmi3GetBinary`: pointers into the instance's own memory, valid until its next call.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3GetBinary(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    sizes: *mut usize,
+    values: *mut *const u8,
+    n_values: usize,
+) -> Status {
+    const F: &str = "fmi3GetBinary";
+    with(inst, F, |i| {
+        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null() || sizes.is_null(), n_values) {
+            return s;
+        }
+        for k in 0..n {
+            if let Err(s) = check_type(i, F, unsafe { *vrs.add(k) }, VarType::Binary) {
+                return s;
+            }
+        }
+        for k in 0..n {
+            let vr = unsafe { *vrs.add(k) };
+            match i.model.get(vr) {
+                Ok(Value::Binary(b)) => unsafe {
+                    *sizes.add(k) = b.len();
+                    *values.add(k) = b.as_ptr();
+                },
+                Ok(_) => return i.error(F, &format!("value reference {vr} is not binary")),
+                Err(e) => return i.error(F, &e),
+            }
+        }
+        OK
+    })
+}
+
+/// `fmi3SetBinary`: each value at most the variable's `maxSize`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3SetBinary(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    sizes: *const usize,
+    values: *const *const u8,
+    n_values: usize,
+) -> Status {
+    const F: &str = "fmi3SetBinary";
+    with(inst, F, |i| {
+        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null() || sizes.is_null(), n_values) {
+            return s;
+        }
+        let mut all = Vec::with_capacity(n);
+        for k in 0..n {
+            let (vr, size, p) = unsafe { (*vrs.add(k), *sizes.add(k), *values.add(k)) };
+            if let Err(s) = check_set(i, F, vr, VarType::Binary) {
+                return s;
+            }
+            let v = i.model.description().variable(vr).expect("checked");
+            let max = v.max_size.unwrap_or(usize::MAX);
+            if size > max {
+                return i.error(
+                    F,
+                    &format!("{} bytes for `{}`, its maxSize is {max}", size, v.name),
+                );
+            }
+            if size > 0 && p.is_null() {
+                return i.error(
+                    F,
+                    &format!("a null pointer for {size} bytes of `{}`", v.name),
+                );
+            }
+            all.push((vr, size, p));
+        }
+        for (vr, size, p) in all {
+            let b: &[u8] = if size == 0 {
+                &[]
+            } else {
+                // SAFETY: the importer gives `size` readable bytes at `p` (non-null, checked).
+                unsafe { std::slice::from_raw_parts(p, size) }
+            };
+            if let Err(e) = i.model.set(vr, Value::Binary(b)) {
+                return i.error(F, &e);
+            }
+        }
+        OK
+    })
+}
+
+/// `fmi3GetClock`: in event mode; an output clock reports each tick once.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3GetClock(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    values: *mut bool,
+) -> Status {
+    const F: &str = "fmi3GetClock";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Event]) {
+            return s;
+        }
+        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null(), n) {
+            return s;
+        }
+        for k in 0..n {
+            if let Err(s) = check_type(i, F, unsafe { *vrs.add(k) }, VarType::Clock) {
+                return s;
+            }
+        }
+        for k in 0..n {
+            let vr = unsafe { *vrs.add(k) };
+            match i.model.get(vr) {
+                Ok(Value::Clock(b)) => unsafe { *values.add(k) = b },
+                Ok(_) => return i.error(F, "not a clock"),
+                Err(e) => return i.error(F, &e),
+            }
+        }
+        OK
+    })
+}
+
+/// `fmi3SetClock`: input clocks, in event mode.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3SetClock(
+    inst: *mut c_void,
+    vrs: *const u32,
+    n: usize,
+    values: *const u8,
+) -> Status {
+    const F: &str = "fmi3SetClock";
+    with(inst, F, |i| {
+        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null(), n) {
+            return s;
+        }
+        for k in 0..n {
+            if let Err(s) = check_set(i, F, unsafe { *vrs.add(k) }, VarType::Clock) {
+                return s;
+            }
+        }
+        for k in 0..n {
+            let (vr, on) = unsafe { (*vrs.add(k), *values.add(k) != 0) };
+            if let Err(e) = i.model.set(vr, Value::Clock(on)) {
+                return i.error(F, &e);
+            }
+        }
+        OK
+    })
+}
+
+/// `fmi3UpdateDiscreteStates`: takes the operations of the input clocks set in this event.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3UpdateDiscreteStates(
+    inst: *mut c_void,
+    need_update: *mut bool,
+    terminate: *mut bool,
+    nominals_changed: *mut bool,
+    values_changed: *mut bool,
+    next_time_defined: *mut bool,
+    next_time: *mut f64,
+) -> Status {
+    const F: &str = "fmi3UpdateDiscreteStates";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Event]) {
+            return s;
+        }
+        if [
+            need_update,
+            terminate,
+            nominals_changed,
+            values_changed,
+            next_time_defined,
+        ]
+        .iter()
+        .any(|p| p.is_null())
+            || next_time.is_null()
+        {
+            return i.error(F, "an output argument is null");
+        }
+        match i.model.update_discrete_states() {
+            Ok(d) => unsafe {
+                *need_update = d.need_update;
+                *terminate = false;
+                *nominals_changed = false;
+                *values_changed = false;
+                *next_time_defined = d.next_event_time.is_some();
+                *next_time = d.next_event_time.unwrap_or(0.0);
+                OK
+            },
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// `fmi3EnterStepMode`.
+#[no_mangle]
+pub unsafe extern "C" fn fmi3EnterStepMode(inst: *mut c_void) -> Status {
+    const F: &str = "fmi3EnterStepMode";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Event]) {
+            return s;
+        }
+        match i.model.enter_step_mode() {
+            Ok(()) => {
+                i.mode = Mode::Step;
+                OK
+            }
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// `fmi3DoStep`: runs the unit on the simulation clock; with early return allowed it stops at
+/// the first time the unit sends something (`eventHandlingNeeded`: read `Tx_Data`).
+#[no_mangle]
+pub unsafe extern "C" fn fmi3DoStep(
+    inst: *mut c_void,
+    t: f64,
+    h: f64,
+    _no_set_state_prior: bool,
+    event_needed: *mut bool,
+    terminate: *mut bool,
+    early_return: *mut bool,
+    last_time: *mut f64,
+) -> Status {
+    const F: &str = "fmi3DoStep";
+    with(inst, F, |i| {
+        if let Err(s) = i.expect(F, &[Mode::Step]) {
+            return s;
+        }
+        if event_needed.is_null()
+            || terminate.is_null()
+            || early_return.is_null()
+            || last_time.is_null()
+        {
+            return i.error(F, "an output argument is null");
+        }
+        let early = i.early_return_allowed && i.event_mode_used;
+        match i.model.do_step(t, h, early) {
+            Ok(r) => unsafe {
+                *event_needed = r.event_needed && i.event_mode_used;
+                *terminate = false;
+                *early_return = r.early_return;
+                *last_time = r.last_time;
+                OK
+            },
+            Err(e) => i.error(F, &e),
+        }
+    })
+}
+
+/// The functions canpos FMUs do not provide: `fmi3Error` with the reason in the log.
+macro_rules! unsupported {
+    ($($f:ident: $why:literal),* $(,)?) => {$(
+        /// Not provided by canpos FMUs: `fmi3Error` with the reason.
+        #[no_mangle]
+        pub unsafe extern "C" fn $f(inst: *mut c_void) -> Status {
+            with(inst, stringify!($f), |i| i.error(stringify!($f), $why))
+        }
+    )*};
+}
+
+unsupported!(
+    fmi3GetNumberOfVariableDependencies: "no dependency information (every output depends on every input)",
+    fmi3GetVariableDependencies: "no dependency information (every output depends on every input)",
+    fmi3GetFMUState: "canGetAndSetFMUState is false",
+    fmi3SetFMUState: "canGetAndSetFMUState is false",
+    fmi3FreeFMUState: "canGetAndSetFMUState is false",
+    fmi3SerializedFMUStateSize: "canSerializeFMUState is false",
+    fmi3SerializeFMUState: "canSerializeFMUState is false",
+    fmi3DeserializeFMUState: "canSerializeFMUState is false",
+    fmi3GetDirectionalDerivative: "providesDirectionalDerivatives is false",
+    fmi3GetAdjointDerivative: "providesAdjointDerivatives is false",
+    fmi3EnterConfigurationMode: "no structural parameters",
+    fmi3ExitConfigurationMode: "no structural parameters",
+    fmi3GetIntervalDecimal: "the LS-BUS clocks are triggered clocks, without intervals",
+    fmi3GetIntervalFraction: "the LS-BUS clocks are triggered clocks, without intervals",
+    fmi3GetShiftDecimal: "the LS-BUS clocks are triggered clocks, without shifts",
+    fmi3GetShiftFraction: "the LS-BUS clocks are triggered clocks, without shifts",
+    fmi3SetIntervalDecimal: "the LS-BUS clocks are triggered clocks, without intervals",
+    fmi3SetIntervalFraction: "the LS-BUS clocks are triggered clocks, without intervals",
+    fmi3SetShiftDecimal: "the LS-BUS clocks are triggered clocks, without shifts",
+    fmi3SetShiftFraction: "the LS-BUS clocks are triggered clocks, without shifts",
+    fmi3EvaluateDiscreteStates: "providesEvaluateDiscreteStates is false",
+    fmi3EnterContinuousTimeMode: "Model Exchange only",
+    fmi3CompletedIntegratorStep: "Model Exchange only",
+    fmi3SetTime: "Model Exchange only",
+    fmi3SetContinuousStates: "Model Exchange only",
+    fmi3GetContinuousStateDerivatives: "Model Exchange only",
+    fmi3GetEventIndicators: "Model Exchange only",
+    fmi3GetContinuousStates: "Model Exchange only",
+    fmi3GetNominalsOfContinuousStates: "Model Exchange only",
+    fmi3GetNumberOfEventIndicators: "Model Exchange only",
+    fmi3GetNumberOfContinuousStates: "Model Exchange only",
+    fmi3GetOutputDerivatives: "providesOutputDerivatives is false (no continuous outputs)",
+    fmi3ActivateModelPartition: "Scheduled Execution only",
+);
+
+/// The names of every exported `fmi3*` function (a test checks the library exports them all).
+pub const EXPORTED: [&str; 75] = [
+    "fmi3GetVersion",
+    "fmi3SetDebugLogging",
+    "fmi3InstantiateModelExchange",
+    "fmi3InstantiateCoSimulation",
+    "fmi3InstantiateScheduledExecution",
+    "fmi3FreeInstance",
+    "fmi3EnterInitializationMode",
+    "fmi3ExitInitializationMode",
+    "fmi3EnterEventMode",
+    "fmi3Terminate",
+    "fmi3Reset",
+    "fmi3GetFloat32",
+    "fmi3GetFloat64",
+    "fmi3GetInt8",
+    "fmi3GetUInt8",
+    "fmi3GetInt16",
+    "fmi3GetUInt16",
+    "fmi3GetInt32",
+    "fmi3GetUInt32",
+    "fmi3GetInt64",
+    "fmi3GetUInt64",
+    "fmi3GetBoolean",
+    "fmi3GetString",
+    "fmi3GetBinary",
+    "fmi3GetClock",
+    "fmi3SetFloat32",
+    "fmi3SetFloat64",
+    "fmi3SetInt8",
+    "fmi3SetUInt8",
+    "fmi3SetInt16",
+    "fmi3SetUInt16",
+    "fmi3SetInt32",
+    "fmi3SetUInt32",
+    "fmi3SetInt64",
+    "fmi3SetUInt64",
+    "fmi3SetBoolean",
+    "fmi3SetString",
+    "fmi3SetBinary",
+    "fmi3SetClock",
+    "fmi3GetNumberOfVariableDependencies",
+    "fmi3GetVariableDependencies",
+    "fmi3GetFMUState",
+    "fmi3SetFMUState",
+    "fmi3FreeFMUState",
+    "fmi3SerializedFMUStateSize",
+    "fmi3SerializeFMUState",
+    "fmi3DeserializeFMUState",
+    "fmi3GetDirectionalDerivative",
+    "fmi3GetAdjointDerivative",
+    "fmi3EnterConfigurationMode",
+    "fmi3ExitConfigurationMode",
+    "fmi3GetIntervalDecimal",
+    "fmi3GetIntervalFraction",
+    "fmi3GetShiftDecimal",
+    "fmi3GetShiftFraction",
+    "fmi3SetIntervalDecimal",
+    "fmi3SetIntervalFraction",
+    "fmi3SetShiftDecimal",
+    "fmi3SetShiftFraction",
+    "fmi3EvaluateDiscreteStates",
+    "fmi3UpdateDiscreteStates",
+    "fmi3EnterContinuousTimeMode",
+    "fmi3CompletedIntegratorStep",
+    "fmi3SetTime",
+    "fmi3SetContinuousStates",
+    "fmi3GetContinuousStateDerivatives",
+    "fmi3GetEventIndicators",
+    "fmi3GetContinuousStates",
+    "fmi3GetNominalsOfContinuousStates",
+    "fmi3GetNumberOfEventIndicators",
+    "fmi3GetNumberOfContinuousStates",
+    "fmi3EnterStepMode",
+    "fmi3GetOutputDerivatives",
+    "fmi3DoStep",
+    "fmi3ActivateModelPartition",
+];
