@@ -17,10 +17,10 @@ use canpos_stack::Frame;
 
 use crate::lsbus::{self, ArbitrationLostBehavior, BusErrorCode, CanStatus, Config, Op, TxBuffer};
 
-/// Bound of one node's `Tx_Data` (bytes): a step without early return that collects more than
-/// this for one node loses the rest, counted and logged. 256 KiB hold about 10,000 frames, more
-/// than a 1 Mbit/s bus carries in a second.
-pub const TX_CAP: usize = 256 * 1024;
+/// Bound of one node's `Tx_Data` (bytes): the terminal's `maxSize`, 128 classic CAN frames.
+/// A step without early return that collects more for one node loses the rest, counted and
+/// logged; with early return one end of frame brings at most a few operations.
+pub const TX_CAP: usize = crate::sensor::BUS_DATA_MAX;
 
 /// Most log lines kept between two [`BusSim::take_log`] calls (the rest are counted).
 const LOG_CAP: usize = 64;
@@ -28,7 +28,9 @@ const LOG_CAP: usize = 64;
 /// A co-simulation time in seconds as bus time in ns; `None` for a negative, non-finite or
 /// too large time.
 pub fn nanos(t: f64) -> Option<Nanos> {
-    (0.0..1.8e10).contains(&t).then(|| (t * 1e9).round() as Nanos)
+    (0.0..1.8e10)
+        .contains(&t)
+        .then(|| (t * 1e9).round() as Nanos)
 }
 
 /// The bus with a `Tx_Data` buffer per node.
