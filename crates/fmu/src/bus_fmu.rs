@@ -81,7 +81,7 @@ impl BusUnit {
         let mut v = vec![
             Variable::new("bitrate", VR_BITRATE, VarType::UInt32, Parameter,
                 "bit rate of the bus, kbit/s (CiA 301); a node that configures another one (LS-BUS CAN_BAUDRATE) neither sends nor receives")
-                .start(self.kbps.to_string()).unit("kbit/s"),
+                .start(self.kbps.to_string()),
             Variable::new("bus_load", VR_LOAD, VarType::Float64, Output,
                 "share of the last second the bus was busy, error frames included, %"),
             Variable::new("frames", VR_FRAMES, VarType::UInt64, Output,

@@ -41,6 +41,8 @@ pub struct BusSim {
     events: Vec<PortEvent>,
     /// Operations that did not fit a node's `Tx_Data`.
     lost_ops: u64,
+    /// Frames refused by a full transmit queue (all nodes).
+    queue_full: u64,
     log: Vec<String>,
     log_dropped: u64,
 }
@@ -53,6 +55,7 @@ impl BusSim {
             tx: (0..nodes).map(|_| TxBuffer::new(TX_CAP)).collect(),
             events: Vec::new(),
             lost_ops: 0,
+            queue_full: 0,
             log: Vec::new(),
             log_dropped: 0,
         })
@@ -139,6 +142,11 @@ impl BusSim {
         }
         let ops = lsbus::parse(buf).map_err(|e| format!("node {}: {e}", port + 1))?;
         let now = self.now();
+        // A node's frames of one buffer enter its queue a nanosecond apart, in order, as the
+        // in-process bus takes a controller's burst (docs/BUS.md): on a free bus the first one
+        // starts, as the frame its firmware handed over first would (a boot-up before the
+        // EMCY queued with it); the nodes' first frames of one time still arbitrate together.
+        let mut at = now;
         for op in ops {
             match op {
                 Op::Transmit {
@@ -155,12 +163,20 @@ impl BusSim {
                     };
                     // The codec checked identifier and length.
                     let Ok(frame) = frame else { continue };
-                    match self.ports.submit(port, frame, now) {
+                    let result = self.ports.submit(port, frame, at);
+                    at += 1;
+                    match result {
                         Ok(()) => {}
-                        Err(SubmitError::QueueFull) => self.note(format!(
-                            "node {}: transmit queue full, frame {id:#x} lost",
-                            port + 1
-                        )),
+                        Err(SubmitError::QueueFull) => {
+                            self.queue_full += 1;
+                            if self.queue_full.is_power_of_two() {
+                                self.note(format!(
+                                    "node {}: transmit queue full, frame {id:#x} lost ({} frames lost to full queues so far)",
+                                    port + 1,
+                                    self.queue_full
+                                ));
+                            }
+                        }
                         Err(SubmitError::BusOff) => self.note(format!(
                             "node {}: frame {id:#x} refused: the controller is bus-off",
                             port + 1

@@ -157,7 +157,7 @@ impl SensorUnit {
     }
 
     /// Default magnet positions: one per channel, spread over the stroke (as `canpos run`).
-    fn default_magnets(&self) -> Vec<f64> {
+    pub fn default_magnets(&self) -> Vec<f64> {
         let n = self.channels() as f64;
         (0..self.channels())
             .map(|k| self.spec.stroke_mm * (k as f64 + 1.0) / (n + 1.0))

@@ -208,3 +208,32 @@ fn times_outside_the_co_simulation_are_refused() {
     assert_eq!(nanos(f64::NAN), None);
     assert_eq!(nanos(f64::INFINITY), None);
 }
+
+#[test]
+fn a_nodes_frames_of_one_buffer_go_out_in_order_on_a_free_bus_and_others_arbitrate() {
+    // Node 1 hands in a boot-up and an EMCY together: the boot-up, handed in first, starts on
+    // the free bus (as the in-process bus takes a controller's burst), then the EMCY.
+    let mut b = BusSim::new(3, 125).unwrap();
+    b.receive(0, &ops(&[transmit(0x701, &[0]), transmit(0x81, &[0; 8])]))
+        .unwrap();
+    b.step(20 * MS, false);
+    assert_eq!(
+        got(&b, 2),
+        vec![transmit(0x701, &[0]), transmit(0x81, &[0; 8])]
+    );
+    // With node 2's TPDO at the same time, the nodes' first frames arbitrate: the TPDO wins,
+    // then the EMCY beats the boot-up.
+    let mut b = BusSim::new(3, 125).unwrap();
+    b.receive(0, &ops(&[transmit(0x701, &[0]), transmit(0x81, &[0; 8])]))
+        .unwrap();
+    b.receive(1, &ops(&[transmit(0x182, &[1; 8])])).unwrap();
+    b.step(20 * MS, false);
+    assert_eq!(
+        got(&b, 2),
+        vec![
+            transmit(0x182, &[1; 8]),
+            transmit(0x81, &[0; 8]),
+            transmit(0x701, &[0])
+        ]
+    );
+}
