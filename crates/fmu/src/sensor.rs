@@ -378,6 +378,8 @@ pub struct LsBusPort {
     rx: Receiver<RxFrame>,
     rx_lost: Arc<AtomicU64>,
     kbps: u32,
+    /// Frames its controller's transmit queue lost (see `UNCONFIRMED_MAX`).
+    tx_lost: Arc<AtomicU64>,
 }
 
 impl Transport for LsBusPort {
@@ -401,6 +403,11 @@ impl Transport for LsBusPort {
     fn dropped(&self) -> u64 {
         self.rx_lost.load(Ordering::Relaxed)
     }
+    // The runtime raises its sensor's transmit-overflow reaction on these (0x8110, the TMI's
+    // 0x6000), as for a hub client's reported overflows (docs/BUS.md).
+    fn tx_overflows(&self) -> u64 {
+        self.tx_lost.load(Ordering::Relaxed)
+    }
     fn join_clock(&mut self) -> Option<Horizon> {
         Some(self.clock.participant("fmu sensor"))
     }
@@ -416,6 +423,7 @@ struct Running {
     outbox: Arc<Mutex<Outbox>>,
     rx: Sender<RxFrame>,
     rx_lost: Arc<AtomicU64>,
+    tx_lost: Arc<AtomicU64>,
     // The unit's state file lives here for the instance's life (removed with it).
     _dir: tempfile::TempDir,
 }
@@ -518,7 +526,9 @@ impl SensorFmu {
         let (tx, rx) = crossbeam_channel::bounded(RX_QUEUE);
         let outbox = Arc::new(Mutex::new(Outbox::default()));
         let rx_lost = Arc::new(AtomicU64::new(0));
+        let tx_lost = Arc::new(AtomicU64::new(0));
         let port = LsBusPort {
+            tx_lost: tx_lost.clone(),
             clock: clock.clone(),
             outbox: outbox.clone(),
             rx,
@@ -564,6 +574,7 @@ impl SensorFmu {
             outbox,
             rx: tx,
             rx_lost,
+            tx_lost,
             _dir: dir,
         })
     }
@@ -662,7 +673,11 @@ impl SensorFmu {
                     break;
                 }
                 if self.bus.unconfirmed.len() >= UNCONFIRMED_MAX {
+                    // Its controller's queue (the bus simulation's 64 per node, docs/BUS.md)
+                    // is full: the bus loses a frame, which the node learns as a
+                    // transmit overflow; the oldest unconfirmed one counts as gone.
                     self.bus.unconfirmed.pop_front();
+                    r.tx_lost.fetch_add(1, Ordering::Relaxed);
                 }
                 self.bus.unconfirmed.push_back(*f);
                 o.frames.pop_front();
