@@ -8,7 +8,7 @@
 use std::process::ExitCode;
 
 use canpos_cli::cmd::{
-    bench, bus, ctl, dashboard, dcf, demo, eds, guard, lss, monitor, nmt, record, replay, run,
+    bench, bus, ctl, dashboard, dcf, demo, eds, fmu, guard, lss, monitor, nmt, record, replay, run,
     scan, scenario, sdo, soak,
 };
 use canpos_cli::common;
@@ -69,6 +69,8 @@ enum Cmd {
     Monitor(monitor::MonitorArgs),
     /// Write a model's EDS (CiA 306) file.
     Eds(eds::EdsArgs),
+    /// Write an FMI 3.0 co-simulation FMU of a unit on the FMI-LS-BUS CAN layer.
+    Fmu(fmu::FmuArgs),
     /// Write a configured unit's DCF, read from the running node over SDO.
     Dcf(dcf::DcfArgs),
     /// Record the bus to pcapng, pcap, a candump -L log or Vector ASC.
@@ -170,6 +172,7 @@ fn main() -> ExitCode {
         Some(Cmd::Dashboard(a)) => dashboard::dashboard(a),
         Some(Cmd::Monitor(a)) => monitor::monitor(a),
         Some(Cmd::Eds(a)) => eds::eds(a),
+        Some(Cmd::Fmu(a)) => fmu::fmu(a),
         Some(Cmd::Dcf(a)) => dcf::dcf(a),
         Some(Cmd::Record(a)) => record::record(a),
         Some(Cmd::Replay(a)) => replay::replay(a),

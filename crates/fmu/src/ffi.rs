@@ -476,7 +476,7 @@ fn check_set(i: &Instance, func: &str, vr: u32, ty: VarType) -> Result<(), Statu
     check_type(i, func, vr, ty)?;
     let v = i.model.description().variable(vr).expect("checked");
     let ok = match (v.causality, ty) {
-        (Causality::Output, _) => false,
+        (Causality::Output | Causality::Independent, _) => false,
         (Causality::Parameter, _) => matches!(i.mode, Mode::Instantiated | Mode::Initialization),
         (Causality::Input, VarType::Clock) => i.mode == Mode::Event,
         (Causality::Input, _) => matches!(

@@ -40,9 +40,14 @@ impl VarType {
     }
 }
 
+/// Value reference of the independent variable `time` every description starts with.
+pub const VR_TIME: u32 = 0;
+
 /// Causality of a variable.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Causality {
+    /// The independent variable (`time`, s).
+    Independent,
     /// A fixed parameter: set before the end of initialization only.
     Parameter,
     /// An input: set any time after instantiation.
@@ -97,6 +102,18 @@ impl Variable {
             mime_type: None,
             max_size: None,
         }
+    }
+
+    /// The independent variable `time` (value reference [`VR_TIME`]).
+    pub fn time() -> Self {
+        Variable::new(
+            "time",
+            VR_TIME,
+            VarType::Float64,
+            Causality::Independent,
+            "simulation time",
+        )
+        .unit("s")
     }
 
     /// With a start value.

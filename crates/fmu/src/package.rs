@@ -55,7 +55,7 @@ pub fn model_description(d: &Description) -> String {
             let base = match u {
                 "mm" => r#"<BaseUnit m="1" factor="0.001"/>"#,
                 "degC" => r#"<BaseUnit K="1" offset="273.15"/>"#,
-                "kbit/s" => r#"<BaseUnit s="-1" factor="1000"/>"#,
+                "s" => r#"<BaseUnit s="1"/>"#,
                 _ => "",
             };
             let _ = writeln!(x, r#"    <Unit name="{}">{base}</Unit>"#, esc(u));
@@ -73,9 +73,11 @@ pub fn model_description(d: &Description) -> String {
             Causality::Parameter => "parameter",
             Causality::Input => "input",
             Causality::Output => "output",
+            Causality::Independent => "independent",
         };
         let variability = match (v.causality, v.ty) {
             (Causality::Parameter, _) => "fixed",
+            (Causality::Independent, _) => "continuous",
             (_, VarType::Float64) => "continuous",
             _ => "discrete",
         };
@@ -127,7 +129,7 @@ pub fn model_description(d: &Description) -> String {
     }
     // fmpy wants the output clocks among the initial unknowns; they and the outputs are
     // known once initialization ends.
-    for v in &outputs {
+    for v in outputs.iter().filter(|v| v.clocks.is_none()) {
         let _ = writeln!(x, r#"    <InitialUnknown valueReference="{}"/>"#, v.vr);
     }
     x.push_str("  </ModelStructure>\n</fmiModelDescription>\n");

@@ -190,12 +190,13 @@ impl SensorUnit {
         use Causality::*;
         let c = &self.cfg;
         let mut v = vec![
+            Variable::time(),
             Variable::new("node_id", VR_NODE_ID, VarType::UInt8, Parameter,
                 "CANopen node-id (1…127, 255 = unconfigured); the unit's 0x2000 until stored otherwise")
                 .start(c.node_id.to_string()),
             Variable::new("bitrate", VR_BITRATE, VarType::UInt16, Parameter,
                 "bit rate of the bus, kbit/s (the node falls silent on another bit rate than its own)")
-                .start(c.bitrate_kbps.to_string()).unit("kbit/s"),
+                .start(c.bitrate_kbps.to_string()),
             Variable::new("serial_number", VR_SERIAL, VarType::UInt32, Parameter, "serial number (0x1018 sub 4)")
                 .start(c.serial.to_string()),
             Variable::new("seed", VR_SEED, VarType::UInt64, Parameter, "seed of the unit's errors and noise")
@@ -892,12 +893,18 @@ impl FmuModel for SensorFmu {
     fn exit_initialization(&mut self) -> Result<(), String> {
         let r = self.build()?;
         self.run = Some(r);
-        self.apply_inputs()
+        self.apply_inputs()?;
+        // Power on at the start time: the LS-BUS configuration and the boot-up leave in the
+        // event that ends initialization (the importer reads Tx_Clock there).
+        self.advance(0)?;
+        self.fill_tx();
+        Ok(())
     }
 
     fn get(&mut self, vr: u32) -> Result<Value<'_>, String> {
         let p = self.params;
         Ok(match vr {
+            crate::model::VR_TIME => Value::Float64(self.start + self.now_us as f64 / 1e6),
             VR_NODE_ID => Value::UInt8(p.node_id),
             VR_BITRATE => Value::UInt16(p.bitrate),
             VR_SERIAL => Value::UInt32(p.serial),

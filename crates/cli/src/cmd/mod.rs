@@ -9,6 +9,7 @@ pub mod dashboard;
 pub mod dcf;
 pub mod demo;
 pub mod eds;
+pub mod fmu;
 pub mod guard;
 pub mod lss;
 pub mod monitor;

@@ -1,0 +1,96 @@
+//! `canpos fmu`: write an FMI 3.0 co-simulation FMU of a unit on the FMI-LS-BUS CAN layer
+//! (docs/FMU.md).
+//!
+//! The FMU's binary is the workspace's `canpos-fmu` shared library (`libcanpos_fmu.so`): cargo
+//! builds it beside the `canpos` executable whenever it builds `canpos` (the CLI depends on
+//! the crate, whose crate types include `cdylib`), so a build from a fresh clone finds it in
+//! `target/<profile>/deps/`. `--library` or `CANPOS_FMU_LIBRARY` name another one.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, Context, Result};
+use canpos_fmu::kind::Kind;
+use canpos_fmu::sensor::SensorUnit;
+use clap::Args;
+
+use crate::common::usage;
+
+/// `canpos fmu`: write an FMU.
+#[derive(Args, Debug, Clone)]
+pub struct FmuArgs {
+    /// Model of a sensor FMU: th, e-series, tmi (the model's default unit).
+    #[arg(long, conflicts_with = "order_code")]
+    pub model: Option<String>,
+    /// Order code of a unit (e.g. EP00600MD341C304241Z02): its model with the code's stroke,
+    /// resolution, channels and bit rate.
+    #[arg(long, value_name = "CODE")]
+    pub order_code: Option<String>,
+    /// The FMU file to write (e.g. th.fmu).
+    #[arg(long, short = 'o', value_name = "FILE.fmu")]
+    pub output: PathBuf,
+    /// The canpos-fmu shared library to put in the FMU (default: `$CANPOS_FMU_LIBRARY`, else
+    /// the one cargo built beside this executable).
+    #[arg(long, value_name = "FILE.so")]
+    pub library: Option<PathBuf>,
+}
+
+/// The kind of FMU the arguments ask for.
+pub fn kind_of(a: &FmuArgs) -> Result<Kind> {
+    let unit = match (&a.model, &a.order_code) {
+        (_, Some(code)) => SensorUnit::for_order_code(code),
+        (m, None) => SensorUnit::for_model(m.as_deref().unwrap_or("th")),
+    }
+    .map_err(|e| usage!("{e}"))?;
+    Ok(Kind::Sensor(unit))
+}
+
+/// Where the shared library is: `--library`, `$CANPOS_FMU_LIBRARY`, or beside the executable
+/// (`target/<profile>/` or its `deps/`, the newer one).
+pub fn library_path(given: Option<&Path>) -> Result<PathBuf> {
+    if let Some(p) = given {
+        return Ok(p.to_path_buf());
+    }
+    if let Some(p) = std::env::var_os("CANPOS_FMU_LIBRARY").filter(|p| !p.is_empty()) {
+        return Ok(PathBuf::from(p));
+    }
+    let exe = std::env::current_exe().context("locating the canpos executable")?;
+    let dir = exe.parent().unwrap_or(Path::new("."));
+    // Test executables live in deps/ themselves.
+    let candidates = [
+        dir.join("libcanpos_fmu.so"),
+        dir.join("deps/libcanpos_fmu.so"),
+        dir.join("../libcanpos_fmu.so"),
+    ];
+    // `cargo build -p canpos` refreshes deps/, `cargo build -p canpos-fmu` the top one: the
+    // newer of the two is the current build.
+    candidates
+        .iter()
+        .filter_map(|p| Some((std::fs::metadata(p).ok()?.modified().ok()?, p)))
+        .max_by_key(|(t, _)| *t)
+        .map(|(_, p)| p.clone())
+        .ok_or_else(|| {
+            anyhow!(
+                "the FMU's shared library libcanpos_fmu.so is not beside {} (build it with \
+                 `cargo build -p canpos-fmu`, or give --library / CANPOS_FMU_LIBRARY)",
+                exe.display()
+            )
+        })
+}
+
+/// Writes the FMU.
+pub fn fmu(a: FmuArgs) -> Result<i32> {
+    let kind = kind_of(&a)?;
+    let lib_path = library_path(a.library.as_deref())?;
+    let lib = std::fs::read(&lib_path)
+        .with_context(|| format!("reading the FMU library {}", lib_path.display()))?;
+    let bytes = canpos_fmu::package::fmu(&kind, &lib).map_err(|e| anyhow!(e))?;
+    std::fs::write(&a.output, bytes).with_context(|| format!("writing {}", a.output.display()))?;
+    let d = kind.description().map_err(|e| anyhow!(e))?;
+    eprintln!(
+        "canpos fmu: wrote {} ({}, instantiationToken {})",
+        a.output.display(),
+        d.model_name,
+        d.token
+    );
+    Ok(0)
+}
