@@ -20,18 +20,14 @@ import struct
 from fmpy import extract, read_model_description
 from fmpy.fmi3 import FMU3Slave
 
+from harness import transmit
+
 OP_TRANSMIT = 0x10
 OP_CONFIRM = 0x20
 OP_ARBITRATION_LOST = 0x30
 OP_BUS_ERROR = 0x31
 OP_CONFIGURATION = 0x40
 OP_STATUS = 0x41
-
-
-def transmit(can_id, data):
-    """An LS-BUS CAN Transmit operation (standard identifier, data frame)."""
-    data = bytes(data)
-    return struct.pack("<IIIBBH", OP_TRANSMIT, 16 + len(data), can_id, 0, 0, len(data)) + data
 
 
 def operations(buf):
@@ -43,16 +39,6 @@ def operations(buf):
         ops.append((code, bytes(buf[at + 8 : at + length])))
         at += length
     return ops
-
-
-def frames(buf):
-    """The CAN frames of the Transmit operations in a binary: (id, data bytes)."""
-    out = []
-    for code, p in operations(buf):
-        if code == OP_TRANSMIT:
-            can_id, _ide, _rtr, n = struct.unpack_from("<IBBH", p)
-            out.append((can_id, bytes(p[8 : 8 + n])))
-    return out
 
 
 def ns(seconds):

@@ -26,18 +26,14 @@ END_US = 320_000
 
 
 @pytest.fixture(scope="module")
-def bus_fmus(tmp_path_factory):
-    """The three model FMUs and a 4-node bus-simulation FMU at 125 kbit/s, by `canpos fmu`."""
+def bus_fmus(fmus, tmp_path_factory):
+    """The three model FMUs (conftest) and a 4-node bus-simulation FMU at 125 kbit/s, written
+    by `canpos fmu --bus-simulation`."""
     exe = os.environ.get("CANPOS_BIN", str(ROOT / "target/debug/canpos"))
-    out = tmp_path_factory.mktemp("bus-fmus")
-    units = {m: ["--model", m] for m, _ in SENSORS}
-    units["bus4"] = ["--bus-simulation", "--nodes", "4", "--bitrate", str(KBPS)]
-    paths = {}
-    for name, args in units.items():
-        path = out / f"{name}.fmu"
-        subprocess.run([exe, "fmu", *args, "--output", str(path)], check=True, timeout=300)
-        paths[name] = str(path)
-    return paths
+    path = tmp_path_factory.mktemp("bus-fmu") / "bus4.fmu"
+    args = ["--bus-simulation", "--nodes", "4", "--bitrate", str(KBPS), "--output", str(path)]
+    subprocess.run([exe, "fmu", *args], check=True, timeout=300)
+    return {**fmus, "bus4": str(path)}
 
 
 @pytest.fixture(scope="module")

@@ -79,6 +79,7 @@ impl BusUnit {
     pub(crate) fn description(&self, token: String) -> Result<Description, String> {
         use Causality::*;
         let mut v = vec![
+            Variable::time(),
             Variable::new("bitrate", VR_BITRATE, VarType::UInt32, Parameter,
                 "bit rate of the bus, kbit/s (CiA 301); a node that configures another one (LS-BUS CAN_BAUDRATE) neither sends nor receives")
                 .start(self.kbps.to_string()),
@@ -226,6 +227,7 @@ impl FmuModel for BusFmu {
 
     fn get(&mut self, vr: u32) -> Result<Value<'_>, String> {
         Ok(match vr {
+            crate::model::VR_TIME => Value::Float64(self.sim.now() as f64 / 1e9),
             VR_BITRATE => Value::UInt32(self.kbps),
             VR_LOAD => Value::Float64(self.sim.ports().load().0 * 100.0),
             VR_FRAMES => Value::UInt64(self.sim.ports().frames()),
