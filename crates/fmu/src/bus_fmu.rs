@@ -33,7 +33,7 @@ const OFF_STATE: u32 = 6;
 /// One bus-simulation FMU: its number of node terminals and its bit rate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BusUnit {
-    /// Node terminals (1 … 127).
+    /// Node terminals (1 … 128: 127 nodes and their master).
     pub nodes: usize,
     /// Bit rate, kbit/s (CiA 301); the `bitrate` parameter's start value.
     pub kbps: u32,
@@ -384,10 +384,10 @@ mod tests {
             d.token
         );
         for (bad, why) in [
-            ("kind = bus-simulation\nnodes = 0\nbitrate = 125", "1 … 127"),
+            ("kind = bus-simulation\nnodes = 0\nbitrate = 125", "1 … 128"),
             (
-                "kind = bus-simulation\nnodes = 128\nbitrate = 125",
-                "1 … 127",
+                "kind = bus-simulation\nnodes = 129\nbitrate = 125",
+                "1 … 128",
             ),
             ("kind = bus-simulation\nnodes = 3\nbitrate = 123", "CiA 301"),
             (

@@ -48,7 +48,7 @@ pub struct BusSim {
 }
 
 impl BusSim {
-    /// A bus at `kbps` kbit/s (CiA 301) with `nodes` terminals (1 … 127).
+    /// A bus at `kbps` kbit/s (CiA 301) with `nodes` terminals (1 … 128).
     pub fn new(nodes: usize, kbps: u32) -> Result<BusSim, String> {
         Ok(BusSim {
             ports: Ports::new(kbps, nodes)?,

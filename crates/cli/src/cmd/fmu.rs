@@ -30,7 +30,7 @@ pub struct FmuArgs {
     /// counters, bus-off) for `--nodes` node FMUs (docs/FMU.md).
     #[arg(long, conflicts_with_all = ["model", "order_code"])]
     pub bus_simulation: bool,
-    /// Node terminals of the bus-simulation FMU (1 … 127; default 2).
+    /// Node terminals of the bus-simulation FMU (1 … 128: 127 nodes and their master; default 2).
     #[arg(long, value_name = "N")]
     pub nodes: Option<usize>,
     /// Bit rate of the bus-simulation FMU, kbit/s (CiA 301; its `bitrate` parameter's start;

@@ -21,8 +21,8 @@ use super::timeline::{Accepted, BusEvent, MemberId, Nanos, Rejected, Timeline, T
 use super::DEFAULT_TX_DEPTH;
 pub use crate::can::{BusErrorKind, BusState, MemberStats};
 
-/// Most ports a bus simulation has: CANopen's 127 node-ids.
-pub const MAX_PORTS: usize = 127;
+/// Most ports a bus simulation has: CANopen's 127 nodes and their master.
+pub const MAX_PORTS: usize = 128;
 
 /// What happened at one port.
 #[derive(Clone, Debug, PartialEq, Eq)]
