@@ -450,6 +450,8 @@ struct NodeBus {
     bus_off_at: Option<u64>,
     unconfirmed: VecDeque<Frame>,
     configured: bool,
+    /// The bus confirms frames (a Confirm came): only then are unconfirmed frames queued ones.
+    confirms: bool,
 }
 
 /// A sensor FMU instance.
@@ -515,6 +517,7 @@ impl SensorFmu {
                 bus_off_at: None,
                 unconfirmed: VecDeque::new(),
                 configured: false,
+                confirms: false,
             },
             state: None,
             log: Vec::new(),
@@ -675,10 +678,14 @@ impl SensorFmu {
                 }
                 if self.bus.unconfirmed.len() >= UNCONFIRMED_MAX {
                     // Its controller's queue (the bus simulation's 64 per node, docs/BUS.md)
-                    // is full: the bus loses a frame, which the node learns as a
-                    // transmit overflow; the oldest unconfirmed one counts as gone.
+                    // is full: the bus loses a frame, which the node learns as a transmit
+                    // overflow (D34); the oldest unconfirmed one counts as gone.
                     self.bus.unconfirmed.pop_front();
-                    r.tx_lost.fetch_add(1, Ordering::Relaxed);
+                    // Without bus notifications (a direct connection, LS-BUS
+                    // `BusNotifications`) nothing is ever confirmed: no loss to tell.
+                    if self.bus.confirms {
+                        r.tx_lost.fetch_add(1, Ordering::Relaxed);
+                    }
                 }
                 self.bus.unconfirmed.push_back(*f);
                 o.frames.pop_front();
@@ -812,6 +819,7 @@ impl SensorFmu {
                     ));
                 }
                 Op::Confirm { id } => {
+                    self.bus.confirms = true;
                     if let Some(i) = self.bus.unconfirmed.iter().position(|f| f.id() == id) {
                         self.bus.unconfirmed.remove(i);
                     }
