@@ -11,6 +11,7 @@ the bus runs busy from then on. Prints the wall time and what the bus carried.
 import argparse
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -36,9 +37,10 @@ def main():
     subprocess.run([exe, "fmu", "--model", "th", "-o", str(th)], check=True)
     subprocess.run([exe, "fmu", "--bus-simulation", "--nodes", str(a.nodes + 1),
                     "--bitrate", str(a.bitrate), "-o", str(bus_path)], check=True)
-    shared = extract(str(th))
+    shared = extract(str(th), unzipdir=str(out / "th"))
+    bus_dir = extract(str(bus_path), unzipdir=str(out / "bus"))
     t0 = time.perf_counter()
-    bus = Fmu(str(bus_path), "bus")
+    bus = Fmu(str(bus_path), "bus", unzipdir=bus_dir)
     bus.start({})
     nodes, first = [], []
     for k in range(a.nodes):
@@ -56,6 +58,7 @@ def main():
     lost = bus.fmu.getUInt64([bus.vr["frames_lost"]])[0]
     for f in nodes + [bus]:
         f.close()
+    shutil.rmtree(out, ignore_errors=True)
     print(f"{a.nodes} TH FMUs + controller on the bus FMU at {a.bitrate} kbit/s, "
           f"{a.seconds} s simulated: {wall:.1f} s wall ({setup:.1f} s to instantiate), "
           f"{frames} frames carried, {len(sim.received)} received by the controller, "

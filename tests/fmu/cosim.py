@@ -15,6 +15,7 @@ It routes LS-BUS binaries and clocks between node FMUs and canpos's bus-simulati
    there, and whatever a node answers at once goes back to the bus at the same time.
 """
 
+import shutil
 import struct
 
 from fmpy import extract, read_model_description
@@ -50,6 +51,8 @@ class Fmu:
 
     def __init__(self, path, name, unzipdir=None):
         self.md = read_model_description(path, validate=False)
+        # Extracted here: removed again by close().
+        self.own_dir = unzipdir is None
         self.unzipdir = unzipdir or extract(path)
         self.vr = {v.name: v.valueReference for v in self.md.modelVariables}
         self.fmu = FMU3Slave(
@@ -103,6 +106,8 @@ class Fmu:
     def close(self):
         self.fmu.terminate()
         self.fmu.freeInstance()
+        if self.own_dir:
+            shutil.rmtree(self.unzipdir, ignore_errors=True)
 
 
 class CoSim:
