@@ -9,6 +9,7 @@ PACKAGES=(
   qemu-system-arm   # scripts/firmware.sh: runs the TH firmware on mps2-an386
   gcc-arm-none-eabi # scripts/firmware.sh: arm-none-eabi-size / -nm measure the firmware
   libnewlib-arm-none-eabi # firmware/build.rs: newlib-nano's memcpy / memset (size-optimised)
+  valgrind # tests/fmu/test_valgrind.py: one FMU session, no leak and no invalid access
 )
 missing=()
 for p in "${PACKAGES[@]}"; do

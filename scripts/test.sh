@@ -70,6 +70,18 @@ fi
 "$VENV/bin/pip" install --quiet --disable-pip-version-check -r tests/interop/requirements.txt ./python
 CANPOS_BIN="$PWD/target/release/canpos" "$VENV/bin/python" -m pytest -q tests/interop
 
+# --- the sensor FMUs through fmpy (issue 31) -------------------------------------------------------
+# `canpos fmu` writes the FMUs with the release library cargo built beside target/release/canpos;
+# fmpy (pinned in tests/fmu/requirements.txt) validates and steps them; one session runs under
+# Debian's valgrind (scripts/deps.sh).
+step "FMUs: validate_fmu, an fmpy co-simulation of a TH, misuse cases, a valgrind session"
+FMUVENV=target/venv-fmu
+if [ ! -x "$FMUVENV/bin/python" ]; then
+  python3 -m venv "$FMUVENV"
+fi
+"$FMUVENV/bin/pip" install --quiet --disable-pip-version-check -r tests/fmu/requirements.txt
+CANPOS_BIN="$PWD/target/release/canpos" "$FMUVENV/bin/python" -m pytest -q -p no:cacheprovider tests/fmu
+
 # --- SocketCAN on vcan under User-Mode Linux (issue 8) -------------------------------------------
 # The host kernel has no CAN: boot a UML 7.2 guest with vcan0 (scripts/uml/, kit cached in
 # target/uml-kit) and run the SocketCAN suites inside it. No kit = a loud failure, not a skip.

@@ -163,3 +163,30 @@ def test_bus_errors_take_the_node_error_passive_and_bus_off_and_back(fmus):
     assert s.ops[-1][1:] != (STATUS, 3) and any(o[1:] == (STATUS, 1) for o in s.ops)
     assert any(d[:2] == b"\x40\x81" for _, _, d in s.frames(0x80 + NODE)), "EMCY 0x8140"
     s.close()
+
+
+def test_confirm_and_arbitration_lost_are_honoured(fmus):
+    s = Session(fmus["th"])
+    s.start(node_id=NODE)
+    s.send(transmit(0x000, bytes([0x01, NODE])))
+    s.step_to(0.003)
+    err = struct.pack("<II", 0x31, 15) + struct.pack("<IBBB", 0x185, 5, 1, 1)
+    def sent(*ops):
+        before = len(s.ops)
+        s.send(*ops)
+        return [o[1:] for o in s.ops[before:]]
+
+    assert (STATUS, 2) in sent(*[err] * 16)  # TEC 128: error passive
+    # One frame carried (Confirm): TEC 127, error active again.
+    assert (STATUS, 1) in sent(struct.pack("<III", 0x20, 12, 0x185))
+    # A TPDO the bus discarded (Arbitration Lost) is sent again at once, the same frame. The
+    # bus answers a node's frames of one identifier in their order: the earlier TPDOs carried
+    # (the first of them was confirmed above).
+    s.step_to(s.t + 0.001)
+    t, can_id, data = s.frames(0x180 + NODE)[-1]
+    n = len(s.frames(0x180 + NODE))
+    s.send(*[struct.pack("<III", 0x20, 12, 0x180 + NODE)] * (n - 2))
+    s.send(struct.pack("<III", 0x30, 12, 0x180 + NODE))
+    again = s.frames(0x180 + NODE)
+    assert len(again) == n + 1 and again[-1][1:] == (can_id, data) and again[-1][0] == s.t
+    s.close()

@@ -325,6 +325,8 @@ fn readme_examples_run_in_order_without_colliding() {
     for f in [
         "e-series.eds",
         "ep.eds",
+        "th.fmu",
+        "ep.fmu",
         "unit.dcf",
         "bus.pcapng",
         "bus.log",

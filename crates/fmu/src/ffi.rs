@@ -324,6 +324,10 @@ pub unsafe extern "C" fn fmi3FreeInstance(inst: *mut c_void) {
         return;
     };
     l.swap_remove(k);
+    if l.is_empty() {
+        // Nothing of the library outlives its last instance: an importer may unload it.
+        *l = Vec::new();
+    }
     drop(l);
     // SAFETY: it was ours and is no longer reachable through LIVE.
     let b = unsafe { Box::from_raw(inst as *mut Instance) };

@@ -111,10 +111,19 @@ impl Kind {
     /// The FMU's description (variables, terminals, token).
     pub fn description(&self) -> Result<Description, String> {
         let token = token(&self.resource_text());
-        match self {
-            Kind::Sensor(u) => u.description(token),
-            Kind::BusSimulation(b) => b.description(token),
+        let mut d = match self {
+            Kind::Sensor(u) => u.description(token)?,
+            Kind::BusSimulation(b) => b.description(token)?,
+        };
+        // Looked up by value reference (binary search) in every call of the glue.
+        d.variables.sort_by_key(|v| v.vr);
+        if let Some(w) = d.variables.windows(2).find(|w| w[0].vr == w[1].vr) {
+            return Err(format!(
+                "value reference {} used twice ({}, {})",
+                w[0].vr, w[0].name, w[1].name
+            ));
         }
+        Ok(d)
     }
 
     /// A new instance of this kind.

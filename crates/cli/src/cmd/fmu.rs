@@ -117,3 +117,51 @@ pub fn fmu(a: FmuArgs) -> Result<i32> {
     );
     Ok(0)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sensor::{build_setup, SensorOpts};
+
+    /// The FMU's unit is the one `canpos run` makes from the same model or order code: the
+    /// same configuration and measurement spec (one device, not a second description of it).
+    #[test]
+    fn the_fmu_unit_is_the_one_canpos_run_makes() {
+        let dir = tempfile::tempdir().unwrap();
+        let cases = [
+            (Some("th"), None),
+            (Some("e-series"), None),
+            (Some("tmi"), None),
+            (None, Some("EP00600MD341C304241Z02")),
+        ];
+        for (model, code) in cases {
+            let a = FmuArgs {
+                model: model.map(String::from),
+                order_code: code.map(String::from),
+                output: "x.fmu".into(),
+                library: None,
+            };
+            let unit = match kind_of(&a).unwrap() {
+                Kind::Sensor(u) => u,
+                #[allow(unreachable_patterns)]
+                _ => panic!("{model:?} {code:?} is not a sensor"),
+            };
+            let o = SensorOpts {
+                model: model.map(String::from),
+                order_code: code.map(String::from),
+                ..SensorOpts::default()
+            };
+            let run = build_setup(&o, dir.path()).unwrap().setup;
+            assert_eq!(unit.cfg, run.cfg, "{model:?} {code:?}");
+            assert_eq!(unit.spec, run.spec, "{model:?} {code:?}");
+            assert_eq!(unit.model.name, run.model.name);
+        }
+        let bad = FmuArgs {
+            model: Some("toaster".into()),
+            order_code: None,
+            output: "x.fmu".into(),
+            library: None,
+        };
+        assert!(kind_of(&bad).is_err());
+    }
+}
