@@ -140,10 +140,12 @@ mod tests {
                 order_code: code.map(String::from),
                 output: "x.fmu".into(),
                 library: None,
+                bus_simulation: false,
+                nodes: None,
+                bitrate: None,
             };
             let unit = match kind_of(&a).unwrap() {
                 Kind::Sensor(u) => u,
-                #[allow(unreachable_patterns)]
                 _ => panic!("{model:?} {code:?} is not a sensor"),
             };
             let o = SensorOpts {
@@ -161,7 +163,33 @@ mod tests {
             order_code: None,
             output: "x.fmu".into(),
             library: None,
+            bus_simulation: false,
+            nodes: None,
+            bitrate: None,
         };
         assert!(kind_of(&bad).is_err());
+        // The bus simulation's options: checked, and only with --bus-simulation.
+        let bus = |nodes, bitrate, on| FmuArgs {
+            model: None,
+            order_code: None,
+            output: "x.fmu".into(),
+            library: None,
+            bus_simulation: on,
+            nodes,
+            bitrate,
+        };
+        assert!(matches!(
+            kind_of(&bus(Some(4), Some(125), true)).unwrap(),
+            Kind::BusSimulation(b) if b.nodes == 4 && b.kbps == 125
+        ));
+        for bad in [
+            bus(Some(0), None, true),
+            bus(Some(129), None, true),
+            bus(None, Some(123), true),
+            bus(Some(4), None, false),
+            bus(None, Some(125), false),
+        ] {
+            assert!(kind_of(&bad).is_err(), "{bad:?}");
+        }
     }
 }
