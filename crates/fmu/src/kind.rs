@@ -5,6 +5,7 @@
 //! or `order_code = CODE`. Another kind adds a [`Kind`] variant and its arms in this file;
 //! the FMI glue ([`crate::ffi`]) does not change.
 
+use crate::bus_fmu::BusUnit;
 use crate::model::{Description, FmuModel};
 use crate::sensor::SensorUnit;
 
@@ -16,10 +17,14 @@ const MAX_RESOURCE_LEN: usize = 64 * 1024;
 const LAYOUT_VERSION: &str = "canpos-fmu-layout-1";
 
 /// What one FMU is.
+// One per instance, made once: the sensor variant's size costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub enum Kind {
     /// A canpos sensor (one unit: a model's default or an order code's).
     Sensor(SensorUnit),
+    /// canpos's bus as an LS-BUS bus simulation (`kind = bus-simulation`, `nodes`, `bitrate`).
+    BusSimulation(BusUnit),
 }
 
 /// The `key = value` pairs of a resource file, in order.
@@ -82,8 +87,9 @@ impl Kind {
         let e = Entries::parse(text)?;
         match e.get("kind") {
             Some("sensor") => Ok(Kind::Sensor(SensorUnit::from_entries(&e)?)),
+            Some("bus-simulation") => Ok(Kind::BusSimulation(BusUnit::from_entries(&e)?)),
             Some(k) => Err(format!(
-                "{RESOURCE_FILE}: unknown kind `{k}` (this library knows: sensor)"
+                "{RESOURCE_FILE}: unknown kind `{k}` (this library knows: sensor, bus-simulation)"
             )),
             None => Err(format!("{RESOURCE_FILE}: no `kind`")),
         }
@@ -93,6 +99,7 @@ impl Kind {
     pub fn resource_text(&self) -> String {
         let body = match self {
             Kind::Sensor(u) => u.resource_entries(),
+            Kind::BusSimulation(b) => b.resource_entries(),
         };
         let mut s = String::from("# canpos FMU: what this FMU is (read by the shared library)\n");
         for (k, v) in body {
@@ -106,6 +113,7 @@ impl Kind {
         let token = token(&self.resource_text());
         let mut d = match self {
             Kind::Sensor(u) => u.description(token)?,
+            Kind::BusSimulation(b) => b.description(token)?,
         };
         // Looked up by value reference (binary search) in every call of the glue.
         d.variables.sort_by_key(|v| v.vr);
@@ -123,6 +131,7 @@ impl Kind {
         let d = self.description()?;
         match self {
             Kind::Sensor(u) => Ok(Box::new(crate::sensor::SensorFmu::new(u.clone(), d)?)),
+            Kind::BusSimulation(b) => Ok(Box::new(crate::bus_fmu::BusFmu::new(*b, d)?)),
         }
     }
 }

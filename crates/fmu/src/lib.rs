@@ -4,6 +4,8 @@
 //! `resources/canpos-fmu.txt` says which [`kind::Kind`] an instance is. The same crate as an
 //! `rlib` gives the packager (`canpos fmu`) the descriptions and the archive.
 
+pub mod bus_fmu;
+pub mod bussim;
 pub mod ffi;
 pub mod kind;
 pub mod lsbus;

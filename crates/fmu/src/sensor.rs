@@ -157,7 +157,7 @@ impl SensorUnit {
     }
 
     /// Default magnet positions: one per channel, spread over the stroke (as `canpos run`).
-    fn default_magnets(&self) -> Vec<f64> {
+    pub fn default_magnets(&self) -> Vec<f64> {
         let n = self.channels() as f64;
         (0..self.channels())
             .map(|k| self.spec.stroke_mm * (k as f64 + 1.0) / (n + 1.0))
@@ -379,6 +379,8 @@ pub struct LsBusPort {
     rx: Receiver<RxFrame>,
     rx_lost: Arc<AtomicU64>,
     kbps: u32,
+    /// Frames its controller's transmit queue lost (see `UNCONFIRMED_MAX`).
+    tx_lost: Arc<AtomicU64>,
 }
 
 impl Transport for LsBusPort {
@@ -402,6 +404,11 @@ impl Transport for LsBusPort {
     fn dropped(&self) -> u64 {
         self.rx_lost.load(Ordering::Relaxed)
     }
+    // The runtime raises its sensor's transmit-overflow reaction on these (0x8110, the TMI's
+    // 0x6000), as for a hub client's reported overflows (docs/BUS.md).
+    fn tx_overflows(&self) -> u64 {
+        self.tx_lost.load(Ordering::Relaxed)
+    }
     fn join_clock(&mut self) -> Option<Horizon> {
         Some(self.clock.participant("fmu sensor"))
     }
@@ -417,6 +424,7 @@ struct Running {
     outbox: Arc<Mutex<Outbox>>,
     rx: Sender<RxFrame>,
     rx_lost: Arc<AtomicU64>,
+    tx_lost: Arc<AtomicU64>,
     // The unit's state file lives here for the instance's life (removed with it).
     _dir: tempfile::TempDir,
 }
@@ -442,6 +450,8 @@ struct NodeBus {
     bus_off_at: Option<u64>,
     unconfirmed: VecDeque<Frame>,
     configured: bool,
+    /// The bus confirms frames (a Confirm came): only then are unconfirmed frames queued ones.
+    confirms: bool,
 }
 
 /// A sensor FMU instance.
@@ -507,6 +517,7 @@ impl SensorFmu {
                 bus_off_at: None,
                 unconfirmed: VecDeque::new(),
                 configured: false,
+                confirms: false,
             },
             state: None,
             log: Vec::new(),
@@ -519,7 +530,9 @@ impl SensorFmu {
         let (tx, rx) = crossbeam_channel::bounded(RX_QUEUE);
         let outbox = Arc::new(Mutex::new(Outbox::default()));
         let rx_lost = Arc::new(AtomicU64::new(0));
+        let tx_lost = Arc::new(AtomicU64::new(0));
         let port = LsBusPort {
+            tx_lost: tx_lost.clone(),
             clock: clock.clone(),
             outbox: outbox.clone(),
             rx,
@@ -565,6 +578,7 @@ impl SensorFmu {
             outbox,
             rx: tx,
             rx_lost,
+            tx_lost,
             _dir: dir,
         })
     }
@@ -663,7 +677,15 @@ impl SensorFmu {
                     break;
                 }
                 if self.bus.unconfirmed.len() >= UNCONFIRMED_MAX {
+                    // Its controller's queue (the bus simulation's 64 per node, docs/BUS.md)
+                    // is full: the bus loses a frame, which the node learns as a transmit
+                    // overflow (D34); the oldest unconfirmed one counts as gone.
                     self.bus.unconfirmed.pop_front();
+                    // Without bus notifications (a direct connection, LS-BUS
+                    // `BusNotifications`) nothing is ever confirmed: no loss to tell.
+                    if self.bus.confirms {
+                        r.tx_lost.fetch_add(1, Ordering::Relaxed);
+                    }
                 }
                 self.bus.unconfirmed.push_back(*f);
                 o.frames.pop_front();
@@ -797,6 +819,7 @@ impl SensorFmu {
                     ));
                 }
                 Op::Confirm { id } => {
+                    self.bus.confirms = true;
                     if let Some(i) = self.bus.unconfirmed.iter().position(|f| f.id() == id) {
                         self.bus.unconfirmed.remove(i);
                     }

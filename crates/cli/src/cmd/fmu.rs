@@ -9,6 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, Context, Result};
+use canpos_fmu::bus_fmu::BusUnit;
 use canpos_fmu::kind::Kind;
 use canpos_fmu::sensor::SensorUnit;
 use clap::Args;
@@ -25,6 +26,17 @@ pub struct FmuArgs {
     /// resolution, channels and bit rate.
     #[arg(long, value_name = "CODE")]
     pub order_code: Option<String>,
+    /// Write the bus-simulation FMU instead: canpos's CAN bus (bit timing, arbitration, error
+    /// counters, bus-off) for `--nodes` node FMUs (docs/FMU.md).
+    #[arg(long, conflicts_with_all = ["model", "order_code"])]
+    pub bus_simulation: bool,
+    /// Node terminals of the bus-simulation FMU (1 … 128: 127 nodes and their master; default 2).
+    #[arg(long, value_name = "N")]
+    pub nodes: Option<usize>,
+    /// Bit rate of the bus-simulation FMU, kbit/s (CiA 301; its `bitrate` parameter's start;
+    /// default 500).
+    #[arg(long, value_name = "KBPS")]
+    pub bitrate: Option<u32>,
     /// The FMU file to write (e.g. th.fmu).
     #[arg(long, short = 'o', value_name = "FILE.fmu")]
     pub output: PathBuf,
@@ -36,6 +48,17 @@ pub struct FmuArgs {
 
 /// The kind of FMU the arguments ask for.
 pub fn kind_of(a: &FmuArgs) -> Result<Kind> {
+    // clap's `requires` takes a flag's default `false` for given: checked here.
+    if !a.bus_simulation && (a.nodes.is_some() || a.bitrate.is_some()) {
+        return Err(usage!(
+            "--nodes and --bitrate are the bus simulation's: give --bus-simulation (a sensor FMU's bit rate is its `bitrate` parameter)"
+        ));
+    }
+    if a.bus_simulation {
+        let bus = BusUnit::new(a.nodes.unwrap_or(2), a.bitrate.unwrap_or(500))
+            .map_err(|e| usage!("{e}"))?;
+        return Ok(Kind::BusSimulation(bus));
+    }
     let unit = match (&a.model, &a.order_code) {
         (_, Some(code)) => SensorUnit::for_order_code(code),
         (m, None) => SensorUnit::for_model(m.as_deref().unwrap_or("th")),
@@ -117,10 +140,12 @@ mod tests {
                 order_code: code.map(String::from),
                 output: "x.fmu".into(),
                 library: None,
+                bus_simulation: false,
+                nodes: None,
+                bitrate: None,
             };
             let unit = match kind_of(&a).unwrap() {
                 Kind::Sensor(u) => u,
-                #[allow(unreachable_patterns)]
                 _ => panic!("{model:?} {code:?} is not a sensor"),
             };
             let o = SensorOpts {
@@ -138,7 +163,33 @@ mod tests {
             order_code: None,
             output: "x.fmu".into(),
             library: None,
+            bus_simulation: false,
+            nodes: None,
+            bitrate: None,
         };
         assert!(kind_of(&bad).is_err());
+        // The bus simulation's options: checked, and only with --bus-simulation.
+        let bus = |nodes, bitrate, on| FmuArgs {
+            model: None,
+            order_code: None,
+            output: "x.fmu".into(),
+            library: None,
+            bus_simulation: on,
+            nodes,
+            bitrate,
+        };
+        assert!(matches!(
+            kind_of(&bus(Some(4), Some(125), true)).unwrap(),
+            Kind::BusSimulation(b) if b.nodes == 4 && b.kbps == 125
+        ));
+        for bad in [
+            bus(Some(0), None, true),
+            bus(Some(129), None, true),
+            bus(None, Some(123), true),
+            bus(Some(4), None, false),
+            bus(None, Some(125), false),
+        ] {
+            assert!(kind_of(&bad).is_err(), "{bad:?}");
+        }
     }
 }

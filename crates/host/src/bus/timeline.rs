@@ -80,6 +80,19 @@ pub enum BusEvent {
         /// Receive error counter then.
         rec: u16,
     },
+    /// A member's frame lost an arbitration (reported only on a timeline that asked for it,
+    /// [`Timeline::report_arbitration_losses`]: the bus-simulation FMU's `Arbitration Lost`).
+    ArbitrationLost {
+        /// The member.
+        member: MemberId,
+        /// Its frame that lost.
+        frame: Frame,
+        /// Start of the winning frame.
+        at: Nanos,
+        /// The frame was taken out of the member's queue ([`Timeline::set_discard_on_loss`]);
+        /// otherwise it takes part in the next arbitration.
+        discarded: bool,
+    },
 }
 
 /// Why [`Timeline::submit`] did not queue a frame.
@@ -143,6 +156,8 @@ struct Member {
     off_run_start: Nanos,
     /// The transceiver no longer drives the bus: every attempt is a bit error at SOF.
     transceiver_failed: bool,
+    /// A frame that loses an arbitration leaves the queue (LS-BUS `DISCARD_AND_NOTIFY`).
+    discard_on_loss: bool,
     next_attempt: Nanos,
     stats: MemberStats,
 }
@@ -226,6 +241,8 @@ pub struct Timeline {
     flags_refused: u64,
     /// Some member's REC may be above 0.
     rec_raised: bool,
+    /// Report [`BusEvent::ArbitrationLost`] (off for the in-process buses: nobody asks).
+    report_losses: bool,
 }
 
 /// A parameter of a bus disturbance out of range.
@@ -271,6 +288,7 @@ impl Timeline {
             flag: None,
             flags_refused: 0,
             rec_raised: false,
+            report_losses: false,
         })
     }
 
@@ -320,6 +338,20 @@ impl Timeline {
     pub fn set_order(&mut self, id: MemberId, order: TxOrder) {
         if let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) {
             m.order = order;
+        }
+    }
+
+    /// Reports every frame that loses an arbitration as [`BusEvent::ArbitrationLost`].
+    pub fn report_arbitration_losses(&mut self, on: bool) {
+        self.report_losses = on;
+    }
+
+    /// Makes member `id`'s frames that lose an arbitration leave its queue instead of taking
+    /// part in the next one (reported as [`BusEvent::ArbitrationLost`] with `discarded`, if
+    /// the timeline reports losses).
+    pub fn set_discard_on_loss(&mut self, id: MemberId, on: bool) {
+        if let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) {
+            m.discard_on_loss = on;
         }
     }
 
@@ -631,6 +663,18 @@ impl Timeline {
     /// frames in time order (the attempts of a member whose transceiver failed are its own and
     /// may be reported ahead of them).
     pub fn advance(&mut self, now: Nanos, out: &mut Vec<BusEvent>) {
+        self.run(now, true, out);
+    }
+
+    /// As [`advance`](Self::advance), but an arbitration due exactly at `now` is left for the
+    /// next call, so that frames submitted at `now` afterwards take part in it: the step of a
+    /// co-simulation (docs/FMU.md), where every node hands in its frames of time `now` after
+    /// the bus reached it.
+    pub fn advance_before(&mut self, now: Nanos, out: &mut Vec<BusEvent>) {
+        self.run(now, false, out);
+    }
+
+    fn run(&mut self, now: Nanos, start_at_now: bool, out: &mut Vec<BusEvent>) {
         self.failed_attempts(now, out);
         loop {
             if let Some(cur) = &self.current {
@@ -665,12 +709,12 @@ impl Timeline {
                 self.recover_until(now, out);
                 return;
             };
-            if t > now {
+            if t > now || (t == now && !start_at_now) {
                 self.recover_until(now, out);
                 return;
             }
             self.recover_until(t, out);
-            self.arbitrate(t);
+            self.arbitrate(t, out);
         }
     }
 

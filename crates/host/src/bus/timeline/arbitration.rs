@@ -5,7 +5,7 @@
 use super::*;
 
 impl Timeline {
-    pub(super) fn arbitrate(&mut self, t: Nanos) {
+    pub(super) fn arbitrate(&mut self, t: Nanos, out: &mut Vec<BusEvent>) {
         // Everyone with a frame ready at `t` takes part; the lowest arbitration value wins.
         let mut best: Option<u32> = None;
         let mut offers: Vec<Offer> = Vec::new();
@@ -23,6 +23,10 @@ impl Timeline {
         let Some(best) = best else {
             return;
         };
+        if offers.len() > 1 {
+            // Each offer is another member's: a loser leaving its queue moves no winner's index.
+            self.arbitration_losses(&offers, best, t, out);
+        }
         offers.retain(|&(_, _, k)| k == best);
         self.note_bus_activity(t);
         // The same identifier with other bits: at the first difference, whoever sends recessive
@@ -96,6 +100,43 @@ impl Timeline {
             bits: bits + u64::from(INTERMISSION_BITS),
             passive_losers,
         });
+    }
+
+    /// Members whose offer lost to `best`: reported, and taken out of the queue of a member
+    /// that discards its losers.
+    fn arbitration_losses(
+        &mut self,
+        offers: &[Offer],
+        best: u32,
+        t: Nanos,
+        out: &mut Vec<BusEvent>,
+    ) {
+        for &(i, q, key) in offers {
+            if key == best {
+                continue;
+            }
+            let m = &mut self.members[i as usize];
+            let frame = m.queue[q].frame;
+            let discarded = m.discard_on_loss;
+            if !discarded && !self.report_losses {
+                continue;
+            }
+            if discarded {
+                m.queue.remove(q);
+                if m.queue.is_empty() {
+                    self.active.retain(|&a| a != i);
+                }
+            }
+            if !self.report_losses {
+                continue;
+            }
+            out.push(BusEvent::ArbitrationLost {
+                member: MemberId(i),
+                frame,
+                at: t,
+                discarded,
+            });
+        }
     }
 
     pub(super) fn finish(&mut self, cur: OnWire, out: &mut Vec<BusEvent>) {
