@@ -242,6 +242,109 @@ fn the_synchronised_mode_gives_the_same_frames_at_the_same_simulated_times() {
 }
 
 #[test]
+fn a_participant_that_vanishes_in_synchronised_mode_ends_the_others_with_a_clear_error() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let state = d.to_str().unwrap();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let _sc = SystemController::start(&reg, &["th-11", "tmi-12"]);
+    let bus = format!("{}/can0", reg.uri());
+    let sensor = |model: &str, serial: &str, node: &str| {
+        Proc::start(
+            d,
+            &[
+                "run",
+                "--model",
+                model,
+                "--serial",
+                serial,
+                "--node-id",
+                node,
+                "--nmt",
+                "operational",
+                "--bus",
+                &bus,
+                "--time",
+                "sync",
+                "--state-dir",
+                state,
+            ],
+        )
+    };
+    let mut th = sensor("th", "11", "5");
+    let mut tmi = sensor("tmi", "12", "6");
+    // The simulation runs: a wall-clock recorder (no part in the steps) sees TPDOs.
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "20", "rec.log",
+        ],
+    );
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+    // The TMI crashes: SIL Kit's time stops for good (its Error state); the TH must not wait
+    // forever but end with the reason.
+    tmi.stop();
+    let code = th.wait_exit(LIMIT);
+    let out = th.output();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("Error state"), "{out}");
+    assert!(!out.contains("panicked"), "{out}");
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+}
+
+#[test]
+fn a_synchronised_sensor_stopped_by_its_user_does_not_blame_the_system_controller() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let _sc = SystemController::start(&reg, &["th-11"]);
+    let bus = format!("{}/can0", reg.uri());
+    let mut th = Proc::start(
+        d,
+        &[
+            "run",
+            "--model",
+            "th",
+            "--serial",
+            "11",
+            "--node-id",
+            "5",
+            "--nmt",
+            "operational",
+            "--bus",
+            &bus,
+            "--time",
+            "sync",
+            "--state-dir",
+            d.to_str().unwrap(),
+        ],
+    );
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "5", "rec.log",
+        ],
+    );
+    // SIGTERM: canpos leaves SIL Kit itself (its own SilKit_LifecycleService_Stop).
+    assert!(Command::new("kill")
+        .args(["-TERM", &th.pid().to_string()])
+        .status()
+        .unwrap()
+        .success());
+    th.wait_exit(LIMIT);
+    let out = th.output();
+    assert!(out.contains("the participant left"), "{out}");
+    assert!(!out.contains("system controller stopped"), "{out}");
+}
+
+#[test]
 fn faults_are_clear_errors_and_leave_the_state_file_alone() {
     if !have_silkit() {
         return;

@@ -17,7 +17,7 @@
 //! with that reason; see [`super`] for the registry.
 
 use std::collections::VecDeque;
-use std::ffi::{c_void, CString};
+use std::ffi::{c_void, CStr, CString};
 use std::io;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
@@ -211,7 +211,48 @@ unsafe extern "C" fn on_comm_ready(ctx: *mut c_void, _l: *mut sys::LifecycleServ
 unsafe extern "C" fn on_stop(ctx: *mut c_void, _l: *mut sys::LifecycleService) {
     // SAFETY: as in `on_frame`.
     let shared = unsafe { &*(ctx as *const Shared) };
-    shared.end("the system controller stopped the simulation".into());
+    if shared.left.load(Ordering::SeqCst) {
+        // Our own `SilKit_LifecycleService_Stop` (the transport is dropped), not the system
+        // controller's.
+        shared.end_with("the participant left".into(), false);
+    } else {
+        shared.end("the system controller stopped the simulation".into());
+    }
+}
+
+unsafe extern "C" fn on_disconnected(
+    ctx: *mut c_void,
+    _m: *mut sys::SystemMonitor,
+    info: *const sys::ParticipantConnectionInformation,
+) {
+    // SAFETY: as in `on_frame`; `info` and its name are valid during the call (Orchestration.h).
+    let shared = unsafe { &*(ctx as *const Shared) };
+    // SAFETY: as above; the name is NUL-terminated or null.
+    let name = unsafe { info.as_ref() }
+        .filter(|i| !i.participant_name.is_null())
+        .map(|i| {
+            unsafe { CStr::from_ptr(i.participant_name) }
+                .to_string_lossy()
+                .into_owned()
+        })
+        .unwrap_or_else(|| "?".into());
+    // Named in the log: SIL Kit reports the Error state this may cause before this handler.
+    tracing::info!(participant = %shared.participant, "SIL Kit: participant `{name}` disconnected");
+}
+
+unsafe extern "C" fn on_system_state(ctx: *mut c_void, _m: *mut sys::SystemMonitor, state: i16) {
+    // SAFETY: as in `on_frame`.
+    let shared = unsafe { &*(ctx as *const Shared) };
+    if state != sys::SYSTEM_STATE_ERROR || shared.left.load(Ordering::SeqCst) {
+        return;
+    }
+    // SIL Kit's time stops in the Error state and only a restart of every participant and
+    // the system controller leaves it: waiting would hang the process (docs/SILKIT.md).
+    shared.end(
+        "the simulation fell into SIL Kit's Error state (a participant or the system controller \
+         left without stopping it): restart the participants and the system controller"
+            .into(),
+    );
 }
 
 unsafe extern "C" fn on_abort(ctx: *mut c_void, _l: *mut sys::LifecycleService, last: i16) {
@@ -357,6 +398,32 @@ impl SilkitCan {
                     api.check(
                         "SilKit_LifecycleService_SetAbortHandler",
                         (api.lifecycle_service_set_abort_handler)(lifecycle, ctx, on_abort),
+                    )?;
+                    // A participant or the system controller that vanishes puts the
+                    // simulation in SIL Kit's Error state, where time stops: watched, so
+                    // that the transport ends with that reason instead of waiting forever.
+                    let mut monitor = std::ptr::null_mut();
+                    api.check(
+                        "SilKit_SystemMonitor_Create",
+                        (api.system_monitor_create)(&mut monitor, participant.raw()),
+                    )?;
+                    api.check(
+                        "SilKit_SystemMonitor_SetParticipantDisconnectedHandler",
+                        (api.system_monitor_set_participant_disconnected_handler)(
+                            monitor,
+                            ctx,
+                            on_disconnected,
+                        ),
+                    )?;
+                    let mut id = 0;
+                    api.check(
+                        "SilKit_SystemMonitor_AddSystemStateHandler",
+                        (api.system_monitor_add_system_state_handler)(
+                            monitor,
+                            ctx,
+                            on_system_state,
+                            &mut id,
+                        ),
                     )?;
                     api.check(
                         "SilKit_TimeSyncService_Create",
