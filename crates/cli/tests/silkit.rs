@@ -345,6 +345,41 @@ fn a_synchronised_sensor_stopped_by_its_user_does_not_blame_the_system_controlle
 }
 
 #[test]
+fn a_synchronised_sensor_without_a_system_controller_says_it_waits() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let bus = format!("{}/can0", reg.uri());
+    let mut th = Proc::start(
+        d,
+        &[
+            "run",
+            "--model",
+            "th",
+            "--serial",
+            "11",
+            "--node-id",
+            "5",
+            "--bus",
+            &bus,
+            "--time",
+            "sync",
+            "--state-dir",
+            d.to_str().unwrap(),
+        ],
+    );
+    // It waits (SIL Kit's time has not begun), and says for what.
+    let out = th.wait_for("waiting for a system controller", LIMIT);
+    assert!(
+        out.contains("sil-kit-system-controller -u silkit://HOST:PORT th-11"),
+        "{out}"
+    );
+}
+
+#[test]
 fn faults_are_clear_errors_and_leave_the_state_file_alone() {
     if !have_silkit() {
         return;

@@ -39,6 +39,8 @@ pub const HELD_MAX: usize = 65_536;
 /// How long a participant stays after its last send before it leaves (its frames are written
 /// to the peers by SIL Kit's own thread).
 pub const LINGER: Duration = Duration::from_millis(100);
+/// How long a synchronised participant waits for the simulation to start before it says so.
+pub const START_WAIT_WARN: Duration = Duration::from_secs(5);
 /// The step of synchronised mode when none is given: 1 ms (a TMI's fastest TPDO period).
 pub const DEFAULT_STEP: Duration = Duration::from_millis(1);
 
@@ -550,7 +552,24 @@ fn stepper_loop(
     controller: usize,
 ) {
     let time_sync = time_sync as *mut sys::TimeSyncService;
-    while let Ok(Some(now)) = steps.recv() {
+    // SIL Kit's time begins only when a system controller starts the simulation: until then
+    // the participant waits, as it should, but says so once (a forgotten system controller or
+    // a participant name it does not require looks like a hang otherwise).
+    let first = match steps.recv_timeout(START_WAIT_WARN) {
+        Ok(first) => first,
+        Err(crossbeam_channel::RecvTimeoutError::Timeout) => {
+            if let Some(sh) = shared.upgrade() {
+                tracing::warn!(participant = %sh.participant,
+                    "SIL Kit: waiting for a system controller to start the simulation (e.g. \
+                     `sil-kit-system-controller -u silkit://HOST:PORT {} …`, naming every \
+                     synchronised participant; docs/SILKIT.md)", sh.participant);
+            }
+            steps.recv().ok().flatten()
+        }
+        Err(crossbeam_channel::RecvTimeoutError::Disconnected) => None,
+    };
+    let mut next = first;
+    while let Some(now) = next.take() {
         let Some(sh) = shared.upgrade() else { return };
         let Some(s) = &sh.sync else { return };
         {
@@ -603,6 +622,8 @@ fn stepper_loop(
             sh.end(e.to_string());
             return;
         }
+        drop(sh);
+        next = steps.recv().ok().flatten();
     }
 }
 
