@@ -116,9 +116,11 @@ fn two_sensors_in_their_own_processes_serve_sdo_nmt_lss_fastscan_and_tpdos() {
     let name = ok(d, &["sdo", "--bus", &bus, "read", "6", "0x1008", "0"]);
     assert!(name.contains("\"TMI\""), "{name}");
 
-    // LSS: fastscan (200 ms per step: generous for a loaded machine; 25 ms by default), a
-    // node-id, back to waiting; NMT reset communication: the TH boots as node 5.
-    let scan = ok(d, &["lss", "--bus", &bus, "fastscan", "--timeout", "200"]);
+    // LSS: fastscan, a node-id, back to waiting; NMT reset communication: the TH boots as
+    // node 5. 500 ms per step (25 ms by default; ~48 steps wait it out, so ~25 s): an answer
+    // crosses two SIL Kit participants' threads, and with 200 ms the confirmation timed out
+    // in 2 runs of 5 on the loaded 2-core machine.
+    let scan = ok(d, &["lss", "--bus", &bus, "fastscan", "--timeout", "500"]);
     assert!(scan.contains("serial 0x0000000B (11)"), "{scan}");
     ok(d, &["lss", "--bus", &bus, "set-node-id", "5"]);
     ok(d, &["lss", "--bus", &bus, "switch-global", "waiting"]);
