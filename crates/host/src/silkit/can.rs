@@ -450,10 +450,7 @@ impl SilkitCan {
             }
         }
         Ok(SilkitCan {
-            describe: format!(
-                "silkit://{}:{}/{} as {}",
-                opts.registry.host, opts.registry.port, opts.network, opts.participant
-            ),
+            describe: describe(opts),
             participant,
             controller,
             lifecycle,
@@ -490,6 +487,11 @@ impl SilkitCan {
     pub fn participant(&self) -> &str {
         self.participant.name()
     }
+}
+
+/// What the banner shows: the URL (IPv6 hosts in brackets, so it can be copied) and the name.
+fn describe(opts: &Options) -> String {
+    format!("{}/{} as {}", opts.registry, opts.network, opts.participant)
 }
 
 /// Lifecycle starts held back until [`release_starts`] (see [`hold_starts`]).
@@ -796,5 +798,27 @@ impl Drop for SilkitCan {
             let _ = s.steps.send(None);
             let _ = t.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_description_is_a_url_that_can_be_copied() {
+        let mut o = Options {
+            registry: RegistryUri {
+                host: "::1".into(),
+                port: 8501,
+            },
+            network: "can0".into(),
+            participant: "th-11".into(),
+            time: TimeMode::Wall,
+            bitrate_kbps: None,
+        };
+        assert_eq!(describe(&o), "silkit://[::1]:8501/can0 as th-11");
+        o.registry.host = "127.0.0.1".into();
+        assert_eq!(describe(&o), "silkit://127.0.0.1:8501/can0 as th-11");
     }
 }
