@@ -27,7 +27,14 @@ if [ ! -f "$STAMP" ]; then
   rm -rf "$DEST"
   mkdir -p "$DEST/wheel"
   printf 'SilKit_py==1.0.5 --hash=sha256:%s\n' "$SHA256" >"$DEST/requirements.txt"
-  python3 -m pip download --quiet --disable-pip-version-check --no-deps --only-binary=:all: \
+  # A fresh Debian has python3 -m venv (the test command's other steps use it) but not always
+  # python3-pip: then pip comes from a venv of its own.
+  PIP=(python3 -m pip)
+  if ! python3 -m pip --version >/dev/null 2>&1; then
+    python3 -m venv "$DEST/venv"
+    PIP=("$DEST/venv/bin/python" -m pip)
+  fi
+  "${PIP[@]}" download --quiet --disable-pip-version-check --no-deps --only-binary=:all: \
     --python-version 3.12 --implementation cp --abi cp312 --platform manylinux_2_28_x86_64 \
     --require-hashes -r "$DEST/requirements.txt" -d "$DEST/wheel"
   # pip checked the hash; checked again here so a wheel left by an older run cannot slip in.

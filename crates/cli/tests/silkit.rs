@@ -116,9 +116,11 @@ fn two_sensors_in_their_own_processes_serve_sdo_nmt_lss_fastscan_and_tpdos() {
     let name = ok(d, &["sdo", "--bus", &bus, "read", "6", "0x1008", "0"]);
     assert!(name.contains("\"TMI\""), "{name}");
 
-    // LSS: fastscan (200 ms per step: generous for a loaded machine; 25 ms by default), a
-    // node-id, back to waiting; NMT reset communication: the TH boots as node 5.
-    let scan = ok(d, &["lss", "--bus", &bus, "fastscan", "--timeout", "200"]);
+    // LSS: fastscan, a node-id, back to waiting; NMT reset communication: the TH boots as
+    // node 5. 500 ms per step (25 ms by default; ~48 steps wait it out, so ~25 s): an answer
+    // crosses two SIL Kit participants' threads, and with 200 ms the confirmation timed out
+    // in 2 runs of 5 on the loaded 2-core machine.
+    let scan = ok(d, &["lss", "--bus", &bus, "fastscan", "--timeout", "500"]);
     assert!(scan.contains("serial 0x0000000B (11)"), "{scan}");
     ok(d, &["lss", "--bus", &bus, "set-node-id", "5"]);
     ok(d, &["lss", "--bus", &bus, "switch-global", "waiting"]);
@@ -239,6 +241,144 @@ fn the_synchronised_mode_gives_the_same_frames_at_the_same_simulated_times() {
         "{first:?}"
     );
     assert_eq!(first, second, "two runs of the same scenario differ");
+}
+
+#[test]
+fn a_participant_that_vanishes_in_synchronised_mode_ends_the_others_with_a_clear_error() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let state = d.to_str().unwrap();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let _sc = SystemController::start(&reg, &["th-11", "tmi-12"]);
+    let bus = format!("{}/can0", reg.uri());
+    let sensor = |model: &str, serial: &str, node: &str| {
+        Proc::start(
+            d,
+            &[
+                "run",
+                "--model",
+                model,
+                "--serial",
+                serial,
+                "--node-id",
+                node,
+                "--nmt",
+                "operational",
+                "--bus",
+                &bus,
+                "--time",
+                "sync",
+                "--state-dir",
+                state,
+            ],
+        )
+    };
+    let mut th = sensor("th", "11", "5");
+    let mut tmi = sensor("tmi", "12", "6");
+    // The simulation runs: a wall-clock recorder (no part in the steps) sees TPDOs.
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "20", "rec.log",
+        ],
+    );
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+    // The TMI crashes: SIL Kit's time stops for good (its Error state); the TH must not wait
+    // forever but end with the reason.
+    tmi.stop();
+    let code = th.wait_exit(LIMIT);
+    let out = th.output();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("Error state"), "{out}");
+    assert!(!out.contains("panicked"), "{out}");
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+}
+
+#[test]
+fn a_synchronised_sensor_stopped_by_its_user_does_not_blame_the_system_controller() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let _sc = SystemController::start(&reg, &["th-11"]);
+    let bus = format!("{}/can0", reg.uri());
+    let mut th = Proc::start(
+        d,
+        &[
+            "run",
+            "--model",
+            "th",
+            "--serial",
+            "11",
+            "--node-id",
+            "5",
+            "--nmt",
+            "operational",
+            "--bus",
+            &bus,
+            "--time",
+            "sync",
+            "--state-dir",
+            d.to_str().unwrap(),
+        ],
+    );
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "5", "rec.log",
+        ],
+    );
+    // SIGTERM: canpos leaves SIL Kit itself (its own SilKit_LifecycleService_Stop).
+    assert!(Command::new("kill")
+        .args(["-TERM", &th.pid().to_string()])
+        .status()
+        .unwrap()
+        .success());
+    th.wait_exit(LIMIT);
+    let out = th.output();
+    assert!(out.contains("the participant left"), "{out}");
+    assert!(!out.contains("system controller stopped"), "{out}");
+}
+
+#[test]
+fn a_synchronised_sensor_without_a_system_controller_says_it_waits() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let bus = format!("{}/can0", reg.uri());
+    let mut th = Proc::start(
+        d,
+        &[
+            "run",
+            "--model",
+            "th",
+            "--serial",
+            "11",
+            "--node-id",
+            "5",
+            "--bus",
+            &bus,
+            "--time",
+            "sync",
+            "--state-dir",
+            d.to_str().unwrap(),
+        ],
+    );
+    // It waits (SIL Kit's time has not begun), and says for what.
+    let out = th.wait_for("waiting for a system controller", LIMIT);
+    assert!(
+        out.contains("sil-kit-system-controller -u silkit://HOST:PORT th-11"),
+        "{out}"
+    );
 }
 
 #[test]

@@ -17,7 +17,7 @@
 //! with that reason; see [`super`] for the registry.
 
 use std::collections::VecDeque;
-use std::ffi::{c_void, CString};
+use std::ffi::{c_void, CStr, CString};
 use std::io;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, Weak};
@@ -39,6 +39,8 @@ pub const HELD_MAX: usize = 65_536;
 /// How long a participant stays after its last send before it leaves (its frames are written
 /// to the peers by SIL Kit's own thread).
 pub const LINGER: Duration = Duration::from_millis(100);
+/// How long a synchronised participant waits for the simulation to start before it says so.
+pub const START_WAIT_WARN: Duration = Duration::from_secs(5);
 /// The step of synchronised mode when none is given: 1 ms (a TMI's fastest TPDO period).
 pub const DEFAULT_STEP: Duration = Duration::from_millis(1);
 
@@ -211,7 +213,48 @@ unsafe extern "C" fn on_comm_ready(ctx: *mut c_void, _l: *mut sys::LifecycleServ
 unsafe extern "C" fn on_stop(ctx: *mut c_void, _l: *mut sys::LifecycleService) {
     // SAFETY: as in `on_frame`.
     let shared = unsafe { &*(ctx as *const Shared) };
-    shared.end("the system controller stopped the simulation".into());
+    if shared.left.load(Ordering::SeqCst) {
+        // Our own `SilKit_LifecycleService_Stop` (the transport is dropped), not the system
+        // controller's.
+        shared.end_with("the participant left".into(), false);
+    } else {
+        shared.end("the system controller stopped the simulation".into());
+    }
+}
+
+unsafe extern "C" fn on_disconnected(
+    ctx: *mut c_void,
+    _m: *mut sys::SystemMonitor,
+    info: *const sys::ParticipantConnectionInformation,
+) {
+    // SAFETY: as in `on_frame`; `info` and its name are valid during the call (Orchestration.h).
+    let shared = unsafe { &*(ctx as *const Shared) };
+    // SAFETY: as above; the name is NUL-terminated or null.
+    let name = unsafe { info.as_ref() }
+        .filter(|i| !i.participant_name.is_null())
+        .map(|i| {
+            unsafe { CStr::from_ptr(i.participant_name) }
+                .to_string_lossy()
+                .into_owned()
+        })
+        .unwrap_or_else(|| "?".into());
+    // Named in the log: SIL Kit reports the Error state this may cause before this handler.
+    tracing::info!(participant = %shared.participant, "SIL Kit: participant `{name}` disconnected");
+}
+
+unsafe extern "C" fn on_system_state(ctx: *mut c_void, _m: *mut sys::SystemMonitor, state: i16) {
+    // SAFETY: as in `on_frame`.
+    let shared = unsafe { &*(ctx as *const Shared) };
+    if state != sys::SYSTEM_STATE_ERROR || shared.left.load(Ordering::SeqCst) {
+        return;
+    }
+    // SIL Kit's time stops in the Error state and only a restart of every participant and
+    // the system controller leaves it: waiting would hang the process (docs/SILKIT.md).
+    shared.end(
+        "the simulation fell into SIL Kit's Error state (a participant or the system controller \
+         left without stopping it): restart the participants and the system controller"
+            .into(),
+    );
 }
 
 unsafe extern "C" fn on_abort(ctx: *mut c_void, _l: *mut sys::LifecycleService, last: i16) {
@@ -358,6 +401,32 @@ impl SilkitCan {
                         "SilKit_LifecycleService_SetAbortHandler",
                         (api.lifecycle_service_set_abort_handler)(lifecycle, ctx, on_abort),
                     )?;
+                    // A participant or the system controller that vanishes puts the
+                    // simulation in SIL Kit's Error state, where time stops: watched, so
+                    // that the transport ends with that reason instead of waiting forever.
+                    let mut monitor = std::ptr::null_mut();
+                    api.check(
+                        "SilKit_SystemMonitor_Create",
+                        (api.system_monitor_create)(&mut monitor, participant.raw()),
+                    )?;
+                    api.check(
+                        "SilKit_SystemMonitor_SetParticipantDisconnectedHandler",
+                        (api.system_monitor_set_participant_disconnected_handler)(
+                            monitor,
+                            ctx,
+                            on_disconnected,
+                        ),
+                    )?;
+                    let mut id = 0;
+                    api.check(
+                        "SilKit_SystemMonitor_AddSystemStateHandler",
+                        (api.system_monitor_add_system_state_handler)(
+                            monitor,
+                            ctx,
+                            on_system_state,
+                            &mut id,
+                        ),
+                    )?;
                     api.check(
                         "SilKit_TimeSyncService_Create",
                         (api.time_sync_service_create)(&mut time_sync, lifecycle),
@@ -381,10 +450,7 @@ impl SilkitCan {
             }
         }
         Ok(SilkitCan {
-            describe: format!(
-                "silkit://{}:{}/{} as {}",
-                opts.registry.host, opts.registry.port, opts.network, opts.participant
-            ),
+            describe: describe(opts),
             participant,
             controller,
             lifecycle,
@@ -421,6 +487,11 @@ impl SilkitCan {
     pub fn participant(&self) -> &str {
         self.participant.name()
     }
+}
+
+/// What the banner shows: the URL (IPv6 hosts in brackets, so it can be copied) and the name.
+fn describe(opts: &Options) -> String {
+    format!("{}/{} as {}", opts.registry, opts.network, opts.participant)
 }
 
 /// Lifecycle starts held back until [`release_starts`] (see [`hold_starts`]).
@@ -483,7 +554,24 @@ fn stepper_loop(
     controller: usize,
 ) {
     let time_sync = time_sync as *mut sys::TimeSyncService;
-    while let Ok(Some(now)) = steps.recv() {
+    // SIL Kit's time begins only when a system controller starts the simulation: until then
+    // the participant waits, as it should, but says so once (a forgotten system controller or
+    // a participant name it does not require looks like a hang otherwise).
+    let first = match steps.recv_timeout(START_WAIT_WARN) {
+        Ok(first) => first,
+        Err(crossbeam_channel::RecvTimeoutError::Timeout) => {
+            if let Some(sh) = shared.upgrade() {
+                tracing::warn!(participant = %sh.participant,
+                    "SIL Kit: waiting for a system controller to start the simulation (e.g. \
+                     `sil-kit-system-controller -u silkit://HOST:PORT {} …`, naming every \
+                     synchronised participant; docs/SILKIT.md)", sh.participant);
+            }
+            steps.recv().ok().flatten()
+        }
+        Err(crossbeam_channel::RecvTimeoutError::Disconnected) => None,
+    };
+    let mut next = first;
+    while let Some(now) = next.take() {
         let Some(sh) = shared.upgrade() else { return };
         let Some(s) = &sh.sync else { return };
         {
@@ -536,6 +624,8 @@ fn stepper_loop(
             sh.end(e.to_string());
             return;
         }
+        drop(sh);
+        next = steps.recv().ok().flatten();
     }
 }
 
@@ -708,5 +798,27 @@ impl Drop for SilkitCan {
             let _ = s.steps.send(None);
             let _ = t.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_description_is_a_url_that_can_be_copied() {
+        let mut o = Options {
+            registry: RegistryUri {
+                host: "::1".into(),
+                port: 8501,
+            },
+            network: "can0".into(),
+            participant: "th-11".into(),
+            time: TimeMode::Wall,
+            bitrate_kbps: None,
+        };
+        assert_eq!(describe(&o), "silkit://[::1]:8501/can0 as th-11");
+        o.registry.host = "127.0.0.1".into();
+        assert_eq!(describe(&o), "silkit://127.0.0.1:8501/can0 as th-11");
     }
 }

@@ -86,6 +86,12 @@ pub struct TimeSyncService {
     _opaque: [u8; 0],
 }
 
+/// Opaque `SilKit_SystemMonitor`.
+#[repr(C)]
+pub struct SystemMonitor {
+    _opaque: [u8; 0],
+}
+
 /// `SilKit_StructHeader`: every versioned struct starts with it.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -262,6 +268,30 @@ pub mod participant_state {
     pub const ABORTING: i16 = 120;
 }
 
+/// `SilKit_SystemState_Error`: a participant failed or left without shutting down; SIL Kit
+/// needs every participant and the system controller restarted.
+pub const SYSTEM_STATE_ERROR: i16 = 90;
+
+/// `SilKit_ParticipantConnectionInformation` (version 1).
+#[repr(C)]
+#[derive(Debug)]
+pub struct ParticipantConnectionInformation {
+    /// Header.
+    pub header: StructHeader,
+    /// The remote participant's name (UTF-8, NUL-terminated).
+    pub participant_name: *const c_char,
+}
+
+/// `SilKit_SystemStateHandler_t`.
+pub type SystemStateHandler =
+    unsafe extern "C" fn(ctx: *mut c_void, monitor: *mut SystemMonitor, state: i16);
+/// `SilKit_SystemMonitor_ParticipantDisconnectedHandler_t`.
+pub type ParticipantDisconnectedHandler = unsafe extern "C" fn(
+    ctx: *mut c_void,
+    monitor: *mut SystemMonitor,
+    info: *const ParticipantConnectionInformation,
+);
+
 /// `SilKit_CanFrameHandler_t`.
 pub type CanFrameHandler =
     unsafe extern "C" fn(ctx: *mut c_void, ctrl: *mut CanController, ev: *mut CanFrameEvent);
@@ -401,6 +431,20 @@ pub struct Api {
         -> ReturnCode,
     pub time_sync_service_complete_simulation_step:
         unsafe extern "C" fn(t: *mut TimeSyncService) -> ReturnCode,
+    pub system_monitor_create:
+        unsafe extern "C" fn(out: *mut *mut SystemMonitor, p: *mut Participant) -> ReturnCode,
+    pub system_monitor_add_system_state_handler: unsafe extern "C" fn(
+        m: *mut SystemMonitor,
+        ctx: *mut c_void,
+        h: SystemStateHandler,
+        out: *mut HandlerId,
+    ) -> ReturnCode,
+    pub system_monitor_set_participant_disconnected_handler: unsafe extern "C" fn(
+        m: *mut SystemMonitor,
+        ctx: *mut c_void,
+        h: ParticipantDisconnectedHandler,
+    )
+        -> ReturnCode,
 }
 
 /// Errors of loading SIL Kit and of its calls.
@@ -614,6 +658,13 @@ impl Api {
             time_sync_service_complete_simulation_step: sym!(
                 "SilKit_TimeSyncService_CompleteSimulationStep"
             ),
+            system_monitor_create: sym!("SilKit_SystemMonitor_Create"),
+            system_monitor_add_system_state_handler: sym!(
+                "SilKit_SystemMonitor_AddSystemStateHandler"
+            ),
+            system_monitor_set_participant_disconnected_handler: sym!(
+                "SilKit_SystemMonitor_SetParticipantDisconnectedHandler"
+            ),
             path: path.to_path_buf(),
             version: (v[0], v[1], v[2]),
             lib,
@@ -699,6 +750,10 @@ mod tests {
         assert_eq!(std::mem::offset_of!(CanFrameTransmitEvent, can_id), 52);
         assert_eq!(
             std::mem::offset_of!(LifecycleConfiguration, operation_mode),
+            32
+        );
+        assert_eq!(
+            std::mem::offset_of!(ParticipantConnectionInformation, participant_name),
             32
         );
     }
