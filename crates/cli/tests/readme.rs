@@ -327,6 +327,7 @@ fn readme_examples_run_in_order_without_colliding() {
         "ep.eds",
         "th.fmu",
         "ep.fmu",
+        "bus.fmu",
         "unit.dcf",
         "bus.pcapng",
         "bus.log",
