@@ -1044,18 +1044,7 @@ async fn send(State(app): State<App>, body: String) -> Answer {
             Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
         }
         Some(v) => {
-            let ms = v
-                .as_f64()
-                .filter(|m| m.is_finite())
-                .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
-            let period = Duration::from_secs_f64(ms.max(0.0) / 1e3);
-            if !(MIN_PERIOD..=MAX_PERIOD).contains(&period) {
-                return Err(bad(format!(
-                    "period {ms} ms: expected {} ms … {} s",
-                    MIN_PERIOD.as_millis(),
-                    MAX_PERIOD.as_secs()
-                )));
-            }
+            let period = period_of(v)?;
             hub.send_periodic(f, period, Instant::now()).map_err(|_| {
                 fail(
                     StatusCode::CONFLICT,
@@ -1067,6 +1056,27 @@ async fn send(State(app): State<App>, body: String) -> Answer {
             ))
         }
     }
+}
+
+/// A periodic transmission's `period_ms`, within [`MIN_PERIOD`] … [`MAX_PERIOD`].
+fn period_of(v: &Value) -> Result<Duration, ApiError> {
+    let ms = v
+        .as_f64()
+        .filter(|m| m.is_finite())
+        .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
+    // Checked as a number first: `Duration::from_secs_f64` panics beyond u64 seconds (1e300).
+    let (lo, hi) = (
+        MIN_PERIOD.as_secs_f64() * 1e3,
+        MAX_PERIOD.as_secs_f64() * 1e3,
+    );
+    if !(lo..=hi).contains(&ms) {
+        return Err(bad(format!(
+            "period {ms} ms: expected {} ms … {} s",
+            MIN_PERIOD.as_millis(),
+            MAX_PERIOD.as_secs()
+        )));
+    }
+    Ok(Duration::from_secs_f64(ms / 1e3))
 }
 
 async fn send_list(State(app): State<App>) -> Answer {
@@ -1353,6 +1363,26 @@ mod tests {
         assert!(hub.stop_periodic(false, 0x200));
         assert!(!hub.stop_periodic(false, 0x200));
         assert_eq!(hub.periodic().len(), PERIODIC - 1);
+    }
+
+    #[test]
+    fn a_period_out_of_range_is_refused_whatever_its_size() {
+        assert_eq!(period_of(&json!(1)).ok(), Some(MIN_PERIOD));
+        assert_eq!(period_of(&json!(3_600_000)).ok(), Some(MAX_PERIOD));
+        // Beyond what a Duration holds: refused as out of range, not a panic of the handler.
+        for v in [
+            json!(0.5),
+            json!(-1),
+            json!(3_600_001),
+            json!(1e20),
+            json!(1e300),
+            json!(f64::MAX),
+        ] {
+            let e = period_of(&v).unwrap_err();
+            assert_eq!(e.0, StatusCode::BAD_REQUEST, "{v}");
+            assert!(e.1.contains("expected 1 ms"), "{v}: {}", e.1);
+        }
+        assert!(period_of(&json!("5")).is_err());
     }
 
     #[test]
