@@ -450,6 +450,8 @@ pub enum SendRefused {
     Busy,
     /// [`PERIODIC`] periodic transmissions run already.
     TooMany,
+    /// The bus connection is lost (the dashboard is reconnecting).
+    Down,
 }
 
 impl TraceHub {
@@ -471,6 +473,7 @@ impl TraceHub {
 
     /// Queues `f` to be sent once.
     pub fn send_once(&self, f: Frame) -> Result<(), SendRefused> {
+        self.up()?;
         let mut q = self.once.lock().unwrap();
         if q.len() >= ONCE_QUEUE {
             return Err(SendRefused::Busy);
@@ -487,6 +490,7 @@ impl TraceHub {
         period: Duration,
         now: Instant,
     ) -> Result<(), SendRefused> {
+        self.up()?;
         let mut p = self.periodic.lock().unwrap();
         let job = Periodic {
             frame: f,
@@ -502,6 +506,15 @@ impl TraceHub {
             p.push(job);
         }
         Ok(())
+    }
+
+    /// Refuses a frame while the bus connection is lost: one queued then would go out whenever
+    /// the hub is back, maybe minutes after its user gave up on it (an NMT reset, a write).
+    fn up(&self) -> Result<(), SendRefused> {
+        match self.link.lock().unwrap().down {
+            Some(_) => Err(SendRefused::Down),
+            None => Ok(()),
+        }
     }
 
     /// Stops the periodic transmission of identifier `id` (`ext`); whether there was one.
@@ -592,6 +605,8 @@ impl Tap {
         if self.down.is_none() {
             tracing::warn!("dashboard: the bus connection was lost ({e}); reconnecting");
             self.hub.link.lock().unwrap().down = Some((SystemTime::now(), e.to_string()));
+            // What waits to go out once is not sent after the return (periodic jobs resume).
+            self.hub.once.lock().unwrap().clear();
             self.down = Some((
                 Instant::now() + Duration::from_millis(100),
                 Duration::from_millis(100),
@@ -1035,26 +1050,35 @@ async fn send(State(app): State<App>, body: String) -> Answer {
     let hub = app.shared.lock().unwrap().trace.clone();
     match o.get("period_ms") {
         None | Some(Value::Null) => {
-            hub.send_once(f).map_err(|_| {
-                fail(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
-                )
-            })?;
+            hub.send_once(f).map_err(refused_send)?;
             Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
         }
         Some(v) => {
             let period = period_of(v)?;
-            hub.send_periodic(f, period, Instant::now()).map_err(|_| {
-                fail(
-                    StatusCode::CONFLICT,
-                    format!("{PERIODIC} periodic transmissions run already: stop one first"),
-                )
-            })?;
+            hub.send_periodic(f, period, Instant::now())
+                .map_err(refused_send)?;
             Ok(Json(
                 json!({"ok": true, "id": id_text(&f), "periodic": periodic_json(&hub)}),
             ))
         }
+    }
+}
+
+/// The answer to a frame the transmitter did not take.
+fn refused_send(r: SendRefused) -> ApiError {
+    match r {
+        SendRefused::Busy => fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
+        ),
+        SendRefused::TooMany => fail(
+            StatusCode::CONFLICT,
+            format!("{PERIODIC} periodic transmissions run already: stop one first"),
+        ),
+        SendRefused::Down => fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "the bus connection is lost; the dashboard is reconnecting: nothing was queued".into(),
+        ),
     }
 }
 
@@ -1133,12 +1157,7 @@ async fn nmt(State(app): State<App>, body: String) -> Answer {
     };
     let hub = app.shared.lock().unwrap().trace.clone();
     let f = Frame::new(0x000, &[cs, node]).expect("two bytes");
-    hub.send_once(f).map_err(|_| {
-        fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
-        )
-    })?;
+    hub.send_once(f).map_err(refused_send)?;
     Ok(Json(json!({"ok": true, "command": name, "node": node})))
 }
 
@@ -1383,6 +1402,29 @@ mod tests {
             assert!(e.1.contains("expected 1 ms"), "{v}: {}", e.1);
         }
         assert!(period_of(&json!("5")).is_err());
+    }
+
+    #[test]
+    fn a_frame_is_not_kept_to_go_out_when_the_hub_comes_back() {
+        let bus = canpos_host::MemBus::instant();
+        let hub = TraceHub::new(1000);
+        hub.reopen_with(Box::new(|| Err(io::Error::other("not yet"))));
+        let mut tap = Tap::new(Box::new(bus.attach()), hub.clone());
+        hub.send_once(std(0x000, &[0x81, 0])).unwrap();
+        tap.lost(io::Error::new(io::ErrorKind::ConnectionReset, "gone"))
+            .unwrap();
+        // Queued before the loss: dropped, not sent whenever the hub is back (minutes later).
+        assert!(hub.once.lock().unwrap().is_empty());
+        // Asked for while the hub is away: refused, nothing queued.
+        assert_eq!(hub.send_once(std(0x123, &[1])), Err(SendRefused::Down));
+        assert_eq!(
+            hub.send_periodic(std(0x124, &[]), MIN_PERIOD, Instant::now()),
+            Err(SendRefused::Down)
+        );
+        assert!(hub.once.lock().unwrap().is_empty() && hub.periodic().is_empty());
+        // Back: taken again.
+        hub.link.lock().unwrap().down = None;
+        assert_eq!(hub.send_once(std(0x123, &[1])), Ok(()));
     }
 
     #[test]
