@@ -118,6 +118,9 @@ pub struct Trace {
     second: Option<(SystemTime, u64, u64)>,
     load: Option<(f64, f64)>,
     last_arrival: Option<Instant>,
+    /// The last NMT command heard (or sent) to each node-id, and to all (index 0): command
+    /// specifier and arrival. Kept through "Clear": it is the nodes' state, not the list's.
+    nmt_cmd: [Option<(u8, Instant)>; 128],
 }
 
 impl Trace {
@@ -132,11 +135,17 @@ impl Trace {
             second: None,
             load: None,
             last_arrival: None,
+            nmt_cmd: [None; 128],
         }
     }
 
     /// Takes in one frame stamped `t` (its own timestamp) that arrived `now`.
     pub fn note(&mut self, f: &Frame, t: SystemTime, dir: Dir, now: Instant) {
+        if let (false, false, 0, &[cs, node]) = (f.is_extended(), f.is_remote(), f.id(), f.data()) {
+            if let Some(c) = self.nmt_cmd.get_mut(usize::from(node)) {
+                *c = Some((cs, now));
+            }
+        }
         let k = key(f);
         if let Some(r) = self.rows.get_mut(&k) {
             r.dt = t.duration_since(r.last).ok();
@@ -269,6 +278,15 @@ impl Trace {
             .map(|r| r.arrived)
             .max();
         let errctl = 0x700 + u32::from(node);
+        // The last NMT command to it (or to all) since its last heartbeat or boot-up: a node
+        // without heartbeat is in the state it was told (an event-driven TPDO of a still
+        // sensor sends nothing, a stopped node nothing either).
+        let heard = self.rows.get(&(false, errctl, false)).map(|r| r.arrived);
+        let cmd = [self.nmt_cmd[0], self.nmt_cmd[usize::from(node & 0x7F)]]
+            .into_iter()
+            .flatten()
+            .max_by_key(|(_, at)| *at)
+            .filter(|(_, at)| heard.is_none_or(|h| h < *at));
         if let Some(r) = recent(errctl, HEARTBEAT_SILENCE) {
             // A guarding answer carries the toggle bit or follows a guarding request.
             let rtr = self.rows.get(&(false, errctl, true));
@@ -281,11 +299,22 @@ impl Trace {
                 return Some(format!("{state} (guarding)"));
             }
             // A heartbeat speaks for itself; a boot-up only until the node's first PDO.
-            if r.frame.data() != [0] || pdo.is_none_or(|p| p < r.arrived) {
+            if r.frame.data() != [0] || (pdo.is_none_or(|p| p < r.arrived) && cmd.is_none()) {
                 return None;
             }
         }
-        pdo.map(|_| "operational (inferred)".to_string())
+        // A PDO after the command: operational, whoever started it (only then may it send).
+        if pdo.is_some_and(|p| cmd.is_none_or(|(_, c)| p > c)) {
+            return Some("operational (inferred)".to_string());
+        }
+        let state = match cmd?.0 {
+            0x01 => "operational",
+            0x02 => "stopped",
+            0x80 => "pre-operational",
+            // A reset: its boot-up will say.
+            _ => return None,
+        };
+        Some(format!("{state} (inferred)"))
     }
 }
 
@@ -1321,6 +1350,47 @@ mod tests {
             t.inferred_nmt(5, &[], later).as_deref(),
             Some("operational (inferred)")
         );
+    }
+
+    #[test]
+    fn an_nmt_command_gives_the_state_of_a_node_without_heartbeat() {
+        let mut t = Trace::new(1000);
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        t.note(&std(0x705, &[0]), at(0), Dir::Rx, ms(0));
+        t.note(&std(0x000, &[0x01, 5]), at(1), Dir::Tx, ms(1));
+        t.note(&std(0x185, &[1, 2]), at(2), Dir::Rx, ms(2));
+        let state = |t: &Trace, when| t.inferred_nmt(5, &[], when);
+        assert_eq!(state(&t, ms(2)).as_deref(), Some("operational (inferred)"));
+        // Stopped from the page: no more PDOs; the boot-up's pre-operational would be wrong.
+        t.note(&std(0x000, &[0x02, 5]), at(3), Dir::Tx, ms(3));
+        assert_eq!(state(&t, ms(3)).as_deref(), Some("stopped (inferred)"));
+        assert_eq!(state(&t, ms(5000)).as_deref(), Some("stopped (inferred)"));
+        // A command to another node changes nothing; one to all does.
+        t.note(&std(0x000, &[0x80, 6]), at(4), Dir::Rx, ms(5001));
+        assert_eq!(state(&t, ms(5001)).as_deref(), Some("stopped (inferred)"));
+        t.note(&std(0x000, &[0x01, 0]), at(5), Dir::Rx, ms(5002));
+        // Started, and a still event-driven sensor sends no PDO: operational all the same.
+        assert_eq!(
+            state(&t, ms(9000)).as_deref(),
+            Some("operational (inferred)")
+        );
+        // A PDO after a stop: someone started it again.
+        t.note(&std(0x000, &[0x02, 5]), at(6), Dir::Rx, ms(9001));
+        t.note(&std(0x185, &[1, 2]), at(7), Dir::Rx, ms(9002));
+        assert_eq!(
+            state(&t, ms(9002)).as_deref(),
+            Some("operational (inferred)")
+        );
+        // A reset: the boot-up that follows speaks (pre-operational, from the watch).
+        t.note(&std(0x000, &[0x81, 5]), at(8), Dir::Rx, ms(9003));
+        assert_eq!(state(&t, ms(9003)), None);
+        t.note(&std(0x705, &[0]), at(9), Dir::Rx, ms(9004));
+        assert_eq!(state(&t, ms(9004)), None);
+        // A heartbeat speaks for itself over an older command.
+        t.note(&std(0x000, &[0x02, 5]), at(10), Dir::Rx, ms(9005));
+        t.note(&std(0x705, &[0x04]), at(11), Dir::Rx, ms(9006));
+        assert_eq!(state(&t, ms(9006)), None);
     }
 
     #[test]
