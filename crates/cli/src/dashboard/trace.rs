@@ -118,6 +118,9 @@ pub struct Trace {
     second: Option<(SystemTime, u64, u64)>,
     load: Option<(f64, f64)>,
     last_arrival: Option<Instant>,
+    /// The last NMT command heard (or sent) to each node-id, and to all (index 0): command
+    /// specifier and arrival. Kept through "Clear": it is the nodes' state, not the list's.
+    nmt_cmd: [Option<(u8, Instant)>; 128],
 }
 
 impl Trace {
@@ -132,11 +135,17 @@ impl Trace {
             second: None,
             load: None,
             last_arrival: None,
+            nmt_cmd: [None; 128],
         }
     }
 
     /// Takes in one frame stamped `t` (its own timestamp) that arrived `now`.
     pub fn note(&mut self, f: &Frame, t: SystemTime, dir: Dir, now: Instant) {
+        if let (false, false, 0, &[cs, node]) = (f.is_extended(), f.is_remote(), f.id(), f.data()) {
+            if let Some(c) = self.nmt_cmd.get_mut(usize::from(node)) {
+                *c = Some((cs, now));
+            }
+        }
         let k = key(f);
         if let Some(r) = self.rows.get_mut(&k) {
             r.dt = t.duration_since(r.last).ok();
@@ -269,6 +278,15 @@ impl Trace {
             .map(|r| r.arrived)
             .max();
         let errctl = 0x700 + u32::from(node);
+        // The last NMT command to it (or to all) since its last heartbeat or boot-up: a node
+        // without heartbeat is in the state it was told (an event-driven TPDO of a still
+        // sensor sends nothing, a stopped node nothing either).
+        let heard = self.rows.get(&(false, errctl, false)).map(|r| r.arrived);
+        let cmd = [self.nmt_cmd[0], self.nmt_cmd[usize::from(node & 0x7F)]]
+            .into_iter()
+            .flatten()
+            .max_by_key(|(_, at)| *at)
+            .filter(|(_, at)| heard.is_none_or(|h| h < *at));
         if let Some(r) = recent(errctl, HEARTBEAT_SILENCE) {
             // A guarding answer carries the toggle bit or follows a guarding request.
             let rtr = self.rows.get(&(false, errctl, true));
@@ -281,11 +299,22 @@ impl Trace {
                 return Some(format!("{state} (guarding)"));
             }
             // A heartbeat speaks for itself; a boot-up only until the node's first PDO.
-            if r.frame.data() != [0] || pdo.is_none_or(|p| p < r.arrived) {
+            if r.frame.data() != [0] || (pdo.is_none_or(|p| p < r.arrived) && cmd.is_none()) {
                 return None;
             }
         }
-        pdo.map(|_| "operational (inferred)".to_string())
+        // A PDO after the command: operational, whoever started it (only then may it send).
+        if pdo.is_some_and(|p| cmd.is_none_or(|(_, c)| p > c)) {
+            return Some("operational (inferred)".to_string());
+        }
+        let state = match cmd?.0 {
+            0x01 => "operational",
+            0x02 => "stopped",
+            0x80 => "pre-operational",
+            // A reset: its boot-up will say.
+            _ => return None,
+        };
+        Some(format!("{state} (inferred)"))
     }
 }
 
@@ -450,6 +479,8 @@ pub enum SendRefused {
     Busy,
     /// [`PERIODIC`] periodic transmissions run already.
     TooMany,
+    /// The bus connection is lost (the dashboard is reconnecting).
+    Down,
 }
 
 impl TraceHub {
@@ -471,6 +502,7 @@ impl TraceHub {
 
     /// Queues `f` to be sent once.
     pub fn send_once(&self, f: Frame) -> Result<(), SendRefused> {
+        self.up()?;
         let mut q = self.once.lock().unwrap();
         if q.len() >= ONCE_QUEUE {
             return Err(SendRefused::Busy);
@@ -487,6 +519,7 @@ impl TraceHub {
         period: Duration,
         now: Instant,
     ) -> Result<(), SendRefused> {
+        self.up()?;
         let mut p = self.periodic.lock().unwrap();
         let job = Periodic {
             frame: f,
@@ -502,6 +535,15 @@ impl TraceHub {
             p.push(job);
         }
         Ok(())
+    }
+
+    /// Refuses a frame while the bus connection is lost: one queued then would go out whenever
+    /// the hub is back, maybe minutes after its user gave up on it (an NMT reset, a write).
+    fn up(&self) -> Result<(), SendRefused> {
+        match self.link.lock().unwrap().down {
+            Some(_) => Err(SendRefused::Down),
+            None => Ok(()),
+        }
     }
 
     /// Stops the periodic transmission of identifier `id` (`ext`); whether there was one.
@@ -592,6 +634,8 @@ impl Tap {
         if self.down.is_none() {
             tracing::warn!("dashboard: the bus connection was lost ({e}); reconnecting");
             self.hub.link.lock().unwrap().down = Some((SystemTime::now(), e.to_string()));
+            // What waits to go out once is not sent after the return (periodic jobs resume).
+            self.hub.once.lock().unwrap().clear();
             self.down = Some((
                 Instant::now() + Duration::from_millis(100),
                 Duration::from_millis(100),
@@ -1035,38 +1079,57 @@ async fn send(State(app): State<App>, body: String) -> Answer {
     let hub = app.shared.lock().unwrap().trace.clone();
     match o.get("period_ms") {
         None | Some(Value::Null) => {
-            hub.send_once(f).map_err(|_| {
-                fail(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
-                )
-            })?;
+            hub.send_once(f).map_err(refused_send)?;
             Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
         }
         Some(v) => {
-            let ms = v
-                .as_f64()
-                .filter(|m| m.is_finite())
-                .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
-            let period = Duration::from_secs_f64(ms.max(0.0) / 1e3);
-            if !(MIN_PERIOD..=MAX_PERIOD).contains(&period) {
-                return Err(bad(format!(
-                    "period {ms} ms: expected {} ms … {} s",
-                    MIN_PERIOD.as_millis(),
-                    MAX_PERIOD.as_secs()
-                )));
-            }
-            hub.send_periodic(f, period, Instant::now()).map_err(|_| {
-                fail(
-                    StatusCode::CONFLICT,
-                    format!("{PERIODIC} periodic transmissions run already: stop one first"),
-                )
-            })?;
+            let period = period_of(v)?;
+            hub.send_periodic(f, period, Instant::now())
+                .map_err(refused_send)?;
             Ok(Json(
                 json!({"ok": true, "id": id_text(&f), "periodic": periodic_json(&hub)}),
             ))
         }
     }
+}
+
+/// The answer to a frame the transmitter did not take.
+fn refused_send(r: SendRefused) -> ApiError {
+    match r {
+        SendRefused::Busy => fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
+        ),
+        SendRefused::TooMany => fail(
+            StatusCode::CONFLICT,
+            format!("{PERIODIC} periodic transmissions run already: stop one first"),
+        ),
+        SendRefused::Down => fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "the bus connection is lost; the dashboard is reconnecting: nothing was queued".into(),
+        ),
+    }
+}
+
+/// A periodic transmission's `period_ms`, within [`MIN_PERIOD`] … [`MAX_PERIOD`].
+fn period_of(v: &Value) -> Result<Duration, ApiError> {
+    let ms = v
+        .as_f64()
+        .filter(|m| m.is_finite())
+        .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
+    // Checked as a number first: `Duration::from_secs_f64` panics beyond u64 seconds (1e300).
+    let (lo, hi) = (
+        MIN_PERIOD.as_secs_f64() * 1e3,
+        MAX_PERIOD.as_secs_f64() * 1e3,
+    );
+    if !(lo..=hi).contains(&ms) {
+        return Err(bad(format!(
+            "period {ms} ms: expected {} ms … {} s",
+            MIN_PERIOD.as_millis(),
+            MAX_PERIOD.as_secs()
+        )));
+    }
+    Ok(Duration::from_secs_f64(ms / 1e3))
 }
 
 async fn send_list(State(app): State<App>) -> Answer {
@@ -1123,12 +1186,7 @@ async fn nmt(State(app): State<App>, body: String) -> Answer {
     };
     let hub = app.shared.lock().unwrap().trace.clone();
     let f = Frame::new(0x000, &[cs, node]).expect("two bytes");
-    hub.send_once(f).map_err(|_| {
-        fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
-        )
-    })?;
+    hub.send_once(f).map_err(refused_send)?;
     Ok(Json(json!({"ok": true, "command": name, "node": node})))
 }
 
@@ -1295,6 +1353,47 @@ mod tests {
     }
 
     #[test]
+    fn an_nmt_command_gives_the_state_of_a_node_without_heartbeat() {
+        let mut t = Trace::new(1000);
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        t.note(&std(0x705, &[0]), at(0), Dir::Rx, ms(0));
+        t.note(&std(0x000, &[0x01, 5]), at(1), Dir::Tx, ms(1));
+        t.note(&std(0x185, &[1, 2]), at(2), Dir::Rx, ms(2));
+        let state = |t: &Trace, when| t.inferred_nmt(5, &[], when);
+        assert_eq!(state(&t, ms(2)).as_deref(), Some("operational (inferred)"));
+        // Stopped from the page: no more PDOs; the boot-up's pre-operational would be wrong.
+        t.note(&std(0x000, &[0x02, 5]), at(3), Dir::Tx, ms(3));
+        assert_eq!(state(&t, ms(3)).as_deref(), Some("stopped (inferred)"));
+        assert_eq!(state(&t, ms(5000)).as_deref(), Some("stopped (inferred)"));
+        // A command to another node changes nothing; one to all does.
+        t.note(&std(0x000, &[0x80, 6]), at(4), Dir::Rx, ms(5001));
+        assert_eq!(state(&t, ms(5001)).as_deref(), Some("stopped (inferred)"));
+        t.note(&std(0x000, &[0x01, 0]), at(5), Dir::Rx, ms(5002));
+        // Started, and a still event-driven sensor sends no PDO: operational all the same.
+        assert_eq!(
+            state(&t, ms(9000)).as_deref(),
+            Some("operational (inferred)")
+        );
+        // A PDO after a stop: someone started it again.
+        t.note(&std(0x000, &[0x02, 5]), at(6), Dir::Rx, ms(9001));
+        t.note(&std(0x185, &[1, 2]), at(7), Dir::Rx, ms(9002));
+        assert_eq!(
+            state(&t, ms(9002)).as_deref(),
+            Some("operational (inferred)")
+        );
+        // A reset: the boot-up that follows speaks (pre-operational, from the watch).
+        t.note(&std(0x000, &[0x81, 5]), at(8), Dir::Rx, ms(9003));
+        assert_eq!(state(&t, ms(9003)), None);
+        t.note(&std(0x705, &[0]), at(9), Dir::Rx, ms(9004));
+        assert_eq!(state(&t, ms(9004)), None);
+        // A heartbeat speaks for itself over an older command.
+        t.note(&std(0x000, &[0x02, 5]), at(10), Dir::Rx, ms(9005));
+        t.note(&std(0x705, &[0x04]), at(11), Dir::Rx, ms(9006));
+        assert_eq!(state(&t, ms(9006)), None);
+    }
+
+    #[test]
     fn the_export_writes_the_log_as_record_does() {
         let mut t = Trace::new(1000);
         let now = Instant::now();
@@ -1353,6 +1452,49 @@ mod tests {
         assert!(hub.stop_periodic(false, 0x200));
         assert!(!hub.stop_periodic(false, 0x200));
         assert_eq!(hub.periodic().len(), PERIODIC - 1);
+    }
+
+    #[test]
+    fn a_period_out_of_range_is_refused_whatever_its_size() {
+        assert_eq!(period_of(&json!(1)).ok(), Some(MIN_PERIOD));
+        assert_eq!(period_of(&json!(3_600_000)).ok(), Some(MAX_PERIOD));
+        // Beyond what a Duration holds: refused as out of range, not a panic of the handler.
+        for v in [
+            json!(0.5),
+            json!(-1),
+            json!(3_600_001),
+            json!(1e20),
+            json!(1e300),
+            json!(f64::MAX),
+        ] {
+            let e = period_of(&v).unwrap_err();
+            assert_eq!(e.0, StatusCode::BAD_REQUEST, "{v}");
+            assert!(e.1.contains("expected 1 ms"), "{v}: {}", e.1);
+        }
+        assert!(period_of(&json!("5")).is_err());
+    }
+
+    #[test]
+    fn a_frame_is_not_kept_to_go_out_when_the_hub_comes_back() {
+        let bus = canpos_host::MemBus::instant();
+        let hub = TraceHub::new(1000);
+        hub.reopen_with(Box::new(|| Err(io::Error::other("not yet"))));
+        let mut tap = Tap::new(Box::new(bus.attach()), hub.clone());
+        hub.send_once(std(0x000, &[0x81, 0])).unwrap();
+        tap.lost(io::Error::new(io::ErrorKind::ConnectionReset, "gone"))
+            .unwrap();
+        // Queued before the loss: dropped, not sent whenever the hub is back (minutes later).
+        assert!(hub.once.lock().unwrap().is_empty());
+        // Asked for while the hub is away: refused, nothing queued.
+        assert_eq!(hub.send_once(std(0x123, &[1])), Err(SendRefused::Down));
+        assert_eq!(
+            hub.send_periodic(std(0x124, &[]), MIN_PERIOD, Instant::now()),
+            Err(SendRefused::Down)
+        );
+        assert!(hub.once.lock().unwrap().is_empty() && hub.periodic().is_empty());
+        // Back: taken again.
+        hub.link.lock().unwrap().down = None;
+        assert_eq!(hub.send_once(std(0x123, &[1])), Ok(()));
     }
 
     #[test]
