@@ -6,7 +6,7 @@
 //! Every transfer goes through the dashboard's bus queue, one command at a time, like the
 //! object browser's reads and writes.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Mutex;
 
 use axum::extract::{Path, State};
@@ -37,7 +37,25 @@ const MAP_MAX: usize = 64;
 /// table are read (an unknown one is refused before the bus), so each node holds at most its
 /// table's entries of at most [`KEEP_MAX`] bytes each.
 #[derive(Default)]
-pub(super) struct Values(Mutex<BTreeMap<u8, NodeValues>>);
+pub(super) struct Values(Mutex<BTreeMap<u8, NodeValues>>, Mutex<BTreeSet<u8>>);
+
+/// A remap running on a node: a second one would interleave its SDO steps with the first's
+/// and leave a mix of both mappings, so it is refused (409) until this is dropped.
+struct Remapping<'a>(&'a Values, u8);
+
+impl Drop for Remapping<'_> {
+    fn drop(&mut self) {
+        self.0 .1.lock().unwrap().remove(&self.1);
+    }
+}
+
+impl Values {
+    /// Marks a remap of node `id` as running, unless one already is.
+    fn start_remap(&self, id: u8) -> Option<Remapping<'_>> {
+        let free = self.1.lock().unwrap().insert(id);
+        free.then(|| Remapping(self, id))
+    }
+}
 
 /// One node's values by (index, sub).
 type NodeValues = BTreeMap<(u16, u8), Vec<u8>>;
@@ -504,6 +522,12 @@ async fn remap(
             }
         )));
     }
+    let _remapping = app.od.start_remap(id).ok_or_else(|| {
+        fail(
+            StatusCode::CONFLICT,
+            format!("node {id}: another remap is running on it; try again when it has ended"),
+        )
+    })?;
     // What the TPDO is now, to restore it if the node refuses a step.
     let before = Tpdo {
         cob: read_u32(&app, id, comm, 1).await?,
@@ -592,6 +616,18 @@ async fn apply(app: &App, id: u8, n: u16, from: &Tpdo, to: &Tpdo) -> Result<(), 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One remap per node at a time; another node's may run; the mark ends with its guard.
+    #[test]
+    fn a_second_remap_of_a_node_waits_for_the_first() {
+        let v = Values::default();
+        let first = v.start_remap(5).expect("the first remap");
+        assert!(v.start_remap(5).is_none(), "two remaps of node 5 at once");
+        let other = v.start_remap(6).expect("node 6 is free");
+        drop(first);
+        assert!(v.start_remap(5).is_some(), "node 5 free again");
+        drop(other);
+    }
 
     #[test]
     fn decimals_follow_the_step() {
