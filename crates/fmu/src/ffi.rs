@@ -282,6 +282,14 @@ pub unsafe extern "C" fn fmi3InstantiateCoSimulation(
                  the modelDescription.xml and the binary are from different builds or units"
             ));
         }
+        if !event_mode_used {
+            // FMI 3.0: an FMU with clocks needs event mode; the LS-BUS Rx / Tx clocks tick there.
+            return Err(
+                "fmi3InstantiateCoSimulation: eventModeUsed is false, but this FMU's LS-BUS \
+                 terminal has clocks (Rx_Clock, Tx_Clock), which need event mode"
+                    .to_string(),
+            );
+        }
         let i = Box::new(Instance {
             name: name.to_string(),
             env,
