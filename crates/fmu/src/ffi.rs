@@ -51,6 +51,8 @@ struct Instance {
     mode: Mode,
     event_mode_used: bool,
     early_return_allowed: bool,
+    /// `stopTime` when the importer defined one: no step goes past it (FMI 3.0).
+    stop_time: Option<f64>,
     kind: Kind,
     model: Box<dyn FmuModel>,
 }
@@ -298,6 +300,7 @@ pub unsafe extern "C" fn fmi3InstantiateCoSimulation(
             mode: Mode::Instantiated,
             event_mode_used,
             early_return_allowed,
+            stop_time: None,
             kind,
             model,
         });
@@ -412,6 +415,7 @@ pub unsafe extern "C" fn fmi3EnterInitializationMode(
         }
         match i.model.enter_initialization(start_time) {
             Ok(()) => {
+                i.stop_time = stop_time_defined.then_some(stop_time);
                 i.mode = Mode::Initialization;
                 OK
             }
@@ -486,6 +490,7 @@ pub unsafe extern "C" fn fmi3Reset(inst: *mut c_void) -> Status {
     with(inst, F, |i| match i.kind.instantiate() {
         Ok(m) => {
             i.model = m;
+            i.stop_time = None;
             i.mode = Mode::Instantiated;
             OK
         }
@@ -1026,6 +1031,16 @@ pub unsafe extern "C" fn fmi3DoStep(
             || last_time.is_null()
         {
             return i.error(F, "an output argument is null");
+        }
+        if let Some(stop) = i.stop_time {
+            // FMI 3.0: computing past a defined stop time is an error (1 µs: the unit's grain; a
+            // NaN is refused by the model).
+            if t + h > stop + 1e-6 {
+                return i.error(
+                    F,
+                    &format!("a step from {t} s by {h} s goes past the stop time {stop} s"),
+                );
+            }
         }
         let early = i.early_return_allowed && i.event_mode_used;
         match i.model.do_step(t, h, early) {

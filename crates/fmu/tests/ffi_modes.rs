@@ -3,7 +3,10 @@
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::sync::Mutex;
 
-use canpos_fmu::ffi::{fmi3FreeInstance, fmi3InstantiateCoSimulation};
+use canpos_fmu::ffi::{
+    fmi3DoStep, fmi3EnterInitializationMode, fmi3EnterStepMode, fmi3ExitInitializationMode,
+    fmi3FreeInstance, fmi3InstantiateCoSimulation, ERROR, OK,
+};
 use canpos_fmu::kind::{Kind, RESOURCE_FILE};
 use canpos_fmu::sensor::SensorUnit;
 
@@ -51,5 +54,32 @@ fn an_importer_without_event_mode_is_refused_with_the_reason() {
     assert!(log.contains("eventModeUsed"), "{log}");
     let inst = instantiate(true);
     assert!(!inst.is_null());
+    unsafe { fmi3FreeInstance(inst) };
+}
+
+fn do_step(inst: *mut c_void, t: f64, h: f64) -> i32 {
+    let (mut a, mut b, mut c, mut d) = (false, false, false, 0.0);
+    unsafe { fmi3DoStep(inst, t, h, false, &mut a, &mut b, &mut c, &mut d) }
+}
+
+/// FMI 3.0: with a stop time defined, a step past it gets `fmi3Error` (and changes nothing).
+#[test]
+fn a_step_past_the_defined_stop_time_is_refused() {
+    let inst = instantiate(true);
+    assert!(!inst.is_null());
+    unsafe {
+        assert_eq!(
+            fmi3EnterInitializationMode(inst, false, 0.0, 0.0, true, 0.01),
+            OK
+        );
+        assert_eq!(fmi3ExitInitializationMode(inst), OK);
+        assert_eq!(fmi3EnterStepMode(inst), OK);
+    }
+    assert_eq!(do_step(inst, 0.0, 0.005), OK);
+    assert_eq!(do_step(inst, 0.005, 1e300), ERROR);
+    assert!(LOG.lock().unwrap().iter().any(|m| m.contains("stop time")));
+    assert_eq!(do_step(inst, 0.005, 0.006), ERROR);
+    // Refused steps changed nothing: the step to the stop time itself is fine.
+    assert_eq!(do_step(inst, 0.005, 0.005), OK);
     unsafe { fmi3FreeInstance(inst) };
 }
