@@ -51,15 +51,32 @@ struct Instance {
     mode: Mode,
     event_mode_used: bool,
     early_return_allowed: bool,
+    /// `stopTime` when the importer defined one: no step goes past it (FMI 3.0).
+    stop_time: Option<f64>,
     kind: Kind,
     model: Box<dyn FmuModel>,
 }
 
-/// The instances alive (their addresses): a pointer not in it is refused, never dereferenced.
-static LIVE: Mutex<Vec<usize>> = Mutex::new(Vec::new());
+/// An instance alive: its address, and whether a call of it is running (a call of the same
+/// instance from inside it, say from the importer's logger, is refused: it would free or
+/// alias the instance under the running call).
+struct Live {
+    addr: usize,
+    busy: bool,
+}
 
-fn live() -> std::sync::MutexGuard<'static, Vec<usize>> {
+/// The instances alive: a pointer not in it is refused, never dereferenced.
+static LIVE: Mutex<Vec<Live>> = Mutex::new(Vec::new());
+
+fn live() -> std::sync::MutexGuard<'static, Vec<Live>> {
     LIVE.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A line on standard error for a call without a logger; a closed or broken stderr is
+/// ignored (`eprintln!` would panic, and no panic may leave an `extern "C"` function).
+fn stderr_line(msg: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr(), "canpos fmu: {msg}");
 }
 
 fn cstring(s: &str) -> CString {
@@ -116,14 +133,37 @@ impl Instance {
 /// Runs `f` on a live instance, catching panics. An unknown or null instance gets
 /// `fmi3Error` and a line on standard error (it has no logger to tell).
 fn with(inst: *mut c_void, func: &str, f: impl FnOnce(&mut Instance) -> Status) -> Status {
-    if inst.is_null() || !live().contains(&(inst as usize)) {
-        eprintln!(
-            "canpos fmu: {func}: not an instance of this FMU (null, freed or foreign pointer)"
-        );
-        return ERROR;
+    {
+        let mut l = live();
+        match l.iter_mut().find(|e| e.addr == inst as usize) {
+            Some(e) if e.busy => {
+                drop(l);
+                stderr_line(&format!(
+                    "{func}: called while a call of the same instance is running (re-entrant)"
+                ));
+                return ERROR;
+            }
+            Some(e) => e.busy = true,
+            None => {
+                drop(l);
+                stderr_line(&format!(
+                    "{func}: not an instance of this FMU (null, freed or foreign pointer)"
+                ));
+                return ERROR;
+            }
+        }
     }
-    // SAFETY: the address is a live Box<Instance> of ours (LIVE); the importer does not call
-    // one instance from two threads at once (FMI 3.0 §2.1.5).
+    let s = with_entered(inst, func, f);
+    if let Some(e) = live().iter_mut().find(|e| e.addr == inst as usize) {
+        e.busy = false;
+    }
+    s
+}
+
+fn with_entered(inst: *mut c_void, func: &str, f: impl FnOnce(&mut Instance) -> Status) -> Status {
+    // SAFETY: the address is a live Box<Instance> of ours (LIVE), marked busy so that neither
+    // fmi3FreeInstance nor another call takes it until this one ends; the importer does not
+    // call one instance from two threads at once (FMI 3.0 §2.1.5).
     let i = unsafe { &mut *(inst as *mut Instance) };
     if i.mode == Mode::Broken && func != "fmi3Reset" {
         return i.error(
@@ -183,7 +223,7 @@ fn log_to(logger: Logger, env: *mut c_void, msg: &str) {
             // SAFETY: the importer's callback.
             unsafe { f(env, ERROR, c.as_ptr(), m.as_ptr()) }
         }
-        None => eprintln!("canpos fmu: {msg}"),
+        None => stderr_line(msg),
     }
 }
 
@@ -244,6 +284,14 @@ pub unsafe extern "C" fn fmi3InstantiateCoSimulation(
                  the modelDescription.xml and the binary are from different builds or units"
             ));
         }
+        if !event_mode_used {
+            // FMI 3.0: an FMU with clocks needs event mode; the LS-BUS Rx / Tx clocks tick there.
+            return Err(
+                "fmi3InstantiateCoSimulation: eventModeUsed is false, but this FMU's LS-BUS \
+                 terminal has clocks (Rx_Clock, Tx_Clock), which need event mode"
+                    .to_string(),
+            );
+        }
         let i = Box::new(Instance {
             name: name.to_string(),
             env,
@@ -252,11 +300,15 @@ pub unsafe extern "C" fn fmi3InstantiateCoSimulation(
             mode: Mode::Instantiated,
             event_mode_used,
             early_return_allowed,
+            stop_time: None,
             kind,
             model,
         });
         let p = Box::into_raw(i) as *mut c_void;
-        live().push(p as usize);
+        live().push(Live {
+            addr: p as usize,
+            busy: false,
+        });
         Ok(p)
     }));
     match r {
@@ -317,12 +369,18 @@ pub unsafe extern "C" fn fmi3InstantiateScheduledExecution(
 #[no_mangle]
 pub unsafe extern "C" fn fmi3FreeInstance(inst: *mut c_void) {
     let mut l = live();
-    let Some(k) = l.iter().position(|&p| p == inst as usize) else {
+    let Some(k) = l.iter().position(|e| e.addr == inst as usize) else {
+        drop(l);
         if !inst.is_null() {
-            eprintln!("canpos fmu: fmi3FreeInstance: not an instance of this FMU");
+            stderr_line("fmi3FreeInstance: not an instance of this FMU");
         }
         return;
     };
+    if l[k].busy {
+        drop(l);
+        stderr_line("fmi3FreeInstance: called while a call of the same instance is running (re-entrant): not freed");
+        return;
+    }
     l.swap_remove(k);
     if l.is_empty() {
         // Nothing of the library outlives its last instance: an importer may unload it.
@@ -357,6 +415,7 @@ pub unsafe extern "C" fn fmi3EnterInitializationMode(
         }
         match i.model.enter_initialization(start_time) {
             Ok(()) => {
+                i.stop_time = stop_time_defined.then_some(stop_time);
                 i.mode = Mode::Initialization;
                 OK
             }
@@ -431,6 +490,7 @@ pub unsafe extern "C" fn fmi3Reset(inst: *mut c_void) -> Status {
     with(inst, F, |i| match i.kind.instantiate() {
         Ok(m) => {
             i.model = m;
+            i.stop_time = None;
             i.mode = Mode::Instantiated;
             OK
         }
@@ -971,6 +1031,16 @@ pub unsafe extern "C" fn fmi3DoStep(
             || last_time.is_null()
         {
             return i.error(F, "an output argument is null");
+        }
+        if let Some(stop) = i.stop_time {
+            // FMI 3.0: computing past a defined stop time is an error (1 µs: the unit's grain; a
+            // NaN is refused by the model).
+            if t + h > stop + 1e-6 {
+                return i.error(
+                    F,
+                    &format!("a step from {t} s by {h} s goes past the stop time {stop} s"),
+                );
+            }
         }
         let early = i.early_return_allowed && i.event_mode_used;
         match i.model.do_step(t, h, early) {

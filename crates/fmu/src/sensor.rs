@@ -235,6 +235,10 @@ impl SensorUnit {
             .unit("degC"),
         );
         for (i, (name, fault)) in FAULTS.iter().enumerate() {
+            // The runtime refuses magnets-too-close on one channel (it needs two magnets).
+            if *fault == "magnets-too-close" && self.channels() < 2 {
+                continue;
+            }
             v.push(
                 Variable::new(
                     format!("fault_{name}"),
@@ -594,6 +598,15 @@ impl SensorFmu {
         } else {
             Err(a["error"].as_str().unwrap_or("refused").to_string())
         }
+    }
+
+    /// Applies an input just set; if the runtime refuses it, `undo` puts the old value back,
+    /// so a refused input changes nothing and does not block the inputs set after it.
+    fn apply_or_undo(&mut self, undo: impl FnOnce(&mut Self)) -> Result<(), String> {
+        if self.run.is_none() {
+            return Ok(());
+        }
+        self.apply_inputs().inspect_err(|_| undo(self))
     }
 
     /// Hands the inputs that changed to the runtime, at the time reached.
@@ -1001,10 +1014,8 @@ impl FmuModel for SensorFmu {
                 if !(c.is_finite() && (-273.15..=1000.0).contains(&c)) {
                     return Err(format!("ambient temperature {c} °C is not plausible"));
                 }
-                self.ambient = c;
-                if self.run.is_some() {
-                    self.apply_inputs()?;
-                }
+                let old = std::mem::replace(&mut self.ambient, c);
+                self.apply_or_undo(|m| m.ambient = old)?;
             }
             (VR_RX_DATA, Value::Binary(b)) => {
                 // Checked whole now: a malformed buffer is refused and changes nothing.
@@ -1019,16 +1030,14 @@ impl FmuModel for SensorFmu {
                         "magnet position {mm} mm is not a finite number within ±1e9 mm"
                     ));
                 }
-                self.magnets[(v - VR_MAGNET) as usize] = mm;
-                if self.run.is_some() {
-                    self.apply_inputs()?;
-                }
+                let k = (v - VR_MAGNET) as usize;
+                let old = std::mem::replace(&mut self.magnets[k], mm);
+                self.apply_or_undo(|m| m.magnets[k] = old)?;
             }
             (v, Value::Boolean(on)) if (VR_FAULT..VR_FAULT + 40).contains(&v) => {
-                self.faults[(v - VR_FAULT) as usize] = on;
-                if self.run.is_some() {
-                    self.apply_inputs()?;
-                }
+                let k = (v - VR_FAULT) as usize;
+                let old = std::mem::replace(&mut self.faults[k], on);
+                self.apply_or_undo(|m| m.faults[k] = old)?;
             }
             _ => return Err(format!("value reference {vr} cannot be set")),
         }
