@@ -735,6 +735,7 @@ impl Timeline {
 }
 
 mod arbitration;
+mod cancel;
 
 #[cfg(test)]
 mod tests;

@@ -1,0 +1,30 @@
+//! Cancelling a member's transmit requests (SIL Kit's `CancelTransmitRequests`, a controller
+//! that stops), as a further `impl` block of [`Timeline`].
+
+use super::*;
+
+impl Timeline {
+    /// Takes every frame of member `id` that is not on the wire out of its transmit queue and
+    /// returns them in submission order; a frame already on the wire finishes (a controller
+    /// cannot pull back bits it is sending). Cancelled frames are not counted as lost: the
+    /// member asked for it.
+    pub fn cancel_queued(&mut self, id: MemberId) -> Vec<Frame> {
+        let Some(m) = self.members.get_mut(id.0 as usize).filter(|m| m.live) else {
+            return Vec::new();
+        };
+        let mut gone: Vec<Queued> = Vec::new();
+        m.queue.retain(|q| {
+            if q.on_wire {
+                true
+            } else {
+                gone.push(*q);
+                false
+            }
+        });
+        if m.queue.is_empty() {
+            self.active.retain(|&i| i != id.0);
+        }
+        gone.sort_by_key(|q| q.seq);
+        gone.into_iter().map(|q| q.frame).collect()
+    }
+}
