@@ -49,6 +49,7 @@ pub mod mem;
 pub mod plain;
 pub mod realtime;
 pub mod runtime;
+pub mod silkit;
 #[cfg(feature = "socketcan")]
 pub mod socketcan;
 pub mod socketcand;

@@ -12,6 +12,7 @@ pub mod eds;
 pub mod guard;
 pub mod lss;
 pub mod monitor;
+pub mod netsim;
 pub mod nmt;
 pub mod record;
 pub mod replay;

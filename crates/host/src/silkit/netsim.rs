@@ -1,0 +1,1232 @@
+//! canpos as the CAN network simulator of Vector SIL Kit (issue 32 item 3, docs/SILKIT.md
+//! "canpos as the network simulator").
+//!
+//! SIL Kit's open core models no bus: without a network simulator every frame is confirmed as
+//! transmitted at once. Its experimental NetworkSimulator C API lets one participant take over
+//! a network: SIL Kit hands it every controller of the network (a descriptor), their mode
+//! requests, bit rates and frame requests, and the simulator tells the controllers what
+//! happened through an event producer. Here each simulated network is a
+//! [`crate::bus::controllers::Network`] on canpos's bus timeline: bit time with stuffing,
+//! arbitration, end-of-frame times, acknowledgement only of the frame that won the bus, error
+//! counters and bus-off (docs/BUS.md).
+//!
+//! The C API is bound by hand (`extern "C"` declarations of the few functions used and
+//! `#[repr(C)]` structs, every one starting with SIL Kit's versioned struct header) and
+//! loaded at run time with `libloading`, so canpos builds and tests without SIL Kit.
+//!
+//! Time: in synchronised mode the bus time is SIL Kit's simulation time, advanced by the
+//! participant's simulation steps; otherwise the simulator's monotonic clock since it started
+//! (a driver thread runs the bus). See [`TimeMode`].
+
+use std::collections::BTreeMap;
+use std::ffi::{c_char, c_void, CStr, CString};
+use std::path::Path;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use crate::bus::controllers::{
+    BusState, ControllerMode, Descriptor, MemberStats, NetCounters, NetEvent, Network, RawFrame,
+    TxStatus,
+};
+use crate::bus::Nanos;
+
+/// SIL Kit's return code (`SilKit_ReturnCode`): 0 is success.
+pub type ReturnCode = i32;
+
+/// The SIL Kit major version this binding knows (the NetworkSimulator API is experimental:
+/// another major may change its tables).
+pub const KNOWN_MAJOR: u32 = 5;
+
+/// SIL Kit's versioned header at the start of every struct it exchanges (`SilKit_StructHeader`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StructHeader {
+    /// Service, data type and version of the struct (`SK_ID_MAKE`).
+    pub version: u64,
+    /// Reserved, zero.
+    pub reserved: [u64; 3],
+}
+
+impl StructHeader {
+    /// A header with the given id.
+    pub const fn new(version: u64) -> StructHeader {
+        StructHeader {
+            version,
+            reserved: [0; 3],
+        }
+    }
+
+    /// The data type number of a header (`SK_ID_GET_DATATYPE`).
+    pub const fn datatype(&self) -> u64 {
+        (self.version >> 32) & 0xFF
+    }
+}
+
+/// `SK_ID_MAKE`: "SK", service, data type, version.
+pub const fn sk_id(service: u64, datatype: u64, version: u64) -> u64 {
+    (83 << 56) | (75 << 48) | (service << 40) | (datatype << 32) | (version << 24)
+}
+
+/// The struct ids this binding uses (InterfaceIdentifiers.h of SIL Kit 5.0).
+pub mod ids {
+    use super::sk_id;
+    const CAN: u64 = 1;
+    const PARTICIPANT: u64 = 7;
+    const NETSIM: u64 = 8;
+    /// `SilKit_CanFrame` v1.
+    pub const CAN_FRAME: u64 = sk_id(CAN, 1, 1);
+    /// `SilKit_CanFrameTransmitEvent` v2 (with `canId`).
+    pub const CAN_FRAME_TRANSMIT_EVENT: u64 = sk_id(CAN, 2, 2);
+    /// `SilKit_CanFrameEvent` v1.
+    pub const CAN_FRAME_EVENT: u64 = sk_id(CAN, 3, 1);
+    /// `SilKit_CanStateChangeEvent` v1.
+    pub const CAN_STATE_CHANGE_EVENT: u64 = sk_id(CAN, 4, 1);
+    /// `SilKit_CanErrorStateChangeEvent` v1.
+    pub const CAN_ERROR_STATE_CHANGE_EVENT: u64 = sk_id(CAN, 5, 1);
+    /// `SilKit_LifecycleConfiguration` v1.
+    pub const LIFECYCLE_CONFIGURATION: u64 = sk_id(PARTICIPANT, 2, 1);
+    /// `SilKit_Experimental_EventReceivers` v1.
+    pub const EVENT_RECEIVERS: u64 = sk_id(NETSIM, 1, 1);
+    /// `SilKit_Experimental_SimulatedNetworkFunctions` v1.
+    pub const SIMULATED_NETWORK_FUNCTIONS: u64 = sk_id(NETSIM, 2, 1);
+    /// `SilKit_Experimental_SimulatedCanControllerFunctions` v1.
+    pub const SIMULATED_CAN_CONTROLLER_FUNCTIONS: u64 = sk_id(NETSIM, 3, 1);
+}
+
+/// `SilKit_CanFrameFlag` bits.
+pub mod flags {
+    /// Identifier extension.
+    pub const IDE: u32 = 1 << 9;
+    /// Remote transmission request.
+    pub const RTR: u32 = 1 << 4;
+    /// CAN FD format.
+    pub const FDF: u32 = 1 << 12;
+    /// CAN XL format.
+    pub const XLF: u32 = 1 << 15;
+}
+
+/// `SilKit_ByteVector`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct ByteVector {
+    /// The bytes.
+    pub data: *const u8,
+    /// How many.
+    pub size: usize,
+}
+
+/// `SilKit_CanFrame`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct CanFrame {
+    /// Header ([`ids::CAN_FRAME`]).
+    pub header: StructHeader,
+    /// Identifier.
+    pub id: u32,
+    /// [`flags`].
+    pub flags: u32,
+    /// Data length code.
+    pub dlc: u16,
+    /// CAN XL SDU type.
+    pub sdt: u8,
+    /// CAN XL virtual network id.
+    pub vcid: u8,
+    /// CAN XL acceptance field.
+    pub af: u32,
+    /// Data field.
+    pub data: ByteVector,
+}
+
+/// `SilKit_CanFrameEvent`.
+#[repr(C)]
+#[derive(Debug)]
+pub struct CanFrameEvent {
+    /// Header ([`ids::CAN_FRAME_EVENT`]).
+    pub header: StructHeader,
+    /// Reception time, ns.
+    pub timestamp: u64,
+    /// The frame.
+    pub frame: *mut CanFrame,
+    /// `SilKit_Direction`: 1 send (TX), 2 receive (RX).
+    pub direction: u8,
+    /// The sender's context (TX only).
+    pub user_context: *mut c_void,
+}
+
+/// `SilKit_CanFrameTransmitEvent` (v2).
+#[repr(C)]
+#[derive(Debug)]
+pub struct CanFrameTransmitEvent {
+    /// Header ([`ids::CAN_FRAME_TRANSMIT_EVENT`]).
+    pub header: StructHeader,
+    /// The request's context.
+    pub user_context: *mut c_void,
+    /// When, ns.
+    pub timestamp: u64,
+    /// `SilKit_CanTransmitStatus`: 1 transmitted, 2 canceled, 4 transmit queue full.
+    pub status: i32,
+    /// The frame's identifier.
+    pub can_id: u32,
+}
+
+/// `SilKit_CanStateChangeEvent`.
+#[repr(C)]
+#[derive(Debug)]
+pub struct CanStateChangeEvent {
+    /// Header ([`ids::CAN_STATE_CHANGE_EVENT`]).
+    pub header: StructHeader,
+    /// When, ns.
+    pub timestamp: u64,
+    /// `SilKit_CanControllerState`.
+    pub state: i32,
+}
+
+/// `SilKit_CanErrorStateChangeEvent`.
+#[repr(C)]
+#[derive(Debug)]
+pub struct CanErrorStateChangeEvent {
+    /// Header ([`ids::CAN_ERROR_STATE_CHANGE_EVENT`]).
+    pub header: StructHeader,
+    /// When, ns.
+    pub timestamp: u64,
+    /// `SilKit_CanErrorState`: 0 not available, 1 active, 2 passive, 3 bus-off.
+    pub error_state: i32,
+}
+
+/// `SilKit_Experimental_EventReceivers`.
+#[repr(C)]
+struct EventReceivers {
+    header: StructHeader,
+    num: usize,
+    descriptors: *const u64,
+}
+
+/// `SilKit_Experimental_NetSim_CanFrameRequest`.
+#[repr(C)]
+struct CanFrameRequest {
+    header: StructHeader,
+    frame: *mut CanFrame,
+    user_context: *mut c_void,
+}
+
+/// `SilKit_Experimental_NetSim_CanConfigureBaudrate`.
+#[repr(C)]
+struct CanConfigureBaudrate {
+    header: StructHeader,
+    rate: u32,
+    fd_rate: u32,
+    xl_rate: u32,
+}
+
+/// `SilKit_Experimental_NetSim_CanControllerMode`.
+#[repr(C)]
+struct CanControllerModeMsg {
+    header: StructHeader,
+    flags: i32,
+    state: i32,
+}
+const MODE_RESET_ERROR_HANDLING: i32 = 1;
+const MODE_CANCEL_TRANSMIT_REQUESTS: i32 = 2;
+
+/// `SilKit_Experimental_SimulatedNetworkFunctions`.
+#[repr(C)]
+struct SimulatedNetworkFunctions {
+    header: StructHeader,
+    provide: unsafe extern "C" fn(*mut *mut c_void, *mut *const c_void, u64, *mut c_void),
+    removed: unsafe extern "C" fn(u64, *mut c_void),
+    set_event_producer: unsafe extern "C" fn(*mut c_void, *mut c_void),
+}
+
+/// `SilKit_Experimental_SimulatedCanControllerFunctions`.
+#[repr(C)]
+struct SimulatedCanControllerFunctions {
+    header: StructHeader,
+    on_set_baudrate: unsafe extern "C" fn(*mut c_void, *const CanConfigureBaudrate),
+    on_frame_request: unsafe extern "C" fn(*mut c_void, *const CanFrameRequest),
+    on_set_controller_mode: unsafe extern "C" fn(*mut c_void, *const CanControllerModeMsg),
+}
+
+/// `SilKit_LifecycleConfiguration`.
+#[repr(C)]
+pub struct LifecycleConfiguration {
+    /// Header ([`ids::LIFECYCLE_CONFIGURATION`]).
+    pub header: StructHeader,
+    /// `SilKit_OperationMode`: 10 coordinated, 20 autonomous.
+    pub operation_mode: i8,
+}
+
+/// `SilKit_TimeSyncService_SimulationStepHandler_t`.
+pub type StepHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, u64, u64);
+/// `SilKit_LifecycleService_StopHandler_t`.
+pub type StopHandler = unsafe extern "C" fn(*mut c_void, *mut c_void);
+/// `SilKit_CanFrameHandler_t`.
+pub type FrameHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanFrameEvent);
+/// `SilKit_CanFrameTransmitHandler_t`.
+pub type TransmitHandler =
+    unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanFrameTransmitEvent);
+/// `SilKit_CanStateChangeHandler_t`.
+pub type StateHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanStateChangeEvent);
+/// `SilKit_CanErrorStateChangeHandler_t`.
+pub type ErrorStateHandler =
+    unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanErrorStateChangeEvent);
+
+macro_rules! api {
+    ($($field:ident : $sym:literal => $ty:ty;)*) => {
+        /// The functions of `libSilKit.so` this crate calls, resolved when it is loaded.
+        #[allow(missing_docs)]
+        pub struct Api {
+            $(pub $field: $ty,)*
+            // Last: the library stays loaded while the pointers above exist.
+            _lib: libloading::Library,
+        }
+
+        impl Api {
+            /// Loads `libSilKit.so` from `path` and resolves every function, refusing a SIL Kit
+            /// major version other than [`KNOWN_MAJOR`].
+            pub fn load(path: &Path) -> Result<Arc<Api>, String> {
+                // SAFETY: loading a library runs its initialisers; libSilKit.so's are C++ static
+                // constructors with no preconditions.
+                let lib = unsafe { libloading::Library::new(path) }
+                    .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+                // SAFETY: each symbol is declared with the signature of SIL Kit 5's C API
+                // (capi/*.h), and the major version is checked below before any other use.
+                let api = unsafe {
+                    Api {
+                        $($field: *lib.get::<$ty>(concat!($sym, "\0").as_bytes())
+                            .map_err(|e| format!("{}: no {}: {e}", path.display(), $sym))?,)*
+                        _lib: lib,
+                    }
+                };
+                let mut major = 0u32;
+                // SAFETY: a valid out pointer.
+                let rc = unsafe { (api.version_major)(&mut major) };
+                if rc != 0 || major != KNOWN_MAJOR {
+                    return Err(format!(
+                        "{}: SIL Kit major version {major} (rc {rc}); canpos knows {KNOWN_MAJOR} \
+                         (its network simulator API is experimental)",
+                        path.display()
+                    ));
+                }
+                Ok(Arc::new(api))
+            }
+        }
+    };
+}
+
+api! {
+    version_major: "SilKit_Version_Major" => unsafe extern "C" fn(*mut u32) -> ReturnCode;
+    last_error: "SilKit_GetLastErrorString" => unsafe extern "C" fn() -> *const c_char;
+    config_from_string: "SilKit_ParticipantConfiguration_FromString"
+        => unsafe extern "C" fn(*mut *mut c_void, *const c_char) -> ReturnCode;
+    config_destroy: "SilKit_ParticipantConfiguration_Destroy"
+        => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    participant_create: "SilKit_Participant_Create"
+        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const c_char, *const c_char) -> ReturnCode;
+    participant_destroy: "SilKit_Participant_Destroy" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    lifecycle_create: "SilKit_LifecycleService_Create"
+        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const LifecycleConfiguration) -> ReturnCode;
+    lifecycle_set_stop_handler: "SilKit_LifecycleService_SetStopHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, StopHandler) -> ReturnCode;
+    lifecycle_start: "SilKit_LifecycleService_StartLifecycle" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    lifecycle_stop: "SilKit_LifecycleService_Stop" => unsafe extern "C" fn(*mut c_void, *const c_char) -> ReturnCode;
+    lifecycle_wait: "SilKit_LifecycleService_WaitForLifecycleToComplete"
+        => unsafe extern "C" fn(*mut c_void, *mut i16) -> ReturnCode;
+    time_sync_create: "SilKit_TimeSyncService_Create"
+        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void) -> ReturnCode;
+    time_sync_set_step_handler: "SilKit_TimeSyncService_SetSimulationStepHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, StepHandler, u64) -> ReturnCode;
+    netsim_create: "SilKit_Experimental_NetworkSimulator_Create"
+        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void) -> ReturnCode;
+    netsim_simulate_network: "SilKit_Experimental_NetworkSimulator_SimulateNetwork"
+        => unsafe extern "C" fn(*mut c_void, *const c_char, u32, *mut c_void, *const c_void) -> ReturnCode;
+    netsim_start: "SilKit_Experimental_NetworkSimulator_Start" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    can_produce: "SilKit_Experimental_CanEventProducer_Produce"
+        => unsafe extern "C" fn(*mut c_void, *mut StructHeader, *const c_void) -> ReturnCode;
+    can_controller_create: "SilKit_CanController_Create"
+        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const c_char, *const c_char) -> ReturnCode;
+    can_controller_start: "SilKit_CanController_Start" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    can_controller_stop: "SilKit_CanController_Stop" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
+    can_controller_set_baud_rate: "SilKit_CanController_SetBaudRate"
+        => unsafe extern "C" fn(*mut c_void, u32, u32, u32) -> ReturnCode;
+    can_controller_send_frame: "SilKit_CanController_SendFrame"
+        => unsafe extern "C" fn(*mut c_void, *mut CanFrame, *mut c_void) -> ReturnCode;
+    can_controller_add_frame_handler: "SilKit_CanController_AddFrameHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, FrameHandler, u8, *mut u64) -> ReturnCode;
+    can_controller_add_frame_transmit_handler: "SilKit_CanController_AddFrameTransmitHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, TransmitHandler, i32, *mut u64) -> ReturnCode;
+    can_controller_add_state_change_handler: "SilKit_CanController_AddStateChangeHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, StateHandler, *mut u64) -> ReturnCode;
+    can_controller_add_error_state_change_handler: "SilKit_CanController_AddErrorStateChangeHandler"
+        => unsafe extern "C" fn(*mut c_void, *mut c_void, ErrorStateHandler, *mut u64) -> ReturnCode;
+}
+
+impl Api {
+    /// `Err` with SIL Kit's last error text for a failed call.
+    pub fn check(&self, what: &str, rc: ReturnCode) -> Result<(), String> {
+        if rc == 0 {
+            return Ok(());
+        }
+        // SAFETY: SIL Kit returns a thread-local, NUL-terminated string (or null).
+        let text = unsafe {
+            let p = (self.last_error)();
+            if p.is_null() {
+                String::new()
+            } else {
+                CStr::from_ptr(p).to_string_lossy().into_owned()
+            }
+        };
+        Err(format!("SIL Kit {what}: {text} (return code {rc})"))
+    }
+}
+
+// SAFETY: the Api holds only function pointers into a library that stays loaded; SIL Kit's C
+// functions may be called from any thread.
+unsafe impl Send for Api {}
+// SAFETY: as above, nothing in it is mutated after load.
+unsafe impl Sync for Api {}
+
+/// The top byte of a frame request's user context that marks it as a simulation time stamp
+/// (D40): `0xC0` is never the top byte of a user-space pointer (x86-64 and AArch64 user
+/// addresses are below 2^48), so a context from another SIL Kit participant is never taken
+/// for a time.
+pub const TIME_CONTEXT_TAG: u64 = 0xC0 << 56;
+const TIME_MASK: u64 = (1 << 56) - 1;
+
+/// The user context with which a canpos participant in synchronised mode sends a frame at
+/// simulation time `t` ns (`t` < 2^56 ns, 2.28 years), so that the simulator enters it into
+/// the bus at that time (D40).
+pub fn context_of_time(t: Nanos) -> u64 {
+    TIME_CONTEXT_TAG | (t & TIME_MASK)
+}
+
+/// The simulation time stamped in a user context by [`context_of_time`], if it is one.
+pub fn time_of_context(context: u64) -> Option<Nanos> {
+    (context & !TIME_MASK == TIME_CONTEXT_TAG).then_some(context & TIME_MASK)
+}
+
+/// How the simulator keeps time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TimeMode {
+    /// The simulator's monotonic clock since it started (a rig with hardware in the loop; the
+    /// participants are not synchronised).
+    Wall,
+    /// SIL Kit's simulation time: the simulator is a synchronised participant with simulation
+    /// steps of this many ns; its lifecycle coordinated (a system controller starts and stops
+    /// it) or autonomous.
+    Sync {
+        /// Step, ns.
+        step: Nanos,
+        /// Coordinated lifecycle.
+        coordinated: bool,
+    },
+}
+
+/// One network to simulate.
+#[derive(Clone, Debug)]
+pub struct NetworkSpec {
+    /// SIL Kit network name.
+    pub name: String,
+    /// Bit rate, kbit/s (CiA 301).
+    pub kbps: u32,
+}
+
+/// A frame request waiting for its time (synchronised mode).
+#[derive(Debug)]
+struct Waiting {
+    at: Nanos,
+    seq: u64,
+    desc: Descriptor,
+    id: u32,
+    flags: u32,
+    dlc: u16,
+    len: u8,
+    data: [u8; 8],
+    /// The request was longer than 8 bytes (judged when submitted).
+    too_long: usize,
+    context: u64,
+}
+
+struct NetState {
+    name: CString,
+    net: Network,
+    producer: *mut c_void,
+    waiting: Vec<Waiting>,
+}
+
+struct Shared {
+    nets: Vec<NetState>,
+    /// Controller contexts handed to SIL Kit (kept until the participant is gone).
+    // Boxed: SIL Kit holds their addresses, which must not move when the Vec grows.
+    #[allow(clippy::vec_box)]
+    ctrl_ctx: Vec<Box<CtrlCtx>>,
+    seq: u64,
+    /// Synchronised mode: the simulation step's time; wall mode: unused.
+    sync_now: Option<Nanos>,
+    stopped: bool,
+}
+
+struct Core {
+    api: Arc<Api>,
+    mode: TimeMode,
+    start: Instant,
+    shared: Mutex<Shared>,
+    wake: Condvar,
+}
+
+// SAFETY: the raw pointers in Shared (event producers) are SIL Kit objects that SIL Kit lets
+// any thread use; every access goes through the mutex.
+unsafe impl Send for Core {}
+// SAFETY: as above.
+unsafe impl Sync for Core {}
+
+struct NetCtx {
+    core: *const Core,
+    index: usize,
+}
+
+struct CtrlCtx {
+    core: *const Core,
+    index: usize,
+    desc: Descriptor,
+}
+
+static NETWORK_FUNCTIONS: SimulatedNetworkFunctions = SimulatedNetworkFunctions {
+    header: StructHeader::new(ids::SIMULATED_NETWORK_FUNCTIONS),
+    provide: on_provide,
+    removed: on_removed,
+    set_event_producer: on_set_event_producer,
+};
+
+static CAN_CONTROLLER_FUNCTIONS: SimulatedCanControllerFunctions =
+    SimulatedCanControllerFunctions {
+        header: StructHeader::new(ids::SIMULATED_CAN_CONTROLLER_FUNCTIONS),
+        on_set_baudrate,
+        on_frame_request,
+        on_set_controller_mode,
+    };
+
+impl Core {
+    fn lock(&self) -> MutexGuard<'_, Shared> {
+        // A panic in a callback must not take the simulator down with poisoned state errors.
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The bus time of a request or mode change arriving now.
+    fn now(&self, s: &Shared) -> Nanos {
+        match self.mode {
+            TimeMode::Wall => self.start.elapsed().as_nanos() as Nanos,
+            TimeMode::Sync { .. } => s.sync_now.unwrap_or(0),
+        }
+    }
+
+    /// Sends what a network's controllers are told.
+    fn produce(&self, net: &NetState, events: &[NetEvent]) {
+        if net.producer.is_null() {
+            return;
+        }
+        for e in events {
+            match e {
+                NetEvent::Frame {
+                    senders,
+                    receivers,
+                    frame,
+                    at,
+                } => {
+                    let data = frame.data();
+                    let mut flags_v = 0;
+                    if frame.is_extended() {
+                        flags_v |= flags::IDE;
+                    }
+                    if frame.is_remote() {
+                        flags_v |= flags::RTR;
+                    }
+                    let mut cf = CanFrame {
+                        header: StructHeader::new(ids::CAN_FRAME),
+                        id: frame.id(),
+                        flags: flags_v,
+                        dlc: u16::from(frame.dlc()),
+                        sdt: 0,
+                        vcid: 0,
+                        af: 0,
+                        data: ByteVector {
+                            data: data.as_ptr(),
+                            size: data.len(),
+                        },
+                    };
+                    if !receivers.is_empty() {
+                        let mut ev = CanFrameEvent {
+                            header: StructHeader::new(ids::CAN_FRAME_EVENT),
+                            timestamp: *at,
+                            frame: &mut cf,
+                            direction: 2,
+                            user_context: std::ptr::null_mut(),
+                        };
+                        self.produce_one(net, &mut ev.header, receivers);
+                    }
+                    for &(d, context) in senders {
+                        // As SIL Kit's own bus does: the sender gets its frame back as sent,
+                        // then the acknowledgement.
+                        let mut ev = CanFrameEvent {
+                            header: StructHeader::new(ids::CAN_FRAME_EVENT),
+                            timestamp: *at,
+                            frame: &mut cf,
+                            direction: 1,
+                            user_context: context as *mut c_void,
+                        };
+                        self.produce_one(net, &mut ev.header, &[d]);
+                        self.transmit(net, d, context, frame.id(), 1, *at);
+                    }
+                }
+                NetEvent::NotSent {
+                    to,
+                    context,
+                    id,
+                    status,
+                    at,
+                } => {
+                    let s = match status {
+                        TxStatus::Transmitted => 1,
+                        TxStatus::Canceled => 2,
+                        TxStatus::QueueFull => 4,
+                    };
+                    self.transmit(net, *to, *context, *id, s, *at);
+                }
+                NetEvent::Status {
+                    to,
+                    mode,
+                    error,
+                    at,
+                } => {
+                    // SIL Kit's CAN event producer sends a controller status with both states,
+                    // taking the one not in the event from the last event it produced for any
+                    // controller of the network. So the mode goes first to no receiver (it only
+                    // sets that memory), then the error state to the controller: one status
+                    // with both of this controller's states.
+                    let mut st = CanStateChangeEvent {
+                        header: StructHeader::new(ids::CAN_STATE_CHANGE_EVENT),
+                        timestamp: *at,
+                        state: *mode as i32,
+                    };
+                    self.produce_one(net, &mut st.header, &[]);
+                    let mut er = CanErrorStateChangeEvent {
+                        header: StructHeader::new(ids::CAN_ERROR_STATE_CHANGE_EVENT),
+                        timestamp: *at,
+                        error_state: match error {
+                            None => 0,
+                            Some(BusState::ErrorActive) => 1,
+                            Some(BusState::ErrorPassive) => 2,
+                            Some(BusState::BusOff) => 3,
+                        },
+                    };
+                    self.produce_one(net, &mut er.header, &[*to]);
+                }
+            }
+        }
+    }
+
+    fn transmit(
+        &self,
+        net: &NetState,
+        to: Descriptor,
+        context: u64,
+        id: u32,
+        status: i32,
+        at: Nanos,
+    ) {
+        let mut ev = CanFrameTransmitEvent {
+            header: StructHeader::new(ids::CAN_FRAME_TRANSMIT_EVENT),
+            user_context: context as *mut c_void,
+            timestamp: at,
+            status,
+            can_id: id,
+        };
+        self.produce_one(net, &mut ev.header, &[to]);
+    }
+
+    fn produce_one(&self, net: &NetState, msg: &mut StructHeader, to: &[Descriptor]) {
+        let receivers = EventReceivers {
+            header: StructHeader::new(ids::EVENT_RECEIVERS),
+            num: to.len(),
+            descriptors: if to.is_empty() {
+                [0u64].as_ptr()
+            } else {
+                to.as_ptr()
+            },
+        };
+        // SAFETY: the producer is the one SIL Kit gave for this network; the message and the
+        // receivers live across the call, which copies them.
+        let rc = unsafe {
+            (self.api.can_produce)(net.producer, msg, &receivers as *const _ as *const c_void)
+        };
+        if let Err(e) = self.api.check("event producer", rc) {
+            tracing::warn!(network = ?net.name, "{e}");
+        }
+    }
+
+    /// Synchronised mode: enters the requests stamped before `t` in time order, runs the bus
+    /// to just before `t` and tells the controllers.
+    fn step(&self, t: Nanos) {
+        let mut s = self.lock();
+        s.sync_now = Some(t);
+        let Shared { nets, .. } = &mut *s;
+        let mut out = Vec::new();
+        for ns in nets.iter_mut() {
+            out.clear();
+            ns.waiting.sort_by_key(|w| (w.at, w.seq));
+            let ready = ns.waiting.partition_point(|w| w.at < t);
+            let batch: Vec<Waiting> = ns.waiting.drain(..ready).collect();
+            for w in batch {
+                ns.net.advance_to(w.at, &mut out);
+                submit(&mut ns.net, &w, &mut out);
+            }
+            ns.net.advance_to(t.saturating_sub(1), &mut out);
+            self.produce(ns, &out);
+        }
+    }
+
+    /// Wall mode: runs every network to now and tells the controllers; returns when the next
+    /// thing falls due.
+    fn run_to_now(&self) -> (bool, Option<Nanos>) {
+        let mut s = self.lock();
+        let now = self.now(&s);
+        let mut out = Vec::new();
+        let mut next: Option<Nanos> = None;
+        for ns in s.nets.iter_mut() {
+            out.clear();
+            ns.net.advance_to(now, &mut out);
+            self.produce(ns, &out);
+            if let Some(t) = ns.net.next_event() {
+                next = Some(next.map_or(t, |n: Nanos| n.min(t)));
+            }
+        }
+        (s.stopped, next)
+    }
+}
+
+fn submit(net: &mut Network, w: &Waiting, out: &mut Vec<NetEvent>) {
+    let mut long = [0u8; 9];
+    let data: &[u8] = if w.too_long > 8 {
+        // Only the length matters to the judgement: 9 bytes stand for any longer field.
+        &long[..]
+    } else {
+        long[..usize::from(w.len)].copy_from_slice(&w.data[..usize::from(w.len)]);
+        &long[..usize::from(w.len)]
+    };
+    let raw = RawFrame {
+        id: w.id,
+        extended: w.flags & flags::IDE != 0,
+        remote: w.flags & flags::RTR != 0,
+        fd_or_xl: w.flags & (flags::FDF | flags::XLF) != 0,
+        dlc: w.dlc,
+        data,
+    };
+    net.request(w.desc, &raw, w.context, w.at, out);
+}
+
+/// Runs `f` on the core behind a callback context, catching a panic (unwinding into C++ is
+/// undefined behaviour).
+fn guarded(what: &str, f: impl FnOnce()) {
+    if std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).is_err() {
+        tracing::error!("netsim: panic in SIL Kit callback {what} (ignored)");
+    }
+}
+
+unsafe extern "C" fn on_provide(
+    out_ctrl: *mut *mut c_void,
+    out_fns: *mut *const c_void,
+    desc: u64,
+    net: *mut c_void,
+) {
+    guarded("ProvideSimulatedController", || {
+        // SAFETY: `net` is the NetCtx this module registered; the Core outlives the participant.
+        let nctx = unsafe { &*(net as *const NetCtx) };
+        let core = unsafe { &*nctx.core };
+        let mut s = core.lock();
+        let known = s.nets[nctx.index].net.attach(desc);
+        if !known {
+            tracing::warn!(
+                network = ?s.nets[nctx.index].name,
+                descriptor = desc,
+                "controller refused (network full or descriptor known): its frames are dropped"
+            );
+        } else {
+            tracing::info!(network = ?s.nets[nctx.index].name, descriptor = desc, "controller joined");
+        }
+        let ctx = Box::new(CtrlCtx {
+            core: nctx.core,
+            index: nctx.index,
+            desc,
+        });
+        let p = &*ctx as *const CtrlCtx as *mut c_void;
+        // Bounded: the network holds at most MAX_CONTROLLERS; a refused one costs its box.
+        s.ctrl_ctx.push(ctx);
+        // SAFETY: SIL Kit passes valid out pointers.
+        unsafe {
+            *out_ctrl = p;
+            *out_fns = &CAN_CONTROLLER_FUNCTIONS as *const _ as *const c_void;
+        }
+    });
+}
+
+unsafe extern "C" fn on_removed(desc: u64, net: *mut c_void) {
+    guarded("SimulatedControllerRemoved", || {
+        // SAFETY: as in on_provide.
+        let nctx = unsafe { &*(net as *const NetCtx) };
+        let core = unsafe { &*nctx.core };
+        let mut s = core.lock();
+        let ns = &mut s.nets[nctx.index];
+        ns.net.detach(desc);
+        ns.waiting.retain(|w| w.desc != desc);
+        tracing::info!(network = ?ns.name, descriptor = desc, "controller left");
+    });
+}
+
+unsafe extern "C" fn on_set_event_producer(producer: *mut c_void, net: *mut c_void) {
+    guarded("SetEventProducer", || {
+        // SAFETY: as in on_provide.
+        let nctx = unsafe { &*(net as *const NetCtx) };
+        let core = unsafe { &*nctx.core };
+        core.lock().nets[nctx.index].producer = producer;
+    });
+}
+
+unsafe extern "C" fn on_set_baudrate(ctrl: *mut c_void, msg: *const CanConfigureBaudrate) {
+    guarded("OnSetBaudrate", || {
+        // SAFETY: `ctrl` is a CtrlCtx of this module, `msg` valid for the call.
+        let c = unsafe { &*(ctrl as *const CtrlCtx) };
+        let core = unsafe { &*c.core };
+        let rate = unsafe { (*msg).rate };
+        let mut s = core.lock();
+        let now = core.now(&s);
+        let ns = &mut s.nets[c.index];
+        if rate != 0 && rate != ns.net.bitrate_kbps() * 1000 {
+            tracing::warn!(network = ?ns.name, descriptor = c.desc, rate,
+                "controller set another bit rate than the network's: cut off");
+        }
+        ns.net.set_bitrate(c.desc, rate, now);
+        core.wake.notify_all();
+    });
+}
+
+unsafe extern "C" fn on_set_controller_mode(ctrl: *mut c_void, msg: *const CanControllerModeMsg) {
+    guarded("OnSetControllerMode", || {
+        // SAFETY: as in on_set_baudrate.
+        let c = unsafe { &*(ctrl as *const CtrlCtx) };
+        let core = unsafe { &*c.core };
+        let (flags_v, state) = unsafe { ((*msg).flags, (*msg).state) };
+        let Some(mode) = ControllerMode::from_raw(state) else {
+            tracing::warn!(
+                descriptor = c.desc,
+                state,
+                "unknown controller mode ignored"
+            );
+            return;
+        };
+        let mut s = core.lock();
+        let now = core.now(&s);
+        let ns = &mut s.nets[c.index];
+        let mut out = Vec::new();
+        if core.mode == TimeMode::Wall {
+            ns.net.advance_to(now, &mut out);
+        }
+        ns.net.set_mode(
+            c.desc,
+            mode,
+            flags_v & MODE_RESET_ERROR_HANDLING != 0,
+            flags_v & MODE_CANCEL_TRANSMIT_REQUESTS != 0,
+            now,
+            &mut out,
+        );
+        core.produce(ns, &out);
+        core.wake.notify_all();
+    });
+}
+
+unsafe extern "C" fn on_frame_request(ctrl: *mut c_void, msg: *const CanFrameRequest) {
+    guarded("OnFrameRequest", || {
+        // SAFETY: as in on_set_baudrate; the frame and its data are valid for the call and
+        // copied here.
+        let c = unsafe { &*(ctrl as *const CtrlCtx) };
+        let core = unsafe { &*c.core };
+        let req = unsafe { &*msg };
+        if req.frame.is_null() {
+            return;
+        }
+        let f = unsafe { &*req.frame };
+        let n = f.data.size;
+        let mut data = [0u8; 8];
+        if n <= 8 && n > 0 && !f.data.data.is_null() {
+            data[..n].copy_from_slice(unsafe { std::slice::from_raw_parts(f.data.data, n) });
+        }
+        let context = req.user_context as u64;
+        let mut s = core.lock();
+        let now = core.now(&s);
+        let seq = s.seq;
+        s.seq += 1;
+        let ns = &mut s.nets[c.index];
+        let at = match core.mode {
+            TimeMode::Wall => now,
+            // A canpos participant stamps its frames with its simulation time (D40); another
+            // participant's frame enters the bus at the simulator's next step.
+            TimeMode::Sync { .. } => time_of_context(context).unwrap_or(now),
+        };
+        let w = Waiting {
+            at,
+            seq,
+            desc: c.desc,
+            id: f.id,
+            flags: f.flags,
+            dlc: f.dlc,
+            len: n.min(8) as u8,
+            data,
+            too_long: if n > 8 { n } else { 0 },
+            context,
+        };
+        let mut out = Vec::new();
+        match core.mode {
+            TimeMode::Wall => {
+                ns.net.advance_to(now, &mut out);
+                submit(&mut ns.net, &w, &mut out);
+                core.produce(ns, &out);
+                core.wake.notify_all();
+            }
+            TimeMode::Sync { .. } => {
+                // Bounded like a controller's queue: a flood beyond it is refused at once.
+                if ns.waiting.iter().filter(|x| x.desc == c.desc).count()
+                    >= 4 * crate::bus::DEFAULT_TX_DEPTH
+                {
+                    out.push(NetEvent::NotSent {
+                        to: c.desc,
+                        context,
+                        id: f.id,
+                        status: TxStatus::QueueFull,
+                        at: now,
+                    });
+                    core.produce(ns, &out);
+                } else {
+                    ns.waiting.push(w);
+                }
+            }
+        }
+    });
+}
+
+unsafe extern "C" fn on_step(ctx: *mut c_void, _ts: *mut c_void, now: u64, _duration: u64) {
+    guarded("SimulationStep", || {
+        // SAFETY: `ctx` is the Core, alive while the participant is.
+        let core = unsafe { &*(ctx as *const Core) };
+        core.step(now);
+    });
+}
+
+unsafe extern "C" fn on_stop(ctx: *mut c_void, _lc: *mut c_void) {
+    guarded("Stop", || {
+        // SAFETY: as in on_step.
+        let core = unsafe { &*(ctx as *const Core) };
+        core.lock().stopped = true;
+        core.wake.notify_all();
+    });
+}
+
+/// A network's figures.
+#[derive(Clone, Debug)]
+pub struct NetworkReport {
+    /// Its name.
+    pub name: String,
+    /// Bus time reached, ns.
+    pub reached: Nanos,
+    /// Counters.
+    pub counters: NetCounters,
+    /// Load over the last second (fraction) and frames/s.
+    pub load: (f64, f64),
+    /// Each controller: descriptor, mode, bus counters.
+    pub controllers: Vec<(Descriptor, ControllerMode, Option<MemberStats>)>,
+}
+
+/// The running simulator: one SIL Kit participant simulating its networks.
+pub struct Simulator {
+    core: Arc<Core>,
+    participant: *mut c_void,
+    lifecycle: *mut c_void,
+    // Boxed: SIL Kit holds their addresses.
+    #[allow(clippy::vec_box)]
+    _nets: Vec<Box<NetCtx>>,
+    driver: Option<std::thread::JoinHandle<()>>,
+}
+
+// SAFETY: SIL Kit's participant and lifecycle handles may be used from any thread.
+unsafe impl Send for Simulator {}
+
+impl Simulator {
+    /// Joins the registry at `registry_uri` (`silkit://HOST:PORT`) as `participant_name` and
+    /// takes over `networks` as their CAN network simulator.
+    pub fn start(
+        api: Arc<Api>,
+        registry_uri: &str,
+        participant_name: &str,
+        networks: &[NetworkSpec],
+        mode: TimeMode,
+    ) -> Result<Simulator, String> {
+        if networks.is_empty() {
+            return Err("no network to simulate".into());
+        }
+        let mut names = BTreeMap::new();
+        let mut nets = Vec::new();
+        for n in networks {
+            if names.insert(n.name.clone(), ()).is_some() {
+                return Err(format!("network {} given twice", n.name));
+            }
+            nets.push(NetState {
+                name: CString::new(n.name.clone())
+                    .map_err(|_| format!("network name {:?} has a NUL byte", n.name))?,
+                net: Network::new(n.kbps)?,
+                producer: std::ptr::null_mut(),
+                waiting: Vec::new(),
+            });
+        }
+        let core = Arc::new(Core {
+            api: api.clone(),
+            mode,
+            start: Instant::now(),
+            shared: Mutex::new(Shared {
+                nets,
+                ctrl_ctx: Vec::new(),
+                seq: 0,
+                sync_now: None,
+                stopped: false,
+            }),
+            wake: Condvar::new(),
+        });
+        let name = CString::new(participant_name).map_err(|_| "participant name has a NUL byte")?;
+        let uri = CString::new(registry_uri).map_err(|_| "registry URI has a NUL byte")?;
+        // Warnings and errors of SIL Kit itself on stdout, as the other canpos logs.
+        let config_text =
+            CString::new("Logging:\n  Sinks:\n    - Type: Stdout\n      Level: Warn\n")
+                .expect("no NUL");
+        let mut config = std::ptr::null_mut();
+        let mut participant = std::ptr::null_mut();
+        // SAFETY: valid out pointers and NUL-terminated strings; the configuration is destroyed
+        // once the participant is created (SIL Kit copies it).
+        unsafe {
+            api.check(
+                "participant configuration",
+                (api.config_from_string)(&mut config, config_text.as_ptr()),
+            )?;
+            let rc =
+                (api.participant_create)(&mut participant, config, name.as_ptr(), uri.as_ptr());
+            (api.config_destroy)(config);
+            api.check(&format!("cannot join the registry at {registry_uri}"), rc)?;
+        }
+        let mut sim = Simulator {
+            core: core.clone(),
+            participant,
+            lifecycle: std::ptr::null_mut(),
+            _nets: Vec::new(),
+            driver: None,
+        };
+        let core_ptr = Arc::as_ptr(&core) as *mut c_void;
+        // SAFETY: handles from SIL Kit; contexts (Core, NetCtx) live as long as `sim`, which
+        // destroys the participant (and so every callback) before dropping them.
+        unsafe {
+            let lc_conf = LifecycleConfiguration {
+                header: StructHeader::new(ids::LIFECYCLE_CONFIGURATION),
+                operation_mode: match mode {
+                    TimeMode::Sync {
+                        coordinated: true, ..
+                    } => 10,
+                    _ => 20,
+                },
+            };
+            let mut lc = std::ptr::null_mut();
+            api.check(
+                "lifecycle service",
+                (api.lifecycle_create)(&mut lc, participant, &lc_conf),
+            )?;
+            sim.lifecycle = lc;
+            api.check(
+                "stop handler",
+                (api.lifecycle_set_stop_handler)(lc, core_ptr, on_stop),
+            )?;
+            if let TimeMode::Sync { step, .. } = mode {
+                let mut ts = std::ptr::null_mut();
+                api.check("time sync service", (api.time_sync_create)(&mut ts, lc))?;
+                api.check(
+                    "simulation step handler",
+                    (api.time_sync_set_step_handler)(ts, core_ptr, on_step, step),
+                )?;
+            }
+            let mut netsim = std::ptr::null_mut();
+            api.check(
+                "network simulator",
+                (api.netsim_create)(&mut netsim, participant),
+            )?;
+            let nnets = core.lock().nets.len();
+            for index in 0..nnets {
+                let nctx = Box::new(NetCtx {
+                    core: Arc::as_ptr(&core),
+                    index,
+                });
+                let np = &*nctx as *const NetCtx as *mut c_void;
+                sim._nets.push(nctx);
+                let net_name = core.lock().nets[index].name.clone();
+                api.check(
+                    &format!("simulate network {net_name:?}"),
+                    (api.netsim_simulate_network)(
+                        netsim,
+                        net_name.as_ptr(),
+                        1, // SilKit_NetworkType_CAN
+                        np,
+                        &NETWORK_FUNCTIONS as *const _ as *const c_void,
+                    ),
+                )?;
+            }
+            api.check("network simulator start", (api.netsim_start)(netsim))?;
+            api.check("start lifecycle", (api.lifecycle_start)(lc))?;
+        }
+        if mode == TimeMode::Wall {
+            let c = core.clone();
+            sim.driver = Some(
+                std::thread::Builder::new()
+                    .name("netsim-bus".into())
+                    .spawn(move || drive(&c))
+                    .map_err(|e| format!("cannot start the bus thread: {e}"))?,
+            );
+        }
+        Ok(sim)
+    }
+
+    /// Whether SIL Kit stopped the participant (a system controller's stop, or an error).
+    pub fn is_stopped(&self) -> bool {
+        self.core.lock().stopped
+    }
+
+    /// Each network's figures.
+    pub fn report(&self) -> Vec<NetworkReport> {
+        let mut s = self.core.lock();
+        s.nets
+            .iter_mut()
+            .map(|ns| NetworkReport {
+                name: ns.name.to_string_lossy().into_owned(),
+                reached: ns.net.reached(),
+                counters: ns.net.counters(),
+                load: ns.net.load(),
+                controllers: ns.net.controllers(),
+            })
+            .collect()
+    }
+}
+
+/// The wall-clock bus thread: runs the networks to now, sleeps until the next event or a
+/// request (at most 100 ms, so a stop is seen).
+fn drive(core: &Core) {
+    loop {
+        let (stopped, next) = core.run_to_now();
+        if stopped {
+            return;
+        }
+        let now = core.start.elapsed().as_nanos() as Nanos;
+        let wait = next
+            .map(|t| t.saturating_sub(now))
+            .unwrap_or(u64::MAX)
+            .min(100_000_000);
+        let s = core.lock();
+        if s.stopped {
+            return;
+        }
+        let _ = core
+            .wake
+            .wait_timeout(s, Duration::from_nanos(wait.max(1)))
+            .unwrap_or_else(|e| e.into_inner());
+    }
+}
+
+impl Drop for Simulator {
+    fn drop(&mut self) {
+        let api = &self.core.api;
+        // SAFETY: handles from SIL Kit; destroying the participant ends its callbacks, after
+        // which the contexts may go.
+        if !self.lifecycle.is_null() {
+            let reason = c"canpos bus netsim stops";
+            // SAFETY: a live lifecycle handle.
+            let _ = unsafe { (api.lifecycle_stop)(self.lifecycle, reason.as_ptr()) };
+            // A graceful end (the others are told the simulator left, not that it vanished):
+            // wait for the lifecycle to complete, at most 5 s; the wait goes on in its thread
+            // if SIL Kit hangs, and the participant is destroyed regardless.
+            let (tx, rx) = std::sync::mpsc::channel();
+            let lc = self.lifecycle as usize;
+            let api2 = api.clone();
+            let _ = std::thread::Builder::new()
+                .name("netsim-stop".into())
+                .spawn(move || {
+                    let mut state = 0i16;
+                    // SAFETY: the handle stays valid until the participant is destroyed,
+                    // which waits for this answer or its timeout.
+                    let _ = unsafe { (api2.lifecycle_wait)(lc as *mut c_void, &mut state) };
+                    let _ = tx.send(state);
+                });
+            let _ = rx.recv_timeout(Duration::from_secs(5));
+        }
+        {
+            self.core.lock().stopped = true;
+            self.core.wake.notify_all();
+        }
+        if let Some(d) = self.driver.take() {
+            let _ = d.join();
+        }
+        // SAFETY: as above.
+        unsafe {
+            if !self.participant.is_null() {
+                let _ = (api.participant_destroy)(self.participant);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn struct_ids_are_silkit_5s() {
+        // SK_ID_MAKE(Can, SilKit_CanFrameTransmitEvent): 'S' 'K', service 1, type 2, version 2.
+        assert_eq!(ids::CAN_FRAME_TRANSMIT_EVENT, 0x534B_0102_0200_0000);
+        assert_eq!(ids::SIMULATED_NETWORK_FUNCTIONS, 0x534B_0802_0100_0000);
+        assert_eq!(StructHeader::new(ids::CAN_FRAME_EVENT).datatype(), 3);
+    }
+
+    #[test]
+    fn layouts_match_the_c_headers() {
+        // pack(8) on x86-64: the offsets the C compiler gives (capi/Can.h, NetworkSimulator.h).
+        assert_eq!(std::mem::size_of::<StructHeader>(), 32);
+        assert_eq!(std::mem::offset_of!(CanFrame, dlc), 40);
+        assert_eq!(std::mem::offset_of!(CanFrame, af), 44);
+        assert_eq!(std::mem::offset_of!(CanFrame, data), 48);
+        assert_eq!(std::mem::size_of::<CanFrame>(), 64);
+        assert_eq!(std::mem::offset_of!(CanFrameEvent, direction), 48);
+        assert_eq!(std::mem::offset_of!(CanFrameEvent, user_context), 56);
+        assert_eq!(std::mem::offset_of!(CanFrameTransmitEvent, status), 48);
+        assert_eq!(std::mem::offset_of!(CanFrameTransmitEvent, can_id), 52);
+        assert_eq!(std::mem::offset_of!(CanControllerModeMsg, state), 36);
+        assert_eq!(std::mem::size_of::<SimulatedNetworkFunctions>(), 56);
+    }
+
+    #[test]
+    fn time_contexts_round_trip_and_pointers_are_not_times() {
+        assert_eq!(time_of_context(context_of_time(0)), Some(0));
+        assert_eq!(
+            time_of_context(context_of_time(123_456_789)),
+            Some(123_456_789)
+        );
+        assert_eq!(time_of_context(0), None);
+        assert_eq!(time_of_context(0x7fff_1234_5678), None);
+        assert_eq!(time_of_context(u64::MAX), None);
+    }
+
+    #[test]
+    fn a_missing_library_is_a_clear_error() {
+        let Err(e) = Api::load(Path::new("/nonexistent/libSilKit.so")) else {
+            panic!("loaded a library that does not exist");
+        };
+        assert!(e.contains("cannot load /nonexistent/libSilKit.so"), "{e}");
+    }
+}

@@ -1,0 +1,388 @@
+//! `canpos_host::silkit::netsim` against real SIL Kit (issue 32 item 3): a `sil-kit-registry`
+//! on 127.0.0.1, the simulator in this process, and SIL Kit participants with CAN controllers
+//! (each its own participant, as separate processes would be).
+//!
+//! Needs SIL Kit: `eval "$(scripts/silkit.sh | tail -n2 | sed 's/^/export /')"` sets
+//! CANPOS_SILKIT_LIB and CANPOS_SILKIT_REGISTRY. Without them each test says so and passes
+//! nothing (CI installs SIL Kit, so there they run).
+//!
+//! Every wait is bounded; bus times are judged exactly (they are simulated), wall-clock waits
+//! generously.
+
+use std::ffi::{c_void, CString};
+use std::net::TcpListener;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use canpos_host::bus::bits::frame_length;
+use canpos_host::silkit::netsim::{
+    flags, ids, Api, ByteVector, CanErrorStateChangeEvent, CanFrame, CanFrameEvent,
+    CanFrameTransmitEvent, CanStateChangeEvent, NetworkSpec, Simulator, StructHeader, TimeMode,
+};
+use canpos_stack::Frame;
+
+fn silkit() -> Option<(Arc<Api>, PathBuf)> {
+    let lib = std::env::var_os("CANPOS_SILKIT_LIB")?;
+    let reg = std::env::var_os("CANPOS_SILKIT_REGISTRY")?;
+    Some((
+        Api::load(lib.as_ref()).expect("CANPOS_SILKIT_LIB loads"),
+        reg.into(),
+    ))
+}
+
+struct Registry {
+    child: Child,
+    uri: String,
+}
+
+impl Registry {
+    fn start(bin: &PathBuf) -> Registry {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let uri = format!("silkit://127.0.0.1:{port}");
+        let child = Command::new(bin)
+            .args(["--listen-uri", &uri, "--log", "warn"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .spawn()
+            .expect("sil-kit-registry starts");
+        // Listening within 30 s (a loaded machine).
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+            assert!(Instant::now() < deadline, "registry not listening at {uri}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        Registry { child, uri }
+    }
+}
+
+impl Drop for Registry {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum Seen {
+    Rx {
+        id: u32,
+        data: Vec<u8>,
+        at: u64,
+    },
+    Tx {
+        id: u32,
+        context: u64,
+        at: u64,
+    },
+    Ack {
+        id: u32,
+        context: u64,
+        status: i32,
+        at: u64,
+    },
+    State(i32),
+    Error(i32),
+}
+
+/// A SIL Kit participant with one CAN controller, recording what it is told.
+struct Node {
+    api: Arc<Api>,
+    participant: *mut c_void,
+    ctrl: *mut c_void,
+    seen: Box<Mutex<Vec<Seen>>>,
+}
+
+unsafe extern "C" fn on_frame(ctx: *mut c_void, _c: *mut c_void, ev: *mut CanFrameEvent) {
+    let seen = unsafe { &*(ctx as *const Mutex<Vec<Seen>>) };
+    let ev = unsafe { &*ev };
+    let f = unsafe { &*ev.frame };
+    let data = unsafe { std::slice::from_raw_parts(f.data.data, f.data.size) }.to_vec();
+    let s = if ev.direction == 1 {
+        Seen::Tx {
+            id: f.id,
+            context: ev.user_context as u64,
+            at: ev.timestamp,
+        }
+    } else {
+        Seen::Rx {
+            id: f.id,
+            data,
+            at: ev.timestamp,
+        }
+    };
+    seen.lock().unwrap().push(s);
+}
+
+unsafe extern "C" fn on_ack(ctx: *mut c_void, _c: *mut c_void, ev: *mut CanFrameTransmitEvent) {
+    let seen = unsafe { &*(ctx as *const Mutex<Vec<Seen>>) };
+    let ev = unsafe { &*ev };
+    seen.lock().unwrap().push(Seen::Ack {
+        id: ev.can_id,
+        context: ev.user_context as u64,
+        status: ev.status,
+        at: ev.timestamp,
+    });
+}
+
+unsafe extern "C" fn on_state(ctx: *mut c_void, _c: *mut c_void, ev: *mut CanStateChangeEvent) {
+    let seen = unsafe { &*(ctx as *const Mutex<Vec<Seen>>) };
+    seen.lock()
+        .unwrap()
+        .push(Seen::State(unsafe { (*ev).state }));
+}
+
+unsafe extern "C" fn on_error(
+    ctx: *mut c_void,
+    _c: *mut c_void,
+    ev: *mut CanErrorStateChangeEvent,
+) {
+    let seen = unsafe { &*(ctx as *const Mutex<Vec<Seen>>) };
+    seen.lock()
+        .unwrap()
+        .push(Seen::Error(unsafe { (*ev).error_state }));
+}
+
+impl Node {
+    fn join(api: &Arc<Api>, uri: &str, name: &str, network: &str) -> Node {
+        let cfg_text =
+            CString::new("Logging:\n  Sinks:\n    - Type: Stdout\n      Level: Warn\n").unwrap();
+        let name_c = CString::new(name).unwrap();
+        let uri_c = CString::new(uri).unwrap();
+        let net_c = CString::new(network).unwrap();
+        let seen: Box<Mutex<Vec<Seen>>> = Box::default();
+        let ctx = &*seen as *const _ as *mut c_void;
+        let (mut cfg, mut participant, mut ctrl) = (
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+            std::ptr::null_mut(),
+        );
+        let mut h = 0u64;
+        unsafe {
+            api.check(
+                "config",
+                (api.config_from_string)(&mut cfg, cfg_text.as_ptr()),
+            )
+            .unwrap();
+            api.check(
+                "participant",
+                (api.participant_create)(&mut participant, cfg, name_c.as_ptr(), uri_c.as_ptr()),
+            )
+            .unwrap();
+            (api.config_destroy)(cfg);
+            api.check(
+                "controller",
+                (api.can_controller_create)(
+                    &mut ctrl,
+                    participant,
+                    name_c.as_ptr(),
+                    net_c.as_ptr(),
+                ),
+            )
+            .unwrap();
+            api.check(
+                "h",
+                (api.can_controller_add_frame_handler)(ctrl, ctx, on_frame, 3, &mut h),
+            )
+            .unwrap();
+            api.check(
+                "h",
+                (api.can_controller_add_frame_transmit_handler)(ctrl, ctx, on_ack, 7, &mut h),
+            )
+            .unwrap();
+            api.check(
+                "h",
+                (api.can_controller_add_state_change_handler)(ctrl, ctx, on_state, &mut h),
+            )
+            .unwrap();
+            api.check(
+                "h",
+                (api.can_controller_add_error_state_change_handler)(ctrl, ctx, on_error, &mut h),
+            )
+            .unwrap();
+        }
+        Node {
+            api: api.clone(),
+            participant,
+            ctrl,
+            seen,
+        }
+    }
+
+    fn start(&self) {
+        unsafe {
+            self.api
+                .check("start", (self.api.can_controller_start)(self.ctrl))
+                .unwrap()
+        };
+    }
+
+    fn send(&self, id: u32, data: &[u8], context: u64) {
+        let mut f = CanFrame {
+            header: StructHeader::new(ids::CAN_FRAME),
+            id,
+            flags: 0,
+            dlc: data.len() as u16,
+            sdt: 0,
+            vcid: 0,
+            af: 0,
+            data: ByteVector {
+                data: data.as_ptr(),
+                size: data.len(),
+            },
+        };
+        let _ = flags::IDE;
+        unsafe {
+            self.api
+                .check(
+                    "send",
+                    (self.api.can_controller_send_frame)(self.ctrl, &mut f, context as *mut c_void),
+                )
+                .unwrap()
+        };
+    }
+
+    fn seen(&self) -> Vec<Seen> {
+        self.seen.lock().unwrap().clone()
+    }
+
+    /// Waits (at most 60 s) until `pred` holds on what the node saw.
+    fn wait(&self, what: &str, pred: impl Fn(&[Seen]) -> bool) -> Vec<Seen> {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            let s = self.seen();
+            if pred(&s) {
+                return s;
+            }
+            assert!(Instant::now() < deadline, "{what}: saw only {s:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Node {
+    fn drop(&mut self) {
+        unsafe {
+            (self.api.participant_destroy)(self.participant);
+        }
+    }
+}
+
+fn bits(id: u16, data: &[u8]) -> u64 {
+    u64::from(frame_length(&Frame::new(id, data).unwrap()).total)
+}
+
+#[test]
+fn frames_go_through_the_timeline_with_bus_md_times_and_arbitration() {
+    let Some((api, reg_bin)) = silkit() else {
+        eprintln!("SIL Kit not installed (CANPOS_SILKIT_LIB / CANPOS_SILKIT_REGISTRY): skipped");
+        return;
+    };
+    let reg = Registry::start(&reg_bin);
+    // 10 kbit/s: an 8-byte frame is 11 ms or more on the wire, so the three requests sent at
+    // once are all queued before the first frame ends, however loaded the machine.
+    let sim = Simulator::start(
+        api.clone(),
+        &reg.uri,
+        "netsim",
+        &[NetworkSpec {
+            name: "CAN1".into(),
+            kbps: 10,
+        }],
+        TimeMode::Wall,
+    )
+    .expect("simulator starts");
+    let a = Node::join(&api, &reg.uri, "A", "CAN1");
+    let b = Node::join(&api, &reg.uri, "B", "CAN1");
+    a.start();
+    b.start();
+    // Each controller is told: started (2), error active (1).
+    for n in [&a, &b] {
+        n.wait("started", |s| {
+            s.contains(&Seen::State(2)) && s.contains(&Seen::Error(1))
+        });
+    }
+    let d = [0x55u8; 8];
+    a.send(0x300, &d, 1);
+    a.send(0x200, &d, 2);
+    a.send(0x100, &d, 3);
+    let rx = b.wait("three frames", |s| {
+        s.iter().filter(|e| matches!(e, Seen::Rx { .. })).count() == 3
+    });
+    let rx: Vec<(u32, u64)> = rx
+        .iter()
+        .filter_map(|e| match e {
+            Seen::Rx { id, at, .. } => Some((*id, *at)),
+            _ => None,
+        })
+        .collect();
+    // The first request found the bus idle; the other two arbitrated: 0x100 before 0x200.
+    assert_eq!(
+        rx.iter().map(|r| r.0).collect::<Vec<_>>(),
+        vec![0x300, 0x100, 0x200]
+    );
+    // Back to back: each end of frame one frame time (stuff bits and intermission included,
+    // 100 µs a bit) after the one before.
+    let bit = 100_000u64;
+    assert_eq!(rx[1].1 - rx[0].1, bits(0x100, &d) * bit);
+    assert_eq!(rx[2].1 - rx[1].1, bits(0x200, &d) * bit);
+    // The sender: its frame back as sent, then the acknowledgement, at the frame's end of
+    // frame, with the request's context; none before.
+    let sa = a.wait("three acks", |s| {
+        s.iter().filter(|e| matches!(e, Seen::Ack { .. })).count() == 3
+    });
+    let acks: Vec<(u32, u64, i32, u64)> = sa
+        .iter()
+        .filter_map(|e| match e {
+            Seen::Ack {
+                id,
+                context,
+                status,
+                at,
+            } => Some((*id, *context, *status, *at)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        acks,
+        vec![
+            (0x300, 1, 1, rx[0].1),
+            (0x100, 3, 1, rx[1].1),
+            (0x200, 2, 1, rx[2].1)
+        ]
+    );
+    assert!(
+        !sa.iter().any(|e| matches!(e, Seen::Rx { .. })),
+        "a sender does not receive its own frame as received"
+    );
+    let rep = sim.report();
+    assert_eq!(rep[0].counters.frames, 3);
+    assert_eq!(rep[0].counters.deliveries, 3);
+
+    // The simulator stops: SIL Kit's own (trivial) bus carries the frames again, each
+    // acknowledged at once.
+    drop(sim);
+    let before = b.seen().len();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let mut n = 0u64;
+    loop {
+        a.send(0x123, &[1], 100 + n);
+        n += 1;
+        std::thread::sleep(Duration::from_millis(200));
+        if b.seen()[before..]
+            .iter()
+            .any(|e| matches!(e, Seen::Rx { id: 0x123, .. }))
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no frame on SIL Kit's own bus after the simulator stopped"
+        );
+    }
+}
