@@ -18,8 +18,9 @@ use std::time::{Duration, Instant};
 
 use canpos_host::bus::bits::frame_length;
 use canpos_host::silkit::netsim::{
-    flags, ids, Api, ByteVector, CanErrorStateChangeEvent, CanFrame, CanFrameEvent,
-    CanFrameTransmitEvent, CanStateChangeEvent, NetworkSpec, Simulator, StructHeader, TimeMode,
+    context_of_time, flags, ids, Api, ByteVector, CanErrorStateChangeEvent, CanFrame,
+    CanFrameEvent, CanFrameTransmitEvent, CanStateChangeEvent, LifecycleConfiguration, NetworkSpec,
+    Simulator, StructHeader, TimeMode,
 };
 use canpos_stack::Frame;
 
@@ -96,6 +97,54 @@ struct Node {
     participant: *mut c_void,
     ctrl: *mut c_void,
     seen: Box<Mutex<Vec<Seen>>>,
+    /// Synchronised: what it sends at which simulation time (kept alive for the handler).
+    _plan: Option<Box<Plan>>,
+}
+
+/// A synchronised node's script: frames to send at simulation times (stamped with the time,
+/// D40); its controller starts at its first step.
+struct Plan {
+    api: Arc<Api>,
+    ctrl: *mut c_void,
+    frames: Vec<(u64, u32, Vec<u8>)>,
+}
+
+unsafe extern "C" fn on_step(ctx: *mut c_void, _ts: *mut c_void, now: u64, _d: u64) {
+    let plan = unsafe { &*(ctx as *const Plan) };
+    if now == 0 {
+        unsafe { (plan.api.can_controller_start)(plan.ctrl) };
+    }
+    for (t, id, data) in &plan.frames {
+        // Sent in the step that contains its time, stamped with that time (a runtime that
+        // runs through its step sends frames at times within it).
+        if now <= *t && *t < now + 1_000_000 {
+            send_frame(&plan.api, plan.ctrl, *id, data, context_of_time(*t));
+        }
+    }
+}
+
+fn send_frame(api: &Api, ctrl: *mut c_void, id: u32, data: &[u8], context: u64) {
+    let mut f = CanFrame {
+        header: StructHeader::new(ids::CAN_FRAME),
+        id,
+        flags: 0,
+        dlc: data.len() as u16,
+        sdt: 0,
+        vcid: 0,
+        af: 0,
+        data: ByteVector {
+            data: data.as_ptr(),
+            size: data.len(),
+        },
+    };
+    let _ = flags::IDE;
+    unsafe {
+        api.check(
+            "send",
+            (api.can_controller_send_frame)(ctrl, &mut f, context as *mut c_void),
+        )
+        .unwrap()
+    };
 }
 
 unsafe extern "C" fn on_frame(ctx: *mut c_void, _c: *mut c_void, ev: *mut CanFrameEvent) {
@@ -150,6 +199,27 @@ unsafe extern "C" fn on_error(
 
 impl Node {
     fn join(api: &Arc<Api>, uri: &str, name: &str, network: &str) -> Node {
+        Node::join_with(api, uri, name, network, None)
+    }
+
+    /// A node in a coordinated, synchronised simulation (1 ms steps) that sends `frames`.
+    fn join_sync(
+        api: &Arc<Api>,
+        uri: &str,
+        name: &str,
+        network: &str,
+        frames: Vec<(u64, u32, Vec<u8>)>,
+    ) -> Node {
+        Node::join_with(api, uri, name, network, Some(frames))
+    }
+
+    fn join_with(
+        api: &Arc<Api>,
+        uri: &str,
+        name: &str,
+        network: &str,
+        frames: Option<Vec<(u64, u32, Vec<u8>)>>,
+    ) -> Node {
         let cfg_text =
             CString::new("Logging:\n  Sinks:\n    - Type: Stdout\n      Level: Warn\n").unwrap();
         let name_c = CString::new(name).unwrap();
@@ -206,11 +276,42 @@ impl Node {
             )
             .unwrap();
         }
+        let plan = frames.map(|frames| {
+            let plan = Box::new(Plan {
+                api: api.clone(),
+                ctrl,
+                frames,
+            });
+            let conf = LifecycleConfiguration {
+                header: StructHeader::new(ids::LIFECYCLE_CONFIGURATION),
+                operation_mode: 10,
+            };
+            let (mut lc, mut ts) = (std::ptr::null_mut(), std::ptr::null_mut());
+            unsafe {
+                api.check(
+                    "lifecycle",
+                    (api.lifecycle_create)(&mut lc, participant, &conf),
+                )
+                .unwrap();
+                api.check("time sync", (api.time_sync_create)(&mut ts, lc))
+                    .unwrap();
+                let p = &*plan as *const Plan as *mut c_void;
+                api.check(
+                    "step",
+                    (api.time_sync_set_step_handler)(ts, p, on_step, 1_000_000),
+                )
+                .unwrap();
+                api.check("lifecycle start", (api.lifecycle_start)(lc))
+                    .unwrap();
+            }
+            plan
+        });
         Node {
             api: api.clone(),
             participant,
             ctrl,
             seen,
+            _plan: plan,
         }
     }
 
@@ -385,4 +486,126 @@ fn frames_go_through_the_timeline_with_bus_md_times_and_arbitration() {
             "no frame on SIL Kit's own bus after the simulator stopped"
         );
     }
+}
+
+/// One synchronised run: registry, system controller, simulator (100 µs steps) and two nodes
+/// (1 ms steps) in a coordinated simulation; returns what each node saw of the frames.
+fn sync_run(api: &Arc<Api>, reg_bin: &PathBuf) -> (Vec<Seen>, Vec<Seen>) {
+    let reg = Registry::start(reg_bin);
+    let sc_bin = reg_bin.with_file_name("sil-kit-system-controller");
+    let mut sc = Command::new(&sc_bin)
+        .args([
+            "--connect-uri",
+            &reg.uri,
+            "--log",
+            "warn",
+            "netsim",
+            "A",
+            "B",
+        ])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("sil-kit-system-controller starts");
+    let sim = Simulator::start(
+        api.clone(),
+        &reg.uri,
+        "netsim",
+        &[NetworkSpec {
+            name: "CAN1".into(),
+            kbps: 125,
+        }],
+        TimeMode::Sync {
+            step: 100_000,
+            coordinated: true,
+        },
+    )
+    .expect("simulator starts");
+    let d = [0xA5u8; 8];
+    // At 1.05 ms all three requests meet: 0x100 (B) wins, then A's 0x200 and 0x300 by
+    // priority; at 2.05 ms A's 0x180 waits for the frame on the wire and goes before 0x300.
+    // (Times between the simulator's steps: only the stamps can put them there.)
+    let a = Node::join_sync(
+        api,
+        &reg.uri,
+        "A",
+        "CAN1",
+        vec![
+            (1_050_000, 0x300, d.to_vec()),
+            (1_050_000, 0x200, d.to_vec()),
+            (2_050_000, 0x180, vec![1, 2]),
+        ],
+    );
+    let b = Node::join_sync(
+        api,
+        &reg.uri,
+        "B",
+        "CAN1",
+        vec![(1_050_000, 0x100, d.to_vec())],
+    );
+    let frames = |s: &[Seen]| {
+        s.iter()
+            .filter(|e| !matches!(e, Seen::State(_) | Seen::Error(_)))
+            .cloned()
+            .collect::<Vec<_>>()
+    };
+    let sb = b.wait("B receives A's three frames", |s| {
+        s.iter().filter(|e| matches!(e, Seen::Rx { .. })).count() >= 3
+            && s.iter().any(|e| matches!(e, Seen::Ack { .. }))
+    });
+    let sa = a.wait("A's three acks", |s| {
+        s.iter().filter(|e| matches!(e, Seen::Ack { .. })).count() >= 3
+    });
+    drop((a, b, sim));
+    let _ = sc.kill();
+    let _ = sc.wait();
+    (frames(&sa), frames(&sb))
+}
+
+#[test]
+fn synchronised_runs_are_deterministic_with_bus_md_times() {
+    let Some((api, reg_bin)) = silkit() else {
+        eprintln!("SIL Kit not installed (CANPOS_SILKIT_LIB / CANPOS_SILKIT_REGISTRY): skipped");
+        return;
+    };
+    let (a1, b1) = sync_run(&api, &reg_bin);
+    let bit = 8_000u64; // 125 kbit/s
+    let d = [0xA5u8; 8];
+    let t0 = 1_050_000u64;
+    let e1 = t0 + (bits(0x100, &d) - 3) * bit;
+    let s2 = t0 + bits(0x100, &d) * bit;
+    let e2 = s2 + (bits(0x200, &d) - 3) * bit;
+    let s3 = s2 + bits(0x200, &d) * bit;
+    let e3 = s3 + (bits(0x180, &[1, 2]) - 3) * bit;
+    let s4 = s3 + bits(0x180, &[1, 2]) * bit;
+    let e4 = s4 + (bits(0x300, &d) - 3) * bit;
+    let rx_b: Vec<(u32, u64)> = b1
+        .iter()
+        .filter_map(|e| match e {
+            Seen::Rx { id, at, .. } => Some((*id, *at)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(rx_b, vec![(0x200, e2), (0x180, e3), (0x300, e4)]);
+    assert!(
+        b1.contains(&Seen::Ack {
+            id: 0x100,
+            context: context_of_time(t0),
+            status: 1,
+            at: e1
+        }),
+        "{b1:?}"
+    );
+    assert!(
+        a1.contains(&Seen::Rx {
+            id: 0x100,
+            data: d.to_vec(),
+            at: e1
+        }),
+        "{a1:?}"
+    );
+    // The same scenario again: the same frames at the same simulated times.
+    let (a2, b2) = sync_run(&api, &reg_bin);
+    assert_eq!(a1, a2);
+    assert_eq!(b1, b2);
 }

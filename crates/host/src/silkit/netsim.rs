@@ -676,7 +676,9 @@ impl Core {
             let ready = ns.waiting.partition_point(|w| w.at < t);
             let batch: Vec<Waiting> = ns.waiting.drain(..ready).collect();
             for w in batch {
-                ns.net.advance_to(w.at, &mut out);
+                // Just before its time: the requests stamped with one time all take part in
+                // the arbitration at that time (advancing to it would start the first alone).
+                ns.net.advance_to(w.at.saturating_sub(1), &mut out);
                 submit(&mut ns.net, &w, &mut out);
             }
             ns.net.advance_to(t.saturating_sub(1), &mut out);
