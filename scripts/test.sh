@@ -11,6 +11,13 @@ step() { printf '\n=== %s (at %d:%02d) ===\n' "$*" $((SECONDS / 60)) $((SECONDS 
 step "Debian packages the suites need"
 scripts/deps.sh
 
+# Vector SIL Kit 5.0.3 (libSilKit.so, sil-kit-registry) from PyPI's SilKit_py wheel, hash-pinned,
+# into target/silkit (docs/SILKIT.md): the SIL Kit tests of `cargo test` find it there and must
+# run (CANPOS_SILKIT_REQUIRED=1), not skip.
+step "Vector SIL Kit (scripts/silkit.sh)"
+scripts/silkit.sh
+export CANPOS_SILKIT_REQUIRED=1
+
 step "cargo fmt --check"
 cargo fmt --all --check
 

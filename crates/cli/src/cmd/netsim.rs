@@ -2,11 +2,11 @@
 //! network (issue 32 item 3, docs/SILKIT.md "canpos as the network simulator").
 
 use std::io::Write as _;
-use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use canpos_host::silkit::netsim::{Api, NetworkReport, NetworkSpec, Simulator, TimeMode};
+use canpos_host::silkit::netsim::{NetworkReport, NetworkSpec, Simulator, TimeMode};
+use canpos_host::silkit::{check_name, sys, RegistryUri};
 use clap::{Args, ValueEnum};
 
 use crate::common::{parse_bitrate, stop_signal, Usage};
@@ -48,9 +48,6 @@ pub struct NetsimArgs {
     /// SIL Kit participant name.
     #[arg(long, value_name = "NAME", default_value = "canpos-netsim")]
     pub participant: String,
-    /// libSilKit.so (default: $CANPOS_SILKIT_LIB, as scripts/silkit.sh prints it).
-    #[arg(long, value_name = "PATH")]
-    pub silkit_lib: Option<PathBuf>,
     /// Log every network's counters every this many seconds (0: never).
     #[arg(long, value_name = "S", default_value_t = 10.0)]
     pub stats_interval: f64,
@@ -59,18 +56,23 @@ pub struct NetsimArgs {
     pub duration: Option<f64>,
 }
 
-/// `silkit://HOST:PORT` (no path): the registry's URI as SIL Kit takes it.
-fn registry_uri(s: &str) -> Result<String, String> {
-    let rest = s
-        .strip_prefix("silkit://")
-        .ok_or_else(|| format!("`{s}`: the registry is silkit://HOST:PORT"))?;
-    let (host, port) = rest
-        .rsplit_once(':')
-        .ok_or_else(|| format!("`{s}`: no port (silkit://HOST:PORT)"))?;
-    if host.is_empty() || host.contains('/') || port.parse::<u16>().map_or(true, |p| p == 0) {
-        return Err(format!("`{s}` is not silkit://HOST:PORT"));
+/// `silkit://HOST:PORT` (no path; an IPv6 host in brackets): the registry's address.
+fn registry_uri(s: &str) -> Result<RegistryUri, String> {
+    let bad = || format!("`{s}` is not silkit://HOST:PORT");
+    let rest = s.strip_prefix("silkit://").ok_or_else(bad)?;
+    let (host, port) = rest.rsplit_once(':').ok_or_else(bad)?;
+    let host = match host.strip_prefix('[') {
+        Some(h) => h.strip_suffix(']').ok_or_else(bad)?,
+        None => host,
+    };
+    let port: u16 = port.parse().map_err(|_| bad())?;
+    if host.is_empty() || host.contains(['/', '[', ']']) || port == 0 {
+        return Err(bad());
     }
-    Ok(s.to_string())
+    Ok(RegistryUri {
+        host: host.to_string(),
+        port,
+    })
 }
 
 /// Runs `canpos bus netsim`.
@@ -79,9 +81,7 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
     let uri = registry_uri(&args.registry).map_err(usage)?;
     let mut specs = Vec::new();
     for n in &args.networks {
-        if n.is_empty() || n.len() > 256 || n.chars().any(|c| c.is_control()) {
-            return Err(usage(format!("`{n}` is not a network name")));
-        }
+        check_name("network name", n).map_err(usage)?;
         if specs.iter().any(|s: &NetworkSpec| &s.name == n) {
             return Err(usage(format!("network `{n}` given twice")));
         }
@@ -90,17 +90,7 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
             kbps: args.bitrate,
         });
     }
-    let lib = args
-        .silkit_lib
-        .clone()
-        .or_else(|| std::env::var_os("CANPOS_SILKIT_LIB").map(PathBuf::from))
-        .ok_or_else(|| {
-            anyhow!(
-                "no libSilKit.so: give --silkit-lib PATH or set CANPOS_SILKIT_LIB \
-                 (scripts/silkit.sh installs SIL Kit and prints it)"
-            )
-        })?;
-    let api = Api::load(&lib).map_err(|e| anyhow!(e))?;
+    let api = sys::api().map_err(|e| anyhow!(e))?;
     let mode = match args.time {
         NetsimTime::Wall => TimeMode::Wall,
         NetsimTime::Sync => TimeMode::Sync {
@@ -109,6 +99,7 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
         },
     };
     let stop = stop_signal()?;
+    check_name("participant name", &args.participant).map_err(usage)?;
     let sim = Simulator::start(api, &uri, &args.participant, &specs, mode)
         .map_err(|e| anyhow!("canpos bus netsim: {e}"))?;
     println!(
@@ -206,8 +197,12 @@ mod tests {
 
     #[test]
     fn registry_uris() {
-        assert!(registry_uri("silkit://127.0.0.1:8500").is_ok());
+        assert_eq!(
+            registry_uri("silkit://127.0.0.1:8500").unwrap().to_string(),
+            "silkit://127.0.0.1:8500"
+        );
         assert!(registry_uri("silkit://localhost:8500").is_ok());
+        assert_eq!(registry_uri("silkit://[::1]:8500").unwrap().host, "::1");
         for bad in [
             "127.0.0.1:8500",
             "silkit://127.0.0.1",
@@ -216,6 +211,7 @@ mod tests {
             "silkit://127.0.0.1:99999",
             "silkit://127.0.0.1:8500/can0",
             "socketcand://127.0.0.1:8500",
+            "silkit://[::1:8500",
         ] {
             assert!(registry_uri(bad).is_err(), "{bad}");
         }

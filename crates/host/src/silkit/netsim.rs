@@ -11,18 +11,24 @@
 //! counters and bus-off (docs/BUS.md).
 //!
 //! The C API is bound by hand (`extern "C"` declarations of the few functions used and
-//! `#[repr(C)]` structs, every one starting with SIL Kit's versioned struct header) and
-//! loaded at run time with `libloading`, so canpos builds and tests without SIL Kit.
+//! `#[repr(C)]` structs, every one starting with SIL Kit's versioned struct header) next to
+//! [`sys`]'s, resolved from the library [`sys::api`] loaded at run time, so canpos builds and
+//! tests without SIL Kit.
 //!
 //! Time: in synchronised mode the bus time is SIL Kit's simulation time, advanced by the
 //! participant's simulation steps; otherwise the simulator's monotonic clock since it started
 //! (a driver thread runs the bus). See [`TimeMode`].
 
 use std::collections::BTreeMap;
-use std::ffi::{c_char, c_void, CStr, CString};
-use std::path::Path;
+use std::ffi::{c_char, c_void, CString};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
+
+use super::sys::{
+    self, Api, ByteVector, CanErrorStateChangeEvent, CanFrame, CanFrameEvent,
+    CanFrameTransmitEvent, CanStateChangeEvent, LifecycleConfiguration, ReturnCode, StructHeader,
+};
+use super::{Participant, RegistryUri};
 
 use crate::bus::controllers::{
     BusState, ControllerMode, Descriptor, MemberStats, NetCounters, NetEvent, Network, RawFrame,
@@ -30,167 +36,24 @@ use crate::bus::controllers::{
 };
 use crate::bus::Nanos;
 
-/// SIL Kit's return code (`SilKit_ReturnCode`): 0 is success.
-pub type ReturnCode = i32;
-
-/// The SIL Kit major version this binding knows (the NetworkSimulator API is experimental:
-/// another major may change its tables).
-pub const KNOWN_MAJOR: u32 = 5;
-
-/// SIL Kit's versioned header at the start of every struct it exchanges (`SilKit_StructHeader`).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct StructHeader {
-    /// Service, data type and version of the struct (`SK_ID_MAKE`).
-    pub version: u64,
-    /// Reserved, zero.
-    pub reserved: [u64; 3],
-}
-
-impl StructHeader {
-    /// A header with the given id.
-    pub const fn new(version: u64) -> StructHeader {
-        StructHeader {
-            version,
-            reserved: [0; 3],
-        }
-    }
-
-    /// The data type number of a header (`SK_ID_GET_DATATYPE`).
-    pub const fn datatype(&self) -> u64 {
-        (self.version >> 32) & 0xFF
-    }
-}
-
-/// `SK_ID_MAKE`: "SK", service, data type, version.
-pub const fn sk_id(service: u64, datatype: u64, version: u64) -> u64 {
-    (83 << 56) | (75 << 48) | (service << 40) | (datatype << 32) | (version << 24)
-}
-
-/// The struct ids this binding uses (InterfaceIdentifiers.h of SIL Kit 5.0).
+/// The struct ids of the events the simulator produces and the tables it hands SIL Kit
+/// (InterfaceIdentifiers.h of SIL Kit 5.0; [`sys`] has those canpos's participants use).
 pub mod ids {
-    use super::sk_id;
-    const CAN: u64 = 1;
-    const PARTICIPANT: u64 = 7;
-    const NETSIM: u64 = 8;
-    /// `SilKit_CanFrame` v1.
-    pub const CAN_FRAME: u64 = sk_id(CAN, 1, 1);
+    use super::sys::{struct_id, SERVICE_CAN, SERVICE_NETWORK_SIMULATION};
     /// `SilKit_CanFrameTransmitEvent` v2 (with `canId`).
-    pub const CAN_FRAME_TRANSMIT_EVENT: u64 = sk_id(CAN, 2, 2);
+    pub const CAN_FRAME_TRANSMIT_EVENT: u64 = struct_id(SERVICE_CAN, 2, 2);
     /// `SilKit_CanFrameEvent` v1.
-    pub const CAN_FRAME_EVENT: u64 = sk_id(CAN, 3, 1);
+    pub const CAN_FRAME_EVENT: u64 = struct_id(SERVICE_CAN, 3, 1);
     /// `SilKit_CanStateChangeEvent` v1.
-    pub const CAN_STATE_CHANGE_EVENT: u64 = sk_id(CAN, 4, 1);
+    pub const CAN_STATE_CHANGE_EVENT: u64 = struct_id(SERVICE_CAN, 4, 1);
     /// `SilKit_CanErrorStateChangeEvent` v1.
-    pub const CAN_ERROR_STATE_CHANGE_EVENT: u64 = sk_id(CAN, 5, 1);
-    /// `SilKit_LifecycleConfiguration` v1.
-    pub const LIFECYCLE_CONFIGURATION: u64 = sk_id(PARTICIPANT, 2, 1);
+    pub const CAN_ERROR_STATE_CHANGE_EVENT: u64 = struct_id(SERVICE_CAN, 5, 1);
     /// `SilKit_Experimental_EventReceivers` v1.
-    pub const EVENT_RECEIVERS: u64 = sk_id(NETSIM, 1, 1);
+    pub const EVENT_RECEIVERS: u64 = struct_id(SERVICE_NETWORK_SIMULATION, 1, 1);
     /// `SilKit_Experimental_SimulatedNetworkFunctions` v1.
-    pub const SIMULATED_NETWORK_FUNCTIONS: u64 = sk_id(NETSIM, 2, 1);
+    pub const SIMULATED_NETWORK_FUNCTIONS: u64 = struct_id(SERVICE_NETWORK_SIMULATION, 2, 1);
     /// `SilKit_Experimental_SimulatedCanControllerFunctions` v1.
-    pub const SIMULATED_CAN_CONTROLLER_FUNCTIONS: u64 = sk_id(NETSIM, 3, 1);
-}
-
-/// `SilKit_CanFrameFlag` bits.
-pub mod flags {
-    /// Identifier extension.
-    pub const IDE: u32 = 1 << 9;
-    /// Remote transmission request.
-    pub const RTR: u32 = 1 << 4;
-    /// CAN FD format.
-    pub const FDF: u32 = 1 << 12;
-    /// CAN XL format.
-    pub const XLF: u32 = 1 << 15;
-}
-
-/// `SilKit_ByteVector`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug)]
-pub struct ByteVector {
-    /// The bytes.
-    pub data: *const u8,
-    /// How many.
-    pub size: usize,
-}
-
-/// `SilKit_CanFrame`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug)]
-pub struct CanFrame {
-    /// Header ([`ids::CAN_FRAME`]).
-    pub header: StructHeader,
-    /// Identifier.
-    pub id: u32,
-    /// [`flags`].
-    pub flags: u32,
-    /// Data length code.
-    pub dlc: u16,
-    /// CAN XL SDU type.
-    pub sdt: u8,
-    /// CAN XL virtual network id.
-    pub vcid: u8,
-    /// CAN XL acceptance field.
-    pub af: u32,
-    /// Data field.
-    pub data: ByteVector,
-}
-
-/// `SilKit_CanFrameEvent`.
-#[repr(C)]
-#[derive(Debug)]
-pub struct CanFrameEvent {
-    /// Header ([`ids::CAN_FRAME_EVENT`]).
-    pub header: StructHeader,
-    /// Reception time, ns.
-    pub timestamp: u64,
-    /// The frame.
-    pub frame: *mut CanFrame,
-    /// `SilKit_Direction`: 1 send (TX), 2 receive (RX).
-    pub direction: u8,
-    /// The sender's context (TX only).
-    pub user_context: *mut c_void,
-}
-
-/// `SilKit_CanFrameTransmitEvent` (v2).
-#[repr(C)]
-#[derive(Debug)]
-pub struct CanFrameTransmitEvent {
-    /// Header ([`ids::CAN_FRAME_TRANSMIT_EVENT`]).
-    pub header: StructHeader,
-    /// The request's context.
-    pub user_context: *mut c_void,
-    /// When, ns.
-    pub timestamp: u64,
-    /// `SilKit_CanTransmitStatus`: 1 transmitted, 2 canceled, 4 transmit queue full.
-    pub status: i32,
-    /// The frame's identifier.
-    pub can_id: u32,
-}
-
-/// `SilKit_CanStateChangeEvent`.
-#[repr(C)]
-#[derive(Debug)]
-pub struct CanStateChangeEvent {
-    /// Header ([`ids::CAN_STATE_CHANGE_EVENT`]).
-    pub header: StructHeader,
-    /// When, ns.
-    pub timestamp: u64,
-    /// `SilKit_CanControllerState`.
-    pub state: i32,
-}
-
-/// `SilKit_CanErrorStateChangeEvent`.
-#[repr(C)]
-#[derive(Debug)]
-pub struct CanErrorStateChangeEvent {
-    /// Header ([`ids::CAN_ERROR_STATE_CHANGE_EVENT`]).
-    pub header: StructHeader,
-    /// When, ns.
-    pub timestamp: u64,
-    /// `SilKit_CanErrorState`: 0 not available, 1 active, 2 passive, 3 bus-off.
-    pub error_state: i32,
+    pub const SIMULATED_CAN_CONTROLLER_FUNCTIONS: u64 = struct_id(SERVICE_NETWORK_SIMULATION, 3, 1);
 }
 
 /// `SilKit_Experimental_EventReceivers`.
@@ -246,144 +109,48 @@ struct SimulatedCanControllerFunctions {
     on_set_controller_mode: unsafe extern "C" fn(*mut c_void, *const CanControllerModeMsg),
 }
 
-/// `SilKit_LifecycleConfiguration`.
-#[repr(C)]
-pub struct LifecycleConfiguration {
-    /// Header ([`ids::LIFECYCLE_CONFIGURATION`]).
-    pub header: StructHeader,
-    /// `SilKit_OperationMode`: 10 coordinated, 20 autonomous.
-    pub operation_mode: i8,
+/// `SilKit_TimeSyncService_SimulationStepHandler_t` with an untyped service.
+type StepHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, u64, u64);
+
+/// The experimental NetworkSimulator functions (NetworkSimulator.h, EventProducer.h) and the
+/// synchronous step handler, resolved from the library [`sys::api`] loaded.
+struct NetsimFns {
+    create: unsafe extern "C" fn(*mut *mut c_void, *mut sys::Participant) -> ReturnCode,
+    simulate_network: unsafe extern "C" fn(
+        *mut c_void,
+        *const c_char,
+        u32,
+        *mut c_void,
+        *const SimulatedNetworkFunctions,
+    ) -> ReturnCode,
+    start: unsafe extern "C" fn(*mut c_void) -> ReturnCode,
+    produce:
+        unsafe extern "C" fn(*mut c_void, *mut StructHeader, *const EventReceivers) -> ReturnCode,
+    set_step_handler: unsafe extern "C" fn(
+        *mut sys::TimeSyncService,
+        *mut c_void,
+        StepHandler,
+        u64,
+    ) -> ReturnCode,
 }
 
-/// `SilKit_TimeSyncService_SimulationStepHandler_t`.
-pub type StepHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, u64, u64);
-/// `SilKit_LifecycleService_StopHandler_t`.
-pub type StopHandler = unsafe extern "C" fn(*mut c_void, *mut c_void);
-/// `SilKit_CanFrameHandler_t`.
-pub type FrameHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanFrameEvent);
-/// `SilKit_CanFrameTransmitHandler_t`.
-pub type TransmitHandler =
-    unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanFrameTransmitEvent);
-/// `SilKit_CanStateChangeHandler_t`.
-pub type StateHandler = unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanStateChangeEvent);
-/// `SilKit_CanErrorStateChangeHandler_t`.
-pub type ErrorStateHandler =
-    unsafe extern "C" fn(*mut c_void, *mut c_void, *mut CanErrorStateChangeEvent);
-
-macro_rules! api {
-    ($($field:ident : $sym:literal => $ty:ty;)*) => {
-        /// The functions of `libSilKit.so` this crate calls, resolved when it is loaded.
-        #[allow(missing_docs)]
-        pub struct Api {
-            $(pub $field: $ty,)*
-            // Last: the library stays loaded while the pointers above exist.
-            _lib: libloading::Library,
+impl NetsimFns {
+    fn resolve(api: &Api) -> Result<NetsimFns, sys::Error> {
+        // SAFETY: each type is the C declaration of that function in SIL Kit 5's headers
+        // (sys::api refused other majors).
+        unsafe {
+            Ok(NetsimFns {
+                create: api.symbol(b"SilKit_Experimental_NetworkSimulator_Create\0")?,
+                simulate_network: api
+                    .symbol(b"SilKit_Experimental_NetworkSimulator_SimulateNetwork\0")?,
+                start: api.symbol(b"SilKit_Experimental_NetworkSimulator_Start\0")?,
+                produce: api.symbol(b"SilKit_Experimental_CanEventProducer_Produce\0")?,
+                set_step_handler: api
+                    .symbol(b"SilKit_TimeSyncService_SetSimulationStepHandler\0")?,
+            })
         }
-
-        impl Api {
-            /// Loads `libSilKit.so` from `path` and resolves every function, refusing a SIL Kit
-            /// major version other than [`KNOWN_MAJOR`].
-            pub fn load(path: &Path) -> Result<Arc<Api>, String> {
-                // SAFETY: loading a library runs its initialisers; libSilKit.so's are C++ static
-                // constructors with no preconditions.
-                let lib = unsafe { libloading::Library::new(path) }
-                    .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
-                // SAFETY: each symbol is declared with the signature of SIL Kit 5's C API
-                // (capi/*.h), and the major version is checked below before any other use.
-                let api = unsafe {
-                    Api {
-                        $($field: *lib.get::<$ty>(concat!($sym, "\0").as_bytes())
-                            .map_err(|e| format!("{}: no {}: {e}", path.display(), $sym))?,)*
-                        _lib: lib,
-                    }
-                };
-                let mut major = 0u32;
-                // SAFETY: a valid out pointer.
-                let rc = unsafe { (api.version_major)(&mut major) };
-                if rc != 0 || major != KNOWN_MAJOR {
-                    return Err(format!(
-                        "{}: SIL Kit major version {major} (rc {rc}); canpos knows {KNOWN_MAJOR} \
-                         (its network simulator API is experimental)",
-                        path.display()
-                    ));
-                }
-                Ok(Arc::new(api))
-            }
-        }
-    };
-}
-
-api! {
-    version_major: "SilKit_Version_Major" => unsafe extern "C" fn(*mut u32) -> ReturnCode;
-    last_error: "SilKit_GetLastErrorString" => unsafe extern "C" fn() -> *const c_char;
-    config_from_string: "SilKit_ParticipantConfiguration_FromString"
-        => unsafe extern "C" fn(*mut *mut c_void, *const c_char) -> ReturnCode;
-    config_destroy: "SilKit_ParticipantConfiguration_Destroy"
-        => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    participant_create: "SilKit_Participant_Create"
-        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const c_char, *const c_char) -> ReturnCode;
-    participant_destroy: "SilKit_Participant_Destroy" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    lifecycle_create: "SilKit_LifecycleService_Create"
-        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const LifecycleConfiguration) -> ReturnCode;
-    lifecycle_set_stop_handler: "SilKit_LifecycleService_SetStopHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, StopHandler) -> ReturnCode;
-    lifecycle_start: "SilKit_LifecycleService_StartLifecycle" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    lifecycle_stop: "SilKit_LifecycleService_Stop" => unsafe extern "C" fn(*mut c_void, *const c_char) -> ReturnCode;
-    lifecycle_wait: "SilKit_LifecycleService_WaitForLifecycleToComplete"
-        => unsafe extern "C" fn(*mut c_void, *mut i16) -> ReturnCode;
-    time_sync_create: "SilKit_TimeSyncService_Create"
-        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void) -> ReturnCode;
-    time_sync_set_step_handler: "SilKit_TimeSyncService_SetSimulationStepHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, StepHandler, u64) -> ReturnCode;
-    netsim_create: "SilKit_Experimental_NetworkSimulator_Create"
-        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void) -> ReturnCode;
-    netsim_simulate_network: "SilKit_Experimental_NetworkSimulator_SimulateNetwork"
-        => unsafe extern "C" fn(*mut c_void, *const c_char, u32, *mut c_void, *const c_void) -> ReturnCode;
-    netsim_start: "SilKit_Experimental_NetworkSimulator_Start" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    can_produce: "SilKit_Experimental_CanEventProducer_Produce"
-        => unsafe extern "C" fn(*mut c_void, *mut StructHeader, *const c_void) -> ReturnCode;
-    can_controller_create: "SilKit_CanController_Create"
-        => unsafe extern "C" fn(*mut *mut c_void, *mut c_void, *const c_char, *const c_char) -> ReturnCode;
-    can_controller_start: "SilKit_CanController_Start" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    can_controller_stop: "SilKit_CanController_Stop" => unsafe extern "C" fn(*mut c_void) -> ReturnCode;
-    can_controller_set_baud_rate: "SilKit_CanController_SetBaudRate"
-        => unsafe extern "C" fn(*mut c_void, u32, u32, u32) -> ReturnCode;
-    can_controller_send_frame: "SilKit_CanController_SendFrame"
-        => unsafe extern "C" fn(*mut c_void, *mut CanFrame, *mut c_void) -> ReturnCode;
-    can_controller_add_frame_handler: "SilKit_CanController_AddFrameHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, FrameHandler, u8, *mut u64) -> ReturnCode;
-    can_controller_add_frame_transmit_handler: "SilKit_CanController_AddFrameTransmitHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, TransmitHandler, i32, *mut u64) -> ReturnCode;
-    can_controller_add_state_change_handler: "SilKit_CanController_AddStateChangeHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, StateHandler, *mut u64) -> ReturnCode;
-    can_controller_add_error_state_change_handler: "SilKit_CanController_AddErrorStateChangeHandler"
-        => unsafe extern "C" fn(*mut c_void, *mut c_void, ErrorStateHandler, *mut u64) -> ReturnCode;
-}
-
-impl Api {
-    /// `Err` with SIL Kit's last error text for a failed call.
-    pub fn check(&self, what: &str, rc: ReturnCode) -> Result<(), String> {
-        if rc == 0 {
-            return Ok(());
-        }
-        // SAFETY: SIL Kit returns a thread-local, NUL-terminated string (or null).
-        let text = unsafe {
-            let p = (self.last_error)();
-            if p.is_null() {
-                String::new()
-            } else {
-                CStr::from_ptr(p).to_string_lossy().into_owned()
-            }
-        };
-        Err(format!("SIL Kit {what}: {text} (return code {rc})"))
     }
 }
-
-// SAFETY: the Api holds only function pointers into a library that stays loaded; SIL Kit's C
-// functions may be called from any thread.
-unsafe impl Send for Api {}
-// SAFETY: as above, nothing in it is mutated after load.
-unsafe impl Sync for Api {}
 
 /// The top byte of a frame request's user context that marks it as a simulation time stamp
 /// (D40): `0xC0` is never the top byte of a user-space pointer (x86-64 and AArch64 user
@@ -466,7 +233,8 @@ struct Shared {
 }
 
 struct Core {
-    api: Arc<Api>,
+    api: &'static Api,
+    fns: NetsimFns,
     mode: TimeMode,
     start: Instant,
     shared: Mutex<Shared>,
@@ -535,13 +303,13 @@ impl Core {
                     let data = frame.data();
                     let mut flags_v = 0;
                     if frame.is_extended() {
-                        flags_v |= flags::IDE;
+                        flags_v |= sys::CAN_FLAG_IDE;
                     }
                     if frame.is_remote() {
-                        flags_v |= flags::RTR;
+                        flags_v |= sys::CAN_FLAG_RTR;
                     }
                     let mut cf = CanFrame {
-                        header: StructHeader::new(ids::CAN_FRAME),
+                        header: StructHeader::new(sys::CAN_FRAME_ID),
                         id: frame.id(),
                         flags: flags_v,
                         dlc: u16::from(frame.dlc()),
@@ -655,10 +423,11 @@ impl Core {
         };
         // SAFETY: the producer is the one SIL Kit gave for this network; the message and the
         // receivers live across the call, which copies them.
-        let rc = unsafe {
-            (self.api.can_produce)(net.producer, msg, &receivers as *const _ as *const c_void)
-        };
-        if let Err(e) = self.api.check("event producer", rc) {
+        let rc = unsafe { (self.fns.produce)(net.producer, msg, &receivers) };
+        if let Err(e) = self
+            .api
+            .check("SilKit_Experimental_CanEventProducer_Produce", rc)
+        {
             tracing::warn!(network = ?net.name, "{e}");
         }
     }
@@ -716,9 +485,9 @@ fn submit(net: &mut Network, w: &Waiting, out: &mut Vec<NetEvent>) {
     };
     let raw = RawFrame {
         id: w.id,
-        extended: w.flags & flags::IDE != 0,
-        remote: w.flags & flags::RTR != 0,
-        fd_or_xl: w.flags & (flags::FDF | flags::XLF) != 0,
+        extended: w.flags & sys::CAN_FLAG_IDE != 0,
+        remote: w.flags & sys::CAN_FLAG_RTR != 0,
+        fd_or_xl: w.flags & (sys::CAN_FLAG_FDF | sys::CAN_FLAG_XLF) != 0,
         dlc: w.dlc,
         data,
     };
@@ -921,7 +690,7 @@ unsafe extern "C" fn on_step(ctx: *mut c_void, _ts: *mut c_void, now: u64, _dura
     });
 }
 
-unsafe extern "C" fn on_stop(ctx: *mut c_void, _lc: *mut c_void) {
+unsafe extern "C" fn on_stop(ctx: *mut c_void, _lc: *mut sys::LifecycleService) {
     guarded("Stop", || {
         // SAFETY: as in on_step.
         let core = unsafe { &*(ctx as *const Core) };
@@ -948,23 +717,23 @@ pub struct NetworkReport {
 /// The running simulator: one SIL Kit participant simulating its networks.
 pub struct Simulator {
     core: Arc<Core>,
-    participant: *mut c_void,
-    lifecycle: *mut c_void,
+    participant: Option<Participant>,
+    lifecycle: *mut sys::LifecycleService,
     // Boxed: SIL Kit holds their addresses.
     #[allow(clippy::vec_box)]
     _nets: Vec<Box<NetCtx>>,
     driver: Option<std::thread::JoinHandle<()>>,
 }
 
-// SAFETY: SIL Kit's participant and lifecycle handles may be used from any thread.
+// SAFETY: SIL Kit's handles may be used from any thread (its C API is thread-safe).
 unsafe impl Send for Simulator {}
 
 impl Simulator {
-    /// Joins the registry at `registry_uri` (`silkit://HOST:PORT`) as `participant_name` and
-    /// takes over `networks` as their CAN network simulator.
+    /// Joins the registry at `registry` as `participant_name` and takes over `networks` as
+    /// their CAN network simulator.
     pub fn start(
-        api: Arc<Api>,
-        registry_uri: &str,
+        api: &'static Api,
+        registry: &RegistryUri,
         participant_name: &str,
         networks: &[NetworkSpec],
         mode: TimeMode,
@@ -972,22 +741,24 @@ impl Simulator {
         if networks.is_empty() {
             return Err("no network to simulate".into());
         }
+        let fns = NetsimFns::resolve(api).map_err(|e| e.to_string())?;
         let mut names = BTreeMap::new();
         let mut nets = Vec::new();
         for n in networks {
+            super::check_name("network name", &n.name)?;
             if names.insert(n.name.clone(), ()).is_some() {
                 return Err(format!("network {} given twice", n.name));
             }
             nets.push(NetState {
-                name: CString::new(n.name.clone())
-                    .map_err(|_| format!("network name {:?} has a NUL byte", n.name))?,
+                name: CString::new(n.name.clone()).expect("checked: printable ASCII"),
                 net: Network::new(n.kbps)?,
                 producer: std::ptr::null_mut(),
                 waiting: Vec::new(),
             });
         }
         let core = Arc::new(Core {
-            api: api.clone(),
+            api,
+            fns,
             mode,
             start: Instant::now(),
             shared: Mutex::new(Shared {
@@ -999,69 +770,62 @@ impl Simulator {
             }),
             wake: Condvar::new(),
         });
-        let name = CString::new(participant_name).map_err(|_| "participant name has a NUL byte")?;
-        let uri = CString::new(registry_uri).map_err(|_| "registry URI has a NUL byte")?;
-        // Warnings and errors of SIL Kit itself on stdout, as the other canpos logs.
-        let config_text =
-            CString::new("Logging:\n  Sinks:\n    - Type: Stdout\n      Level: Warn\n")
-                .expect("no NUL");
-        let mut config = std::ptr::null_mut();
-        let mut participant = std::ptr::null_mut();
-        // SAFETY: valid out pointers and NUL-terminated strings; the configuration is destroyed
-        // once the participant is created (SIL Kit copies it).
-        unsafe {
-            api.check(
-                "participant configuration",
-                (api.config_from_string)(&mut config, config_text.as_ptr()),
-            )?;
-            let rc =
-                (api.participant_create)(&mut participant, config, name.as_ptr(), uri.as_ptr());
-            (api.config_destroy)(config);
-            api.check(&format!("cannot join the registry at {registry_uri}"), rc)?;
-        }
+        let participant =
+            Participant::join(api, participant_name, registry).map_err(|e| e.to_string())?;
+        let raw = participant.raw();
         let mut sim = Simulator {
             core: core.clone(),
-            participant,
+            participant: Some(participant),
             lifecycle: std::ptr::null_mut(),
             _nets: Vec::new(),
             driver: None,
         };
+        let err = |e: sys::Error| e.to_string();
         let core_ptr = Arc::as_ptr(&core) as *mut c_void;
+        let f = &core.fns;
         // SAFETY: handles from SIL Kit; contexts (Core, NetCtx) live as long as `sim`, which
         // destroys the participant (and so every callback) before dropping them.
         unsafe {
             let lc_conf = LifecycleConfiguration {
-                header: StructHeader::new(ids::LIFECYCLE_CONFIGURATION),
+                header: StructHeader::new(sys::LIFECYCLE_CONFIGURATION_ID),
                 operation_mode: match mode {
                     TimeMode::Sync {
                         coordinated: true, ..
-                    } => 10,
-                    _ => 20,
+                    } => sys::OPERATION_MODE_COORDINATED,
+                    _ => sys::OPERATION_MODE_AUTONOMOUS,
                 },
             };
             let mut lc = std::ptr::null_mut();
             api.check(
-                "lifecycle service",
-                (api.lifecycle_create)(&mut lc, participant, &lc_conf),
-            )?;
+                "SilKit_LifecycleService_Create",
+                (api.lifecycle_service_create)(&mut lc, raw, &lc_conf),
+            )
+            .map_err(err)?;
             sim.lifecycle = lc;
             api.check(
-                "stop handler",
-                (api.lifecycle_set_stop_handler)(lc, core_ptr, on_stop),
-            )?;
+                "SilKit_LifecycleService_SetStopHandler",
+                (api.lifecycle_service_set_stop_handler)(lc, core_ptr, on_stop),
+            )
+            .map_err(err)?;
             if let TimeMode::Sync { step, .. } = mode {
                 let mut ts = std::ptr::null_mut();
-                api.check("time sync service", (api.time_sync_create)(&mut ts, lc))?;
                 api.check(
-                    "simulation step handler",
-                    (api.time_sync_set_step_handler)(ts, core_ptr, on_step, step),
-                )?;
+                    "SilKit_TimeSyncService_Create",
+                    (api.time_sync_service_create)(&mut ts, lc),
+                )
+                .map_err(err)?;
+                api.check(
+                    "SilKit_TimeSyncService_SetSimulationStepHandler",
+                    (f.set_step_handler)(ts, core_ptr, on_step, step),
+                )
+                .map_err(err)?;
             }
             let mut netsim = std::ptr::null_mut();
             api.check(
-                "network simulator",
-                (api.netsim_create)(&mut netsim, participant),
-            )?;
+                "SilKit_Experimental_NetworkSimulator_Create",
+                (f.create)(&mut netsim, raw),
+            )
+            .map_err(err)?;
             let nnets = core.lock().nets.len();
             for index in 0..nnets {
                 let nctx = Box::new(NetCtx {
@@ -1072,18 +836,27 @@ impl Simulator {
                 sim._nets.push(nctx);
                 let net_name = core.lock().nets[index].name.clone();
                 api.check(
-                    &format!("simulate network {net_name:?}"),
-                    (api.netsim_simulate_network)(
+                    "SilKit_Experimental_NetworkSimulator_SimulateNetwork",
+                    (f.simulate_network)(
                         netsim,
                         net_name.as_ptr(),
                         1, // SilKit_NetworkType_CAN
                         np,
-                        &NETWORK_FUNCTIONS as *const _ as *const c_void,
+                        &NETWORK_FUNCTIONS,
                     ),
-                )?;
+                )
+                .map_err(err)?;
             }
-            api.check("network simulator start", (api.netsim_start)(netsim))?;
-            api.check("start lifecycle", (api.lifecycle_start)(lc))?;
+            api.check(
+                "SilKit_Experimental_NetworkSimulator_Start",
+                (f.start)(netsim),
+            )
+            .map_err(err)?;
+            api.check(
+                "SilKit_LifecycleService_StartLifecycle",
+                (api.lifecycle_service_start_lifecycle)(lc),
+            )
+            .map_err(err)?;
         }
         if mode == TimeMode::Wall {
             let c = core.clone();
@@ -1144,26 +917,28 @@ fn drive(core: &Core) {
 
 impl Drop for Simulator {
     fn drop(&mut self) {
-        let api = &self.core.api;
-        // SAFETY: handles from SIL Kit; destroying the participant ends its callbacks, after
-        // which the contexts may go.
+        let api = self.core.api;
         if !self.lifecycle.is_null() {
             let reason = c"canpos bus netsim stops";
             // SAFETY: a live lifecycle handle.
-            let _ = unsafe { (api.lifecycle_stop)(self.lifecycle, reason.as_ptr()) };
+            let _ = unsafe { (api.lifecycle_service_stop)(self.lifecycle, reason.as_ptr()) };
             // A graceful end (the others are told the simulator left, not that it vanished):
             // wait for the lifecycle to complete, at most 5 s; the wait goes on in its thread
             // if SIL Kit hangs, and the participant is destroyed regardless.
             let (tx, rx) = std::sync::mpsc::channel();
             let lc = self.lifecycle as usize;
-            let api2 = api.clone();
             let _ = std::thread::Builder::new()
                 .name("netsim-stop".into())
                 .spawn(move || {
                     let mut state = 0i16;
                     // SAFETY: the handle stays valid until the participant is destroyed,
                     // which waits for this answer or its timeout.
-                    let _ = unsafe { (api2.lifecycle_wait)(lc as *mut c_void, &mut state) };
+                    let _ = unsafe {
+                        (api.lifecycle_service_wait_for_lifecycle_to_complete)(
+                            lc as *mut sys::LifecycleService,
+                            &mut state,
+                        )
+                    };
                     let _ = tx.send(state);
                 });
             let _ = rx.recv_timeout(Duration::from_secs(5));
@@ -1175,12 +950,8 @@ impl Drop for Simulator {
         if let Some(d) = self.driver.take() {
             let _ = d.join();
         }
-        // SAFETY: as above.
-        unsafe {
-            if !self.participant.is_null() {
-                let _ = (api.participant_destroy)(self.participant);
-            }
-        }
+        // Destroyed before the contexts (`_nets`, the core) its callbacks use.
+        self.participant.take();
     }
 }
 
@@ -1193,23 +964,23 @@ mod tests {
         // SK_ID_MAKE(Can, SilKit_CanFrameTransmitEvent): 'S' 'K', service 1, type 2, version 2.
         assert_eq!(ids::CAN_FRAME_TRANSMIT_EVENT, 0x534B_0102_0200_0000);
         assert_eq!(ids::SIMULATED_NETWORK_FUNCTIONS, 0x534B_0802_0100_0000);
-        assert_eq!(StructHeader::new(ids::CAN_FRAME_EVENT).datatype(), 3);
+        assert_eq!(
+            ids::SIMULATED_CAN_CONTROLLER_FUNCTIONS,
+            0x534B_0803_0100_0000
+        );
+        assert_eq!(ids::EVENT_RECEIVERS, 0x534B_0801_0100_0000);
     }
 
     #[test]
     fn layouts_match_the_c_headers() {
-        // pack(8) on x86-64: the offsets the C compiler gives (capi/Can.h, NetworkSimulator.h).
-        assert_eq!(std::mem::size_of::<StructHeader>(), 32);
-        assert_eq!(std::mem::offset_of!(CanFrame, dlc), 40);
-        assert_eq!(std::mem::offset_of!(CanFrame, af), 44);
-        assert_eq!(std::mem::offset_of!(CanFrame, data), 48);
-        assert_eq!(std::mem::size_of::<CanFrame>(), 64);
-        assert_eq!(std::mem::offset_of!(CanFrameEvent, direction), 48);
-        assert_eq!(std::mem::offset_of!(CanFrameEvent, user_context), 56);
-        assert_eq!(std::mem::offset_of!(CanFrameTransmitEvent, status), 48);
-        assert_eq!(std::mem::offset_of!(CanFrameTransmitEvent, can_id), 52);
+        // pack(8) on x86-64: the sizes and offsets gcc gives for NetworkSimulator.h /
+        // EventProducer.h.
+        assert_eq!(std::mem::size_of::<EventReceivers>(), 48);
+        assert_eq!(std::mem::offset_of!(CanFrameRequest, user_context), 40);
+        assert_eq!(std::mem::offset_of!(CanConfigureBaudrate, xl_rate), 40);
         assert_eq!(std::mem::offset_of!(CanControllerModeMsg, state), 36);
         assert_eq!(std::mem::size_of::<SimulatedNetworkFunctions>(), 56);
+        assert_eq!(std::mem::size_of::<SimulatedCanControllerFunctions>(), 56);
     }
 
     #[test]
@@ -1222,13 +993,5 @@ mod tests {
         assert_eq!(time_of_context(0), None);
         assert_eq!(time_of_context(0x7fff_1234_5678), None);
         assert_eq!(time_of_context(u64::MAX), None);
-    }
-
-    #[test]
-    fn a_missing_library_is_a_clear_error() {
-        let Err(e) = Api::load(Path::new("/nonexistent/libSilKit.so")) else {
-            panic!("loaded a library that does not exist");
-        };
-        assert!(e.contains("cannot load /nonexistent/libSilKit.so"), "{e}");
     }
 }
