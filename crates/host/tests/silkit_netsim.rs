@@ -524,3 +524,77 @@ fn synchronised_runs_are_deterministic_with_bus_md_times() {
     assert_eq!(a1, a2);
     assert_eq!(b1, b2);
 }
+
+#[test]
+fn several_networks_in_one_simulator_are_separate_buses() {
+    let Some(api) = silkit() else {
+        return;
+    };
+    let reg = registry();
+    let sim = Simulator::start(
+        api,
+        reg.uri(),
+        "netsim",
+        &[
+            NetworkSpec {
+                name: "CAN1".into(),
+                kbps: 10,
+            },
+            NetworkSpec {
+                name: "CAN2".into(),
+                kbps: 10,
+            },
+        ],
+        TimeMode::Wall,
+    )
+    .expect("simulator starts");
+    let a1 = Node::join(api, &reg, "A1", "CAN1");
+    let b1 = Node::join(api, &reg, "B1", "CAN1");
+    let a2 = Node::join(api, &reg, "A2", "CAN2");
+    let b2 = Node::join(api, &reg, "B2", "CAN2");
+    for n in [&a1, &b1, &a2, &b2] {
+        n.start();
+    }
+    for n in [&a1, &b1, &a2, &b2] {
+        n.wait("started", |s| s.contains(&Seen::Error(1)));
+    }
+    // The same identifiers on both networks at once: no collision, each network carries its
+    // own frames back to back.
+    let d = [0x11u8; 8];
+    for (n, base) in [(&a1, 0x300), (&a2, 0x300)] {
+        n.send(base, &d, 1);
+        n.send(base - 0x100, &d, 2);
+    }
+    for (b, a) in [(&b1, &a1), (&b2, &a2)] {
+        let s = b.wait("two frames", |s| {
+            s.iter().filter(|e| matches!(e, Seen::Rx { .. })).count() == 2
+        });
+        let rx: Vec<(u32, u64)> = s
+            .iter()
+            .filter_map(|e| match e {
+                Seen::Rx { id, at, .. } => Some((*id, *at)),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(rx[0].0, 0x300);
+        assert_eq!(rx[1].0, 0x200);
+        assert_eq!(rx[1].1 - rx[0].1, bits(0x200, &d) * 100_000);
+        a.wait("two acks", |s| {
+            s.iter()
+                .filter(|e| matches!(e, Seen::Ack { status: 1, .. }))
+                .count()
+                == 2
+        });
+    }
+    let rep = sim.report();
+    assert_eq!(rep.len(), 2);
+    for r in &rep {
+        assert_eq!(
+            (r.counters.frames, r.counters.deliveries),
+            (2, 2),
+            "{}",
+            r.name
+        );
+        assert_eq!(r.controllers.len(), 2, "{}", r.name);
+    }
+}
