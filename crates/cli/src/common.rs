@@ -49,7 +49,8 @@ pub(crate) use usage;
 /// The bus option every master command takes.
 #[derive(Args, Debug, Clone)]
 pub struct BusArg {
-    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME.
+    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE, mem://NAME or
+    /// silkit://HOST:PORT/NETWORK (docs/SILKIT.md).
     #[arg(long, global = true, default_value = DEFAULT_URL, value_name = "URL")]
     pub bus: String,
 }
@@ -65,6 +66,96 @@ pub fn open_bus(url: &str) -> Result<Box<dyn Transport>> {
         )),
         e => anyhow::Error::new(e).context(format!("cannot open the bus {url}")),
     })
+}
+
+/// The SIL Kit options of a device command (`run`, `scenario`; docs/SILKIT.md).
+#[derive(Args, Debug, Clone, Default)]
+pub struct SilkitArgs {
+    /// For a silkit:// bus: the participant's name (unique in the simulation). Default: the
+    /// sensor's name, MODEL-SERIAL (`run`), or canpos-PID-N.
+    #[arg(long, value_name = "NAME")]
+    pub participant: Option<String>,
+    /// For a silkit:// bus: `wall` (default) runs on the wall clock; `sync` on SIL Kit's
+    /// simulation time, in steps of --step-us, under a system controller.
+    #[arg(long, value_name = "MODE", value_parser = ["wall", "sync"])]
+    pub time: Option<String>,
+    /// For `--time sync`: the simulation step in µs (default 1000).
+    #[arg(long, value_name = "US", value_parser = clap::value_parser!(u64).range(1..=1_000_000_000))]
+    pub step_us: Option<u64>,
+}
+
+/// `url` with the SIL Kit options put into it (a silkit:// URL's `participant`, `time`,
+/// `step-us`; `default_participant` when neither names one); a usage error for these options
+/// with another bus.
+pub fn silkit_url(url: &str, s: &SilkitArgs, default_participant: Option<&str>) -> Result<String> {
+    let given = s.participant.is_some() || s.time.is_some() || s.step_us.is_some();
+    let parsed = match BusUrl::parse(url) {
+        Ok(u) => u,
+        // Reported by whoever opens it, as before.
+        Err(_) => return Ok(url.to_string()),
+    };
+    let BusUrl::Silkit {
+        host,
+        port,
+        network,
+        participant,
+        sync_step_us,
+    } = parsed
+    else {
+        if given {
+            return Err(usage!(
+                "--participant, --time and --step-us are for a silkit:// bus (docs/SILKIT.md)"
+            ));
+        }
+        return Ok(url.to_string());
+    };
+    if s.step_us.is_some() && s.time.as_deref() != Some("sync") && sync_step_us.is_none() {
+        return Err(usage!("--step-us needs --time sync"));
+    }
+    let sync_step_us = match s.time.as_deref() {
+        Some("wall") => None,
+        Some(_) => Some(s.step_us.or(sync_step_us).unwrap_or(1000)),
+        None => sync_step_us.map(|d| s.step_us.unwrap_or(d)),
+    };
+    let participant = s
+        .participant
+        .clone()
+        .or(participant)
+        .or(default_participant.map(str::to_string));
+    if let Some(p) = &participant {
+        canpos_host::silkit::check_name("participant name", p).map_err(|e| usage!("{e}"))?;
+    }
+    Ok(BusUrl::Silkit {
+        host,
+        port,
+        network,
+        participant,
+        sync_step_us,
+    }
+    .to_string())
+}
+
+/// The URL of a second connection of the same process (the `--web` dashboard's): a silkit://
+/// URL's participant name gets `-web`, as two participants cannot share a name.
+pub fn second_connection_url(url: &str) -> String {
+    match BusUrl::parse(url) {
+        Ok(BusUrl::Silkit {
+            host,
+            port,
+            network,
+            participant,
+            ..
+        }) => BusUrl::Silkit {
+            host,
+            port,
+            network,
+            participant: participant.map(|p| format!("{p}-web")),
+            // The dashboard watches: it takes no part in the time synchronisation.
+            sync_step_us: None,
+        }
+        .to_string(),
+        _ => url.to_string(),
+    }
 }
 
 pub(crate) fn ms(v: u64) -> Duration {
@@ -185,6 +276,7 @@ pub(crate) fn interface_name(url: &str) -> String {
         Ok(BusUrl::Socketcand { channel, .. }) => channel,
         Ok(BusUrl::SocketCan { iface }) => iface,
         Ok(BusUrl::Mem { name }) => name,
+        Ok(BusUrl::Silkit { network, .. }) => network,
         Err(_) => "can0".to_string(),
     }
 }

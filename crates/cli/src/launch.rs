@@ -114,6 +114,7 @@ pub(crate) fn start_web(
     sensors: usize,
 ) -> Result<Option<crate::dashboard::Dashboard>> {
     let Some(web) = web else { return Ok(None) };
+    let url = &crate::common::second_connection_url(url);
     let bus =
         canpos_host::open(url).with_context(|| format!("dashboard: cannot connect to {url}"))?;
     crate::dashboard::start_for_runtime(web, bus, handle, sensors).map(Some)

@@ -38,6 +38,15 @@ pub enum Error {
         #[source]
         source: io::Error,
     },
+    /// SIL Kit is missing, or refused to let the participant join (docs/SILKIT.md).
+    #[error("cannot join `{url}`: {source}")]
+    Silkit {
+        /// The URL.
+        url: String,
+        /// The cause.
+        #[source]
+        source: crate::silkit::Error,
+    },
     /// This build lacks the transport (e.g. the `socketcan` cargo feature is off).
     #[error("`{0}` transport is not compiled in (enable the `socketcan` cargo feature)")]
     Unsupported(String),
@@ -82,6 +91,23 @@ pub enum BusUrl {
         /// Bus name.
         name: String,
     },
+    /// `silkit://HOST:PORT/NETWORK[?participant=NAME&time=sync&step-us=N]`: the CAN network
+    /// `NETWORK` of the Vector SIL Kit registry at `HOST:PORT` (port 8500 when left out), as
+    /// one participant (docs/SILKIT.md). Without a participant name each connection takes
+    /// `canpos-PID-N`; `time=sync` runs on SIL Kit's simulation time in steps of `step-us` µs
+    /// (default 1000), under a system controller.
+    Silkit {
+        /// Registry host name or IP address (IPv6 without brackets).
+        host: String,
+        /// Registry port.
+        port: u16,
+        /// CAN network name.
+        network: String,
+        /// Participant name, if given.
+        participant: Option<String>,
+        /// Synchronised mode's step in µs; `None`: wall-clock mode.
+        sync_step_us: Option<u64>,
+    },
 }
 
 fn bad(url: &str, reason: impl Into<String>) -> Error {
@@ -115,7 +141,7 @@ impl BusUrl {
         let Some((scheme, rest)) = url.split_once("://") else {
             return Err(bad(
                 url,
-                "missing scheme; expected socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME",
+                "missing scheme; expected socketcand://HOST:PORT/CHANNEL, socketcan://IFACE, mem://NAME or silkit://HOST:PORT/NETWORK",
             ));
         };
         match scheme.to_ascii_lowercase().as_str() {
@@ -133,11 +159,114 @@ impl BusUrl {
                     name: rest.to_string(),
                 })
             }
+            "silkit" => Self::parse_silkit(url, rest),
             other => Err(bad(
                 url,
-                format!("unknown scheme `{other}`; expected socketcand, socketcan or mem"),
+                format!("unknown scheme `{other}`; expected socketcand, socketcan, mem or silkit"),
             )),
         }
+    }
+
+    fn parse_silkit(url: &str, rest: &str) -> Result<BusUrl, Error> {
+        let (rest, query) = match rest.split_once('?') {
+            Some((r, q)) => (r, Some(q)),
+            None => (rest, None),
+        };
+        let Some((authority, network)) = rest.split_once('/') else {
+            return Err(bad(url, "missing network: silkit://HOST:PORT/NETWORK"));
+        };
+        crate::silkit::check_name("network name", network).map_err(|r| bad(url, r))?;
+        let (host, port) =
+            Self::parse_authority(url, authority, crate::silkit::DEFAULT_REGISTRY_PORT)?;
+        let (mut participant, mut sync, mut step) = (None, false, None);
+        for kv in query.into_iter().flat_map(|q| q.split('&')) {
+            let (k, v) = kv.split_once('=').unwrap_or((kv, ""));
+            match k {
+                "participant" => {
+                    crate::silkit::check_name("participant name", v).map_err(|r| bad(url, r))?;
+                    participant = Some(v.to_string());
+                }
+                "time" => match v {
+                    "sync" => sync = true,
+                    "wall" => sync = false,
+                    _ => return Err(bad(url, format!("time `{v}`: expected wall or sync"))),
+                },
+                "step-us" => match v.parse::<u64>() {
+                    Ok(n @ 1..=1_000_000_000) => step = Some(n),
+                    _ => {
+                        return Err(bad(
+                            url,
+                            format!("step-us `{v}`: expected 1-1000000000 (µs)"),
+                        ))
+                    }
+                },
+                _ => {
+                    return Err(bad(
+                        url,
+                        format!("unknown parameter `{k}`; expected participant, time or step-us"),
+                    ))
+                }
+            }
+        }
+        if step.is_some() && !sync {
+            return Err(bad(url, "step-us needs time=sync"));
+        }
+        Ok(BusUrl::Silkit {
+            host,
+            port,
+            network: network.to_string(),
+            participant,
+            sync_step_us: sync
+                .then(|| step.unwrap_or(crate::silkit::can::DEFAULT_STEP.as_micros() as u64)),
+        })
+    }
+
+    /// `HOST[:PORT]` or `[V6][:PORT]`; `default_port` when left out.
+    fn parse_authority(
+        url: &str,
+        authority: &str,
+        default_port: u16,
+    ) -> Result<(String, u16), Error> {
+        let (host, port) = if authority.is_empty() {
+            (DEFAULT_HOST, None)
+        } else if let Some(v6) = authority.strip_prefix('[') {
+            let Some((h, after)) = v6.split_once(']') else {
+                return Err(bad(url, "unclosed `[` in IPv6 host"));
+            };
+            match after {
+                "" => (h, None),
+                p => match p.strip_prefix(':') {
+                    Some(p) => (h, Some(p)),
+                    None => return Err(bad(url, "expected `:PORT` after `]`")),
+                },
+            }
+        } else {
+            match authority.rsplit_once(':') {
+                Some((h, _)) if h.contains(':') => {
+                    return Err(bad(
+                        url,
+                        "IPv6 hosts must be written in brackets: [::1]:29536",
+                    ))
+                }
+                Some((h, p)) => (h, Some(p)),
+                None => (authority, None),
+            }
+        };
+        if host.is_empty() {
+            return Err(bad(url, "empty host"));
+        }
+        if host.chars().any(|c| c.is_whitespace() || c == '@') {
+            return Err(bad(url, format!("bad host `{host}`")));
+        }
+        let port = match port {
+            None => default_port,
+            Some(p) => match p.parse::<u16>() {
+                Ok(0) => return Err(bad(url, "port 0 is not a valid port to connect to")),
+                Ok(p) => p,
+                Err(_) => return Err(bad(url, format!("bad port `{p}` (expected 1-65535)"))),
+            },
+        };
+        Ok((host.to_string(), port))
     }
 
     fn parse_socketcand(url: &str, rest: &str) -> Result<BusUrl, Error> {
@@ -220,6 +349,28 @@ impl fmt::Display for BusUrl {
             } => write!(f, "socketcand://{host}:{port}/{channel}"),
             BusUrl::SocketCan { iface } => write!(f, "socketcan://{iface}"),
             BusUrl::Mem { name } => write!(f, "mem://{name}"),
+            BusUrl::Silkit {
+                host,
+                port,
+                network,
+                participant,
+                sync_step_us,
+            } => {
+                let registry = crate::silkit::RegistryUri {
+                    host: host.clone(),
+                    port: *port,
+                };
+                write!(f, "{registry}/{network}")?;
+                let mut sep = '?';
+                if let Some(p) = participant {
+                    write!(f, "{sep}participant={p}")?;
+                    sep = '&';
+                }
+                if let Some(s) = sync_step_us {
+                    write!(f, "{sep}time=sync&step-us={s}")?;
+                }
+                Ok(())
+            }
         }
     }
 }
@@ -281,6 +432,39 @@ pub fn open_url_with(
             }),
         #[cfg(not(feature = "socketcan"))]
         BusUrl::SocketCan { .. } => Err(Error::Unsupported("socketcan".into())),
+        BusUrl::Silkit {
+            host,
+            port,
+            network,
+            participant,
+            sync_step_us,
+        } => {
+            let silkit_err = |e: crate::silkit::Error| Error::Silkit {
+                url: url.to_string(),
+                source: e,
+            };
+            let api = crate::silkit::api().map_err(silkit_err)?;
+            let opts = crate::silkit::can::Options {
+                registry: crate::silkit::RegistryUri {
+                    host: host.clone(),
+                    port: *port,
+                },
+                network: network.clone(),
+                participant: participant
+                    .clone()
+                    .unwrap_or_else(crate::silkit::default_participant_name),
+                time: match sync_step_us {
+                    None => crate::silkit::can::TimeMode::Wall,
+                    Some(us) => crate::silkit::can::TimeMode::Sync {
+                        step: std::time::Duration::from_micros(*us),
+                    },
+                },
+                bitrate_kbps: None,
+            };
+            crate::silkit::can::SilkitCan::open(api, &opts)
+                .map(|t| Box::new(t) as Box<dyn Transport>)
+                .map_err(silkit_err)
+        }
     }
 }
 

@@ -32,10 +32,13 @@ pub struct RunArgs {
     /// Serial number (0x1018/4); also names the state file.
     #[arg(long, value_name = "N")]
     pub serial: Option<u32>,
-    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME. A socketcand URL
-    /// where nothing listens starts an embedded hub there.
+    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE, mem://NAME or
+    /// silkit://HOST:PORT/NETWORK (docs/SILKIT.md). A socketcand URL where nothing listens
+    /// starts an embedded hub there.
     #[arg(long, value_name = "URL", default_value = canpos_host::DEFAULT_URL)]
     pub bus: String,
+    #[command(flatten)]
+    pub silkit: crate::common::SilkitArgs,
     /// For a socketcand:// URL: `auto` starts an embedded hub (with a loud warning) when
     /// nothing listens at start-up; `always` starts one (an error if the address is taken);
     /// `never` waits for the server. Once connected, a lost server is waited for and
@@ -194,7 +197,8 @@ pub fn run(a: RunArgs) -> Result<i32> {
         }
     }
     open_storage(&mut built.setup)?;
-    let (transport, _hub) = open_bus(&a.bus, a.hub, &stop, pacing(a.bus_bitrate, a.instant_bus))?;
+    let bus = crate::common::silkit_url(&a.bus, &a.silkit, Some(&built.setup.name))?;
+    let (transport, _hub) = open_bus(&bus, a.hub, &stop, pacing(a.bus_bitrate, a.instant_bus))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, a.bus_bitrate);
     let i = rt.add(built.setup);
@@ -206,7 +210,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     banner(&handle, 1, &desc)?;
     start_nodes(&handle, &[built.nmt])?;
     let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
-    let _web = start_web(a.web.as_deref(), &a.bus, &handle, 1)?;
+    let _web = start_web(a.web.as_deref(), &bus, &handle, 1)?;
     supervise(handle, &stop)
 }
 
@@ -231,8 +235,9 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     let state = dev.state_file(&state_dir);
     // Locked, links refused, stale temporaries removed, as a sensor's (FileStorage::open).
     let storage = FileStorage::open(&state)?.for_table(&dev.model.table);
+    let bus = crate::common::silkit_url(&a.bus, &a.silkit, None)?;
     let (transport, _hub) = open_bus(
-        &a.bus,
+        &bus,
         a.hub,
         &stop,
         crate::common::pacing(a.bus_bitrate, a.instant_bus),
@@ -265,7 +270,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     };
     start_nodes(&handle, &[nmt])?;
     let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
-    let web = start_web(a.web.as_deref(), &a.bus, &handle, 1)?;
+    let web = start_web(a.web.as_deref(), &bus, &handle, 1)?;
     if let Some(w) = &web {
         // The dashboard knows no model by this name: the file's table is the node's.
         w.pin_model(id, &dev.model.table);

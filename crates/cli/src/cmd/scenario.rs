@@ -34,6 +34,8 @@ pub struct ScenarioArgs {
     /// Serve the web dashboard on ADDR (e.g. 127.0.0.1:29080; see docs/DASHBOARD.md).
     #[arg(long, value_name = "ADDR")]
     pub web: Option<String>,
+    #[command(flatten)]
+    pub silkit: crate::common::SilkitArgs,
     /// Embedded hub for a socketcand:// bus: auto, always or never (see `canpos run --help`).
     #[arg(long, value_name = "WHEN", default_value = "auto")]
     pub hub: HubPolicy,
@@ -58,6 +60,7 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
         .bus
         .or(sc.bus.take())
         .unwrap_or_else(|| canpos_host::DEFAULT_URL.to_string());
+    let url = crate::common::silkit_url(&url, &a.silkit, None)?;
     let (transport, _hub) = open_bus(&url, a.hub, &stop, pacing(checked.bus_bitrate, false))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, checked.bus_bitrate);

@@ -8,6 +8,7 @@
 //!
 //! SIL Kit's C API is thread-safe; its handlers run on SIL Kit's own threads.
 
+pub mod can;
 pub mod netsim;
 pub mod sys;
 
@@ -36,6 +37,16 @@ pub fn check_name(what: &str, name: &str) -> Result<(), String> {
         return Err(format!("{what} `{name}` contains {c:?}"));
     }
     Ok(())
+}
+
+/// A participant name unique to this connection: `canpos-PID-N`.
+pub fn default_participant_name() -> String {
+    static SEQ: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    format!(
+        "canpos-{}-{}",
+        std::process::id(),
+        SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+    )
 }
 
 /// A registry's address: `silkit://HOST:PORT` (SIL Kit's own URI form).
