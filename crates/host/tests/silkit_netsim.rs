@@ -354,6 +354,16 @@ fn frames_go_through_the_timeline_with_bus_md_times_and_arbitration() {
         rx.iter().map(|r| r.0).collect::<Vec<_>>(),
         vec![0x300, 0x100, 0x200]
     );
+    // Wall-clock end-of-frame times (D41): Unix time, within a minute of now.
+    let unix_now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64;
+    assert!(
+        rx[0].1.abs_diff(unix_now) < 60_000_000_000,
+        "{} is not near the Unix time {unix_now}",
+        rx[0].1
+    );
     // Back to back: each end of frame one frame time (stuff bits and intermission included,
     // 100 µs a bit) after the one before.
     let bit = 100_000u64;

@@ -237,6 +237,10 @@ struct Core {
     fns: NetsimFns,
     mode: TimeMode,
     start: Instant,
+    /// Added to bus times in what SIL Kit's controllers are told: 0 in synchronised mode (bus
+    /// time is simulation time); in wall mode the Unix time of `start`, so a receiver reads
+    /// wall-clock end-of-frame times (D41).
+    epoch: Nanos,
     shared: Mutex<Shared>,
     wake: Condvar,
 }
@@ -324,7 +328,7 @@ impl Core {
                     if !receivers.is_empty() {
                         let mut ev = CanFrameEvent {
                             header: StructHeader::new(ids::CAN_FRAME_EVENT),
-                            timestamp: *at,
+                            timestamp: *at + self.epoch,
                             frame: &mut cf,
                             direction: 2,
                             user_context: std::ptr::null_mut(),
@@ -336,13 +340,13 @@ impl Core {
                         // then the acknowledgement.
                         let mut ev = CanFrameEvent {
                             header: StructHeader::new(ids::CAN_FRAME_EVENT),
-                            timestamp: *at,
+                            timestamp: *at + self.epoch,
                             frame: &mut cf,
                             direction: 1,
                             user_context: context as *mut c_void,
                         };
                         self.produce_one(net, &mut ev.header, &[d]);
-                        self.transmit(net, d, context, frame.id(), 1, *at);
+                        self.transmit(net, d, context, frame.id(), 1, *at + self.epoch);
                     }
                 }
                 NetEvent::NotSent {
@@ -357,7 +361,7 @@ impl Core {
                         TxStatus::Canceled => 2,
                         TxStatus::QueueFull => 4,
                     };
-                    self.transmit(net, *to, *context, *id, s, *at);
+                    self.transmit(net, *to, *context, *id, s, *at + self.epoch);
                 }
                 NetEvent::Status {
                     to,
@@ -372,13 +376,13 @@ impl Core {
                     // with both of this controller's states.
                     let mut st = CanStateChangeEvent {
                         header: StructHeader::new(ids::CAN_STATE_CHANGE_EVENT),
-                        timestamp: *at,
+                        timestamp: *at + self.epoch,
                         state: *mode as i32,
                     };
                     self.produce_one(net, &mut st.header, &[]);
                     let mut er = CanErrorStateChangeEvent {
                         header: StructHeader::new(ids::CAN_ERROR_STATE_CHANGE_EVENT),
-                        timestamp: *at,
+                        timestamp: *at + self.epoch,
                         error_state: match error {
                             None => 0,
                             Some(BusState::ErrorActive) => 1,
@@ -761,6 +765,12 @@ impl Simulator {
             fns,
             mode,
             start: Instant::now(),
+            epoch: match mode {
+                TimeMode::Wall => std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_nanos() as Nanos),
+                TimeMode::Sync { .. } => 0,
+            },
             shared: Mutex::new(Shared {
                 nets,
                 ctrl_ctx: Vec::new(),
