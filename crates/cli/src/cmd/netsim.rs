@@ -165,9 +165,12 @@ fn summary(r: &NetworkReport) -> String {
     let ctrls: Vec<serde_json::Value> = r
         .controllers
         .iter()
-        .map(|(d, mode, st)| {
+        .map(|c| (c, false))
+        .chain(r.departed.iter().map(|c| (c, true)))
+        .map(|((d, mode, st), left)| {
             serde_json::json!({
                 "descriptor": d,
+                "left": left,
                 "mode": format!("{mode:?}"),
                 "state": st.map(|s| format!("{:?}", s.state)),
                 "tec": st.map(|s| s.tec),

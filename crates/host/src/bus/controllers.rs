@@ -26,6 +26,9 @@ pub type Descriptor = u64;
 /// The user context of a frame request, handed back in its acknowledgement.
 pub type Context = u64;
 
+/// Most removed controllers whose last counters a network keeps for its report.
+pub const MAX_DEPARTED: usize = 1024;
+
 /// Most controllers one simulated network takes (CANopen's 127 node-ids, plus masters, tools
 /// and bridges): a bound on what a peer can make the simulator hold.
 pub const MAX_CONTROLLERS: usize = 256;
@@ -210,6 +213,8 @@ pub struct Network {
     reached: Nanos,
     scratch: Vec<BusEvent>,
     counters: NetCounters,
+    /// Removed controllers with their last mode and counters (at most [`MAX_DEPARTED`]).
+    departed: Vec<(Descriptor, ControllerMode, Option<MemberStats>)>,
 }
 
 impl Network {
@@ -222,6 +227,7 @@ impl Network {
             reached: 0,
             scratch: Vec::new(),
             counters: NetCounters::default(),
+            departed: Vec::new(),
         })
     }
 
@@ -249,6 +255,12 @@ impl Network {
             .collect()
     }
 
+    /// Controllers SIL Kit removed, with their last mode and bus counters (the latest
+    /// [`MAX_DEPARTED`]).
+    pub fn departed(&self) -> &[(Descriptor, ControllerMode, Option<MemberStats>)] {
+        &self.departed
+    }
+
     /// Bus load over the last second before the time reached: (fraction 0 … 1, frames/s).
     pub fn load(&mut self) -> (f64, f64) {
         self.timeline.load(self.reached)
@@ -268,6 +280,11 @@ impl Network {
     /// frame of it on the wire finishes.
     pub fn detach(&mut self, d: Descriptor) {
         if let Some(c) = self.ctrls.remove(&d) {
+            if self.departed.len() >= MAX_DEPARTED {
+                self.departed.remove(0);
+            }
+            self.departed
+                .push((d, c.mode, c.member.and_then(|m| self.timeline.stats(m))));
             if let Some(m) = c.member {
                 self.timeline.cancel_queued(m);
                 self.timeline.leave(m);

@@ -716,6 +716,8 @@ pub struct NetworkReport {
     pub load: (f64, f64),
     /// Each controller: descriptor, mode, bus counters.
     pub controllers: Vec<(Descriptor, ControllerMode, Option<MemberStats>)>,
+    /// Controllers that left, with their last mode and counters.
+    pub departed: Vec<(Descriptor, ControllerMode, Option<MemberStats>)>,
 }
 
 /// The running simulator: one SIL Kit participant simulating its networks.
@@ -896,6 +898,7 @@ impl Simulator {
                 counters: ns.net.counters(),
                 load: ns.net.load(),
                 controllers: ns.net.controllers(),
+                departed: ns.net.departed().to_vec(),
             })
             .collect()
     }

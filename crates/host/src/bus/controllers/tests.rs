@@ -333,6 +333,8 @@ fn a_reset_reports_uninit_with_no_error_state_and_detach_forgets() {
     );
     net.detach(2);
     assert_eq!(net.controllers().len(), 1);
+    assert_eq!(net.departed().len(), 1);
+    assert_eq!(net.departed()[0].0, 2);
     out.clear();
     net.request(2, &raw(0x1, &[]), 0, 3, &mut out);
     assert!(out.is_empty());
