@@ -67,3 +67,147 @@ fn an_absent_registry_is_a_clear_error_not_a_hang() {
         t0.elapsed()
     );
 }
+
+fn wall(reg: &LocalRegistry, name: &str) -> canpos_host::silkit::can::SilkitCan {
+    let api = silkit::api().unwrap();
+    canpos_host::silkit::can::SilkitCan::open(
+        api,
+        &canpos_host::silkit::can::Options {
+            registry: reg.uri().clone(),
+            network: "can0".into(),
+            participant: name.into(),
+            time: canpos_host::silkit::can::TimeMode::Wall,
+            bitrate_kbps: Some(125),
+        },
+    )
+    .expect("join")
+}
+
+/// Sends `data` with `flags` from a bare SIL Kit participant (what another SIL Kit tool may
+/// put on the network).
+fn raw_send(
+    p: &Participant,
+    ctl: *mut silkit::sys::CanController,
+    id: u32,
+    flags: u32,
+    data: &[u8],
+) {
+    let api = p.api();
+    let mut f = silkit::sys::CanFrame {
+        header: silkit::sys::StructHeader::new(silkit::sys::CAN_FRAME_ID),
+        id,
+        flags,
+        dlc: data.len() as u16,
+        sdt: 0,
+        vcid: 0,
+        af: 0,
+        data: silkit::sys::ByteVector {
+            data: data.as_ptr(),
+            size: data.len(),
+        },
+    };
+    // SAFETY: a live controller; SIL Kit copies the frame.
+    let rc = unsafe { (api.can_controller_send_frame)(ctl, &mut f, std::ptr::null_mut()) };
+    api.check("SilKit_CanController_SendFrame", rc).unwrap();
+}
+
+#[test]
+fn frames_cross_between_participants_and_one_too_long_for_classic_can_is_dropped() {
+    use canpos_host::Transport;
+    let Some(api) = api() else { return };
+    let reg = LocalRegistry::start(START).expect("registry");
+    let mut a = wall(&reg, "canpos-a");
+    let mut b = wall(&reg, "canpos-b");
+    // A bare participant with a controller of its own, for frames canpos never sends.
+    let raw = Participant::join(api, "raw", reg.uri()).unwrap();
+    let mut ctl = std::ptr::null_mut();
+    let (name, net) = (c"RAW", c"can0");
+    // SAFETY: live participant, NUL-terminated strings.
+    api.check("SilKit_CanController_Create", unsafe {
+        (api.can_controller_create)(&mut ctl, raw.raw(), name.as_ptr(), net.as_ptr())
+    })
+    .unwrap();
+    // SAFETY: live controller.
+    api.check("SilKit_CanController_Start", unsafe {
+        (api.can_controller_start)(ctl)
+    })
+    .unwrap();
+    // Discovery between participants takes a moment: send until the first frame arrives.
+    let f = canpos_stack::Frame::new(0x605, &[0x40, 0x18, 0x10, 0x04, 0, 0, 0, 0]).unwrap();
+    let t0 = Instant::now();
+    let got = loop {
+        a.send(&f).unwrap();
+        if let Some(rx) = b.recv_timeout(Some(Duration::from_millis(100))).unwrap() {
+            break rx;
+        }
+        assert!(
+            t0.elapsed() < START,
+            "no frame from a to b within {START:?}"
+        );
+    };
+    assert_eq!(got.frame, f);
+    while b
+        .recv_timeout(Some(Duration::from_millis(200)))
+        .unwrap()
+        .is_some()
+    {}
+    // CAN FD with 12 and 8 bytes, 9 bytes without FD, then a classic frame: only the last
+    // comes through; the others are counted.
+    raw_send(&raw, ctl, 0x123, silkit::sys::CAN_FLAG_FDF, &[1; 12]);
+    // CAN FD even with 8 bytes: not a classic frame (its bit timing and CRC differ).
+    raw_send(&raw, ctl, 0x122, silkit::sys::CAN_FLAG_FDF, &[4; 8]);
+    raw_send(&raw, ctl, 0x124, 0, &[2; 9]);
+    raw_send(&raw, ctl, 0x125, 0, &[3; 8]);
+    let rx = b
+        .recv_timeout(Some(START))
+        .unwrap()
+        .expect("the classic frame");
+    assert_eq!(rx.frame.id(), 0x125, "{rx:?}");
+    assert_eq!(rx.frame.data(), &[3; 8]);
+    assert_eq!(b.not_classic(), 3);
+    // A remote frame and an extended identifier keep their kind.
+    let r = canpos_stack::Frame::remote(0x1ABCDEF, true, 4).unwrap();
+    // `a` saw the bare participant's frame too.
+    while a
+        .recv_timeout(Some(Duration::from_millis(200)))
+        .unwrap()
+        .is_some()
+    {}
+    b.send(&r).unwrap();
+    let rx = a.recv_timeout(Some(START)).unwrap().expect("remote frame");
+    assert_eq!(rx.frame, r);
+}
+
+#[test]
+fn frames_keep_flowing_when_the_registry_goes_away() {
+    use canpos_host::Transport;
+    let Some(_) = api() else { return };
+    let reg = LocalRegistry::start(START).expect("registry");
+    let mut a = wall(&reg, "canpos-a");
+    let mut b = wall(&reg, "canpos-b");
+    let f = canpos_stack::Frame::new(0x181, &[1, 2]).unwrap();
+    let t0 = Instant::now();
+    loop {
+        a.send(&f).unwrap();
+        if b.recv_timeout(Some(Duration::from_millis(100)))
+            .unwrap()
+            .is_some()
+        {
+            break;
+        }
+        assert!(t0.elapsed() < START);
+    }
+    reg.stop();
+    while b
+        .recv_timeout(Some(Duration::from_millis(200)))
+        .unwrap()
+        .is_some()
+    {}
+    // Peer to peer: the registry is only needed to join.
+    a.send(&f).unwrap();
+    let rx = b
+        .recv_timeout(Some(START))
+        .unwrap()
+        .expect("still delivered");
+    assert_eq!(rx.frame, f);
+}

@@ -198,6 +198,8 @@ pub fn run(a: RunArgs) -> Result<i32> {
     }
     open_storage(&mut built.setup)?;
     let bus = crate::common::silkit_url(&a.bus, &a.silkit, Some(&built.setup.name))?;
+    // SIL Kit's time starts once the start-up NMT state is set (synchronised mode).
+    canpos_host::silkit::can::hold_starts();
     let (transport, _hub) = open_bus(&bus, a.hub, &stop, pacing(a.bus_bitrate, a.instant_bus))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, a.bus_bitrate);
@@ -209,6 +211,7 @@ pub fn run(a: RunArgs) -> Result<i32> {
     let handle = rt.spawn()?;
     banner(&handle, 1, &desc)?;
     start_nodes(&handle, &[built.nmt])?;
+    canpos_host::silkit::can::release_starts();
     let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
     let _web = start_web(a.web.as_deref(), &bus, &handle, 1)?;
     supervise(handle, &stop)
@@ -236,6 +239,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
     // Locked, links refused, stale temporaries removed, as a sensor's (FileStorage::open).
     let storage = FileStorage::open(&state)?.for_table(&dev.model.table);
     let bus = crate::common::silkit_url(&a.bus, &a.silkit, None)?;
+    canpos_host::silkit::can::hold_starts();
     let (transport, _hub) = open_bus(
         &bus,
         a.hub,
@@ -269,6 +273,7 @@ fn run_eds(a: RunArgs) -> Result<i32> {
         None => None,
     };
     start_nodes(&handle, &[nmt])?;
+    canpos_host::silkit::can::release_starts();
     let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
     let web = start_web(a.web.as_deref(), &bus, &handle, 1)?;
     if let Some(w) = &web {

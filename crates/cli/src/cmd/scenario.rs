@@ -61,6 +61,8 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
         .or(sc.bus.take())
         .unwrap_or_else(|| canpos_host::DEFAULT_URL.to_string());
     let url = crate::common::silkit_url(&url, &a.silkit, None)?;
+    // SIL Kit's time starts once the start-up NMT states are set (synchronised mode).
+    canpos_host::silkit::can::hold_starts();
     let (transport, _hub) = open_bus(&url, a.hub, &stop, pacing(checked.bus_bitrate, false))?;
     let desc = transport.describe();
     let mut rt = Runtime::new(transport, checked.bus_bitrate);
@@ -82,6 +84,7 @@ pub fn scenario(a: ScenarioArgs) -> Result<i32> {
         }
     }
     start_nodes(&handle, &nmt)?;
+    canpos_host::silkit::can::release_starts();
     let _ctl = start_control(listener, &handle, a.control_idle_timeout)?;
     let _web = start_web(a.web.as_deref(), &url, &handle, count)?;
     // Timed events on their own thread, on absolute times from the start.

@@ -36,6 +36,9 @@ use crate::clock::{Horizon, SimClock, Slot};
 pub const RX_QUEUE: usize = 4096;
 /// Frames of later steps held in synchronised mode; more are dropped and counted.
 pub const HELD_MAX: usize = 65_536;
+/// How long a participant stays after its last send before it leaves (its frames are written
+/// to the peers by SIL Kit's own thread).
+pub const LINGER: Duration = Duration::from_millis(100);
 /// The step of synchronised mode when none is given: 1 ms (a TMI's fastest TPDO period).
 pub const DEFAULT_STEP: Duration = Duration::from_millis(1);
 
@@ -76,6 +79,10 @@ struct Shared {
     dropped: AtomicU64,
     not_classic: AtomicU64,
     sync: Option<SyncState>,
+    /// The lifecycle service (synchronised mode), as an address.
+    lifecycle: std::sync::atomic::AtomicUsize,
+    /// The transport is being dropped: its lifecycle must not be started any more.
+    left: AtomicBool,
 }
 
 /// Synchronised mode: frames held for their step, the clock, the runtime's horizon.
@@ -233,6 +240,8 @@ pub struct SilkitCan {
     rx: Receiver<RxFrame>,
     stepper: Option<std::thread::JoinHandle<()>>,
     started: AtomicBool,
+    /// When the last frame was handed to SIL Kit (see [`LINGER`]).
+    last_send: Mutex<Option<std::time::Instant>>,
     describe: String,
 }
 
@@ -268,6 +277,8 @@ impl SilkitCan {
             dropped: AtomicU64::new(0),
             not_classic: AtomicU64::new(0),
             sync,
+            lifecycle: std::sync::atomic::AtomicUsize::new(0),
+            left: AtomicBool::new(false),
         });
         let ctx = Arc::as_ptr(&shared) as *mut c_void;
         let cname = CString::new("CAN1").expect("no NUL");
@@ -319,6 +330,7 @@ impl SilkitCan {
                 api.check("SilKit_LifecycleService_Create", unsafe {
                     (api.lifecycle_service_create)(&mut lifecycle, participant.raw(), &cfg)
                 })?;
+                shared.lifecycle.store(lifecycle as usize, Ordering::SeqCst);
                 let cc = Box::new(ControllerCtx {
                     api,
                     controller,
@@ -381,21 +393,23 @@ impl SilkitCan {
             rx,
             stepper,
             started: AtomicBool::new(matches!(opts.time, TimeMode::Wall)),
+            last_send: Mutex::new(None),
         })
     }
 
     /// Starts the coordinated lifecycle (synchronised mode), once: at the first use of the
-    /// transport (a tool's first wait for a frame, a runtime joining the clock).
+    /// transport (a tool's or a runtime's first send or wait for a frame).
     fn start(&self) {
         if self.started.swap(true, Ordering::SeqCst) {
             return;
         }
-        let api = self.shared.api;
-        // SAFETY: a live lifecycle service.
-        let rc = unsafe { (api.lifecycle_service_start_lifecycle)(self.lifecycle) };
-        if let Err(e) = api.check("SilKit_LifecycleService_StartLifecycle", rc) {
-            self.shared.end(e.to_string());
+        let mut gate = lock(&GATE);
+        if gate.held {
+            gate.pending.push(Arc::downgrade(&self.shared));
+            return;
         }
+        drop(gate);
+        start_lifecycle(&self.shared);
     }
 
     /// Frames dropped because classic CAN cannot carry them.
@@ -406,6 +420,56 @@ impl SilkitCan {
     /// The participant's name.
     pub fn participant(&self) -> &str {
         self.participant.name()
+    }
+}
+
+/// Lifecycle starts held back until [`release_starts`] (see [`hold_starts`]).
+struct Gate {
+    held: bool,
+    pending: Vec<Weak<Shared>>,
+}
+
+static GATE: Mutex<Gate> = Mutex::new(Gate {
+    held: false,
+    pending: Vec::new(),
+});
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Holds back the start of synchronised participants' lifecycles in this process until
+/// [`release_starts`]: `canpos run --time sync` sets its sensors' start-up NMT state (a control
+/// request) before SIL Kit's time begins, so that it takes effect at time 0 in every run, not
+/// at whatever step the request happened to reach the runtime.
+pub fn hold_starts() {
+    lock(&GATE).held = true;
+}
+
+/// Starts the lifecycles held back by [`hold_starts`] (and no longer holds new ones).
+pub fn release_starts() {
+    let mut gate = lock(&GATE);
+    gate.held = false;
+    for w in std::mem::take(&mut gate.pending) {
+        if let Some(sh) = w.upgrade() {
+            // Under the gate's lock: a transport that is dropping marks itself left under it
+            // first, before its participant is destroyed.
+            if !sh.left.load(Ordering::SeqCst) {
+                start_lifecycle(&sh);
+            }
+        }
+    }
+}
+
+fn start_lifecycle(sh: &Shared) {
+    let lifecycle = sh.lifecycle.load(Ordering::SeqCst) as *mut sys::LifecycleService;
+    if lifecycle.is_null() {
+        return;
+    }
+    // SAFETY: a live lifecycle service (its participant is not destroyed: `left` is false).
+    let rc = unsafe { (sh.api.lifecycle_service_start_lifecycle)(lifecycle) };
+    if let Err(e) = sh.api.check("SilKit_LifecycleService_StartLifecycle", rc) {
+        sh.end(e.to_string());
     }
 }
 
@@ -564,6 +628,7 @@ impl Transport for SilkitCan {
         if let Some(s) = &self.shared.sync {
             tracing::trace!(id = frame.id(), limit = s.clock.limit(), "SIL Kit: send");
         }
+        *self.last_send.lock().unwrap_or_else(|e| e.into_inner()) = Some(std::time::Instant::now());
         send_frame(self.shared.api, self.controller, frame)
             .map_err(|e| io::Error::other(e.to_string()))
     }
@@ -608,7 +673,9 @@ impl Transport for SilkitCan {
         let s = self.shared.sync.as_ref()?;
         let h = s.clock.participant(&self.describe);
         *s.runtime.lock().unwrap_or_else(|e| e.into_inner()) = Some(h.slot());
-        self.start();
+        // The lifecycle starts at the runtime's first send or wait, after its power-on: the
+        // horizon is still at the clock's time here (the runtime holds nothing until it runs),
+        // which the stepper must not take for a runtime that started.
         Some(h)
     }
 
@@ -619,12 +686,19 @@ impl Transport for SilkitCan {
 
 impl Drop for SilkitCan {
     fn drop(&mut self) {
+        self.shared.left.store(true, Ordering::SeqCst);
+        drop(lock(&GATE));
         if self.started.load(Ordering::SeqCst) && !self.lifecycle.is_null() {
             let reason = CString::new("canpos participant leaves").expect("no NUL");
             // SAFETY: a live lifecycle service; an error (not running) is of no consequence.
             let _ = unsafe {
                 (self.shared.api.lifecycle_service_stop)(self.lifecycle, reason.as_ptr())
             };
+        }
+        // SIL Kit writes frames to its peers on its own thread: destroying the participant
+        // right after a send loses them (a one-shot `canpos nmt` did, 5 of 12 times).
+        if let Some(t) = *self.last_send.lock().unwrap_or_else(|e| e.into_inner()) {
+            std::thread::sleep(LINGER.saturating_sub(t.elapsed()));
         }
         // Ends a wait for the runtime, and the receiver.
         self.shared.end_with("the participant left".into(), false);
