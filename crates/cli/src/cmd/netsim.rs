@@ -36,11 +36,12 @@ pub struct NetsimArgs {
     /// Time mode: `wall` (the simulator's clock) or `sync` (SIL Kit's simulation time).
     #[arg(long, value_enum, default_value_t = NetsimTime::Wall)]
     pub time: NetsimTime,
-    /// Simulation step in µs (`--time sync`): how far the bus runs per step; a frame request
-    /// of a participant that does not stamp its time enters the bus at the next step.
-    #[arg(long, value_name = "US", default_value_t = 100,
+    /// Simulation step in µs (`--time sync`; default 40 bit times: 320 µs at 125 kbit/s). Keep
+    /// it shorter than the shortest frame (44 bit times to its end of frame): then every
+    /// receiver has each frame before its step passes the frame's end (D40).
+    #[arg(long, value_name = "US",
           value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
-    pub step_us: u64,
+    pub step_us: Option<u64>,
     /// Coordinated lifecycle (`--time sync`): a system controller starts and stops the
     /// simulation (default: autonomous, it joins a running simulation).
     #[arg(long)]
@@ -93,10 +94,21 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
     let api = sys::api().map_err(|e| anyhow!(e))?;
     let mode = match args.time {
         NetsimTime::Wall => TimeMode::Wall,
-        NetsimTime::Sync => TimeMode::Sync {
-            step: args.step_us * 1000,
-            coordinated: args.coordinated,
-        },
+        NetsimTime::Sync => {
+            let bit = 1_000_000 / u64::from(args.bitrate); // ns
+            let step = args.step_us.map_or(40 * bit, |us| us * 1000);
+            if step >= 44 * bit {
+                tracing::warn!(
+                    step_us = step / 1000,
+                    "a step as long as the shortest frame: a receiver may get a frame only after \
+                     its step passed the frame's end, and synchronised runs may differ (D40)"
+                );
+            }
+            TimeMode::Sync {
+                step,
+                coordinated: args.coordinated,
+            }
+        }
     };
     let stop = stop_signal()?;
     check_name("participant name", &args.participant).map_err(usage)?;

@@ -450,6 +450,14 @@ impl Network {
         }
     }
 
+    /// The start and end of the frame on the wire once nothing can change its outcome
+    /// ([`Timeline::settled_frame`]): a simulator in steps may run the bus to its end (and
+    /// report it) before it knows the requests of that interval, which only queue for the
+    /// next arbitration.
+    pub fn settled_frame(&self) -> Option<(Nanos, Nanos)> {
+        self.timeline.settled_frame()
+    }
+
     /// When [`advance_to`](Self::advance_to) next has something to do (`None`: nothing until a
     /// request).
     pub fn next_event(&self) -> Option<Nanos> {

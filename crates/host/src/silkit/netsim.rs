@@ -455,6 +455,16 @@ impl Core {
                 submit(&mut ns.net, &w, &mut out);
             }
             ns.net.advance_to(t.saturating_sub(1), &mut out);
+            // A frame that started before `t` is settled: report it now, at its end of frame,
+            // though that is after `t`. A receiver then has every frame that ended before its
+            // step when SIL Kit grants the step, provided the step is shorter than the
+            // shortest frame (D40); requests stamped up to that end only queue for the next
+            // arbitration.
+            if let Some((start, end)) = ns.net.settled_frame() {
+                if start < t {
+                    ns.net.advance_to(end, &mut out);
+                }
+            }
             self.produce(ns, &out);
         }
     }

@@ -346,3 +346,30 @@ fn a_reset_reports_uninit_with_no_error_state_and_detach_forgets() {
     assert_eq!(net.controllers().len(), MAX_CONTROLLERS);
     assert!(!net.attach(5000));
 }
+
+#[test]
+fn a_settled_frame_may_be_run_to_its_end_before_the_requests_of_its_time_are_known() {
+    // Network `a` learns each request at its time; network `b` runs to the end of the frame on
+    // the wire first and learns the request made meanwhile afterwards (entered at the time it
+    // reached): both carry the same frames at the same times.
+    let f1 = Frame::with_id(0x300, false, &[1; 8]).unwrap();
+    let mid = eof(0, &f1) / 2;
+    let mut a = started(2);
+    let mut b = started(2);
+    let (mut oa, mut ob) = (Vec::new(), Vec::new());
+    for (net, out) in [(&mut a, &mut oa), (&mut b, &mut ob)] {
+        net.request(1, &raw(0x300, &[1; 8]), 1, 0, out);
+        net.advance_to(1, out);
+    }
+    assert_eq!(b.settled_frame(), Some((0, eof(0, &f1))));
+    a.advance_to(mid, &mut oa);
+    a.request(2, &raw(0x100, &[]), 2, mid, &mut oa);
+    a.advance_to(10_000 * US, &mut oa);
+    let (_, end) = b.settled_frame().unwrap();
+    b.advance_to(end, &mut ob);
+    assert_eq!(b.settled_frame(), None);
+    b.request(2, &raw(0x100, &[]), 2, mid, &mut ob);
+    b.advance_to(10_000 * US, &mut ob);
+    assert_eq!(oa, ob);
+    assert_eq!(oa.len(), 2);
+}

@@ -1,5 +1,6 @@
-//! Cancelling a member's transmit requests (SIL Kit's `CancelTransmitRequests`, a controller
-//! that stops), as a further `impl` block of [`Timeline`].
+//! What a network simulator needs beyond the in-process buses: cancelling a member's transmit
+//! requests (SIL Kit's `CancelTransmitRequests`, a controller that stops) and the frame on the
+//! wire whose outcome is settled, as a further `impl` block of [`Timeline`].
 
 use super::*;
 
@@ -26,5 +27,17 @@ impl Timeline {
         }
         gone.sort_by_key(|q| q.seq);
         gone.into_iter().map(|q| q.frame).collect()
+    }
+
+    /// The start and end of the frame on the wire (end of EOF, or of the error delimiter of
+    /// a collision) when nothing can change it any more: no stuck-dominant interval or error
+    /// flag pending and no member with a failed transceiver (whose attempts are its own).
+    /// Frames submitted meanwhile only queue for the next arbitration, after its end, so the
+    /// bus may be advanced to that end before they are known.
+    pub fn settled_frame(&self) -> Option<(Nanos, Nanos)> {
+        if self.stuck.is_some() || !self.failed.is_empty() {
+            return None;
+        }
+        self.current.as_ref().map(|c| (c.start, c.end))
     }
 }
