@@ -268,11 +268,25 @@ impl Network {
 
     /// SIL Kit provides a controller. `false` (and nothing changes) when the network already
     /// holds [`MAX_CONTROLLERS`] or knows the descriptor.
+    ///
+    /// It takes part as started until it asks for a mode (D39): SIL Kit does not repeat a
+    /// controller's mode when a simulator appears, so a controller started before the
+    /// simulator knew it would otherwise never send nor receive.
     pub fn attach(&mut self, d: Descriptor) -> bool {
         if self.ctrls.len() >= MAX_CONTROLLERS || self.ctrls.contains_key(&d) {
             return false;
         }
-        self.ctrls.insert(d, Ctrl::default());
+        let m = self.timeline.join_with(DEFAULT_TX_DEPTH, TxOrder::Priority);
+        self.of_member.insert(m.0, d);
+        self.ctrls.insert(
+            d,
+            Ctrl {
+                member: Some(m),
+                mode: ControllerMode::Started,
+                error: Some(BusState::ErrorActive),
+                ..Ctrl::default()
+            },
+        );
         true
     }
 
@@ -322,10 +336,9 @@ impl Network {
         out: &mut Vec<NetEvent>,
     ) {
         let now = now.max(self.reached);
-        let Some(c) = self.ctrls.get(&d) else {
+        if !self.ctrls.contains_key(&d) {
             return;
-        };
-        let before = (c.mode, c.error);
+        }
         if cancel || mode != ControllerMode::Started {
             self.cancel(d, now, out);
         }
@@ -349,14 +362,14 @@ impl Network {
             self.of_member.insert(m.0, d);
         }
         c.mode = mode;
-        if (c.mode, c.error) != before {
-            out.push(NetEvent::Status {
-                to: d,
-                mode: c.mode,
-                error: c.error,
-                at: now,
-            });
-        }
+        // Always answered: in a simulated network a controller takes the mode the simulator
+        // reports, not the one it asked for.
+        out.push(NetEvent::Status {
+            to: d,
+            mode: c.mode,
+            error: c.error,
+            at: now,
+        });
     }
 
     /// Cancels the controller's queued requests: each is answered `Canceled`.

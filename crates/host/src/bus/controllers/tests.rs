@@ -373,3 +373,36 @@ fn a_settled_frame_may_be_run_to_its_end_before_the_requests_of_its_time_are_kno
     assert_eq!(oa, ob);
     assert_eq!(oa.len(), 2);
 }
+
+#[test]
+fn a_controller_started_before_the_simulator_knew_it_takes_part() {
+    // SIL Kit does not repeat a controller's mode when a simulator appears (D39).
+    let mut net = Network::new(125).unwrap();
+    let mut out = Vec::new();
+    assert!(net.attach(1));
+    assert!(net.attach(2));
+    net.request(1, &raw(0x181, &[1]), 4, 0, &mut out);
+    net.advance_to(10_000 * US, &mut out);
+    assert!(
+        matches!(&out[..], [NetEvent::Frame { senders, receivers, .. }]
+        if senders == &vec![(1, 4)] && receivers == &vec![2])
+    );
+    // An explicit stop is honoured, and answered.
+    out.clear();
+    net.set_mode(
+        2,
+        ControllerMode::Stopped,
+        false,
+        false,
+        net.reached(),
+        &mut out,
+    );
+    assert!(matches!(
+        &out[..],
+        [NetEvent::Status {
+            to: 2,
+            mode: ControllerMode::Stopped,
+            ..
+        }]
+    ));
+}
