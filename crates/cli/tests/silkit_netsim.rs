@@ -175,7 +175,7 @@ fn the_simulator_times_the_frames_as_docs_bus_md_and_synchronised_runs_repeat() 
         let ((ta, _, _), (tb, id, data)) = (&w[0], &w[1]);
         let len = bits(*id, data) * bit;
         assert!(tb - ta >= len, "{w:?}: less than a frame time apart");
-        if (tb - (len - 3 * bit)) % 1_000_000 == 0 {
+        if (tb - (len - 3 * bit)).is_multiple_of(1_000_000) {
             idle += 1;
         } else {
             assert_eq!(
