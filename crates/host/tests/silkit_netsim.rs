@@ -3,7 +3,7 @@
 //! (each its own participant, as separate processes would be).
 //!
 //! Needs SIL Kit (`scripts/silkit.sh`, which the test command runs); without it each test says
-//! so and checks nothing.
+//! so and passes, unless `CANPOS_SILKIT_REQUIRED=1` (the test command sets it).
 //!
 //! Every wait is bounded; bus times are judged exactly (they are simulated), wall-clock waits
 //! generously.
@@ -26,6 +26,9 @@ use canpos_stack::Frame;
 fn silkit() -> Option<&'static Api> {
     match sys::api() {
         Ok(api) => Some(api),
+        Err(e) if std::env::var_os("CANPOS_SILKIT_REQUIRED").is_some_and(|v| v == "1") => {
+            panic!("CANPOS_SILKIT_REQUIRED=1 but {e}")
+        }
         Err(e) => {
             eprintln!("SIL Kit not installed ({e}): skipped");
             None
