@@ -10,7 +10,7 @@
 //!        |          runtime/ (loop, device wrapper, clock glue, requests, waits)
 //!        |           plain   eds_device (+ ini)
 //!        |                           |
-//!  mem/  socketcand/ (codec, session, client, reconnect, hub/)  socketcan  bridge  candump
+//!  mem/  socketcand/ (codec, session, client, reconnect, hub/)  socketcan  silkit/  bridge  candump
 //!        |                           |
 //!  bus/ (bits, timeline)   wake   control::request
 //!        |                           |
@@ -28,6 +28,7 @@
 //! - [`sys`]: precise sleeps, timer slack, the warning for an exposed socket.
 //! - [`mem`]: an in-process bus.
 //! - `socketcan`: Linux SocketCAN (cargo feature `socketcan`, on by default).
+//! - [`silkit`]: Vector SIL Kit (`silkit://`), its C API loaded at run time (docs/SILKIT.md).
 //! - [`candump`]: candump `-L` log lines.
 //! - [`file_storage`]: a device's non-volatile storage as one atomically written file.
 //! - [`runtime`]: drives simulated sensors on a bus on absolute deadlines.

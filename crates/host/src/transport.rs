@@ -609,6 +609,47 @@ mod tests {
     use canpos_stack::Frame;
     use std::time::Duration;
 
+    #[test]
+    fn silkit_urls() {
+        let u = BusUrl::parse("silkit://127.0.0.1:8501/can0").unwrap();
+        assert_eq!(
+            u,
+            BusUrl::Silkit {
+                host: "127.0.0.1".into(),
+                port: 8501,
+                network: "can0".into(),
+                participant: None,
+                sync_step_us: None,
+            }
+        );
+        assert_eq!(u.to_string(), "silkit://127.0.0.1:8501/can0");
+        let u = BusUrl::parse("silkit://rig/net1?participant=th-11&time=sync").unwrap();
+        assert_eq!(
+            u.to_string(),
+            "silkit://rig:8500/net1?participant=th-11&time=sync&step-us=1000"
+        );
+        let u = BusUrl::parse("silkit://[::1]:9/n?time=sync&step-us=250").unwrap();
+        assert_eq!(u.to_string(), "silkit://[::1]:9/n?time=sync&step-us=250");
+        assert_eq!(BusUrl::parse(&u.to_string()).unwrap(), u);
+        for (bad_url, why) in [
+            ("silkit://127.0.0.1:8500", "missing network"),
+            ("silkit://127.0.0.1:8500/", "empty network name"),
+            ("silkit://127.0.0.1:0/can0", "port 0"),
+            ("silkit://h/can0?participant=", "empty participant name"),
+            ("silkit://h/can0?participant=a b", "contains"),
+            ("silkit://h/can0?time=fast", "expected wall or sync"),
+            ("silkit://h/can0?step-us=10", "step-us needs time=sync"),
+            (
+                "silkit://h/can0?time=sync&step-us=0",
+                "expected 1-1000000000",
+            ),
+            ("silkit://h/can0?foo=1", "unknown parameter `foo`"),
+        ] {
+            let e = BusUrl::parse(bad_url).unwrap_err().to_string();
+            assert!(e.contains(why), "{bad_url}: {e}");
+        }
+    }
+
     fn sc(host: &str, port: u16, channel: &str) -> BusUrl {
         BusUrl::Socketcand {
             host: host.into(),

@@ -35,7 +35,8 @@ pub enum BusCmd {
 /// Options of `canpos bus bridge`.
 #[derive(Debug, Args)]
 pub struct BridgeArgs {
-    /// The first bus (socketcan://IFACE, socketcand://HOST:PORT/CHANNEL or mem://NAME).
+    /// The first bus (socketcan://IFACE, socketcand://HOST:PORT/CHANNEL, mem://NAME or
+    /// silkit://HOST:PORT/NETWORK).
     pub a: String,
     /// The second bus.
     pub b: String,

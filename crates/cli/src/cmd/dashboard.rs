@@ -11,7 +11,8 @@ use crate::dashboard::{start, Controls, DEFAULT_LISTEN};
 /// Options of `canpos dashboard`.
 #[derive(Debug, Args)]
 pub struct DashboardArgs {
-    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE or mem://NAME.
+    /// Bus URL: socketcand://HOST:PORT/CHANNEL, socketcan://IFACE, mem://NAME or
+    /// silkit://HOST:PORT/NETWORK (docs/SILKIT.md).
     #[arg(long, value_name = "URL", default_value = canpos_host::DEFAULT_URL)]
     pub bus: String,
     /// Address to serve the page on (loopback unless you mean otherwise: no authentication).
