@@ -28,7 +28,7 @@ use super::sys::{
     self, Api, ByteVector, CanErrorStateChangeEvent, CanFrame, CanFrameEvent,
     CanFrameTransmitEvent, CanStateChangeEvent, LifecycleConfiguration, ReturnCode, StructHeader,
 };
-use super::{Participant, RegistryUri};
+use super::RegistryUri;
 
 use crate::bus::controllers::{
     BusState, ControllerMode, Descriptor, MemberStats, NetCounters, NetEvent, Network, RawFrame,
@@ -439,6 +439,10 @@ impl Core {
     /// Synchronised mode: enters the requests stamped before `t` in time order, runs the bus
     /// to just before `t` and tells the controllers.
     fn step(&self, t: Nanos) {
+        if self.mode == TimeMode::Wall {
+            self.run_to_now();
+            return;
+        }
         let mut s = self.lock();
         s.sync_now = Some(t);
         let Shared { nets, .. } = &mut *s;
@@ -730,15 +734,62 @@ pub struct NetworkReport {
     pub departed: Vec<(Descriptor, ControllerMode, Option<MemberStats>)>,
 }
 
+/// The simulation step in wall mode: how often the bus is run to the wall clock and what
+/// happened on it is told (the times told are exact; delivery lags by up to a step).
+pub const WALL_STEP: Nanos = 500_000;
+
+/// Joins the registry as `name` with canpos's participant configuration (D35) and, in wall
+/// mode, time synchronisation paced to the wall clock (`AnimationFactor` 1).
+fn join(
+    api: &'static Api,
+    name: &str,
+    registry: &RegistryUri,
+    mode: TimeMode,
+) -> Result<*mut sys::Participant, sys::Error> {
+    super::check_name("participant name", name).map_err(sys::Error::BadArgument)?;
+    let config = match mode {
+        TimeMode::Wall => format!(
+            "{{\"Logging\": {{\"Sinks\": []}}, \"Middleware\": {{\"ConnectAttempts\": 1, \
+             \"TcpNoDelay\": true}}, \"Experimental\": {{\"TimeSynchronization\": \
+             {{\"AnimationFactor\": 1.0}}}}}}"
+        ),
+        TimeMode::Sync { .. } => super::PARTICIPANT_CONFIGURATION.to_string(),
+    };
+    let cname = CString::new(name).map_err(|e| sys::Error::BadArgument(e.to_string()))?;
+    let curi =
+        CString::new(registry.to_string()).map_err(|e| sys::Error::BadArgument(e.to_string()))?;
+    let ccfg = CString::new(config).expect("no NUL");
+    let mut cfg = std::ptr::null_mut();
+    // SAFETY: out-pointer and a NUL-terminated string.
+    api.check("SilKit_ParticipantConfiguration_FromString", unsafe {
+        (api.participant_configuration_from_string)(&mut cfg, ccfg.as_ptr())
+    })?;
+    let mut raw = std::ptr::null_mut();
+    // SAFETY: valid configuration, NUL-terminated strings, out-pointer.
+    let rc = unsafe { (api.participant_create)(&mut raw, cfg, cname.as_ptr(), curi.as_ptr()) };
+    // SAFETY: the participant keeps its own copy of the configuration.
+    unsafe { (api.participant_configuration_destroy)(cfg) };
+    api.check("SilKit_Participant_Create", rc)
+        .map_err(|e| match e {
+            sys::Error::Call { code, message, .. } => sys::Error::Call {
+                call: "SilKit_Participant_Create",
+                code,
+                code_name: sys::return_code_name(code),
+                message: format!("participant `{name}` at {registry}: {message}"),
+            },
+            e => e,
+        })?;
+    Ok(raw)
+}
+
 /// The running simulator: one SIL Kit participant simulating its networks.
 pub struct Simulator {
     core: Arc<Core>,
-    participant: Option<Participant>,
+    participant: *mut sys::Participant,
     lifecycle: *mut sys::LifecycleService,
     // Boxed: SIL Kit holds their addresses.
     #[allow(clippy::vec_box)]
     _nets: Vec<Box<NetCtx>>,
-    driver: Option<std::thread::JoinHandle<()>>,
 }
 
 // SAFETY: SIL Kit's handles may be used from any thread (its C API is thread-safe).
@@ -792,15 +843,12 @@ impl Simulator {
             }),
             wake: Condvar::new(),
         });
-        let participant =
-            Participant::join(api, participant_name, registry).map_err(|e| e.to_string())?;
-        let raw = participant.raw();
+        let raw = join(api, participant_name, registry, mode).map_err(|e| e.to_string())?;
         let mut sim = Simulator {
             core: core.clone(),
-            participant: Some(participant),
+            participant: raw,
             lifecycle: std::ptr::null_mut(),
             _nets: Vec::new(),
-            driver: None,
         };
         let err = |e: sys::Error| e.to_string();
         let core_ptr = Arc::as_ptr(&core) as *mut c_void;
@@ -829,7 +877,15 @@ impl Simulator {
                 (api.lifecycle_service_set_stop_handler)(lc, core_ptr, on_stop),
             )
             .map_err(err)?;
-            if let TimeMode::Sync { step, .. } = mode {
+            // Both modes step on SIL Kit's thread: the event producer may only be used there,
+            // since SIL Kit changes its table of controllers there without a lock (producing
+            // from a thread of canpos's crashed a 16-network run when controllers joined).
+            // Wall mode paces the steps to the wall clock (AnimationFactor 1, D41).
+            {
+                let step = match mode {
+                    TimeMode::Sync { step, .. } => step,
+                    TimeMode::Wall => WALL_STEP,
+                };
                 let mut ts = std::ptr::null_mut();
                 api.check(
                     "SilKit_TimeSyncService_Create",
@@ -880,15 +936,6 @@ impl Simulator {
             )
             .map_err(err)?;
         }
-        if mode == TimeMode::Wall {
-            let c = core.clone();
-            sim.driver = Some(
-                std::thread::Builder::new()
-                    .name("netsim-bus".into())
-                    .spawn(move || drive(&c))
-                    .map_err(|e| format!("cannot start the bus thread: {e}"))?,
-            );
-        }
         Ok(sim)
     }
 
@@ -911,30 +958,6 @@ impl Simulator {
                 departed: ns.net.departed().to_vec(),
             })
             .collect()
-    }
-}
-
-/// The wall-clock bus thread: runs the networks to now, sleeps until the next event or a
-/// request (at most 100 ms, so a stop is seen).
-fn drive(core: &Core) {
-    loop {
-        let (stopped, next) = core.run_to_now();
-        if stopped {
-            return;
-        }
-        let now = core.start.elapsed().as_nanos() as Nanos;
-        let wait = next
-            .map(|t| t.saturating_sub(now))
-            .unwrap_or(u64::MAX)
-            .min(100_000_000);
-        let s = core.lock();
-        if s.stopped {
-            return;
-        }
-        let _ = core
-            .wake
-            .wait_timeout(s, Duration::from_nanos(wait.max(1)))
-            .unwrap_or_else(|e| e.into_inner());
     }
 }
 
@@ -970,11 +993,12 @@ impl Drop for Simulator {
             self.core.lock().stopped = true;
             self.core.wake.notify_all();
         }
-        if let Some(d) = self.driver.take() {
-            let _ = d.join();
-        }
         // Destroyed before the contexts (`_nets`, the core) its callbacks use.
-        self.participant.take();
+        // SAFETY: created by `join`, destroyed once.
+        let rc = unsafe { (api.participant_destroy)(self.participant) };
+        if let Err(e) = api.check("SilKit_Participant_Destroy", rc) {
+            tracing::warn!("leaving SIL Kit: {e}");
+        }
     }
 }
 
