@@ -44,7 +44,7 @@ done
 NETARGS=()
 for n in $(seq 1 "$NETWORKS"); do NETARGS+=(--network "CAN$n"); done
 # The simulator runs a little longer than the sensors, so its counters cover the whole run.
-"$BIN" -q bus netsim --registry "$URI" "${NETARGS[@]}" --bitrate "$KBPS" \
+${NETSIM_WRAP:-} "$BIN" -q bus netsim --registry "$URI" "${NETARGS[@]}" --bitrate "$KBPS" \
   --stats-interval 0 --duration $((DURATION + 8)) >"$WORK/netsim.out" 2>&1 &
 PIDS+=($!)
 NETSIM_PID=$!

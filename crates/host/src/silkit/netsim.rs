@@ -440,7 +440,15 @@ impl Core {
     /// to just before `t` and tells the controllers.
     fn step(&self, t: Nanos) {
         if self.mode == TimeMode::Wall {
-            self.run_to_now();
+            // Steps come back to back on SIL Kit's I/O thread (this participant is alone in
+            // its time synchronisation); pausing here until the next event, at most a step,
+            // paces them to the wall clock. Frame requests are handled between steps.
+            let (_, next) = self.run_to_now();
+            let now = self.start.elapsed().as_nanos() as Nanos;
+            let wait = next.map_or(WALL_STEP, |n| n.saturating_sub(now).min(WALL_STEP));
+            if wait > 0 {
+                std::thread::sleep(Duration::from_nanos(wait));
+            }
             return;
         }
         let mut s = self.lock();
@@ -738,23 +746,14 @@ pub struct NetworkReport {
 /// happened on it is told (the times told are exact; delivery lags by up to a step).
 pub const WALL_STEP: Nanos = 500_000;
 
-/// Joins the registry as `name` with canpos's participant configuration (D35) and, in wall
-/// mode, time synchronisation paced to the wall clock (`AnimationFactor` 1).
+/// Joins the registry as `name` with canpos's participant configuration (D35).
 fn join(
     api: &'static Api,
     name: &str,
     registry: &RegistryUri,
-    mode: TimeMode,
 ) -> Result<*mut sys::Participant, sys::Error> {
     super::check_name("participant name", name).map_err(sys::Error::BadArgument)?;
-    let config = match mode {
-        TimeMode::Wall => format!(
-            "{{\"Logging\": {{\"Sinks\": []}}, \"Middleware\": {{\"ConnectAttempts\": 1, \
-             \"TcpNoDelay\": true}}, \"Experimental\": {{\"TimeSynchronization\": \
-             {{\"AnimationFactor\": 1.0}}}}}}"
-        ),
-        TimeMode::Sync { .. } => super::PARTICIPANT_CONFIGURATION.to_string(),
-    };
+    let config = super::PARTICIPANT_CONFIGURATION;
     let cname = CString::new(name).map_err(|e| sys::Error::BadArgument(e.to_string()))?;
     let curi =
         CString::new(registry.to_string()).map_err(|e| sys::Error::BadArgument(e.to_string()))?;
@@ -843,7 +842,7 @@ impl Simulator {
             }),
             wake: Condvar::new(),
         });
-        let raw = join(api, participant_name, registry, mode).map_err(|e| e.to_string())?;
+        let raw = join(api, participant_name, registry).map_err(|e| e.to_string())?;
         let mut sim = Simulator {
             core: core.clone(),
             participant: raw,
@@ -877,10 +876,11 @@ impl Simulator {
                 (api.lifecycle_service_set_stop_handler)(lc, core_ptr, on_stop),
             )
             .map_err(err)?;
-            // Both modes step on SIL Kit's thread: the event producer may only be used there,
-            // since SIL Kit changes its table of controllers there without a lock (producing
-            // from a thread of canpos's crashed a 16-network run when controllers joined).
-            // Wall mode paces the steps to the wall clock (AnimationFactor 1, D41).
+            // Both modes step on SIL Kit's I/O thread: the event producer may only be used
+            // there (from another thread SIL Kit posts the send with references to the caller's
+            // event, gone by then: the 16-network scale run crashed so, with canpos's own bus
+            // thread and with SIL Kit's wall-clock coupling thread). Wall mode paces its steps
+            // itself (D41).
             {
                 let step = match mode {
                     TimeMode::Sync { step, .. } => step,
