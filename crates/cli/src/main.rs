@@ -8,8 +8,8 @@
 use std::process::ExitCode;
 
 use canpos_cli::cmd::{
-    bench, bus, ctl, dashboard, dcf, demo, eds, fmu, guard, lss, monitor, nmt, record, replay, run,
-    scan, scenario, sdo, soak,
+    bench, bus, ctl, dashboard, dcf, demo, eds, fmu, guard, lss, monitor, netsim, nmt, record,
+    replay, run, scan, scenario, sdo, soak,
 };
 use canpos_cli::common;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
@@ -160,6 +160,7 @@ fn main() -> ExitCode {
         None => demo::demo(cli.demo),
         Some(Cmd::Bus(bus::BusCmd::Serve(a))) => bus::bus_serve(a),
         Some(Cmd::Bus(bus::BusCmd::Bridge(a))) => bus::bus_bridge(a),
+        Some(Cmd::Bus(bus::BusCmd::Netsim(a))) => netsim::bus_netsim(a),
         Some(Cmd::Run(a)) => run::run(*a),
         Some(Cmd::Scenario(a)) => scenario::scenario(a),
         Some(Cmd::Ctl(a)) => ctl::ctl(a),

@@ -25,6 +25,11 @@ pub enum BusCmd {
     /// Both buses must be there: a URL where nothing is gets an error (exit 1). Runs until
     /// Ctrl-C / SIGTERM or until one side goes away (exit 1).
     Bridge(BridgeArgs),
+    /// Simulate Vector SIL Kit CAN networks with canpos's bus timeline: bit time, arbitration,
+    /// end-of-frame times, acknowledgement only of the frame that won the bus, error counters
+    /// and bus-off (docs/SILKIT.md). Runs until Ctrl-C / SIGTERM, SIL Kit's stop or
+    /// `--duration`, then prints one JSON line of counters per network.
+    Netsim(crate::cmd::netsim::NetsimArgs),
 }
 
 /// Options of `canpos bus bridge`.

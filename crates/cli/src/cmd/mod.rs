@@ -13,6 +13,7 @@ pub mod fmu;
 pub mod guard;
 pub mod lss;
 pub mod monitor;
+pub mod netsim;
 pub mod nmt;
 pub mod record;
 pub mod replay;

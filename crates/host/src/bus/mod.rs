@@ -4,6 +4,7 @@
 //! their frames through a [`Timeline`]; docs/BUS.md describes the model.
 
 pub mod bits;
+pub mod controllers;
 pub mod ports;
 pub mod timeline;
 

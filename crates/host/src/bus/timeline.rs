@@ -779,6 +779,7 @@ impl Timeline {
 }
 
 mod arbitration;
+mod cancel;
 
 #[cfg(test)]
 mod tests;

@@ -607,7 +607,8 @@ fn stepper_loop(
         }
         let early = s.early.lock().unwrap_or_else(|e| e.into_inner()).take();
         for f in early.into_iter().flatten() {
-            if let Err(e) = send_frame(sh.api, controller as *mut sys::CanController, &f) {
+            let stamp = super::netsim::context_of_time(now);
+            if let Err(e) = send_frame(sh.api, controller as *mut sys::CanController, &f, stamp) {
                 tracing::warn!(participant = %sh.participant, "SIL Kit: {e}");
             }
         }
@@ -664,11 +665,13 @@ fn wait_for_runtime(sh: &Shared, s: &SyncState, now: u64) {
     }
 }
 
-/// Sends a classic frame on `controller`.
+/// Sends a classic frame on `controller`, with `context` as its user context (in synchronised
+/// mode its simulated time, for a network simulator: `netsim::context_of_time`, D40).
 fn send_frame(
     api: &'static Api,
     controller: *mut sys::CanController,
     frame: &Frame,
+    context: u64,
 ) -> Result<(), Error> {
     let data = frame.data();
     let mut flags = 0;
@@ -692,7 +695,7 @@ fn send_frame(
         },
     };
     // SAFETY: a live controller; SIL Kit copies the frame before returning.
-    let rc = unsafe { (api.can_controller_send_frame)(controller, &mut f, std::ptr::null_mut()) };
+    let rc = unsafe { (api.can_controller_send_frame)(controller, &mut f, context as *mut c_void) };
     api.check("SilKit_CanController_SendFrame", rc)
 }
 
@@ -719,7 +722,14 @@ impl Transport for SilkitCan {
             tracing::trace!(id = frame.id(), limit = s.clock.limit(), "SIL Kit: send");
         }
         *self.last_send.lock().unwrap_or_else(|e| e.into_inner()) = Some(std::time::Instant::now());
-        send_frame(self.shared.api, self.controller, frame)
+        // Synchronised: stamped with the step's time (D40), so canpos bus netsim enters it into
+        // the bus at that simulated time, not at whichever of its steps it arrived in.
+        let stamp = self
+            .shared
+            .sync
+            .as_ref()
+            .map_or(0, |s| super::netsim::context_of_time(s.clock.limit()));
+        send_frame(self.shared.api, self.controller, frame, stamp)
             .map_err(|e| io::Error::other(e.to_string()))
     }
 

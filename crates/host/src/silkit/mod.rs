@@ -1,6 +1,7 @@
 //! Vector SIL Kit: canpos as participants of a SIL Kit simulation (docs/SILKIT.md).
 //!
 //! - [`sys`]: the C API canpos uses, loaded at run time from `libSilKit.so` (D35).
+//! - [`netsim`]: canpos's bus timeline as the CAN network simulator (`canpos bus netsim`).
 //! - [`Participant`]: a participant joined to a registry, destroyed on drop.
 //! - [`LocalRegistry`]: a `sil-kit-registry` child process on 127.0.0.1 with a free port, for
 //!   tests and for a rig on one machine.
@@ -8,6 +9,7 @@
 //! SIL Kit's C API is thread-safe; its handlers run on SIL Kit's own threads.
 
 pub mod can;
+pub mod netsim;
 pub mod sys;
 
 use std::ffi::CString;
