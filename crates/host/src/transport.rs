@@ -280,47 +280,9 @@ impl BusUrl {
             channel
         };
         check_name(url, "channel", channel, 64)?;
-        let (host, port) = if authority.is_empty() {
-            (DEFAULT_HOST, None)
-        } else if let Some(v6) = authority.strip_prefix('[') {
-            let Some((h, after)) = v6.split_once(']') else {
-                return Err(bad(url, "unclosed `[` in IPv6 host"));
-            };
-            match after {
-                "" => (h, None),
-                p => match p.strip_prefix(':') {
-                    Some(p) => (h, Some(p)),
-                    None => return Err(bad(url, "expected `:PORT` after `]`")),
-                },
-            }
-        } else {
-            match authority.rsplit_once(':') {
-                Some((h, _)) if h.contains(':') => {
-                    return Err(bad(
-                        url,
-                        "IPv6 hosts must be written in brackets: [::1]:29536",
-                    ))
-                }
-                Some((h, p)) => (h, Some(p)),
-                None => (authority, None),
-            }
-        };
-        if host.is_empty() {
-            return Err(bad(url, "empty host"));
-        }
-        if host.chars().any(|c| c.is_whitespace() || c == '@') {
-            return Err(bad(url, format!("bad host `{host}`")));
-        }
-        let port = match port {
-            None => DEFAULT_PORT,
-            Some(p) => match p.parse::<u16>() {
-                Ok(0) => return Err(bad(url, "port 0 is not a valid port to connect to")),
-                Ok(p) => p,
-                Err(_) => return Err(bad(url, format!("bad port `{p}` (expected 1-65535)"))),
-            },
-        };
+        let (host, port) = Self::parse_authority(url, authority, DEFAULT_PORT)?;
         Ok(BusUrl::Socketcand {
-            host: host.to_string(),
+            host,
             port,
             channel: channel.to_string(),
         })

@@ -538,6 +538,9 @@ impl Network {
             // SIL Kit's CAN API has no error frames: their effect reaches the controllers as
             // error-state changes (below) and retransmissions.
             BusEvent::Error(_) => {}
+            // Only a timeline that asks for them reports losses (the LS-BUS FMU's); SIL Kit's
+            // controllers keep a lost frame queued and are told nothing of the arbitration.
+            BusEvent::ArbitrationLost { .. } => {}
             BusEvent::State {
                 member, at, state, ..
             } => {
