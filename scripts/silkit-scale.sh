@@ -83,23 +83,33 @@ for n in $(seq 1 "$NETWORKS"); do
   sleep 1
 done
 
-ticks() { awk '{print $14 + $15}' "/proc/$1/stat" 2>/dev/null || echo 0; }
+ticks() { awk '{print $14 + $15}' "/proc/$1/stat" 2>/dev/null || echo gone; }
 HZ=$(getconf CLK_TCK)
 declare -A T0
 ALL=("$NETSIM_PID" "$REG_PID" "${SCEN_PIDS[@]}" "${REC_PIDS[@]}")
 for p in "${ALL[@]}"; do T0[$p]=$(ticks "$p"); done
 START=$(date +%s.%N)
-sleep "$DURATION"
+# The window ends before the first scenario process (started NETWORKS s before START) ends:
+# /proc of a process that has exited reads 0 ticks, which printed negative figures.
+WINDOW=$((DURATION - NETWORKS - 2))
+[ "$WINDOW" -ge 1 ] || WINDOW=1
+sleep "$WINDOW"
 declare -A T1
 for p in "${ALL[@]}"; do T1[$p]=$(ticks "$p"); done
 END=$(date +%s.%N)
 wait "${SCEN_PIDS[@]}" "${REC_PIDS[@]}" 2>/dev/null || true
-wait "$NETSIM_PID" 2>/dev/null || true
+NETSIM_STATUS=0
+wait "$NETSIM_PID" 2>/dev/null || NETSIM_STATUS=$?
 
 WALL=$(echo "$END - $START" | bc -l)
-cpu() { echo "scale=1; 100 * (${T1[$1]} - ${T0[$1]}) / $HZ / $WALL" | bc -l; }
+cpu() {
+  # A process gone before the window closed has no figure (not a negative one).
+  if [ "${T0[$1]}" = gone ] || [ "${T1[$1]}" = gone ]; then echo "n/a(exited)"; return; fi
+  echo "scale=1; 100 * (${T1[$1]} - ${T0[$1]}) / $HZ / $WALL" | bc -l
+}
 echo "== SIL Kit scale run: $NETWORKS networks x $SENSORS TH sensors, $KBPS kbit/s, ${DURATION} s"
 echo "== processes: 1 registry, 1 canpos bus netsim, $NETWORKS canpos scenario"
+echo "netsim exit status=$NETSIM_STATUS (0 expected; 139 is a SIGSEGV)"
 echo "cpu_pct netsim=$(cpu "$NETSIM_PID") registry=$(cpu "$REG_PID")"
 i=1
 for p in "${SCEN_PIDS[@]}"; do echo "cpu_pct scenario-$i=$(cpu "$p")"; i=$((i + 1)); done

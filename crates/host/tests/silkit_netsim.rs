@@ -611,3 +611,78 @@ fn several_networks_in_one_simulator_are_separate_buses() {
         assert_eq!(r.controllers.len(), 2, "{}", r.name);
     }
 }
+
+/// Controllers that leave a busy network one after another (each a canpos participant that
+/// ends normally) leave the simulator running. SIL Kit 5.0.3 frees its per-controller target
+/// when a controller leaves and crashes on a send it had queued for it: before canpos's
+/// participant stopped its controller and lingered before leaving, this process died with
+/// SIGSEGV within a few leaves (docs/BENCHMARKS.md "SIL Kit: canpos bus netsim at scale").
+#[test]
+fn controllers_leaving_a_busy_network_leave_the_simulator_running() {
+    let Some(api) = silkit() else {
+        return;
+    };
+    let reg = registry();
+    let sim = Simulator::start(
+        api,
+        reg.uri(),
+        "netsim",
+        &[NetworkSpec {
+            name: "CAN1".into(),
+            kbps: 125,
+        }],
+        TimeMode::Wall,
+    )
+    .expect("simulator starts");
+    let talker = Node::join(api, &reg, "talker", "CAN1");
+    talker.start();
+    talker.wait("started", |s| s.contains(&Seen::Error(1)));
+    const LEAVERS: usize = 8;
+    let d = [0x5au8; 8];
+    for i in 0..LEAVERS {
+        let leaver = canpos_host::silkit::can::SilkitCan::open(
+            api,
+            &canpos_host::silkit::can::Options {
+                registry: reg.uri().clone(),
+                network: "CAN1".into(),
+                participant: format!("leaver{i}"),
+                time: canpos_host::silkit::can::TimeMode::Wall,
+                bitrate_kbps: Some(125),
+            },
+        )
+        .expect("leaver joins");
+        // A saturated bus while the leaver is on it (a 125 kbit/s bus carries ~1 frame/ms;
+        // what the talker's queue cannot take is refused, of no consequence here).
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_millis(300) {
+            for k in 0..4 {
+                talker.send(0x100 + k, &d, 0);
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        drop(leaver);
+        // The next joins once this one is gone (SIL Kit's join waits for a reply from every
+        // participant the registry still lists, and a participant just destroyed gives none).
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while sim.report()[0].departed.len() <= i {
+            assert!(Instant::now() < deadline, "leaver{i} not seen to leave");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    // Every leaver was seen to go, and the simulator still runs its network.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let r = &sim.report()[0];
+        if r.departed.len() >= LEAVERS {
+            assert!(r.counters.frames > 0);
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{} of {LEAVERS} leavers seen to leave",
+            r.departed.len()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(!sim.is_stopped());
+}

@@ -788,7 +788,17 @@ impl Drop for SilkitCan {
     fn drop(&mut self) {
         self.shared.left.store(true, Ordering::SeqCst);
         drop(lock(&GATE));
-        if self.started.load(Ordering::SeqCst) && !self.lifecycle.is_null() {
+        let started = self.started.load(Ordering::SeqCst);
+        if started && !self.controller.is_null() {
+            // Stopped before leaving, and a linger for a network simulator to take note: SIL
+            // Kit 5.0.3's simulator crashes on a send it queued for a controller that left
+            // (it frees its target when the controller leaves), and a stopped controller is
+            // sent nothing (docs/BENCHMARKS.md "SIL Kit: canpos bus netsim at scale").
+            // SAFETY: a live controller; an error (not started) is of no consequence.
+            let _ = unsafe { (self.shared.api.can_controller_stop)(self.controller) };
+            std::thread::sleep(LINGER);
+        }
+        if started && !self.lifecycle.is_null() {
             let reason = CString::new("canpos participant leaves").expect("no NUL");
             // SAFETY: a live lifecycle service; an error (not running) is of no consequence.
             let _ = unsafe {

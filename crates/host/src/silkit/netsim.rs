@@ -876,11 +876,13 @@ impl Simulator {
                 (api.lifecycle_service_set_stop_handler)(lc, core_ptr, on_stop),
             )
             .map_err(err)?;
-            // Both modes step on SIL Kit's I/O thread: the event producer may only be used
-            // there (from another thread SIL Kit posts the send with references to the caller's
-            // event, gone by then: the 16-network scale run crashed so, with canpos's own bus
-            // thread and with SIL Kit's wall-clock coupling thread). Wall mode paces its steps
-            // itself (D41).
+            // Both modes step on SIL Kit's I/O thread, where its discovery and frame-request
+            // callbacks run too, so producing never races SIL Kit's table of controllers (D41).
+            // SIL Kit copies the event (Produce returns with nothing of canpos's kept) but
+            // posts every targeted send with a raw pointer to its per-controller target, freed
+            // when that controller leaves: a controller leaving while sends for it are queued
+            // crashes SIL Kit 5.0.3 whatever thread produced them (docs/BENCHMARKS.md "SIL
+            // Kit: canpos bus netsim at scale"). Wall mode paces its steps itself.
             {
                 let step = match mode {
                     TimeMode::Sync { step, .. } => step,
