@@ -12,11 +12,14 @@
 //! process's descriptors and times out what clients leave unfinished ([`serve`]).
 
 mod answer;
+mod app;
 pub mod guard;
 mod od;
 mod page;
 pub mod serve;
 pub mod trace;
+mod trace_api;
+mod values;
 pub mod watch;
 
 use std::convert::Infallible;
@@ -27,6 +30,7 @@ use std::time::Duration;
 
 use answer::{fail, ApiError};
 use anyhow::{Context, Result};
+use app::{asset, bus_result, known_node, model_of, refused, type_name, value_type, Answer, App};
 use axum::extract::{Path, State};
 use axum::http::{header, Method, StatusCode, Uri};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -36,14 +40,14 @@ use axum::{Json, Router};
 use canpos_host::control;
 use canpos_host::crossbeam_channel::Sender;
 use canpos_host::Transport;
-use canpos_stack::od::{Access, DataType};
+use canpos_stack::od::Access;
 use canpos_stack::Table;
 use page::{render_page, APP_JS, STYLE, UPLOT_CSS, UPLOT_JS, UPLOT_LICENSE};
 use serde_json::{json, Value};
-use watch::{BusCmd, BusQueue, Controller, Link, Outcome, Pending, Refused, Shared};
+use watch::{BusCmd, Controller, Link, Shared};
 
 use crate::client::decode;
-use crate::client::sdo::{format_auto, hex_string, ValueType};
+use crate::client::sdo::{format_auto, hex_string};
 
 /// Default address of `canpos dashboard`.
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:29080";
@@ -158,7 +162,7 @@ pub fn start_on(
         .lock()
         .unwrap()
         .set_bitrate(bus.bus_bitrate().unwrap_or(1000));
-    let bus: Box<dyn Transport> = Box::new(trace::Tap::new(bus, hub));
+    let bus: Box<dyn Transport> = Box::new(trace::Tap::new(bus, hub, watch::scan));
     let (cmd_tx, cmd_rx) = watch::bus_queue(watch::QUEUE);
     let (stop_bus, stop_bus_rx) = canpos_host::crossbeam_channel::bounded(1);
     let (stop_poll, stop_poll_rx) = canpos_host::crossbeam_channel::bounded(1);
@@ -224,14 +228,6 @@ pub fn start_for_runtime(
     Ok(d)
 }
 
-#[derive(Clone)]
-struct App {
-    shared: Arc<Mutex<Shared>>,
-    cmds: Arc<BusQueue>,
-    /// The values the object browser's reads brought in ([`od`]).
-    od: Arc<od::Values>,
-}
-
 fn router(app: App) -> Router {
     Router::new()
         .route("/", get(page))
@@ -257,7 +253,7 @@ fn router(app: App) -> Router {
         )
         .route("/api/nodes/{node}/control", post(node_control))
         .merge(od::routes())
-        .merge(trace::routes())
+        .merge(trace_api::routes())
         // axum answers a known path's other methods 405 with an empty body; the API's errors
         // are JSON (axum still adds `Allow`).
         .method_not_allowed_fallback(|method: Method, uri: Uri| async move {
@@ -272,10 +268,6 @@ fn router(app: App) -> Router {
         .fallback(|| async { fail(StatusCode::NOT_FOUND, "no such page or API".into()) })
         .layer(axum::middleware::from_fn(guard::guard))
         .with_state(app)
-}
-
-async fn asset(ty: &'static str, body: &'static str) -> Response {
-    ([(header::CONTENT_TYPE, ty)], body).into_response()
 }
 
 /// The page with the bus as it is now: the node table filled in and the whole snapshot
@@ -294,8 +286,6 @@ async fn page(State(app): State<App>) -> Response {
     )
         .into_response()
 }
-
-type Answer = Result<Json<Value>, ApiError>;
 
 async fn status(State(app): State<App>) -> Json<Value> {
     let s = app.shared.lock().unwrap();
@@ -453,7 +443,7 @@ fn snapshot(s: &Shared, sent: u64) -> Value {
                 .or(n.error_register);
             let nmt = st
                 .and_then(|st| st["nmt"].as_str().map(str::to_string))
-                .or_else(|| trace::nmt_of(s, *id, n))
+                .or_else(|| watch::nmt_of(s, *id, n))
                 .unwrap_or_else(|| watch::nmt_name(n.nmt).to_string());
             let channels: Vec<Value> = n
                 .channels
@@ -583,46 +573,6 @@ fn nan_null(v: f64) -> Value {
     }
 }
 
-/// A node-id from the path; it must be one the dashboard knows.
-fn known_node(app: &App, s: &str) -> Result<u8, ApiError> {
-    let id = crate::common::parse_node(s, 1)
-        .map_err(|e| fail(StatusCode::BAD_REQUEST, e.to_string()))?;
-    if !app.shared.lock().unwrap().nodes.contains_key(&id) {
-        return Err(fail(
-            StatusCode::NOT_FOUND,
-            format!("unknown node {id}: no such node on the bus"),
-        ));
-    }
-    Ok(id)
-}
-
-fn type_name(t: DataType) -> &'static str {
-    match t {
-        DataType::Boolean => "BOOLEAN",
-        DataType::Integer8 => "INTEGER8",
-        DataType::Integer16 => "INTEGER16",
-        DataType::Integer32 => "INTEGER32",
-        DataType::Unsigned8 => "UNSIGNED8",
-        DataType::Unsigned16 => "UNSIGNED16",
-        DataType::Unsigned32 => "UNSIGNED32",
-        DataType::VisibleString => "VISIBLE_STRING",
-        DataType::Domain => "DOMAIN",
-    }
-}
-
-fn value_type(t: DataType) -> ValueType {
-    match t {
-        DataType::Boolean | DataType::Unsigned8 => ValueType::U8,
-        DataType::Integer8 => ValueType::I8,
-        DataType::Integer16 => ValueType::I16,
-        DataType::Integer32 => ValueType::I32,
-        DataType::Unsigned16 => ValueType::U16,
-        DataType::Unsigned32 => ValueType::U32,
-        DataType::VisibleString => ValueType::Str,
-        DataType::Domain => ValueType::Bytes,
-    }
-}
-
 fn access_name(a: Access) -> &'static str {
     match a {
         Access::Ro => "ro",
@@ -630,19 +580,6 @@ fn access_name(a: Access) -> &'static str {
         Access::Rw => "rw",
         Access::Const => "const",
     }
-}
-
-/// The object table of node `id`'s model: that of the model's widest unit (the two-channel
-/// TMI's), as the dashboard does not know the unit's configuration; an object a unit does not
-/// have is answered by the unit itself (SDO abort 0x06020000 / 0x06090011).
-fn model_of(app: &App, id: u8) -> Result<&'static Table, ApiError> {
-    let model = app.shared.lock().unwrap().nodes[&id].model;
-    model.ok_or_else(|| {
-        fail(
-            StatusCode::CONFLICT,
-            format!("node {id}: its model is not known (not a TH, E-Series or TMI; name its EDS with --eds {id}=FILE), so there is no object table"),
-        )
-    })
 }
 
 async fn od(State(app): State<App>, Path(node): Path<String>) -> Answer {
@@ -692,62 +629,6 @@ fn object(
             )
         })?;
     Ok((id, entry))
-}
-
-/// How long a request waits for its command to start on the bus: with [`watch::QUEUE`]
-/// commands ahead, each a 300 ms SDO timeout at worst, it starts well within.
-const BUS_PATIENCE: Duration = Duration::from_secs(5);
-/// How long a request waits for a command that has started to end. An expedited transfer
-/// ends within its 300 ms timeout; only a long segmented one with a node that answers each
-/// segment late takes longer, and it is then reported as unfinished, its effect unknown.
-const BUS_RUN_LIMIT: Duration = Duration::from_secs(30);
-
-/// The answer to a command the queue did not take.
-fn refused(app: &App, r: Refused) -> ApiError {
-    match r {
-        Refused::Busy => fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!(
-                "the bus is busy: {} requests already wait for it; nothing was sent, try again",
-                watch::QUEUE
-            ),
-        ),
-        Refused::Gone => gone(app),
-    }
-}
-
-fn gone(app: &App) -> ApiError {
-    let why = app.shared.lock().unwrap().bus_error.clone();
-    fail(
-        StatusCode::SERVICE_UNAVAILABLE,
-        match why {
-            Some(why) => format!("the bus connection is gone: {why}"),
-            None => "the bus connection is gone".into(),
-        },
-    )
-}
-
-/// Waits for a queued command of node `id`: its result, or an error that says what happened.
-async fn bus_result<T>(app: &App, id: u8, p: Pending<Result<T, String>>) -> Result<T, ApiError> {
-    match p.outcome(BUS_PATIENCE, BUS_RUN_LIMIT).await {
-        Outcome::Done(Ok(v)) => Ok(v),
-        Outcome::Done(Err(why)) => Err(fail(StatusCode::BAD_GATEWAY, format!("node {id}: {why}"))),
-        Outcome::TimedOut { ahead } => Err(fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!(
-                "timed out waiting for the bus: {ahead} requests ahead after {} s; nothing was sent",
-                BUS_PATIENCE.as_secs()
-            ),
-        )),
-        Outcome::Unfinished => Err(fail(
-            StatusCode::GATEWAY_TIMEOUT,
-            format!(
-                "node {id}: the transfer started but has not ended after {} s; whether it took effect is unknown",
-                BUS_RUN_LIMIT.as_secs()
-            ),
-        )),
-        Outcome::Gone => Err(gone(app)),
-    }
 }
 
 async fn sdo_read(

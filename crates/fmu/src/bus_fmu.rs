@@ -10,10 +10,10 @@
 //! frames they hand in at one time arbitrate together.
 
 use crate::bussim::{nanos, BusSim};
-use crate::kind::Entries;
 use crate::model::{
     BusTerminal, Causality, Description, Discrete, FmuModel, StepResult, Value, VarType, Variable,
 };
+use crate::resource::Entries;
 use crate::sensor::lsbus_variables;
 use canpos_host::bus::ports::MAX_PORTS;
 use canpos_host::bus::{check_bitrate, Nanos};

@@ -11,4 +11,5 @@ pub mod kind;
 pub mod lsbus;
 pub mod model;
 pub mod package;
+pub mod resource;
 pub mod sensor;

@@ -20,11 +20,11 @@ use canpos_sim::SensorSpec;
 use canpos_stack::{Frame, Instant};
 use serde_json::Value as Json;
 
-use crate::kind::Entries;
 use crate::lsbus::{self, ArbitrationLostBehavior, CanStatus, Config, Op, TxBuffer};
 use crate::model::{
     BusTerminal, Causality, Description, Discrete, FmuModel, StepResult, Value, VarType, Variable,
 };
+use crate::resource::Entries;
 
 /// `maxSize` of `Rx_Data` / `Tx_Data`, bytes: 128 classic CAN frames of 8 bytes.
 pub const BUS_DATA_MAX: usize = 128 * 24;

@@ -103,7 +103,7 @@ pub struct Row {
 /// Row key: extended flag, identifier, remote flag.
 type Key = (bool, u32, bool);
 
-fn key(f: &Frame) -> Key {
+pub(super) fn key(f: &Frame) -> Key {
     (f.is_extended(), f.id(), f.is_remote())
 }
 
@@ -346,13 +346,13 @@ pub fn monitor_of<'a>(infos: impl Iterator<Item = (u8, &'a NodeInfo)>) -> Monito
     m
 }
 
-fn secs(t: SystemTime) -> f64 {
+pub(super) fn secs(t: SystemTime) -> f64 {
     t.duration_since(UNIX_EPOCH)
         .unwrap_or_default()
         .as_secs_f64()
 }
 
-fn id_text(f: &Frame) -> String {
+pub(super) fn id_text(f: &Frame) -> String {
     if f.is_extended() {
         format!("0x{:08X}", f.id())
     } else {
@@ -360,7 +360,7 @@ fn id_text(f: &Frame) -> String {
     }
 }
 
-fn ms(d: Option<Duration>) -> Value {
+pub(super) fn ms(d: Option<Duration>) -> Value {
     d.map_or(Value::Null, |d| json!(d.as_secs_f64() * 1e3))
 }
 
@@ -566,15 +566,21 @@ pub struct Tap {
     hub: Arc<TraceHub>,
     /// Lost: when to try again, and the next wait.
     down: Option<(Instant, Duration)>,
+    /// Asks who is on a bus connection that came back (the dashboard's scan).
+    rescan: Rescan,
 }
+
+/// What [`Tap`] does on a connection that came back, before anything else.
+pub type Rescan = fn(&mut dyn Transport) -> io::Result<()>;
 
 impl Tap {
     /// Wraps the bus connection `inner`.
-    pub fn new(inner: Box<dyn Transport>, hub: Arc<TraceHub>) -> Tap {
+    pub fn new(inner: Box<dyn Transport>, hub: Arc<TraceHub>, rescan: Rescan) -> Tap {
         Tap {
             inner,
             hub,
             down: None,
+            rescan,
         }
     }
 
@@ -665,7 +671,7 @@ impl Tap {
                 }
                 tracing::warn!("dashboard: the bus connection is back; scanning it again");
                 // The hub may be a new one and its nodes booted again: ask who is there.
-                if let Err(e) = super::watch::scan(self) {
+                if let Err(e) = (self.rescan)(self) {
                     let _ = self.lost(e);
                 }
             }
@@ -805,405 +811,6 @@ pub fn link_json(l: &LinkState) -> Value {
 }
 
 // --- The HTTP side ------------------------------------------------------------------------------
-
-use axum::extract::{Query, State};
-use axum::http::{header, StatusCode};
-use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
-use axum::{Json, Router};
-
-use super::answer::{fail, ApiError};
-use super::App;
-
-/// The trace's and transmitter's routes (docs/DASHBOARD.md, "Trace" and "Transmit").
-pub(super) fn routes() -> Router<App> {
-    Router::new()
-        .route(
-            "/trace.js",
-            get(|| super::asset("text/javascript", TRACE_JS)),
-        )
-        .route("/api/trace", get(trace_get))
-        .route("/api/trace/export", get(trace_export))
-        .route("/api/trace/clear", post(trace_clear))
-        .route("/api/send", get(send_list).post(send))
-        .route("/api/send/stop", post(send_stop))
-        .route("/api/nmt", post(nmt))
-}
-
-const TRACE_JS: &str = include_str!("../../assets/dashboard/trace.js");
-
-type Answer = Result<Json<Value>, ApiError>;
-
-/// The query of the trace's reads: `since` (log), `from` / `to` (hex identifiers), `node`.
-#[derive(serde::Deserialize, Default)]
-struct TraceQuery {
-    since: Option<u64>,
-    from: Option<String>,
-    to: Option<String>,
-    node: Option<String>,
-    format: Option<String>,
-    limit: Option<usize>,
-}
-
-fn bad(why: String) -> ApiError {
-    fail(StatusCode::BAD_REQUEST, why)
-}
-
-/// An identifier: hex with or without `0x`, at most 29 bits.
-fn parse_id(s: &str) -> Result<u32, ApiError> {
-    let t = s.trim();
-    let h = t
-        .strip_prefix("0x")
-        .or_else(|| t.strip_prefix("0X"))
-        .unwrap_or(t);
-    if h.is_empty() || h.len() > 8 {
-        return Err(bad(format!("identifier `{s}`: expected hex, e.g. 0x185")));
-    }
-    let v = u32::from_str_radix(h, 16)
-        .map_err(|_| bad(format!("identifier `{s}`: expected hex, e.g. 0x185")))?;
-    if v > 0x1FFF_FFFF {
-        return Err(bad(format!(
-            "identifier `{s}` is above 0x1FFFFFFF (29 bits)"
-        )));
-    }
-    Ok(v)
-}
-
-fn filter_of(q: &TraceQuery) -> Result<Filter, ApiError> {
-    fn opt(v: &Option<String>) -> Option<&str> {
-        v.as_deref().filter(|s| !s.trim().is_empty())
-    }
-    let node = match opt(&q.node) {
-        Some(n) => {
-            Some(crate::common::parse_node(n.trim(), 1).map_err(|e| bad(format!("node: {e}")))?)
-        }
-        None => None,
-    };
-    let f = Filter {
-        from: opt(&q.from).map(parse_id).transpose()?,
-        to: opt(&q.to).map(parse_id).transpose()?,
-        node,
-    };
-    if let (Some(a), Some(b)) = (f.from, f.to) {
-        if a > b {
-            return Err(bad(format!("from 0x{a:X} is above to 0x{b:X}")));
-        }
-    }
-    Ok(f)
-}
-
-fn query(
-    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<TraceQuery, ApiError> {
-    q.map(|Query(q)| q).map_err(|e| {
-        bad(format!(
-            "{}; expected ?since=N&from=0xID&to=0xID&node=N (each optional)",
-            e.body_text()
-        ))
-    })
-}
-
-/// The monitor of the mappings the dashboard read, and its trace hub.
-fn monitor(app: &App) -> (Monitor, Arc<TraceHub>) {
-    let s = app.shared.lock().unwrap();
-    let m = monitor_of(
-        s.nodes
-            .iter()
-            .filter_map(|(id, n)| n.info.as_ref().map(|i| (*id, i))),
-    );
-    (m, s.trace.clone())
-}
-
-fn periodic_json(hub: &TraceHub) -> Vec<Value> {
-    hub.periodic()
-        .iter()
-        .map(|j| {
-            json!({
-                "id": id_text(&j.frame), "ext": j.frame.is_extended(), "rtr": j.frame.is_remote(),
-                "dlc": j.frame.dlc(), "data": hex_string(j.frame.data()),
-                "period_ms": j.period.as_secs_f64() * 1e3, "sent": j.sent,
-            })
-        })
-        .collect()
-}
-
-/// `GET /api/trace`: the rows, the log since `since`, load, rate, the hub link and the
-/// periodic transmissions.
-async fn trace_get(
-    State(app): State<App>,
-    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
-) -> Answer {
-    let q = query(q)?;
-    let filter = filter_of(&q)?;
-    let (mon, hub) = monitor(&app);
-    let mut v = answer(
-        &hub.trace.lock().unwrap(),
-        &mon,
-        &filter,
-        q.since.unwrap_or(0),
-        q.limit.unwrap_or(LOG_ANSWER),
-        Instant::now(),
-    );
-    let o = v.as_object_mut().expect("an object");
-    o.insert("link".into(), link_json(&hub.link.lock().unwrap()));
-    o.insert("periodic".into(), json!(periodic_json(&hub)));
-    Ok(Json(v))
-}
-
-/// `GET /api/trace/export?format=pcapng|candump`: the logged frames as a capture file.
-async fn trace_export(
-    State(app): State<App>,
-    q: Result<Query<TraceQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Response, ApiError> {
-    let q = query(q)?;
-    let filter = filter_of(&q)?;
-    let (format, ext, ty) = match q.format.as_deref().unwrap_or("pcapng") {
-        "pcapng" => (Format::Pcapng, "pcapng", "application/x-pcapng"),
-        "candump" => (Format::Candump, "log", "text/plain; charset=utf-8"),
-        other => return Err(bad(format!("format `{other}`: expected pcapng or candump"))),
-    };
-    let (mon, hub) = monitor(&app);
-    let body = export(&hub.trace.lock().unwrap(), &mon, &filter, format)
-        .map_err(|e| fail(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-    Ok((
-        [
-            (header::CONTENT_TYPE, ty.to_string()),
-            (
-                header::CONTENT_DISPOSITION,
-                format!("attachment; filename=\"canpos-trace.{ext}\""),
-            ),
-        ],
-        body,
-    )
-        .into_response())
-}
-
-async fn trace_clear(State(app): State<App>) -> Answer {
-    let hub = app.shared.lock().unwrap().trace.clone();
-    hub.trace.lock().unwrap().clear();
-    Ok(Json(json!({"ok": true})))
-}
-
-fn body_json(body: &str) -> Result<serde_json::Map<String, Value>, ApiError> {
-    match serde_json::from_str::<Value>(body) {
-        Ok(Value::Object(o)) => Ok(o),
-        Ok(_) => Err(bad("bad body: expected a JSON object".into())),
-        Err(e) => Err(bad(format!("bad body: {e}"))),
-    }
-}
-
-/// The frame a send request describes, with the hub's checks (`< send >`): identifier within
-/// 11 bits (29 when extended), DLC 0…8, as many data bytes as the DLC says, none for a remote
-/// frame.
-fn frame_of(o: &serde_json::Map<String, Value>) -> Result<Frame, ApiError> {
-    let id = match o.get("id") {
-        Some(Value::String(s)) => parse_id(s)?,
-        Some(Value::Number(n)) => n
-            .as_u64()
-            .filter(|v| *v <= 0x1FFF_FFFF)
-            .ok_or_else(|| bad(format!("identifier {n} is not 0…0x1FFFFFFF")))?
-            as u32,
-        _ => return Err(bad("`id` is missing: e.g. \"0x605\"".into())),
-    };
-    let flag = |k: &str| match o.get(k) {
-        None | Some(Value::Null) => Ok(None),
-        Some(Value::Bool(b)) => Ok(Some(*b)),
-        Some(_) => Err(bad(format!("`{k}` must be true or false"))),
-    };
-    // As the hub reads an identifier: above 0x7FF it is an extended one.
-    let ext = flag("ext")?.unwrap_or(id > 0x7FF);
-    if !ext && id > 0x7FF {
-        return Err(bad(format!(
-            "identifier 0x{id:X} is above 0x7FF: a standard frame has 11 bits (set ext)"
-        )));
-    }
-    let rtr = flag("rtr")?.unwrap_or(false);
-    let data: Vec<u8> = match o.get("data") {
-        None | Some(Value::Null) => Vec::new(),
-        Some(Value::String(s)) => {
-            let hex: String = s.chars().filter(|c| !c.is_whitespace()).collect();
-            if !hex.len().is_multiple_of(2) || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
-                return Err(bad(format!(
-                    "data `{s}`: expected hex bytes, e.g. \"40 00 10 00\""
-                )));
-            }
-            (0..hex.len() / 2)
-                .map(|i| u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).expect("hex"))
-                .collect()
-        }
-        Some(Value::Array(a)) => a
-            .iter()
-            .map(|v| v.as_u64().filter(|b| *b <= 0xFF).map(|b| b as u8))
-            .collect::<Option<Vec<u8>>>()
-            .ok_or_else(|| bad("data: expected bytes 0…255".into()))?,
-        Some(_) => {
-            return Err(bad(
-                "data: expected a hex string or an array of bytes".into()
-            ))
-        }
-    };
-    let dlc = match o.get("dlc") {
-        None | Some(Value::Null) => data.len(),
-        Some(v) => v
-            .as_u64()
-            .filter(|d| *d <= 8)
-            .ok_or_else(|| bad(format!("DLC {v} is not 0…8")))? as usize,
-    };
-    if data.len() > 8 {
-        return Err(bad(format!(
-            "{} data bytes: a CAN frame has 8 at most",
-            data.len()
-        )));
-    }
-    if rtr {
-        if !data.is_empty() {
-            return Err(bad(
-                "a remote frame carries no data (give its DLC only)".into()
-            ));
-        }
-        return Frame::remote(id, ext, dlc as u8).map_err(|e| bad(format!("{e:?}")));
-    }
-    if dlc != data.len() {
-        return Err(bad(format!(
-            "DLC {dlc} but {} data bytes: they must agree",
-            data.len()
-        )));
-    }
-    Frame::with_id(id, ext, &data).map_err(|e| bad(format!("{e:?}")))
-}
-
-/// `POST /api/send`: a frame once, or every `period_ms`.
-async fn send(State(app): State<App>, body: String) -> Answer {
-    let o = body_json(&body)?;
-    let f = frame_of(&o)?;
-    let hub = app.shared.lock().unwrap().trace.clone();
-    match o.get("period_ms") {
-        None | Some(Value::Null) => {
-            hub.send_once(f).map_err(refused_send)?;
-            Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
-        }
-        Some(v) => {
-            let period = period_of(v)?;
-            hub.send_periodic(f, period, Instant::now())
-                .map_err(refused_send)?;
-            Ok(Json(
-                json!({"ok": true, "id": id_text(&f), "periodic": periodic_json(&hub)}),
-            ))
-        }
-    }
-}
-
-/// The answer to a frame the transmitter did not take.
-fn refused_send(r: SendRefused) -> ApiError {
-    match r {
-        SendRefused::Busy => fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!("{ONCE_QUEUE} frames wait to be sent already; nothing was queued, try again"),
-        ),
-        SendRefused::TooMany => fail(
-            StatusCode::CONFLICT,
-            format!("{PERIODIC} periodic transmissions run already: stop one first"),
-        ),
-        SendRefused::Down => fail(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "the bus connection is lost; the dashboard is reconnecting: nothing was queued".into(),
-        ),
-    }
-}
-
-/// A periodic transmission's `period_ms`, within [`MIN_PERIOD`] … [`MAX_PERIOD`].
-fn period_of(v: &Value) -> Result<Duration, ApiError> {
-    let ms = v
-        .as_f64()
-        .filter(|m| m.is_finite())
-        .ok_or_else(|| bad(format!("period_ms {v}: expected a number of milliseconds")))?;
-    // Checked as a number first: `Duration::from_secs_f64` panics beyond u64 seconds (1e300).
-    let (lo, hi) = (
-        MIN_PERIOD.as_secs_f64() * 1e3,
-        MAX_PERIOD.as_secs_f64() * 1e3,
-    );
-    if !(lo..=hi).contains(&ms) {
-        return Err(bad(format!(
-            "period {ms} ms: expected {} ms … {} s",
-            MIN_PERIOD.as_millis(),
-            MAX_PERIOD.as_secs()
-        )));
-    }
-    Ok(Duration::from_secs_f64(ms / 1e3))
-}
-
-async fn send_list(State(app): State<App>) -> Answer {
-    let hub = app.shared.lock().unwrap().trace.clone();
-    Ok(Json(json!({"ok": true, "periodic": periodic_json(&hub)})))
-}
-
-/// `POST /api/send/stop {"id": …, "ext": …}`: ends a periodic transmission.
-async fn send_stop(State(app): State<App>, body: String) -> Answer {
-    let o = body_json(&body)?;
-    let id = match o.get("id") {
-        Some(Value::String(s)) => parse_id(s)?,
-        _ => return Err(bad("`id` is missing: e.g. \"0x605\"".into())),
-    };
-    let ext = o.get("ext").and_then(Value::as_bool).unwrap_or(id > 0x7FF);
-    let hub = app.shared.lock().unwrap().trace.clone();
-    if !hub.stop_periodic(ext, id) {
-        return Err(fail(
-            StatusCode::NOT_FOUND,
-            format!("no periodic transmission of 0x{id:X}"),
-        ));
-    }
-    Ok(Json(json!({"ok": true, "periodic": periodic_json(&hub)})))
-}
-
-/// NMT command specifiers by the names `canpos nmt` takes.
-fn nmt_cs(name: &str) -> Option<u8> {
-    Some(match name {
-        "start" => 0x01,
-        "stop" => 0x02,
-        "preop" | "pre-operational" => 0x80,
-        "reset" | "reset-node" => 0x81,
-        "reset-comm" | "reset-communication" => 0x82,
-        _ => return None,
-    })
-}
-
-/// `POST /api/nmt {"command": "start", "node": 0}`: an NMT command to one node or (0) all.
-async fn nmt(State(app): State<App>, body: String) -> Answer {
-    let o = body_json(&body)?;
-    let name = o.get("command").and_then(Value::as_str).unwrap_or("");
-    let cs = nmt_cs(name).ok_or_else(|| {
-        bad(format!(
-            "NMT command `{name}`: expected start, stop, preop, reset or reset-comm"
-        ))
-    })?;
-    let node = match o.get("node") {
-        None | Some(Value::Null) => 0,
-        Some(v) => v
-            .as_u64()
-            .filter(|n| *n <= 127)
-            .ok_or_else(|| bad(format!("node {v}: expected 0 (all) or 1…127")))?
-            as u8,
-    };
-    let hub = app.shared.lock().unwrap().trace.clone();
-    let f = Frame::new(0x000, &[cs, node]).expect("two bytes");
-    hub.send_once(f).map_err(refused_send)?;
-    Ok(Json(json!({"ok": true, "command": name, "node": node})))
-}
-
-/// The NMT state shown for node `id` when no control interface reports it: what its own frames
-/// say when it sends no heartbeat.
-pub(super) fn nmt_of(s: &super::watch::Shared, id: u8, n: &super::watch::Node) -> Option<String> {
-    let cobs: Vec<u16> = n
-        .info
-        .as_ref()
-        .map(|i| i.tpdos.iter().map(|(_, c, _)| *c).collect())
-        .unwrap_or_default();
-    s.trace
-        .trace
-        .lock()
-        .unwrap()
-        .inferred_nmt(id, &cobs, Instant::now())
-}
 
 #[cfg(test)]
 mod tests {
@@ -1455,31 +1062,15 @@ mod tests {
     }
 
     #[test]
-    fn a_period_out_of_range_is_refused_whatever_its_size() {
-        assert_eq!(period_of(&json!(1)).ok(), Some(MIN_PERIOD));
-        assert_eq!(period_of(&json!(3_600_000)).ok(), Some(MAX_PERIOD));
-        // Beyond what a Duration holds: refused as out of range, not a panic of the handler.
-        for v in [
-            json!(0.5),
-            json!(-1),
-            json!(3_600_001),
-            json!(1e20),
-            json!(1e300),
-            json!(f64::MAX),
-        ] {
-            let e = period_of(&v).unwrap_err();
-            assert_eq!(e.0, StatusCode::BAD_REQUEST, "{v}");
-            assert!(e.1.contains("expected 1 ms"), "{v}: {}", e.1);
-        }
-        assert!(period_of(&json!("5")).is_err());
-    }
-
-    #[test]
     fn a_frame_is_not_kept_to_go_out_when_the_hub_comes_back() {
         let bus = canpos_host::MemBus::instant();
         let hub = TraceHub::new(1000);
         hub.reopen_with(Box::new(|| Err(io::Error::other("not yet"))));
-        let mut tap = Tap::new(Box::new(bus.attach()), hub.clone());
+        let mut tap = Tap::new(
+            Box::new(bus.attach()),
+            hub.clone(),
+            crate::dashboard::watch::scan,
+        );
         hub.send_once(std(0x000, &[0x81, 0])).unwrap();
         tap.lost(io::Error::new(io::ErrorKind::ConnectionReset, "gone"))
             .unwrap();
@@ -1503,7 +1094,7 @@ mod tests {
         let port = bus.attach();
         let mut peer = bus.attach();
         let hub = TraceHub::new(1000);
-        let mut tap = Tap::new(Box::new(port), hub.clone());
+        let mut tap = Tap::new(Box::new(port), hub.clone(), crate::dashboard::watch::scan);
         hub.send_once(std(0x123, &[0xAB])).unwrap();
         hub.send_periodic(std(0x124, &[]), Duration::from_millis(5), Instant::now())
             .unwrap();

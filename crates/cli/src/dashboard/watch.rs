@@ -807,6 +807,21 @@ pub fn nmt_name(b: Option<u8>) -> &'static str {
     b.map_or("unknown", decode::nmt_state_name)
 }
 
+/// The NMT state shown for node `id` when no control interface reports it: what its own frames
+/// say when it sends no heartbeat.
+pub(super) fn nmt_of(s: &Shared, id: u8, n: &Node) -> Option<String> {
+    let cobs: Vec<u16> = n
+        .info
+        .as_ref()
+        .map(|i| i.tpdos.iter().map(|(_, c, _)| *c).collect())
+        .unwrap_or_default();
+    s.trace
+        .trace
+        .lock()
+        .unwrap()
+        .inferred_nmt(id, &cobs, Instant::now())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
