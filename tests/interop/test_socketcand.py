@@ -205,10 +205,14 @@ class Sleeper:
     """How late an independent thread wakes from 1 ms sleeps while it runs: the machine's own
     scheduling delay during a timed window. A wall-time figure is judged against it, measured in
     the same run, so that a loaded CI machine (a 2-core VM stalls ~100 ms now and then) does not
-    fail a check that a fixed bound alone would."""
+    fail a check that a fixed bound alone would.
+
+    The figure is the sum of all oversleeps, not the worst one: a request crosses three processes
+    (client, hub, sensor), and two stalls in one window delay it by both (a CI run saw an SDO
+    answer 0.413 s after its request while the worst single oversleep was 0.109 s)."""
 
     def __init__(self):
-        self.worst = 0.0
+        self.total = 0.0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -217,13 +221,13 @@ class Sleeper:
         while not self._stop.is_set():
             t = time.monotonic()
             time.sleep(0.001)
-            self.worst = max(self.worst, time.monotonic() - t - 0.001)
+            self.total += max(0.0, time.monotonic() - t - 0.001)
 
     def stop(self):
-        """The worst oversleep seen (its sleep in progress included), in seconds."""
+        """The sum of the oversleeps seen (the sleep in progress included), in seconds."""
         self._stop.set()
         self._thread.join()
-        return self.worst
+        return self.total
 
 
 def test_python_canopen_connects_and_reads_at_once(hub, sensors):
@@ -233,7 +237,7 @@ def test_python_canopen_connects_and_reads_at_once(hub, sensors):
     spoke); then an SDO read with that default timeout answers.
 
     Both 0.3 s figures are judged against the machine: an independent 1 ms sleeper runs during
-    each window, and a figure may exceed 0.3 s by its worst oversleep there. The old hold-back
+    each window, and a figure may exceed 0.3 s by the sum of its oversleeps there. The old hold-back
     (about 450 ms after connecting) passes a connection only if the machine stalled 150 ms in
     that very window, 20 times in a row. An SDO read that python-canopen gave up on counts when
     its answer (seen by a subscriber of its own) still came within 0.3 s + the oversleep; an
@@ -267,7 +271,7 @@ def test_python_canopen_connects_and_reads_at_once(hub, sensors):
             assert got, f"connection {i}: no TPDO within 5 s of connecting"
             assert took <= 0.3 + slack, (
                 f"connection {i}: first TPDO {took:.3f} s after connecting "
-                f"(an independent sleeper overslept {slack:.3f} s)"
+                f"(an independent sleeper overslept {slack:.3f} s in all)"
             )
             node = canopen.RemoteNode(5, canopen.ObjectDictionary())
             net.add_node(node)
@@ -287,7 +291,7 @@ def test_python_canopen_connects_and_reads_at_once(hub, sensors):
             took = answered[0] - t0
             assert took <= 0.3 + slack, (
                 f"connection {i}: SDO answer {took:.3f} s after the request "
-                f"(an independent sleeper overslept {slack:.3f} s)"
+                f"(an independent sleeper overslept {slack:.3f} s in all)"
             )
             if value is not None:
                 assert value == bytes.fromhex("96010800"), i
