@@ -197,7 +197,8 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
             if let Some(st) = child.try_wait()? {
                 break st;
             }
-            if stop.recv_timeout(Duration::from_millis(100)).is_ok() {
+            // Often: the networks go untimed from a crash until a new worker is up.
+            if stop.recv_timeout(Duration::from_millis(20)).is_ok() {
                 let st = terminate(&mut child)?;
                 if let Some(t) = out {
                     let _ = t.join();
@@ -251,7 +252,8 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
              while a send to it is queued, D57): restarting it as simulator of {networks}; \
              until it is back the frames go over SIL Kit's own bus, and its counters start anew"
         );
-        if stop.recv_timeout(Duration::from_millis(200)).is_ok() {
+        // A pause: with the bound on early deaths, at most 20 starts a second.
+        if stop.recv_timeout(Duration::from_millis(50)).is_ok() {
             return Ok(0);
         }
     }
