@@ -220,30 +220,11 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
         if let Some(t) = out {
             let _ = t.join();
         }
-        let Some(sig) = status.signal().filter(|s| CRASH_SIGNALS.contains(s)) else {
-            return Ok(status.code().unwrap_or(1));
+        let sig = match after_worker(&status, mode, up.load(Ordering::Relaxed), &mut early) {
+            AfterWorker::End(code) => return Ok(code),
+            AfterWorker::Fail(e) => return Err(anyhow!("canpos bus netsim: {e}")),
+            AfterWorker::Restart(sig) => sig,
         };
-        if let TimeMode::Sync {
-            coordinated: true, ..
-        } = mode
-        {
-            return Err(anyhow!(
-                "canpos bus netsim: the simulator's SIL Kit part died of signal {sig} (SIL Kit \
-                 5.0.3, D57); a coordinated simulation cannot take a simulator back: restart \
-                 the run"
-            ));
-        }
-        if up.load(Ordering::Relaxed) {
-            early = 0;
-        } else {
-            early += 1;
-            if early >= MAX_EARLY_DEATHS {
-                return Err(anyhow!(
-                    "canpos bus netsim: the simulator died of signal {sig} before it simulated, \
-                     {early} times in a row: given up"
-                ));
-            }
-        }
         restarts += 1;
         tracing::error!(
             signal = sig,
@@ -257,6 +238,51 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
             return Ok(0);
         }
     }
+}
+
+/// What the supervisor does when its worker ended by itself.
+#[derive(Debug, PartialEq, Eq)]
+enum AfterWorker {
+    /// End the command with this exit code (the worker's own end).
+    End(i32),
+    /// End the command with this error.
+    Fail(String),
+    /// Start a new worker: this one crashed with this signal.
+    Restart(i32),
+}
+
+/// The supervisor's decision on a worker's end: `up` says whether it had simulated; `early`
+/// counts the workers in a row that crashed before they simulated.
+fn after_worker(
+    status: &std::process::ExitStatus,
+    mode: TimeMode,
+    up: bool,
+    early: &mut u32,
+) -> AfterWorker {
+    let Some(sig) = status.signal().filter(|s| CRASH_SIGNALS.contains(s)) else {
+        return AfterWorker::End(status.code().unwrap_or(1));
+    };
+    if let TimeMode::Sync {
+        coordinated: true, ..
+    } = mode
+    {
+        return AfterWorker::Fail(format!(
+            "the simulator's SIL Kit part died of signal {sig} (SIL Kit 5.0.3, D57); a \
+             coordinated simulation cannot take a simulator back: restart the run"
+        ));
+    }
+    if up {
+        *early = 0;
+    } else {
+        *early += 1;
+        if *early >= MAX_EARLY_DEATHS {
+            return AfterWorker::Fail(format!(
+                "the simulator died of signal {sig} before it simulated, {early} times in a \
+                 row: given up"
+            ));
+        }
+    }
+    AfterWorker::Restart(sig)
 }
 
 /// Stops a worker gracefully (SIGTERM: it leaves SIL Kit), killing it if it has not ended
@@ -467,6 +493,71 @@ mod tests {
         let mut least = bare.clone();
         least.extend(args(&["--duration", "0.001"]));
         assert_eq!(worker_args(bare.into_iter(), Some(Duration::ZERO)), least);
+    }
+
+    #[test]
+    fn a_crashed_worker_is_restarted_and_any_other_end_ends_the_command() {
+        use std::process::ExitStatus;
+        // Raw wait statuses: a signal in the low 7 bits, or an exit code in the next byte.
+        let killed = |sig: i32| ExitStatus::from_raw(sig);
+        let exited = |code: i32| ExitStatus::from_raw(code << 8);
+        let sync = |coordinated| TimeMode::Sync {
+            step: 320_000,
+            coordinated,
+        };
+        let mut early = 0;
+        for mode in [TimeMode::Wall, sync(false)] {
+            for sig in CRASH_SIGNALS {
+                assert_eq!(
+                    after_worker(&killed(sig), mode, true, &mut early),
+                    AfterWorker::Restart(sig)
+                );
+            }
+            assert_eq!(
+                after_worker(&exited(0), mode, true, &mut early),
+                AfterWorker::End(0)
+            );
+            assert_eq!(
+                after_worker(&exited(1), mode, false, &mut early),
+                AfterWorker::End(1)
+            );
+            // Killed or stopped by someone (not a crash): the command ends too.
+            for sig in [libc::SIGKILL, libc::SIGTERM, libc::SIGINT] {
+                assert_eq!(
+                    after_worker(&killed(sig), mode, true, &mut early),
+                    AfterWorker::End(1)
+                );
+            }
+        }
+        // A coordinated run cannot take a simulator back.
+        assert!(matches!(
+            after_worker(&killed(libc::SIGSEGV), sync(true), true, &mut early),
+            AfterWorker::Fail(e) if e.contains("coordinated")
+        ));
+        // Crashes before it simulated: given up at the fifth in a row; one that had simulated
+        // starts the count again.
+        let mut early = 0;
+        let segv = killed(libc::SIGSEGV);
+        for _ in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&segv, TimeMode::Wall, false, &mut early),
+                AfterWorker::Restart(libc::SIGSEGV)
+            );
+        }
+        assert_eq!(
+            after_worker(&segv, TimeMode::Wall, true, &mut early),
+            AfterWorker::Restart(libc::SIGSEGV)
+        );
+        for _ in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&segv, TimeMode::Wall, false, &mut early),
+                AfterWorker::Restart(libc::SIGSEGV)
+            );
+        }
+        assert!(matches!(
+            after_worker(&segv, TimeMode::Wall, false, &mut early),
+            AfterWorker::Fail(e) if e.contains("5 times in a row")
+        ));
     }
 
     #[test]
