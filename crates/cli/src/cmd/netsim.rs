@@ -220,21 +220,32 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
         if let Some(t) = out {
             let _ = t.join();
         }
-        let sig = match after_worker(&status, mode, up.load(Ordering::Relaxed), &mut early) {
+        let up = up.load(Ordering::Relaxed);
+        match after_worker(&status, mode, up, restarts > 0, &mut early) {
             AfterWorker::End(code) => return Ok(code),
             AfterWorker::Fail(e) => return Err(anyhow!("canpos bus netsim: {e}")),
-            AfterWorker::Restart(sig) => sig,
-        };
-        restarts += 1;
-        tracing::error!(
-            signal = sig,
-            restarts,
-            "the simulator's SIL Kit part crashed (SIL Kit 5.0.3 frees a controller that left \
-             while a send to it is queued, D57): restarting it as simulator of {networks}; \
-             until it is back the frames go over SIL Kit's own bus, and its counters start anew"
-        );
-        // A pause: with the bound on early deaths, at most 20 starts a second.
-        if stop.recv_timeout(Duration::from_millis(50)).is_ok() {
+            AfterWorker::Restart(sig) => {
+                restarts += 1;
+                tracing::error!(
+                    signal = sig,
+                    restarts,
+                    "the simulator's SIL Kit part crashed (SIL Kit 5.0.3 frees a controller that \
+                     left while a send to it is queued, D57): restarting it as simulator of \
+                     {networks}; until it is back the frames go over SIL Kit's own bus, and its \
+                     counters start anew"
+                );
+            }
+            AfterWorker::Retry(code) => tracing::warn!(
+                exit = code,
+                attempt = early,
+                "the restarted simulator could not take over {networks} (the registry may not \
+                 have seen the crashed one leave yet): trying again"
+            ),
+        }
+        // A pause, longer after each worker in a row that did not come up (at most ~1.5 s in
+        // all before the supervisor gives up).
+        let pause = Duration::from_millis(50) * (1 << early.min(MAX_EARLY_DEATHS));
+        if stop.recv_timeout(pause).is_ok() {
             return Ok(0);
         }
     }
@@ -249,18 +260,34 @@ enum AfterWorker {
     Fail(String),
     /// Start a new worker: this one crashed with this signal.
     Restart(i32),
+    /// Start a new worker: this one, started after a crash, failed with this exit code before
+    /// it simulated (the registry may still list the crashed one under the same name).
+    Retry(i32),
 }
 
-/// The supervisor's decision on a worker's end: `up` says whether it had simulated; `early`
-/// counts the workers in a row that crashed before they simulated.
+/// The supervisor's decision on a worker's end: `up` says whether it had simulated,
+/// `restarted` whether it was started after a crash; `early` counts the workers in a row that
+/// ended before they simulated.
 fn after_worker(
     status: &std::process::ExitStatus,
     mode: TimeMode,
     up: bool,
+    restarted: bool,
     early: &mut u32,
 ) -> AfterWorker {
     let Some(sig) = status.signal().filter(|s| CRASH_SIGNALS.contains(s)) else {
-        return AfterWorker::End(status.code().unwrap_or(1));
+        let code = status.code().unwrap_or(1);
+        if restarted && !up && code != 0 && status.code().is_some() {
+            *early += 1;
+            if *early < MAX_EARLY_DEATHS {
+                return AfterWorker::Retry(code);
+            }
+            return AfterWorker::Fail(format!(
+                "the restarted simulator failed (exit {code}) before it simulated, {early} \
+                 times in a row: given up"
+            ));
+        }
+        return AfterWorker::End(code);
     };
     if let TimeMode::Sync {
         coordinated: true, ..
@@ -509,29 +536,29 @@ mod tests {
         for mode in [TimeMode::Wall, sync(false)] {
             for sig in CRASH_SIGNALS {
                 assert_eq!(
-                    after_worker(&killed(sig), mode, true, &mut early),
+                    after_worker(&killed(sig), mode, true, false, &mut early),
                     AfterWorker::Restart(sig)
                 );
             }
             assert_eq!(
-                after_worker(&exited(0), mode, true, &mut early),
+                after_worker(&exited(0), mode, true, false, &mut early),
                 AfterWorker::End(0)
             );
             assert_eq!(
-                after_worker(&exited(1), mode, false, &mut early),
+                after_worker(&exited(1), mode, false, false, &mut early),
                 AfterWorker::End(1)
             );
             // Killed or stopped by someone (not a crash): the command ends too.
             for sig in [libc::SIGKILL, libc::SIGTERM, libc::SIGINT] {
                 assert_eq!(
-                    after_worker(&killed(sig), mode, true, &mut early),
+                    after_worker(&killed(sig), mode, true, false, &mut early),
                     AfterWorker::End(1)
                 );
             }
         }
         // A coordinated run cannot take a simulator back.
         assert!(matches!(
-            after_worker(&killed(libc::SIGSEGV), sync(true), true, &mut early),
+            after_worker(&killed(libc::SIGSEGV), sync(true), true, true, &mut early),
             AfterWorker::Fail(e) if e.contains("coordinated")
         ));
         // Crashes before it simulated: given up at the fifth in a row; one that had simulated
@@ -540,24 +567,50 @@ mod tests {
         let segv = killed(libc::SIGSEGV);
         for _ in 1..MAX_EARLY_DEATHS {
             assert_eq!(
-                after_worker(&segv, TimeMode::Wall, false, &mut early),
+                after_worker(&segv, TimeMode::Wall, false, true, &mut early),
                 AfterWorker::Restart(libc::SIGSEGV)
             );
         }
         assert_eq!(
-            after_worker(&segv, TimeMode::Wall, true, &mut early),
+            after_worker(&segv, TimeMode::Wall, true, true, &mut early),
             AfterWorker::Restart(libc::SIGSEGV)
         );
         for _ in 1..MAX_EARLY_DEATHS {
             assert_eq!(
-                after_worker(&segv, TimeMode::Wall, false, &mut early),
+                after_worker(&segv, TimeMode::Wall, false, true, &mut early),
                 AfterWorker::Restart(libc::SIGSEGV)
             );
         }
         assert!(matches!(
-            after_worker(&segv, TimeMode::Wall, false, &mut early),
+            after_worker(&segv, TimeMode::Wall, false, true, &mut early),
             AfterWorker::Fail(e) if e.contains("5 times in a row")
         ));
+        // A restarted worker that cannot join yet (the registry still lists the crashed one)
+        // is tried again, up to the same bound; a first worker's failure is the command's, and
+        // so is a restarted one's clean end or a failure after it simulated.
+        let mut early = 0;
+        for attempt in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&exited(1), TimeMode::Wall, false, true, &mut early),
+                AfterWorker::Retry(1)
+            );
+            assert_eq!(early, attempt);
+        }
+        assert!(matches!(
+            after_worker(&exited(1), TimeMode::Wall, false, true, &mut early),
+            AfterWorker::Fail(e) if e.contains("exit 1")
+        ));
+        let mut early = 0;
+        for (status, up) in [(exited(0), false), (exited(1), true)] {
+            assert_eq!(
+                after_worker(&status, TimeMode::Wall, up, true, &mut early),
+                AfterWorker::End(status.code().unwrap())
+            );
+        }
+        assert_eq!(
+            after_worker(&exited(1), TimeMode::Wall, false, false, &mut early),
+            AfterWorker::End(1)
+        );
     }
 
     #[test]
