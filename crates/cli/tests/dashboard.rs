@@ -1509,13 +1509,7 @@ fn the_dcf_export_holds_the_values_read() {
 fn the_transmitter_passes_the_guard_of_every_write() {
     let bus = MemBus::new();
     let mut peer = bus.attach();
-    let web = dashboard::start(
-        Box::new(bus.attach()),
-        "127.0.0.1:0",
-        Controls::Remote(Vec::new()),
-        10.0,
-    )
-    .unwrap();
+    let web = watch_only(Box::new(bus.attach()));
     let a = web.local_addr();
     let host = format!("Host: {a}");
     let own = format!("Origin: http://{a}");
@@ -1567,6 +1561,11 @@ fn the_transmitter_passes_the_guard_of_every_write() {
     }
 }
 
+/// A dashboard of `bus` without control interfaces.
+fn watch_only(bus: Box<dyn Transport>) -> Dashboard {
+    dashboard::start(bus, "127.0.0.1:0", Controls::Remote(Vec::new()), 10.0).unwrap()
+}
+
 /// `GET /api/trace`'s bit rate and where it comes from.
 fn bitrate(a: SocketAddr) -> (u64, String) {
     let (code, v) = http(a, "GET", "/api/trace", "");
@@ -1586,13 +1585,7 @@ fn the_bus_load_names_its_bit_rate_and_whether_it_was_given() {
     use canpos_host::socketcand::HubConfig;
     let dir = tempfile::tempdir().unwrap();
     let mem = MemBus::with_pacing(Pacing::Paced(250));
-    let d = dashboard::start(
-        Box::new(mem.attach()),
-        "127.0.0.1:0",
-        Controls::Remote(Vec::new()),
-        10.0,
-    )
-    .unwrap();
+    let d = watch_only(Box::new(mem.attach()));
     assert_eq!(bitrate(d.local_addr()), (250, "bus".into()));
 
     // A hub paced at 500 kbit/s: its protocol does not say so.
@@ -1606,13 +1599,7 @@ fn the_bus_load_names_its_bit_rate_and_whether_it_was_given() {
     .unwrap();
     let url = format!("socketcand://127.0.0.1:{}/can0", hub.local_addr().port());
     let _hub = hub.spawn().unwrap();
-    let d = dashboard::start(
-        canpos_host::open(&url).unwrap(),
-        "127.0.0.1:0",
-        Controls::Remote(Vec::new()),
-        10.0,
-    )
-    .unwrap();
+    let d = watch_only(canpos_host::open(&url).unwrap());
     assert_eq!(bitrate(d.local_addr()), (1000, "assumed".into()));
     d.set_bitrate(500);
     assert_eq!(bitrate(d.local_addr()), (500, "given".into()));
@@ -1681,13 +1668,7 @@ fn the_bus_load_names_its_bit_rate_and_whether_it_was_given() {
 fn a_scripts_periodic_transmission_ends_with_its_lease_unless_renewed() {
     let bus = MemBus::new();
     let mut peer = bus.attach();
-    let web = dashboard::start(
-        Box::new(bus.attach()),
-        "127.0.0.1:0",
-        Controls::Remote(Vec::new()),
-        10.0,
-    )
-    .unwrap();
+    let web = watch_only(Box::new(bus.attach()));
     let a = web.local_addr();
     let list = || {
         let (code, v) = http(a, "GET", "/api/send", "");

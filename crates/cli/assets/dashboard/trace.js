@@ -15,9 +15,12 @@ window.canposTrace = trace;
 const LEASE = `page-${Date.now().toString(36)}-${Math.random().toString(36).slice(2, 10)}`;
 const lease = { worker: null, active: false, renewed: 0 };
 trace.lease = LEASE;
-try { lease.worker = new Worker("/lease.js"); } catch (e) { lease.worker = null; }
 function holdLease(list) {
   const active = list.some((p) => p.lease === LEASE);
+  // The worker starts with the page's first transmission: a page that sends none runs none.
+  if (active && lease.worker === null) {
+    try { lease.worker = new Worker("/lease.js"); } catch (e) { lease.worker = false; }
+  }
   if (active !== lease.active) {
     lease.active = active;
     if (lease.worker) lease.worker.postMessage({ lease: LEASE, active });
