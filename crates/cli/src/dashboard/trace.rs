@@ -640,8 +640,13 @@ impl TraceHub {
     pub fn renew(&self, name: &str, now: Instant) -> usize {
         let mut p = self.periodic.lock().unwrap();
         let mut n = 0;
-        for j in p.iter_mut().filter(|j| j.lease.as_deref() == Some(name)) {
-            j.ends = j.ends.max(now + LEASE);
+        // A lapsed lease stays lapsed, dropped by the bus thread yet or not (it is not while
+        // the hub is away).
+        for j in p
+            .iter_mut()
+            .filter(|j| j.lease.as_deref() == Some(name) && j.ends > now)
+        {
+            j.ends = now + LEASE;
             n += 1;
         }
         n
@@ -1252,6 +1257,8 @@ mod tests {
         assert_eq!(sent.len(), 20, "{sent:?}");
         assert_eq!(hub.renew("page-a", t0 + Duration::from_secs(2)), 1);
         assert_eq!(hub.renew("nobody", t0 + Duration::from_secs(2)), 0);
+        // Renewed too late (the bus thread has not dropped it yet): it stays ended.
+        assert_eq!(hub.renew("page-b", t0 + LEASE), 0);
         let _ = sent_at(&hub, t0, (21..=49).map(|i| i * 100));
         // At 5 s b's lease is over: b is gone, a is still sent.
         let (due, _) = hub.due(t0 + LEASE);
