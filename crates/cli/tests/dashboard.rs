@@ -1688,6 +1688,9 @@ fn a_scripts_periodic_transmission_ends_with_its_lease_unless_renewed() {
     }
     assert_eq!(http(a, "POST", "/api/send/renew", "{}").0, 400);
     assert!(list().is_empty());
+    // The page's renewing worker is served.
+    let (code, js) = get_text(a, "/lease.js");
+    assert!(code == 200 && js.contains("/api/send/renew"), "{code} {js}");
 
     // No lease named: one is made up and answered.
     let sent = Instant::now();
