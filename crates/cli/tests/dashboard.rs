@@ -1751,3 +1751,26 @@ fn a_scripts_periodic_transmission_ends_with_its_lease_unless_renewed() {
     let (code, v) = http(a, "POST", "/api/send/stop", r#"{"id":"0x125"}"#);
     assert_eq!(code, 200, "{v}");
 }
+
+/// The dashboard waits for an SDO answer as long as `canpos sdo` does by default (1 s, one
+/// constant; D45): a device that answers in 0.6 s is read from the page (with the 300 ms it had
+/// the page failed where `canpos sdo` worked), one that answers after 1.5 s times out.
+#[test]
+fn the_dashboard_waits_for_an_sdo_answer_as_long_as_canpos_sdo() {
+    let r = rig();
+    let a = r.web.local_addr();
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":600}"#);
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 200, "a 0.6 s answer: {v}");
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":1500}"#);
+    let t0 = Instant::now();
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 502, "a 1.5 s answer: {v}");
+    assert!(error_of(&v).contains("SDO timeout"), "{v}");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(1000),
+        "{:?}",
+        t0.elapsed()
+    );
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":0}"#);
+}
