@@ -5,63 +5,27 @@
 // nothing. Run: node --test tests/dashboard/
 import { test, after } from "node:test";
 import assert from "node:assert/strict";
-import { spawn, execFileSync } from "node:child_process";
-import { mkdtempSync, mkdirSync, rmSync } from "node:fs";
-import { createServer } from "node:net";
+import { execFileSync } from "node:child_process";
+import { mkdirSync } from "node:fs";
 import { createServer as createHttpServer } from "node:http";
-import { tmpdir } from "node:os";
-import { join, dirname, resolve } from "node:path";
-import { fileURLToPath } from "node:url";
-import { chromium } from "playwright-core";
+import { join, dirname } from "node:path";
+import { BIN, ROOT, freePorts, rig } from "./rig.mjs";
 
-const ROOT = resolve(dirname(fileURLToPath(import.meta.url)), "../..");
-const BIN = process.env.CANPOS_BIN || join(ROOT, "target/release/canpos");
-const CHROMIUM = process.env.CHROMIUM || "/usr/bin/chromium";
 const SHOT = join(ROOT, "target/dashboard.png");
-
-const freePort = () => new Promise((ok, fail) => {
-  const s = createServer();
-  s.on("error", fail);
-  s.listen(0, "127.0.0.1", () => { const p = s.address().port; s.close(() => ok(p)); });
-});
-
-const children = [];
-const tmp = mkdtempSync(join(tmpdir(), "canpos-dash-"));
-function start(args, ready) {
-  const c = spawn(BIN, args, { stdio: ["ignore", "pipe", "pipe"] });
-  children.push(c);
-  let out = "";
-  return new Promise((ok, fail) => {
-    const t = setTimeout(() => fail(new Error(`${args[0]}: not ready in 20 s:\n${out}`)), 20000);
-    const look = (d) => { out += d; if (ready.test(out)) { clearTimeout(t); ok(out); } };
-    c.stdout.on("data", look);
-    c.stderr.on("data", look);
-    c.on("exit", (code) => { clearTimeout(t); fail(new Error(`${args[0]} exited ${code}:\n${out}`)); });
-  });
-}
-
-const [busPort, ctlPort, webPort, evilPort] = [await freePort(), await freePort(), await freePort(), await freePort()];
+const r = rig("dash");
+const [busPort, ctlPort, webPort, evilPort] = await freePorts(4);
 const BUS = `socketcand://127.0.0.1:${busPort}/can0`;
 const URL = `http://127.0.0.1:${webPort}/`;
-await start(["run", "--node-id", "127", "--bus", BUS, "--control", `127.0.0.1:${ctlPort}`,
-  "--state-dir", join(tmp, "state"), "--magnet", "100"], /control interface on/);
-await start(["dashboard", "--bus", BUS, "--listen", `127.0.0.1:${webPort}`,
+await r.start(["run", "--node-id", "127", "--bus", BUS, "--control", `127.0.0.1:${ctlPort}`,
+  "--state-dir", join(r.tmp, "state"), "--magnet", "100"], /control interface on/);
+await r.start(["dashboard", "--bus", BUS, "--listen", `127.0.0.1:${webPort}`,
   "--control", `127.0.0.1:${ctlPort}`], /canpos dashboard: http/);
 
-const profile = join(tmp, "chromium-profile");
-mkdirSync(profile);
-// A fresh profile; without the background-networking flags Chromium's own connections are
-// refused on a closed network and slow everything down. attacker.example resolves to the
-// dashboard, as a DNS-rebinding attacker's name would.
-const ctx = await chromium.launchPersistentContext(profile, {
-  executablePath: CHROMIUM,
-  headless: true,
-  args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--host-resolver-rules=MAP attacker.example 127.0.0.1"],
+// attacker.example resolves to the dashboard, as a DNS-rebinding attacker's name would.
+const { ctx, page } = await r.browser({
+  args: ["--host-resolver-rules=MAP attacker.example 127.0.0.1"],
   viewport: { width: 1400, height: 1800 },
 });
-const page = ctx.pages()[0] ?? await ctx.newPage();
 const node = page.locator('section.node[data-node="127"]');
 
 // Another site: a page on another loopback port that posts to the dashboard.
@@ -72,10 +36,8 @@ const evilSite = createHttpServer((req, res) => {
 await new Promise((ok) => evilSite.listen(evilPort, "127.0.0.1", ok));
 
 after(async () => {
-  await ctx.close().catch(() => {});
   evilSite.close();
-  for (const c of children) c.kill("SIGINT");
-  rmSync(tmp, { recursive: true, force: true });
+  await r.close();
 });
 
 /** The sensor's state from its control interface. */

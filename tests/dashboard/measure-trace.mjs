@@ -5,40 +5,18 @@
 // its long tasks, and the CPU time of the dashboard process (/proc/PID/stat utime + stime).
 // Usage: CANPOS_BIN=target/release/canpos node tests/dashboard/measure-trace.mjs [seconds]
 import { spawn } from "node:child_process";
-import { mkdtempSync, readFileSync, rmSync, writeFileSync } from "node:fs";
-import { createServer } from "node:net";
-import { tmpdir } from "node:os";
-import { join, dirname, resolve } from "node:path";
-import { fileURLToPath } from "node:url";
-import { chromium } from "playwright-core";
+import { readFileSync, writeFileSync } from "node:fs";
+import { join } from "node:path";
+import { BIN, freePorts, rig } from "./rig.mjs";
 
-const ROOT = resolve(dirname(fileURLToPath(import.meta.url)), "../..");
-const BIN = process.env.CANPOS_BIN || join(ROOT, "target/release/canpos");
 const secs = Number(process.argv[2] || "10");
 const SENSORS = 10;
-
-const freePort = () => new Promise((ok, fail) => {
-  const s = createServer();
-  s.on("error", fail);
-  s.listen(0, "127.0.0.1", () => { const p = s.address().port; s.close(() => ok(p)); });
-});
-const tmp = mkdtempSync(join(tmpdir(), "canpos-measure-trace-"));
-const children = [];
-function start(args, ready) {
-  const c = spawn(BIN, args, { stdio: ["ignore", "pipe", "pipe"] });
-  children.push(c);
-  let out = "";
-  return new Promise((ok, fail) => {
-    const t = setTimeout(() => fail(new Error(`${args[0]}: not ready in 60 s:\n${out}`)), 60000);
-    const look = (d) => { out += d; if (ready.test(out)) { clearTimeout(t); ok(c); } };
-    c.stdout.on("data", look);
-    c.stderr.on("data", look);
-  });
-}
-const stop = () => { for (const c of children) c.kill("SIGINT"); rmSync(tmp, { recursive: true, force: true }); };
+const rg = rig("measure-trace");
+const { tmp } = rg;
+const start = (args, ready) => rg.start(args, ready, 60000);
 
 try {
-  const [busPort, webPort] = [await freePort(), await freePort()];
+  const [busPort, webPort] = await freePorts(2);
   const bus = `socketcand://127.0.0.1:${busPort}/can0`;
   await start(["bus", "serve", "--listen", `127.0.0.1:${busPort}`], /listening on/);
   let toml = `bus = "${bus}"\nstate_dir = "${join(tmp, "state")}"\n`;
@@ -54,13 +32,7 @@ try {
     const f = readFileSync(`/proc/${dash.pid}/stat`, "utf8").split(") ")[1].split(" ");
     return (Number(f[11]) + Number(f[12])) / 100; // utime + stime, clock ticks of 10 ms
   };
-  const ctx = await chromium.launchPersistentContext(join(tmp, "profile"), {
-    executablePath: process.env.CHROMIUM || "/usr/bin/chromium", headless: true,
-    args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-      "--disable-background-networking", "--disable-component-update", "--disable-sync"],
-    viewport: { width: 1400, height: 1000 },
-  });
-  const page = ctx.pages()[0] ?? await ctx.newPage();
+  const { page } = await rg.browser({ viewport: { width: 1400, height: 1000 } });
   await page.goto(`http://127.0.0.1:${webPort}/`);
   await page.waitForTimeout(3000);
   const measure = async (mode) => {
@@ -97,7 +69,6 @@ try {
     return { mode, ...r, dashboard_cpu_s: Number(used.toFixed(2)), dashboard_cpu_pct_of_one_core: Number((used / secs * 100).toFixed(1)) };
   };
   for (const m of ["rows", "log", "paused"]) console.log(JSON.stringify(await measure(m)));
-  await ctx.close();
 } finally {
-  stop();
+  await rg.close();
 }

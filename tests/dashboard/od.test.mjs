@@ -15,42 +15,18 @@
 // Run: node --test tests/dashboard/od.test.mjs
 import { test, after } from "node:test";
 import assert from "node:assert/strict";
-import { spawn, execFileSync } from "node:child_process";
-import { mkdtempSync, mkdirSync, rmSync, readFileSync } from "node:fs";
-import { createServer } from "node:net";
-import { tmpdir } from "node:os";
-import { join, dirname, resolve } from "node:path";
-import { fileURLToPath } from "node:url";
-import { chromium } from "playwright-core";
+import { execFileSync } from "node:child_process";
+import { mkdirSync, readFileSync } from "node:fs";
+import { join, resolve } from "node:path";
+import { BIN, ROOT, freePorts, rig } from "./rig.mjs";
 
-const ROOT = resolve(dirname(fileURLToPath(import.meta.url)), "../..");
-const BIN = process.env.CANPOS_BIN || join(ROOT, "target/release/canpos");
-const CHROMIUM = process.env.CHROMIUM || "/usr/bin/chromium";
 const SHOTS = resolve(ROOT, process.env.CANPOS_SHOTS || "target");
-
-const freePort = () => new Promise((ok, fail) => {
-  const s = createServer();
-  s.on("error", fail);
-  s.listen(0, "127.0.0.1", () => { const p = s.address().port; s.close(() => ok(p)); });
-});
-
-const children = [];
-const tmp = mkdtempSync(join(tmpdir(), "canpos-dash-od-"));
-function start(args, ready) {
-  const c = spawn(BIN, args, { stdio: ["ignore", "pipe", "pipe"] });
-  children.push(c);
-  let out = "";
-  return new Promise((ok, fail) => {
-    const t = setTimeout(() => fail(new Error(`${args[0]}: not ready in 30 s:\n${out}`)), 30000);
-    const look = (d) => { out += d; if (ready.test(out)) { clearTimeout(t); ok(c); } };
-    c.stdout.on("data", look);
-    c.stderr.on("data", look);
-    c.on("exit", (code) => { clearTimeout(t); fail(new Error(`${args[0]} exited ${code}:\n${out}`)); });
-  });
-}
+const r = rig("dash-od");
+after(r.close);
+const { tmp, start } = r;
 const run = (args) => execFileSync(BIN, args, { encoding: "utf8", timeout: 60000 });
 
-const [busPort, thCtl, ioCtl, webPort, bus2Port] = [await freePort(), await freePort(), await freePort(), await freePort(), await freePort()];
+const [busPort, thCtl, ioCtl, webPort, bus2Port] = await freePorts(5);
 const BUS = `socketcand://127.0.0.1:${busPort}/can0`;
 const BUS2 = `socketcand://127.0.0.1:${bus2Port}/can0`;
 const URL = `http://127.0.0.1:${webPort}/`;
@@ -63,26 +39,10 @@ await start(["run", "--eds", join(ROOT, "examples/io-401.eds"), "--node-id", "7"
 await start(["dashboard", "--bus", BUS, "--listen", `127.0.0.1:${webPort}`,
   "--control", `127.0.0.1:${thCtl}`, "--control", `127.0.0.1:${ioCtl}`], /canpos dashboard: http/);
 
-const profile = join(tmp, "chromium-profile");
-mkdirSync(profile);
-const ctx = await chromium.launchPersistentContext(profile, {
-  executablePath: CHROMIUM,
-  headless: true,
-  acceptDownloads: true,
-  args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync"],
-  viewport: { width: 1500, height: 1400 },
-});
-const page = ctx.pages()[0] ?? await ctx.newPage();
+const { page } = await r.browser({ acceptDownloads: true, viewport: { width: 1500, height: 1400 } });
 const th = page.locator('section.node[data-node="5"]');
 const es = page.locator('section.node[data-node="10"]');
 const io = page.locator('section.node[data-node="7"]');
-
-after(async () => {
-  await ctx.close().catch(() => {});
-  for (const c of children) c.kill("SIGINT");
-  rmSync(tmp, { recursive: true, force: true });
-});
 
 /** `[section]` → {key: value} of the ParameterValue lines of a DCF. */
 function parameterValues(text) {
@@ -139,7 +99,7 @@ test("sensor controls show only where the dashboard knows a control interface", 
 });
 
 /** Writes `value` into the TH's object `key` from the object browser's row; `expect` is the
- * message it must show. A write the node did not answer in time (the dashboard's 300 ms SDO
+ * message it must show. A write the node did not answer in time (the dashboard's 1 s SDO
  * timeout on a loaded machine) is sent again once, as its user would. */
 async function writeRow(key, value, expect) {
   const row = th.locator(`.od tr[data-key="${key}"]`);

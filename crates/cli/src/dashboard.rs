@@ -93,6 +93,16 @@ impl Dashboard {
         self.shared.lock().unwrap().bus = label.to_string();
     }
 
+    /// Figures the bus load at `kbps` kbit/s, as the user said (`canpos dashboard --bitrate`):
+    /// it wins over what the bus or a sensor tells (D60).
+    pub fn set_bitrate(&self, kbps: u32) {
+        let hub = self.shared.lock().unwrap().trace.clone();
+        hub.trace
+            .lock()
+            .unwrap()
+            .offer_bitrate(kbps, trace::BitrateFrom::Given);
+    }
+
     /// When the bus connection is lost, reconnect with `reopen` (and say so on the page)
     /// instead of ending: a standalone dashboard outlives a hub that restarts.
     pub fn reconnect_with(&self, reopen: trace::Reopen) {
@@ -158,10 +168,18 @@ pub fn start_on(
     )));
     // Every frame in and out goes through the trace (issue 38).
     let hub = shared.lock().unwrap().trace.clone();
-    hub.trace
-        .lock()
-        .unwrap()
-        .set_bitrate(bus.bus_bitrate().unwrap_or(1000));
+    // The bus's own bit rate where the connection knows it (an in-process bus's pacing, else
+    // the rate declared to it); a socketcand hub names none (D60).
+    if let Some(kbps) = bus
+        .bus_stats()
+        .map(|s| s.bitrate_kbps)
+        .or_else(|| bus.bus_bitrate())
+    {
+        hub.trace
+            .lock()
+            .unwrap()
+            .offer_bitrate(kbps, trace::BitrateFrom::Bus);
+    }
     let bus: Box<dyn Transport> = Box::new(trace::Tap::new(bus, hub, watch::scan));
     let (cmd_tx, cmd_rx) = watch::bus_queue(watch::QUEUE);
     let (stop_bus, stop_bus_rx) = canpos_host::crossbeam_channel::bounded(1);

@@ -1509,13 +1509,7 @@ fn the_dcf_export_holds_the_values_read() {
 fn the_transmitter_passes_the_guard_of_every_write() {
     let bus = MemBus::new();
     let mut peer = bus.attach();
-    let web = dashboard::start(
-        Box::new(bus.attach()),
-        "127.0.0.1:0",
-        Controls::Remote(Vec::new()),
-        10.0,
-    )
-    .unwrap();
+    let web = watch_only(Box::new(bus.attach()));
     let a = web.local_addr();
     let host = format!("Host: {a}");
     let own = format!("Origin: http://{a}");
@@ -1526,6 +1520,8 @@ fn the_transmitter_passes_the_guard_of_every_write() {
         ("/api/send", r#"{"id":"0x124","period_ms":5}"#),
         ("/api/nmt", r#"{"command":"stop","node":0}"#),
         ("/api/trace/clear", "{}"),
+        ("/api/send/renew", r#"{"lease":"page-x"}"#),
+        ("/api/send/stop", r#"{"lease":"page-x"}"#),
     ];
     for (path, body) in writes {
         for h in [
@@ -1563,4 +1559,218 @@ fn the_transmitter_passes_the_guard_of_every_write() {
             break;
         }
     }
+}
+
+/// A dashboard of `bus` without control interfaces.
+fn watch_only(bus: Box<dyn Transport>) -> Dashboard {
+    dashboard::start(bus, "127.0.0.1:0", Controls::Remote(Vec::new()), 10.0).unwrap()
+}
+
+/// `GET /api/trace`'s bit rate and where it comes from.
+fn bitrate(a: SocketAddr) -> (u64, String) {
+    let (code, v) = http(a, "GET", "/api/trace", "");
+    assert_eq!(code, 200, "{v}");
+    (
+        v["bitrate_kbps"].as_u64().unwrap(),
+        v["bitrate_from"].as_str().unwrap().to_string(),
+    )
+}
+
+/// The bus load is figured at a bit rate the header names with its source (D60): an
+/// in-process bus's own pacing; a socketcand hub names none (1000 kbit/s, assumed) unless a
+/// sensor's control state or `canpos dashboard --bitrate` says it.
+#[test]
+fn the_bus_load_names_its_bit_rate_and_whether_it_was_given() {
+    use canpos_host::bus::Pacing;
+    use canpos_host::socketcand::HubConfig;
+    let dir = tempfile::tempdir().unwrap();
+    let mem = MemBus::with_pacing(Pacing::Paced(250));
+    let d = watch_only(Box::new(mem.attach()));
+    assert_eq!(bitrate(d.local_addr()), (250, "bus".into()));
+
+    // A hub paced at 500 kbit/s: its protocol does not say so.
+    let hub = canpos_host::Hub::bind_with(
+        "127.0.0.1:0",
+        HubConfig {
+            pacing: Pacing::Paced(500),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let url = format!("socketcand://127.0.0.1:{}/can0", hub.local_addr().port());
+    let _hub = hub.spawn().unwrap();
+    let d = watch_only(canpos_host::open(&url).unwrap());
+    assert_eq!(bitrate(d.local_addr()), (1000, "assumed".into()));
+    d.set_bitrate(500);
+    assert_eq!(bitrate(d.local_addr()), (500, "given".into()));
+
+    // A sensor started with --bus-bitrate 500 on that hub: its control state says it.
+    let mut built = build_setup(
+        &SensorOpts {
+            node_id: Some(9),
+            magnets: vec![100.0],
+            ..SensorOpts::default()
+        },
+        dir.path(),
+    )
+    .unwrap();
+    open_storage(&mut built.setup).unwrap();
+    let mut rt = Runtime::new(canpos_host::open(&url).unwrap(), Some(500));
+    rt.add(built.setup);
+    rt.power_on_all();
+    let rt = rt.spawn().unwrap();
+    let d = dashboard::start(
+        canpos_host::open(&url).unwrap(),
+        "127.0.0.1:0",
+        Controls::Local(rt.control(), 1),
+        10.0,
+    )
+    .unwrap();
+    let until = Instant::now() + Duration::from_secs(10);
+    while bitrate(d.local_addr()) != (500, "sensor".into()) {
+        assert!(Instant::now() < until, "{:?}", bitrate(d.local_addr()));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Given on the command line: it wins over the sensor's, and the header is told so.
+    d.set_bitrate(125);
+    std::thread::sleep(Duration::from_millis(600));
+    assert_eq!(bitrate(d.local_addr()), (125, "given".into()));
+    drop(d);
+    let _ = rt.stop();
+
+    // `canpos dashboard --bitrate`, in kbit/s or bit/s; a rate CiA 301 does not have is a usage
+    // error.
+    let web = common::free_port();
+    let mut p = common::Proc::start(
+        dir.path(),
+        &[
+            "dashboard",
+            "--bus",
+            &url,
+            "--listen",
+            &format!("127.0.0.1:{web}"),
+            "--bitrate",
+            "250000",
+        ],
+    );
+    p.wait_for("canpos dashboard: http", Duration::from_secs(20));
+    let a: SocketAddr = format!("127.0.0.1:{web}").parse().unwrap();
+    assert_eq!(bitrate(a), (250, "given".into()));
+    p.stop();
+    let o = common::canpos(&["dashboard", "--bus", &url, "--bitrate", "251"]);
+    common::assert_fails(&o, 2, "not a CAN bit rate");
+}
+
+/// A periodic transmission a script starts runs on a lease (one is made up when it names
+/// none) or for a duration it gives (D61): unrenewed, it ends within the lease and its frames
+/// stop on the bus; a renewal keeps it; a lease is stopped whole; a bad term changes nothing.
+#[test]
+fn a_scripts_periodic_transmission_ends_with_its_lease_unless_renewed() {
+    let bus = MemBus::new();
+    let mut peer = bus.attach();
+    let web = watch_only(Box::new(bus.attach()));
+    let a = web.local_addr();
+    let list = || {
+        let (code, v) = http(a, "GET", "/api/send", "");
+        assert_eq!(code, 200, "{v}");
+        v["periodic"].as_array().unwrap().clone()
+    };
+    // Refused, nothing started.
+    for bad in [
+        r#"{"id":"0x124","period_ms":10,"lease":"a b"}"#,
+        r#"{"id":"0x124","period_ms":10,"lease":"x","duration_s":5}"#,
+        r#"{"id":"0x124","period_ms":10,"duration_s":0}"#,
+        r#"{"id":"0x124","period_ms":10,"duration_s":1e300}"#,
+        r#"{"id":"0x124","lease":"x"}"#,
+    ] {
+        let (code, v) = http(a, "POST", "/api/send", bad);
+        assert_eq!(code, 400, "{bad}: {v}");
+    }
+    assert_eq!(http(a, "POST", "/api/send/renew", "{}").0, 400);
+    assert!(list().is_empty());
+    // The page's renewing worker is served.
+    let (code, js) = get_text(a, "/lease.js");
+    assert!(code == 200 && js.contains("/api/send/renew"), "{code} {js}");
+
+    // No lease named: one is made up and answered.
+    let sent = Instant::now();
+    let (code, v) = http(
+        a,
+        "POST",
+        "/api/send",
+        r#"{"id":"0x124","data":"01","period_ms":10}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+    let lease = v["lease"].as_str().unwrap().to_string();
+    assert_eq!(v["lease_s"], 5);
+    let (code, v) = http(
+        a,
+        "POST",
+        "/api/send",
+        r#"{"id":"0x125","period_ms":10,"duration_s":600}"#,
+    );
+    assert_eq!((code, &v["lease"]), (200, &Value::Null), "{v}");
+    let (code, v) = http(
+        a,
+        "POST",
+        "/api/send",
+        r#"{"id":"0x126","period_ms":10,"lease":"script-b"}"#,
+    );
+    assert_eq!(code, 200, "{v}");
+    let l = list();
+    assert_eq!(l.len(), 3, "{l:?}");
+    assert!(l[1]["ends_in_s"].as_f64().unwrap() > 500.0, "{l:?}");
+    // script-b stops its own at once; the renewal answers how many a lease holds.
+    let (code, v) = http(a, "POST", "/api/send/stop", r#"{"lease":"script-b"}"#);
+    assert_eq!((code, &v["stopped"]), (200, &serde_json::json!(1)), "{v}");
+    let (code, v) = http(a, "POST", "/api/send/renew", r#"{"lease":"script-b"}"#);
+    assert_eq!((code, &v["renewed"]), (200, &serde_json::json!(0)), "{v}");
+
+    // 0x124's lease is never renewed: it ends, no earlier than the lease, within a bound.
+    let until = Instant::now() + Duration::from_secs(30);
+    while list().iter().any(|p| p["id"] == "0x124") {
+        assert!(Instant::now() < until, "0x124 still sent: {:?}", list());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let took = sent.elapsed();
+    assert!(took >= Duration::from_millis(4900), "ended after {took:?}");
+    eprintln!("the unrenewed lease {lease} ended {took:?} after its start");
+    // Its frames stop on the bus (what was sent before is drained first); 0x125 goes on.
+    while peer.try_recv().unwrap().is_some() {}
+    let (mut n124, mut n125) = (0, 0);
+    let until = Instant::now() + Duration::from_millis(500);
+    while let Some(rx) = peer.recv_deadline(until).unwrap() {
+        match rx.frame.id() {
+            0x124 => n124 += 1,
+            0x125 => n125 += 1,
+            _ => {}
+        }
+    }
+    assert_eq!(n124, 0, "0x124 sent after its lease ended");
+    assert!(n125 > 0, "the job with a duration stopped too");
+    let (code, v) = http(a, "POST", "/api/send/stop", r#"{"id":"0x125"}"#);
+    assert_eq!(code, 200, "{v}");
+}
+
+/// The dashboard waits for an SDO answer as long as `canpos sdo` does by default (1 s, one
+/// constant; D45): a device that answers in 0.6 s is read from the page (with the 300 ms it had
+/// the page failed where `canpos sdo` worked), one that answers after 1.5 s times out.
+#[test]
+fn the_dashboard_waits_for_an_sdo_answer_as_long_as_canpos_sdo() {
+    let r = rig();
+    let a = r.web.local_addr();
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":600}"#);
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 200, "a 0.6 s answer: {v}");
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":1500}"#);
+    let t0 = Instant::now();
+    let (code, v) = http(a, "GET", "/api/nodes/127/sdo/0x1017/0", "");
+    assert_eq!(code, 502, "a 1.5 s answer: {v}");
+    assert!(error_of(&v).contains("SDO timeout"), "{v}");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(1000),
+        "{:?}",
+        t0.elapsed()
+    );
+    control(&r, r#"{"cmd":"timing","sdo_delay_ms":0}"#);
 }

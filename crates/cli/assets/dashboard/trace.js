@@ -9,6 +9,34 @@
 const trace = { seq: 0, paused: false, mode: "rows", last: null, polls: 0 };
 window.canposTrace = trace;
 
+// The lease of this page's periodic transmissions (D61): renewed while the page is open (by a
+// worker, else by the trace poll), given up when it closes; a page that is gone without a word
+// (a crash, a lost network) has its transmissions end within the server's 5 s.
+const LEASE = `page-${Date.now().toString(36)}-${Math.random().toString(36).slice(2, 10)}`;
+const lease = { worker: null, active: false, renewed: 0 };
+trace.lease = LEASE;
+function holdLease(list) {
+  const active = list.some((p) => p.lease === LEASE);
+  // The worker starts with the page's first transmission: a page that sends none runs none.
+  if (active && lease.worker === null) {
+    try { lease.worker = new Worker("/lease.js"); } catch (e) { lease.worker = false; }
+  }
+  if (active !== lease.active) {
+    lease.active = active;
+    if (lease.worker) lease.worker.postMessage({ lease: LEASE, active });
+  }
+  // Without a worker the poll renews, once a second.
+  if (active && !lease.worker && Date.now() - lease.renewed > 1000) {
+    lease.renewed = Date.now();
+    api("POST", "/api/send/renew", { lease: LEASE }).catch(() => {});
+  }
+}
+addEventListener("pagehide", () => {
+  if (!lease.active) return;
+  // keepalive: the request outlives the page.
+  fetch("/api/send/stop", { method: "POST", keepalive: true, headers: { "Content-Type": "application/json" }, body: JSON.stringify({ lease: LEASE }) }).catch(() => {});
+});
+
 // Rows of the log view kept in the page at most, and asked for per poll (the server keeps more,
 // for the export): at 10,000 frames/s nobody reads more, and the page stays responsive.
 const LOG_ROWS = 200;
@@ -89,8 +117,17 @@ function logRows(fresh, entries) {
   }
 }
 
+// Where the bit rate of the load comes from (D60).
+const RATE_FROM = {
+  given: "given",
+  bus: "the bus's",
+  sensor: "a sensor's",
+  assumed: "assumed: the bus names none; canpos dashboard --bitrate KBPS sets it",
+};
+
 function header(j) {
-  $("#busload").textContent = `bus load ${j.bus_load_pct.toFixed(1)} % of ${j.bitrate_kbps} kbit/s · ${j.frames_per_s.toFixed(0)} frames/s (frame stamps)`;
+  $("#busload").textContent = `bus load ${j.bus_load_pct.toFixed(1)} % of ${j.bitrate_kbps} kbit/s (${RATE_FROM[j.bitrate_from] || j.bitrate_from}) · ${j.frames_per_s.toFixed(0)} frames/s`;
+  $("#busload").dataset.bitrateFrom = j.bitrate_from;
   const hub = $("#hub");
   const l = j.link;
   const when = (s) => new Date(s * 1000).toLocaleTimeString();
@@ -112,8 +149,11 @@ function periodicList(list) {
   const key = JSON.stringify(list);
   if (ul.dataset.key === key) return;
   ul.dataset.key = key;
+  // A job of another page or a script says whose it is; this page's runs while it is open.
+  const term = (p) => p.lease === LEASE ? "while this page is open"
+    : p.lease ? `lease ${p.lease}, ends in ${Math.ceil(p.ends_in_s)} s unless renewed` : `for ${Math.ceil(p.ends_in_s)} s more`;
   ul.replaceChildren(...list.map((p) => el("li", { "data-id": p.id },
-    `${p.id} [${p.dlc}] ${p.rtr ? "RTR" : p.data} every ${p.period_ms} ms (${p.sent} sent) `,
+    `${p.id} [${p.dlc}] ${p.rtr ? "RTR" : p.data} every ${p.period_ms} ms, ${term(p)} (${p.sent} sent) `,
     el("button", { class: "tx-stop", onclick: () => api("POST", "/api/send/stop", { id: p.id, ext: p.ext }).then((j) => periodicList(j.periodic)).catch(() => {}) }, "Stop"))));
 }
 
@@ -141,6 +181,7 @@ async function tracePoll(failures = 0) {
     trace.last = j;
     trace.polls++;
     header(j);
+    holdLease(j.periodic);
     periodicList(j.periodic);
     $("#trace-error").textContent = "";
     if (!trace.paused) {
@@ -157,7 +198,7 @@ async function tracePoll(failures = 0) {
 
 function buildTrace() {
   const hdr = $("header");
-  hdr.insertBefore(el("span", { id: "busload", title: "from the frames' own timestamps over the last second; the bit rate is the bus's, 1000 kbit/s where it names none" }, ""), $("#link"));
+  hdr.insertBefore(el("span", { id: "busload", title: "from the frames' own timestamps over the last second, at the bit rate named: --bitrate, else the bus's or a sensor's, else 1000 kbit/s assumed (a socketcand hub names none)" }, ""), $("#link"));
   hdr.insertBefore(el("span", { id: "hub", role: "status" }, ""), $("#link"));
   const sel = el("select", { id: "trace-mode" }, el("option", { value: "rows" }, "one row per identifier"),
     el("option", { value: "log" }, "scrolling log"));
@@ -187,10 +228,10 @@ function buildTrace() {
     const dlc = $("#tx-dlc").value.trim();
     if (dlc) body.dlc = Number(dlc);
     const per = $("#tx-period").value.trim();
-    if (per) body.period_ms = Number(per);
+    if (per) { body.period_ms = Number(per); body.lease = LEASE; }
     api("POST", "/api/send", body).then((j) => {
-      show(per ? `sending ${j.id} every ${per} ms` : `sent ${j.id}`, "info");
-      if (j.periodic) periodicList(j.periodic);
+      show(per ? `sending ${j.id} every ${per} ms while this page is open` : `sent ${j.id}`, "info");
+      if (j.periodic) { holdLease(j.periodic); periodicList(j.periodic); }
     }).catch(() => {});
   };
   const nmtCmd = el("select", { id: "nmt-all-command" }, ...["start", "stop", "preop", "reset", "reset-comm"].map((c) => el("option", { value: c }, c)));

@@ -16,6 +16,10 @@ use canpos_stack::{cob, Frame};
 
 use crate::common::{parse_i64, parse_u64};
 
+/// The SDO timeout of canpos's tools, ms: `canpos sdo --timeout`'s default and the dashboard's
+/// (D45): a node that answers one answers the other.
+pub const DEFAULT_TIMEOUT_MS: u64 = 1000;
+
 /// Largest segmented upload accepted; a server that keeps sending beyond that is aborted rather
 /// than letting a broken device exhaust memory.
 pub const MAX_UPLOAD: usize = 1 << 20;

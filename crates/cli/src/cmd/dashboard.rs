@@ -26,6 +26,11 @@ pub struct DashboardArgs {
     /// sensor models (`--eds 20=examples/io-device.eds`); repeatable.
     #[arg(long = "eds", value_name = "NODE=FILE", value_parser = parse_eds_arg)]
     pub eds: Vec<(u8, PathBuf)>,
+    /// The bus's bit rate in kbit/s (or bit/s; a CiA 301 rate), for the bus load in the
+    /// header. Default: the bus's own where the connection names it (an in-process bus), else
+    /// a sensor's (--control), else 1000 kbit/s, shown as assumed: a socketcand hub names none.
+    #[arg(long, value_name = "KBPS", value_parser = crate::common::parse_bitrate)]
+    pub bitrate: Option<u32>,
     /// Seconds of history in the plots.
     #[arg(long, value_name = "S", default_value_t = 30.0, value_parser = crate::limits::parse_positive_seconds)]
     pub window: f64,
@@ -68,6 +73,9 @@ pub fn dashboard(a: DashboardArgs) -> Result<i32> {
     d.reconnect_with(Box::new(move || {
         canpos_host::open(&url).map_err(std::io::Error::other)
     }));
+    if let Some(kbps) = a.bitrate {
+        d.set_bitrate(kbps);
+    }
     for (id, model) in tables {
         d.pin_model(id, model);
     }

@@ -19,7 +19,7 @@ pub struct SdoArgs {
     #[allow(missing_docs)]
     pub bus: BusArg,
     /// Time to wait for each answer, in ms.
-    #[arg(long, global = true, default_value_t = 1000, value_name = "MS")]
+    #[arg(long, global = true, default_value_t = sdo::DEFAULT_TIMEOUT_MS, value_name = "MS")]
     pub timeout: u64,
 }
 

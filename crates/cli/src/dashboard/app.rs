@@ -86,10 +86,11 @@ pub(super) fn model_of(app: &App, id: u8) -> Result<&'static Table, ApiError> {
 }
 
 /// How long a request waits for its command to start on the bus: with [`watch::QUEUE`]
-/// commands ahead, each a 300 ms SDO timeout at worst, it starts well within.
-const BUS_PATIENCE: Duration = Duration::from_secs(5);
+/// commands ahead, each ended by its [`watch::SDO_TIMEOUT`] at worst (8 × 1 s), it starts
+/// within.
+const BUS_PATIENCE: Duration = Duration::from_secs(12);
 /// How long a request waits for a command that has started to end. An expedited transfer
-/// ends within its 300 ms timeout; only a long segmented one with a node that answers each
+/// ends within its SDO timeout; only a long segmented one with a node that answers each
 /// segment late takes longer, and it is then reported as unfinished, its effect unknown.
 const BUS_RUN_LIMIT: Duration = Duration::from_secs(30);
 

@@ -41,12 +41,48 @@ pub const PERIODIC: usize = 16;
 pub const MIN_PERIOD: Duration = Duration::from_millis(1);
 /// Longest period.
 pub const MAX_PERIOD: Duration = Duration::from_secs(3600);
+/// A periodic transmission on a lease ends this long after the lease's last renewal (D61):
+/// the page renews its lease every second while it is open, so one whose page is gone stops
+/// within this, as socketcand's jobs end with their connection.
+pub const LEASE: Duration = Duration::from_secs(5);
+/// Longest explicit duration of a periodic transmission (a script's, instead of a lease).
+pub const MAX_DURATION: Duration = Duration::from_secs(24 * 3600);
+/// Longest lease name.
+pub const LEASE_NAME: usize = 64;
 /// A node whose heartbeat (or guarding answer) is this old counts as not sending one.
 pub const HEARTBEAT_SILENCE: Duration = Duration::from_secs(3);
 /// A PDO from a node this recent makes it "operational (inferred)".
 pub const PDO_FRESH: Duration = Duration::from_secs(1);
 /// Waits between attempts to reach a lost hub: 100 ms doubling to this.
 pub const REOPEN_MAX: Duration = Duration::from_millis(800);
+
+/// Where the bit rate the bus load is figured at comes from (D60), worst first: a better
+/// source replaces a worse one, never the other way round.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum BitrateFrom {
+    /// Nobody said: 1000 kbit/s, the rate of a bus nobody configured (docs/BUS.md). A
+    /// socketcand hub, canpos's included, names none in its protocol.
+    Assumed,
+    /// A sensor's control state: the bus rate it was started with (`--bus-bitrate`), or its
+    /// in-process bus's pacing.
+    Sensor,
+    /// The bus connection itself (an in-process bus: its pacing).
+    Bus,
+    /// `canpos dashboard --bitrate`.
+    Given,
+}
+
+impl BitrateFrom {
+    /// The API's and the page's word for it.
+    pub fn name(self) -> &'static str {
+        match self {
+            BitrateFrom::Assumed => "assumed",
+            BitrateFrom::Sensor => "sensor",
+            BitrateFrom::Bus => "bus",
+            BitrateFrom::Given => "given",
+        }
+    }
+}
 
 /// Which way a frame went, seen from the dashboard.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -115,6 +151,7 @@ pub struct Trace {
     /// Frames whose identifier found no free row (beyond [`ROWS`]).
     pub unlisted: u64,
     bit_ns: u64,
+    bitrate: (u32, BitrateFrom),
     second: Option<(SystemTime, u64, u64)>,
     load: Option<(f64, f64)>,
     last_arrival: Option<Instant>,
@@ -132,6 +169,7 @@ impl Trace {
             next_seq: 1,
             unlisted: 0,
             bit_ns: 1_000_000 / u64::from(kbps.max(1)),
+            bitrate: (kbps.max(1), BitrateFrom::Assumed),
             second: None,
             load: None,
             last_arrival: None,
@@ -215,9 +253,21 @@ impl Trace {
         self.last_arrival = Some(now);
     }
 
-    /// Sets the bit rate the load is figured at.
-    pub fn set_bitrate(&mut self, kbps: u32) {
-        self.bit_ns = 1_000_000 / u64::from(kbps.max(1));
+    /// Offers a bit rate to figure the load at, learnt from `from`: taken unless the one in
+    /// use came from a better source (D60: given > the bus's > a sensor's > assumed); whether
+    /// it was taken.
+    pub fn offer_bitrate(&mut self, kbps: u32, from: BitrateFrom) -> bool {
+        if kbps == 0 || from < self.bitrate.1 {
+            return false;
+        }
+        self.bitrate = (kbps, from);
+        self.bit_ns = 1_000_000 / u64::from(kbps);
+        true
+    }
+
+    /// The bit rate the load is figured at, and where it comes from.
+    pub fn bitrate(&self) -> (u32, BitrateFrom) {
+        self.bitrate
     }
 
     /// Forgets every row and logged frame (the page's "Clear").
@@ -415,7 +465,7 @@ pub fn answer(
     json!({
         "ok": true, "seq": trace.seq(), "rows": rows, "log": log, "log_skipped": skipped,
         "unlisted": trace.unlisted, "bus_load_pct": load, "frames_per_s": fps,
-        "bitrate_kbps": 1_000_000 / trace.bit_ns,
+        "bitrate_kbps": trace.bitrate.0, "bitrate_from": trace.bitrate.1.name(),
     })
 }
 
@@ -445,6 +495,19 @@ pub struct Periodic {
     pub next: Instant,
     /// Frames sent.
     pub sent: u64,
+    /// The lease that keeps it going; `None`: it runs for a duration given when it started.
+    pub lease: Option<String>,
+    /// When it ends unless its lease is renewed before.
+    pub ends: Instant,
+}
+
+/// How long a periodic transmission runs (D61).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Term {
+    /// While the lease of this name is renewed within [`LEASE`].
+    Lease(String),
+    /// For this long (at most [`MAX_DURATION`]).
+    For(Duration),
 }
 
 /// The hub's state as the dashboard's connection sees it.
@@ -470,6 +533,8 @@ pub struct TraceHub {
     /// The hub connection's state.
     pub link: Mutex<LinkState>,
     reopen: Mutex<Option<Reopen>>,
+    /// Names the leases the hub hands out to requests that name none.
+    leases: std::sync::atomic::AtomicU64,
 }
 
 /// Why a frame was not queued.
@@ -492,6 +557,7 @@ impl TraceHub {
             periodic: Mutex::new(Vec::new()),
             link: Mutex::new(LinkState::default()),
             reopen: Mutex::new(None),
+            leases: std::sync::atomic::AtomicU64::new(0),
         })
     }
 
@@ -511,21 +577,36 @@ impl TraceHub {
         Ok(())
     }
 
-    /// Sends `f` every `period` (first now); one already sent on its identifier is replaced,
-    /// as a socketcand `add` replaces a job.
+    /// A lease name no request has used: for a request that names none.
+    pub fn new_lease(&self) -> String {
+        let n = self
+            .leases
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        format!("lease-{}", n + 1)
+    }
+
+    /// Sends `f` every `period` (first now) for as long as `term` says; one already sent on its
+    /// identifier is replaced, as a socketcand `add` replaces a job.
     pub fn send_periodic(
         &self,
         f: Frame,
         period: Duration,
+        term: Term,
         now: Instant,
     ) -> Result<(), SendRefused> {
         self.up()?;
         let mut p = self.periodic.lock().unwrap();
+        let (lease, ends) = match term {
+            Term::Lease(name) => (Some(name), now + LEASE),
+            Term::For(d) => (None, now + d.min(MAX_DURATION)),
+        };
         let job = Periodic {
             frame: f,
             period,
             next: now,
             sent: 0,
+            lease,
+            ends,
         };
         if let Some(j) = p.iter_mut().find(|j| key(&j.frame) == key(&f)) {
             *j = job;
@@ -554,9 +635,57 @@ impl TraceHub {
         p.len() != n
     }
 
+    /// Renews lease `name` at `now`: its transmissions run until `now` + [`LEASE`]; how many
+    /// it holds (0: none, they ended or never were).
+    pub fn renew(&self, name: &str, now: Instant) -> usize {
+        let mut p = self.periodic.lock().unwrap();
+        let mut n = 0;
+        // A lapsed lease stays lapsed, dropped by the bus thread yet or not (it is not while
+        // the hub is away).
+        for j in p
+            .iter_mut()
+            .filter(|j| j.lease.as_deref() == Some(name) && j.ends > now)
+        {
+            j.ends = now + LEASE;
+            n += 1;
+        }
+        n
+    }
+
+    /// Stops every periodic transmission of lease `name` (a page that closes); how many.
+    pub fn stop_lease(&self, name: &str) -> usize {
+        let mut p = self.periodic.lock().unwrap();
+        let n = p.len();
+        p.retain(|j| j.lease.as_deref() != Some(name));
+        n - p.len()
+    }
+
     /// The periodic transmissions.
     pub fn periodic(&self) -> Vec<Periodic> {
-        self.periodic.lock().unwrap().clone()
+        // Without those whose term is over and the bus thread has not yet dropped (it does not
+        // while the hub is away).
+        let now = Instant::now();
+        let p = self.periodic.lock().unwrap();
+        p.iter().filter(|j| j.ends > now).cloned().collect()
+    }
+
+    /// At `now`: drops the transmissions whose term is over, counts the frames that are due
+    /// (in their order) and moves each on by its period; and the time the next one is due or
+    /// ends. A late caller sends each once and keeps its cycle, no burst to catch up.
+    pub fn due(&self, now: Instant) -> (Vec<Frame>, Option<Instant>) {
+        let mut p = self.periodic.lock().unwrap();
+        p.retain(|j| j.ends > now);
+        let mut out = Vec::new();
+        for j in p.iter_mut().filter(|j| j.next <= now) {
+            out.push(j.frame);
+            j.sent += 1;
+            j.next += j.period;
+            if j.next <= now {
+                j.next = now + j.period;
+            }
+        }
+        let wake = p.iter().map(|j| j.next.min(j.ends)).min();
+        (out, wake)
     }
 }
 
@@ -603,32 +732,11 @@ impl Tap {
             };
             self.send(&f)?;
         }
-        let now = Instant::now();
-        let due: Vec<Frame> = {
-            let mut p = self.hub.periodic.lock().unwrap();
-            let mut out = Vec::new();
-            for j in p.iter_mut().filter(|j| j.next <= now) {
-                out.push(j.frame);
-                j.sent += 1;
-                // A late thread sends once and keeps the cycle, no burst to catch up.
-                j.next += j.period;
-                if j.next <= now {
-                    j.next = now + j.period;
-                }
-            }
-            out
-        };
+        let (due, wake) = self.hub.due(Instant::now());
         for f in due {
             self.send(&f)?;
         }
-        Ok(self
-            .hub
-            .periodic
-            .lock()
-            .unwrap()
-            .iter()
-            .map(|j| j.next)
-            .min())
+        Ok(wake)
     }
 
     /// The bus connection failed with `e`: wait for it to come back when the bus can be
@@ -818,6 +926,10 @@ mod tests {
 
     fn std(id: u16, d: &[u8]) -> Frame {
         Frame::new(id, d).unwrap()
+    }
+
+    fn lease(name: &str) -> Term {
+        Term::Lease(name.to_string())
     }
 
     fn at(ms: u64) -> SystemTime {
@@ -1044,16 +1156,16 @@ mod tests {
         }
         assert_eq!(hub.send_once(std(0x100, &[])), Err(SendRefused::Busy));
         for i in 0..PERIODIC as u16 {
-            hub.send_periodic(std(0x200 + i, &[]), MIN_PERIOD, now)
+            hub.send_periodic(std(0x200 + i, &[]), MIN_PERIOD, lease("p"), now)
                 .unwrap();
         }
         let extra = std(0x300, &[]);
         assert_eq!(
-            hub.send_periodic(extra, MIN_PERIOD, now),
+            hub.send_periodic(extra, MIN_PERIOD, lease("p"), now),
             Err(SendRefused::TooMany)
         );
         // The same identifier again: replaced, not added.
-        hub.send_periodic(std(0x200, &[9]), MAX_PERIOD, now)
+        hub.send_periodic(std(0x200, &[9]), MAX_PERIOD, lease("p"), now)
             .unwrap();
         assert_eq!(hub.periodic().len(), PERIODIC);
         assert!(hub.stop_periodic(false, 0x200));
@@ -1079,7 +1191,7 @@ mod tests {
         // Asked for while the hub is away: refused, nothing queued.
         assert_eq!(hub.send_once(std(0x123, &[1])), Err(SendRefused::Down));
         assert_eq!(
-            hub.send_periodic(std(0x124, &[]), MIN_PERIOD, Instant::now()),
+            hub.send_periodic(std(0x124, &[]), MIN_PERIOD, lease("p"), Instant::now()),
             Err(SendRefused::Down)
         );
         assert!(hub.once.lock().unwrap().is_empty() && hub.periodic().is_empty());
@@ -1096,8 +1208,13 @@ mod tests {
         let hub = TraceHub::new(1000);
         let mut tap = Tap::new(Box::new(port), hub.clone(), crate::dashboard::watch::scan);
         hub.send_once(std(0x123, &[0xAB])).unwrap();
-        hub.send_periodic(std(0x124, &[]), Duration::from_millis(5), Instant::now())
-            .unwrap();
+        hub.send_periodic(
+            std(0x124, &[]),
+            Duration::from_millis(5),
+            lease("p"),
+            Instant::now(),
+        )
+        .unwrap();
         peer.send(&std(0x701, &[5])).unwrap();
         let got = tap.recv_timeout(Some(Duration::from_millis(50))).unwrap();
         assert_eq!(got.map(|r| r.frame.id()), Some(0x701));
@@ -1108,5 +1225,131 @@ mod tests {
         let t = hub.trace.lock().unwrap();
         let dirs: Vec<(u32, Dir)> = t.rows().map(|r| (r.frame.id(), r.dir)).collect();
         assert_eq!(dirs, [(0x123, Dir::Tx), (0x124, Dir::Tx), (0x701, Dir::Rx)]);
+    }
+
+    /// The frames of 0x124 `due` hands out at each of `times` (ms after `t0`).
+    fn sent_at(hub: &TraceHub, t0: Instant, times: impl IntoIterator<Item = u64>) -> Vec<u64> {
+        times
+            .into_iter()
+            .filter(|ms| {
+                let (due, _) = hub.due(t0 + Duration::from_millis(*ms));
+                due.iter().any(|f| f.id() == 0x124)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_periodic_transmission_ends_with_its_lease_unless_renewed() {
+        // A virtual clock: `due` is asked at instants the test chooses, nothing sleeps.
+        let hub = TraceHub::new(1000);
+        let t0 = Instant::now();
+        let period = Duration::from_millis(100);
+        hub.send_periodic(std(0x124, &[1]), period, lease("page-a"), t0)
+            .unwrap();
+        hub.send_periodic(std(0x125, &[2]), period, lease("page-b"), t0)
+            .unwrap();
+        // Sent every 100 ms; the wake-up is the next frame, not the lease's end.
+        let (due, wake) = hub.due(t0);
+        assert_eq!(due.len(), 2);
+        assert_eq!(wake, Some(t0 + period));
+        // Page a renews at 2 s and 6 s (within each lease), page b never.
+        let sent = sent_at(&hub, t0, (1..=20).map(|i| i * 100));
+        assert_eq!(sent.len(), 20, "{sent:?}");
+        assert_eq!(hub.renew("page-a", t0 + Duration::from_secs(2)), 1);
+        assert_eq!(hub.renew("nobody", t0 + Duration::from_secs(2)), 0);
+        // Renewed too late (the bus thread has not dropped it yet): it stays ended.
+        assert_eq!(hub.renew("page-b", t0 + LEASE), 0);
+        let _ = sent_at(&hub, t0, (21..=49).map(|i| i * 100));
+        // At 5 s b's lease is over: b is gone, a is still sent.
+        let (due, _) = hub.due(t0 + LEASE);
+        assert_eq!(due.iter().map(|f| f.id()).collect::<Vec<_>>(), [0x124]);
+        assert_eq!(hub.periodic().len(), 1);
+        assert_eq!(
+            hub.renew("page-b", t0 + LEASE),
+            0,
+            "an ended lease comes not back"
+        );
+        assert_eq!(hub.renew("page-a", t0 + Duration::from_secs(6)), 1);
+        // a's last renewal at 6 s: sent up to 11 s, never after, and the hub forgets it.
+        let sent = sent_at(&hub, t0, (51..=130).map(|i| i * 100));
+        assert_eq!(sent.first(), Some(&5100));
+        assert_eq!(sent.last(), Some(&10_900), "{sent:?}");
+        assert!(hub.periodic().is_empty());
+        assert_eq!(hub.due(t0 + Duration::from_secs(60)), (vec![], None));
+    }
+
+    #[test]
+    fn a_bus_thread_that_wakes_late_still_ends_the_job_on_time() {
+        let hub = TraceHub::new(1000);
+        let t0 = Instant::now();
+        // A period longer than the lease: the wake-up is the lease's end, not the next frame.
+        hub.send_periodic(std(0x124, &[]), MAX_PERIOD, lease("p"), t0)
+            .unwrap();
+        let (due, wake) = hub.due(t0);
+        assert_eq!((due.len(), wake), (1, Some(t0 + LEASE)));
+        // Asked long after its end (a stalled thread): nothing more goes out.
+        assert_eq!(hub.due(t0 + Duration::from_secs(3600)).0, vec![]);
+        assert!(hub.periodic().is_empty());
+    }
+
+    #[test]
+    fn a_duration_ends_a_job_without_renewal_and_a_lease_is_stopped_whole() {
+        let hub = TraceHub::new(1000);
+        let t0 = Instant::now();
+        let period = Duration::from_millis(10);
+        hub.send_periodic(
+            std(0x124, &[]),
+            period,
+            Term::For(Duration::from_secs(30)),
+            t0,
+        )
+        .unwrap();
+        // Renewing a name does not touch a job that has none.
+        assert_eq!(hub.renew("p", t0), 0);
+        assert_eq!(hub.periodic()[0].ends, t0 + Duration::from_secs(30));
+        let sent = sent_at(&hub, t0, [0, 10_000, 29_990, 30_000, 30_010]);
+        assert_eq!(sent, [0, 10_000, 29_990]);
+        // A duration beyond the bound is held to it.
+        hub.send_periodic(std(0x124, &[]), period, Term::For(Duration::MAX), t0)
+            .unwrap();
+        assert_eq!(hub.periodic()[0].ends, t0 + MAX_DURATION);
+        // A page that closes stops all its jobs at once, and only its own.
+        for i in 0..3 {
+            hub.send_periodic(std(0x200 + i, &[]), period, lease("page-a"), t0)
+                .unwrap();
+        }
+        assert_eq!(hub.stop_lease("page-a"), 3);
+        assert_eq!(hub.stop_lease("page-a"), 0);
+        assert_eq!(hub.periodic().len(), 1);
+        assert_ne!(hub.new_lease(), hub.new_lease());
+    }
+
+    #[test]
+    fn the_bit_rate_of_the_load_keeps_its_best_source() {
+        let mut t = Trace::new(1000);
+        assert_eq!(t.bitrate(), (1000, BitrateFrom::Assumed));
+        assert!(t.offer_bitrate(500, BitrateFrom::Sensor));
+        assert!(
+            t.offer_bitrate(250, BitrateFrom::Sensor),
+            "a sensor's newer word"
+        );
+        assert!(t.offer_bitrate(125, BitrateFrom::Given));
+        assert!(!t.offer_bitrate(1000, BitrateFrom::Bus));
+        assert!(!t.offer_bitrate(500, BitrateFrom::Sensor));
+        assert!(!t.offer_bitrate(0, BitrateFrom::Given));
+        assert_eq!(t.bitrate(), (125, BitrateFrom::Given));
+        // The load is figured at it: 500 8-byte frames (111…135 bits) a second at 125 kbit/s
+        // fill 44…54 % (at 1000 kbit/s it would be 6 %).
+        let now = Instant::now();
+        for i in 0..=500u64 {
+            t.note(&std(0x185, &[0; 8]), at(2 * i), Dir::Rx, now);
+        }
+        let (load, _) = t.load(now);
+        assert!((40.0..=60.0).contains(&load), "{load}");
+        let v = answer(&t, &Monitor::new(), &Filter::default(), 0, 0, now);
+        assert_eq!(
+            (v["bitrate_kbps"].as_u64(), v["bitrate_from"].as_str()),
+            (Some(125), Some("given"))
+        );
     }
 }

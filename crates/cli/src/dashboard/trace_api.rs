@@ -29,10 +29,14 @@ pub(super) fn routes() -> Router<App> {
         .route("/api/trace/clear", post(trace_clear))
         .route("/api/send", get(send_list).post(send))
         .route("/api/send/stop", post(send_stop))
+        .route("/api/send/renew", post(send_renew))
+        .route("/lease.js", get(|| asset("text/javascript", LEASE_JS)))
         .route("/api/nmt", post(nmt))
 }
 
 const TRACE_JS: &str = include_str!("../../assets/dashboard/trace.js");
+/// The page's worker that renews its lease (D61).
+const LEASE_JS: &str = include_str!("../../assets/dashboard/lease.js");
 
 type Answer = Result<Json<Value>, ApiError>;
 
@@ -117,6 +121,7 @@ fn monitor(app: &App) -> (Monitor, Arc<TraceHub>) {
 }
 
 fn periodic_json(hub: &TraceHub) -> Vec<Value> {
+    let now = Instant::now();
     hub.periodic()
         .iter()
         .map(|j| {
@@ -124,6 +129,8 @@ fn periodic_json(hub: &TraceHub) -> Vec<Value> {
                 "id": id_text(&j.frame), "ext": j.frame.is_extended(), "rtr": j.frame.is_remote(),
                 "dlc": j.frame.dlc(), "data": hex_string(j.frame.data()),
                 "period_ms": j.period.as_secs_f64() * 1e3, "sent": j.sent,
+                "lease": j.lease,
+                "ends_in_s": j.ends.saturating_duration_since(now).as_secs_f64(),
             })
         })
         .collect()
@@ -274,25 +281,98 @@ fn frame_of(o: &serde_json::Map<String, Value>) -> Result<Frame, ApiError> {
     Frame::with_id(id, ext, &data).map_err(|e| bad(format!("{e:?}")))
 }
 
-/// `POST /api/send`: a frame once, or every `period_ms`.
+/// `POST /api/send`: a frame once, or every `period_ms` for as long as its lease is renewed
+/// (`lease`, one made up when the request names none) or for `duration_s` (D61).
 async fn send(State(app): State<App>, body: String) -> Answer {
     let o = body_json(&body)?;
     let f = frame_of(&o)?;
     let hub = app.shared.lock().unwrap().trace.clone();
     match o.get("period_ms") {
         None | Some(Value::Null) => {
+            if o.get("lease").is_some_and(|v| !v.is_null())
+                || o.get("duration_s").is_some_and(|v| !v.is_null())
+            {
+                return Err(bad(
+                    "`lease` and `duration_s` are a periodic transmission's: give period_ms".into(),
+                ));
+            }
             hub.send_once(f).map_err(refused_send)?;
             Ok(Json(json!({"ok": true, "id": id_text(&f), "once": true})))
         }
         Some(v) => {
             let period = period_of(v)?;
-            hub.send_periodic(f, period, Instant::now())
+            let term = term_of(&o, &hub)?;
+            let lease = match &term {
+                Term::Lease(name) => Some(name.clone()),
+                Term::For(_) => None,
+            };
+            hub.send_periodic(f, period, term, Instant::now())
                 .map_err(refused_send)?;
-            Ok(Json(
-                json!({"ok": true, "id": id_text(&f), "periodic": periodic_json(&hub)}),
-            ))
+            Ok(Json(json!({
+                "ok": true, "id": id_text(&f), "lease": lease, "lease_s": LEASE.as_secs(),
+                "periodic": periodic_json(&hub),
+            })))
         }
     }
+}
+
+/// A lease's name: 1…[`LEASE_NAME`] letters, digits, `-`, `_`, `.`.
+fn lease_name(v: &Value) -> Result<String, ApiError> {
+    let s = v
+        .as_str()
+        .ok_or_else(|| bad(format!("lease {v}: expected a name, e.g. \"my-script\"")))?;
+    if s.is_empty()
+        || s.len() > LEASE_NAME
+        || !s
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'-' | b'_' | b'.'))
+    {
+        return Err(bad(format!(
+            "lease `{s}`: expected 1…{LEASE_NAME} letters, digits, `-`, `_` or `.`"
+        )));
+    }
+    Ok(s.to_string())
+}
+
+/// How long a periodic transmission runs: `duration_s` (0 < s ≤ [`MAX_DURATION`]), else the
+/// lease `lease`, else a new lease.
+fn term_of(o: &serde_json::Map<String, Value>, hub: &TraceHub) -> Result<Term, ApiError> {
+    let lease = o.get("lease").filter(|v| !v.is_null());
+    match o.get("duration_s").filter(|v| !v.is_null()) {
+        Some(_) if lease.is_some() => Err(bad(
+            "give `lease` or `duration_s`, not both: a leased transmission ends when its lease is not renewed".into(),
+        )),
+        Some(v) => {
+            let s = v
+                .as_f64()
+                .filter(|s| s.is_finite())
+                .ok_or_else(|| bad(format!("duration_s {v}: expected a number of seconds")))?;
+            // Checked as a number first: `Duration::from_secs_f64` panics beyond u64 seconds.
+            if !(s > 0.0 && s <= MAX_DURATION.as_secs_f64()) {
+                return Err(bad(format!(
+                    "duration {s} s: expected more than 0 and at most {} s (24 h)",
+                    MAX_DURATION.as_secs()
+                )));
+            }
+            Ok(Term::For(Duration::from_secs_f64(s)))
+        }
+        None => Ok(Term::Lease(match lease {
+            Some(v) => lease_name(v)?,
+            None => hub.new_lease(),
+        })),
+    }
+}
+
+/// `POST /api/send/renew {"lease": "…"}`: keeps the lease's periodic transmissions going for
+/// [`LEASE`] more; `renewed` says how many it holds (0: they ended).
+async fn send_renew(State(app): State<App>, body: String) -> Answer {
+    let o = body_json(&body)?;
+    let name = lease_name(o.get("lease").unwrap_or(&Value::Null))?;
+    let hub = app.shared.lock().unwrap().trace.clone();
+    let n = hub.renew(&name, Instant::now());
+    Ok(Json(
+        json!({"ok": true, "lease": name, "renewed": n, "lease_s": LEASE.as_secs()}),
+    ))
 }
 
 /// The answer to a frame the transmitter did not take.
@@ -339,9 +419,18 @@ async fn send_list(State(app): State<App>) -> Answer {
     Ok(Json(json!({"ok": true, "periodic": periodic_json(&hub)})))
 }
 
-/// `POST /api/send/stop {"id": …, "ext": …}`: ends a periodic transmission.
+/// `POST /api/send/stop {"id": …, "ext": …}`: ends a periodic transmission;
+/// `{"lease": …}` ends all of a lease's (a page that closes).
 async fn send_stop(State(app): State<App>, body: String) -> Answer {
     let o = body_json(&body)?;
+    if let Some(v) = o.get("lease").filter(|v| !v.is_null()) {
+        let name = lease_name(v)?;
+        let hub = app.shared.lock().unwrap().trace.clone();
+        let n = hub.stop_lease(&name);
+        return Ok(Json(
+            json!({"ok": true, "stopped": n, "periodic": periodic_json(&hub)}),
+        ));
+    }
     let id = match o.get("id") {
         Some(Value::String(s)) => parse_id(s)?,
         _ => return Err(bad("`id` is missing: e.g. \"0x605\"".into())),
@@ -414,5 +503,47 @@ mod tests {
             assert!(e.1.contains("expected 1 ms"), "{v}: {}", e.1);
         }
         assert!(period_of(&json!("5")).is_err());
+    }
+
+    fn obj(v: Value) -> serde_json::Map<String, Value> {
+        v.as_object().unwrap().clone()
+    }
+
+    #[test]
+    fn a_periodic_transmission_has_a_lease_or_a_duration_within_bounds() {
+        let hub = TraceHub::new(1000);
+        // Named, made up, or a duration.
+        assert_eq!(
+            term_of(&obj(json!({"lease": "my-script.1"})), &hub).ok(),
+            Some(Term::Lease("my-script.1".into()))
+        );
+        assert!(
+            matches!(term_of(&obj(json!({})), &hub), Ok(Term::Lease(n)) if n.starts_with("lease-"))
+        );
+        assert_eq!(
+            term_of(&obj(json!({"duration_s": 2.5})), &hub).ok(),
+            Some(Term::For(Duration::from_millis(2500)))
+        );
+        assert_eq!(
+            term_of(&obj(json!({"duration_s": 86_400})), &hub).ok(),
+            Some(Term::For(MAX_DURATION))
+        );
+        // Refused: both, a name that is no name, a duration out of range (no panic beyond
+        // what a Duration holds).
+        for bad in [
+            json!({"lease": "a", "duration_s": 1}),
+            json!({"lease": ""}),
+            json!({"lease": "a b"}),
+            json!({"lease": "x".repeat(65)}),
+            json!({"lease": 7}),
+            json!({"duration_s": 0}),
+            json!({"duration_s": -1}),
+            json!({"duration_s": 86_400.5}),
+            json!({"duration_s": 1e300}),
+            json!({"duration_s": "5"}),
+        ] {
+            let e = term_of(&obj(bad.clone()), &hub).unwrap_err();
+            assert_eq!(e.0, StatusCode::BAD_REQUEST, "{bad}");
+        }
     }
 }

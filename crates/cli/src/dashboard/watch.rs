@@ -30,8 +30,9 @@ use crate::client::Monitor;
 pub const SAMPLE_PERIOD: Duration = Duration::from_millis(20);
 /// EMCYs kept per node.
 const EMCY_LOG: usize = 100;
-/// SDO timeout of the dashboard's own reads.
-const SDO_TIMEOUT: Duration = Duration::from_millis(300);
+/// SDO timeout of the dashboard's transfers: `canpos sdo`'s (D45), so a node that answers the
+/// command line answers the page.
+pub const SDO_TIMEOUT: Duration = Duration::from_millis(crate::client::sdo::DEFAULT_TIMEOUT_MS);
 /// A node that did not answer the identity reads is asked again after this long.
 const REQUERY: Duration = Duration::from_secs(5);
 
@@ -745,7 +746,7 @@ pub fn run_poller(shared: Arc<Mutex<Shared>>, stop: Receiver<()>) {
             .into_iter()
             .map(|(l, i)| l.request(Request::State { sensor: Some(i) }))
             .collect();
-        {
+        let (hub, rate) = {
             let mut s = shared.lock().unwrap();
             for (c, st) in s.controllers.iter_mut().zip(states) {
                 c.state = (st["ok"] == true).then_some(st);
@@ -771,6 +772,25 @@ pub fn run_poller(shared: Arc<Mutex<Shared>>, stop: Receiver<()>) {
                     n.model = model;
                 }
             }
+            // A sensor knows its bus's rate where a socketcand hub does not say it: its
+            // in-process bus's pacing, else the rate it was started with (D60).
+            let rate = s
+                .controllers
+                .iter()
+                .filter_map(|c| c.state.as_ref())
+                .find_map(|st| {
+                    st["bus"]["bitrate_kbps"]
+                        .as_u64()
+                        .or_else(|| st["bus_bitrate_kbps"].as_u64())
+                });
+            (s.trace.clone(), rate)
+        };
+        // The trace's lock is taken with the state's released (the bus thread takes it alone).
+        if let Some(kbps) = rate.and_then(|k| u32::try_from(k).ok()) {
+            hub.trace
+                .lock()
+                .unwrap()
+                .offer_bitrate(kbps, super::trace::BitrateFrom::Sensor);
         }
         if stop.recv_timeout(Duration::from_millis(250)).is_ok() {
             return;
