@@ -8,8 +8,10 @@
 
 mod common;
 
+use std::ffi::{c_void, CString};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::sync::Mutex;
 use std::time::Duration;
 
 use canpos_host::bus::bits::frame_length;
@@ -195,6 +197,258 @@ fn the_simulator_times_the_frames_as_docs_bus_md_and_synchronised_runs_repeat() 
             &second[i.saturating_sub(2)..(i + 3).min(300)]
         );
     }
+}
+
+/// A bare SIL Kit participant with one CAN controller (another tool's, as far as canpos is
+/// concerned): it records the frames it receives with SIL Kit's timestamp (the simulator's
+/// end-of-frame time) and, when dropped, leaves without stopping its controller.
+struct RawNode {
+    api: &'static silkit::sys::Api,
+    ctrl: *mut silkit::sys::CanController,
+    seen: Box<Received>,
+    /// Last: destroyed after nothing else of it is used.
+    _participant: silkit::Participant,
+}
+
+/// Frames received: identifier, data, SIL Kit timestamp.
+type Received = Mutex<Vec<(u32, Vec<u8>, u64)>>;
+
+unsafe extern "C" fn raw_on_frame(
+    ctx: *mut c_void,
+    _c: *mut silkit::sys::CanController,
+    ev: *mut silkit::sys::CanFrameEvent,
+) {
+    // SAFETY: `ctx` is the node's `seen`, alive until the participant is destroyed; the event
+    // and its frame are valid during the call.
+    let seen = unsafe { &*(ctx as *const Received) };
+    let ev = unsafe { &*ev };
+    let f = unsafe { &*ev.frame };
+    let data = unsafe { std::slice::from_raw_parts(f.data.data, f.data.size) }.to_vec();
+    seen.lock().unwrap().push((f.id, data, ev.timestamp));
+}
+
+impl RawNode {
+    fn join(reg: &LocalRegistry, name: &str) -> RawNode {
+        let api = silkit::api().unwrap();
+        let participant = silkit::Participant::join(api, name, reg.uri()).expect("joins");
+        let name_c = CString::new(name).unwrap();
+        let net_c = CString::new("can0").unwrap();
+        let seen: Box<Received> = Box::default();
+        let ctx = &*seen as *const _ as *mut c_void;
+        let (mut ctrl, mut h) = (std::ptr::null_mut(), 0u64);
+        // SAFETY: a live participant, NUL-terminated names, out-pointers; `seen` outlives it.
+        unsafe {
+            let p = participant.raw();
+            api.check(
+                "controller",
+                (api.can_controller_create)(&mut ctrl, p, name_c.as_ptr(), net_c.as_ptr()),
+            )
+            .unwrap();
+            // Received frames only (SilKit_Direction_Receive).
+            api.check(
+                "handler",
+                (api.can_controller_add_frame_handler)(ctrl, ctx, raw_on_frame, 2, &mut h),
+            )
+            .unwrap();
+            api.check("start", (api.can_controller_start)(ctrl))
+                .unwrap();
+        }
+        RawNode {
+            api,
+            ctrl,
+            seen,
+            _participant: participant,
+        }
+    }
+
+    fn send(&self, id: u32, data: &[u8]) {
+        let mut f = silkit::sys::CanFrame {
+            header: silkit::sys::StructHeader::new(silkit::sys::CAN_FRAME_ID),
+            id,
+            flags: 0,
+            dlc: data.len() as u16,
+            sdt: 0,
+            vcid: 0,
+            af: 0,
+            data: silkit::sys::ByteVector {
+                data: data.as_ptr(),
+                size: data.len(),
+            },
+        };
+        // SAFETY: a live controller; the frame is copied during the call.
+        let rc = unsafe {
+            (self.api.can_controller_send_frame)(self.ctrl, &mut f, std::ptr::null_mut())
+        };
+        self.api.check("send", rc).unwrap();
+    }
+
+    fn seen(&self) -> Vec<(u32, Vec<u8>, u64)> {
+        self.seen.lock().unwrap().clone()
+    }
+}
+
+/// What the simulator's current worker logged: its output after the last restart (the
+/// supervisor logs a restart after the crashed worker's last line; both write to stderr).
+fn current_worker(out: &str) -> &str {
+    const CRASHED: &str = "the simulator's SIL Kit part crashed";
+    out.rfind(CRASHED)
+        .map_or(out, |i| &out[i + CRASHED.len()..])
+}
+
+/// Waits until the simulator's output satisfies `pred`, at most `LIMIT`.
+fn wait_netsim(netsim: &mut Proc, what: &str, pred: impl Fn(&str) -> bool) -> String {
+    let end = std::time::Instant::now() + LIMIT;
+    loop {
+        let o = netsim.output();
+        if pred(&o) {
+            return o;
+        }
+        assert!(
+            netsim.running(),
+            "canpos bus netsim ended while {what}: {o}"
+        );
+        assert!(std::time::Instant::now() < end, "{what}: {o}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// SIL Kit 5.0.3 crashes a network simulator when a controller leaves while a send to it is
+/// queued (D57): here a busy simulated network (two TH sensors with 1 ms TPDOs on 125 kbit/s,
+/// more than the bus carries) sees ten participants leave mid-traffic, every other one a
+/// `canpos run` killed with SIGKILL, the others a bare SIL Kit participant that leaves without
+/// stopping its controller. `canpos bus netsim` keeps running (its worker restarted after each
+/// crash) and still times the remaining traffic: a new receiver gets the sensors' frames at the
+/// simulator's end-of-frame times, back to back as on a saturated bus (docs/BUS.md). Before the
+/// supervisor, the simulator died within the first leaves.
+#[test]
+fn participants_leaving_a_busy_network_abruptly_leave_the_simulator_running_and_timing() {
+    if !have_silkit() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let d = d.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().to_string();
+    let bus = format!("{uri}/can0");
+    let state = d.to_str().unwrap();
+    let mut netsim = Proc::start(
+        d,
+        &[
+            "bus",
+            "netsim",
+            "--registry",
+            &uri,
+            "--network",
+            "can0",
+            "--bitrate",
+            "125",
+            "--participant",
+            "netsim",
+            "--stats-interval",
+            "0",
+        ],
+    );
+    let sensor = |serial: &str, node: &str| {
+        Proc::start(
+            d,
+            &[
+                "run",
+                "--model",
+                "th",
+                "--serial",
+                serial,
+                "--node-id",
+                node,
+                "--nmt",
+                "operational",
+                "--bus",
+                &bus,
+                "--state-dir",
+                state,
+            ],
+        )
+    };
+    let _a = sensor("11", "5");
+    let _b = sensor("12", "6");
+    // Controllers the current worker has: joined less left.
+    let present = |o: &str| {
+        let w = current_worker(o);
+        w.matches("controller joined").count() as i64 - w.matches("controller left").count() as i64
+    };
+    const LEAVES: usize = 10;
+    for k in 0..LEAVES {
+        // The current worker has the two sensors' controllers (again, after a restart), and no
+        // other.
+        wait_netsim(&mut netsim, "waiting for the sensors", |o| present(o) == 2);
+        if k % 2 == 0 {
+            let mut victim = sensor(&format!("9{k}"), &(20 + k).to_string());
+            wait_netsim(&mut netsim, "waiting for the victim", |o| present(o) == 3);
+            // Its 1 ms TPDOs and heartbeats on the busy bus a while, then SIGKILL.
+            std::thread::sleep(Duration::from_millis(300));
+            victim.stop();
+        } else {
+            let leaver = RawNode::join(&reg, &format!("leaver{k}"));
+            wait_netsim(&mut netsim, "waiting for the leaver", |o| present(o) == 3);
+            for i in 0..300u32 {
+                leaver.send(0x300 + k as u32, &i.to_le_bytes());
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            drop(leaver);
+        }
+        // Gone: its leave seen, or a new worker without it.
+        wait_netsim(&mut netsim, "waiting for the leave", |o| present(o) == 2);
+        // A crash follows the leave within milliseconds, if it comes.
+        std::thread::sleep(Duration::from_millis(300));
+        assert!(netsim.running(), "{}", netsim.output());
+    }
+    let crashes = netsim.output().matches("part crashed").count();
+    eprintln!("{crashes} of {LEAVES} leaves crashed the simulator's SIL Kit part (restarted)");
+    // Still simulating: a new receiver gets the sensors' frames at the simulator's times.
+    wait_netsim(&mut netsim, "waiting for the sensors", |o| present(o) == 2);
+    let rx = RawNode::join(&reg, "rx");
+    let end = std::time::Instant::now() + LIMIT;
+    while rx.seen().len() < 320 {
+        assert!(
+            std::time::Instant::now() < end,
+            "rx got {:?}",
+            rx.seen().len()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert_eq!(
+        netsim.output().matches("part crashed").count(),
+        crashes,
+        "no one left meanwhile"
+    );
+    // Past the frames a participant may get before it learns of the simulator.
+    let frames = &rx.seen()[20..320];
+    assert!(frames.iter().any(|f| f.0 == 0x185) && frames.iter().any(|f| f.0 == 0x186));
+    let mut back_to_back = 0;
+    for w in frames.windows(2) {
+        let ((_, _, ta), (id, data, tb)) = (&w[0], &w[1]);
+        let len = u64::from(frame_length(&Frame::with_id(*id, false, data).unwrap()).total) * 8_000;
+        // One frame at a time on the wire: each ends at least its length after the one before.
+        assert!(tb - ta >= len, "{w:?}: less than a frame time apart");
+        if tb - ta == len {
+            back_to_back += 1;
+        }
+    }
+    // Two 1 ms TPDOs are more than 125 kbit/s carries: the frames go out back to back.
+    assert!(
+        back_to_back > frames.len() / 2,
+        "{back_to_back} back to back"
+    );
+    drop(rx);
+    wait_netsim(&mut netsim, "waiting for the receiver to leave", |o| {
+        present(o) == 2
+    });
+    std::thread::sleep(Duration::from_millis(300));
+    wait_netsim(&mut netsim, "waiting for the sensors", |o| present(o) == 2);
+    // It stops as asked, with its report.
+    // SAFETY: kill with the pid of our own child, not yet waited for.
+    unsafe { libc::kill(netsim.pid() as libc::pid_t, libc::SIGTERM) };
+    assert_eq!(netsim.wait_exit(LIMIT), Some(0), "{}", netsim.output());
+    assert!(netsim.output().contains("\"network\":\"can0\""));
 }
 
 /// Sends `sig` to a process of the test.

@@ -110,6 +110,18 @@ impl Instance {
         }
     }
 
+    /// The model's answer to a change of mode: in mode `to` when it took it, else
+    /// `fmi3Error` with its reason and the mode unchanged.
+    fn switch(&mut self, func: &str, r: Result<(), String>, to: Mode) -> Status {
+        match r {
+            Ok(()) => {
+                self.mode = to;
+                OK
+            }
+            Err(e) => self.error(func, &e),
+        }
+    }
+
     fn expect(&self, func: &str, modes: &[Mode]) -> Result<(), Status> {
         if modes.contains(&self.mode) {
             Ok(())
@@ -158,6 +170,20 @@ fn with(inst: *mut c_void, func: &str, f: impl FnOnce(&mut Instance) -> Status) 
         e.busy = false;
     }
     s
+}
+
+/// [`with`], for a call allowed only in `modes`: in another, `fmi3Error` naming the modes it
+/// is allowed in, and nothing happens.
+fn in_mode(
+    inst: *mut c_void,
+    func: &str,
+    modes: &[Mode],
+    f: impl FnOnce(&mut Instance) -> Status,
+) -> Status {
+    with(inst, func, |i| match i.expect(func, modes) {
+        Ok(()) => f(i),
+        Err(s) => s,
+    })
 }
 
 fn with_entered(inst: *mut c_void, func: &str, f: impl FnOnce(&mut Instance) -> Status) -> Status {
@@ -403,24 +429,18 @@ pub unsafe extern "C" fn fmi3EnterInitializationMode(
     stop_time: f64,
 ) -> Status {
     const F: &str = "fmi3EnterInitializationMode";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Instantiated]) {
-            return s;
-        }
+    in_mode(inst, F, &[Mode::Instantiated], |i| {
         if stop_time_defined && (stop_time.is_nan() || stop_time < start_time) {
             return i.error(
                 F,
                 &format!("stop time {stop_time} before start time {start_time}"),
             );
         }
-        match i.model.enter_initialization(start_time) {
-            Ok(()) => {
-                i.stop_time = stop_time_defined.then_some(stop_time);
-                i.mode = Mode::Initialization;
-                OK
-            }
-            Err(e) => i.error(F, &e),
+        let r = i.model.enter_initialization(start_time);
+        if r.is_ok() {
+            i.stop_time = stop_time_defined.then_some(stop_time);
         }
+        i.switch(F, r, Mode::Initialization)
     })
 }
 
@@ -428,21 +448,14 @@ pub unsafe extern "C" fn fmi3EnterInitializationMode(
 #[no_mangle]
 pub unsafe extern "C" fn fmi3ExitInitializationMode(inst: *mut c_void) -> Status {
     const F: &str = "fmi3ExitInitializationMode";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Initialization]) {
-            return s;
-        }
-        match i.model.exit_initialization() {
-            Ok(()) => {
-                i.mode = if i.event_mode_used {
-                    Mode::Event
-                } else {
-                    Mode::Step
-                };
-                OK
-            }
-            Err(e) => i.error(F, &e),
-        }
+    in_mode(inst, F, &[Mode::Initialization], |i| {
+        let to = if i.event_mode_used {
+            Mode::Event
+        } else {
+            Mode::Step
+        };
+        let r = i.model.exit_initialization();
+        i.switch(F, r, to)
     })
 }
 
@@ -450,23 +463,15 @@ pub unsafe extern "C" fn fmi3ExitInitializationMode(inst: *mut c_void) -> Status
 #[no_mangle]
 pub unsafe extern "C" fn fmi3EnterEventMode(inst: *mut c_void) -> Status {
     const F: &str = "fmi3EnterEventMode";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Step]) {
-            return s;
-        }
+    in_mode(inst, F, &[Mode::Step], |i| {
         if !i.event_mode_used {
             return i.error(
                 F,
                 "the instance was instantiated with eventModeUsed = false",
             );
         }
-        match i.model.enter_event_mode() {
-            Ok(()) => {
-                i.mode = Mode::Event;
-                OK
-            }
-            Err(e) => i.error(F, &e),
-        }
+        let r = i.model.enter_event_mode();
+        i.switch(F, r, Mode::Event)
     })
 }
 
@@ -474,50 +479,140 @@ pub unsafe extern "C" fn fmi3EnterEventMode(inst: *mut c_void) -> Status {
 #[no_mangle]
 pub unsafe extern "C" fn fmi3Terminate(inst: *mut c_void) -> Status {
     const F: &str = "fmi3Terminate";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Step, Mode::Event, Mode::Initialization]) {
-            return s;
-        }
-        i.mode = Mode::Terminated;
-        OK
-    })
+    in_mode(
+        inst,
+        F,
+        &[Mode::Step, Mode::Event, Mode::Initialization],
+        |i| i.switch(F, Ok(()), Mode::Terminated),
+    )
 }
 
 /// `fmi3Reset`: back to the state right after instantiation (a new unit, defaults).
 #[no_mangle]
 pub unsafe extern "C" fn fmi3Reset(inst: *mut c_void) -> Status {
     const F: &str = "fmi3Reset";
-    with(inst, F, |i| match i.kind.instantiate() {
-        Ok(m) => {
+    with(inst, F, |i| {
+        let r = i.kind.instantiate().map(|m| {
             i.model = m;
             i.stop_time = None;
-            i.mode = Mode::Instantiated;
-            OK
-        }
-        Err(e) => i.error(F, &e),
+        });
+        i.switch(F, r, Mode::Instantiated)
     })
 }
 
-/// Checks that `n` value references and `n_values` values come with pointers, and that the
-/// counts agree (canpos FMUs have no arrays).
-fn check_arrays(
-    i: &Instance,
-    func: &str,
+/// The arrays of a get / set call: `n` value references at `vrs` and `n_values` values
+/// (canpos FMUs have no arrays: one value a reference); `values_null` when a values pointer
+/// of the call (`values`, or `sizes` of a binary) is null.
+#[derive(Clone, Copy)]
+struct Arrays {
     vrs: *const u32,
     n: usize,
     values_null: bool,
     n_values: usize,
-) -> Result<(), Status> {
-    if n > 0 && (vrs.is_null() || values_null) {
-        return Err(i.error(func, "valueReferences or values is null"));
+}
+
+/// A call's value references, checked (see [`access`]).
+#[derive(Clone, Copy)]
+struct Refs {
+    vrs: *const u32,
+    n: usize,
+}
+
+impl Arrays {
+    fn new(vrs: *const u32, n: usize, values_null: bool, n_values: usize) -> Arrays {
+        Arrays {
+            vrs,
+            n,
+            values_null,
+            n_values,
+        }
     }
-    if n != n_values {
-        return Err(i.error(
-            func,
-            &format!("nValues = {n_values} for {n} value references (canpos FMUs have no arrays)"),
-        ));
+}
+
+impl Refs {
+    /// The `k`-th value reference, `k` < `n`.
+    fn at(self, k: usize) -> u32 {
+        debug_assert!(k < self.n);
+        // SAFETY: `vrs` is not null when `n` > 0 (checked in `access`) and the importer gives
+        // `n` value references there.
+        unsafe { *self.vrs.add(k) }
     }
-    Ok(())
+
+    fn each(self) -> impl Iterator<Item = (usize, u32)> {
+        (0..self.n).map(move |k| (k, self.at(k)))
+    }
+}
+
+/// The one checked path of every get / set call: a live instance, in one of `modes` (any when
+/// empty), pointers that are not null where values are passed, as many values as references,
+/// and `check` passed by each reference (`k`, value reference): only then does `f` read or set
+/// anything, so a refused call changes nothing.
+fn access(
+    inst: *mut c_void,
+    func: &str,
+    modes: &[Mode],
+    a: Arrays,
+    mut check: impl FnMut(&Instance, usize, u32) -> Result<(), Status>,
+    f: impl FnOnce(&mut Instance, Refs) -> Status,
+) -> Status {
+    with(inst, func, |i| {
+        if !modes.is_empty() {
+            if let Err(s) = i.expect(func, modes) {
+                return s;
+            }
+        }
+        if a.n > 0 && (a.vrs.is_null() || a.values_null) {
+            return i.error(func, "valueReferences or values is null");
+        }
+        if a.n != a.n_values {
+            return i.error(
+                func,
+                &format!(
+                    "nValues = {} for {} value references (canpos FMUs have no arrays)",
+                    a.n_values, a.n
+                ),
+            );
+        }
+        let refs = Refs { vrs: a.vrs, n: a.n };
+        for (k, vr) in refs.each() {
+            if let Err(s) = check(i, k, vr) {
+                return s;
+            }
+        }
+        f(i, refs)
+    })
+}
+
+/// Reads each checked reference's value and hands it to `put` (`k`, value reference, value);
+/// the model's or `put`'s refusal is the call's `fmi3Error`.
+fn get_each(
+    i: &mut Instance,
+    func: &str,
+    refs: Refs,
+    mut put: impl FnMut(usize, u32, Value<'_>) -> Result<(), String>,
+) -> Status {
+    for (k, vr) in refs.each() {
+        let r = i.model.get(vr).and_then(|v| put(k, vr, v));
+        if let Err(e) = r {
+            return i.error(func, &e);
+        }
+    }
+    OK
+}
+
+/// Sets each checked reference to `value(k)`; the model's refusal is the call's `fmi3Error`.
+fn set_each<'a>(
+    i: &mut Instance,
+    func: &str,
+    refs: Refs,
+    value: impl Fn(usize) -> Value<'a>,
+) -> Status {
+    for (k, vr) in refs.each() {
+        if let Err(e) = i.model.set(vr, value(k)) {
+            return i.error(func, &e);
+        }
+    }
+    OK
 }
 
 fn check_type(i: &Instance, func: &str, vr: u32, ty: VarType) -> Result<(), Status> {
@@ -571,29 +666,24 @@ fn get_scalars<T: Copy>(
     n_values: usize,
     conv: fn(Value<'_>) -> Option<T>,
 ) -> Status {
-    with(inst, func, |i| {
-        if let Err(s) = check_arrays(i, func, vrs, n, values.is_null(), n_values) {
-            return s;
-        }
-        for k in 0..n {
-            // SAFETY: the importer gives n value references and n values (checked non-null).
-            let vr = unsafe { *vrs.add(k) };
-            if let Err(s) = check_type(i, func, vr, ty) {
-                return s;
-            }
-        }
-        for k in 0..n {
-            let vr = unsafe { *vrs.add(k) };
-            match i.model.get(vr).map(conv) {
-                Ok(Some(v)) => unsafe { *values.add(k) = v },
-                Ok(None) => {
-                    return i.error(func, &format!("value reference {vr} has another type"))
+    let a = Arrays::new(vrs, n, values.is_null(), n_values);
+    access(
+        inst,
+        func,
+        &[],
+        a,
+        |i, _, vr| check_type(i, func, vr, ty),
+        |i, refs| {
+            get_each(i, func, refs, |k, vr, v| match conv(v) {
+                Some(v) => {
+                    // SAFETY: the importer gives n values there (checked non-null).
+                    unsafe { *values.add(k) = v };
+                    Ok(())
                 }
-                Err(e) => return i.error(func, &e),
-            }
-        }
-        OK
-    })
+                None => Err(format!("value reference {vr} has another type")),
+            })
+        },
+    )
 }
 
 fn set_scalars<T: Copy>(
@@ -606,24 +696,16 @@ fn set_scalars<T: Copy>(
     n_values: usize,
     conv: fn(T) -> Value<'static>,
 ) -> Status {
-    with(inst, func, |i| {
-        if let Err(s) = check_arrays(i, func, vrs, n, values.is_null(), n_values) {
-            return s;
-        }
-        for k in 0..n {
-            let vr = unsafe { *vrs.add(k) };
-            if let Err(s) = check_set(i, func, vr, ty) {
-                return s;
-            }
-        }
-        for k in 0..n {
-            let (vr, v) = unsafe { (*vrs.add(k), *values.add(k)) };
-            if let Err(e) = i.model.set(vr, conv(v)) {
-                return i.error(func, &e);
-            }
-        }
-        OK
-    })
+    let a = Arrays::new(vrs, n, values.is_null(), n_values);
+    access(
+        inst,
+        func,
+        &[],
+        a,
+        |i, _, vr| check_set(i, func, vr, ty),
+        // SAFETY: the importer gives n values there (checked non-null).
+        |i, refs| set_each(i, func, refs, |k| conv(unsafe { *values.add(k) })),
+    )
 }
 
 fn no_such(i: &Instance, func: &str, vr: u32) -> Status {
@@ -653,18 +735,7 @@ macro_rules! no_variables_of {
             values: *mut $t,
             n_values: usize,
         ) -> Status {
-            with(inst, stringify!($get), |i| {
-                if let Err(s) =
-                    check_arrays(i, stringify!($get), vrs, n, values.is_null(), n_values)
-                {
-                    return s;
-                }
-                if n == 0 {
-                    return OK;
-                }
-                let vr = unsafe { *vrs };
-                no_such(i, stringify!($get), vr)
-            })
+            none_of(inst, stringify!($get), vrs, n, values.is_null(), n_values)
         }
         /// No variable of this type: refused with the reason.
         #[no_mangle]
@@ -675,20 +746,30 @@ macro_rules! no_variables_of {
             values: *const $t,
             n_values: usize,
         ) -> Status {
-            with(inst, stringify!($set), |i| {
-                if let Err(s) =
-                    check_arrays(i, stringify!($set), vrs, n, values.is_null(), n_values)
-                {
-                    return s;
-                }
-                if n == 0 {
-                    return OK;
-                }
-                let vr = unsafe { *vrs };
-                no_such(i, stringify!($set), vr)
-            })
+            none_of(inst, stringify!($set), vrs, n, values.is_null(), n_values)
         }
     };
+}
+
+/// A get or set of a type canpos FMUs have no variable of: the first value reference is
+/// refused as [`no_such`]; none at all is fine.
+fn none_of(
+    inst: *mut c_void,
+    func: &str,
+    vrs: *const u32,
+    n: usize,
+    values_null: bool,
+    n_values: usize,
+) -> Status {
+    let a = Arrays::new(vrs, n, values_null, n_values);
+    access(
+        inst,
+        func,
+        &[],
+        a,
+        |i, _, vr| Err(no_such(i, func, vr)),
+        |_, _| OK,
+    )
 }
 
 no_variables_of!(fmi3GetFloat32, fmi3SetFloat32, f32);
@@ -808,28 +889,27 @@ pub unsafe extern "C" fn fmi3GetBinary(
     n_values: usize,
 ) -> Status {
     const F: &str = "fmi3GetBinary";
-    with(inst, F, |i| {
-        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null() || sizes.is_null(), n_values) {
-            return s;
-        }
-        for k in 0..n {
-            if let Err(s) = check_type(i, F, unsafe { *vrs.add(k) }, VarType::Binary) {
-                return s;
-            }
-        }
-        for k in 0..n {
-            let vr = unsafe { *vrs.add(k) };
-            match i.model.get(vr) {
-                Ok(Value::Binary(b)) => unsafe {
-                    *sizes.add(k) = b.len();
-                    *values.add(k) = b.as_ptr();
-                },
-                Ok(_) => return i.error(F, &format!("value reference {vr} is not binary")),
-                Err(e) => return i.error(F, &e),
-            }
-        }
-        OK
-    })
+    let a = Arrays::new(vrs, n, values.is_null() || sizes.is_null(), n_values);
+    access(
+        inst,
+        F,
+        &[],
+        a,
+        |i, _, vr| check_type(i, F, vr, VarType::Binary),
+        |i, refs| {
+            get_each(i, F, refs, |k, vr, v| match v {
+                Value::Binary(b) => {
+                    // SAFETY: the importer gives n sizes and n values there (checked non-null).
+                    unsafe {
+                        *sizes.add(k) = b.len();
+                        *values.add(k) = b.as_ptr();
+                    }
+                    Ok(())
+                }
+                _ => Err(format!("value reference {vr} is not binary")),
+            })
+        },
+    )
 }
 
 /// `fmi3SetBinary`: each value at most the variable's `maxSize`.
@@ -843,45 +923,46 @@ pub unsafe extern "C" fn fmi3SetBinary(
     n_values: usize,
 ) -> Status {
     const F: &str = "fmi3SetBinary";
-    with(inst, F, |i| {
-        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null() || sizes.is_null(), n_values) {
-            return s;
-        }
-        let mut all = Vec::with_capacity(n);
-        for k in 0..n {
-            let (vr, size, p) = unsafe { (*vrs.add(k), *sizes.add(k), *values.add(k)) };
-            if let Err(s) = check_set(i, F, vr, VarType::Binary) {
-                return s;
-            }
+    let a = Arrays::new(vrs, n, values.is_null() || sizes.is_null(), n_values);
+    // SAFETY: the importer gives n sizes and n values there (checked non-null).
+    let arg = |k: usize| unsafe { (*sizes.add(k), *values.add(k)) };
+    access(
+        inst,
+        F,
+        &[],
+        a,
+        |i, k, vr| {
+            check_set(i, F, vr, VarType::Binary)?;
+            let (size, p) = arg(k);
             let v = i.model.description().variable(vr).expect("checked");
             let max = v.max_size.unwrap_or(usize::MAX);
             if size > max {
-                return i.error(
+                return Err(i.error(
                     F,
                     &format!("{} bytes for `{}`, its maxSize is {max}", size, v.name),
-                );
+                ));
             }
             if size > 0 && p.is_null() {
-                return i.error(
+                return Err(i.error(
                     F,
                     &format!("a null pointer for {size} bytes of `{}`", v.name),
-                );
+                ));
             }
-            all.push((vr, size, p));
-        }
-        for (vr, size, p) in all {
-            let b: &[u8] = if size == 0 {
-                &[]
-            } else {
-                // SAFETY: the importer gives `size` readable bytes at `p` (non-null, checked).
-                unsafe { std::slice::from_raw_parts(p, size) }
-            };
-            if let Err(e) = i.model.set(vr, Value::Binary(b)) {
-                return i.error(F, &e);
-            }
-        }
-        OK
-    })
+            Ok(())
+        },
+        |i, refs| {
+            set_each(i, F, refs, |k| {
+                let (size, p) = arg(k);
+                Value::Binary(if size == 0 {
+                    &[]
+                } else {
+                    // SAFETY: the importer gives `size` readable bytes at `p` (non-null,
+                    // checked).
+                    unsafe { std::slice::from_raw_parts(p, size) }
+                })
+            })
+        },
+    )
 }
 
 /// `fmi3GetClock`: in event mode; an output clock reports each tick once.
@@ -893,28 +974,24 @@ pub unsafe extern "C" fn fmi3GetClock(
     values: *mut bool,
 ) -> Status {
     const F: &str = "fmi3GetClock";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Event]) {
-            return s;
-        }
-        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null(), n) {
-            return s;
-        }
-        for k in 0..n {
-            if let Err(s) = check_type(i, F, unsafe { *vrs.add(k) }, VarType::Clock) {
-                return s;
-            }
-        }
-        for k in 0..n {
-            let vr = unsafe { *vrs.add(k) };
-            match i.model.get(vr) {
-                Ok(Value::Clock(b)) => unsafe { *values.add(k) = b },
-                Ok(_) => return i.error(F, "not a clock"),
-                Err(e) => return i.error(F, &e),
-            }
-        }
-        OK
-    })
+    let a = Arrays::new(vrs, n, values.is_null(), n);
+    access(
+        inst,
+        F,
+        &[Mode::Event],
+        a,
+        |i, _, vr| check_type(i, F, vr, VarType::Clock),
+        |i, refs| {
+            get_each(i, F, refs, |k, _, v| match v {
+                Value::Clock(b) => {
+                    // SAFETY: the importer gives n values there (checked non-null).
+                    unsafe { *values.add(k) = b };
+                    Ok(())
+                }
+                _ => Err("not a clock".to_string()),
+            })
+        },
+    )
 }
 
 /// `fmi3SetClock`: input clocks, in event mode.
@@ -926,23 +1003,16 @@ pub unsafe extern "C" fn fmi3SetClock(
     values: *const u8,
 ) -> Status {
     const F: &str = "fmi3SetClock";
-    with(inst, F, |i| {
-        if let Err(s) = check_arrays(i, F, vrs, n, values.is_null(), n) {
-            return s;
-        }
-        for k in 0..n {
-            if let Err(s) = check_set(i, F, unsafe { *vrs.add(k) }, VarType::Clock) {
-                return s;
-            }
-        }
-        for k in 0..n {
-            let (vr, on) = unsafe { (*vrs.add(k), *values.add(k) != 0) };
-            if let Err(e) = i.model.set(vr, Value::Clock(on)) {
-                return i.error(F, &e);
-            }
-        }
-        OK
-    })
+    let a = Arrays::new(vrs, n, values.is_null(), n);
+    access(
+        inst,
+        F,
+        &[],
+        a,
+        |i, _, vr| check_set(i, F, vr, VarType::Clock),
+        // SAFETY: the importer gives n values there (checked non-null).
+        |i, refs| set_each(i, F, refs, |k| Value::Clock(unsafe { *values.add(k) } != 0)),
+    )
 }
 
 /// `fmi3UpdateDiscreteStates`: takes the operations of the input clocks set in this event.
@@ -957,10 +1027,7 @@ pub unsafe extern "C" fn fmi3UpdateDiscreteStates(
     next_time: *mut f64,
 ) -> Status {
     const F: &str = "fmi3UpdateDiscreteStates";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Event]) {
-            return s;
-        }
+    in_mode(inst, F, &[Mode::Event], |i| {
         if [
             need_update,
             terminate,
@@ -993,17 +1060,9 @@ pub unsafe extern "C" fn fmi3UpdateDiscreteStates(
 #[no_mangle]
 pub unsafe extern "C" fn fmi3EnterStepMode(inst: *mut c_void) -> Status {
     const F: &str = "fmi3EnterStepMode";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Event]) {
-            return s;
-        }
-        match i.model.enter_step_mode() {
-            Ok(()) => {
-                i.mode = Mode::Step;
-                OK
-            }
-            Err(e) => i.error(F, &e),
-        }
+    in_mode(inst, F, &[Mode::Event], |i| {
+        let r = i.model.enter_step_mode();
+        i.switch(F, r, Mode::Step)
     })
 }
 
@@ -1021,10 +1080,7 @@ pub unsafe extern "C" fn fmi3DoStep(
     last_time: *mut f64,
 ) -> Status {
     const F: &str = "fmi3DoStep";
-    with(inst, F, |i| {
-        if let Err(s) = i.expect(F, &[Mode::Step]) {
-            return s;
-        }
+    in_mode(inst, F, &[Mode::Step], |i| {
         if event_needed.is_null()
             || terminate.is_null()
             || early_return.is_null()

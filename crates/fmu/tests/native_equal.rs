@@ -319,7 +319,6 @@ fn fmu_on_the_bus() -> Log {
 /// the native ones do: the frame time and the request's own frame time are all the 400 µs above
 /// allowed for, no difference of the FMU's.
 #[test]
-#[ignore = "not deterministic yet: in a fresh-clone CI run frame 58 (a heartbeat) ended 318 µs apart (70,705 vs 71,023 µs) while every local run agreed; run with --ignored; the frame-by-frame test above stands"]
 fn on_the_same_bus_model_every_frame_ends_when_the_native_one_does() {
     let fmu = fmu_on_the_bus();
     let native = native_run();

@@ -1,10 +1,15 @@
 //! `canpos bus netsim`: canpos's bus timeline as the CAN network simulator of a Vector SIL Kit
 //! network (issue 32 item 3, docs/SILKIT.md "canpos as the network simulator").
 
-use std::io::Write as _;
+use std::ffi::OsString;
+use std::io::{BufRead as _, BufReader, Write as _};
+use std::os::unix::process::ExitStatusExt as _;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, Context as _, Result};
 use canpos_host::silkit::netsim::{NetworkReport, NetworkSpec, Simulator, TimeMode};
 use canpos_host::silkit::{check_name, sys, RegistryUri};
 use clap::{Args, ValueEnum};
@@ -76,8 +81,256 @@ fn registry_uri(s: &str) -> Result<RegistryUri, String> {
     })
 }
 
-/// Runs `canpos bus netsim`.
+/// The environment variable that makes a `canpos bus netsim` process the worker of a
+/// supervising one (D57); its value is the supervisor's process id.
+const WORKER_ENV: &str = "CANPOS_NETSIM_WORKER";
+
+/// Signals of a worker that crashed (SIL Kit 5.0.3's SIGSEGV, D57), after which it is restarted;
+/// any other end of the worker ends the command with it.
+const CRASH_SIGNALS: [i32; 5] = [
+    libc::SIGSEGV,
+    libc::SIGBUS,
+    libc::SIGABRT,
+    libc::SIGILL,
+    libc::SIGFPE,
+];
+
+/// Workers in a row that die before they simulate (a crash at start-up, not a controller
+/// leaving) after which the supervisor gives up.
+const MAX_EARLY_DEATHS: u32 = 5;
+
+/// The first line a worker prints once it simulates its networks.
+const BANNER: &str = "canpos bus netsim: simulating ";
+
+/// Runs `canpos bus netsim`: a supervisor that runs the simulator in a worker process and
+/// restarts it when SIL Kit crashes it (D57); in the worker, the simulator.
 pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
+    let (uri, specs, mode) = prepare(&args)?;
+    match std::env::var(WORKER_ENV) {
+        Ok(parent) => {
+            follow_parent(&parent);
+            simulate(&args, &uri, &specs, mode)
+        }
+        Err(_) => supervise(&args, mode),
+    }
+}
+
+/// The worker ends with its supervisor (SIGTERM, a graceful leave), whatever ends that.
+fn follow_parent(parent: &str) {
+    // SAFETY: prctl with an integer signal number; getppid has no arguments.
+    unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+        // The supervisor may have ended before prctl took effect.
+        if parent.parse::<libc::pid_t>().ok() != Some(libc::getppid()) {
+            libc::raise(libc::SIGTERM);
+        }
+    }
+}
+
+/// The worker's arguments: this command's, `--duration` given as what is left of it.
+fn worker_args(args: impl Iterator<Item = OsString>, left: Option<Duration>) -> Vec<OsString> {
+    let mut out = Vec::new();
+    let mut skip_value = false;
+    for a in args {
+        if std::mem::take(&mut skip_value) {
+            continue;
+        }
+        if a == "--duration" {
+            skip_value = true;
+            continue;
+        }
+        if a.to_str().is_some_and(|s| s.starts_with("--duration=")) {
+            continue;
+        }
+        out.push(a);
+    }
+    if let Some(left) = left {
+        out.push("--duration".into());
+        out.push(format!("{:.3}", left.as_secs_f64().max(0.001)).into());
+    }
+    out
+}
+
+/// Runs the simulator in a worker process (this program, these arguments) and starts a new one
+/// when the worker crashes: SIL Kit 5.0.3 can crash the simulator when a controller leaves (a
+/// send it queued for the controller reaches the controller's freed record, D57), and no order
+/// of canpos's calls prevents it. The new worker joins the registry again, takes its networks
+/// over again (the controllers go on as they were, D39) and tells wall-clock times again (D41);
+/// counters and bus time start anew. Ctrl-C / SIGTERM stop the worker gracefully.
+fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
+    let stop = stop_signal()?;
+    let exe = std::env::current_exe().context("cannot find this program to run the simulator")?;
+    let started = Instant::now();
+    let end = args.duration.map(|d| started + Duration::from_secs_f64(d));
+    let networks = args.networks.join(", ");
+    let (mut restarts, mut early) = (0u32, 0u32);
+    loop {
+        let left = end.map(|t| t.saturating_duration_since(Instant::now()));
+        if left.is_some_and(|l| l.is_zero()) {
+            return Ok(0);
+        }
+        let mut child = Command::new(&exe)
+            .args(worker_args(std::env::args_os().skip(1), left))
+            .env(WORKER_ENV, std::process::id().to_string())
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .context("cannot start the simulator's worker process")?;
+        // Its output is this command's; the banner says it simulates.
+        let up = Arc::new(AtomicBool::new(false));
+        let out = child.stdout.take().map(|o| {
+            let up = up.clone();
+            std::thread::spawn(move || {
+                for line in BufReader::new(o).lines() {
+                    let Ok(line) = line else { break };
+                    if line.starts_with(BANNER) {
+                        up.store(true, Ordering::Relaxed);
+                    }
+                    let mut so = std::io::stdout().lock();
+                    let _ = writeln!(so, "{line}");
+                    let _ = so.flush();
+                }
+            })
+        });
+        let status = loop {
+            if let Some(st) = child.try_wait()? {
+                break st;
+            }
+            // Often: the networks go untimed from a crash until a new worker is up.
+            if stop.recv_timeout(Duration::from_millis(20)).is_ok() {
+                let st = terminate(&mut child)?;
+                if let Some(t) = out {
+                    let _ = t.join();
+                }
+                return Ok(match st.signal() {
+                    None => st.code().unwrap_or(1),
+                    // Stopped before it could take SIGTERM gracefully (starting up).
+                    Some(libc::SIGTERM) => 0,
+                    Some(sig) => {
+                        tracing::error!(
+                            signal = sig,
+                            "the simulator's SIL Kit part crashed as it stopped: no report"
+                        );
+                        1
+                    }
+                });
+            }
+        };
+        if let Some(t) = out {
+            let _ = t.join();
+        }
+        let up = up.load(Ordering::Relaxed);
+        match after_worker(&status, mode, up, restarts > 0, &mut early) {
+            AfterWorker::End(code) => return Ok(code),
+            AfterWorker::Fail(e) => return Err(anyhow!("canpos bus netsim: {e}")),
+            AfterWorker::Restart(sig) => {
+                restarts += 1;
+                tracing::error!(
+                    signal = sig,
+                    restarts,
+                    "the simulator's SIL Kit part crashed (SIL Kit 5.0.3 frees a controller that \
+                     left while a send to it is queued, D57): restarting it as simulator of \
+                     {networks}; until it is back the frames go over SIL Kit's own bus, and its \
+                     counters start anew"
+                );
+            }
+            AfterWorker::Retry(code) => tracing::warn!(
+                exit = code,
+                attempt = early,
+                "the restarted simulator could not take over {networks} (the registry may not \
+                 have seen the crashed one leave yet): trying again"
+            ),
+        }
+        // A pause, longer after each worker in a row that did not come up (at most ~1.5 s in
+        // all before the supervisor gives up).
+        let pause = Duration::from_millis(50) * (1 << early.min(MAX_EARLY_DEATHS));
+        if stop.recv_timeout(pause).is_ok() {
+            return Ok(0);
+        }
+    }
+}
+
+/// What the supervisor does when its worker ended by itself.
+#[derive(Debug, PartialEq, Eq)]
+enum AfterWorker {
+    /// End the command with this exit code (the worker's own end).
+    End(i32),
+    /// End the command with this error.
+    Fail(String),
+    /// Start a new worker: this one crashed with this signal.
+    Restart(i32),
+    /// Start a new worker: this one, started after a crash, failed with this exit code before
+    /// it simulated (the registry may still list the crashed one under the same name).
+    Retry(i32),
+}
+
+/// The supervisor's decision on a worker's end: `up` says whether it had simulated,
+/// `restarted` whether it was started after a crash; `early` counts the workers in a row that
+/// ended before they simulated.
+fn after_worker(
+    status: &std::process::ExitStatus,
+    mode: TimeMode,
+    up: bool,
+    restarted: bool,
+    early: &mut u32,
+) -> AfterWorker {
+    let Some(sig) = status.signal().filter(|s| CRASH_SIGNALS.contains(s)) else {
+        let code = status.code().unwrap_or(1);
+        if restarted && !up && code != 0 && status.code().is_some() {
+            *early += 1;
+            if *early < MAX_EARLY_DEATHS {
+                return AfterWorker::Retry(code);
+            }
+            return AfterWorker::Fail(format!(
+                "the restarted simulator failed (exit {code}) before it simulated, {early} \
+                 times in a row: given up"
+            ));
+        }
+        return AfterWorker::End(code);
+    };
+    if let TimeMode::Sync {
+        coordinated: true, ..
+    } = mode
+    {
+        return AfterWorker::Fail(format!(
+            "the simulator's SIL Kit part died of signal {sig} (SIL Kit 5.0.3, D57); a \
+             coordinated simulation cannot take a simulator back: restart the run"
+        ));
+    }
+    if up {
+        *early = 0;
+    } else {
+        *early += 1;
+        if *early >= MAX_EARLY_DEATHS {
+            return AfterWorker::Fail(format!(
+                "the simulator died of signal {sig} before it simulated, {early} times in a \
+                 row: given up"
+            ));
+        }
+    }
+    AfterWorker::Restart(sig)
+}
+
+/// Stops a worker gracefully (SIGTERM: it leaves SIL Kit), killing it if it has not ended
+/// within 15 s (its graceful leave waits at most 5 s for SIL Kit).
+fn terminate(child: &mut Child) -> Result<std::process::ExitStatus> {
+    // SAFETY: kill with our own child's pid (not yet waited for, so not reused).
+    unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+    let deadline = Instant::now() + Duration::from_secs(15);
+    while Instant::now() < deadline {
+        if let Some(st) = child.try_wait()? {
+            return Ok(st);
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    tracing::warn!("the simulator's worker did not end within 15 s of SIGTERM: killed");
+    let _ = child.kill();
+    Ok(child.wait()?)
+}
+
+/// The registry, the networks and the time mode of the arguments, or a usage error.
+fn prepare(args: &NetsimArgs) -> Result<(RegistryUri, Vec<NetworkSpec>, TimeMode)> {
     let usage = |m: String| anyhow::Error::new(Usage(m));
     let uri = registry_uri(&args.registry).map_err(usage)?;
     let mut specs = Vec::new();
@@ -91,31 +344,49 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
             kbps: args.bitrate,
         });
     }
-    let api = sys::api().map_err(|e| anyhow!(e))?;
+    // Here, so that a missing SIL Kit fails once, before a worker is started.
+    sys::api().map_err(|e| anyhow!(e))?;
     let mode = match args.time {
         NetsimTime::Wall => TimeMode::Wall,
         NetsimTime::Sync => {
             let bit = 1_000_000 / u64::from(args.bitrate); // ns
             let step = args.step_us.map_or(40 * bit, |us| us * 1000);
-            if step >= 44 * bit {
-                tracing::warn!(
-                    step_us = step / 1000,
-                    "a step as long as the shortest frame: a receiver may get a frame only after \
-                     its step passed the frame's end, and synchronised runs may differ (D40)"
-                );
-            }
             TimeMode::Sync {
                 step,
                 coordinated: args.coordinated,
             }
         }
     };
-    let stop = stop_signal()?;
     check_name("participant name", &args.participant).map_err(usage)?;
-    let sim = Simulator::start(api, &uri, &args.participant, &specs, mode)
+    Ok((uri, specs, mode))
+}
+
+/// The simulator itself (the worker).
+fn simulate(
+    args: &NetsimArgs,
+    uri: &RegistryUri,
+    specs: &[NetworkSpec],
+    mode: TimeMode,
+) -> Result<i32> {
+    let api = sys::api().map_err(|e| anyhow!(e))?;
+    if let TimeMode::Sync { step, .. } = mode {
+        if step >= 44 * (1_000_000 / u64::from(args.bitrate)) {
+            tracing::warn!(
+                step_us = step / 1000,
+                "a step as long as the shortest frame: a receiver may get a frame only after \
+                 its step passed the frame's end, and synchronised runs may differ (D40)"
+            );
+        }
+    }
+    let stop = stop_signal()?;
+    let sim = Simulator::start(api, uri, &args.participant, specs, mode)
         .map_err(|e| anyhow!("canpos bus netsim: {e}"))?;
-    println!(
-        "canpos bus netsim: simulating {} at {} kbit/s as participant {} at {uri} ({})",
+    // Written, not printed: a worker whose supervisor was killed finds its stdout closed, and
+    // must still leave SIL Kit gracefully.
+    let mut so = std::io::stdout();
+    let _ = writeln!(
+        so,
+        "{BANNER}{} at {} kbit/s as participant {} at {uri} ({})",
         args.networks.join(", "),
         args.bitrate,
         args.participant,
@@ -124,7 +395,7 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
             TimeMode::Sync { step, .. } => format!("synchronised, {} µs steps", step / 1000),
         }
     );
-    let _ = std::io::stdout().flush();
+    let _ = so.flush();
     let every = (args.stats_interval.is_finite() && args.stats_interval > 0.0)
         .then(|| Duration::from_secs_f64(args.stats_interval.min(86_400.0)));
     let started = Instant::now();
@@ -152,7 +423,7 @@ pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
     let reports = sim.report();
     drop(sim);
     for r in &reports {
-        println!("{}", summary(r));
+        let _ = writeln!(so, "{}", summary(r));
     }
     tracing::info!(reason, "canpos bus netsim stopped");
     Ok(0)
@@ -209,6 +480,138 @@ fn summary(r: &NetworkReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_worker_gets_the_commands_arguments_with_what_is_left_of_the_duration() {
+        let args = |v: &[&str]| v.iter().map(OsString::from).collect::<Vec<_>>();
+        let given = args(&[
+            "-q",
+            "bus",
+            "netsim",
+            "--registry",
+            "silkit://127.0.0.1:8500",
+            "--duration",
+            "60",
+            "--network",
+            "can0",
+            "--duration=30",
+            "--bitrate",
+            "125",
+        ]);
+        let bare = args(&[
+            "-q",
+            "bus",
+            "netsim",
+            "--registry",
+            "silkit://127.0.0.1:8500",
+            "--network",
+            "can0",
+            "--bitrate",
+            "125",
+        ]);
+        assert_eq!(worker_args(given.clone().into_iter(), None), bare);
+        let mut left = bare.clone();
+        left.extend(args(&["--duration", "12.500"]));
+        assert_eq!(
+            worker_args(given.into_iter(), Some(Duration::from_millis(12_500))),
+            left
+        );
+        // Never 0 (clap refuses it): the worker then ends at once.
+        let mut least = bare.clone();
+        least.extend(args(&["--duration", "0.001"]));
+        assert_eq!(worker_args(bare.into_iter(), Some(Duration::ZERO)), least);
+    }
+
+    #[test]
+    fn a_crashed_worker_is_restarted_and_any_other_end_ends_the_command() {
+        use std::process::ExitStatus;
+        // Raw wait statuses: a signal in the low 7 bits, or an exit code in the next byte.
+        let killed = |sig: i32| ExitStatus::from_raw(sig);
+        let exited = |code: i32| ExitStatus::from_raw(code << 8);
+        let sync = |coordinated| TimeMode::Sync {
+            step: 320_000,
+            coordinated,
+        };
+        let mut early = 0;
+        for mode in [TimeMode::Wall, sync(false)] {
+            for sig in CRASH_SIGNALS {
+                assert_eq!(
+                    after_worker(&killed(sig), mode, true, false, &mut early),
+                    AfterWorker::Restart(sig)
+                );
+            }
+            assert_eq!(
+                after_worker(&exited(0), mode, true, false, &mut early),
+                AfterWorker::End(0)
+            );
+            assert_eq!(
+                after_worker(&exited(1), mode, false, false, &mut early),
+                AfterWorker::End(1)
+            );
+            // Killed or stopped by someone (not a crash): the command ends too.
+            for sig in [libc::SIGKILL, libc::SIGTERM, libc::SIGINT] {
+                assert_eq!(
+                    after_worker(&killed(sig), mode, true, false, &mut early),
+                    AfterWorker::End(1)
+                );
+            }
+        }
+        // A coordinated run cannot take a simulator back.
+        assert!(matches!(
+            after_worker(&killed(libc::SIGSEGV), sync(true), true, true, &mut early),
+            AfterWorker::Fail(e) if e.contains("coordinated")
+        ));
+        // Crashes before it simulated: given up at the fifth in a row; one that had simulated
+        // starts the count again.
+        let mut early = 0;
+        let segv = killed(libc::SIGSEGV);
+        for _ in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&segv, TimeMode::Wall, false, true, &mut early),
+                AfterWorker::Restart(libc::SIGSEGV)
+            );
+        }
+        assert_eq!(
+            after_worker(&segv, TimeMode::Wall, true, true, &mut early),
+            AfterWorker::Restart(libc::SIGSEGV)
+        );
+        for _ in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&segv, TimeMode::Wall, false, true, &mut early),
+                AfterWorker::Restart(libc::SIGSEGV)
+            );
+        }
+        assert!(matches!(
+            after_worker(&segv, TimeMode::Wall, false, true, &mut early),
+            AfterWorker::Fail(e) if e.contains("5 times in a row")
+        ));
+        // A restarted worker that cannot join yet (the registry still lists the crashed one)
+        // is tried again, up to the same bound; a first worker's failure is the command's, and
+        // so is a restarted one's clean end or a failure after it simulated.
+        let mut early = 0;
+        for attempt in 1..MAX_EARLY_DEATHS {
+            assert_eq!(
+                after_worker(&exited(1), TimeMode::Wall, false, true, &mut early),
+                AfterWorker::Retry(1)
+            );
+            assert_eq!(early, attempt);
+        }
+        assert!(matches!(
+            after_worker(&exited(1), TimeMode::Wall, false, true, &mut early),
+            AfterWorker::Fail(e) if e.contains("exit 1")
+        ));
+        let mut early = 0;
+        for (status, up) in [(exited(0), false), (exited(1), true)] {
+            assert_eq!(
+                after_worker(&status, TimeMode::Wall, up, true, &mut early),
+                AfterWorker::End(status.code().unwrap())
+            );
+        }
+        assert_eq!(
+            after_worker(&exited(1), TimeMode::Wall, false, false, &mut early),
+            AfterWorker::End(1)
+        );
+    }
 
     #[test]
     fn registry_uris() {

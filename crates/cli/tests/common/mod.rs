@@ -183,6 +183,11 @@ impl Proc {
         }
     }
 
+    /// Whether it still runs.
+    pub fn running(&mut self) -> bool {
+        self.child.try_wait().unwrap().is_none()
+    }
+
     /// Stops the process (SIGKILL through its handle) and waits for it.
     pub fn stop(&mut self) {
         let _ = self.child.kill();

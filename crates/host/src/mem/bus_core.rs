@@ -590,8 +590,16 @@ impl BusCore {
     /// Runs the timeline up to `target` and delivers what it produced, under the timeline's
     /// lock (so deliveries from any thread go out in timeline order). With timed participants
     /// it runs event by event and stops at a frame delivered to one of them: the clock waits
-    /// there until that participant took it (and answered at its time).
+    /// there until that participant took it (and answered at its time). Never past the
+    /// clock's `now()` read under the lock: `target` was read before it (issue 31).
     pub(super) fn pump(&self, p: &Pacer, st: &mut PaceState, target: Nanos) {
+        // A caller reads `now()` before it waits for the lock; meanwhile another thread may have
+        // delivered a frame to a timed participant here, which holds the clock at its end of
+        // frame. Run to the stale target, the bus went past that frame before the participant
+        // answered it, and the answer left late, as often as the driver thread lost that race
+        // (a co-simulation was not deterministic). Deliveries happen only under this lock, so
+        // `now()` read here sees every hold.
+        let target = target.min(p.now());
         let by_event = p.timed.load(Ordering::Relaxed) > 0;
         // Delivery lateness is against the wall clock; a stepped bus has none.
         let wall = (p.clock.driver() == Driver::Wall).then(|| p.clock.wall_elapsed());

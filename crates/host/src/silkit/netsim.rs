@@ -15,6 +15,10 @@
 //! [`sys`]'s, resolved from the library [`sys::api`] loaded at run time, so canpos builds and
 //! tests without SIL Kit.
 //!
+//! SIL Kit 5.0.3 crashes the process that simulates when a controller leaves while a send to
+//! it is queued (D57); `canpos bus netsim` therefore runs a [`Simulator`] in a worker process
+//! it restarts. A [`Simulator`] in another program has no such guard.
+//!
 //! Time: in synchronised mode the bus time is SIL Kit's simulation time, advanced by the
 //! participant's simulation steps; otherwise the simulator's monotonic clock since it started
 //! (a driver thread runs the bus). See [`TimeMode`].
@@ -881,8 +885,9 @@ impl Simulator {
             // SIL Kit copies the event (Produce returns with nothing of canpos's kept) but
             // posts every targeted send with a raw pointer to its per-controller target, freed
             // when that controller leaves: a controller leaving while sends for it are queued
-            // crashes SIL Kit 5.0.3 whatever thread produced them (docs/BENCHMARKS.md "SIL
-            // Kit: canpos bus netsim at scale"). Wall mode paces its steps itself.
+            // crashes SIL Kit 5.0.3 whatever thread produced them, and a removal already queued
+            // on this thread runs before sends produced now (D57: `canpos bus netsim` restarts
+            // the process that runs this). Wall mode paces its steps itself.
             {
                 let step = match mode {
                     TimeMode::Sync { step, .. } => step,
