@@ -450,3 +450,254 @@ fn participants_leaving_a_busy_network_abruptly_leave_the_simulator_running_and_
     assert_eq!(netsim.wait_exit(LIMIT), Some(0), "{}", netsim.output());
     assert!(netsim.output().contains("\"network\":\"can0\""));
 }
+
+/// Sends `sig` to a process of the test.
+fn signal(p: &Proc, sig: i32) {
+    // SAFETY: a plain kill(2) of a child this test started (and has not reaped).
+    assert_eq!(unsafe { libc::kill(p.pid() as i32, sig) }, 0);
+}
+
+/// `canpos bus netsim` for `can0` at 125 kbit/s on the wall clock, as `name`.
+fn netsim_wall(d: &Path, uri: &str, name: &str) -> Proc {
+    Proc::start(
+        d,
+        &[
+            "bus",
+            "netsim",
+            "--registry",
+            uri,
+            "--network",
+            "can0",
+            "--bitrate",
+            "125",
+            "--participant",
+            name,
+        ],
+    )
+}
+
+/// A sensor of `canpos run` on the wall clock (pre-operational: it sends its boot-up, then
+/// waits for its master).
+fn sensor_wall(d: &Path, bus: &str, model: &str, serial: &str, node: &str) -> Proc {
+    let state = d.to_str().unwrap();
+    let args = [
+        "run",
+        "--model",
+        model,
+        "--serial",
+        serial,
+        "--node-id",
+        node,
+        "--bus",
+        bus,
+        "--state-dir",
+        state,
+    ];
+    Proc::start(d, &args)
+}
+
+/// A master listening on `bus` (canpos's recorder, candump lines on its stdout), returned
+/// once its controller is on the network (its "discovery settled" DEBUG line, D54).
+fn master(d: &Path, bus: &str) -> Proc {
+    let mut rec = Proc::start_env(
+        d,
+        &["record", "--bus", bus, "--format", "candump", "-"],
+        &[("RUST_LOG", "info,canpos_host::silkit=debug")],
+    );
+    rec.wait_for("discovery settled", LIMIT);
+    rec
+}
+
+/// The candump lines `rec` printed, as `ID#DATA`.
+fn frames_of(rec: &Proc) -> Vec<String> {
+    rec.output()
+        .lines()
+        .filter_map(|l| l.split_once(") can0 ").map(|(_, f)| f.to_string()))
+        .collect()
+}
+
+/// Waits until `rec` has printed a frame `ID#…` after its first `skip` frames.
+fn wait_frame(rec: &Proc, skip: usize, id: &str, what: &str) {
+    let end = std::time::Instant::now() + LIMIT;
+    while !frames_of(rec)
+        .iter()
+        .skip(skip)
+        .any(|f| f.starts_with(&format!("{id}#")))
+    {
+        assert!(
+            std::time::Instant::now() < end,
+            "{what}: no {id} frame within {LIMIT:?}: {:?}",
+            frames_of(rec)
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The simulator's exit report of `can0` (one JSON line per network).
+fn report_of(sim: &mut Proc) -> serde_json::Value {
+    assert_eq!(sim.wait_exit(LIMIT), Some(0), "{}", sim.output());
+    let out = sim.output();
+    let line = out
+        .lines()
+        .find(|l| l.starts_with('{') && l.contains("\"network\":\"can0\""))
+        .unwrap_or_else(|| panic!("no report: {out}"));
+    serde_json::from_str(line).unwrap()
+}
+
+/// The frames the simulator carried.
+fn carried(sim: &mut Proc) -> u64 {
+    report_of(sim)["frames"].as_u64().unwrap()
+}
+
+#[test]
+fn sensors_log_the_simulator_coming_and_going_and_frames_flow_without_it() {
+    if !have_silkit() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let d = d.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().to_string();
+    let bus = format!("{uri}/can0");
+    let rec = master(d, &bus);
+    let mut sim = netsim_wall(d, &uri, "netsim-a");
+    let mut th = sensor_wall(d, &bus, "th", "11", "5");
+    let mut tmi = sensor_wall(d, &bus, "tmi", "12", "6");
+    // The simulator's arrival, in each sensor's log; their boot-ups through it.
+    for s in [&mut th, &mut tmi] {
+        s.wait_for("network can0: simulated by 'netsim-a' (bit-timed)", LIMIT);
+    }
+    wait_frame(&rec, 0, "705", "the TH's boot-up");
+    wait_frame(&rec, 0, "706", "the TMI's boot-up");
+
+    // Stopped (SIGTERM): each sensor says so, and SIL Kit's own bus carries the frames.
+    signal(&sim, libc::SIGTERM);
+    assert!(
+        carried(&mut sim) >= 2,
+        "the boot-ups went through the simulator"
+    );
+    let left = "network can0: the network simulator 'netsim-a' left; SIL Kit's own untimed bus \
+                carries the frames now";
+    for s in [&mut th, &mut tmi] {
+        s.wait_for(left, LIMIT);
+    }
+    let n = frames_of(&rec).len();
+    let o = run_in(d, &["nmt", "start", "--bus", &bus, "--node", "5"], LIMIT);
+    assert!(o.status.success(), "canpos nmt start: {}", text(&o));
+    wait_frame(&rec, n, "185", "the TH's TPDO with the simulator stopped");
+
+    // A second simulator comes and is killed (SIGKILL): the same in the logs, frames go on.
+    let mut sim_b = netsim_wall(d, &uri, "netsim-b");
+    for s in [&mut th, &mut tmi] {
+        s.wait_for("network can0: simulated by 'netsim-b' (bit-timed)", LIMIT);
+    }
+    rec_wait_simulated(&rec, "netsim-b");
+    signal(&sim_b, libc::SIGKILL);
+    sim_b.stop();
+    let left_b = "network can0: the network simulator 'netsim-b' left; SIL Kit's own untimed bus \
+                  carries the frames now";
+    for s in [&mut th, &mut tmi] {
+        s.wait_for(left_b, LIMIT);
+    }
+    let n = frames_of(&rec).len();
+    wait_frame(&rec, n, "185", "the TH's TPDO with the simulator killed");
+    // Each change was said once per sensor, as a WARN; nothing on stdout of the recorder but
+    // candump lines (its log goes to stderr, which this test reads in the same stream).
+    for s in [&th, &tmi] {
+        let o = s.output();
+        assert_eq!(o.matches(left).count(), 1, "{o}");
+        assert!(
+            o.lines()
+                .any(|l| l.contains(" WARN ") && l.contains(left_b)),
+            "{o}"
+        );
+    }
+}
+
+/// Waits until the recorder's controller routes through `sim` (its own log line).
+fn rec_wait_simulated(rec: &Proc, sim: &str) {
+    let needle = format!("network can0: simulated by '{sim}'");
+    let end = std::time::Instant::now() + LIMIT;
+    while !rec.output().contains(&needle) {
+        assert!(std::time::Instant::now() < end, "{}", rec.output());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn boot_ups_reach_a_master_through_a_simulator_started_with_the_sensors() {
+    if !have_silkit() {
+        return;
+    }
+    // The simulator and the sensors start together, as a rig's start script starts them, the
+    // master already listening: a sensor whose controller had not yet learnt of the simulator
+    // sent its boot-up on SIL Kit's trivial bus, around the simulator or lost, when the
+    // master's controller already routed through it (D54). Now a sensor opens its bus once
+    // discovery has settled: with the simulator, when it has joined by then.
+    let debug = [("RUST_LOG", "info,canpos_host::silkit=debug")];
+    for round in 0..3 {
+        let d = tempfile::tempdir().unwrap();
+        let d = d.path();
+        let reg = LocalRegistry::start(LIMIT).expect("registry");
+        let uri = reg.uri().to_string();
+        let bus = format!("{uri}/can0");
+        let rec = master(d, &bus);
+        let mut sim = netsim_wall(d, &uri, "netsim");
+        let state = d.to_str().unwrap();
+        let sensor = |model: &str, serial: &str, node: &str| {
+            let args = [
+                "run",
+                "--model",
+                model,
+                "--serial",
+                serial,
+                "--node-id",
+                node,
+                "--bus",
+                &bus,
+                "--state-dir",
+                state,
+            ];
+            Proc::start_env(d, &args, &debug)
+        };
+        let mut sensors = [sensor("th", "11", "5"), sensor("tmi", "12", "6")];
+        rec_wait_simulated(&rec, "netsim");
+        let end = std::time::Instant::now() + LIMIT;
+        loop {
+            let f = frames_of(&rec);
+            if f.contains(&"705#00".to_string()) && f.contains(&"706#00".to_string()) {
+                break;
+            }
+            assert!(
+                std::time::Instant::now() < end,
+                "round {round}: boot-ups lost: {f:?}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        // Each sensor found the simulator before it opened its bus and sent its boot-up
+        // through it: the simulator reports a controller that sent for each.
+        let mut simulated = 0;
+        for s in &mut sensors {
+            let o = s.wait_for("discovery settled", LIMIT);
+            if o.contains("settled=Simulated(\"netsim\")") {
+                simulated += 1;
+            }
+            if let Some(l) = o.lines().find(|l| l.contains("discovery settled")) {
+                eprintln!("round {round}: {l}");
+            }
+        }
+        signal(&sim, libc::SIGTERM);
+        let report = report_of(&mut sim);
+        let senders = report["controllers"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| c["sent"].as_u64().unwrap() > 0)
+            .count();
+        assert!(
+            senders >= 2,
+            "round {round}: {senders} controllers sent through the simulator ({simulated} of 2 \
+             sensors found it before they sent): {report}"
+        );
+    }
+}

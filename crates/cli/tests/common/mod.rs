@@ -103,10 +103,16 @@ pub struct Proc {
 impl Proc {
     /// Starts `canpos ARGS` in `dir`.
     pub fn start(dir: &Path, args: &[&str]) -> Proc {
+        Proc::start_env(dir, args, &[])
+    }
+
+    /// Starts `canpos ARGS` in `dir` with these environment variables set too.
+    pub fn start_env(dir: &Path, args: &[&str], env: &[(&str, &str)]) -> Proc {
         let mut child = Command::new(BIN)
             .args(args)
             .current_dir(dir)
             .env("CANPOS_STATE_DIR", dir.join("default-state"))
+            .envs(env.iter().copied())
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())

@@ -276,6 +276,8 @@ struct ControllerCtx {
 pub struct SilkitCan {
     // Dropped first: SIL Kit calls no handler after the participant is destroyed.
     participant: Participant,
+    /// SIL Kit holds its address (wall-clock mode, D54): dropped after the participant.
+    _connections: Option<Box<super::discovery::Connections>>,
     controller: *mut sys::CanController,
     lifecycle: *mut sys::LifecycleService,
     shared: Arc<Shared>,
@@ -337,6 +339,7 @@ impl SilkitCan {
                 cnet.as_ptr(),
             )
         })?;
+        let created = std::time::Instant::now();
         let mut id = 0;
         // SAFETY: `ctx` outlives the participant (field order of `SilkitCan`).
         api.check("SilKit_CanController_AddFrameHandler", unsafe {
@@ -357,12 +360,28 @@ impl SilkitCan {
         let mut lifecycle = std::ptr::null_mut();
         let mut ctl_ctx = None;
         let mut stepper = None;
+        let mut connections = None;
         match opts.time {
             TimeMode::Wall => {
                 // SAFETY: live controller.
                 api.check("SilKit_CanController_Start", unsafe {
                     (api.can_controller_start)(controller)
                 })?;
+                // Nothing is sent before discovery has settled: a frame sent on SIL Kit's
+                // trivial bus while the others already route through a simulator is lost (D54).
+                connections = super::discovery::watch_connections(&participant)
+                    .map_err(|e| {
+                        tracing::debug!("SIL Kit: participant connections not watched: {e}")
+                    })
+                    .ok();
+                let settled = super::discovery::settle(
+                    participant.silkit_log(),
+                    connections.as_deref(),
+                    "CAN1",
+                    created,
+                );
+                tracing::debug!(participant = %opts.participant, ?settled,
+                    waited_ms = created.elapsed().as_millis() as u64, "SIL Kit: discovery settled");
             }
             TimeMode::Sync { step } => {
                 let cfg = sys::LifecycleConfiguration {
@@ -452,6 +471,7 @@ impl SilkitCan {
         Ok(SilkitCan {
             describe: describe(opts),
             participant,
+            _connections: connections,
             controller,
             lifecycle,
             shared,

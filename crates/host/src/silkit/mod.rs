@@ -9,6 +9,8 @@
 //! SIL Kit's C API is thread-safe; its handlers run on SIL Kit's own threads.
 
 pub mod can;
+pub mod discovery;
+pub mod log;
 pub mod netsim;
 pub mod sys;
 
@@ -82,6 +84,8 @@ pub struct Participant {
     api: &'static Api,
     raw: *mut sys::Participant,
     name: String,
+    /// SIL Kit's records, forwarded into canpos's log (D53); dropped after the participant.
+    log: Option<log::SilkitLog>,
 }
 
 // SAFETY: the C API is thread-safe (SIL Kit's documentation); the handle is only destroyed
@@ -98,7 +102,16 @@ impl Participant {
         let cname = CString::new(name).map_err(|e| Error::BadArgument(e.to_string()))?;
         let curi =
             CString::new(registry.to_string()).map_err(|e| Error::BadArgument(e.to_string()))?;
-        let ccfg = CString::new(PARTICIPANT_CONFIGURATION).expect("no NUL");
+        // SIL Kit's log into a private directory, read back into canpos's (D53); without it
+        // (no temporary directory) the participant joins with no sink, as before.
+        let mut silkit_log = log::SilkitLog::create(name)
+            .map_err(|e| tracing::warn!("SIL Kit's log of `{name}` is not forwarded: {e}"))
+            .ok();
+        let config = silkit_log
+            .as_ref()
+            .and_then(|l| l.configuration(PARTICIPANT_CONFIGURATION).ok())
+            .unwrap_or_else(|| PARTICIPANT_CONFIGURATION.to_string());
+        let ccfg = CString::new(config).map_err(|e| Error::BadArgument(e.to_string()))?;
         let mut cfg = std::ptr::null_mut();
         // SAFETY: out-pointer and a NUL-terminated string.
         api.check("SilKit_ParticipantConfiguration_FromString", unsafe {
@@ -110,6 +123,14 @@ impl Participant {
         let created = api.check("SilKit_Participant_Create", rc);
         // SAFETY: the participant keeps its own copy of the configuration.
         unsafe { (api.participant_configuration_destroy)(cfg) };
+        if created.is_err() {
+            // The error carries SIL Kit's reason; its records only at DEBUG.
+            if let Some(l) = &silkit_log {
+                l.quiet();
+            }
+        } else if let Some(l) = &mut silkit_log {
+            l.start();
+        }
         created.map_err(|e| match e {
             Error::Call { message, .. } => Error::Call {
                 call: "SilKit_Participant_Create",
@@ -123,6 +144,7 @@ impl Participant {
             api,
             raw,
             name: name.to_string(),
+            log: silkit_log,
         })
     }
 
@@ -139,6 +161,11 @@ impl Participant {
     /// Its name.
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// SIL Kit's log of it, as canpos reads it (`None` when it could not be set up).
+    pub fn silkit_log(&self) -> Option<&log::SilkitLog> {
+        self.log.as_ref()
     }
 }
 
