@@ -211,3 +211,49 @@ fn frames_keep_flowing_when_the_registry_goes_away() {
         .expect("still delivered");
     assert_eq!(rx.frame, f);
 }
+
+/// Sends `f` from `from` until `to` receives it (bounded by [`START`]); `false` if it never did.
+fn crosses(
+    from: &mut canpos_host::silkit::can::SilkitCan,
+    to: &mut canpos_host::silkit::can::SilkitCan,
+    f: &canpos_stack::Frame,
+) -> bool {
+    use canpos_host::Transport;
+    let t0 = Instant::now();
+    while t0.elapsed() < START {
+        from.send(f).unwrap();
+        if let Some(rx) = to.recv_timeout(Some(Duration::from_millis(100))).unwrap() {
+            if rx.frame == *f {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+#[test]
+fn a_participant_rejoins_a_registry_that_comes_back_and_newcomers_meet_it() {
+    let Some(_) = api() else { return };
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(START).expect("registry");
+    let uri = reg.uri().clone();
+    let mut a = wall(&reg, "canpos-a");
+    reg.stop();
+    // Back on the same port: `a` notices (SIL Kit's disconnected handler for the registry),
+    // probes, and joins it again under its name.
+    let reg = LocalRegistry::start_exe(&exe, uri.port, START).expect("registry again");
+    assert_eq!(reg.uri(), &uri);
+    // A newcomer joins the new registry. It meets `a` only if `a` registered again: the
+    // registry introduces only the participants it knows.
+    let mut b = wall(&reg, "canpos-b");
+    let f = canpos_stack::Frame::new(0x181, &[1, 2]).unwrap();
+    let g = canpos_stack::Frame::new(0x605, &[0x40, 0, 0x10, 0]).unwrap();
+    assert!(crosses(&mut a, &mut b, &f), "a never reached the newcomer");
+    assert!(crosses(&mut b, &mut a, &g), "the newcomer never reached a");
+    assert_eq!(a.participant(), "canpos-a");
+    // Taken again in the new registry: the name is a's.
+    let e = Participant::join(silkit::api().unwrap(), "canpos-a", reg.uri())
+        .err()
+        .expect("a's name is registered again");
+    assert!(e.to_string().contains("already exists"), "{e}");
+}
