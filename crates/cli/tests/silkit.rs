@@ -381,6 +381,101 @@ fn a_synchronised_sensor_without_a_system_controller_says_it_waits() {
     );
 }
 
+/// `canpos run` of a TH (serial 11, node 5) on `bus` with `extra` options.
+fn th_sensor(d: &Path, bus: &str, extra: &[&str]) -> Proc {
+    let state = d.to_str().unwrap();
+    let mut args = vec![
+        "run",
+        "--model",
+        "th",
+        "--serial",
+        "11",
+        "--node-id",
+        "5",
+        "--bus",
+        bus,
+        "--state-dir",
+        state,
+    ];
+    args.extend_from_slice(extra);
+    Proc::start(d, &args)
+}
+
+#[test]
+fn a_sensor_rejoins_a_registry_that_comes_back_and_a_new_sdo_reads_it() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().clone();
+    let bus = format!("{uri}/can0");
+    let mut th = th_sensor(d, &bus, &[]);
+    th.wait_for("as th-11;", LIMIT);
+    let device_type = ok(d, &["sdo", "--bus", &bus, "read", "5", "0x1000", "0"]);
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+
+    // The registry goes away: the sensor says so (SIL Kit's disconnected handler).
+    reg.stop();
+    th.wait_for("went away", LIMIT);
+    // It comes back on the same port: the sensor rejoins it under its name ...
+    let reg = LocalRegistry::start_exe(&exe, uri.port, LIMIT).expect("registry again");
+    assert_eq!(reg.uri(), &uri);
+    let out = th.wait_for("rejoined the registry", LIMIT);
+    assert!(out.contains("is back"), "{out}");
+    // ... so that a tool started now, which only the new registry introduces, reads it.
+    let again = ok(d, &["sdo", "--bus", &bus, "read", "5", "0x1000", "0"]);
+    // The first line is the value (the others, INFO lines of the tool's participant).
+    assert_eq!(again.lines().next(), device_type.lines().next(), "{again}");
+    assert!(device_type.starts_with("0x"), "{device_type}");
+    assert!(!th.output().contains("panicked"), "{}", th.output());
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+}
+
+#[test]
+fn a_synchronised_sensor_ends_with_a_clear_error_when_the_registry_comes_back() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().clone();
+    let bus = format!("{uri}/can0");
+    let sc = SystemController::start(&reg, &["th-11"]);
+    let mut th = th_sensor(d, &bus, &["--nmt", "operational", "--time", "sync"]);
+    // The simulation runs: a wall-clock recorder sees TPDOs.
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "5", "rec.log",
+        ],
+    );
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+    reg.stop();
+    // Peer to peer, the simulation goes on while the registry is away ...
+    th.wait_for("went away", LIMIT);
+    // ... but a synchronised participant cannot rejoin one that comes back: it ends, naming
+    // what to restart, instead of going on unknown to the registry.
+    let _reg = LocalRegistry::start_exe(&exe, uri.port, LIMIT).expect("registry again");
+    let code = th.wait_exit(LIMIT);
+    let out = th.output();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains("came back")
+            && out.contains("restart the synchronised participants and the system controller"),
+        "{out}"
+    );
+    assert!(!out.contains("panicked"), "{out}");
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+    drop(sc);
+}
+
 #[test]
 fn faults_are_clear_errors_and_leave_the_state_file_alone() {
     if !have_silkit() {
