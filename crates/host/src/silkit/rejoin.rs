@@ -284,3 +284,50 @@ pub(super) fn watcher(watch: Arc<Watch>, registry: RegistryUri, name: String, on
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::ffi::CString;
+
+    fn info(name: &CString) -> sys::ParticipantConnectionInformation {
+        sys::ParticipantConnectionInformation {
+            header: sys::StructHeader::new(0),
+            participant_name: name.as_ptr(),
+        }
+    }
+
+    #[test]
+    fn only_the_registry_s_departure_counts() {
+        let reg = CString::new(REGISTRY_NAME).unwrap();
+        let other = CString::new("SilKitRegistry2").unwrap();
+        // SAFETY: valid structs with NUL-terminated names, or null.
+        unsafe {
+            assert!(is_registry(&info(&reg)));
+            assert!(!is_registry(&info(&other)));
+            assert!(!is_registry(std::ptr::null()));
+        }
+    }
+
+    #[test]
+    fn the_probe_tells_a_listening_address_from_a_closed_one() {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let uri = RegistryUri {
+            host: "127.0.0.1".into(),
+            port: l.local_addr().unwrap().port(),
+        };
+        assert!(registry_answers(&uri));
+        drop(l);
+        assert!(!registry_answers(&uri));
+    }
+
+    #[test]
+    fn a_watch_reports_a_departure_once_and_ends_on_stop() {
+        let w = Watch::default();
+        w.registry_lost();
+        assert!(w.wait_lost());
+        w.stop();
+        assert!(!w.wait_lost());
+        assert!(!w.pause(Duration::from_secs(3600)));
+    }
+}
