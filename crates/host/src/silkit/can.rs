@@ -522,15 +522,29 @@ fn join(api: &'static Api, opts: &Options, ctx: *mut c_void) -> Result<Joined, E
     })
 }
 
-/// Wall-clock mode: the registry watched for its departure (SIL Kit allows one system monitor a
-/// participant: wall-clock participants create none elsewhere), then the controller started.
+/// The participant's system monitor. SIL Kit allows one a participant (a second
+/// `SilKit_SystemMonitor_Create` fails): every handler of a participant goes on this one.
+fn system_monitor(
+    api: &'static Api,
+    participant: &Participant,
+) -> Result<*mut sys::SystemMonitor, Error> {
+    let mut monitor = std::ptr::null_mut();
+    // SAFETY: a live participant, an out-pointer.
+    api.check("SilKit_SystemMonitor_Create", unsafe {
+        (api.system_monitor_create)(&mut monitor, participant.raw())
+    })?;
+    Ok(monitor)
+}
+
+/// Wall-clock mode: the registry watched for its departure, then the controller started.
 fn start_wall(
     api: &'static Api,
     participant: &Participant,
     controller: *mut sys::CanController,
     watch: &Watch,
 ) -> Result<(), Error> {
-    rejoin::watch_registry(api, participant, watch)?;
+    let monitor = system_monitor(api, participant)?;
+    rejoin::watch_registry(api, monitor, watch)?;
     // SAFETY: live controller.
     api.check("SilKit_CanController_Start", unsafe {
         (api.can_controller_start)(controller)

@@ -181,29 +181,25 @@ pub(super) unsafe fn is_registry(info: *const sys::ParticipantConnectionInformat
         })
 }
 
-/// Watches `participant`'s registry with its system monitor (created here: SIL Kit allows one
-/// per participant), telling `watch` when it leaves. `watch` must outlive the participant.
+/// Watches a participant's registry with its system `monitor` (SIL Kit allows one monitor a
+/// participant, `Participant::CreateSystemMonitor`: whoever else needs it shares this one),
+/// telling `watch` when it leaves. `watch` must outlive the participant.
 pub(super) fn watch_registry(
     api: &'static Api,
-    participant: &Participant,
+    monitor: *mut sys::SystemMonitor,
     watch: &Watch,
 ) -> Result<(), Error> {
-    let mut monitor = std::ptr::null_mut();
-    // SAFETY: a live participant, an out-pointer; the context outlives the participant.
-    unsafe {
-        api.check(
-            "SilKit_SystemMonitor_Create",
-            (api.system_monitor_create)(&mut monitor, participant.raw()),
-        )?;
-        api.check(
-            "SilKit_SystemMonitor_SetParticipantDisconnectedHandler",
+    // SAFETY: a live monitor; the context outlives the participant.
+    api.check(
+        "SilKit_SystemMonitor_SetParticipantDisconnectedHandler",
+        unsafe {
             (api.system_monitor_set_participant_disconnected_handler)(
                 monitor,
                 watch as *const Watch as *mut c_void,
                 on_peer_left,
-            ),
-        )
-    }
+            )
+        },
+    )
 }
 
 /// Whether something listens at the registry's address (a TCP connect, closed at once).
