@@ -257,3 +257,32 @@ fn a_participant_rejoins_a_registry_that_comes_back_and_newcomers_meet_it() {
         .expect("a's name is registered again");
     assert!(e.to_string().contains("already exists"), "{e}");
 }
+
+#[test]
+fn a_failed_rejoin_is_tried_again_until_the_registry_answers() {
+    let Some(_) = api() else { return };
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(START).expect("registry");
+    let uri = reg.uri().clone();
+    let mut a = wall(&reg, "canpos-a");
+    reg.stop();
+    // Something that is not a registry takes the address: the probe answers, the join fails
+    // (SIL Kit's handshake times out), and the participant tries again.
+    let squatter = std::net::TcpListener::bind(("127.0.0.1", uri.port)).expect("the port");
+    let t0 = Instant::now();
+    let mut accepted = 0;
+    squatter.set_nonblocking(true).unwrap();
+    while accepted < 2 && t0.elapsed() < START {
+        if squatter.accept().is_ok() {
+            accepted += 1;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(accepted >= 2, "no probe reached the address");
+    drop(squatter);
+    // The registry itself is back: the next attempt succeeds and a newcomer meets `a`.
+    let reg = LocalRegistry::start_exe(&exe, uri.port, START).expect("registry again");
+    let mut b = wall(&reg, "canpos-b");
+    let f = canpos_stack::Frame::new(0x181, &[3]).unwrap();
+    assert!(crosses(&mut a, &mut b, &f), "a never rejoined");
+}

@@ -229,6 +229,7 @@ pub(super) enum OnReturn {
 /// back, then the recovery of `on_return`. Ends when `watch` stops.
 pub(super) fn watcher(watch: Arc<Watch>, registry: RegistryUri, name: String, on_return: OnReturn) {
     while watch.wait_lost() {
+        let mut failures = 0u64;
         match &on_return {
             OnReturn::Rejoin { .. } => tracing::warn!(participant = %name,
                 "SIL Kit: the registry at {registry} went away: frames go on peer to peer among \
@@ -271,9 +272,17 @@ pub(super) fn watcher(watch: Arc<Watch>, registry: RegistryUri, name: String, on
                                  sent meanwhile were lost)", link.lost() - before);
                             break;
                         }
-                        Err(e) => tracing::warn!(participant = %name,
-                            "SIL Kit: rejoining the registry at {registry} as {name} failed \
-                             (frames are lost until it succeeds; tried again in {PROBE_EVERY:?}): {e}"),
+                        Err(e) => {
+                            // Said at the 1st, 2nd, 4th… failure: something else may listen
+                            // at the address for good.
+                            failures += 1;
+                            if failures.is_power_of_two() {
+                                tracing::warn!(participant = %name, failures,
+                                    "SIL Kit: rejoining the registry at {registry} as {name} \
+                                     failed (frames are lost until it succeeds; tried again \
+                                     every {PROBE_EVERY:?}): {e}");
+                            }
+                        }
                     }
                 }
             }
