@@ -8,7 +8,7 @@ mod common;
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use canpos_host::silkit::{self, LocalRegistry};
 use common::{run_in, text, Proc};
@@ -56,6 +56,11 @@ impl Drop for SystemController {
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
+}
+
+/// The line of `canpos sdo read`'s value in a tool's output, among its participant's log lines.
+fn value_line(out: &str) -> Option<&str> {
+    out.lines().find(|l| l.starts_with("0x"))
 }
 
 fn ok(dir: &Path, args: &[&str]) -> String {
@@ -381,6 +386,162 @@ fn a_synchronised_sensor_without_a_system_controller_says_it_waits() {
     );
 }
 
+/// `canpos run` of a TH (serial 11, node 5) on `bus` with `extra` options.
+fn th_sensor(d: &Path, bus: &str, extra: &[&str]) -> Proc {
+    let state = d.to_str().unwrap();
+    let mut args = vec![
+        "run",
+        "--model",
+        "th",
+        "--serial",
+        "11",
+        "--node-id",
+        "5",
+        "--bus",
+        bus,
+        "--state-dir",
+        state,
+    ];
+    args.extend_from_slice(extra);
+    Proc::start(d, &args)
+}
+
+#[test]
+fn a_sensor_rejoins_a_registry_that_comes_back_and_a_new_sdo_reads_it() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().clone();
+    let bus = format!("{uri}/can0");
+    let mut th = th_sensor(d, &bus, &[]);
+    th.wait_for("as th-11;", LIMIT);
+    let device_type = ok(d, &["sdo", "--bus", &bus, "read", "5", "0x1000", "0"]);
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+
+    // The registry goes away: the sensor says so (SIL Kit's disconnected handler).
+    reg.stop();
+    th.wait_for("went away", LIMIT);
+    // It comes back on the same port: the sensor rejoins it under its name ...
+    let reg = LocalRegistry::start_exe(&exe, uri.port, LIMIT).expect("registry again");
+    assert_eq!(reg.uri(), &uri);
+    let out = th.wait_for("rejoined the registry", LIMIT);
+    assert!(out.contains("is back"), "{out}");
+    // ... so that a tool started now, which only the new registry introduces, reads it.
+    let again = ok(d, &["sdo", "--bus", &bus, "read", "5", "0x1000", "0"]);
+    // The value's line (the others are the log lines of the tool's participant).
+    assert_eq!(value_line(&again), value_line(&device_type), "{again}");
+    assert!(value_line(&device_type).is_some(), "{device_type}");
+    assert!(!th.output().contains("panicked"), "{}", th.output());
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+}
+
+#[test]
+fn a_synchronised_sensor_ends_with_a_clear_error_when_the_registry_comes_back() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().clone();
+    let bus = format!("{uri}/can0");
+    let sc = SystemController::start(&reg, &["th-11"]);
+    let mut th = th_sensor(d, &bus, &["--nmt", "operational", "--time", "sync"]);
+    // The simulation runs: a wall-clock recorder sees TPDOs.
+    ok(
+        d,
+        &[
+            "record", "--bus", &bus, "--format", "candump", "--count", "5", "rec.log",
+        ],
+    );
+    let file = d.join("th-11.bin");
+    let before = std::fs::read(&file).expect("state file");
+    reg.stop();
+    // Peer to peer, the simulation goes on while the registry is away ...
+    th.wait_for("went away", LIMIT);
+    // ... but a synchronised participant cannot rejoin one that comes back: it ends, naming
+    // what to restart, instead of going on unknown to the registry.
+    let _reg = LocalRegistry::start_exe(&exe, uri.port, LIMIT).expect("registry again");
+    let code = th.wait_exit(LIMIT);
+    let out = th.output();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains("came back")
+            && out.contains("restart the synchronised participants and the system controller"),
+        "{out}"
+    );
+    assert!(!out.contains("panicked"), "{out}");
+    assert_eq!(std::fs::read(&file).unwrap(), before, "state file changed");
+    drop(sc);
+}
+
+/// A process that keeps one core busy (`sh` spinning) until dropped.
+struct Busy(Child);
+
+impl Busy {
+    fn start() -> Busy {
+        Busy(
+            Command::new("sh")
+                .args(["-c", "while :; do :; done"])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(Stdio::null())
+                .spawn()
+                .expect("sh"),
+        )
+    }
+}
+
+impl Drop for Busy {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[test]
+fn one_shot_tools_on_a_busy_machine_are_heard_every_time() {
+    if !have_silkit() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let bus = format!("{}/can0", reg.uri());
+    let mut th = th_sensor(d, &bus, &[]);
+    th.wait_for("as th-11;", LIMIT);
+    // Both cores busy besides the sensor and the tools (and whatever else the machine runs).
+    let _busy = [Busy::start(), Busy::start()];
+    // Each `canpos sdo` is a new participant: it joins, sends its request at once and must be
+    // heard (SIL Kit's join and controller creation wait for every known participant's
+    // handshake, subscriptions and services: docs/SILKIT.md). The judge is the answer, with
+    // the default 1 s SDO timeout; no wall time is measured.
+    let mut failures = Vec::new();
+    for i in 0..20 {
+        let o = run_in(
+            d,
+            &["sdo", "--bus", &bus, "read", "5", "0x1000", "0"],
+            LIMIT,
+        );
+        let t = text(&o);
+        if !o.status.success() || value_line(&t).is_none() {
+            failures.push(format!("read {i}: {t}"));
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} of 20 reads failed: {failures:#?}",
+        failures.len()
+    );
+    assert!(!th.output().contains("panicked"), "{}", th.output());
+}
+
 #[test]
 fn faults_are_clear_errors_and_leave_the_state_file_alone() {
     if !have_silkit() {
@@ -410,6 +571,13 @@ fn faults_are_clear_errors_and_leave_the_state_file_alone() {
             ],
         );
         th.wait_for("as th-11;", LIMIT);
+        // The banner can come before the sensor's first save: wait for the file (a run killed
+        // earlier left none, and the read below failed NotFound about once in four runs).
+        let end = Instant::now() + LIMIT;
+        while !d.join("th-11.bin").exists() {
+            assert!(Instant::now() < end, "no state file within {LIMIT:?}");
+            std::thread::sleep(Duration::from_millis(10));
+        }
     }
     let file = d.join("th-11.bin");
     let before = std::fs::read(&file).expect("state file");

@@ -211,3 +211,78 @@ fn frames_keep_flowing_when_the_registry_goes_away() {
         .expect("still delivered");
     assert_eq!(rx.frame, f);
 }
+
+/// Sends `f` from `from` until `to` receives it (bounded by [`START`]); `false` if it never did.
+fn crosses(
+    from: &mut canpos_host::silkit::can::SilkitCan,
+    to: &mut canpos_host::silkit::can::SilkitCan,
+    f: &canpos_stack::Frame,
+) -> bool {
+    use canpos_host::Transport;
+    let t0 = Instant::now();
+    while t0.elapsed() < START {
+        from.send(f).unwrap();
+        if let Some(rx) = to.recv_timeout(Some(Duration::from_millis(100))).unwrap() {
+            if rx.frame == *f {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+#[test]
+fn a_participant_rejoins_a_registry_that_comes_back_and_newcomers_meet_it() {
+    let Some(_) = api() else { return };
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(START).expect("registry");
+    let uri = reg.uri().clone();
+    let mut a = wall(&reg, "canpos-a");
+    reg.stop();
+    // Back on the same port: `a` notices (SIL Kit's disconnected handler for the registry),
+    // probes, and joins it again under its name.
+    let reg = LocalRegistry::start_exe(&exe, uri.port, START).expect("registry again");
+    assert_eq!(reg.uri(), &uri);
+    // A newcomer joins the new registry. It meets `a` only if `a` registered again: the
+    // registry introduces only the participants it knows.
+    let mut b = wall(&reg, "canpos-b");
+    let f = canpos_stack::Frame::new(0x181, &[1, 2]).unwrap();
+    let g = canpos_stack::Frame::new(0x605, &[0x40, 0, 0x10, 0]).unwrap();
+    assert!(crosses(&mut a, &mut b, &f), "a never reached the newcomer");
+    assert!(crosses(&mut b, &mut a, &g), "the newcomer never reached a");
+    assert_eq!(a.participant(), "canpos-a");
+    // Taken again in the new registry: the name is a's.
+    let e = Participant::join(silkit::api().unwrap(), "canpos-a", reg.uri())
+        .err()
+        .expect("a's name is registered again");
+    assert!(e.to_string().contains("already exists"), "{e}");
+}
+
+#[test]
+fn a_failed_rejoin_is_tried_again_until_the_registry_answers() {
+    let Some(_) = api() else { return };
+    let exe = silkit::sys::registry_executable().expect("registry");
+    let reg = LocalRegistry::start(START).expect("registry");
+    let uri = reg.uri().clone();
+    let mut a = wall(&reg, "canpos-a");
+    reg.stop();
+    // Something that is not a registry takes the address: the probe answers, the join fails
+    // (SIL Kit's handshake times out), and the participant tries again.
+    let squatter = std::net::TcpListener::bind(("127.0.0.1", uri.port)).expect("the port");
+    let t0 = Instant::now();
+    let mut accepted = 0;
+    squatter.set_nonblocking(true).unwrap();
+    while accepted < 2 && t0.elapsed() < START {
+        if squatter.accept().is_ok() {
+            accepted += 1;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(accepted >= 2, "no probe reached the address");
+    drop(squatter);
+    // The registry itself is back: the next attempt succeeds and a newcomer meets `a`.
+    let reg = LocalRegistry::start_exe(&exe, uri.port, START).expect("registry again");
+    let mut b = wall(&reg, "canpos-b");
+    let f = canpos_stack::Frame::new(0x181, &[3]).unwrap();
+    assert!(crosses(&mut a, &mut b, &f), "a never rejoined");
+}

@@ -26,6 +26,7 @@ use std::time::{Duration, SystemTime};
 use canpos_stack::Frame;
 use crossbeam_channel::{Receiver, Sender};
 
+use super::rejoin::{self, Joined, Link, Watch};
 use super::sys::{self, Api};
 use super::{check_name, Error, Participant, RegistryUri};
 use crate::can::{RxFrame, Transport};
@@ -85,6 +86,8 @@ struct Shared {
     lifecycle: std::sync::atomic::AtomicUsize,
     /// The transport is being dropped: its lifecycle must not be started any more.
     left: AtomicBool,
+    /// The registry's departures, for the watcher thread (`rejoin`).
+    watch: Arc<Watch>,
 }
 
 /// Synchronised mode: frames held for their step, the clock, the runtime's horizon.
@@ -240,6 +243,10 @@ unsafe extern "C" fn on_disconnected(
         .unwrap_or_else(|| "?".into());
     // Named in the log: SIL Kit reports the Error state this may cause before this handler.
     tracing::info!(participant = %shared.participant, "SIL Kit: participant `{name}` disconnected");
+    // SAFETY: as above.
+    if unsafe { rejoin::is_registry(info) } {
+        shared.watch.registry_lost();
+    }
 }
 
 unsafe extern "C" fn on_system_state(ctx: *mut c_void, _m: *mut sys::SystemMonitor, state: i16) {
@@ -275,10 +282,9 @@ struct ControllerCtx {
 /// A SIL Kit CAN controller as a canpos transport.
 pub struct SilkitCan {
     // Dropped first: SIL Kit calls no handler after the participant is destroyed.
-    participant: Participant,
-    /// SIL Kit holds its address (wall-clock mode, D54): dropped after the participant.
-    _connections: Option<Box<super::discovery::Connections>>,
-    controller: *mut sys::CanController,
+    link: Arc<Link>,
+    /// Watches the registry (`rejoin`); stopped and joined before the participant leaves.
+    watcher: Option<std::thread::JoinHandle<()>>,
     lifecycle: *mut sys::LifecycleService,
     shared: Arc<Shared>,
     _ctl_ctx: Option<Box<ControllerCtx>>,
@@ -288,10 +294,11 @@ pub struct SilkitCan {
     /// When the last frame was handed to SIL Kit (see [`LINGER`]).
     last_send: Mutex<Option<std::time::Instant>>,
     describe: String,
+    name: String,
 }
 
 // SAFETY: the raw handles are used only through SIL Kit's thread-safe C API, and live as long
-// as `participant`.
+// as the participant in `link`.
 unsafe impl Send for SilkitCan {}
 
 impl SilkitCan {
@@ -300,7 +307,6 @@ impl SilkitCan {
     /// lifecycle starts at the first use (so a runtime joins the clock before the first step).
     pub fn open(api: &'static Api, opts: &Options) -> Result<SilkitCan, Error> {
         check_name("network name", &opts.network).map_err(Error::BadArgument)?;
-        let participant = Participant::join(api, &opts.participant, &opts.registry)?;
         let (tx, rx) = crossbeam_channel::bounded(RX_QUEUE);
         let (steps_tx, steps_rx) = crossbeam_channel::unbounded();
         let sync = match opts.time {
@@ -324,64 +330,17 @@ impl SilkitCan {
             sync,
             lifecycle: std::sync::atomic::AtomicUsize::new(0),
             left: AtomicBool::new(false),
+            watch: Arc::new(Watch::default()),
         });
         let ctx = Arc::as_ptr(&shared) as *mut c_void;
-        let cname = CString::new("CAN1").expect("no NUL");
-        let cnet =
-            CString::new(opts.network.as_str()).map_err(|e| Error::BadArgument(e.to_string()))?;
-        let mut controller = std::ptr::null_mut();
-        // SAFETY: live participant, NUL-terminated strings, out-pointer.
-        api.check("SilKit_CanController_Create", unsafe {
-            (api.can_controller_create)(
-                &mut controller,
-                participant.raw(),
-                cname.as_ptr(),
-                cnet.as_ptr(),
-            )
-        })?;
-        let created = std::time::Instant::now();
-        let mut id = 0;
-        // SAFETY: `ctx` outlives the participant (field order of `SilkitCan`).
-        api.check("SilKit_CanController_AddFrameHandler", unsafe {
-            (api.can_controller_add_frame_handler)(
-                controller,
-                ctx,
-                on_frame,
-                sys::DIRECTION_RECEIVE,
-                &mut id,
-            )
-        })?;
-        if let Some(kbps) = opts.bitrate_kbps {
-            // SAFETY: live controller.
-            api.check("SilKit_CanController_SetBaudRate", unsafe {
-                (api.can_controller_set_baud_rate)(controller, kbps.saturating_mul(1000), 0, 0)
-            })?;
-        }
+        let mut joined = join(api, opts, ctx)?;
+        let (participant, controller) = (joined.participant.raw(), joined.controller);
         let mut lifecycle = std::ptr::null_mut();
         let mut ctl_ctx = None;
         let mut stepper = None;
-        let mut connections = None;
         match opts.time {
             TimeMode::Wall => {
-                // SAFETY: live controller.
-                api.check("SilKit_CanController_Start", unsafe {
-                    (api.can_controller_start)(controller)
-                })?;
-                // Nothing is sent before discovery has settled: a frame sent on SIL Kit's
-                // trivial bus while the others already route through a simulator is lost (D54).
-                connections = super::discovery::watch_connections(&participant)
-                    .map_err(|e| {
-                        tracing::debug!("SIL Kit: participant connections not watched: {e}")
-                    })
-                    .ok();
-                let settled = super::discovery::settle(
-                    participant.silkit_log(),
-                    connections.as_deref(),
-                    "CAN1",
-                    created,
-                );
-                tracing::debug!(participant = %opts.participant, ?settled,
-                    waited_ms = created.elapsed().as_millis() as u64, "SIL Kit: discovery settled");
+                start_wall(api, &mut joined, &shared.watch)?;
             }
             TimeMode::Sync { step } => {
                 let cfg = sys::LifecycleConfiguration {
@@ -390,7 +349,7 @@ impl SilkitCan {
                 };
                 // SAFETY: live participant, a valid configuration, out-pointer.
                 api.check("SilKit_LifecycleService_Create", unsafe {
-                    (api.lifecycle_service_create)(&mut lifecycle, participant.raw(), &cfg)
+                    (api.lifecycle_service_create)(&mut lifecycle, participant, &cfg)
                 })?;
                 shared.lifecycle.store(lifecycle as usize, Ordering::SeqCst);
                 let cc = Box::new(ControllerCtx {
@@ -426,7 +385,7 @@ impl SilkitCan {
                     let mut monitor = std::ptr::null_mut();
                     api.check(
                         "SilKit_SystemMonitor_Create",
-                        (api.system_monitor_create)(&mut monitor, participant.raw()),
+                        (api.system_monitor_create)(&mut monitor, participant),
                     )?;
                     api.check(
                         "SilKit_SystemMonitor_SetParticipantDisconnectedHandler",
@@ -468,11 +427,13 @@ impl SilkitCan {
                 );
             }
         }
+        let link = Arc::new(Link::new(joined));
+        let watcher = spawn_watcher(api, opts, &shared, &link)?;
         Ok(SilkitCan {
             describe: describe(opts),
-            participant,
-            _connections: connections,
-            controller,
+            name: opts.participant.clone(),
+            link,
+            watcher: Some(watcher),
             lifecycle,
             shared,
             _ctl_ctx: ctl_ctx,
@@ -505,8 +466,144 @@ impl SilkitCan {
 
     /// The participant's name.
     pub fn participant(&self) -> &str {
-        self.participant.name()
+        &self.name
     }
+
+    /// Frames sent while the transport was between two participants (rejoining a registry
+    /// that came back, `rejoin`).
+    pub fn lost_rejoining(&self) -> u64 {
+        self.link.lost()
+    }
+}
+
+/// Joins `opts.registry` as `opts.participant` with the CAN controller `CAN1` on
+/// `opts.network`, its frames handed to `ctx` (the transport's `Shared`, which outlives the
+/// participant), not started.
+fn join(api: &'static Api, opts: &Options, ctx: *mut c_void) -> Result<Joined, Error> {
+    let participant = Participant::join(api, &opts.participant, &opts.registry)?;
+    let cname = CString::new("CAN1").expect("no NUL");
+    let cnet =
+        CString::new(opts.network.as_str()).map_err(|e| Error::BadArgument(e.to_string()))?;
+    let mut controller = std::ptr::null_mut();
+    // SAFETY: live participant, NUL-terminated strings, out-pointer.
+    api.check("SilKit_CanController_Create", unsafe {
+        (api.can_controller_create)(
+            &mut controller,
+            participant.raw(),
+            cname.as_ptr(),
+            cnet.as_ptr(),
+        )
+    })?;
+    let mut id = 0;
+    // SAFETY: `ctx` outlives the participant (field order of `SilkitCan`).
+    api.check("SilKit_CanController_AddFrameHandler", unsafe {
+        (api.can_controller_add_frame_handler)(
+            controller,
+            ctx,
+            on_frame,
+            sys::DIRECTION_RECEIVE,
+            &mut id,
+        )
+    })?;
+    if let Some(kbps) = opts.bitrate_kbps {
+        // SAFETY: live controller.
+        api.check("SilKit_CanController_SetBaudRate", unsafe {
+            (api.can_controller_set_baud_rate)(controller, kbps.saturating_mul(1000), 0, 0)
+        })?;
+    }
+    Ok(Joined {
+        participant,
+        connections: None,
+        controller,
+    })
+}
+
+/// The participant's system monitor. SIL Kit allows one a participant (a second
+/// `SilKit_SystemMonitor_Create` fails): every handler of a participant goes on this one.
+fn system_monitor(
+    api: &'static Api,
+    participant: &Participant,
+) -> Result<*mut sys::SystemMonitor, Error> {
+    let mut monitor = std::ptr::null_mut();
+    // SAFETY: a live participant, an out-pointer.
+    api.check("SilKit_SystemMonitor_Create", unsafe {
+        (api.system_monitor_create)(&mut monitor, participant.raw())
+    })?;
+    Ok(monitor)
+}
+
+/// Wall-clock mode: the registry watched for its departure, the controller started, then
+/// nothing sent before SIL Kit's discovery has settled: a frame sent on SIL Kit's trivial bus
+/// while the others already route through a simulator is lost (D54). A rejoin waits the same.
+fn start_wall(api: &'static Api, j: &mut Joined, watch: &Watch) -> Result<(), Error> {
+    let created = std::time::Instant::now();
+    let monitor = system_monitor(api, &j.participant)?;
+    rejoin::watch_registry(api, monitor, watch)?;
+    // SAFETY: live controller.
+    api.check("SilKit_CanController_Start", unsafe {
+        (api.can_controller_start)(j.controller)
+    })?;
+    j.connections = super::discovery::watch_connections(&j.participant, monitor)
+        .map_err(|e| tracing::debug!("SIL Kit: participant connections not watched: {e}"))
+        .ok();
+    let settled = super::discovery::settle(
+        j.participant.silkit_log(),
+        j.connections.as_deref(),
+        "CAN1",
+        created,
+    );
+    tracing::debug!(participant = %j.participant.name(), ?settled,
+        waited_ms = created.elapsed().as_millis() as u64, "SIL Kit: discovery settled");
+    Ok(())
+}
+
+/// The thread that watches the registry (`rejoin`): in wall-clock mode it rejoins a registry
+/// that came back, in synchronised mode it ends the transport then.
+fn spawn_watcher(
+    api: &'static Api,
+    opts: &Options,
+    shared: &Arc<Shared>,
+    link: &Arc<Link>,
+) -> Result<std::thread::JoinHandle<()>, Error> {
+    let on_return = match opts.time {
+        TimeMode::Wall => {
+            let weak = Arc::downgrade(shared);
+            let opts = opts.clone();
+            rejoin::OnReturn::Rejoin {
+                link: Arc::clone(link),
+                leave: Box::new(move |old: Joined| {
+                    // As a transport that is dropped: stopped, and a linger (see `Drop`).
+                    // SAFETY: a live controller of a live participant.
+                    let _ = unsafe { (api.can_controller_stop)(old.controller) };
+                    std::thread::sleep(LINGER);
+                    drop(old);
+                }),
+                join: Box::new(move || {
+                    let sh = weak
+                        .upgrade()
+                        .ok_or_else(|| Error::BadArgument("the transport ended".into()))?;
+                    let mut j = join(api, &opts, Arc::as_ptr(&sh) as *mut c_void)?;
+                    start_wall(api, &mut j, &sh.watch)?;
+                    Ok(j)
+                }),
+            }
+        }
+        TimeMode::Sync { .. } => {
+            let weak = Arc::downgrade(shared);
+            rejoin::OnReturn::End(Box::new(move |why| {
+                if let Some(sh) = weak.upgrade() {
+                    sh.end(why);
+                }
+            }))
+        }
+    };
+    let watch = Arc::clone(&shared.watch);
+    let registry = opts.registry.clone();
+    let name = opts.participant.clone();
+    std::thread::Builder::new()
+        .name("canpos-silkit-registry".into())
+        .spawn(move || rejoin::watcher(watch, registry, name, on_return))
+        .map_err(|e| Error::BadArgument(format!("cannot start a thread: {e}")))
 }
 
 /// What the banner shows: the URL (IPv6 hosts in brackets, so it can be copied) and the name.
@@ -749,7 +846,9 @@ impl Transport for SilkitCan {
             .sync
             .as_ref()
             .map_or(0, |s| super::netsim::context_of_time(s.clock.limit()));
-        send_frame(self.shared.api, self.controller, frame, stamp)
+        let api = self.shared.api;
+        self.link
+            .with_controller(|c| send_frame(api, c, frame, stamp))
             .map_err(|e| io::Error::other(e.to_string()))
     }
 
@@ -808,14 +907,23 @@ impl Drop for SilkitCan {
     fn drop(&mut self) {
         self.shared.left.store(true, Ordering::SeqCst);
         drop(lock(&GATE));
+        // No rejoin from here on: the watcher ends (a rejoin under way finishes first).
+        self.shared.watch.stop();
+        if let Some(t) = self.watcher.take() {
+            let _ = t.join();
+        }
         let started = self.started.load(Ordering::SeqCst);
-        if started && !self.controller.is_null() {
+        if started {
             // Stopped before leaving, and a linger for a network simulator to take note: SIL
             // Kit 5.0.3's simulator crashes on a send it queued for a controller that left
             // (it frees its target when the controller leaves), and a stopped controller is
             // sent nothing (docs/BENCHMARKS.md "SIL Kit: canpos bus netsim at scale").
+            let api = self.shared.api;
             // SAFETY: a live controller; an error (not started) is of no consequence.
-            let _ = unsafe { (self.shared.api.can_controller_stop)(self.controller) };
+            let _ = self.link.with_controller(|c| {
+                let _ = unsafe { (api.can_controller_stop)(c) };
+                Ok(())
+            });
             std::thread::sleep(LINGER);
         }
         if started && !self.lifecycle.is_null() {

@@ -71,10 +71,13 @@ unsafe extern "C" fn on_connected(
     c.touch();
 }
 
-/// Watches participant connections on `participant` (its system monitor's connected
-/// handler, which also reports those already connected). The box must outlive the
-/// participant.
-pub fn watch_connections(participant: &Participant) -> Result<Box<Connections>, sys::Error> {
+/// Watches participant connections on `participant` through its system monitor `monitor`
+/// (SIL Kit allows one a participant; its connected handler also reports those already
+/// connected). The box must outlive the participant.
+pub(super) fn watch_connections(
+    participant: &Participant,
+    monitor: *mut sys::SystemMonitor,
+) -> Result<Box<Connections>, sys::Error> {
     let api = participant.api();
     type SetConnected = unsafe extern "C" fn(
         m: *mut sys::SystemMonitor,
@@ -87,13 +90,9 @@ pub fn watch_connections(participant: &Participant) -> Result<Box<Connections>, 
     let watch = Box::new(Connections {
         last: Mutex::new(Instant::now()),
     });
-    let mut monitor = std::ptr::null_mut();
-    // SAFETY: a live participant; out-pointer.
-    api.check("SilKit_SystemMonitor_Create", unsafe {
-        (api.system_monitor_create)(&mut monitor, participant.raw())
-    })?;
     let ctx = &*watch as *const Connections as *mut c_void;
-    // SAFETY: a live monitor; `ctx` outlives the participant (the caller's promise).
+    // SAFETY: a live monitor of a live participant; `ctx` outlives the participant (the
+    // caller's promise).
     api.check(
         "SilKit_SystemMonitor_SetParticipantConnectedHandler",
         unsafe { set(monitor, ctx, on_connected) },

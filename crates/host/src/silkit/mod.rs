@@ -2,6 +2,7 @@
 //!
 //! - [`sys`]: the C API canpos uses, loaded at run time from `libSilKit.so` (D35).
 //! - [`netsim`]: canpos's bus timeline as the CAN network simulator (`canpos bus netsim`).
+//! - [`rejoin`]: a registry that goes away and comes back.
 //! - [`Participant`]: a participant joined to a registry, destroyed on drop.
 //! - [`LocalRegistry`]: a `sil-kit-registry` child process on 127.0.0.1 with a free port, for
 //!   tests and for a rig on one machine.
@@ -12,6 +13,7 @@ pub mod can;
 pub mod discovery;
 pub mod log;
 pub mod netsim;
+pub mod rejoin;
 pub mod sys;
 
 use std::ffi::CString;
