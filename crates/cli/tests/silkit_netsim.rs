@@ -701,3 +701,89 @@ fn boot_ups_reach_a_master_through_a_simulator_started_with_the_sensors() {
         );
     }
 }
+
+#[test]
+fn a_master_commissions_two_sensor_processes_through_the_simulator_at_125_kbit_s() {
+    if !have_silkit() {
+        return;
+    }
+    // Issue 32's rig: a registry, `canpos bus netsim` at 125 kbit/s, a TH and a TMI in their
+    // own processes, canpos's CLI as the master (SDO, LSS fastscan, NMT) and a listener; the
+    // frames' end-of-frame times are the simulator's (bit time with stuffing, one frame at a
+    // time, arbitration when both sensors' TPDOs queue).
+    let d = tempfile::tempdir().unwrap();
+    let d = d.path();
+    let reg = LocalRegistry::start(LIMIT).expect("registry");
+    let uri = reg.uri().to_string();
+    let bus = format!("{uri}/can0");
+    let rec = master(d, &bus);
+    let mut sim = netsim_wall(d, &uri, "netsim");
+    rec_wait_simulated(&rec, "netsim");
+    // The TH without a node-id (LSS fastscan finds it), the TMI as node 6.
+    let mut th = sensor_wall(d, &bus, "th", "11", "255");
+    let mut tmi = sensor_wall(d, &bus, "tmi", "12", "6");
+    for s in [&mut th, &mut tmi] {
+        s.wait_for("network can0: simulated by 'netsim' (bit-timed)", LIMIT);
+    }
+    let ok = |args: &[&str]| {
+        let o = run_in(d, args, LIMIT);
+        let t = text(&o);
+        assert!(o.status.success(), "canpos {args:?}: {t}");
+        t
+    };
+    let name = ok(&["sdo", "--bus", &bus, "read", "6", "0x1008", "0"]);
+    assert!(name.contains("\"TMI\""), "{name}");
+    // 500 ms per fastscan step, as in the test without the simulator (tests/silkit.rs).
+    let scan = ok(&["lss", "--bus", &bus, "fastscan", "--timeout", "500"]);
+    assert!(scan.contains("serial 0x0000000B (11)"), "{scan}");
+    ok(&["lss", "--bus", &bus, "set-node-id", "5"]);
+    ok(&["lss", "--bus", &bus, "switch-global", "waiting"]);
+    ok(&["nmt", "--bus", &bus, "reset-comm", "--node", "0"]);
+    let serial = ok(&["sdo", "--bus", &bus, "read", "5", "0x1018", "4"]);
+    assert!(serial.contains("0x0000000B (11)"), "{serial}");
+
+    // Both started: their TPDOs on the bus, timed by the simulator.
+    let rx = RawNode::join(&reg, "rx");
+    ok(&["nmt", "--bus", &bus, "start", "--node", "0"]);
+    let end = std::time::Instant::now() + LIMIT;
+    while rx.seen().len() < 340 {
+        assert!(
+            std::time::Instant::now() < end,
+            "rx got {}",
+            rx.seen().len()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Past the frames a participant may get before it learns of the simulator.
+    let frames = &rx.seen()[40..340];
+    assert!(
+        frames.iter().any(|f| f.0 == 0x185) && frames.iter().any(|f| f.0 == 0x186),
+        "both sensors' TPDO1: {:?}",
+        &frames[..8]
+    );
+    let mut back_to_back = 0;
+    for w in frames.windows(2) {
+        let ((_, _, ta), (id, data, tb)) = (&w[0], &w[1]);
+        let len = u64::from(frame_length(&Frame::with_id(*id, false, data).unwrap()).total) * 8_000;
+        assert!(tb - ta >= len, "{w:?}: less than a frame time apart");
+        if tb - ta == len {
+            back_to_back += 1;
+        }
+    }
+    // The TH's 1 ms TPDO alone fills most of 125 kbit/s: frames queue and go out back to back.
+    assert!(back_to_back > 0, "no frame went out right after another");
+    // The simulator stops before the listener leaves: a participant that leaves a busy network
+    // without stopping its controller can crash SIL Kit's part of the simulator (D57).
+    signal(&sim, libc::SIGTERM);
+    let report = report_of(&mut sim);
+    drop(rx);
+    let senders = report["controllers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["sent"].as_u64().unwrap() > 0)
+        .count();
+    // The two sensors and the master's tools sent through the simulator.
+    assert!(senders >= 3, "{report}");
+    assert!(!th.output().contains("panicked") && !tmi.output().contains("panicked"));
+}
