@@ -3,7 +3,7 @@
 
 use std::ffi::OsString;
 use std::io::{BufRead as _, BufReader, Write as _};
-use std::os::unix::process::ExitStatusExt as _;
+use std::os::unix::process::{CommandExt as _, ExitStatusExt as _};
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -106,25 +106,59 @@ const BANNER: &str = "canpos bus netsim: simulating ";
 /// restarts it when SIL Kit crashes it (D57); in the worker, the simulator.
 pub fn bus_netsim(args: NetsimArgs) -> Result<i32> {
     let (uri, specs, mode) = prepare(&args)?;
-    match std::env::var(WORKER_ENV) {
-        Ok(parent) => {
-            follow_parent(&parent);
-            simulate(&args, &uri, &specs, mode)
+    match std::env::var_os(WORKER_ENV) {
+        Some(parent) => {
+            // The supervisor starts its worker with the stop signals blocked: one that comes
+            // while the worker starts (Ctrl-C reaches the whole process group) waits for this
+            // handler instead of killing the worker before it can leave SIL Kit.
+            let stop = stop_signal()?;
+            stop_signals_mask(libc::SIG_UNBLOCK).context("cannot unblock the stop signals")?;
+            follow_parent(&parent)?;
+            simulate(&args, &uri, &specs, mode, stop)
         }
-        Err(_) => supervise(&args, mode),
+        None => supervise(&args, mode),
     }
 }
 
-/// The worker ends with its supervisor (SIGTERM, a graceful leave), whatever ends that.
-fn follow_parent(parent: &str) {
-    // SAFETY: prctl with an integer signal number; getppid has no arguments.
+/// Signals that stop `canpos bus netsim` gracefully: those `stop_signal` handles.
+const STOP_SIGNALS: [i32; 3] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP];
+
+/// Blocks (`SIG_BLOCK`) or unblocks (`SIG_UNBLOCK`) [`STOP_SIGNALS`] for the calling thread.
+/// Only async-signal-safe calls: it also runs in the forked worker before its `exec`.
+fn stop_signals_mask(how: libc::c_int) -> std::io::Result<()> {
+    // SAFETY: a sigset_t on the stack, initialised by sigemptyset before use.
     unsafe {
-        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-        // The supervisor may have ended before prctl took effect.
-        if parent.parse::<libc::pid_t>().ok() != Some(libc::getppid()) {
-            libc::raise(libc::SIGTERM);
+        let mut set = std::mem::zeroed::<libc::sigset_t>();
+        libc::sigemptyset(&mut set);
+        for s in STOP_SIGNALS {
+            libc::sigaddset(&mut set, s);
+        }
+        match libc::pthread_sigmask(how, &set, std::ptr::null_mut()) {
+            0 => Ok(()),
+            e => Err(std::io::Error::from_raw_os_error(e)),
         }
     }
+}
+
+/// The worker ends with its supervisor (SIGTERM, a graceful leave), whatever ends that; a
+/// process whose parent is not the supervisor `CANPOS_NETSIM_WORKER` names is refused.
+fn follow_parent(parent: &std::ffi::OsStr) -> Result<()> {
+    // SAFETY: prctl with an integer signal number; getppid has no arguments.
+    let ppid = unsafe {
+        libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+        libc::getppid()
+    };
+    // Checked after prctl: the supervisor may have ended before it took effect.
+    if parent.to_str().and_then(|p| p.parse().ok()) != Some(ppid) {
+        return Err(anyhow!(
+            "{WORKER_ENV}={} marks this process as the simulator's worker of the `canpos bus \
+             netsim` with that process id, but its parent is process {ppid}: that supervisor \
+             has ended, or the variable was set by hand or inherited; unset it to run `canpos \
+             bus netsim`",
+            parent.to_string_lossy()
+        ));
+    }
+    Ok(())
 }
 
 /// The worker's arguments: this command's, `--duration` given as what is left of it.
@@ -169,12 +203,16 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
         if left.is_some_and(|l| l.is_zero()) {
             return Ok(0);
         }
-        let mut child = Command::new(&exe)
-            .args(worker_args(std::env::args_os().skip(1), left))
+        let mut cmd = Command::new(&exe);
+        cmd.args(worker_args(std::env::args_os().skip(1), left))
             .env(WORKER_ENV, std::process::id().to_string())
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
+            .stderr(Stdio::inherit());
+        // Blocked until the worker handles them (see `bus_netsim`).
+        // SAFETY: the closure only calls async-signal-safe functions.
+        unsafe { cmd.pre_exec(|| stop_signals_mask(libc::SIG_BLOCK)) };
+        let mut child = cmd
             .spawn()
             .context("cannot start the simulator's worker process")?;
         // Its output is this command's; the banner says it simulates.
@@ -203,18 +241,7 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
                 if let Some(t) = out {
                     let _ = t.join();
                 }
-                return Ok(match st.signal() {
-                    None => st.code().unwrap_or(1),
-                    // Stopped before it could take SIGTERM gracefully (starting up).
-                    Some(libc::SIGTERM) => 0,
-                    Some(sig) => {
-                        tracing::error!(
-                            signal = sig,
-                            "the simulator's SIL Kit part crashed as it stopped: no report"
-                        );
-                        1
-                    }
-                });
+                return Ok(after_stop(&st));
             }
         };
         if let Some(t) = out {
@@ -251,6 +278,30 @@ fn supervise(args: &NetsimArgs, mode: TimeMode) -> Result<i32> {
     }
 }
 
+/// The command's exit code when its worker ended after the command was asked to stop.
+fn after_stop(st: &std::process::ExitStatus) -> i32 {
+    match st.signal() {
+        None => st.code().unwrap_or(1),
+        // Stopped before it could take the signal gracefully (the worker blocks them from
+        // its start, so only one started by hand).
+        Some(sig) if STOP_SIGNALS.contains(&sig) => 0,
+        Some(sig) if CRASH_SIGNALS.contains(&sig) => {
+            tracing::error!(
+                signal = sig,
+                "the simulator's SIL Kit part crashed as it stopped: no report"
+            );
+            1
+        }
+        Some(sig) => {
+            tracing::error!(
+                signal = sig,
+                "the simulator's worker was killed as it stopped: no report"
+            );
+            1
+        }
+    }
+}
+
 /// What the supervisor does when its worker ended by itself.
 #[derive(Debug, PartialEq, Eq)]
 enum AfterWorker {
@@ -275,7 +326,13 @@ fn after_worker(
     restarted: bool,
     early: &mut u32,
 ) -> AfterWorker {
-    let Some(sig) = status.signal().filter(|s| CRASH_SIGNALS.contains(s)) else {
+    if let Some(sig) = status.signal().filter(|s| !CRASH_SIGNALS.contains(s)) {
+        // Not SIL Kit's crash: someone (the OOM killer, a user) killed it.
+        return AfterWorker::Fail(format!(
+            "the simulator's worker was killed by signal {sig}: no report"
+        ));
+    }
+    let Some(sig) = status.signal() else {
         let code = status.code().unwrap_or(1);
         if restarted && !up && code != 0 && status.code().is_some() {
             *early += 1;
@@ -367,6 +424,7 @@ fn simulate(
     uri: &RegistryUri,
     specs: &[NetworkSpec],
     mode: TimeMode,
+    stop: crossbeam_channel::Receiver<()>,
 ) -> Result<i32> {
     let api = sys::api().map_err(|e| anyhow!(e))?;
     if let TimeMode::Sync { step, .. } = mode {
@@ -378,7 +436,6 @@ fn simulate(
             );
         }
     }
-    let stop = stop_signal()?;
     let sim = Simulator::start(api, uri, &args.participant, specs, mode)
         .map_err(|e| anyhow!("canpos bus netsim: {e}"))?;
     // Written, not printed: a worker whose supervisor was killed finds its stdout closed, and
@@ -548,12 +605,12 @@ mod tests {
                 after_worker(&exited(1), mode, false, false, &mut early),
                 AfterWorker::End(1)
             );
-            // Killed or stopped by someone (not a crash): the command ends too.
+            // Killed by someone (not a crash): the command ends too, with exit 1 and saying so.
             for sig in [libc::SIGKILL, libc::SIGTERM, libc::SIGINT] {
-                assert_eq!(
+                assert!(matches!(
                     after_worker(&killed(sig), mode, true, false, &mut early),
-                    AfterWorker::End(1)
-                );
+                    AfterWorker::Fail(e) if e.contains(&format!("killed by signal {sig}"))
+                ));
             }
         }
         // A coordinated run cannot take a simulator back.
@@ -611,6 +668,23 @@ mod tests {
             after_worker(&exited(1), TimeMode::Wall, false, false, &mut early),
             AfterWorker::End(1)
         );
+    }
+
+    #[test]
+    fn a_stopped_worker_ends_the_command_with_its_code_and_a_crash_or_kill_with_1() {
+        use std::process::ExitStatus;
+        let killed = |sig: i32| ExitStatus::from_raw(sig);
+        let exited = |code: i32| ExitStatus::from_raw(code << 8);
+        for code in [0, 1, 2] {
+            assert_eq!(after_stop(&exited(code)), code);
+        }
+        // Ended by the stop itself before it handled it: a stop, not a failure.
+        for sig in STOP_SIGNALS {
+            assert_eq!(after_stop(&killed(sig)), 0);
+        }
+        for sig in CRASH_SIGNALS.into_iter().chain([libc::SIGKILL]) {
+            assert_eq!(after_stop(&killed(sig)), 1);
+        }
     }
 
     #[test]
