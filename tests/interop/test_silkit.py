@@ -71,10 +71,16 @@ def wait_text(path, needle, proc):
 
 @pytest.fixture
 def rig(registry, hub, tmp_path):
-    """TH (node 5) and TMI (node 6) on the SIL Kit network `can0`, bridged to the hub."""
+    """TH (node 5) and TMI (node 6) on the SIL Kit network `can0`, simulated by `canpos bus
+    netsim` at 125 kbit/s (issue 32's rig), bridged to the hub."""
     bus = f"{registry}/can0"
     procs = []
     try:
+        log = tmp_path / "netsim.log"
+        netsim = start(["bus", "netsim", "--registry", registry, "--network", "can0",
+                        "--bitrate", "125", "--participant", "netsim"], log.open("w"))
+        procs.append(netsim)
+        wait_text(log, "simulating can0 at 125 kbit/s", netsim)
         for model, serial, node in (("th", 31, 5), ("tmi", 32, 6)):
             log = tmp_path / f"{model}.log"
             p = start(["run", "--model", model, "--serial", str(serial), "--node-id", str(node),
@@ -124,3 +130,7 @@ def test_python_canopen_reaches_sensors_on_sil_kit_through_the_bridge(rig, hub):
             time.sleep(0.05)
     finally:
         net.disconnect()
+    # Every frame went through canpos's bus timeline: each sensor and the bridge say so.
+    for name in ("th", "tmi", "bridge"):
+        text = (rig / f"{name}.log").read_text()
+        assert "network can0: simulated by 'netsim' (bit-timed)" in text, text
