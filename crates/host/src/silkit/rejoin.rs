@@ -17,7 +17,7 @@
 //! **The recovery.** Wall-clock mode: the participant leaves (its controller stopped, a
 //! [`LINGER`](super::can::LINGER)) and joins again under the same name with a new CAN
 //! controller; the transport's receiver, its runtime and the sensor's state go on untouched.
-//! Frames sent between the two participants are lost and counted ([`Link::lost`]). Each
+//! Frames sent between the two participants are lost and counted (`SilkitCan::lost_rejoining`). Each
 //! transition is logged (WARN: gone; INFO: back, rejoined; WARN: a rejoin that failed, tried
 //! again at the next probe). Synchronised mode cannot rejoin: the coordinated lifecycle and the
 //! time synchronisation belong to the participants that started the simulation. Its
