@@ -203,11 +203,14 @@ fn the_simulator_times_the_frames_as_docs_bus_md_and_synchronised_runs_repeat() 
 /// concerned): it records the frames it receives with SIL Kit's timestamp (the simulator's
 /// end-of-frame time) and, when dropped, leaves without stopping its controller.
 struct RawNode {
+    /// Dropped first (fields drop in order): SIL Kit calls no handler after the participant
+    /// is destroyed, so `seen`, the frame handler's context, must outlive it. In the other
+    /// order a frame arriving during the drop wrote into freed memory (a CI run's test process
+    /// aborted with "malloc_consolidate(): unaligned fastbin chunk detected").
+    _participant: silkit::Participant,
     api: &'static silkit::sys::Api,
     ctrl: *mut silkit::sys::CanController,
     seen: Box<Received>,
-    /// Last: destroyed after nothing else of it is used.
-    _participant: silkit::Participant,
 }
 
 /// Frames received: identifier, data, SIL Kit timestamp.

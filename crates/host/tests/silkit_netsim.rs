@@ -64,13 +64,14 @@ enum Seen {
 
 /// A SIL Kit participant with one CAN controller, recording what it is told.
 struct Node {
+    /// Dropped first (fields drop in order): SIL Kit calls no handler after the participant
+    /// is destroyed, so the handlers' contexts (`seen`, `_plan`) must outlive it.
+    _participant: Participant,
     api: &'static Api,
     ctrl: *mut CanController,
     seen: Box<Mutex<Vec<Seen>>>,
     /// Synchronised: what it sends at which simulation time (kept alive for the handler).
     _plan: Option<Box<Plan>>,
-    /// Last: destroyed after nothing else of it is used.
-    _participant: Participant,
 }
 
 /// A synchronised node's script: frames to send at simulation times (stamped with the time,
